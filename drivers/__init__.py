@@ -1,0 +1,1 @@
+"""Hardware-abstraction layer: robot controller, laser tracker and camera rig drivers."""

@@ -1,0 +1,1 @@
+"""The digital twin: registration, plans, error models, uncertainty, runtime and CLI."""

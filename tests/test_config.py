@@ -1,0 +1,30 @@
+import pytest
+
+from sim.configtools import Frozen, load_yaml
+from sim.errors import ConfigError
+
+
+class Inner(Frozen):
+    stiffness: float
+
+
+class Outer(Frozen):
+    name: str
+    joint: Inner
+
+
+def test_unknown_key_names_file_key_and_allowed(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("name: a\njoint: {stiffness: 1.0, stiffnes: 2}\n")
+    with pytest.raises(ConfigError) as ei:
+        load_yaml(p, Outer)
+    msg = str(ei.value)
+    assert "c.yaml" in msg and "joint.stiffnes" in msg and "stiffness" in msg
+
+
+def test_config_is_frozen(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("name: a\njoint: {stiffness: 1.0}\n")
+    cfg = load_yaml(p, Outer)
+    with pytest.raises(Exception):
+        cfg.name = "b"
