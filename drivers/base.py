@@ -1,0 +1,145 @@
+"""Driver interfaces (typing.Protocol) and the shared lifecycle.
+
+Lifecycle: unconfigured --configure--> inactive --activate--> active --deactivate--> inactive
+--close--> closed. Calling read/write outside `active` raises StateError. Units: SI, robot
+frame for the controller, the instrument's own frame for the tracker and the camera rig.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Protocol, runtime_checkable
+
+import numpy as np
+
+from sim.errors import StateError
+
+UNCONFIGURED, INACTIVE, ACTIVE, CLOSED = "unconfigured", "inactive", "active", "closed"
+
+
+class Lifecycle:
+    """Mixin enforcing the lifecycle; subclasses override the `_on_*` hooks."""
+
+    _state: str = UNCONFIGURED
+
+    @property
+    def state(self) -> str:
+        return self._state
+
+    def _require(self, *states: str) -> None:
+        if self._state not in states:
+            raise StateError(
+                f"{type(self).__name__}: call not allowed in state '{self._state}'"
+                f" (needs {' or '.join(states)})"
+            )
+
+    def configure(self, config: Mapping[str, Any] | None = None) -> None:
+        self._require(UNCONFIGURED, INACTIVE)
+        self._on_configure(dict(config or {}))
+        self._state = INACTIVE
+
+    def activate(self) -> None:
+        self._require(INACTIVE)
+        self._on_activate()
+        self._state = ACTIVE
+
+    def deactivate(self) -> None:
+        self._require(ACTIVE)
+        self._on_deactivate()
+        self._state = INACTIVE
+
+    def close(self) -> None:
+        if self._state == CLOSED:
+            return
+        if self._state == ACTIVE:
+            self.deactivate()
+        self._on_close()
+        self._state = CLOSED
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # hooks
+    def _on_configure(self, config: dict[str, Any]) -> None: ...
+    def _on_activate(self) -> None: ...
+    def _on_deactivate(self) -> None: ...
+    def _on_close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class JointState:
+    q: np.ndarray  # rad, encoder reading
+    t: float  # s
+
+
+@dataclass(frozen=True)
+class TrackerReading:
+    point: np.ndarray  # (3,) m, tracker frame (cartesian from d, azimuth, elevation)
+    spherical: tuple[float, float, float]  # (d m, azimuth rad, elevation rad)
+    t: float
+    status: str = "ok"  # "ok" or a reason such as "beam_broken"
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass(frozen=True)
+class RigReading:
+    point: np.ndarray | None  # (3,) m, MVS frame; None when refused
+    t: float
+    cov: np.ndarray | None = None  # (3,3) m^2 propagated from pixel noise, if known
+    quality: Mapping[str, Any] = field(default_factory=dict)  # markers_used, cameras_used, reproj_rms_px
+    refused: str | None = None  # reason, when no measurement is reported
+
+    @property
+    def ok(self) -> bool:
+        return self.refused is None and self.point is not None
+
+
+@runtime_checkable
+class RobotController(Protocol):
+    state: str
+
+    def configure(self, config: Mapping[str, Any] | None = None) -> None: ...
+    def activate(self) -> None: ...
+    def deactivate(self) -> None: ...
+    def close(self) -> None: ...
+
+    def move_linear(self, target: np.ndarray, speed: float) -> None:
+        """Linear move of the TCP to `target` (m, robot frame) at `speed` (m/s); returns when settled."""
+
+    def stream_setpoint(self, target: np.ndarray, speed: float) -> None:
+        """One set-point of a streamed trajectory (non-blocking)."""
+
+    def read_joint_state(self) -> JointState: ...
+
+    def read_commanded_tcp(self) -> np.ndarray:
+        """The controller's own TCP (m, robot frame) from its encoders and nominal kinematics."""
+
+
+@runtime_checkable
+class LaserTracker(Protocol):
+    state: str
+
+    def configure(self, config: Mapping[str, Any] | None = None) -> None: ...
+    def activate(self) -> None: ...
+    def deactivate(self) -> None: ...
+    def close(self) -> None: ...
+
+    def measure(self) -> TrackerReading: ...
+
+
+@runtime_checkable
+class CameraRig(Protocol):
+    state: str
+
+    def configure(self, config: Mapping[str, Any] | None = None) -> None: ...
+    def activate(self) -> None: ...
+    def deactivate(self) -> None: ...
+    def close(self) -> None: ...
+
+    def read(self) -> RigReading:
+        """Measure the TCP/SMR point from the marker cluster (m, MVS frame)."""

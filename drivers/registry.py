@@ -1,0 +1,31 @@
+"""Drivers chosen by config string: `kind` (robot, tracker, camera) and `name`."""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from sim.errors import ConfigError
+
+# name -> "module:Class"; imported lazily so a missing optional part fails only when chosen.
+_REGISTRY: dict[str, dict[str, str]] = {
+    "robot": {},
+    "tracker": {},
+    "camera": {},
+}
+
+
+def register(kind: str, name: str, target: str) -> None:
+    _REGISTRY[kind][name] = target
+
+
+def known(kind: str) -> list[str]:
+    return sorted(_REGISTRY[kind])
+
+
+def create(kind: str, name: str, source: str = "<config>", **kwargs: Any):
+    if kind not in _REGISTRY:
+        raise ConfigError(source, "kind", kind, "one of " + ", ".join(sorted(_REGISTRY)))
+    if name not in _REGISTRY[kind]:
+        raise ConfigError(source, f"drivers.{kind}", name, "one of " + ", ".join(known(kind)))
+    module, cls = _REGISTRY[kind][name].split(":")
+    return getattr(importlib.import_module(module), cls)(**kwargs)
