@@ -8,9 +8,9 @@ from sim.errors import ConfigError
 
 # name -> "module:Class"; imported lazily so a missing optional part fails only when chosen.
 _REGISTRY: dict[str, dict[str, str]] = {
-    "robot": {},
-    "tracker": {},
-    "camera": {},
+    "robot": {"sim": "drivers.simulated:SimRobot"},
+    "tracker": {"sim": "drivers.simulated:SimTracker"},
+    "camera": {"sim_point": "drivers.simulated:SimPointCamera"},
 }
 
 

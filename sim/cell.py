@@ -1,0 +1,36 @@
+"""The simulated cell: plant, laser tracker and MVS sharing one clock, built from configs."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from sim.configtools import Frozen, load_yaml
+from sim.instruments import PointMVSConfig, SimLaserTracker, SimPointMVS, TrackerConfig
+from sim.plant import SimClock, SimulatedCobot
+from sim.scenario import Scenario, load_scenario
+
+
+class CellConfig(Frozen):
+    """Instrument placement in the cell (configs/cell.yaml)."""
+
+    laser_tracker: TrackerConfig
+    mvs: PointMVSConfig
+
+
+def load_cell(path: str | Path) -> CellConfig:
+    return load_yaml(path, CellConfig)
+
+
+class SimCell:
+    def __init__(self, scenario: Scenario, cell: CellConfig):
+        self.scenario, self.cell = scenario, cell
+        self.clock = SimClock()
+        self.plant = SimulatedCobot(scenario, self.clock)
+        self.tracker = SimLaserTracker(self.plant.actual_tcp, cell.laser_tracker, scenario.seed)
+        self.mvs = SimPointMVS(self.plant.actual_tcp, cell.mvs, scenario.seed)
+
+    @classmethod
+    def from_files(cls, scenario: str | Path, cell: str | Path) -> "SimCell":
+        return cls(load_scenario(scenario), load_cell(cell))
+
+    def close(self) -> None:
+        self.plant.close()

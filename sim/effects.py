@@ -1,0 +1,50 @@
+"""The physical error effects, each a small function of the plant state.
+
+Joint-space effects return joint deviations (rad) added to the commanded angles before the
+actual (perturbed) kinematics; Cartesian effects return TCP deviations (m).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from sim.scenario import Scenario
+
+
+def geometric_perturbation(scn: Scenario, joint_names: list[str]):
+    """Seeded joint-origin shifts (m), twists (rad) and joint zero offsets (rad)."""
+    g = scn.effects.geometric
+    rng = np.random.default_rng([scn.seed, 101])
+    names = joint_names + ["tcp_fixed"]
+    xyz = {n: rng.normal(0, g.link_sigma_m, 3) for n in names}
+    rpy = {n: rng.normal(0, g.twist_sigma_rad, 3) for n in names}
+    offsets = rng.normal(0, g.joint_offset_sigma_rad, len(joint_names))
+    return xyz, rpy, offsets
+
+
+def compliance(scn: Scenario, holding_torque: np.ndarray) -> np.ndarray:
+    # A torsional spring per joint: gravity deflects the joint by -tau_hold / k.
+    return -holding_torque / np.asarray(scn.effects.compliance.stiffness_nm_per_rad)
+
+
+def gear(scn: Scenario, q: np.ndarray) -> np.ndarray:
+    e = scn.effects.gear
+    return np.asarray(e.amplitude_rad) * np.sin(np.asarray(e.harmonic) * q + np.asarray(e.phase_rad))
+
+
+def backlash(scn: Scenario, approach_sign: np.ndarray) -> np.ndarray:
+    # The load side stays behind the motor by half the play, opposite to the motion.
+    return -0.5 * np.asarray(scn.effects.backlash.width_rad) * approach_sign
+
+
+def drift(scn: Scenario, t: float) -> np.ndarray:
+    return np.asarray(scn.effects.drift.joint_rate_rad_per_h) * (t / 3600.0)
+
+
+def thermal_scale(scn: Scenario, temperature_c: float) -> float:
+    th = scn.effects.thermal
+    return th.expansion_per_k * (temperature_c - th.reference_c)
+
+
+def dynamic(scn: Scenario, speed: float, approach_dir: np.ndarray) -> np.ndarray:
+    d = scn.effects.dynamic
+    return speed * (d.lag_s * approach_dir + d.sag_s * np.array([0.0, 0.0, -1.0]))

@@ -1,0 +1,179 @@
+"""PyBullet model of the arm (DIRECT mode): forward/inverse kinematics and gravity torques.
+
+Each `Arm` owns its own PyBullet client, so a nominal model (what the controller believes) and
+an actual model (the perturbed geometry of the real arm) can live side by side.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pybullet as pb
+
+from sim.errors import UnreachableError
+
+URDF_PATH = Path(__file__).parent / "assets" / "cobot.urdf"
+GRAVITY = 9.80665  # m/s^2, standard gravity
+
+# Tool pointing straight down: the tool x axis (along the forearm at zero pose) along world -z.
+TOOL_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+
+
+def perturbed_urdf(joint_xyz: dict[str, np.ndarray], joint_rpy: dict[str, np.ndarray],
+                   source: Path = URDF_PATH) -> str:
+    """URDF text with joint origins shifted by `joint_xyz` (m) and `joint_rpy` (rad)."""
+    tree = ET.parse(source)
+    for joint in tree.getroot().iter("joint"):
+        name = joint.get("name")
+        origin = joint.find("origin")
+        xyz = np.array([float(v) for v in origin.get("xyz", "0 0 0").split()])
+        rpy = np.array([float(v) for v in origin.get("rpy", "0 0 0").split()])
+        xyz = xyz + joint_xyz.get(name, 0.0)
+        rpy = rpy + joint_rpy.get(name, 0.0)
+        origin.set("xyz", " ".join(f"{v:.12g}" for v in xyz))
+        origin.set("rpy", " ".join(f"{v:.12g}" for v in rpy))
+    return ET.tostring(tree.getroot(), encoding="unicode")
+
+
+class Arm:
+    """One PyBullet body of the arm. Positions in metres, angles in radians, robot base frame."""
+
+    def __init__(self, urdf_text: str | None = None, urdf_path: Path = URDF_PATH,
+                 ):
+        self.client = pb.connect(pb.DIRECT)
+        pb.setGravity(0, 0, -GRAVITY, physicsClientId=self.client)
+        if urdf_text is None:
+            path = str(urdf_path)
+            self.body = pb.loadURDF(path, useFixedBase=True, physicsClientId=self.client,
+                                    flags=pb.URDF_USE_INERTIA_FROM_FILE)
+        else:
+            fd, path = tempfile.mkstemp(suffix=".urdf")
+            try:
+                with os.fdopen(fd, "w") as fh:
+                    fh.write(urdf_text)
+                self.body = pb.loadURDF(path, useFixedBase=True, physicsClientId=self.client,
+                                        flags=pb.URDF_USE_INERTIA_FROM_FILE)
+            finally:
+                os.unlink(path)
+        n = pb.getNumJoints(self.body, physicsClientId=self.client)
+        infos = [pb.getJointInfo(self.body, j, physicsClientId=self.client) for j in range(n)]
+        self.joints = [i[0] for i in infos if i[2] == pb.JOINT_REVOLUTE]
+        self.joint_names = [infos[j][1].decode() for j in self.joints]
+        self.lower = np.array([infos[j][8] for j in self.joints])
+        self.upper = np.array([infos[j][9] for j in self.joints])
+        self.tcp_link = n - 1
+        self.flange_link = self.joints[-1]
+        self.set_payload(0.0)
+        self._q = None
+
+    @property
+    def dof(self) -> int:
+        return len(self.joints)
+
+    def set_payload(self, kg: float) -> None:
+        """Payload carried at the TCP (drives the compliance torques)."""
+        self.payload = float(kg)
+
+    def _set(self, q: np.ndarray) -> None:
+        for j, v in zip(self.joints, q):
+            pb.resetJointState(self.body, j, float(v), physicsClientId=self.client)
+        self._q = q
+
+    def fk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """TCP position (3,) and orientation matrix (3,3) for joint angles q."""
+        self._set(np.asarray(q, dtype=float))
+        s = pb.getLinkState(self.body, self.tcp_link, computeForwardKinematics=True,
+                            physicsClientId=self.client)
+        R = np.array(pb.getMatrixFromQuaternion(s[5])).reshape(3, 3)
+        return np.array(s[4]), R
+
+    def link_positions(self, q: np.ndarray) -> np.ndarray:
+        """World positions of every link frame (for occlusion geometry and displays)."""
+        self._set(np.asarray(q, dtype=float))
+        return np.array([pb.getLinkState(self.body, j, computeForwardKinematics=True,
+                                         physicsClientId=self.client)[4]
+                         for j in range(self.tcp_link + 1)])
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """6 x dof geometric Jacobian (linear; angular) of the TCP."""
+        q = [float(v) for v in q]
+        zeros = [0.0] * len(q)
+        self._set(np.asarray(q))
+        lin, ang = pb.calculateJacobian(self.body, self.tcp_link, [0.0, 0.0, 0.0], q, zeros,
+                                        zeros, physicsClientId=self.client)
+        return np.vstack([np.array(lin), np.array(ang)])
+
+    def gravity_torque(self, q: np.ndarray) -> np.ndarray:
+        """Static joint torques (N m) holding the arm and payload against gravity.
+
+        The arm's own weight comes from PyBullet's inverse dynamics; the payload at the TCP
+        adds J_lin^T (0, 0, m g) (PyBullet's changeDynamics does not reach its inverse dynamics).
+        """
+        ql = [float(v) for v in q]
+        zeros = [0.0] * len(ql)
+        tau = np.array(pb.calculateInverseDynamics(self.body, ql, zeros, zeros,
+                                                   physicsClientId=self.client))
+        if self.payload:
+            tau = tau + self.jacobian(q)[:3].T @ np.array([0.0, 0.0, self.payload * GRAVITY])
+        return tau
+
+    def ik(self, target: np.ndarray, R: np.ndarray = TOOL_DOWN, q_seed: np.ndarray | None = None,
+           tol: float = 2e-7, max_iter: int = 30) -> np.ndarray:
+        """Joint angles putting the TCP at `target` with orientation `R`.
+
+        PyBullet's damped IK gives a start on the elbow-up branch; Newton steps on the full
+        6-D pose error then converge to `tol` (m and rad; PyBullet reports link poses in
+        single precision, about 0.1 um here, well inside the 1 um resolution). Raises UnreachableError outside reach or joint limits.
+        """
+        target = np.asarray(target, dtype=float)
+        if q_seed is None:
+            q_seed = np.array([np.arctan2(target[1], target[0]), 0.3, 0.3, 0.0, 0.9, 0.0])
+        self._set(q_seed)
+        quat = _quat_from_matrix(R)
+        q = np.array(pb.calculateInverseKinematics(
+            self.body, self.tcp_link, target.tolist(), quat, lowerLimits=self.lower.tolist(),
+            upperLimits=self.upper.tolist(), jointRanges=(self.upper - self.lower).tolist(),
+            restPoses=list(q_seed), maxNumIterations=200, residualThreshold=1e-6,
+            physicsClientId=self.client))[: self.dof]
+        for _ in range(max_iter):
+            p, Rq = self.fk(q)
+            err = np.concatenate([target - p, _rot_error(R, Rq)])
+            if np.linalg.norm(err[:3]) < tol and np.linalg.norm(err[3:]) < tol * 5:
+                break
+            J = self.jacobian(q)
+            q = q + np.linalg.lstsq(J, err, rcond=None)[0]
+        p, Rq = self.fk(q)
+        if np.linalg.norm(target - p) > 1e-6 or np.linalg.norm(_rot_error(R, Rq)) > 1e-5:
+            raise UnreachableError(
+                f"target {np.round(target * 1e3, 2).tolist()} mm is out of reach "
+                f"(IK residual {np.linalg.norm(target - p) * 1e3:.3g} mm)")
+        q = (q + np.pi) % (2 * np.pi) - np.pi
+        if np.any(q < self.lower) or np.any(q > self.upper):
+            bad = [self.joint_names[i] for i in np.flatnonzero((q < self.lower) | (q > self.upper))]
+            raise UnreachableError(
+                f"target {np.round(target * 1e3, 2).tolist()} mm needs joints outside their "
+                f"limits: {', '.join(bad)}")
+        return q
+
+    def close(self) -> None:
+        if pb.isConnected(self.client):
+            pb.disconnect(self.client)
+
+
+def _rot_error(R_target: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Rotation vector (world frame) taking R to R_target."""
+    E = R_target @ R.T
+    angle = np.arccos(np.clip((np.trace(E) - 1) / 2, -1.0, 1.0))
+    v = np.array([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])
+    if angle < 1e-12:
+        return v / 2
+    return angle / (2 * np.sin(angle)) * v
+
+
+def _quat_from_matrix(R: np.ndarray) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_quat().tolist()  # x, y, z, w as PyBullet expects

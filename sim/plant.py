@@ -1,0 +1,129 @@
+"""The simulated cobot plant: the controller's nominal model and the arm's actual behaviour.
+
+The controller solves inverse kinematics on the nominal URDF; the arm really reaches the pose
+of the *actual* (perturbed) kinematics at the commanded joint angles plus every switched-on
+effect (see sim.effects) and repeatability noise. The plant is the truth: instruments measure
+`actual_tcp()`; the twin never sees it directly.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from sim import effects as fx
+from sim.kinematics import TOOL_DOWN, Arm, perturbed_urdf
+from sim.scenario import Scenario
+
+
+class SimClock:
+    """Simulated time (s), shared by the plant and the instruments."""
+
+    def __init__(self, t0: float = 0.0):
+        self.t = t0
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+
+
+class SimulatedCobot:
+    def __init__(self, scenario: Scenario, clock: SimClock | None = None):
+        self.scn = scenario
+        self.clock = clock or SimClock()
+        self.nominal = Arm()
+        names = self.nominal.joint_names
+        if scenario.effects.geometric.enabled:
+            xyz, rpy, self._joint_offsets = fx.geometric_perturbation(scenario, names)
+            self.actual = Arm(urdf_text=perturbed_urdf(xyz, rpy))
+        else:
+            self._joint_offsets = np.zeros(len(names))
+            self.actual = Arm()
+        self._rng = np.random.default_rng([scenario.seed, 202])
+        self._fault_offsets = np.zeros(len(names))
+        self.q_cmd = self.nominal.ik(np.array([0.9, 0.0, 0.7]))
+        self._last_dir = np.zeros(len(names))
+        self._target = self.nominal.fk(self.q_cmd)[0]
+        self._speed = 0.0
+        self._approach = np.zeros(3)
+        self._settle()
+
+    # --- commands -----------------------------------------------------------------------
+    def move_linear(self, target: np.ndarray, speed: float) -> None:
+        """Move the TCP to `target` (m, robot frame) at `speed` (m/s) and settle there."""
+        target = np.asarray(target, dtype=float)
+        speed = float(min(speed, self.scn.max_speed_m_s))
+        q_new = self.nominal.ik(target, q_seed=self.q_cmd)
+        step = target - self._target
+        dist = float(np.linalg.norm(step))
+        dq = q_new - self.q_cmd
+        # Direction of approach per joint; a joint that did not move keeps its last one.
+        moved = np.abs(dq) > 1e-9
+        self._last_dir = np.where(moved, np.sign(dq), self._last_dir)
+        self._approach = step / dist if dist > 1e-9 else self._approach
+        self.clock.advance(dist / max(speed, 1e-6) + self.scn.dwell_s)
+        self.q_cmd, self._target, self._speed = q_new, target, speed
+        self._settle()
+
+    def inject_joint_offset(self, delta_rad: np.ndarray) -> None:
+        """Fault injection: a step in the joint zero offsets (e.g. a slipped encoder)."""
+        self._fault_offsets = self._fault_offsets + np.asarray(delta_rad, dtype=float)
+        self._settle()
+
+    # --- truth and controller view ------------------------------------------------------
+    def _settle(self) -> None:
+        scn, e = self.scn, self.scn.effects
+        t = self.clock.t
+        self.actual.set_payload(scn.payload_at(t))
+        q = self.q_cmd + self._joint_offsets + self._fault_offsets
+        if e.compliance.enabled:
+            q = q + fx.compliance(scn, self.actual.gravity_torque(q))
+        if e.gear.enabled:
+            q = q + fx.gear(scn, self.q_cmd)
+        if e.backlash.enabled:
+            q = q + fx.backlash(scn, self._last_dir)
+        if e.drift.enabled:
+            q = q + fx.drift(scn, t)
+        q = q + self._rng.normal(0.0, scn.joint_noise_rad, q.shape)
+        p, R = self.actual.fk(q)
+        if e.thermal.enabled:
+            # The arm expands about its base mount (robot frame origin).
+            p = p * (1.0 + fx.thermal_scale(scn, self.temperature()))
+        if e.dynamic.enabled:
+            p = p + fx.dynamic(scn, self._speed, self._approach)
+        self._actual_p, self._actual_R = p, R
+
+    def actual_tcp(self) -> np.ndarray:
+        """Where the TCP (SMR centre) really is, robot base frame (m). Truth."""
+        return self._actual_p.copy()
+
+    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Actual tool orientation (3,3) and TCP position (3,), robot base frame. Truth."""
+        return self._actual_R.copy(), self._actual_p.copy()
+
+    def controller_tcp(self) -> np.ndarray:
+        """The controller's TCP from encoders and nominal kinematics, at its 1 um resolution."""
+        res = self.scn.tcp_resolution_m
+        return np.round(self._target / res) * res
+
+    def joint_angles(self) -> np.ndarray:
+        return self.q_cmd.copy()
+
+    def temperature(self) -> float:
+        tm = self.scn.temperature
+        h = self.clock.t / 3600.0
+        return tm.base_c + tm.ramp_c_per_h * h + tm.amplitude_c * np.sin(2 * np.pi * h / tm.period_h)
+
+    def payload(self) -> float:
+        return self.scn.payload_at(self.clock.t)
+
+    def check_reachable(self, targets: np.ndarray) -> list[tuple[int, str]]:
+        """Indices and reasons of targets the controller cannot reach (nothing moves)."""
+        bad = []
+        for i, tgt in enumerate(np.atleast_2d(targets)):
+            try:
+                self.nominal.ik(tgt, R=TOOL_DOWN)
+            except Exception as exc:  # UnreachableError, reported not skipped
+                bad.append((i, str(exc)))
+        return bad
+
+    def close(self) -> None:
+        self.nominal.close()
+        self.actual.close()
