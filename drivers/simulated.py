@@ -31,6 +31,15 @@ class SimWorld:
     def truth_tcp(self) -> np.ndarray:
         return self.cell.plant.actual_tcp()
 
+    def truth_in_tracker_frame(self) -> np.ndarray:
+        """The true TCP expressed, noise-free, in the laser tracker's frame.
+
+        The global frame GL is realised by the tracker's registration, so true errors are
+        scored in GL by mapping this point through the twin's tracker registration.
+        """
+        R, t = self.cell.cell.laser_tracker.pose.matrix()
+        return R.T @ (self.truth_tcp() - t)
+
     def tool_pose(self):
         return self.cell.plant.tool_pose()
 

@@ -28,3 +28,12 @@ def test_config_is_frozen(tmp_path):
     cfg = load_yaml(p, Outer)
     with pytest.raises(Exception):
         cfg.name = "b"
+
+
+def test_exponent_without_sign_is_a_float(tmp_path):
+    from sim.configtools import read_yaml
+
+    p = tmp_path / "c.yaml"
+    p.write_text("a: 1.0e6\nb: 1e-5\nc: 3\nd: '1e3'\n")
+    d = read_yaml(p)
+    assert d == {"a": 1.0e6, "b": 1e-5, "c": 3, "d": "1e3"}
