@@ -31,20 +31,24 @@ class Chain:
     def dof(self) -> int:
         return len(self.axes)
 
-    def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Joint frames for a batch q (n, dof): positions (n, dof, 3), world axes (n, dof, 3),
-        and the TCP transform (n, 4, 4)."""
+    def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Joint frames for a batch q (n, dof): origins (n, dof, 3) and orientations
+        (n, dof, 3, 3) of every joint frame before its rotation, and the TCP transform (n, 4, 4)."""
         q = np.atleast_2d(q)
         n = len(q)
         T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
         pos = np.zeros((n, self.dof, 3))
-        ax = np.zeros((n, self.dof, 3))
+        rot = np.zeros((n, self.dof, 3, 3))
         for j in range(self.dof):
             T = T @ self.origins[j]
             pos[:, j] = T[:, :3, 3]
-            ax[:, j] = T[:, :3, :3] @ self.axes[j]
+            rot[:, j] = T[:, :3, :3]
             T = T @ _rot_axis(self.axes[j], q[:, j])
-        return pos, ax, T @ self.tool
+        return pos, rot, T @ self.tool
+
+    def world_axes(self, rot: np.ndarray) -> np.ndarray:
+        """Joint axes in the world (n, dof, 3) from frame orientations."""
+        return np.einsum("njab,jb->nja", rot, np.array(self.axes))
 
     def fk(self, q: np.ndarray) -> np.ndarray:
         """TCP positions (n, 3) in metres."""
@@ -52,9 +56,9 @@ class Chain:
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """Positional Jacobian dTCP/dq (n, 3, dof): axis_j x (p_tcp - p_j)."""
-        pos, ax, T = self.frames(q)
+        pos, rot, T = self.frames(q)
         p = T[:, None, :3, 3]
-        return np.cross(ax, p - pos).transpose(0, 2, 1)
+        return np.cross(self.world_axes(rot), p - pos).transpose(0, 2, 1)
 
 
 def _rot_axis(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
