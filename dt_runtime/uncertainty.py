@@ -129,6 +129,12 @@ class MetrologyInputs:
     reprod_mvs: np.ndarray
     reprod_mvs_dof: float
     resol_mvs: float
+    # How registration residuals enter: 'transform' propagates the uncertainty of the fitted
+    # registration, s(e_GL)/sqrt(n); 'spread' adds the residual spread s(e_GL) itself, as the
+    # paper's Eqs. 13-16 write it. The spread is mostly the robot's own error along the
+    # registration lines, which e_LT and its GPR already carry: validated against the
+    # simulator's truth it double counts (see README, "Honest uncertainty").
+    registration_term: str = "transform"
 
 
 def _stat_pair(sym: str, st: tuple, eq: str) -> tuple[Component, Component]:
@@ -136,9 +142,19 @@ def _stat_pair(sym: str, st: tuple, eq: str) -> tuple[Component, Component]:
     return (Component.type_a(f"s({sym})", std, n - 1, eq), Component.uniform_from_bias(f"mean({sym})", mean, eq))
 
 
+def _reg_pair(sym: str, st: tuple, eq: str, mode: str) -> tuple[Component, Component]:
+    mean, std, n = st
+    if mode == "spread":
+        return _stat_pair(sym, st, eq)
+    if mode != "transform":
+        raise ValueError(f"registration_term must be 'transform' or 'spread', not {mode!r}")
+    return (Component.type_a(f"s({sym})/sqrt(n)", np.asarray(std) / np.sqrt(n), n - 1, eq + ", fitted transform"),
+            Component.uniform_from_bias(f"mean({sym})", mean, eq))
+
+
 def budget_e_lt_hat(inp: MetrologyInputs) -> Budget:
     """Eq. 13: registration of LT to GL, LT traceability, GPR residuals of e_LT."""
-    return Budget("u(e_LT_hat)", (*_stat_pair("e_LT,GL", inp.reg_lt, "Eq. 13"),
+    return Budget("u(e_LT_hat)", (*_reg_pair("e_LT,GL", inp.reg_lt, "Eq. 13", inp.registration_term),
                                   Component.from_std("u_LT", inp.u_lt, note="Eq. 13, LT calibration"),
                                   *_stat_pair("r_LT", inp.res_lt, "Eq. 13")))
 
@@ -153,7 +169,7 @@ def budget_tcp_corrected(inp: MetrologyInputs) -> Budget:
 def _mvs_components(inp: MetrologyInputs) -> tuple[Component, ...]:
     return (Component.type_a("reprod_MVS", inp.reprod_mvs, inp.reprod_mvs_dof, "Eqs. 12, 15"),
             Component.uniform_from_resolution("resol_MVS", inp.resol_mvs, "Eq. 15"),
-            *_stat_pair("e_MVS,GL", inp.reg_mvs, "Eq. 15"))
+            *_reg_pair("e_MVS,GL", inp.reg_mvs, "Eq. 15", inp.registration_term))
 
 
 def budget_e_mvs(inp: MetrologyInputs) -> Budget:
@@ -168,8 +184,8 @@ def budget_elt_minus_emvs(inp: MetrologyInputs) -> Budget:
 
 def budget_e_mvs_lt_hat(inp: MetrologyInputs) -> Budget:
     """Eq. 16: the predicted MVS-LT error."""
-    return Budget("u(e_MVS-LT_hat)", (*_stat_pair("e_LT,GL", inp.reg_lt, "Eq. 16"),
-                                      *_stat_pair("e_MVS,GL", inp.reg_mvs, "Eq. 16"),
+    return Budget("u(e_MVS-LT_hat)", (*_reg_pair("e_LT,GL", inp.reg_lt, "Eq. 16", inp.registration_term),
+                                      *_reg_pair("e_MVS,GL", inp.reg_mvs, "Eq. 16", inp.registration_term),
                                       *_stat_pair("r_MVS-LT", inp.res_mvs_lt, "Eq. 16"),
                                       Component.type_a("reprod_MVS", inp.reprod_mvs, inp.reprod_mvs_dof, "Eq. 16"),
                                       Component.uniform_from_resolution("resol_MVS", inp.resol_mvs, "Eq. 16"),

@@ -15,7 +15,8 @@ def paper_inputs(n=1000):
         u_lt=0.0004 * MM,
         res_lt=(np.zeros(3), np.array([0.037, 0.034, 0.079]) * MM, n),
         res_mvs_lt=(np.zeros(3), np.array([0.069, 0.061, 0.093]) * MM, n),
-        reprod_mvs=np.array([0.023, 0.019, 0.028]) * MM, reprod_mvs_dof=n, resol_mvs=5e-6)
+        reprod_mvs=np.array([0.023, 0.019, 0.028]) * MM, reprod_mvs_dof=n, resol_mvs=5e-6,
+        registration_term="spread")
 
 
 def test_paper_eq19_and_eq18_are_reproduced():
@@ -62,3 +63,14 @@ def test_precision_figures():
     pf = unc.precision_figures(np.array([0.628, 0.479, 0.288]) * MM, b)
     assert pf["before_avg_mm"] == pytest.approx(2 * (0.628 + 0.479 + 0.288) / 3)
     assert 70 < pf["improvement_pct"] < 85
+
+
+def test_transform_mode_propagates_the_fitted_registration_only():
+    import dataclasses
+    lit = paper_inputs(n=100)
+    tr = dataclasses.replace(lit, registration_term="transform")
+    u_lit = unc.budget_e_lt_hat(lit).combined()
+    u_tr = unc.budget_e_lt_hat(tr).combined()
+    s_reg, s_res = np.array([0.046, 0.042, 0.032]) * MM, np.array([0.037, 0.034, 0.079]) * MM
+    assert u_tr == pytest.approx(np.sqrt(s_reg ** 2 / 100 + s_res ** 2 + (0.0004 * MM) ** 2), rel=1e-9)
+    assert np.all(u_tr < u_lit)
