@@ -32,6 +32,25 @@ def _demo(args: argparse.Namespace) -> dict:
     return res.summary
 
 
+@command("run")
+def _run(args: argparse.Namespace) -> dict:
+    from dt_runtime.runtime import run_daemon
+
+    return run_daemon(args.config, args.duration)
+
+
+@command("status")
+def _status(args: argparse.Namespace) -> dict:
+    from pathlib import Path
+
+    from dt_runtime.store import Store
+
+    if not Path(args.store).exists():
+        raise TwinError(f"{args.store}: no such store (start `dt run` first)")
+    with Store(args.store) as st:
+        return st.last_figures()
+
+
 def _human(name: str, result: dict) -> str:
     if name == "demo":
         s = result
@@ -61,6 +80,17 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--config", default=None, help="demo config YAML (default: configs/demo.yaml)")
     d.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     d.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
+
+    r = sub.add_parser("run", help="the long-running twin daemon",
+                       description="Correct every command, test every MVS measurement (Eq. 17), escalate "
+                                   "repeated failures to maintenance over Zenoh; SIGINT/SIGTERM stop cleanly.")
+    r.add_argument("--config", required=True, help="runtime YAML (see configs/runtime.yaml)")
+    r.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    r.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
+
+    st = sub.add_parser("status", help="current state and last figures from the daemon's store")
+    st.add_argument("--store", default="out/run/dt.sqlite", help="the daemon's SQLite store")
+    st.add_argument("--json", action="store_true", help="print one JSON object")
     return p
 
 

@@ -1,0 +1,269 @@
+"""`dt run`: the long-running twin daemon.
+
+Every tick: take the next target, apply the bounded GPR correction (dt_runtime.correction),
+move the robot, read the MVS, test the measurement against the prediction (Eq. 17), feed the
+escalation state machine, log everything to the durable store and publish over Zenoh. Entering
+`maintenance_requested` writes a request to the store's outbox, which the bus republishes until
+a consumer acknowledges delivery; the machine returns to nominal only when maintenance is
+confirmed done (`Daemon.acknowledge_maintenance`). The machine's
+state is saved on every transition and restored from the store after a restart.
+
+`realtime: true` paces ticks at `rate_hz` on the wall clock (a real cell); `realtime: false`
+runs as fast as it can on the simulated clock (soaks and tests).
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from drivers import registry
+from dt_runtime.bus import Bus, BusConfig
+from dt_runtime.correction import CorrectionFault, Corrector, Limits, Monitor
+from dt_runtime.errors import DriverError, TwinError
+from dt_runtime.escalation import EscalationConfig, Escalator
+from dt_runtime.experiment import Instruments
+from dt_runtime.store import Store, StoreError
+from dt_runtime.twin import Twin
+from sim.configtools import Frozen, load_yaml
+
+log = logging.getLogger("dt.run")
+
+
+class Fault(Frozen):
+    """A fault injected into the simulated plant at a given (simulated) time."""
+
+    at_s: float = Field(ge=0)
+    joint_offset_rad: tuple[float, float, float, float, float, float] | None = None
+    camera_shift_m: tuple[float, float, float] | None = None
+
+
+class PathConfig(Frozen):
+    """Targets the daemon commands: random points in a box, seeded (a stand-in for a program)."""
+
+    box_min_m: tuple[float, float, float] = (0.65, -0.3, 0.25)
+    box_max_m: tuple[float, float, float] = (1.15, 0.3, 0.85)
+    speeds: tuple[float, ...] = (0.4, 0.8)  # fractions of the maximum speed
+    seed: int = 0
+
+
+class SimSection(Frozen):
+    scenario: str = "scenarios/paper_default.yaml"
+    cell: str = "cell.yaml"
+    faults: list[Fault] = []
+
+
+class Drivers(Frozen):
+    robot: str = "sim"
+    tracker: str = "sim"
+    camera: str = "sim_point"
+    robot_config: dict[str, Any] = {}
+
+
+class RuntimeConfig(Frozen):
+    twin: str  # a twin directory written by `dt demo` (DIR/model)
+    store: str = "out/run/dt.sqlite"
+    rate_hz: float = Field(10.0, gt=0, le=2000)
+    realtime: bool = True
+    alpha: float = Field(0.05, gt=0, lt=1)
+    drivers: Drivers = Drivers()
+    sim: SimSection = SimSection()
+    path: PathConfig = PathConfig()
+    limits: Limits = Limits()
+    escalation: EscalationConfig = EscalationConfig()
+    bus: BusConfig = BusConfig()
+    publish: bool = True
+
+
+def load_runtime_config(path: str | Path) -> RuntimeConfig:
+    return load_yaml(path, RuntimeConfig)
+
+
+class Daemon:
+    def __init__(self, cfg: RuntimeConfig, base: Path, world=None):
+        self.cfg, self.base = cfg, base
+        self.twin = Twin.load(self._p(cfg.twin))
+        self.corrector = Corrector(self.twin, cfg.limits)
+        self.monitor = Monitor(self.twin, cfg.alpha)
+        self.store = Store(self._p(cfg.store))
+        self.bus = Bus(cfg.bus, self.store, on_ack=self._on_ack) if cfg.publish else None
+        self.world = world if world is not None else self._make_world()
+        self.inst = self._make_instruments()
+        self.escalator = Escalator(cfg.escalation, on_transition=self._on_transition)
+        saved = self.store.load_state()
+        if saved and saved.get("name") == "escalation":
+            self.escalator.restore(saved["data"])
+            log.info("resumed escalation state %s from %s", self.escalator.state, self.store.path)
+        self._rng = np.random.default_rng(cfg.path.seed)
+        self._faults = sorted(cfg.sim.faults, key=lambda f: f.at_s)
+        self._stop = threading.Event()
+        self.delivered: list[int] = []
+        self._ack_requested = threading.Event()
+        self._ack_note = ""
+        self.ticks = self.failures = self.faults_refused = 0
+        self.requests: list[dict] = []
+
+    def _p(self, rel: str) -> Path:
+        p = Path(rel)
+        return p if p.is_absolute() else self.base / p
+
+    def _make_world(self):
+        if "sim" not in (self.cfg.drivers.robot, self.cfg.drivers.tracker, self.cfg.drivers.camera):
+            return None
+        from drivers.simulated import SimWorld
+
+        return SimWorld(self._p(self.cfg.sim.scenario), self._p(self.cfg.sim.cell))
+
+    def _make_instruments(self) -> Instruments:
+        d = self.cfg.drivers
+        kw = {"world": self.world} if self.world is not None else {}
+        robot = registry.create("robot", d.robot, **({} if d.robot == "serial" else kw))
+        tracker = registry.create("tracker", d.tracker, **({} if d.tracker == "serial" else kw))
+        camera = registry.create("camera", d.camera, **kw)
+        robot.configure(d.robot_config)
+        inst = Instruments(robot, tracker, camera, world=self.world,
+                           max_speed=self.world.max_speed() if self.world else self.cfg.limits.max_speed_m_s)
+        inst.activate()
+        return inst
+
+    # --- callbacks (never block: bus callbacks come from its worker thread) ---------------
+    def _on_transition(self, src: str, dst: str, evidence: dict, t: float) -> None:
+        log.warning("escalation %s -> %s at t=%.1f s: %s", src, dst, t, evidence)
+        self.store.log_transition(src, dst, evidence, t)
+        self.store.save_state("escalation", self.escalator.snapshot())
+        if self.bus:
+            self.bus.publish_state({"src": src, "dst": dst, "t": t, "evidence": evidence})
+        if dst == "maintenance_requested":
+            req = {"t": t, "state": dst, "evidence": evidence, "reason": "repeated Eq. 17 t-test failures"}
+            self.requests.append(req)
+            if self.bus:
+                self.bus.request_maintenance(req)
+
+    def _on_ack(self, oid: int, payload: dict) -> None:
+        # Delivery acknowledgement: the request reached maintenance and leaves the outbox. The
+        # machine stays in maintenance_requested until maintenance is confirmed done
+        # (`acknowledge_maintenance`), or the same fault would page again at once.
+        self.delivered.append(oid)
+
+    def acknowledge_maintenance(self, note: str = "maintenance done") -> None:
+        """Operator confirmation: maintenance_requested -> nominal (statistics reset)."""
+        self._ack_requested.set()
+        self._ack_note = note
+
+    # --- the loop -----------------------------------------------------------------------------
+    def _inject_faults(self, t: float) -> None:
+        while self._faults and self._faults[0].at_s <= t:
+            f = self._faults.pop(0)
+            log.warning("injecting fault at t=%.1f s: %s", t, f.model_dump(exclude_none=True))
+            if f.joint_offset_rad is not None:
+                self.world.inject_joint_offset(f.joint_offset_rad)
+            if f.camera_shift_m is not None:
+                self.world.bump_camera(f.camera_shift_m)
+
+    def _now(self) -> float:
+        return self.world.t if (self.world is not None and not self.cfg.realtime) else time.time()
+
+    def tick(self) -> None:
+        cfg = self.cfg
+        lo, hi = np.array(cfg.path.box_min_m), np.array(cfg.path.box_max_m)
+        target = self._rng.uniform(lo, hi)
+        v = float(self._rng.choice(cfg.path.speeds)) * self.inst.max_speed
+        if self.world is not None:
+            self._inject_faults(self.world.t)
+        if self._ack_requested.is_set():
+            self._ack_requested.clear()
+            if self.escalator.state == "maintenance_requested":
+                self.escalator.acknowledge(self._now(), note=self._ack_note)
+        try:
+            corr = self.corrector(target, v)
+        except CorrectionFault as exc:
+            self.faults_refused += 1
+            log.error("command refused, robot not moved: %s", exc)
+            return
+        self.inst.robot.move_linear(corr.command, v)
+        t = self._now()
+        self.store.log_command(t, *corr.target, speed=v)
+        self.store.log_correction(t, *corr.correction, *corr.u_tcp)
+        reading = self.inst.camera.read()
+        self.ticks += 1
+        if not reading.ok:
+            log.info("MVS refused: %s", reading.refused)
+            return
+        try:
+            chk = self.monitor(corr.command, v, reading.point)
+        except CorrectionFault as exc:
+            log.error("MVS value rejected: %s", exc)
+            return
+        self.store.log_measurement(t, *reading.point, *chk.diff)
+        worst = int(np.argmax(np.abs(chk.t)))
+        self.store.log_tstat(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
+                             data={"t": chk.t.tolist()})
+        self.failures += int(not chk.passed)
+        self.escalator.observe(chk.passed, float(chk.t[worst]), t)
+        if self.bus:
+            self.bus.publish_telemetry({"t": t, "target": corr.target.tolist(), "command": corr.command.tolist(),
+                                        "t_stat": chk.t.tolist(), "passed": chk.passed,
+                                        "state": self.escalator.state})
+
+    def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> dict:
+        period = 1.0 / self.cfg.rate_hz
+        t0 = self._now()
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            if max_ticks is not None and self.ticks >= max_ticks:
+                break
+            if duration_s is not None and self._now() - t0 >= duration_s:
+                break
+            try:
+                self.tick()
+            except StoreError as exc:  # disk full: keep controlling, rows are retried
+                log.error("store write failed, continuing: %s", exc)
+            except DriverError as exc:
+                log.error("driver fault: %s", exc)
+                time.sleep(min(period, 0.1))
+            if self.cfg.realtime:
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+                else:
+                    next_t = time.monotonic()
+        return self.summary()
+
+    def stop(self, *_: Any) -> None:
+        self._stop.set()
+
+    def summary(self) -> dict:
+        return {"ticks": self.ticks, "t_test_failures": self.failures, "refused_commands": self.faults_refused,
+                "state": self.escalator.state, "maintenance_requests": len(self.requests),
+                "requests_delivered": len(self.delivered),
+                "store": str(self.store.path)}
+
+    def close(self) -> None:
+        try:
+            self.store.save_state("escalation", self.escalator.snapshot())
+            self.store.flush()
+        except TwinError as exc:
+            log.error("could not save state on close: %s", exc)
+        if self.bus:
+            self.bus.close()
+        self.inst.close()
+        self.store.close()
+
+
+def run_daemon(config: str | Path, duration_s: float | None = None) -> dict:
+    config = Path(config)
+    cfg = load_runtime_config(config)
+    d = Daemon(cfg, config.parent)
+    signal.signal(signal.SIGINT, d.stop)
+    signal.signal(signal.SIGTERM, d.stop)
+    try:
+        return d.run(duration_s)
+    finally:
+        d.close()

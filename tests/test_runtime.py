@@ -1,0 +1,143 @@
+"""The daemon end to end: simulated cell, bounded correction, Eq. 17, escalation, Zenoh, SQLite."""
+from __future__ import annotations
+
+import contextlib
+import io
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from dt_runtime.bus import BusConfig, MaintenanceConsumer
+from dt_runtime.cli import main
+from dt_runtime.correction import CorrectionFault, Corrector, Limits
+from dt_runtime.paths import CONFIGS
+from dt_runtime.runtime import Daemon, RuntimeConfig
+from dt_runtime.store import Store
+from dt_runtime.twin import Twin
+
+
+@pytest.fixture(scope="module")
+def twin_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("twin")
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["demo", "--quick", "--json", "--no-progress", "--out", str(out)]) == 0
+    return out / "model"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def daemon_cfg(twin_dir, tmp_path, port, faults=(), publish=True) -> RuntimeConfig:
+    return RuntimeConfig.model_validate({
+        "twin": str(twin_dir), "store": str(tmp_path / "dt.sqlite"), "realtime": False,
+        "sim": {"scenario": str(CONFIGS / "scenarios" / "paper_default.yaml"),
+                "cell": str(CONFIGS / "cell.yaml"), "faults": list(faults)},
+        "publish": publish,
+        "bus": {"cell": "c1", "robot": "r1", "listen": [f"tcp/127.0.0.1:{free_port()}"],
+                "connect": [f"tcp/127.0.0.1:{port}"], "republish_period_s": 0.2},
+    })
+
+
+def wait_until(pred, timeout):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and not pred():
+        time.sleep(0.02)
+    return pred()
+
+
+def test_fault_is_detected_and_the_request_reaches_a_zenoh_consumer(twin_dir, tmp_path):
+    port = free_port()
+    fault = {"at_s": 600.0, "joint_offset_rad": [0, 5e-4, 0, 0, 0, 0]}  # ~0.5 mm step
+    cons = MaintenanceConsumer(BusConfig(cell="c1", robot="maint", listen=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        d = Daemon(daemon_cfg(twin_dir, tmp_path, port, [fault]), CONFIGS)
+        try:
+            s = d.run(max_ticks=300)
+            assert s["maintenance_requests"] == 1
+            t_req = d.requests[0]["t"]
+            delay = t_req - 600.0
+            assert 0 < delay < 40 * 6  # within 40 positionings of the fault (~6 s each)
+            assert cons.wait_for(1, timeout=10)
+            assert cons.requests[0]["robot"] == "r1" and cons.requests[0]["key"] == "dt/c1/r1/maintenance/request"
+            assert wait_until(lambda: len(d.delivered) == 1, 10)  # acked: left the outbox
+            assert d.escalator.state == "maintenance_requested"  # until maintenance is done
+            d.acknowledge_maintenance("joint 2 re-referenced")
+            d.tick()
+            assert d.escalator.state == "nominal"
+        finally:
+            d.close()
+    finally:
+        cons.close()
+    with Store(tmp_path / "dt.sqlite") as st:
+        assert not st.outbox_pending()
+        assert [r["dst"] for r in st.transitions()][-2:] == ["maintenance_requested", "nominal"]
+        assert st.count("t_stats") >= 290
+
+
+def test_fault_free_run_of_the_same_length_requests_nothing(twin_dir, tmp_path):
+    d = Daemon(daemon_cfg(twin_dir, tmp_path, free_port(), publish=False), CONFIGS)
+    try:
+        s = d.run(max_ticks=300)
+    finally:
+        d.close()
+    assert s["maintenance_requests"] == 0 and s["state"] in ("nominal", "suspect")
+    assert s["t_test_failures"] < 0.15 * 300
+
+
+def test_state_machine_resumes_from_the_store_after_a_restart(twin_dir, tmp_path):
+    cfg = daemon_cfg(twin_dir, tmp_path, free_port(), [{"at_s": 0.0, "joint_offset_rad": [0, 1e-3, 0, 0, 0, 0]}],
+                     publish=False)
+    d = Daemon(cfg, CONFIGS)
+    d.run(max_ticks=40)
+    state = d.escalator.state
+    d.close()
+    assert state == "maintenance_requested"
+    d2 = Daemon(cfg, CONFIGS)
+    try:
+        assert d2.escalator.state == state
+    finally:
+        d2.close()
+
+
+def test_a_model_asking_for_a_big_correction_is_a_fault_not_a_move(twin_dir):
+    twin = Twin.load(twin_dir)
+    c = Corrector(twin, Limits(max_correction_m=1e-5))
+    with pytest.raises(CorrectionFault, match="exceeds the bound"):
+        c(np.array([0.9, 0.0, 0.55]), 0.5)
+    ok = Corrector(twin, Limits())
+    with pytest.raises(CorrectionFault, match="outside the workspace"):
+        ok(np.array([2.5, 0.0, 0.55]), 0.5)
+    with pytest.raises(CorrectionFault, match="finite"):
+        ok(np.array([np.nan, 0.0, 0.55]), 0.5)
+    with pytest.raises(CorrectionFault, match="speed"):
+        ok(np.array([0.9, 0.0, 0.55]), 5.0)
+    r = ok(np.array([0.9, 0.0, 0.55]), 0.5)
+    assert np.linalg.norm(r.correction) < 3e-3
+
+
+def test_dt_run_and_dt_status_from_the_command_line(twin_dir, tmp_path, capsys):
+    import json
+
+    cfg = tmp_path / "runtime.yaml"
+    cfg.write_text(
+        f"twin: {twin_dir}\nstore: {tmp_path / 'dt.sqlite'}\nrate_hz: 50\nrealtime: true\npublish: false\n"
+        f"sim: {{scenario: {CONFIGS / 'scenarios' / 'paper_default.yaml'}, cell: {CONFIGS / 'cell.yaml'}}}\n")
+    assert main(["run", "--config", str(cfg), "--duration", "1.0", "--json"]) == 0
+    run = json.loads(capsys.readouterr().out)
+    assert run["ticks"] >= 10 and run["state"] == "nominal"
+    assert main(["status", "--store", str(tmp_path / "dt.sqlite"), "--json"]) == 0
+    st = json.loads(capsys.readouterr().out)
+    assert st["t_tests"]["n"] == run["ticks"] and st["state"]["name"] == "escalation"
+
+
+def test_bad_runtime_config_names_the_key(tmp_path, capsys):
+    cfg = tmp_path / "runtime.yaml"
+    cfg.write_text("twin: x\nrate_hz: -5\n")
+    assert main(["run", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "runtime.yaml" in err and "rate_hz" in err and "-5" in err
