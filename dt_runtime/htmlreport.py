@@ -70,11 +70,13 @@ def fmt_value(v: Any, digits: int = 4, none: str = NONE_MARK) -> str:
     return str(v)
 
 
-def fig_to_img_tag(fig, alt: str = "", dpi: int = 90, close: bool = True, width: str | None = None) -> str:
+def fig_to_img_tag(fig, alt: str = "", dpi: int = 80, close: bool = True, width: str | None = None,
+                   tight: bool = False) -> str:
     """Render a matplotlib figure as an inline base64 PNG <img> tag (and close it)."""
     buf = io.BytesIO()
     try:
-        fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+        # bbox_inches="tight" costs a second full draw; callers lay out with tight_layout instead
+        fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
     finally:
         if close:
             plt.close(fig)
@@ -90,10 +92,11 @@ def figure_block(img_tag: str, caption: str) -> str:
 
 def html_table(rows: Iterable[dict], columns: Sequence[str] | None = None, *,
                headers: dict[str, str] | None = None, caption: str | None = None,
-               digits: int = 4, none: str = NONE_MARK, row_header: str | None = None) -> str:
+               digits: int = 4, none: str = NONE_MARK, missing: str = "",
+               row_header: str | None = None) -> str:
     """A table from a list of dicts. Columns default to the union of the rows' keys in order of
-    first appearance; missing cells render as `none`. `headers` maps key -> display label.
-    `row_header` names a column rendered as <th> (e.g. the row label)."""
+    first appearance. A None value renders as `none` (e.g. '∞' for dof), a key the row lacks as
+    `missing`. `headers` maps key -> display label. `row_header` names a column rendered as <th>."""
     rows = list(rows)
     if columns is None:
         columns = []
@@ -114,7 +117,7 @@ def html_table(rows: Iterable[dict], columns: Sequence[str] | None = None, *,
             tag = "th" if c == row_header else "td"
             num = isinstance(v, numbers.Real) and not isinstance(v, bool)
             cls = ' class="num"' if num else ""
-            cells.append(f"<{tag}{cls}>{esc(fmt_value(v, digits, none) if c in r else none)}</{tag}>")
+            cells.append(f"<{tag}{cls}>{esc(fmt_value(v, digits, none) if c in r else missing)}</{tag}>")
         out.append("<tr>" + "".join(cells) + "</tr>")
     out.append("</tbody></table>")
     return "".join(out)

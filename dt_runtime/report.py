@@ -100,7 +100,8 @@ def _f(v, nd: int = 3) -> str:
         return "–"
     if not math.isfinite(x):
         return "∞" if x == math.inf else "NaN"
-    return f"{x:.{nd}f}"
+    out = f"{x:.{nd}f}"
+    return out[1:] if out.startswith("-") and float(out) == 0 else out  # no "-0.000"
 
 
 def _t95(dof) -> float:
@@ -381,13 +382,13 @@ def _fig_registration(s: dict, a: dict) -> str:
                 m, sd = v[i].mean(), v[i].std(ddof=1)
                 axp.axhline(m, color="k", lw=0.8)
                 axp.axhspan(m - 2 * sd, m + 2 * sd, color=COLORS[ax], alpha=0.12, label="ē ± 2 s")
-                axp.set_title(f"{name.upper()}, {ax}: ē = {m:.3f} mm, s = {sd:.3f} mm", fontsize=9)
+                axp.set_title(f"{name.upper()}, {ax}: ē = {_f(m)} mm, s = {sd:.3f} mm", fontsize=9)
             axp.set_ylabel(f"residual {ax} / mm", fontsize=8)
             axp.tick_params(labelsize=7)
             axp.grid(alpha=0.3)
     for c in range(3):
         axs[-1, c].set_xlabel("registration positioning #", fontsize=8)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.08, top=0.95, wspace=0.28, hspace=0.42)
     return figure_block(fig_to_img_tag(fig, alt="registration residuals"),
                         "Figs. 8a/9a/10a: registration residuals per instrument and GL axis (mm), "
                         "with mean ē and the band ē ± 2 s(e).")
@@ -412,10 +413,10 @@ def _fig_error_map(s: dict, a: dict) -> str:
         axp.set_title(f"e_LT,{ax} (mean per position)", fontsize=10)
         axp.set_xlabel("X / mm", fontsize=8), axp.set_ylabel("Y / mm", fontsize=8), axp.set_zlabel("Z / mm", fontsize=8)
         axp.tick_params(labelsize=6)
-        cb = fig.colorbar(sc, ax=axp, shrink=0.6, pad=0.12)
+        cb = fig.colorbar(sc, ax=axp, shrink=0.6, pad=0.16)
         cb.set_label(f"e_LT,{ax} / mm", fontsize=8)
         cb.ax.tick_params(labelsize=7)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.0, right=0.97, bottom=0.05, top=0.93, wspace=0.2)
     return figure_block(fig_to_img_tag(fig, alt="as-is error map"),
                         f"As-is error map: laser-tracker error e_LT per GL axis (mm, colour) at the {len(uniq)} DOE "
                         "positions (commanded TCP, robot frame, mm), averaged over replications and speeds. "
@@ -440,13 +441,13 @@ def _fig_asis_series(s: dict, a: dict) -> str:
                 m, sd = v[i].mean(), v[i].std(ddof=1)
                 axp.axhline(m, color="k", lw=0.8)
                 axp.axhspan(m - 2 * sd, m + 2 * sd, color=COLORS[ax], alpha=0.1)
-                axp.set_title(f"{lab[n]},{ax}: ē = {m:.3f} mm, s = {sd:.3f} mm", fontsize=9)
+                axp.set_title(f"{lab[n]},{ax}: ē = {_f(m)} mm, s = {sd:.3f} mm", fontsize=9)
             axp.set_ylabel("mm", fontsize=8)
             axp.tick_params(labelsize=7)
             axp.grid(alpha=0.3)
     for c in range(3):
         axs[-1, c].set_xlabel("DOE positioning # (recorded order)", fontsize=8)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.09, top=0.94, wspace=0.22, hspace=0.38)
     return figure_block(fig_to_img_tag(fig, alt="as-is errors per positioning"),
                         "Figs. 8b/9b/10b: as-is errors of every DOE positioning (mm), with mean ē and ē ± 2 s(e).")
 
@@ -477,7 +478,7 @@ def _fig_main_effects(s: dict, a: dict) -> str:
             if r == 2:
                 axp.set_xlabel(fname, fontsize=9)
     fig.suptitle("Main effects on e_LT (marginal means per level, ± 95 % interval of the mean)", fontsize=11)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.07, top=0.93, wspace=0.06, hspace=0.12)
     return figure_block(fig_to_img_tag(fig, alt="main effects"),
                         "Fig. 11 style main-effects plot: mean laser-tracker error per level of each factor (levels "
                         "of the DOE, or quantile bins where a factor has many values), with the 95 % interval of the "
@@ -528,7 +529,7 @@ def _fig_gpr(s: dict, a: dict, ekey: str = "e_lt", rkey: str = "r_lt", label: st
         axn.set_ylabel(f"r_{ax} / mm", fontsize=8)
         axn.tick_params(labelsize=7)
         axn.grid(alpha=0.3)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.07, top=0.96, wspace=0.25, hspace=0.3)
     return figure_block(fig_to_img_tag(fig, alt=f"GPR {label} true vs predicted"),
                         f"{fig_ref} style: GPR model of {label}. Top: true error against the cross-validated "
                         "prediction ê = e − r (every point predicted by a model that never saw its target point), "
@@ -553,35 +554,44 @@ def _fig_validation(s: dict, a: dict) -> str:
     U = _arr(a, "U_tcp_c")
     rms_p = _rms_with_U(ep) if ep is not None else None
     rms_c = _rms_with_U(ec)
-    fig, axs = plt.subplots(3, 1, figsize=(12, 8.2), sharex=True, squeeze=False)
+    fig, axs = plt.subplots(3, 2, figsize=(13, 8.2), sharex=True, squeeze=False)
+    i = np.arange(len(ec))
     for c, ax in enumerate(AXES):
-        axp = axs[c, 0]
-        nb = max(len(ec), len(ep) if ep is not None else 0) if U.ndim == 1 else len(ec)
-        _band(axp, nb, U, c, "tab:blue", "± U(TCP_c), 95 %")
-        if ep is not None:
-            axp.plot(np.arange(len(ep)), ep[:, c] * MM, "s", ms=3.5, color="0.55", label="uncorrected command")
-        inside = np.abs(ec[:, c]) <= (U[:len(ec), c] if U.ndim == 2 else U[c])
-        i = np.arange(len(ec))
-        axp.plot(i[inside], ec[inside, c] * MM, "o", ms=4, color="tab:blue", label="corrected command")
-        if np.any(~inside):
-            axp.plot(i[~inside], ec[~inside, c] * MM, "o", ms=5, mfc="none", mec="tab:red", mew=1.5,
-                     label="corrected, outside ± U")
-        axp.axhline(0, color="k", lw=0.6)
-        axp.set_ylabel(f"true error {ax} / mm", fontsize=9)
-        axp.grid(alpha=0.3)
-        axp.tick_params(labelsize=7)
-        if c == 0:
-            axp.legend(fontsize=7, ncol=4, loc="upper right")
-    axs[-1, 0].set_xlabel("validation positioning # (recorded order)", fontsize=9)
+        Uc = U[:len(ec), c] if U.ndim == 2 else np.full(len(ec), U[c])
+        inside = np.abs(ec[:, c]) <= Uc
+        # left: both commands at the scale of the uncorrected error; right: corrected only, zoomed to +-2 U
+        for col, axp in enumerate(axs[c]):
+            nb = max(len(ec), len(ep) if ep is not None and col == 0 else 0) if U.ndim == 1 else len(ec)
+            _band(axp, nb, U, c, "tab:blue", "± U(TCP_c), 95 %")
+            if ep is not None and col == 0:
+                axp.plot(np.arange(len(ep)), ep[:, c] * MM, "s", ms=3, color="0.55", label="uncorrected command")
+            axp.plot(i[inside], ec[inside, c] * MM, "o", ms=3 if col == 0 else 3.5, color="tab:blue",
+                     label="corrected command")
+            if np.any(~inside):
+                axp.plot(i[~inside], ec[~inside, c] * MM, "o", ms=5, mfc="none", mec="tab:red", mew=1.5,
+                         label="corrected, outside ± U")
+            axp.axhline(0, color="k", lw=0.6)
+            axp.grid(alpha=0.3)
+            axp.tick_params(labelsize=7)
+        fin = np.isfinite(ec[:, c])
+        lim = max(2 * float(np.max(Uc)), 1.1 * float(np.max(np.abs(ec[fin, c]))) if fin.any() else 0.0) * MM
+        if np.isfinite(lim) and lim > 0:
+            axs[c, 1].set_ylim(-lim, lim)
+        axs[c, 0].set_ylabel(f"true error {ax} / mm", fontsize=9)
+        axs[c, 1].set_title(f"corrected only, {ax}: {int(inside.sum())} of {len(ec)} inside ± U", fontsize=9)
+    axs[0, 0].legend(fontsize=7, ncol=2, loc="upper right")
+    for col in range(2):
+        axs[-1, col].set_xlabel("validation positioning # (recorded order)", fontsize=9)
     t = f"3D RMS: corrected {rms_c[0] * MM:.3f} ± {rms_c[1] * MM:.3f} mm"
     if rms_p:
         t = f"3D RMS: uncorrected {rms_p[0] * MM:.3f} ± {rms_p[1] * MM:.3f} mm, " + t.split(": ")[1]
     fig.suptitle(t + " (± U95 of the RMS estimate)", fontsize=10)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.07, top=0.92, hspace=0.25, wspace=0.15)
     return figure_block(fig_to_img_tag(fig, alt="validation true errors"),
                         "Validation against the simulator's truth: true error (intended target − where the arm "
                         "went, GL, mm) of each validation positioning, commanded without (grey) and with (blue) the "
-                        "twin's correction; the band is the 95 % expanded uncertainty U(TCP_c) of Eq. 18.")
+                        "twin's correction; the band is the 95 % expanded uncertainty U(TCP_c) of Eq. 18. Right: "
+                        "the corrected errors alone, zoomed; red rings lie outside ± U.")
 
 
 def _fig_eq17(s: dict, a: dict) -> str:
@@ -627,7 +637,7 @@ def _fig_eq17(s: dict, a: dict) -> str:
         axp.tick_params(labelsize=7)
         axp.legend(fontsize=7, ncol=4, loc="upper right")
     axs[-1, 0].set_xlabel("corrected validation measurement # (recorded order)", fontsize=9)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.07, top=0.96, hspace=0.2)
     return figure_block(fig_to_img_tag(fig, alt="Eq. 17 comparison"),
                         "Figs. 16-18 style, Eq. 17: the camera-tracked difference ê_LT − e_MVS (actual, with its "
                         "95 % expanded uncertainty, Eq. 20) against the twin's prediction ê_MVS-LT (blue, band = "
@@ -689,7 +699,7 @@ def _fig_envelope(s: dict, a: dict) -> str:
         axp.set_xlabel("X / mm", fontsize=8), axp.set_ylabel("Y / mm", fontsize=8), axp.set_zlabel("Z / mm", fontsize=8)
         axp.tick_params(labelsize=6)
         axp.set_title(t, fontsize=10)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.0, right=0.96, bottom=0.02, top=0.95, wspace=0.05)
     Um = np.asarray(Up, float).mean(0) * MM
     return figure_block(fig_to_img_tag(fig, alt="3D uncertainty envelope"),
                         f"Fig. 15 style: the {len(P)} validation targets joined in plan order as a path (robot "
