@@ -18,7 +18,7 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -45,8 +45,12 @@ class Fault(Frozen):
 
 
 class PathConfig(Frozen):
-    """Targets the daemon commands: random points in a box, seeded (a stand-in for a program)."""
+    """Targets the daemon commands (a stand-in for the cell's program): 'random' points in a
+    box (seeded), or a 'circle' streamed at the loop rate (set-points v / rate_hz apart)."""
 
+    kind: Literal["random", "circle"] = "random"
+    circle_center_m: tuple[float, float, float] = (0.9, 0.0, 0.55)
+    circle_radius_m: float = Field(0.15, gt=0)
     box_min_m: tuple[float, float, float] = (0.65, -0.3, 0.25)
     box_max_m: tuple[float, float, float] = (1.15, 0.3, 0.85)
     speeds: tuple[float, ...] = (0.4, 0.8)  # fractions of the maximum speed
@@ -85,13 +89,54 @@ def load_runtime_config(path: str | Path) -> RuntimeConfig:
     return load_yaml(path, RuntimeConfig)
 
 
+class AsyncWriter:
+    """High-rate rows leave the loop through a deque (append is atomic: the loop never waits
+    on a lock or an fsync); a writer thread hands them to the Store and commits in batches.
+    Rows not yet committed when the process is killed are lost, as with any buffered row;
+    transitions and the maintenance outbox are committed at once by the Store itself."""
+
+    def __init__(self, store: Store, period_s: float = 0.05):
+        import collections
+
+        self.store, self.period_s = store, period_s
+        self._q: collections.deque = collections.deque()
+        self._stop = threading.Event()
+        self.errors = 0
+        self._thread = threading.Thread(target=self._work, name="dt-store-writer", daemon=True)
+        self._thread.start()
+
+    def put(self, method: str, *args, **kwargs) -> None:
+        self._q.append((method, args, kwargs))
+
+    def drain(self) -> None:
+        try:
+            while self._q:
+                method, args, kwargs = self._q.popleft()
+                getattr(self.store, method)(*args, **kwargs)
+            self.store.flush()
+        except StoreError as exc:  # disk full: the Store keeps its rows for the next try
+            self.errors += 1
+            log.error("store write failed, will retry: %s", exc)
+
+    def _work(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.drain()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.drain()
+
+
 class Daemon:
     def __init__(self, cfg: RuntimeConfig, base: Path, world=None):
         self.cfg, self.base = cfg, base
         self.twin = Twin.load(self._p(cfg.twin))
         self.corrector = Corrector(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
-        self.store = Store(self._p(cfg.store))
+        # The writer thread commits; the Store's own size/time triggers stay out of the loop.
+        self.store = Store(self._p(cfg.store), batch_rows=10**9, batch_ms=1e9)
+        self.writer = AsyncWriter(self.store)
         self.bus = Bus(cfg.bus, self.store, on_ack=self._on_ack) if cfg.publish else None
         self.world = world if world is not None else self._make_world()
         self.inst = self._make_instruments()
@@ -101,6 +146,7 @@ class Daemon:
             self.escalator.restore(saved["data"])
             log.info("resumed escalation state %s from %s", self.escalator.state, self.store.path)
         self._rng = np.random.default_rng(cfg.path.seed)
+        self._phase = 0.0
         self._faults = sorted(cfg.sim.faults, key=lambda f: f.at_s)
         self._stop = threading.Event()
         self.delivered: list[int] = []
@@ -108,6 +154,7 @@ class Daemon:
         self._ack_note = ""
         self.ticks = self.failures = self.faults_refused = 0
         self.requests: list[dict] = []
+        self.tick_times: list[float] | None = None  # set to [] to record tick start times
 
     def _p(self, rel: str) -> Path:
         p = Path(rel)
@@ -169,11 +216,19 @@ class Daemon:
     def _now(self) -> float:
         return self.world.t if (self.world is not None and not self.cfg.realtime) else time.time()
 
+    def _next_target(self) -> tuple[np.ndarray, float]:
+        pc = self.cfg.path
+        if pc.kind == "circle":
+            v = pc.speeds[0] * self.inst.max_speed
+            self._phase += v / self.cfg.rate_hz / pc.circle_radius_m
+            c = np.array(pc.circle_center_m)
+            return c + pc.circle_radius_m * np.array([np.cos(self._phase), np.sin(self._phase), 0.0]), v
+        target = self._rng.uniform(np.array(pc.box_min_m), np.array(pc.box_max_m))
+        return target, float(self._rng.choice(pc.speeds)) * self.inst.max_speed
+
     def tick(self) -> None:
         cfg = self.cfg
-        lo, hi = np.array(cfg.path.box_min_m), np.array(cfg.path.box_max_m)
-        target = self._rng.uniform(lo, hi)
-        v = float(self._rng.choice(cfg.path.speeds)) * self.inst.max_speed
+        target, v = self._next_target()
         if self.world is not None:
             self._inject_faults(self.world.t)
         if self._ack_requested.is_set():
@@ -188,8 +243,8 @@ class Daemon:
             return
         self.inst.robot.move_linear(corr.command, v)
         t = self._now()
-        self.store.log_command(t, *corr.target, speed=v)
-        self.store.log_correction(t, *corr.correction, *corr.u_tcp)
+        self.writer.put("log_command", t, *corr.target, speed=v)
+        self.writer.put("log_correction", t, *corr.correction, *corr.u_tcp)
         reading = self.inst.camera.read()
         self.ticks += 1
         if not reading.ok:
@@ -200,9 +255,9 @@ class Daemon:
         except CorrectionFault as exc:
             log.error("MVS value rejected: %s", exc)
             return
-        self.store.log_measurement(t, *reading.point, *chk.diff)
+        self.writer.put("log_measurement", t, *reading.point, *chk.diff)
         worst = int(np.argmax(np.abs(chk.t)))
-        self.store.log_tstat(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
+        self.writer.put("log_tstat", t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
                              data={"t": chk.t.tolist()})
         self.failures += int(not chk.passed)
         self.escalator.observe(chk.passed, float(chk.t[worst]), t)
@@ -220,6 +275,8 @@ class Daemon:
                 break
             if duration_s is not None and self._now() - t0 >= duration_s:
                 break
+            if self.tick_times is not None:
+                self.tick_times.append(time.perf_counter())
             try:
                 self.tick()
             except StoreError as exc:  # disk full: keep controlling, rows are retried
@@ -231,7 +288,11 @@ class Daemon:
                 next_t += period
                 delay = next_t - time.monotonic()
                 if delay > 0:
-                    self._stop.wait(delay)
+                    # Sleep to just before the tick, then spin: OS wake-up latency is ~0.1-1 ms.
+                    if delay > 1e-3:
+                        self._stop.wait(delay - 1e-3)
+                    while time.monotonic() < next_t:
+                        pass
                 else:
                     next_t = time.monotonic()
         return self.summary()
@@ -246,6 +307,7 @@ class Daemon:
                 "store": str(self.store.path)}
 
     def close(self) -> None:
+        self.writer.close()
         try:
             self.store.save_state("escalation", self.escalator.snapshot())
             self.store.flush()

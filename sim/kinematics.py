@@ -129,7 +129,13 @@ class Arm:
         single precision, about 0.1 um here, well inside the 1 um resolution). Raises UnreachableError outside reach or joint limits.
         """
         target = np.asarray(target, dtype=float)
-        if q_seed is None:
+        if q_seed is not None:
+            # A controller streaming set-points warm-starts from where the arm is: Newton alone
+            # converges in a few steps and stays on the same branch.
+            q = self._newton(target, R, np.asarray(q_seed, dtype=float), tol, 8)
+            if q is not None:
+                return self._checked(q, target, R)
+        else:
             q_seed = np.array([np.arctan2(target[1], target[0]), 0.3, 0.3, 0.0, 0.9, 0.0])
         self._set(q_seed)
         quat = _quat_from_matrix(R)
@@ -138,13 +144,23 @@ class Arm:
             upperLimits=self.upper.tolist(), jointRanges=(self.upper - self.lower).tolist(),
             restPoses=list(q_seed), maxNumIterations=200, residualThreshold=1e-6,
             physicsClientId=self.client))[: self.dof]
+        q = self._newton(target, R, q, tol, max_iter, always=True)
+        return self._checked(q, target, R)
+
+    def _newton(self, target, R, q, tol, max_iter, always=False):
+        """Newton steps on the 6-D pose error; None if not converged (unless `always`)."""
         for _ in range(max_iter):
             p, Rq = self.fk(q)
             err = np.concatenate([target - p, _rot_error(R, Rq)])
             if np.linalg.norm(err[:3]) < tol and np.linalg.norm(err[3:]) < tol * 5:
-                break
-            J = self.jacobian(q)
-            q = q + np.linalg.lstsq(J, err, rcond=None)[0]
+                return q
+            try:
+                q = q + np.linalg.solve(self.jacobian(q), err)
+            except np.linalg.LinAlgError:  # singular pose: fall back to least squares
+                q = q + np.linalg.lstsq(self.jacobian(q), err, rcond=None)[0]
+        return q if always else None
+
+    def _checked(self, q, target, R) -> np.ndarray:
         p, Rq = self.fk(q)
         if np.linalg.norm(target - p) > 1e-6 or np.linalg.norm(_rot_error(R, Rq)) > 1e-5:
             raise UnreachableError(
