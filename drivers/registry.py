@@ -8,9 +8,9 @@ from sim.errors import ConfigError
 
 # name -> "module:Class"; imported lazily so a missing optional part fails only when chosen.
 _REGISTRY: dict[str, dict[str, str]] = {
-    "robot": {"sim": "drivers.simulated:SimRobot"},
-    "tracker": {"sim": "drivers.simulated:SimTracker"},
-    "camera": {"sim_point": "drivers.simulated:SimPointCamera"},
+    "robot": {"sim": "drivers.simulated:SimRobot", "serial": "drivers.serial_controller:SerialController"},
+    "tracker": {"sim": "drivers.simulated:SimTracker", "serial": "drivers.serial_tracker:SerialTracker"},
+    "camera": {"sim_point": "drivers.simulated:SimPointCamera", "sim_images": "drivers.sim_camera:SimCameraRig"},
 }
 
 

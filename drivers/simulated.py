@@ -10,11 +10,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pybullet as pb
 
 from drivers.base import JointState, Lifecycle, RigReading, TrackerReading
 from sim.cell import SimCell
 from sim.errors import DriverError, UnreachableError
 from sim.instruments import spherical_to_cartesian
+from sim.kinematics import TOOL_DOWN
 
 
 class SimWorld:
@@ -42,6 +44,21 @@ class SimWorld:
 
     def tool_pose(self):
         return self.cell.plant.tool_pose()
+
+    def predicted_tool_pose(self):
+        """What the twin expects without truth: the commanded TCP with the programmed tool-down
+        orientation (the camera pipeline looks for markers around it)."""
+        return TOOL_DOWN, self.cell.plant.controller_tcp()
+
+    def occluded(self, cam_center: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Markers hidden from a camera by the arm's own links: PyBullet ray tests on the actual
+        arm, from the camera centre to 2 mm short of each marker."""
+        arm = self.cell.plant.actual
+        pts = np.atleast_2d(points)
+        d = pts - cam_center
+        ends = pts - 2e-3 * d / np.linalg.norm(d, axis=1, keepdims=True)
+        hits = pb.rayTestBatch([list(cam_center)] * len(pts), ends.tolist(), physicsClientId=arm.client)
+        return np.array([h[0] == arm.body for h in hits])
 
     def temperature(self) -> float:
         return self.cell.plant.temperature()
