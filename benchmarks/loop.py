@@ -33,7 +33,7 @@ def _port() -> int:
 def _config(twin: Path, tmp: Path, rate: float, realtime: bool) -> RuntimeConfig:
     return RuntimeConfig.model_validate({
         "twin": str(twin), "store": str(tmp / f"loop_{realtime}.sqlite"), "rate_hz": rate,
-        "realtime": realtime, "path": {"kind": "circle", "speeds": [0.25]},
+        "realtime": realtime, "path": {"kind": "circle", "speeds": [0.25]}, "drivers": {"camera": "sim_point"},
         "sim": {"scenario": str(CONFIGS / "scenarios" / "paper_default.yaml"), "cell": str(CONFIGS / "cell.yaml")},
         "bus": {"cell": "bench", "robot": "r1", "listen": [f"tcp/127.0.0.1:{_port()}"]},
     })
@@ -57,7 +57,9 @@ def measure(seconds: float, rate: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         with contextlib.redirect_stdout(io.StringIO()):
-            dt_main(["demo", "--quick", "--json", "--no-progress", "--out", str(tmp / "demo")])
+            # The loop reads the MVS every tick, faster than any camera images could come: the
+            # point MVS stand-in keeps the benchmark about the loop itself.
+            dt_main(["demo", "--quick", "--json", "--no-progress", "--camera", "sim_point", "--out", str(tmp / "demo")])
         twin = tmp / "demo" / "model"
         free = _run(_config(twin, tmp, rate, realtime=False), min(seconds, 3.0))
         paced = _run(_config(twin, tmp, rate, realtime=True), seconds)

@@ -161,8 +161,8 @@ def budgets(inp) -> dict:
     }
 
 
-def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict) -> Twin:
+def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = None) -> Twin:
     u = {}
     for key, bud in b.items():
         u[key] = {"u": bud.combined(), "dof": bud.effective_dof(), "U": bud.expanded(), "k": bud.coverage_factor()}
-    return Twin(fr.T_rdk, fr.T_lt, fr.T_mvs, e_lt, e_mvs_lt, u)
+    return Twin(fr.T_rdk, fr.T_lt, fr.T_mvs, e_lt, e_mvs_lt, u, dict(instruments or {}))

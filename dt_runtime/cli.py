@@ -28,7 +28,7 @@ def _demo(args: argparse.Namespace) -> dict:
     from dt_runtime.demo import run_demo
 
     res = run_demo(args.out, quick=args.quick, seed=args.seed, config=args.config,
-                   progress=Progress(enabled=not args.no_progress))
+                   progress=Progress(enabled=not args.no_progress), camera=args.camera)
     return res.summary
 
 
@@ -78,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quick", action="store_true", help="reduced plan, well under a minute")
     d.add_argument("--seed", type=int, default=None, help="plan seed (default: the plan config's)")
     d.add_argument("--config", default=None, help="demo config YAML (default: configs/demo.yaml)")
+    d.add_argument("--camera", default=None, metavar="DRIVER",
+                   help="camera driver, overriding the config (sim_images or sim_point)")
     d.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     d.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
 

@@ -48,7 +48,7 @@ class DemoResult:
     arrays: dict = field(default_factory=dict)  # raw arrays for the report figures (SI units)
 
 
-def _open(cfg: DemoConfig, base: Path, seed: int | None) -> Instruments:
+def _open(cfg: DemoConfig, base: Path, seed: int | None) -> Instruments:  # noqa: ARG001
     world = SimWorld(base / cfg.scenario, base / cfg.cell)
     src = str(base / "demo.yaml")
     robot = registry.create("robot", cfg.drivers.robot, source=src, world=world)
@@ -60,11 +60,14 @@ def _open(cfg: DemoConfig, base: Path, seed: int | None) -> Instruments:
 
 
 def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
-             config: str | Path | None = None, progress: Progress | None = None) -> DemoResult:
+             config: str | Path | None = None, progress: Progress | None = None,
+             camera: str | None = None) -> DemoResult:
     t0 = time.monotonic()
     progress = progress or Progress(enabled=False)
     config = Path(config) if config else CONFIGS / "demo.yaml"
     cfg = load_yaml(config, DemoConfig)
+    if camera:
+        cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(update={"camera": camera})})
     base = config.parent
     plan_cfg = load_plan(base / (cfg.quick_plan if quick else cfg.plan))
     if seed is not None:
@@ -89,7 +92,7 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
                                    cal.replicate_means(r_mvs_lt, doe.groups, speed), lt_dist)
         budgets = cal.budgets(inp)
         literal = cal.budgets(dataclasses.replace(inp, registration_term="spread"))
-        twin = cal.make_twin(frames, e_lt, e_mvs_lt, budgets)
+        twin = cal.make_twin(frames, e_lt, e_mvs_lt, budgets, cfg.drivers.model_dump())
         val_plain = run_rows(inst, plan.validation, progress, "phase 3 validation, uncorrected")
         val_corr = run_rows(inst, plan.validation, progress, "phase 3 validation, corrected",
                             command=twin.corrected_command)

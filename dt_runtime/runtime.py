@@ -26,7 +26,7 @@ from pydantic import Field
 from drivers import registry
 from dt_runtime.bus import Bus, BusConfig
 from dt_runtime.correction import CorrectionFault, Corrector, Limits, Monitor
-from dt_runtime.errors import DriverError, TwinError
+from dt_runtime.errors import ConfigError, DriverError, TwinError
 from dt_runtime.escalation import EscalationConfig, Escalator
 from dt_runtime.experiment import Instruments
 from dt_runtime.store import Store, StoreError
@@ -66,7 +66,7 @@ class SimSection(Frozen):
 class Drivers(Frozen):
     robot: str = "sim"
     tracker: str = "sim"
-    camera: str = "sim_point"
+    camera: str = "sim_images"
     robot_config: dict[str, Any] = {}
 
 
@@ -132,6 +132,11 @@ class Daemon:
     def __init__(self, cfg: RuntimeConfig, base: Path, world=None):
         self.cfg, self.base = cfg, base
         self.twin = Twin.load(self._p(cfg.twin))
+        trained = self.twin.instruments.get("camera")
+        if trained and trained != cfg.drivers.camera:
+            raise ConfigError(self._p(cfg.twin) / "twin.json", "instruments.camera", trained,
+                              f"the daemon's camera driver '{cfg.drivers.camera}': a twin is valid only "
+                              "with the instruments (and frames) it was calibrated with")
         self.corrector = Corrector(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
         # The writer thread commits; the Store's own size/time triggers stay out of the loop.

@@ -8,7 +8,7 @@ Models predict errors in the GL axes; the robot frame is rotated by R_RDK^GL (ne
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,7 @@ class Twin:
     e_lt: MultiOutputGP  # e_LT_hat(TCP robot frame m, v m/s) -> GL axes, m
     e_mvs_lt: MultiOutputGP  # e_MVS-LT_hat(TCP, v)
     u: dict  # standard uncertainties (m, per axis) and dof: u_tcp_c, u_e_lt, u_diff, u_e_mvs_lt, ...
+    instruments: dict = field(default_factory=dict)  # drivers it was calibrated with, e.g. camera
 
     def __post_init__(self):
         self._p_lt = self.e_lt.predictor()
@@ -68,6 +69,7 @@ class Twin:
             "units": "SI (m, m/s); errors e = commanded - measured",
             "T_rdk": self.T_rdk.to_dict(), "T_lt": self.T_lt.to_dict(), "T_mvs": self.T_mvs.to_dict(),
             "u": _jsonable(self.u),
+            "instruments": self.instruments,
         }
         (d / "twin.json").write_text(json.dumps(meta, indent=2))
         return d
@@ -85,7 +87,7 @@ class Twin:
         u = {k: (np.array(v) if isinstance(v, list) else v) for k, v in meta["u"].items()}
         return cls(RigidTransform.from_dict(meta["T_rdk"]), RigidTransform.from_dict(meta["T_lt"]),
                    RigidTransform.from_dict(meta["T_mvs"]), MultiOutputGP.load(d / "e_lt"),
-                   MultiOutputGP.load(d / "e_mvs_lt"), u)
+                   MultiOutputGP.load(d / "e_mvs_lt"), u, meta.get("instruments", {}))
 
 
 def _jsonable(obj):

@@ -141,3 +141,12 @@ def test_bad_runtime_config_names_the_key(tmp_path, capsys):
     assert main(["run", "--config", str(cfg)]) == 2
     err = capsys.readouterr().err
     assert "runtime.yaml" in err and "rate_hz" in err and "-5" in err
+
+
+def test_twin_used_with_another_camera_is_refused(twin_dir, tmp_path):
+    from dt_runtime.errors import ConfigError
+
+    cfg = daemon_cfg(twin_dir, tmp_path, free_port(), publish=False)
+    cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(update={"camera": "sim_point"})})
+    with pytest.raises(ConfigError, match="calibrated with"):
+        Daemon(cfg, CONFIGS)
