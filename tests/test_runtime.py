@@ -150,3 +150,30 @@ def test_twin_used_with_another_camera_is_refused(twin_dir, tmp_path):
     cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(update={"camera": "sim_point"})})
     with pytest.raises(ConfigError, match="calibrated with"):
         Daemon(cfg, CONFIGS)
+
+
+def test_daemon_drives_the_cell_through_the_serial_emulator_on_a_pty(twin_dir, tmp_path):
+    """The robot is commanded over the line protocol on a pseudo-terminal; the emulator serves
+    the simulated plant; a fault mid-run reaches a Zenoh consumer as a maintenance request."""
+    from drivers.simulated import SimWorld
+    from sim.controller_emulator import ControllerEmulator
+
+    world = SimWorld(CONFIGS / "scenarios" / "paper_default.yaml", CONFIGS / "cell.yaml")
+    emu = ControllerEmulator(world.cell.plant)
+    port = free_port()
+    cfg = daemon_cfg(twin_dir, tmp_path, port, [{"at_s": 600.0, "joint_offset_rad": [0, 5e-4, 0, 0, 0, 0]}])
+    cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(
+        update={"robot": "serial", "robot_config": {"url": emu.port, "timeout_s": 2.0}})})
+    cons = MaintenanceConsumer(BusConfig(cell="c1", robot="maint", listen=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        d = Daemon(cfg, CONFIGS, world=world)
+        try:
+            s = d.run(max_ticks=200)
+        finally:
+            d.close()
+        assert s["maintenance_requests"] == 1 and s["refused_commands"] == 0
+        assert 0 < d.requests[0]["t"] - 600.0 < 40 * 6
+        assert cons.wait_for(1, timeout=10)
+    finally:
+        cons.close()
+        emu.stop()

@@ -1,0 +1,221 @@
+"""One conformance suite for every driver implementation (DESIGN.md, house style).
+
+To add an implementation, append `(id, factory)` to `DRIVER_FACTORIES` (robot controllers)
+or `TRACKER_FACTORIES` (laser trackers). A factory takes no arguments and returns a context
+manager yielding `(driver, config)`: a driver that has *not* been configured yet, and the
+config mapping that `driver.configure(config)` accepts. Everything the driver needs (a
+simulated world, an emulator on a pseudo-terminal) is set up and torn down by the factory.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+
+import numpy as np
+import pytest
+
+from drivers.base import JointState, LaserTracker, RobotController, TrackerReading
+from drivers.serial_controller import SerialController
+from drivers.serial_tracker import SerialTracker
+from sim.controller_emulator import ControllerEmulator, TrackerEmulator
+from sim.errors import DriverError, StateError
+from tests.test_serial import FakePlant
+
+SCENARIO, CELL = "configs/scenarios/paper_default.yaml", "configs/cell.yaml"
+
+
+@contextlib.contextmanager
+def _sim_world():
+    from pathlib import Path
+
+    from drivers.simulated import SimWorld
+
+    root = Path(__file__).resolve().parents[1]
+    world = SimWorld(root / SCENARIO, root / CELL)
+    try:
+        yield world
+    finally:
+        world.close()
+
+
+@contextlib.contextmanager
+def sim_robot():
+    from drivers.simulated import SimRobot
+
+    with _sim_world() as world:
+        yield SimRobot(world), {}
+
+
+@contextlib.contextmanager
+def serial_robot_fake_plant():
+    with ControllerEmulator(FakePlant()) as emu:
+        drv = SerialController()
+        try:
+            yield drv, {"url": emu.port, "timeout_s": 0.5, "retries": 2}
+        finally:
+            drv.close()
+
+
+@contextlib.contextmanager
+def serial_robot_sim_plant_over_socket():
+    # The real simulated plant behind the emulator, reached through pyserial's socket:// URL.
+    with _sim_world() as world, ControllerEmulator(world.cell.plant, "tcp://127.0.0.1:0") as emu:
+        drv = SerialController()
+        try:
+            yield drv, {"url": emu.port, "timeout_s": 2.0, "retries": 2}
+        finally:
+            drv.close()
+
+
+@contextlib.contextmanager
+def sim_tracker():
+    from drivers.simulated import SimTracker
+
+    with _sim_world() as world:
+        yield SimTracker(world), {}
+
+
+@contextlib.contextmanager
+def serial_tracker_fake():
+    rng = np.random.default_rng(5)
+
+    def measure():
+        return 2.0 + 0.01 * rng.standard_normal(), 0.3, -0.1, "ok"
+
+    with TrackerEmulator(measure) as emu:
+        drv = SerialTracker()
+        try:
+            yield drv, {"url": emu.port, "timeout_s": 0.5, "retries": 2}
+        finally:
+            drv.close()
+
+
+DRIVER_FACTORIES = [
+    ("sim", sim_robot),
+    ("serial-pty-fakeplant", serial_robot_fake_plant),
+    ("serial-socket-simplant", serial_robot_sim_plant_over_socket),
+]
+TRACKER_FACTORIES = [
+    ("sim", sim_tracker),
+    ("serial-pty", serial_tracker_fake),
+]
+
+_robot = pytest.mark.parametrize("factory", [f for _, f in DRIVER_FACTORIES], ids=[i for i, _ in DRIVER_FACTORIES])
+_tracker = pytest.mark.parametrize("factory", [f for _, f in TRACKER_FACTORIES], ids=[i for i, _ in TRACKER_FACTORIES])
+
+
+def _check_lifecycle_order(drv, config, calls):
+    """Reads/writes before configure, before activate and after close raise StateError."""
+    assert drv.state == "unconfigured"
+    for call in calls:
+        with pytest.raises(StateError):
+            call()
+    with pytest.raises(StateError):
+        drv.activate()
+    with pytest.raises(StateError):
+        drv.deactivate()
+    drv.configure(config)
+    assert drv.state == "inactive"
+    for call in calls:
+        with pytest.raises(StateError):
+            call()
+    drv.activate()
+    assert drv.state == "active"
+    with pytest.raises(StateError):
+        drv.activate()
+    with pytest.raises(StateError):
+        drv.configure(config)
+    drv.deactivate()
+    assert drv.state == "inactive"
+    for call in calls:
+        with pytest.raises(StateError):
+            call()
+    drv.activate()  # re-activation after deactivate is allowed
+    drv.close()
+    assert drv.state == "closed"
+    drv.close()  # idempotent
+    for call in calls:
+        with pytest.raises(StateError):
+            call()
+    with pytest.raises(StateError):
+        drv.activate()
+    with pytest.raises(StateError):
+        drv.configure(config)
+
+
+# --- robot controllers ------------------------------------------------------------------
+@_robot
+def test_robot_satisfies_protocol_and_lifecycle_order(factory):
+    with factory() as (drv, config):
+        assert isinstance(drv, RobotController)
+        p = np.array([0.8, 0.0, 0.6])
+        _check_lifecycle_order(drv, config, [
+            lambda: drv.move_linear(p, 0.1), lambda: drv.stream_setpoint(p, 0.1),
+            drv.read_joint_state, drv.read_commanded_tcp])
+
+
+@_robot
+def test_robot_move_then_read(factory):
+    with factory() as (drv, config):
+        drv.configure(config)
+        drv.activate()
+        p0 = np.asarray(drv.read_commanded_tcp(), dtype=float)
+        assert p0.shape == (3,) and np.all(np.isfinite(p0))
+        target = p0 + np.array([0.02, -0.03, -0.05])
+        drv.move_linear(target, 0.2)
+        assert np.allclose(drv.read_commanded_tcp(), target, atol=2e-6)  # controller resolution
+        js = drv.read_joint_state()
+        assert isinstance(js, JointState) and js.q.ndim == 1 and js.q.size >= 6
+        assert np.all(np.isfinite(js.q)) and math.isfinite(js.t)
+        drv.stream_setpoint(p0, 0.2)
+        assert np.allclose(drv.read_commanded_tcp(), p0, atol=2e-6)
+
+
+@_robot
+def test_robot_refuses_nan_target(factory):
+    with factory() as (drv, config):
+        drv.configure(config)
+        drv.activate()
+        with pytest.raises(DriverError):
+            drv.move_linear(np.array([np.nan, 0.0, 0.5]), 0.1)
+        assert np.all(np.isfinite(drv.read_commanded_tcp()))
+
+
+@_robot
+def test_robot_close_is_idempotent_from_active(factory):
+    with factory() as (drv, config):
+        drv.configure(config)
+        drv.activate()
+        drv.close()
+        drv.close()
+        assert drv.state == "closed"
+        with pytest.raises(StateError):
+            drv.read_joint_state()
+
+
+# --- laser trackers ---------------------------------------------------------------------
+@_tracker
+def test_tracker_satisfies_protocol_and_lifecycle_order(factory):
+    with factory() as (drv, config):
+        assert isinstance(drv, LaserTracker)
+        _check_lifecycle_order(drv, config, [drv.measure])
+
+
+@_tracker
+def test_tracker_measure_is_consistent(factory):
+    with factory() as (drv, config):
+        drv.configure(config)
+        drv.activate()
+        for _ in range(5):
+            r = drv.measure()
+            assert isinstance(r, TrackerReading) and isinstance(r.status, str) and math.isfinite(r.t)
+            if r.ok:
+                d, az, el = r.spherical
+                assert r.point.shape == (3,) and np.all(np.isfinite(r.point))
+                assert np.isclose(np.linalg.norm(r.point), d, rtol=1e-12)
+                assert np.isclose(np.arctan2(r.point[1], r.point[0]), az, rtol=1e-12)
+            else:
+                assert np.all(np.isnan(r.point))
+        drv.close()
+        drv.close()
+        assert drv.state == "closed"
