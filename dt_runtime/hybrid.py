@@ -1,0 +1,152 @@
+"""Hybrid error model: error = sum of physical effect terms + GP on what is left.
+
+The effect parameters (dt_runtime.effects) are estimated jointly by ridge-regularised least
+squares on standardised columns (the complete geometric set is rank deficient on purpose), with
+their standard uncertainties from the residual scatter. A GP (dt_runtime.gp) then models the
+residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed), 'tcp',
+'joints', or 'none'. Follows scikit-learn's estimator contract.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from dt_runtime import effects as fx
+from dt_runtime.errors import DataError, ModelError
+from dt_runtime.gp import MultiOutputGP
+from dt_runtime.kinematics import Chain
+
+FORMAT_VERSION = 1
+GP_INPUTS = ("tcp_speed", "tcp", "joints", "none")
+
+
+def gp_features(inp: fx.Inputs, kind: str) -> np.ndarray | None:
+    if kind == "none":
+        return None
+    if kind == "joints":
+        if inp.joints is None:
+            raise DataError("GP inputs 'joints' need joint angle columns q1..q6")
+        return inp.joints
+    if kind == "tcp_speed" and inp.speed is not None:
+        return np.column_stack([inp.commanded, inp.speed])
+    if kind in ("tcp", "tcp_speed"):
+        return inp.commanded
+    raise DataError(f"unknown GP inputs '{kind}'; allowed: {', '.join(GP_INPUTS)}")
+
+
+class HybridModel:
+    def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
+                 ridge: float = 1e-4, seed: int = 0):
+        self.effects = tuple(effects)
+        self.gp_inputs = gp_inputs
+        self.ridge = ridge
+        self.seed = seed
+
+    # --- linear effect part ------------------------------------------------------------------
+    def _design(self, inp: fx.Inputs, chain: Chain | None) -> tuple[np.ndarray, list[fx.Block]]:
+        blocks = [fx.build(e, inp, chain) for e in self.effects]
+        if not blocks:
+            return np.zeros((inp.n * 3, 0)), []
+        A = np.concatenate([b.A for b in blocks], axis=2)  # (n, 3, p)
+        return A.reshape(inp.n * 3, -1), blocks
+
+    def fit(self, inp: fx.Inputs, error: np.ndarray, chain: Chain | None = None) -> "HybridModel":
+        A, blocks = self._design(inp, chain)
+        self.param_names_ = [(b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)]
+        return self.fit_design(A.reshape(inp.n, 3, -1), inp, error)
+
+    def fit_design(self, A3: np.ndarray, inp: fx.Inputs, error: np.ndarray) -> "HybridModel":
+        """Fit from a prebuilt regressor array A3 (n, 3, p) (cross-validation reuses it)."""
+        error = np.asarray(error, dtype=float)
+        if error.shape != (inp.n, 3) or not np.all(np.isfinite(error)):
+            raise DataError(f"error must be a finite (n, 3) array matching {inp.n} rows")
+        A = A3.reshape(inp.n * 3, -1)
+        y = error.ravel()
+        p = A.shape[1]
+        if not hasattr(self, "param_names_"):
+            self.param_names_ = [("?", f"p{i}", "", "identity") for i in range(p)]
+        if p:
+            scale = np.sqrt(np.mean(A ** 2, axis=0))
+            scale[scale == 0] = 1.0
+            As = A / scale
+            # Ridge on standardised columns: picks the smallest parameters among alike ones.
+            H = As.T @ As + self.ridge * len(y) * 1e-3 * np.eye(p) / 3
+            Hinv = np.linalg.inv(H)
+            theta_s = Hinv @ As.T @ y
+            self.theta_ = theta_s / scale
+            resid = y - A @ self.theta_
+            dof = max(len(y) - p, 1)
+            s2 = float(resid @ resid) / dof
+            cov_s = s2 * Hinv @ (As.T @ As) @ Hinv
+            self.theta_u_ = np.sqrt(np.clip(np.diag(cov_s), 0, None)) / scale
+        else:
+            self.theta_ = np.zeros(0)
+            self.theta_u_ = np.zeros(0)
+        resid = (y - A @ self.theta_).reshape(-1, 3)
+        X = gp_features(inp, self.gp_inputs)
+        self.gp_ = MultiOutputGP(seed=self.seed).fit(X, resid) if X is not None else None
+        self.residual_rms_ = float(np.sqrt(np.mean(resid ** 2)))
+        return self
+
+    def predict(self, inp: fx.Inputs, chain: Chain | None = None, return_std: bool = False):
+        A, _ = self._design(inp, chain)
+        return self.predict_design(A.reshape(inp.n, 3, -1), inp, return_std)
+
+    def predict_design(self, A3: np.ndarray, inp: fx.Inputs, return_std: bool = False):
+        A = A3.reshape(inp.n * 3, -1)
+        mean = (A @ self.theta_).reshape(-1, 3) if A.shape[1] else np.zeros((inp.n, 3))
+        std = np.zeros((inp.n, 3))
+        if self.gp_ is not None:
+            X = gp_features(inp, self.gp_inputs)
+            if return_std:
+                m, s = self.gp_.predict(X, return_std=True)
+                mean, std = mean + m, s
+            else:
+                mean = mean + self.gp_.predict(X)
+        return (mean, std) if return_std else mean
+
+    def parameters(self) -> list[dict]:
+        """Estimated effect parameters with standard uncertainty, in physical units."""
+        rows = []
+        for (effect, name, unit, report), v, u in zip(self.param_names_, self.theta_, self.theta_u_):
+            row = {"effect": effect, "name": name, "value": float(v), "u": float(u), "unit": unit}
+            if report == "inverse" and v > 0:
+                # Stiffness k = 1/c, u(k) = u(c)/c^2 (first order).
+                row.update(name=name.replace("compliance", "stiffness"), value=float(1 / v),
+                           u=float(u / v ** 2), unit="N m/rad")
+            rows.append(row)
+        return rows
+
+    # --- persistence (JSON + NPZ) -----------------------------------------------------------
+    def save(self, directory: str | Path) -> Path:
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        meta = {"format_version": FORMAT_VERSION, "kind": "cobot-dt hybrid error model",
+                "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
+                "seed": self.seed, "param_names": self.param_names_,
+                "residual_rms_m": self.residual_rms_, "units": "SI; e = commanded - measured"}
+        (d / "hybrid.json").write_text(json.dumps(meta, indent=2))
+        np.savez(d / "hybrid.npz", theta=self.theta_, theta_u=self.theta_u_)
+        if self.gp_ is not None:
+            self.gp_.save(d / "gp")
+        return d
+
+    @classmethod
+    def load(cls, directory: str | Path) -> "HybridModel":
+        d = Path(directory)
+        try:
+            meta = json.loads((d / "hybrid.json").read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ModelError(f"{d}: not a model directory (hybrid.json unreadable: {exc})") from exc
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise ModelError(f"{d / 'hybrid.json'}: format_version {meta.get('format_version')!r}, "
+                             f"this version reads {FORMAT_VERSION}")
+        m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"])
+        arr = np.load(d / "hybrid.npz", allow_pickle=False)
+        m.theta_, m.theta_u_ = arr["theta"], arr["theta_u"]
+        m.param_names_ = [tuple(p) for p in meta["param_names"]]
+        m.residual_rms_ = meta["residual_rms_m"]
+        m.gp_ = MultiOutputGP.load(d / "gp") if meta["gp_inputs"] != "none" else None
+        return m
