@@ -177,3 +177,40 @@ def test_daemon_drives_the_cell_through_the_serial_emulator_on_a_pty(twin_dir, t
     finally:
         cons.close()
         emu.stop()
+
+
+def test_dt_run_logs_json_lines_on_stderr(twin_dir, tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "runtime.yaml"
+    cfg.write_text(
+        f"twin: {twin_dir}\nstore: {tmp_path / 'dt.sqlite'}\nrate_hz: 50\npublish: false\n"
+        f"sim: {{scenario: {CONFIGS / 'scenarios' / 'paper_default.yaml'}, cell: {CONFIGS / 'cell.yaml'},"
+        f" faults: [{{at_s: 0, joint_offset_rad: [0, 2.0e-3, 0, 0, 0, 0]}}]}}\n")
+    p = subprocess.run([sys.executable, "-m", "dt_runtime.cli", "run", "--config", str(cfg), "--duration", "2"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    records = [json.loads(line) for line in p.stderr.splitlines() if line.startswith("{")]
+    assert any("escalation" in r["msg"] for r in records)
+    assert {"ts", "level", "logger", "msg"} <= records[0].keys()
+
+
+def test_two_daemons_and_one_consumer_share_one_zenoh_network(twin_dir, tmp_path):
+    port = free_port()
+    cons = MaintenanceConsumer(BusConfig(cell="c1", robot="maint", listen=[f"tcp/127.0.0.1:{port}"]))
+    daemons = []
+    try:
+        for robot, fault in (("r1", [0, 5e-4, 0, 0, 0, 0]), ("r2", [0, 0, 5e-4, 0, 0, 0])):
+            cfg = daemon_cfg(twin_dir, tmp_path / robot, port, [{"at_s": 0.0, "joint_offset_rad": fault}])
+            cfg = cfg.model_copy(update={"bus": cfg.bus.model_copy(update={"robot": robot})})
+            daemons.append(Daemon(cfg, CONFIGS))
+        for d in daemons:
+            d.run(max_ticks=60)
+        assert cons.wait_for(2, timeout=15)
+        assert sorted(r["robot"] for r in cons.requests) == ["r1", "r2"]
+    finally:
+        for d in daemons:
+            d.close()
+        cons.close()
