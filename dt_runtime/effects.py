@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dt_runtime.errors import DataError
+from dt_runtime.geometry import skew
 from dt_runtime.kinematics import Chain
 
 EFFECT_NAMES = ("geometric", "compliance", "gear", "backlash", "thermal", "dynamic", "drift")
@@ -84,18 +85,10 @@ def geometric(inp: Inputs, chain: Chain) -> Block:
         blocks.append(-R)  # translation d_j in frame axes
         lever = p - pos[:, j]
         # (R w) x lever = -[lever]x R w
-        blocks.append(np.einsum("nab,nbc->nac", _skew(lever), R))
+        blocks.append(np.einsum("nab,nbc->nac", skew(lever), R))
         names += [f"frame{j + 1}_d{a}" for a in "xyz"] + [f"frame{j + 1}_r{a}" for a in "xyz"]
         units += ["m"] * 3 + ["rad"] * 3
     return Block("geometric", np.concatenate(blocks, axis=2), tuple(names), tuple(units))
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
 
 
 def compliance(inp: Inputs, chain: Chain) -> Block:

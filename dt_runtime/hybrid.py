@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from dt_runtime import effects as fx
-from dt_runtime.errors import DataError, ModelError
+from dt_runtime.errors import DataError
 from dt_runtime.gp import MultiOutputGP
 from dt_runtime.kinematics import Chain
+from dt_runtime.modelio import read_meta
 
 FORMAT_VERSION = 1
 GP_INPUTS = ("tcp_speed", "tcp", "joints", "none")
@@ -136,13 +137,7 @@ class HybridModel:
     @classmethod
     def load(cls, directory: str | Path) -> "HybridModel":
         d = Path(directory)
-        try:
-            meta = json.loads((d / "hybrid.json").read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ModelError(f"{d}: not a model directory (hybrid.json unreadable: {exc})") from exc
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise ModelError(f"{d / 'hybrid.json'}: format_version {meta.get('format_version')!r}, "
-                             f"this version reads {FORMAT_VERSION}")
+        meta = read_meta(d / "hybrid.json", FORMAT_VERSION, "model")
         m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"])
         arr = np.load(d / "hybrid.npz", allow_pickle=False)
         m.theta_, m.theta_u_ = arr["theta"], arr["theta_u"]

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dt_runtime.errors import ModelError
+from dt_runtime.modelio import read_meta
 from dt_runtime.gp import MultiOutputGP
 from dt_runtime.registration import RigidTransform
 
@@ -77,13 +77,7 @@ class Twin:
     @classmethod
     def load(cls, directory: str | Path) -> "Twin":
         d = Path(directory)
-        try:
-            meta = json.loads((d / "twin.json").read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ModelError(f"{d}: not a twin directory (twin.json unreadable: {exc})") from exc
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise ModelError(f"{d / 'twin.json'}: format_version {meta.get('format_version')!r}, "
-                             f"this version reads {FORMAT_VERSION}")
+        meta = read_meta(d / "twin.json", FORMAT_VERSION, "twin")
         u = {k: (np.array(v) if isinstance(v, list) else v) for k, v in meta["u"].items()}
         return cls(RigidTransform.from_dict(meta["T_rdk"]), RigidTransform.from_dict(meta["T_lt"]),
                    RigidTransform.from_dict(meta["T_mvs"]), MultiOutputGP.load(d / "e_lt"),

@@ -214,3 +214,18 @@ def test_two_daemons_and_one_consumer_share_one_zenoh_network(twin_dir, tmp_path
         for d in daemons:
             d.close()
         cons.close()
+
+
+def test_a_twin_of_another_format_version_is_refused(twin_dir, tmp_path):
+    import shutil
+
+    from dt_runtime.errors import ModelError
+
+    d = tmp_path / "model"
+    shutil.copytree(twin_dir, d)
+    p = d / "twin.json"
+    p.write_text(p.read_text().replace('"format_version": 1', '"format_version": 7'))
+    with pytest.raises(ModelError, match="format_version 7, this version reads 1"):
+        Twin.load(d)
+    with pytest.raises(ModelError, match="not a twin directory"):
+        Twin.load(tmp_path)

@@ -12,6 +12,8 @@ import itertools
 
 import numpy as np
 
+from dt_runtime.geometry import skew
+
 from dt_runtime.mvs.triangulate import CameraStack
 
 
@@ -27,20 +29,11 @@ def kabsch(model: np.ndarray, meas: np.ndarray, w: np.ndarray | None = None) -> 
     return R, cx - R @ cm
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Batched skew matrices (n,3,3) of vectors (n,3)."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
 def _rotvec(w: np.ndarray) -> np.ndarray:
     th = np.linalg.norm(w)
     if th < 1e-12:
-        return np.eye(3) + _skew(w)
-    k = _skew(w / th)
+        return np.eye(3) + skew(w)
+    k = skew(w / th)
     return np.eye(3) + np.sin(th) * k + (1 - np.cos(th)) * k @ k
 
 
@@ -66,7 +59,7 @@ def refine_pose(stack: CameraStack, model: np.ndarray, R: np.ndarray, t: np.ndar
         J_c *= (stack.f[None, :, :, None] / z[..., None])
         J_X = np.einsum("mcij,cjk->mcik", J_c, stack.R) / s[..., None] * m[..., None]  # (M,C,2,3)
         # d X / d w = -[R0 m]x, d X / d t = I
-        J_w = -np.einsum("mcij,mjk->mcik", J_X, _skew(RM))
+        J_w = -np.einsum("mcij,mjk->mcik", J_X, skew(RM))
         J = np.concatenate([J_w, J_X], axis=3).reshape(-1, 6)
         H = J.T @ J
         if it == iters:
