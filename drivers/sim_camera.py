@@ -52,7 +52,7 @@ class SimCameraRig(Lifecycle):
         if tool_pose is None:
             if world is None:
                 raise DriverError("SimCameraRig needs tool_pose() or world")
-            tool_pose = world.tool_pose
+            tool_pose = getattr(world, "tool_pose_seen_by_camera", world.tool_pose)
         if world is not None:
             predicted_pose = predicted_pose or getattr(world, "predicted_tool_pose", None)
             occluded = occluded or getattr(world, "occluded", None)

@@ -25,6 +25,7 @@ class SimWorld:
     def __init__(self, scenario: str | Path, cell: str | Path):
         self.cell = SimCell.from_files(scenario, cell)
         self.scenario_name = self.cell.scenario.name
+        self.camera_shift = np.zeros(3)
 
     @property
     def t(self) -> float:
@@ -76,7 +77,15 @@ class SimWorld:
         self.cell.plant.inject_joint_offset(np.asarray(delta_rad, dtype=float))
 
     def bump_camera(self, shift_m) -> None:
+        """Fault injection: the camera rig is knocked by `shift_m` (world frame), whichever MVS
+        (point stand-in or image rig) reads it."""
+        self.camera_shift = self.camera_shift + np.asarray(shift_m, dtype=float)
         self.cell.mvs.bump(np.asarray(shift_m, dtype=float))
+
+    def tool_pose_seen_by_camera(self):
+        """The tool pose relative to the (possibly knocked) rig, for the image renderer."""
+        R, p = self.tool_pose()
+        return R, p - self.camera_shift
 
     def close(self) -> None:
         self.cell.close()

@@ -229,3 +229,13 @@ def test_a_twin_of_another_format_version_is_refused(twin_dir, tmp_path):
         Twin.load(d)
     with pytest.raises(ModelError, match="not a twin directory"):
         Twin.load(tmp_path)
+
+
+def test_a_knocked_image_camera_rig_is_detected(twin_dir, tmp_path):
+    d = Daemon(daemon_cfg(twin_dir, tmp_path, free_port(), [{"at_s": 300.0, "camera_shift_m": [1e-3, 0, 0]}],
+                          publish=False), CONFIGS)
+    try:
+        s = d.run(max_ticks=150)
+    finally:
+        d.close()
+    assert s["maintenance_requests"] == 1 and d.requests[0]["t"] > 300.0
