@@ -35,33 +35,13 @@ class Frames:
     reprod_mvs_dof: float
 
 
-def _three_line(points: np.ndarray, data: PhaseData) -> reg.RigidTransform:
-    sets = []
-    for ax in AXES:
-        m = (data.axis == ax) & np.all(np.isfinite(points), axis=1)
-        if m.sum() < 2:
-            raise DataError(f"registration: fewer than 2 valid points along {ax}")
-        sets.append((points[m], data.distance[m]))
-    return reg.three_line_frame(sets[0][0], sets[1][0], sets[2][0], sets[0][1], sets[1][1], sets[2][1])
-
-
-def gl_nominal(data: PhaseData) -> np.ndarray:
-    """Nominal GL coordinates of registration points: distance d along the moved axis."""
-    out = np.zeros((data.n, 3))
-    for k, ax in enumerate(AXES):
-        m = data.axis == ax
-        out[m, k] = data.distance[m]
-    return out
-
-
 def register(data: PhaseData) -> Frames:
-    T = {name: _three_line(getattr(data, f"p_{name}"), data) for name in ("rdk", "lt", "mvs")}
-    p_gl = gl_nominal(data)
-    res = {}
-    for name in ("rdk", "lt", "mvs"):
-        p = getattr(data, f"p_{name}")
-        ok = np.all(np.isfinite(p), axis=1)
-        res[name] = reg.registration_residuals(T[name], p[ok], p_gl[ok])
+    p_gl = reg.gl_nominal(data.axis, data.distance)
+    regs = {name: reg.register_instrument(getattr(data, f"p_{name}"), p_gl, "three_line",
+                                          axes=data.axis, distances=data.distance)
+            for name in ("rdk", "lt", "mvs")}
+    T = {name: r.transform for name, r in regs.items()}
+    res = {name: r.residuals for name, r in regs.items()}
     # Eq. 12: reproducibility from replicated positionings at the 12 registration points.
     ok_lt = np.all(np.isfinite(data.p_lt), axis=1)
     ok_mvs = np.all(np.isfinite(data.p_mvs), axis=1)
