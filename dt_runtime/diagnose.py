@@ -42,11 +42,6 @@ def folds_of(groups: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
     return [np.isin(groups, ids[f::k]) for f in range(k)]
 
 
-def _subset(inp: fx.Inputs, m: np.ndarray) -> fx.Inputs:
-    return fx.Inputs(**{f: (None if getattr(inp, f) is None else getattr(inp, f)[m])
-                        for f in ("commanded", "joints", "speed", "temperature", "payload", "t")})
-
-
 def cross_validate(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, groups: np.ndarray,
                    chain: Chain | None, gp_inputs: str, folds: list[np.ndarray], seed: int) -> CvResult:
     # Regressors that look at the previous row (approach direction) are built on the full,
@@ -58,8 +53,8 @@ def cross_validate(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, 
     for te in folds:
         tr = ~te
         m = HybridModel(effects, gp_inputs, seed=seed)
-        m.fit_design(A_full[tr], _subset(inp, tr), error[tr])
-        resid[te] = error[te] - m.predict_design(A_full[te], _subset(inp, te))
+        m.fit_design(A_full[tr], inp.subset(tr), error[tr])
+        resid[te] = error[te] - m.predict_design(A_full[te], inp.subset(te))
     ug = np.unique(groups)
     sq = np.sum(resid ** 2, axis=1)
     gm = np.array([sq[groups == g].mean() for g in ug])

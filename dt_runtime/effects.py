@@ -36,6 +36,16 @@ class Inputs:
     def n(self) -> int:
         return len(self.commanded)
 
+    @classmethod
+    def of(cls, ds) -> "Inputs":
+        """The columns of a `dt_runtime.dataset.Dataset` the effect terms may use."""
+        return cls(commanded=ds.commanded, joints=ds.joints, speed=ds.speed,
+                   temperature=ds.temperature, payload=ds.payload, t=ds.t)
+
+    def subset(self, mask) -> "Inputs":
+        return Inputs(**{f: (None if getattr(self, f) is None else getattr(self, f)[mask])
+                         for f in ("commanded", "joints", "speed", "temperature", "payload", "t")})
+
 
 @dataclass(frozen=True)
 class Block:
@@ -107,14 +117,15 @@ def compliance(inp: Inputs, chain: Chain) -> Block:
                  ("rad/(N m)",) * dof, report="inverse")
 
 
-def gear(inp: Inputs, chain: Chain, harmonics=(1, 2, 3)) -> Block:
-    """Transmission error periodic in joint angle: dq_j = sum_h a sin(h q_j) + b cos(h q_j)."""
+def gear(inp: Inputs, chain: Chain) -> Block:
+    """Transmission error periodic in joint angle: dq_j = sum_h a sin(h q_j) + b cos(h q_j),
+    over the robot model's candidate harmonics (`gear_harmonics` in its config)."""
     _need(inp, "gear", "joints")
     J = chain.jacobian(inp.joints)
     q = inp.joints
     cols, names = [], []
     for j in range(J.shape[2]):
-        for h in harmonics:
+        for h in chain.gear_harmonics:
             for fn, lab in ((np.sin, "sin"), (np.cos, "cos")):
                 cols.append(-J[:, :, j] * fn(h * q[:, j])[:, None])
                 names.append(f"q{j + 1}_{lab}{h}")

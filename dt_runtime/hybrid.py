@@ -16,8 +16,9 @@ import numpy as np
 from dt_runtime import effects as fx
 from dt_runtime.errors import DataError
 from dt_runtime.gp import MultiOutputGP
-from dt_runtime.kinematics import Chain
+from dt_runtime.kinematics import Chain, load_robot
 from dt_runtime.modelio import read_meta
+from dt_runtime.paths import CONFIGS
 
 FORMAT_VERSION = 1
 GP_INPUTS = ("tcp_speed", "tcp", "joints", "none")
@@ -37,13 +38,60 @@ def gp_features(inp: fx.Inputs, kind: str) -> np.ndarray | None:
     raise DataError(f"unknown GP inputs '{kind}'; allowed: {', '.join(GP_INPUTS)}")
 
 
+def robot_ref(path: str | Path | None) -> str | None:
+    """How a saved model names its robot config: relative to configs/ when shipped there."""
+    if path is None:
+        return None
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(CONFIGS))
+    except ValueError:
+        return str(p)
+
+
+def load_chain(ref: str | None) -> Chain | None:
+    if ref is None:
+        return None
+    p = Path(ref)
+    return load_robot(p if p.is_absolute() else CONFIGS / p)
+
+
 class HybridModel:
+    """error = sum of effect terms (dt_runtime.effects) + GP on what is left.
+
+    effects: names from effects.EFFECT_NAMES; gp_inputs: one of GP_INPUTS; robot: path of a
+    robot config (configs/robots/*.yaml) giving the kinematic model the joint-space effects
+    need; gp_kw: MultiOutputGP options (e.g. sparse_threshold, n_inducing).
+    """
+
     def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
-                 ridge: float = 1e-4, seed: int = 0):
+                 ridge: float = 1e-4, seed: int = 0, robot: str | Path | None = None,
+                 gp_kw: dict | None = None):
+        unknown = [e for e in effects if e not in fx.EFFECT_NAMES]
+        if unknown:
+            raise DataError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECT_NAMES)}")
+        if gp_inputs not in GP_INPUTS:
+            raise DataError(f"unknown GP inputs '{gp_inputs}'; allowed: {', '.join(GP_INPUTS)}")
         self.effects = tuple(effects)
         self.gp_inputs = gp_inputs
         self.ridge = ridge
         self.seed = seed
+        self.robot = robot_ref(robot)
+        self.gp_kw = dict(gp_kw or {})
+
+    @property
+    def chain(self) -> Chain | None:
+        if not hasattr(self, "_chain"):
+            self._chain = load_chain(self.robot)
+        return self._chain
+
+    # --- on a measurement table ---------------------------------------------------------------
+    def fit_dataset(self, ds, thetas=None) -> "HybridModel":
+        """Fit on a `Dataset` (rows in time order: backlash and dynamic read the previous row)."""
+        return self.fit(fx.Inputs.of(ds), ds.error, self.chain, thetas=thetas)
+
+    def predict_dataset(self, ds, return_std: bool = False):
+        return self.predict(fx.Inputs.of(ds), self.chain, return_std=return_std)
 
     # --- linear effect part ------------------------------------------------------------------
     def _design(self, inp: fx.Inputs, chain: Chain | None) -> tuple[np.ndarray, list[fx.Block]]:
@@ -53,12 +101,15 @@ class HybridModel:
         A = np.concatenate([b.A for b in blocks], axis=2)  # (n, 3, p)
         return A.reshape(inp.n * 3, -1), blocks
 
-    def fit(self, inp: fx.Inputs, error: np.ndarray, chain: Chain | None = None) -> "HybridModel":
+    def fit(self, inp: fx.Inputs, error: np.ndarray, chain: Chain | None = None,
+            thetas=None) -> "HybridModel":
         A, blocks = self._design(inp, chain)
         self.param_names_ = [(b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)]
-        return self.fit_design(A.reshape(inp.n, 3, -1), inp, error)
+        return self.fit_design(A.reshape(inp.n, 3, -1), inp, error, thetas=thetas)
 
-    def fit_design(self, A3: np.ndarray, inp: fx.Inputs, error: np.ndarray) -> "HybridModel":
+    def fit_design(self, A3: np.ndarray, inp: fx.Inputs, error: np.ndarray, thetas=None) -> "HybridModel":
+        """Fit from a prebuilt regressor array A3 (n, 3, p) (cross-validation reuses it);
+        `thetas`: fixed GP hyperparameters per axis (skips their optimisation)."""
         """Fit from a prebuilt regressor array A3 (n, 3, p) (cross-validation reuses it)."""
         error = np.asarray(error, dtype=float)
         if error.shape != (inp.n, 3) or not np.all(np.isfinite(error)):
@@ -87,7 +138,8 @@ class HybridModel:
             self.theta_u_ = np.zeros(0)
         resid = (y - A @ self.theta_).reshape(-1, 3)
         X = gp_features(inp, self.gp_inputs)
-        self.gp_ = MultiOutputGP(seed=self.seed).fit(X, resid) if X is not None else None
+        self.gp_ = (MultiOutputGP(seed=self.seed, **self.gp_kw).fit(X, resid, thetas=thetas)
+                    if X is not None else None)
         self.residual_rms_ = float(np.sqrt(np.mean(resid ** 2)))
         return self
 
@@ -126,7 +178,8 @@ class HybridModel:
         d.mkdir(parents=True, exist_ok=True)
         meta = {"format_version": FORMAT_VERSION, "kind": "cobot-dt hybrid error model",
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
-                "seed": self.seed, "param_names": self.param_names_,
+                "seed": self.seed, "robot": self.robot, "gp_kw": self.gp_kw,
+                "param_names": self.param_names_, "parameters": self.parameters(),
                 "residual_rms_m": self.residual_rms_, "units": "SI; e = commanded - measured"}
         (d / "hybrid.json").write_text(json.dumps(meta, indent=2))
         np.savez(d / "hybrid.npz", theta=self.theta_, theta_u=self.theta_u_)
@@ -139,6 +192,7 @@ class HybridModel:
         d = Path(directory)
         meta = read_meta(d / "hybrid.json", FORMAT_VERSION, "model")
         m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"])
+        m.robot, m.gp_kw = meta.get("robot"), meta.get("gp_kw", {})
         arr = np.load(d / "hybrid.npz", allow_pickle=False)
         m.theta_, m.theta_u_ = arr["theta"], arr["theta_u"]
         m.param_names_ = [tuple(p) for p in meta["param_names"]]

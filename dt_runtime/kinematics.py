@@ -9,11 +9,14 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from dt_runtime.errors import ConfigError
+
 from sim.configtools import Frozen, load_yaml
 
 
@@ -26,6 +29,9 @@ class Chain:
     axes: tuple[np.ndarray, ...]
     tool: np.ndarray
     name: str = "robot"
+    # Candidate harmonics of the transmission error per joint revolution (the gear effect's
+    # regressors): from the gearbox design (tooth, wave-generator and bearing orders).
+    gear_harmonics: tuple[int, ...] = (1, 2, 3)
 
     @property
     def dof(self) -> int:
@@ -128,6 +134,8 @@ class RobotModel(Frozen):
     # Pose of the kinematic base in the robot frame the data uses (e.g. ROS 'base' vs 'base_link').
     base_xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     base_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Orders of the transmission error per joint revolution the gear effect tests for.
+    gear_harmonics: tuple[Annotated[int, Field(ge=1, le=200)], ...] = (1, 2, 3)
 
 
 def chain_from_dh(rows: list[DHRow], tool_xyz=(0.0, 0.0, 0.0), name="robot") -> Chain:
@@ -160,4 +168,5 @@ def load_robot(path: str | Path) -> Chain:
     else:
         chain = chain_from_dh(m.dh, m.tool_xyz_m, m.name)
     base = _transform(m.base_xyz_m, m.base_rpy_rad)
-    return Chain((base @ chain.origins[0],) + chain.origins[1:], chain.axes, chain.tool, chain.name)
+    return Chain((base @ chain.origins[0],) + chain.origins[1:], chain.axes, chain.tool, chain.name,
+                 tuple(m.gear_harmonics))
