@@ -22,8 +22,9 @@ from sim.kinematics import TOOL_DOWN
 class SimWorld:
     """Handle on one simulated cell, created from a scenario and a cell config."""
 
-    def __init__(self, scenario: str | Path, cell: str | Path):
-        self.cell = SimCell.from_files(scenario, cell)
+    def __init__(self, scenario: str | Path | dict, cell: str | Path, seed: int | None = None,
+                 source: str = "<scenario>"):
+        self.cell = SimCell.from_files(scenario, cell, seed, source)
         self.scenario_name = self.cell.scenario.name
         self.camera_shift = np.zeros(3)
 
@@ -66,6 +67,18 @@ class SimWorld:
 
     def payload(self) -> float:
         return self.cell.plant.payload()
+
+    def tracker_u(self, distance_m: float) -> float:
+        """The tracker's stated standard uncertainty (m, isotropic) at a distance (m)."""
+        c = self.cell.cell.laser_tracker
+        return c.u_const_m + c.u_per_m * distance_m
+
+    def joint_noise_rad(self) -> float:
+        """The plant's joint repeatability noise (rad, one sigma), for the noise floor."""
+        return self.cell.scenario.joint_noise_rad
+
+    def effects_enabled(self) -> list[str]:
+        return self.cell.scenario.effects.enabled()
 
     def max_speed(self) -> float:
         return self.cell.scenario.max_speed_m_s

@@ -13,6 +13,7 @@ reported the same way: a `DataError` naming file, line, column and value, or, wi
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import math
 import re
@@ -468,3 +469,20 @@ def concat(datasets: Iterable[Dataset]) -> Dataset:
         kw[f] = None if any(p is None for p in parts) else np.concatenate(parts)
     return Dataset(**kw, source="+".join(d.source for d in ds),
                    skipped=[s for d in ds for s in d.skipped])
+
+
+def meta_path(data: str | Path) -> Path:
+    """The sidecar of a data file, `<file>.meta.json` (`dt simulate` writes its scenario, seed,
+    registration residual and noise floor there)."""
+    data = Path(data)
+    return data.with_name(data.name + ".meta.json")
+
+
+def read_meta_sidecar(data: str | Path) -> dict | None:
+    p = meta_path(data)
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{p}: unreadable sidecar of {data} ({exc}); remove it or write it again") from exc

@@ -20,19 +20,22 @@ from dt_runtime.progress import Progress
 class Instruments:
     robot: RobotController
     tracker: LaserTracker
-    camera: CameraRig
+    camera: CameraRig | None  # None: positions measured by the tracker only (dt simulate)
     world: object | None = None  # drivers.simulated.SimWorld when simulated: truth for scoring
     max_speed: float = 1.0  # m/s
 
     def activate(self) -> None:
-        for d in (self.robot, self.tracker, self.camera):
+        for d in self.drivers():
             if d.state == "unconfigured":
                 d.configure({})
             if d.state == "inactive":
                 d.activate()
 
+    def drivers(self) -> list:
+        return [d for d in (self.robot, self.tracker, self.camera) if d is not None]
+
     def close(self) -> None:
-        for d in (self.robot, self.tracker, self.camera):
+        for d in self.drivers():
             d.close()
 
 
@@ -99,10 +102,10 @@ def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None
             cols["p_lt"][i] = lt.point
         else:
             refusals.append(f"{label} row {i}: laser tracker {lt.status}")
-        mv = inst.camera.read()
-        if mv.ok:
+        mv = inst.camera.read() if inst.camera is not None else None
+        if mv is not None and mv.ok:
             cols["p_mvs"][i] = mv.point
-        else:
+        elif mv is not None:
             refusals.append(f"{label} row {i}: MVS refused ({mv.refused})")
         speed[i] = v
         t[i] = lt.t

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim.configtools import Frozen, load_yaml
+from sim.configtools import Frozen, load_yaml, validate
 from sim.instruments import PointMVSConfig, SimLaserTracker, SimPointMVS, TrackerConfig
 from sim.plant import SimClock, SimulatedCobot
 from sim.scenario import Scenario, load_scenario
@@ -29,8 +29,14 @@ class SimCell:
         self.mvs = SimPointMVS(self.plant.actual_tcp, cell.mvs, scenario.seed)
 
     @classmethod
-    def from_files(cls, scenario: str | Path, cell: str | Path) -> "SimCell":
-        return cls(load_scenario(scenario), load_cell(cell))
+    def from_files(cls, scenario: str | Path | dict, cell: str | Path, seed: int | None = None,
+                   source: str = "<scenario>") -> "SimCell":
+        """scenario: a YAML path, or its already-read mapping (`source` names it in errors);
+        seed: overrides the scenario's seed (plant noise, geometric draws, instruments)."""
+        scn = validate(Scenario, scenario, source) if isinstance(scenario, dict) else load_scenario(scenario)
+        if seed is not None:
+            scn = scn.model_copy(update={"seed": int(seed)})
+        return cls(scn, load_cell(cell))
 
     def close(self) -> None:
         self.plant.close()
