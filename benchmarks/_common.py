@@ -38,6 +38,10 @@ def fit_sklearn(X, Y, thetas=None):
 
 
 def cli(description: str) -> bool:
+    """Parse --json; BLAS on one thread (or $DT_BLAS_THREADS), as the `dt` command line runs."""
+    from dt_runtime.threads import limit_blas_threads
+
+    limit_blas_threads()
     p = argparse.ArgumentParser(description=description)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     return p.parse_args().json

@@ -11,6 +11,7 @@ from typing import Callable
 
 from dt_runtime.errors import TwinError
 from dt_runtime.progress import Progress
+from dt_runtime.threads import limit_blas_threads
 
 log = logging.getLogger("dt")
 COMMANDS: dict[str, Callable[[argparse.Namespace], dict]] = {}
@@ -30,6 +31,60 @@ def _demo(args: argparse.Namespace) -> dict:
     res = run_demo(args.out, quick=args.quick, seed=args.seed, config=args.config,
                    progress=Progress(enabled=not args.no_progress), camera=args.camera)
     return res.summary
+
+
+@command("simulate")
+def _simulate(args: argparse.Namespace) -> dict:
+    from dt_runtime.simulate import simulate
+
+    return simulate(args.scenario, args.out, seed=args.seed, progress=_progress(args))
+
+
+def _effects(text: str | None) -> tuple[str, ...]:
+    return tuple(e.strip() for e in text.split(",") if e.strip()) if text else ()
+
+
+def _progress(args: argparse.Namespace) -> Progress:
+    return Progress(enabled=not getattr(args, "no_progress", False))
+
+
+def _data(args: argparse.Namespace):
+    from dt_runtime.analysis import load_data
+
+    return load_data(args.data, args.mapping, args.skip_bad)
+
+
+@command("fit")
+def _fit(args: argparse.Namespace) -> dict:
+    from dt_runtime.analysis import DEFAULT_ROBOT, fit
+
+    return fit(_data(args), _effects(args.effects), args.gp_inputs, args.robot or DEFAULT_ROBOT, args.out,
+               seed=args.seed, cv_folds=args.cv, progress=_progress(args))
+
+
+@command("diagnose")
+def _diagnose(args: argparse.Namespace) -> dict:
+    from dt_runtime.analysis import DEFAULT_ROBOT, run_diagnose
+
+    return run_diagnose(_data(args), args.model, _effects(args.effects), args.gp_inputs,
+                        args.robot or DEFAULT_ROBOT, _effects(args.candidates) or None, args.folds,
+                        args.seed, progress=_progress(args))
+
+
+@command("compare")
+def _compare(args: argparse.Namespace) -> dict:
+    from dt_runtime.analysis import floor_of
+    from dt_runtime.compare import compare
+    from dt_runtime.compare_report import write_compare_report
+
+    d = _data(args)
+    names = _effects(args.names) or None
+    result, arrays = compare(args.model, d.dataset, names, noise_floor_m=floor_of(d), cv_folds=args.cv,
+                             seed=args.seed, progress=_progress(args))
+    result |= {k: v for k, v in d.info.items() if k not in ("n", "data")}
+    if args.report:
+        result["report"] = str(write_compare_report(result, arrays, args.report))
+    return result
 
 
 @command("run")
@@ -52,6 +107,32 @@ def _status(args: argparse.Namespace) -> dict:
 
 
 def _human(name: str, result: dict) -> str:
+    if name == "diagnose":
+        lines = [f"held-out 3D RMS of the starting model: {result['rmse_base_mm']:.4f} mm"
+                 + (f" (noise floor {result['noise_floor_mm']:.4f} mm)" if result.get("noise_floor_mm") else "")]
+        lines += [f"  {r['effect']:<10} explains {100 * r['explained_fraction']:6.1f} %  p = {r['p_value']:.2g}  "
+                  f"RMS {r['rmse_before_mm']:.4f} -> {r['rmse_after_mm']:.4f} mm" for r in result["ranking"]]
+        return "\n".join(lines + [result["verdict"]])
+    if name == "compare":
+        lines = [f"{result['n']} rows of {result['dataset']}"
+                 + (f"; held out by {result['heldout']['folds']}-fold grouped CV" if result.get("heldout") else "")
+                 + (f"; noise floor {result['noise_floor_mm']:.4f} mm" if result.get("noise_floor_mm") else "")]
+        for m in result["models"]:
+            f = m.get("failures")
+            lines.append(f"  {m['name']:<24} 3D RMS {m['rmse_mm']:.4f} mm  mean {m['mae_mm']:.4f}  max {m['max_mm']:.4f}"
+                         + (f"  fails Eq. 17: {100 * f['fraction']:.1f} %" if f else ""))
+        for c in result.get("worst_cells") or []:
+            lines.append(f"  worst: {c['factor']} {c['cell']}: {c['rmse_mm']:.4f} mm ({c['n']} rows)")
+        if result.get("report"):
+            lines.append(f"report: {result['report']}")
+        return "\n".join(lines)
+    if name == "fit":
+        out = [f"model saved to {result['out']} ({result['n']} rows, {result['fit_seconds']:.1f} s); "
+               f"training 3D RMS {result['train_rmse_mm']:.4f} mm"]
+        if "heldout_rmse_mm" in result:
+            out.append(f"held-out 3D RMS {result['heldout_rmse_mm']:.4f} mm (as is {result['as_is_rmse_mm']:.4f} mm)")
+        out += [f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}" for p in result["parameters"]]
+        return "\n".join(out)
     if name == "demo":
         s = result
         cov = s["coverage_95"]
@@ -90,10 +171,73 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     r.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
 
+    sm = sub.add_parser("simulate", help="measurement data from the simulated cell",
+                        description="Run a scenario's experiment plan on the simulated cell (tracker registered by "
+                                    "the three-line method) and write the measurement table (DESIGN.md) as CSV, "
+                                    "with FILE.csv.meta.json: scenario, seed, registration residual, noise floor.")
+    sm.add_argument("--scenario", required=True, metavar="FILE",
+                    help="scenario YAML (configs/scenarios/), optional 'data:' block: plan, phases, doe_reps, cell")
+    sm.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV")
+    sm.add_argument("--seed", type=int, default=None, help="overrides the scenario's and the plan's seed")
+    _common(sm)
+
+    def _data_args(q, kinematics=True):
+        q.add_argument("--data", required=True, metavar="FILE", help="measurement table CSV (or a foreign file "
+                       "with --mapping)")
+        q.add_argument("--mapping", default=None, metavar="YAML",
+                       help="import mapping for a foreign file (e.g. configs/import/ur10.yaml)")
+        q.add_argument("--skip-bad", action="store_true", help="skip bad rows (each is listed) instead of stopping")
+        q.add_argument("--seed", type=int, default=0, help="seed of folds and GP restarts (default 0)")
+        if not kinematics:
+            return
+        q.add_argument("--robot", default=None, metavar="YAML",
+                       help="robot kinematic model config (default configs/robots/cobot_hc20_like.yaml)")
+        q.add_argument("--gp-inputs", default="tcp_speed", choices=("tcp_speed", "tcp", "joints", "none"),
+                       help="what the GP on the remaining error sees (default tcp_speed, the paper's)")
+
+    ft = sub.add_parser("fit", help="train an error model (effect terms + GP)",
+                        description="error = sum of physical effect terms + GP on what is left. Effects: "
+                                    "geometric, compliance, gear, backlash, thermal, dynamic, drift.")
+    _data_args(ft)
+    ft.add_argument("--effects", default="", metavar="a,b,...", help="effect terms (default none: the paper's GP)")
+    ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")
+    ft.add_argument("--cv", type=int, default=0, metavar="K",
+                    help="also report the held-out RMS by K-fold CV grouped by target point")
+    _common(ft)
+
+    dg = sub.add_parser("diagnose", help="rank the physical effects the model lacks",
+                        description="Grouped cross-validation (by target point) of the model with and without "
+                                    "each candidate effect; one-sided Wilcoxon test per held-out group.")
+    _data_args(dg)
+    dg.add_argument("--model", default=None, metavar="MODEL", help="starting model (default: --effects + GP)")
+    dg.add_argument("--effects", default="", metavar="a,b,...", help="starting model's effects without --model")
+    dg.add_argument("--candidates", default="", metavar="a,b,...", help="effects to test (default all)")
+    dg.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    _common(dg)
+
+    cp = sub.add_parser("compare", help="error models against measurements, side by side",
+                        description="RMS, mean and max 3D error, per axis, Eq. 17 t-test failures and the residual "
+                                    "broken down by region, speed, payload, temperature, time and joint "
+                                    "configuration, for 'as is' and every --model in the order given.")
+    _data_args(cp, kinematics=False)
+    cp.add_argument("--model", required=True, action="append", metavar="MODEL",
+                    help="model directory from `dt fit`; repeat for a side-by-side comparison (oldest first)")
+    cp.add_argument("--names", default="", metavar="a,b,...", help="column names of the models (default: directory names)")
+    cp.add_argument("--cv", type=int, default=0, metavar="K",
+                    help="held-out figures from the training file: refit each model's configuration on K-1 "
+                         "folds grouped by target point (default 0: the models as saved)")
+    cp.add_argument("--report", default=None, metavar="DIR", help="write DIR/report.html and DIR/compare.json")
+    _common(cp)
+
     st = sub.add_parser("status", help="current state and last figures from the daemon's store")
     st.add_argument("--store", default="out/run/dt.sqlite", help="the daemon's SQLite store")
     st.add_argument("--json", action="store_true", help="print one JSON object")
     return p
+
+
+def _common(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    q.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
 
 
 class JsonLines(logging.Formatter):
@@ -116,6 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler])
     as_json = getattr(args, "json", False)
     try:
+        limit_blas_threads()
         result = COMMANDS[args.cmd](args)
     except TwinError as exc:
         if as_json:

@@ -73,14 +73,16 @@ def _approach(x: np.ndarray) -> np.ndarray:
 
 
 def geometric(inp: Inputs, chain: Chain) -> Block:
-    """Joint zero offsets (rad) and small translations (m) and rotations (rad) of every joint
-    frame after the first, expressed in that frame's own axes (link length and twist errors).
+    """Joint zero offsets (rad), small translations (m) and rotations (rad) of every joint
+    frame, expressed in that frame's own axes (link length and twist errors), and the tool's
+    translation in the flange frame.
 
     A frame j shifted by d (frame axes) moves the TCP by R_j d; rotated by w (frame axes) it
     moves the TCP by (R_j w) x (p_tcp - p_j). The set is deliberately complete, hence rank
     deficient (some parameters act alike for a single TCP point); the hybrid model's ridge
-    penalty picks the smallest parameters that explain the data. Frame 1 errors are a rigid
-    base shift that the registration absorbs.
+    penalty picks the smallest parameters that explain the data. Frame 1 (the base) is kept:
+    a registration made at one place in the workspace leaves a small rigid misalignment that
+    only these terms (or the GP) can take up.
     """
     _need(inp, "geometric", "joints")
     pos, rot, T = chain.frames(inp.joints)
@@ -90,7 +92,7 @@ def geometric(inp: Inputs, chain: Chain) -> Block:
     blocks = [-J]
     names = [f"offset_q{j + 1}" for j in range(dof)]
     units = ["rad"] * dof
-    for j in range(1, dof):
+    for j in range(dof):
         R = rot[:, j]
         blocks.append(-R)  # translation d_j in frame axes
         lever = p - pos[:, j]
@@ -98,6 +100,9 @@ def geometric(inp: Inputs, chain: Chain) -> Block:
         blocks.append(np.einsum("nab,nbc->nac", skew(lever), R))
         names += [f"frame{j + 1}_d{a}" for a in "xyz"] + [f"frame{j + 1}_r{a}" for a in "xyz"]
         units += ["m"] * 3 + ["rad"] * 3
+    blocks.append(-T[:, :3, :3])  # tool (TCP) offset error, flange axes
+    names += [f"tool_d{a}" for a in "xyz"]
+    units += ["m"] * 3
     return Block("geometric", np.concatenate(blocks, axis=2), tuple(names), tuple(units))
 
 
@@ -142,10 +147,15 @@ def backlash(inp: Inputs, chain: Chain) -> Block:
     return Block("backlash", A, tuple(f"width_q{j + 1}" for j in range(dof)), ("rad",) * dof)
 
 
+REFERENCE_TEMPERATURE_C = 20.0  # ISO 1: the reference temperature of dimensional metrology
+
+
 def thermal(inp: Inputs, chain: Chain | None = None) -> Block:
-    """Expansion about the base: actual = (1 + alpha dT) p, so e = -alpha dT p."""
+    """Expansion about the base: actual = (1 + alpha dT) p, so e = -alpha dT p, with dT from
+    the ISO 1 reference 20 C (a fixed reference, so a saved model means the same on new data;
+    the geometric terms or the GP take up the part at the data's mean temperature)."""
     _need(inp, "thermal", "temperature")
-    dT = inp.temperature - np.mean(inp.temperature)
+    dT = inp.temperature - REFERENCE_TEMPERATURE_C
     A = (-dT[:, None] * inp.commanded)[:, :, None]
     return Block("thermal", A, ("alpha",), ("1/K",))
 

@@ -134,8 +134,9 @@ class RobotModel(Frozen):
     # Pose of the kinematic base in the robot frame the data uses (e.g. ROS 'base' vs 'base_link').
     base_xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     base_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    # Orders of the transmission error per joint revolution the gear effect tests for.
-    gear_harmonics: tuple[Annotated[int, Field(ge=1, le=200)], ...] = (1, 2, 3)
+    # Orders of the transmission error per joint revolution the gear effect tests for: a
+    # strain-wave gear of ratio N has its wave generator's orders at N and 2N (ratios to ~160).
+    gear_harmonics: tuple[Annotated[int, Field(ge=1, le=1000)], ...] = (1, 2, 3)
 
 
 def chain_from_dh(rows: list[DHRow], tool_xyz=(0.0, 0.0, 0.0), name="robot") -> Chain:
