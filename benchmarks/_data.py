@@ -1,9 +1,19 @@
-"""Synthetic stand-in for the paper's DOE (Sect. 2.2): swap `doe_dataset` for simulator data later.
+"""Synthetic stand-in for the paper's DOE (Sect. 2.2): swap `doe_dataset` for simulator data later;
+and the real UR10 laser-tracker data shipped with the project (Fraunhofer IPA, Series A).
 
 Positions in metres, speed in m/s, errors in metres (SI inside the code, DESIGN.md)."""
 from __future__ import annotations
 
+import functools
+from pathlib import Path
+
 import numpy as np
+
+from dt_runtime.paths import CONFIGS, DATA
+
+UR10_SERIES_A = DATA / "ipa_ur10" / "Series_A" / "measurements_grid.csv"
+UR10_MAPPING = CONFIGS / "import" / "ur10.yaml"
+UR10_ROBOT = CONFIGS / "robots" / "ur10.yaml"
 
 SPEED_MAX = 1.0  # m/s
 ORIGIN = np.array([0.35, -0.5, 0.25])  # corner of the ~1 m x 0.7 m x 0.7 m volume, robot frame
@@ -69,3 +79,34 @@ def scattered_dataset(n: int, seed: int = 0, noise=1e-5):
     rng = np.random.default_rng(seed)
     X = np.column_stack([rng.uniform(ORIGIN, ORIGIN + [1.0, 0.7, 0.7], (n, 3)), rng.uniform(0.2, 1.0, n)])
     return X, error_field(X) + rng.normal(0, noise, (n, 3))
+
+
+# --- UR10 (IPA) laser-tracker data -----------------------------------------------------------
+@functools.lru_cache(maxsize=4)
+def ur10_dataset(path: str | Path = UR10_SERIES_A):
+    """A UR10 file (default Series A: 619 grid points visited ~19 times each, 11,911 rows) read
+    through configs/import/ur10.yaml: registered, SI, rows in time order, `point_id` per grid point."""
+    from dt_runtime.importer import import_file
+
+    return import_file(Path(path), UR10_MAPPING)[0]
+
+
+def ur10_subset_file(n: int, out: str | Path, seed: int = 0, path: str | Path = UR10_SERIES_A) -> Path:
+    """Write a seeded random subset of n data rows of a UR10 file (header kept, file order kept)
+    to `out`, for `dt fit` on fewer rows. Returns `out`."""
+    lines = Path(path).read_bytes().splitlines()
+    header, rows = lines[0], [r for r in lines[1:] if r.strip()]
+    keep = np.sort(np.random.default_rng(seed).choice(len(rows), min(n, len(rows)), replace=False))
+    out = Path(out)
+    out.write_bytes(b"\n".join([header] + [rows[i] for i in keep]) + b"\n")
+    return out
+
+
+def point_split(point_id: np.ndarray, holdout: float = 0.3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Row indices (sorted, so time order is kept) of training and held-out rows: a seeded
+    `holdout` fraction of the distinct points is held out whole (every repetition of a point
+    is on one side, so a model cannot win by remembering a point)."""
+    pts = np.unique(point_id)
+    test_pts = np.random.default_rng(seed).choice(pts, int(round(holdout * len(pts))), replace=False)
+    test = np.isin(point_id, test_pts)
+    return np.flatnonzero(~test), np.flatnonzero(test)

@@ -14,6 +14,7 @@ import numpy as np
 from scipy import stats
 
 from dt_runtime import effects as fx
+from dt_runtime.errors import DataError
 from dt_runtime.hybrid import HybridModel
 from dt_runtime.kinematics import Chain
 
@@ -93,6 +94,9 @@ def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain
     """Rank the candidate effects missing from `base_effects` + GP(`gp_inputs`); rows in time
     order, `groups` the target point of each row, noise_floor_m the measurement noise floor
     (3D RMS, m) if known."""
+    unknown = [c for c in (*(candidates or ()), *base_effects) if c not in fx.EFFECT_NAMES]
+    if unknown:
+        raise DataError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECT_NAMES)}")
     folds = folds_of(groups, n_folds, seed)
     avail = fx.available(inp, chain)
     cands = [c for c in (candidates or fx.EFFECT_NAMES) if c in avail and c not in base_effects]

@@ -44,6 +44,9 @@ def test_adding_the_effect_with_dt_fit_shows_the_same_fall(capsys, tmp_path):
     before = dt(capsys, "fit", "--data", str(csv), "--effects", "geometric", "--out", str(tmp_path / "m0"), "--cv", "5")
     after = dt(capsys, "fit", "--data", str(csv), "--effects", "geometric,backlash", "--out", str(tmp_path / "m1"),
                "--cv", "5")
+    # diagnose from the saved starting model names the same effect
+    r = dt(capsys, "diagnose", "--data", str(csv), "--model", str(tmp_path / "m0"))
+    assert r["base_effects"] == ["geometric"] and r["ranking"][0]["effect"] == "backlash"
     assert after["heldout_rmse_mm"] <= 0.7 * before["heldout_rmse_mm"]
     assert after["heldout_rmse_mm"] <= 1.3 * meta["noise_floor_mm"]
     widths = {p["name"]: p for p in after["parameters"] if p["effect"] == "backlash"}
@@ -62,3 +65,16 @@ def test_fault_free_data_names_no_effect_in_at_least_9_of_10_seeds(capsys, tmp_p
         if not hits:
             assert r["verdict"].startswith("No candidate effect")
     assert sum(1 for h in named if h) <= 1, named
+
+
+def test_unknown_effect_names_are_refused(capsys, tmp_path):
+    import numpy as np
+
+    from dt_runtime.cli import main
+    from dt_runtime.dataset import Dataset, write_table
+
+    rng = np.random.default_rng(0)
+    csv = write_table(Dataset(commanded=rng.uniform(0, 1, (20, 3)), error=rng.normal(0, 1e-4, (20, 3))),
+                      tmp_path / "d.csv")
+    assert main(["diagnose", "--data", str(csv), "--candidates", "thermal,backlesh", "--json"]) == 2
+    assert "unknown effect(s) backlesh" in json.loads(capsys.readouterr().out)["error"]
