@@ -112,6 +112,9 @@ def _human(name: str, result: dict) -> str:
                  + (f" (noise floor {result['noise_floor_mm']:.4f} mm)" if result.get("noise_floor_mm") else "")]
         lines += [f"  {r['effect']:<10} explains {100 * r['explained_fraction']:6.1f} %  p = {r['p_value']:.2g}  "
                   f"RMS {r['rmse_before_mm']:.4f} -> {r['rmse_after_mm']:.4f} mm" for r in result["ranking"]]
+        lines += [f"  GP on {r['gp_inputs']:<9} explains {100 * r['explained_fraction']:6.1f} %  p = {r['p_value']:.2g}  "
+                  f"RMS {r['rmse_before_mm']:.4f} -> {r['rmse_after_mm']:.4f} mm"
+                  for r in result.get("gp_inputs_ranking", [])]
         return "\n".join(lines + [result["verdict"]])
     if name == "compare":
         lines = [f"{result['n']} rows of {result['dataset']}"

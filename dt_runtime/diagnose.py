@@ -27,6 +27,8 @@ FACTOR = {"geometric": "the joint configuration (joint zero offsets and link err
           "thermal": "the temperature, growing with distance from the base",
           "dynamic": "the commanded speed and direction of travel",
           "drift": "the time since the start of the data"}
+GP_FACTOR = {"tcp_speed": "the Cartesian TCP and speed", "tcp": "the Cartesian TCP",
+             "joints": "the joint angles"}
 
 
 @dataclass
@@ -87,13 +89,41 @@ def noise_floor(u: np.ndarray | None) -> float | None:
     return float(np.sqrt(np.mean(np.sum(u ** 2, axis=1))))
 
 
+def paired_gain(base: CvResult, res: CvResult) -> tuple[float, float]:
+    """One-sided p-value that `res` lowers the per-group held-out error of `base` (Wilcoxon
+    signed rank on the paired per-group mean squared residuals), and the held-out 3D RMS of res."""
+    d = base.group_mse - res.group_mse
+    # Differences at round-off level (a candidate whose regressors are all zero, e.g.
+    # thermal at constant temperature) are no evidence either way.
+    if np.all(np.abs(d) <= 1e-9 * np.mean(base.group_mse)):
+        return 1.0, rms3(res.residual)
+    return float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue), rms3(res.residual)
+
+
+def _row(before: float, after: float, p: float, **key) -> dict:
+    return {**key, "explained_fraction": float(1 - (after / before) ** 2), "p_value": p,
+            "rmse_before_mm": before * 1e3, "rmse_after_mm": after * 1e3,
+            "significant": p < ALPHA and after < before}
+
+
+def gp_alternatives(inp: fx.Inputs, gp_inputs: str) -> list[str]:
+    """The other GP inputs worth testing: the paper's Cartesian TCP (+ speed) and the joint angles."""
+    have = {"tcp_speed" if inp.speed is not None else "tcp"} | ({"joints"} if inp.joints is not None else set())
+    same = {gp_inputs} | ({"tcp", "tcp_speed"} if gp_inputs in ("tcp", "tcp_speed") and inp.speed is None else set())
+    return sorted(have - same)
+
+
 def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain | None,
              base_effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
              candidates: tuple[str, ...] | None = None, n_folds: int = 5, seed: int = 0,
-             noise_floor_m: float | None = None, progress=None, gp_kw: dict | None = None) -> dict:
+             noise_floor_m: float | None = None, progress=None, gp_kw: dict | None = None,
+             test_gp_inputs: bool = True) -> dict:
     """Rank the candidate effects missing from `base_effects` + GP(`gp_inputs`); rows in time
     order, `groups` the target point of each row, noise_floor_m the measurement noise floor
-    (3D RMS, m) if known."""
+    (3D RMS, m) if known. With test_gp_inputs, also test the same effects with the GP on the
+    other inputs (`gp_inputs_ranking`): a residual that follows the joint configuration rather
+    than the Cartesian position (several joint solutions per region, a real arm's elasticity
+    and encoder errors) wants the GP on the joint angles."""
     unknown = [c for c in (*(candidates or ()), *base_effects) if c not in fx.EFFECT_NAMES]
     if unknown:
         raise DataError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECT_NAMES)}")
@@ -101,25 +131,24 @@ def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain
     avail = fx.available(inp, chain)
     cands = [c for c in (candidates or fx.EFFECT_NAMES) if c in avail and c not in base_effects]
     skipped = [c for c in (candidates or fx.EFFECT_NAMES) if c not in avail and c not in base_effects]
+    alts = gp_alternatives(inp, gp_inputs) if test_gp_inputs and gp_inputs != "none" else []
     base = cross_validate(tuple(base_effects), inp, error, groups, chain, gp_inputs, folds, seed, gp_kw)
     before = rms3(base.residual)
-    ranking = []
-    for i, c in enumerate(cands):
+    ranking, gp_ranking = [], []
+    steps = [("effect", c) for c in cands] + [("gp_inputs", g) for g in alts]
+    for i, (kind, c) in enumerate(steps):
         if progress:
-            progress.step("diagnose: candidate effects", i, len(cands))
-        res = cross_validate(tuple(base_effects) + (c,), inp, error, groups, chain, gp_inputs, folds, seed, gp_kw)
-        d = base.group_mse - res.group_mse
-        # Differences at round-off level (a candidate whose regressors are all zero, e.g.
-        # thermal at constant temperature) are no evidence either way.
-        if np.all(np.abs(d) <= 1e-9 * np.mean(base.group_mse)):
-            p = 1.0
+            progress.step("diagnose: candidates", i, len(steps))
+        if kind == "effect":
+            res = cross_validate(tuple(base_effects) + (c,), inp, error, groups, chain, gp_inputs, folds, seed, gp_kw)
+            p, after = paired_gain(base, res)
+            ranking.append(_row(before, after, p, effect=c))
         else:
-            p = float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue)
-        after = rms3(res.residual)
-        ranking.append({"effect": c, "explained_fraction": float(1 - (after / before) ** 2),
-                        "p_value": p, "rmse_before_mm": before * 1e3, "rmse_after_mm": after * 1e3,
-                        "significant": p < ALPHA and after < before})
+            res = cross_validate(tuple(base_effects), inp, error, groups, chain, c, folds, seed, gp_kw)
+            p, after = paired_gain(base, res)
+            gp_ranking.append(_row(before, after, p, gp_inputs=c))
     ranking.sort(key=lambda r: (not r["significant"], -r["explained_fraction"]))
+    gp_ranking.sort(key=lambda r: (not r["significant"], -r["explained_fraction"]))
     floor = noise_floor_m
     top = ranking[0] if ranking else None
     if top and top["significant"]:
@@ -130,7 +159,13 @@ def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain
         verdict = "No candidate effect explains a significant part of the held-out residual (all p >= 0.01)"
         verdict += (f"; the residual ({before * 1e3:.3f} mm RMS) is at the measurement noise floor "
                     f"({floor * 1e3:.3f} mm)." if floor and before < 1.3 * floor else ".")
+    g = gp_ranking[0] if gp_ranking else None
+    if g and g["significant"] and (top is None or not top["significant"]
+                                   or g["explained_fraction"] > top["explained_fraction"]):
+        verdict += (f" The GP on {GP_FACTOR[g['gp_inputs']]} instead of {GP_FACTOR[gp_inputs]} explains "
+                    f"{100 * g['explained_fraction']:.0f} % (p = {g['p_value']:.2g}): "
+                    f"fit with --gp-inputs {g['gp_inputs']}.")
     return {"base_effects": list(base_effects), "gp_inputs": gp_inputs, "n": int(inp.n),
             "n_groups": int(len(np.unique(groups))), "folds": len(folds),
             "rmse_base_mm": before * 1e3, "noise_floor_mm": None if floor is None else floor * 1e3,
-            "ranking": ranking, "not_testable": skipped, "verdict": verdict}
+            "ranking": ranking, "gp_inputs_ranking": gp_ranking, "not_testable": skipped, "verdict": verdict}

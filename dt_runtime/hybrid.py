@@ -110,7 +110,6 @@ class HybridModel:
     def fit_design(self, A3: np.ndarray, inp: fx.Inputs, error: np.ndarray, thetas=None) -> "HybridModel":
         """Fit from a prebuilt regressor array A3 (n, 3, p) (cross-validation reuses it);
         `thetas`: fixed GP hyperparameters per axis (skips their optimisation)."""
-        """Fit from a prebuilt regressor array A3 (n, 3, p) (cross-validation reuses it)."""
         error = np.asarray(error, dtype=float)
         if error.shape != (inp.n, 3) or not np.all(np.isfinite(error)):
             raise DataError(f"error must be a finite (n, 3) array matching {inp.n} rows")

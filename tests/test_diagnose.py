@@ -62,3 +62,34 @@ def test_without_a_hidden_effect_nothing_is_named(chain):
                  candidates=("compliance", "drift", "dynamic"), n_folds=4)
     assert all(x["p_value"] >= 0.01 or not x["significant"] for x in r["ranking"])
     assert r["verdict"].startswith("No candidate effect")
+
+
+def test_gp_alternatives_are_the_other_inputs_the_data_has():
+    from dt_runtime.diagnose import gp_alternatives
+
+    n = 4
+    full = fx.Inputs(commanded=np.zeros((n, 3)), joints=np.zeros((n, 6)), speed=np.ones(n))
+    no_speed = fx.Inputs(commanded=np.zeros((n, 3)), joints=np.zeros((n, 6)))
+    assert gp_alternatives(full, "tcp_speed") == ["joints"]
+    assert gp_alternatives(full, "tcp") == ["joints", "tcp_speed"]
+    assert gp_alternatives(full, "joints") == ["tcp_speed"]
+    assert gp_alternatives(no_speed, "tcp_speed") == ["joints"]
+    assert gp_alternatives(fx.Inputs(commanded=np.zeros((n, 3))), "tcp") == []
+
+
+def test_an_error_that_follows_the_joints_not_the_tcp_asks_for_the_gp_on_joints():
+    """Error a smooth function of the joint angles, TCP unrelated to them (as when one region is
+    reached in several configurations): the GP on the joints wins and the verdict says so."""
+    rng = np.random.default_rng(5)
+    n = 240
+    q = rng.uniform(-1, 1, (n, 6))
+    E = 1e-3 * np.column_stack([np.sin(2 * q[:, 1]), np.cos(2 * q[:, 2]), q[:, 0] * q[:, 3]])
+    E += rng.normal(0, 10e-6, (n, 3))
+    inp = fx.Inputs(commanded=rng.uniform(0.2, 0.8, (n, 3)), joints=q, speed=rng.choice([0.3, 0.6], n))
+    r = diagnose(inp, E, np.arange(n), None, gp_inputs="tcp", candidates=("dynamic",), n_folds=4)
+    g = {x["gp_inputs"]: x for x in r["gp_inputs_ranking"]}
+    assert set(g) == {"joints", "tcp_speed"}
+    assert g["joints"]["significant"] and g["joints"]["p_value"] < 0.01
+    assert g["joints"]["rmse_after_mm"] < 0.3 * g["joints"]["rmse_before_mm"]
+    assert not g["tcp_speed"]["significant"]
+    assert "--gp-inputs joints" in r["verdict"]
