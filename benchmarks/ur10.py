@@ -100,7 +100,8 @@ def cv_memo():
         a = sig.bind(*args, **kwargs).arguments
         h = hashlib.sha1(b"".join(np.asarray(f).tobytes() for f in a["folds"])).hexdigest()
         key = (id(a["inp"]), tuple(a["effects"]), a["gp_inputs"], h, a["seed"],
-               json.dumps(a.get("gp_kw"), sort_keys=True), a.get("thetas") is None)
+               json.dumps(a.get("gp_kw"), sort_keys=True), a.get("thetas") is None,
+               a.get("return_std", False), a.get("hyper_per_fold", False))
         if key not in memo:
             memo[key] = (a["inp"], orig(*args, **kwargs))  # keep inp alive: its id is the key
         return memo[key][1]
@@ -114,15 +115,10 @@ def cv_memo():
 
 def strict_residual(effects, gp_inputs, inp, error, chain, folds) -> np.ndarray:
     """Held-out residuals with *everything* (effect parameters, GP hyperparameters and
-    posterior) fitted on the training side of each fold; rows outside every fold are NaN.
-    Regressors are built on the full, time-ordered rows first, as cross_validate does."""
-    A = HybridModel(effects, gp_inputs, gp_kw=GP_KW)._design(inp, chain)[0].reshape(inp.n, 3, -1)
-    resid = np.full_like(error, np.nan)
-    for te in folds:
-        tr = ~te
-        m = HybridModel(effects, gp_inputs, seed=SEED, gp_kw=GP_KW).fit_design(A[tr], inp.subset(tr), error[tr])
-        resid[te] = error[te] - m.predict_design(A[te], inp.subset(te))
-    return resid
+    posterior) fitted on the training side of each fold; rows outside every fold are NaN."""
+    groups = np.zeros(inp.n, dtype=int)  # the per-group figures are not used here
+    return dg.cross_validate(effects, inp, error, groups, chain, gp_inputs, folds, SEED, GP_KW,
+                             hyper_per_fold=True).residual
 
 
 def paired_p(before: dg.CvResult, after: dg.CvResult) -> float:

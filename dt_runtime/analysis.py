@@ -87,7 +87,8 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
         progress.note(f"held-out error: {cv_folds}-fold cross-validation grouped by target point")
         g = groups_of(ds)
         cv = cross_validate(tuple(effects), fx.Inputs.of(ds), ds.error, g, model.chain, gp_inputs,
-                            folds_of(g, cv_folds, seed), seed, gp_kw)
+                            folds_of(g, cv_folds, seed), seed, gp_kw,
+                            thetas=model.gp_.thetas_ if model.gp_ is not None else None)
         res["heldout_rmse_mm"] = rms3(cv.residual) * 1e3
         res["as_is_rmse_mm"] = rms3(ds.error) * 1e3
     return res

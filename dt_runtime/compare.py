@@ -83,14 +83,12 @@ def _noise_of(model: HybridModel) -> tuple[np.ndarray, np.ndarray]:
     """The model's estimate of the scatter of one measurement about the error map (m) per axis,
     and its dof: the GP's fitted white noise, else the effect fit's residual RMS."""
     if model.gp_ is not None:
-        gps = model.gp_.models_
-        return (np.sqrt([g.noise_var_ for g in gps]),
-                np.array([max(g.n_train_ - 1, 1) for g in gps], dtype=float))
+        return np.sqrt([g.noise_var_ for g in model.gp_.models_]), _model_dof(model)
     return np.full(3, float(model.residual_rms_)), np.full(3, INF)
 
 
 def _model_dof(model: HybridModel) -> np.ndarray:
-    """dof of the latent GP std: estimated from the training rows (type A)."""
+    """dof of the GP's estimates (latent std, noise): from its training rows (type A)."""
     if model.gp_ is None:
         return np.full(3, INF)
     return np.array([max(g.n_train_ - 1, 1) for g in model.gp_.models_], dtype=float)
@@ -283,7 +281,7 @@ def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np
     robot, GP options) refitted on the other folds, with the saved model's GP hyperparameters."""
     thetas = m.gp_.thetas_ if m.gp_ is not None else None
     cv = cross_validate(m.effects, fx.Inputs.of(ds), ds.error, groups, m.chain, m.gp_inputs, folds,
-                        m.seed, m.gp_kw, thetas=thetas)
+                        m.seed, m.gp_kw, thetas=thetas, return_std=True)
     return ds.error - cv.residual, cv.std
 
 

@@ -35,7 +35,7 @@ GP_FACTOR = {"tcp_speed": "the Cartesian TCP and speed", "tcp": "the Cartesian T
 class CvResult:
     residual: np.ndarray  # (n,3) held-out residuals
     group_mse: np.ndarray  # (g,) per-group mean squared 3D residual
-    std: np.ndarray  # (n,3) the fold model's stated standard uncertainty of its prediction
+    std: np.ndarray | None  # (n,3) the fold models' stated standard uncertainty (return_std)
 
 
 def rms3(e: np.ndarray) -> float:
@@ -53,28 +53,34 @@ def folds_of(groups: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
 
 def cross_validate(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, groups: np.ndarray,
                    chain: Chain | None, gp_inputs: str, folds: list[np.ndarray], seed: int,
-                   gp_kw: dict | None = None, thetas=None) -> CvResult:
+                   gp_kw: dict | None = None, thetas=None, return_std: bool = False,
+                   hyper_per_fold: bool = False) -> CvResult:
     """Held-out residuals of the model (effects + GP on gp_inputs), each row predicted by a model
-    fitted on the other folds. `thetas`: GP hyperparameters to keep fixed (e.g. a saved model's);
-    default: fitted once on all rows (below)."""
+    fitted on the other folds (rows in no fold stay NaN). `thetas`: GP hyperparameters to keep
+    fixed (e.g. a saved model's); default: fitted once on all rows (below), or with
+    hyper_per_fold inside every fold (strict, slower). return_std: also the fold models' stated
+    standard uncertainty of each prediction (its variance costs more than the mean)."""
     # Regressors that look at the previous row (approach direction) are built on the full,
     # time-ordered data and then split, so held-out rows keep their true history.
     resid = np.full_like(error, np.nan)
-    std = np.zeros_like(error)
+    std = np.zeros_like(error) if return_std else None
     full = HybridModel(effects, gp_inputs, seed=seed, gp_kw=gp_kw)
     A_full, _ = full._design(inp, chain)
     A_full = A_full.reshape(inp.n, 3, -1)
     # GP hyperparameters are fitted once per candidate model on all rows and kept fixed in
     # the folds (the fold models refit the effect parameters and the GP posterior): a few
     # smoothness/noise numbers leak, no point's error does, and the loop runs 5x faster.
-    if gp_inputs != "none" and thetas is None:
+    if gp_inputs != "none" and thetas is None and not hyper_per_fold:
         full.fit_design(A_full, inp, error)
         thetas = full.gp_.thetas_
     for te in folds:
         tr = ~te
         m = HybridModel(effects, gp_inputs, seed=seed, gp_kw=gp_kw)
         m.fit_design(A_full[tr], inp.subset(tr), error[tr], thetas=thetas)
-        pred, std[te] = m.predict_design(A_full[te], inp.subset(te), return_std=True)
+        if return_std:
+            pred, std[te] = m.predict_design(A_full[te], inp.subset(te), return_std=True)
+        else:
+            pred = m.predict_design(A_full[te], inp.subset(te))
         resid[te] = error[te] - pred
     ug = np.unique(groups)
     sq = np.sum(resid ** 2, axis=1)
