@@ -39,7 +39,7 @@ def fit_sklearn(X, Y, thetas=None):
 
 def cli(description: str) -> bool:
     """Parse --json; BLAS on one thread (or $DT_BLAS_THREADS), as the `dt` command line runs."""
-    from dt_runtime.threads import limit_blas_threads
+    from dt_runtime.common.threads import limit_blas_threads
 
     limit_blas_threads()
     p = argparse.ArgumentParser(description=description)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dt_runtime.paths import CONFIGS, DATA
+from dt_runtime.common.paths import CONFIGS, DATA
 
 UR10_SERIES_A = DATA / "ipa_ur10" / "Series_A" / "measurements_grid.csv"
 UR10_MAPPING = CONFIGS / "import" / "ur10.yaml"
@@ -86,7 +86,7 @@ def scattered_dataset(n: int, seed: int = 0, noise=1e-5):
 def ur10_dataset(path: str | Path = UR10_SERIES_A):
     """A UR10 file (default Series A: 619 grid points visited ~19 times each, 11,911 rows) read
     through configs/import/ur10.yaml: registered, SI, rows in time order, `point_id` per grid point."""
-    from dt_runtime.importer import import_file
+    from dt_runtime.measurements.importer import import_file
 
     return import_file(Path(path), UR10_MAPPING)[0]
 

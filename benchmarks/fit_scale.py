@@ -37,7 +37,7 @@ import numpy as np
 
 from benchmarks._common import cli, emit
 from benchmarks._data import UR10_MAPPING, UR10_ROBOT, UR10_SERIES_A, point_split, ur10_dataset, ur10_subset_file
-from dt_runtime.paths import ROOT
+from dt_runtime.common.paths import ROOT
 
 # name -> effect terms; both with the GP on the TCP position (gp_inputs "tcp"); the robot
 # config (kinematics of the effect terms) is configs/robots/ur10.yaml unless run() is told.
@@ -64,7 +64,7 @@ def _load() -> float:
 def dt_fit(data: Path, model: str, out_dir: Path, robot: Path = UR10_ROBOT) -> dict:
     """Run `dt fit` on `data` and measure the process: wall s, CPU s and peak RSS (wait4)."""
     effects = MODELS[model]
-    cmd = [sys.executable, "-m", "dt_runtime.cli", "fit", "--data", str(data), "--mapping", str(UR10_MAPPING),
+    cmd = [sys.executable, "-m", "dt_runtime.cli.main", "fit", "--data", str(data), "--mapping", str(UR10_MAPPING),
            "--gp-inputs", "tcp", "--out", str(out_dir / model), "--json", "--no-progress"]
     if effects:
         cmd += ["--effects", ",".join(effects), "--robot", str(robot)]
@@ -84,13 +84,13 @@ def dt_fit(data: Path, model: str, out_dir: Path, robot: Path = UR10_ROBOT) -> d
 
 # --- 2./3. analysis jobs (each in its own worker process) ------------------------------------
 def _one_thread():
-    from dt_runtime.threads import limit_blas_threads
+    from dt_runtime.common.threads import limit_blas_threads
 
     return limit_blas_threads(1)
 
 
 def _model(name: str, robot: str, seed: int, gp_kw: dict | None = None):
-    from dt_runtime.hybrid import HybridModel
+    from dt_runtime.models.hybrid import HybridModel
 
     effects = MODELS[name]
     return HybridModel(effects, "tcp", seed=seed, robot=robot if effects else None, gp_kw=gp_kw)

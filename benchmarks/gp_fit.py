@@ -10,7 +10,7 @@ import numpy as np
 
 from benchmarks._common import cli, emit, fit_sklearn
 from benchmarks._data import doe_dataset, error_field, validation_dataset
-from dt_runtime.gp import MultiOutputGP
+from dt_runtime.models.gp import MultiOutputGP
 
 
 def run(seed: int = 0) -> dict:

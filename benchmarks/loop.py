@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dt_runtime.cli import main as dt_main
-from dt_runtime.paths import CONFIGS
-from dt_runtime.runtime import Daemon, RuntimeConfig
+from dt_runtime.cli.main import main as dt_main
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.service.daemon import Daemon, RuntimeConfig
 
 
 def _port() -> int:

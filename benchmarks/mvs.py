@@ -23,9 +23,9 @@ import time  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from drivers.sim_camera import SimCameraRig  # noqa: E402
-from dt_runtime.mvs.detect import baseline_detect  # noqa: E402
-from dt_runtime.mvs.pipeline import MarkerTracker, _distort  # noqa: E402
+from drivers.simulated.camera_images import SimCameraRig  # noqa: E402
+from drivers.mvs.detect import baseline_detect  # noqa: E402
+from drivers.mvs.pipeline import MarkerTracker, _distort  # noqa: E402
 from sim.camera_rig import random_tool_rotation, sample_volume  # noqa: E402
 
 

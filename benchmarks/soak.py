@@ -16,10 +16,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from dt_runtime.cli import main as dt_main
-from dt_runtime.escalation import EscalationConfig, false_alarm_rates
-from dt_runtime.paths import CONFIGS
-from dt_runtime.runtime import Daemon, RuntimeConfig
+from dt_runtime.cli.main import main as dt_main
+from dt_runtime.service.escalation import EscalationConfig, false_alarm_rates
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.service.daemon import Daemon, RuntimeConfig
 
 FAULTS = {
     "joint2_offset_0.5mrad": {"joint_offset_rad": [0, 5e-4, 0, 0, 0, 0]},

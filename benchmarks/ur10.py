@@ -7,7 +7,7 @@ Per series:
    the registration residual RMS, which *is* the as-is error of the dataset (the error left
    after a rigid registration).
 2. Baseline, the paper's model: a GP on the TCP position only (HybridModel((), "tcp")).
-3. The diagnose loop (dt_runtime.diagnose.diagnose): starting from the paper's model, add the
+3. The diagnose loop (dt_runtime.analysis.diagnose.diagnose): starting from the paper's model, add the
    top-ranked effect while it is significant (p < 0.01 and lower held-out RMS); then try the
    GP on the joint angles instead of the TCP (same paired one-sided Wilcoxon test on the
    per-point mean squared residuals as diagnose) and, if the switch wins, go on diagnosing
@@ -50,12 +50,12 @@ import numpy as np
 
 from benchmarks._common import emit
 from benchmarks._data import UR10_MAPPING, UR10_ROBOT, point_split
-from dt_runtime import diagnose as dg
-from dt_runtime import effects as fx
-from dt_runtime.analysis import floor_of, groups_of, load_data
-from dt_runtime.hybrid import HybridModel
-from dt_runtime.kinematics import load_robot
-from dt_runtime.paths import DATA
+from dt_runtime.analysis import diagnose as dg
+from dt_runtime.models import effects as fx
+from dt_runtime.analysis.data import floor_of, groups_of, load_data
+from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.frames.kinematics import load_robot
+from dt_runtime.common.paths import DATA
 
 FILES = {"A": "Series_A/measurements_grid.csv", "B": "Series_B/measurements_joint_configurations.csv",
          "C": "Series_C/measurements_random_poses.csv", "D": "Series_D/measurements_iso_cubes.csv"}

@@ -11,7 +11,7 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-from sim.errors import StateError
+from dt_kernel.errors import StateError
 
 UNCONFIGURED, INACTIVE, ACTIVE, CLOSED = "unconfigured", "inactive", "active", "closed"
 

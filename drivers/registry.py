@@ -4,13 +4,13 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from sim.errors import ConfigError
+from dt_kernel.errors import ConfigError
 
 # name -> "module:Class"; imported lazily so a missing optional part fails only when chosen.
 _REGISTRY: dict[str, dict[str, str]] = {
-    "robot": {"sim": "drivers.simulated:SimRobot", "serial": "drivers.serial_controller:SerialController"},
-    "tracker": {"sim": "drivers.simulated:SimTracker", "serial": "drivers.serial_tracker:SerialTracker"},
-    "camera": {"sim_point": "drivers.simulated:SimPointCamera", "sim_images": "drivers.sim_camera:SimCameraRig"},
+    "robot": {"sim": "drivers.simulated.devices:SimRobot", "serial": "drivers.serial.controller:SerialController"},
+    "tracker": {"sim": "drivers.simulated.devices:SimTracker", "serial": "drivers.serial.tracker:SerialTracker"},
+    "camera": {"sim_point": "drivers.simulated.devices:SimPointCamera", "sim_images": "drivers.simulated.camera_images:SimCameraRig"},
 }
 
 

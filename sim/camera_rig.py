@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import Field, model_validator
 from scipy.special import ndtr
 
-from sim.configtools import Frozen, load_yaml, validate
+from dt_kernel.config import Frozen, load_yaml, validate
 from sim.instruments import Pose
 
 Occluder = Callable[[np.ndarray, np.ndarray], np.ndarray]

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim.configtools import Frozen, load_yaml, validate
+from dt_kernel.config import Frozen, load_yaml, validate
 from sim.instruments import PointMVSConfig, SimLaserTracker, SimPointMVS, TrackerConfig
 from sim.plant import SimClock, SimulatedCobot
 from sim.scenario import Scenario, load_scenario

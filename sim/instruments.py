@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sim.configtools import Frozen
+from dt_kernel.config import Frozen
 from pydantic import Field
 
 
@@ -58,10 +58,6 @@ class SimLaserTracker:
         az = float(np.arctan2(p[1], p[0])) + self._rng.normal(0, u / d)
         el = float(np.arctan2(p[2], np.hypot(p[0], p[1]))) + self._rng.normal(0, u / d)
         return d_m, az, el, "ok"
-
-
-def spherical_to_cartesian(d: float, az: float, el: float) -> np.ndarray:
-    return np.array([d * np.cos(el) * np.cos(az), d * np.cos(el) * np.sin(az), d * np.sin(el)])
 
 
 class SimPointMVS:

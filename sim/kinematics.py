@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pybullet as pb
 
-from sim.errors import UnreachableError
+from dt_kernel.errors import UnreachableError
 
 URDF_PATH = Path(__file__).parent / "assets" / "cobot.urdf"
 GRAVITY = 9.80665  # m/s^2, standard gravity

@@ -10,7 +10,7 @@ from typing import Annotated
 
 from pydantic import Field, field_validator
 
-from sim.configtools import Frozen, load_yaml
+from dt_kernel.config import Frozen, load_yaml
 
 EFFECTS = ("geometric", "compliance", "gear", "backlash", "thermal", "dynamic", "drift")
 N_JOINTS = 6

@@ -8,10 +8,10 @@ import time
 
 import pytest
 
-from dt_runtime.bus import Bus, BusConfig, MaintenanceConsumer, _open, load_bus_config
-from dt_runtime.store import Store
-from sim.configtools import validate
-from sim.errors import ConfigError, StateError
+from dt_runtime.service.bus import Bus, BusConfig, MaintenanceConsumer, _open, load_bus_config
+from dt_runtime.service.store import Store
+from dt_kernel.config import validate
+from dt_kernel.errors import ConfigError, StateError
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 PERIOD = 0.2  # fast republish for tests

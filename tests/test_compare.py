@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from dt_runtime.compare import AS_IS, EXPECTED_ANY_AXIS, compare
-from dt_runtime.compare_report import write_compare_report
-from dt_runtime.dataset import Dataset
-from dt_runtime.errors import DataError, ModelError
-from dt_runtime.hybrid import HybridModel
+from dt_runtime.analysis.compare import AS_IS, EXPECTED_ANY_AXIS, compare
+from dt_runtime.reports.compare_report import write_compare_report
+from dt_runtime.measurements.dataset import Dataset
+from dt_kernel.errors import DataError, ModelError
+from dt_runtime.models.hybrid import HybridModel
 
 SIGMA = 50e-6  # measurement noise, m
 LO, HI = np.array([0.3, -0.4, 0.2]), np.array([0.9, 0.4, 0.8])
@@ -179,7 +179,7 @@ def test_bad_input_raises_clearly(gp_dir, tmp_path):
 # --------------------------------------------------------------------------- through the `dt` CLI
 
 def _dt(capsys, *argv) -> tuple[int, dict]:
-    from dt_runtime.cli import main
+    from dt_runtime.cli.main import main
 
     code = main([*argv, "--json", "--no-progress"])
     return code, json.loads(capsys.readouterr().out)
@@ -188,7 +188,7 @@ def _dt(capsys, *argv) -> tuple[int, dict]:
 def test_cli_fit_then_compare_held_out_side_by_side(capsys, tmp_path):
     """`dt fit` twice (no GP knowledge of the regional bias, then a GP on the TCP), `dt compare`
     of both on the training file with --cv: the figures are held out and the GP column lower."""
-    from dt_runtime.dataset import write_table
+    from dt_runtime.measurements.dataset import write_table
 
     ds = make(5, extra=lambda P: np.where(P[:, :1] > X_INJECT, [1e-3, 0, 0], 0.0))
     ds.point_id = np.arange(ds.n)
@@ -211,7 +211,7 @@ def test_cli_fit_then_compare_held_out_side_by_side(capsys, tmp_path):
 
 
 def test_cli_compare_bad_model_is_one_json_error(capsys, tmp_path):
-    from dt_runtime.dataset import write_table
+    from dt_runtime.measurements.dataset import write_table
 
     csv = write_table(make(2, n=20), tmp_path / "d.csv")
     code, res = _dt(capsys, "compare", "--data", str(csv), "--model", str(tmp_path / "missing"))

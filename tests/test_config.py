@@ -1,7 +1,7 @@
 import pytest
 
-from sim.configtools import Frozen, load_yaml
-from sim.errors import ConfigError
+from dt_kernel.config import Frozen, load_yaml
+from dt_kernel.errors import ConfigError
 
 
 class Inner(Frozen):
@@ -31,7 +31,7 @@ def test_config_is_frozen(tmp_path):
 
 
 def test_exponent_without_sign_is_a_float(tmp_path):
-    from sim.configtools import read_yaml
+    from dt_kernel.config import read_yaml
 
     p = tmp_path / "c.yaml"
     p.write_text("a: 1.0e6\nb: 1e-5\nc: 3\nd: '1e3'\n")

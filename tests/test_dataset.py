@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from dt_runtime.dataset import Dataset, concat, read_table, write_table
-from dt_runtime.errors import DataError
+from dt_runtime.measurements.dataset import Dataset, concat, read_table, write_table
+from dt_kernel.errors import DataError
 
 
 def _dataset(n=7, seed=0, measured=True):

@@ -4,8 +4,8 @@ import shutil
 
 import pytest
 
-from dt_runtime.cli import main
-from dt_runtime.paths import CONFIGS
+from dt_runtime.cli.main import main
+from dt_runtime.common.paths import CONFIGS
 
 KEYS = {"precision_before_mm", "precision_after_mm", "improvement_pct", "true_rms_uncorrected_mm",
         "true_rms_corrected_mm", "true_error_reduction_pct", "coverage_95"}

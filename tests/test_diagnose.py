@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from dt_runtime import effects as fx
-from dt_runtime.diagnose import diagnose
-from dt_runtime.hybrid import HybridModel
-from dt_runtime.kinematics import load_robot
-from dt_runtime.paths import CONFIGS
-from dt_runtime.plans import PlanConfig, doe_points
+from dt_runtime.models import effects as fx
+from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.frames.kinematics import load_robot
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.measurements.plans import PlanConfig, doe_points
 from sim.plant import SimulatedCobot
 from sim.scenario import Scenario
 
@@ -65,7 +65,7 @@ def test_without_a_hidden_effect_nothing_is_named(chain):
 
 
 def test_gp_alternatives_are_the_other_inputs_the_data_has():
-    from dt_runtime.diagnose import gp_alternatives
+    from dt_runtime.analysis.diagnose import gp_alternatives
 
     n = 4
     full = fx.Inputs(commanded=np.zeros((n, 3)), joints=np.zeros((n, 6)), speed=np.ones(n))

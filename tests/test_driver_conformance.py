@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from drivers.base import JointState, LaserTracker, RobotController, TrackerReading
-from drivers.serial_controller import SerialController
-from drivers.serial_tracker import SerialTracker
-from sim.controller_emulator import ControllerEmulator, TrackerEmulator
-from sim.errors import DriverError, StateError
+from drivers.serial.controller import SerialController
+from drivers.serial.tracker import SerialTracker
+from drivers.serial.emulator import ControllerEmulator, TrackerEmulator
+from dt_kernel.errors import DriverError, StateError
 from tests.test_serial import FakePlant
 
 SCENARIO, CELL = "configs/scenarios/paper_default.yaml", "configs/cell.yaml"
@@ -28,7 +28,7 @@ SCENARIO, CELL = "configs/scenarios/paper_default.yaml", "configs/cell.yaml"
 def _sim_world():
     from pathlib import Path
 
-    from drivers.simulated import SimWorld
+    from drivers.simulated.devices import SimWorld
 
     root = Path(__file__).resolve().parents[1]
     world = SimWorld(root / SCENARIO, root / CELL)
@@ -40,7 +40,7 @@ def _sim_world():
 
 @contextlib.contextmanager
 def sim_robot():
-    from drivers.simulated import SimRobot
+    from drivers.simulated.devices import SimRobot
 
     with _sim_world() as world:
         yield SimRobot(world), {}
@@ -69,7 +69,7 @@ def serial_robot_sim_plant_over_socket():
 
 @contextlib.contextmanager
 def sim_tracker():
-    from drivers.simulated import SimTracker
+    from drivers.simulated.devices import SimTracker
 
     with _sim_world() as world:
         yield SimTracker(world), {}

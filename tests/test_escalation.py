@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from dt_runtime.escalation import (EscalationConfig, EscalationMachine, Escalator,
+from dt_runtime.service.escalation import (EscalationConfig, EscalationMachine, Escalator,
                                    false_alarm_rates)
-from dt_runtime.store import Store
-from sim.configtools import validate
-from sim.errors import ConfigError, StateError
+from dt_runtime.service.store import Store
+from dt_kernel.config import validate
+from dt_kernel.errors import ConfigError, StateError
 
 TARGET_PER_DAY = 0.1
 DAY = 86_400

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import linalg
 
-from dt_runtime.errors import DataError, ModelError
-from dt_runtime.gp import GPRegressor, MultiOutputGP
+from dt_kernel.errors import DataError, ModelError
+from dt_runtime.models.gp import GPRegressor, MultiOutputGP
 
 
 def doe_like(rng, n_pts=40, reps=5, noise=1e-5):
@@ -147,7 +147,7 @@ def test_weak_smooth_signal_with_replicates_is_not_fitted_as_noise():
     # e_MVS-LT-like data: a smooth field only ~2x the replication noise, 3 replicates per input.
     # An unbounded optimiser can fit each replicate mean as independent noise (length scales
     # -> 0) and then predicts only the mean between points.
-    from dt_runtime.gp import MultiOutputGP
+    from dt_runtime.models.gp import MultiOutputGP
 
     rng = np.random.default_rng(5)
     P = rng.uniform(-0.5, 0.5, (60, 3))

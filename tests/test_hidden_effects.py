@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from dt_runtime.cli import main
-from dt_runtime.paths import CONFIGS
+from dt_runtime.cli.main import main
+from dt_runtime.common.paths import CONFIGS
 
 HIDDEN = CONFIGS / "scenarios" / "hidden"
 
@@ -70,8 +70,8 @@ def test_fault_free_data_names_no_effect_in_at_least_9_of_10_seeds(capsys, tmp_p
 def test_unknown_effect_names_are_refused(capsys, tmp_path):
     import numpy as np
 
-    from dt_runtime.cli import main
-    from dt_runtime.dataset import Dataset, write_table
+    from dt_runtime.cli.main import main
+    from dt_runtime.measurements.dataset import Dataset, write_table
 
     rng = np.random.default_rng(0)
     csv = write_table(Dataset(commanded=rng.uniform(0, 1, (20, 3)), error=rng.normal(0, 1e-4, (20, 3))),

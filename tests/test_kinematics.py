@@ -1,8 +1,8 @@
 """The twin's numpy kinematics agree with the simulator's PyBullet model and the UR10 data."""
 import numpy as np
 
-from dt_runtime.kinematics import load_robot
-from dt_runtime.paths import CONFIGS
+from dt_runtime.frames.kinematics import load_robot
+from dt_runtime.common.paths import CONFIGS
 
 
 def test_urdf_chain_matches_pybullet():

@@ -6,13 +6,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from drivers.base import CameraRig
-from drivers.sim_camera import SimCameraRig
-from dt_runtime.mvs import RigModel
-from dt_runtime.mvs.calibration import board_points, calibrate_camera
-from dt_runtime.mvs.detect import detect_in_rois
+from drivers.simulated.camera_images import SimCameraRig
+from drivers.mvs import RigModel
+from drivers.mvs.calibration import board_points, calibrate_camera
+from drivers.mvs.detect import detect_in_rois
 from sim.camera_rig import (SimCameraImages, load_rig_config, random_tool_rotation, sample_volume,
                             with_render)
-from sim.errors import ConfigError, StateError
+from dt_kernel.errors import ConfigError, StateError
 
 CHI2_3_95 = 7.815  # 95 % quantile of chi^2 with 3 dof
 

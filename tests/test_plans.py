@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from dt_runtime.errors import ConfigError
-from dt_runtime.plans import PlanConfig, build_plan, doe_points, load_plan
+from dt_kernel.errors import ConfigError
+from dt_runtime.measurements.plans import PlanConfig, build_plan, doe_points, load_plan
 
 
 def test_doe_geometry_matches_the_paper():

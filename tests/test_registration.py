@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dt_runtime.errors import DataError
-from dt_runtime.registration import (ResidualStats, RigidTransform, fit_rigid, gl_nominal,
+from dt_kernel.errors import DataError
+from dt_runtime.frames.registration import (ResidualStats, RigidTransform, fit_rigid, gl_nominal,
                                      register_instrument, registration_residuals,
                                      reproducibility, three_line_frame)
 

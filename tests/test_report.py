@@ -10,9 +10,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from dt_runtime import report
-from dt_runtime.htmlreport import fig_to_img_tag, html_page, html_table, plt
-from dt_runtime.uncertainty import Budget, Component
+from dt_runtime.reports import demo_report as report
+from dt_runtime.reports.html import fig_to_img_tag, html_page, html_table, plt
+from dt_runtime.metrology.uncertainty import Budget, Component
 
 AXES = ("x", "y", "z")
 

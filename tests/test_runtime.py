@@ -9,13 +9,13 @@ import time
 import numpy as np
 import pytest
 
-from dt_runtime.bus import BusConfig, MaintenanceConsumer
-from dt_runtime.cli import main
-from dt_runtime.correction import CorrectionFault, Corrector, Limits
-from dt_runtime.paths import CONFIGS
-from dt_runtime.runtime import Daemon, RuntimeConfig
-from dt_runtime.store import Store
-from dt_runtime.twin import Twin
+from dt_runtime.service.bus import BusConfig, MaintenanceConsumer
+from dt_runtime.cli.main import main
+from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.service.daemon import Daemon, RuntimeConfig
+from dt_runtime.service.store import Store
+from dt_runtime.twin.twin import Twin
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +144,7 @@ def test_bad_runtime_config_names_the_key(tmp_path, capsys):
 
 
 def test_twin_used_with_another_camera_is_refused(twin_dir, tmp_path):
-    from dt_runtime.errors import ConfigError
+    from dt_kernel.errors import ConfigError
 
     cfg = daemon_cfg(twin_dir, tmp_path, free_port(), publish=False)
     cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(update={"camera": "sim_point"})})
@@ -155,8 +155,8 @@ def test_twin_used_with_another_camera_is_refused(twin_dir, tmp_path):
 def test_daemon_drives_the_cell_through_the_serial_emulator_on_a_pty(twin_dir, tmp_path):
     """The robot is commanded over the line protocol on a pseudo-terminal; the emulator serves
     the simulated plant; a fault mid-run reaches a Zenoh consumer as a maintenance request."""
-    from drivers.simulated import SimWorld
-    from sim.controller_emulator import ControllerEmulator
+    from drivers.simulated.devices import SimWorld
+    from drivers.serial.emulator import ControllerEmulator
 
     world = SimWorld(CONFIGS / "scenarios" / "paper_default.yaml", CONFIGS / "cell.yaml")
     emu = ControllerEmulator(world.cell.plant)
@@ -189,7 +189,7 @@ def test_dt_run_logs_json_lines_on_stderr(twin_dir, tmp_path):
         f"twin: {twin_dir}\nstore: {tmp_path / 'dt.sqlite'}\nrate_hz: 50\npublish: false\n"
         f"sim: {{scenario: {CONFIGS / 'scenarios' / 'paper_default.yaml'}, cell: {CONFIGS / 'cell.yaml'},"
         f" faults: [{{at_s: 0, joint_offset_rad: [0, 2.0e-3, 0, 0, 0, 0]}}]}}\n")
-    p = subprocess.run([sys.executable, "-m", "dt_runtime.cli", "run", "--config", str(cfg), "--duration", "2"],
+    p = subprocess.run([sys.executable, "-m", "dt_runtime.cli.main", "run", "--config", str(cfg), "--duration", "2"],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr[-2000:]
     records = [json.loads(line) for line in p.stderr.splitlines() if line.startswith("{")]
@@ -219,7 +219,7 @@ def test_two_daemons_and_one_consumer_share_one_zenoh_network(twin_dir, tmp_path
 def test_a_twin_of_another_format_version_is_refused(twin_dir, tmp_path):
     import shutil
 
-    from dt_runtime.errors import ModelError
+    from dt_kernel.errors import ModelError
 
     d = tmp_path / "model"
     shutil.copytree(twin_dir, d)

@@ -8,12 +8,12 @@ import pytest
 import serial
 
 from drivers.base import LaserTracker, RobotController
-from drivers.serial_controller import SerialController
-from drivers.serial_tracker import SerialTracker
-from sim import line_protocol as lp
-from sim.controller_emulator import ControllerEmulator, Faults, TrackerEmulator
-from sim.errors import ConfigError, DriverError, StateError, UnreachableError
-from sim.instruments import spherical_to_cartesian
+from drivers.serial.controller import SerialController
+from drivers.serial.tracker import SerialTracker
+from drivers.serial import protocol as lp
+from drivers.serial.emulator import ControllerEmulator, Faults, TrackerEmulator
+from dt_kernel.errors import ConfigError, DriverError, StateError, UnreachableError
+from dt_kernel.geometry import spherical_to_cartesian
 
 HOME = np.array([0.9, 0.0, 0.7])
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from sim.errors import ConfigError, UnreachableError
+from dt_kernel.errors import ConfigError, UnreachableError
 from sim.kinematics import Arm
 from sim.plant import SimulatedCobot
 from sim.scenario import Scenario, load_scenario

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 
-from dt_runtime.store import Store, StoreError
-from sim.errors import TwinError
+from dt_runtime.service.store import Store, StoreError
+from dt_kernel.errors import TwinError
 
 ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = textwrap.dedent("""
     import sys
-    from dt_runtime.store import Store
+    from dt_runtime.service.store import Store
     s = Store(sys.argv[1], batch_rows=50, batch_ms=1e9)
     i = 0
     while True:

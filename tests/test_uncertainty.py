@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from dt_runtime import uncertainty as unc
+from dt_runtime.metrology import uncertainty as unc
 
-MM = 1e-3
+from dt_kernel.units import M_PER_MM as MM  # noqa: E402  (the tests below read MM as metres per mm)
 
 
 def paper_inputs(n=1000):

@@ -1,0 +1,113 @@
+"""Rigid fit of the marker cluster: Kabsch, pose refinement on the pixels, covariance, identification.
+
+The cluster geometry `m_i` is given in the tool frame whose origin is the TCP/SMR, so the
+measured TCP is the translation of the fitted pose X_i = R m_i + t. The refined pose minimises
+the normalised reprojection error of every kept observation directly; the inverse of its
+Gauss-Newton normal matrix is the 6x6 pose covariance propagated from the pixel noise, whose
+translation block is the TCP covariance.
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from dt_kernel.geometry import skew
+
+from drivers.mvs.triangulate import CameraStack
+
+
+def kabsch(model: np.ndarray, meas: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares rotation and translation with meas ~ R @ model + t."""
+    w = np.ones(len(model)) if w is None else np.asarray(w, float)
+    w = w / w.sum()
+    cm, cx = w @ model, w @ meas
+    Hm = (model - cm).T @ ((meas - cx) * w[:, None])
+    U, _, Vt = np.linalg.svd(Hm)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cx - R @ cm
+
+
+def _rotvec(w: np.ndarray) -> np.ndarray:
+    th = np.linalg.norm(w)
+    if th < 1e-12:
+        return np.eye(3) + skew(w)
+    k = skew(w / th)
+    return np.eye(3) + np.sin(th) * k + (1 - np.cos(th)) * k @ k
+
+
+def refine_pose(stack: CameraStack, model: np.ndarray, R: np.ndarray, t: np.ndarray, uv: np.ndarray,
+                sig: np.ndarray, mask: np.ndarray, iters: int = 2):
+    """Gauss-Newton pose refinement on the normalised reprojection error of every kept view.
+
+    model (M,3) tool frame; uv, sig, mask (M,C,...) ideal pixels. Perturbation
+    R = exp([w]x) R0, t = t0 + dt. Returns (R, t, cov6 (6,6) [w, t], residuals (M,C,2) normalised)."""
+    s = np.where(mask, sig, 1.0)[..., None]
+    m = mask[..., None]
+    for it in range(iters + 1):
+        RM = model @ R.T  # (M,3) rotated model
+        X = RM + t
+        proj, Xc = stack.project(X)
+        r = np.where(m, (proj - uv) / s, 0.0)
+        z = Xc[..., 2:3]
+        x_z = Xc[..., :2] / z
+        J_c = np.zeros(Xc.shape[:2] + (2, 3))
+        J_c[..., 0, 0] = 1.0
+        J_c[..., 1, 1] = 1.0
+        J_c[..., :, 2] = -x_z
+        J_c *= (stack.f[None, :, :, None] / z[..., None])
+        J_X = np.einsum("mcij,cjk->mcik", J_c, stack.R) / s[..., None] * m[..., None]  # (M,C,2,3)
+        # d X / d w = -[R0 m]x, d X / d t = I
+        J_w = -np.einsum("mcij,mjk->mcik", J_X, skew(RM))
+        J = np.concatenate([J_w, J_X], axis=3).reshape(-1, 6)
+        H = J.T @ J
+        if it == iters:
+            break
+        g = J.T @ r.reshape(-1)
+        d = np.linalg.solve(H + 1e-12 * np.eye(6), g)
+        R = _rotvec(-d[:3]) @ R
+        t = t - d[3:]
+    cov = np.linalg.inv(H)
+    return R, t, cov, r
+
+
+def identify(model: np.ndarray, points: np.ndarray, tol: float = 1e-3):
+    """Label unlabeled 3-D points with the cluster's markers by their mutual distances.
+
+    For each triple of model markers and each ordered triple of points whose three distances
+    match within `tol`, a Kabsch pose is computed; the pose that brings the most markers within
+    `tol` of a point (then the smallest residual) wins. Returns (R, t, labels (n,) marker index
+    or -1) or None when fewer than 3 markers are found."""
+    n = len(points)
+    if n < 3:
+        return None
+    Dm = np.linalg.norm(model[:, None] - model[None], axis=2)
+    Dp = np.linalg.norm(points[:, None] - points[None], axis=2)
+    best = None
+    perms = np.array(list(itertools.permutations(range(n), 3)))
+    for tri in itertools.combinations(range(len(model)), 3):
+        i, j, k = tri
+        ok = ((np.abs(Dp[perms[:, 0], perms[:, 1]] - Dm[i, j]) < tol)
+              & (np.abs(Dp[perms[:, 1], perms[:, 2]] - Dm[j, k]) < tol)
+              & (np.abs(Dp[perms[:, 0], perms[:, 2]] - Dm[i, k]) < tol))
+        for p in perms[ok]:
+            R, t = kabsch(model[list(tri)], points[p])
+            pred = model @ R.T + t
+            d = np.linalg.norm(pred[:, None] - points[None], axis=2)  # (Mm, n)
+            j_near = np.argmin(d, axis=1)
+            hit = d[np.arange(len(model)), j_near] < tol
+            # one point per marker
+            if len(set(j_near[hit])) < hit.sum():
+                continue
+            score = (hit.sum(), -d[np.arange(len(model)), j_near][hit].sum())
+            if best is None or score > best[0]:
+                labels = np.full(n, -1)
+                labels[j_near[hit]] = np.flatnonzero(hit)
+                best = (score, R, t, labels)
+    if best is None or best[0][0] < 3:
+        return None
+    _, R, t, labels = best
+    sel = labels >= 0
+    R, t = kabsch(model[labels[sel]], points[sel])
+    return R, t, labels

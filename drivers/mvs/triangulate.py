@@ -1,0 +1,186 @@
+"""N-view triangulation (DLT + Gauss-Newton on the reprojection error) and epipolar matching.
+
+Observations are held per marker and camera in dense arrays with a mask:
+`uv` (M, C, 2) ideal (undistorted) pixels, `sig` (M, C) their standard deviation in pixels,
+`mask` (M, C) bool. Every step is batched over markers, so five markers cost one pass.
+Residuals are normalised by sigma, so the Gauss-Newton normal matrix inverse is the
+covariance of the point (m^2) propagated from the pixel noise.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from drivers.mvs.camera import Camera
+
+
+class CameraStack:
+    """The rig's cameras as stacked arrays for batched projection."""
+
+    def __init__(self, cameras: Sequence[Camera]):
+        self.cameras = tuple(cameras)
+        self.R = np.stack([c.R for c in cameras])  # (C,3,3)
+        self.t = np.stack([c.t for c in cameras])  # (C,3)
+        self.f = np.stack([np.diag(c.K)[:2] for c in cameras])  # (C,2)
+        self.c = np.stack([c.K[:2, 2] for c in cameras])  # (C,2)
+        self.P = np.concatenate([self.R, self.t[:, :, None]], axis=2)  # (C,3,4) normalised cameras
+        self.centers = np.stack([c.center for c in cameras])
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def to_normalised(self, uv: np.ndarray) -> np.ndarray:
+        """Ideal pixels (..., C, 2) -> normalised image coordinates."""
+        return (uv - self.c) / self.f
+
+    def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal pixels (M, C, 2) and camera-frame points (M, C, 3) of points X (M, 3)."""
+        Xc = np.einsum("cij,mj->mci", self.R, X) + self.t[None]
+        return Xc[..., :2] / Xc[..., 2:3] * self.f + self.c, Xc
+
+
+def dlt(stack: CameraStack, uv: np.ndarray, sig: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of M points from masked views; rows weighted by f / sigma."""
+    xn = stack.to_normalised(uv)  # (M,C,2)
+    P = stack.P[None]  # (1,C,3,4)
+    a1 = xn[..., 0:1] * P[..., 2, :] - P[..., 0, :]
+    a2 = xn[..., 1:2] * P[..., 2, :] - P[..., 1, :]
+    wgt = np.where(mask, stack.f.mean(axis=1)[None] / np.where(mask, sig, 1.0), 0.0)[..., None]
+    A = np.concatenate([a1 * wgt, a2 * wgt], axis=1)  # (M,2C,4)
+    _, _, vt = np.linalg.svd(A)
+    Xh = vt[:, -1, :]
+    return Xh[:, :3] / Xh[:, 3:4]
+
+
+def refine_points(stack: CameraStack, X: np.ndarray, uv: np.ndarray, sig: np.ndarray,
+                  mask: np.ndarray, iters: int = 2):
+    """Gauss-Newton on the normalised reprojection error, batched over points.
+
+    Returns (X (M,3), cov (M,3,3) m^2, residuals (M,C,2) normalised by sigma)."""
+    s = np.where(mask, sig, 1.0)[..., None]
+    m = mask[..., None]
+    for _ in range(iters + 1):
+        proj, Xc = stack.project(X)
+        r = np.where(m, (proj - uv) / s, 0.0)  # (M,C,2)
+        z = Xc[..., 2:3]
+        # d proj / d Xc = f/z [[1, 0, -x/z], [0, 1, -y/z]]; d Xc / d X = R.
+        x_z = Xc[..., :2] / z
+        J_c = np.zeros(Xc.shape[:2] + (2, 3))
+        J_c[..., 0, 0] = 1.0
+        J_c[..., 1, 1] = 1.0
+        J_c[..., :, 2] = -x_z
+        J_c *= (stack.f[None, :, :, None] / z[..., None])
+        J = np.einsum("mcij,cjk->mcik", J_c, stack.R) / s[..., None] * m[..., None]
+        H = np.einsum("mcia,mcib->mab", J, J)
+        if _ == iters:
+            break
+        g = np.einsum("mcia,mci->ma", J, r)
+        X = X - np.linalg.solve(H + 1e-12 * np.eye(3), g[..., None])[..., 0]
+    cov = np.linalg.inv(H + 1e-18 * np.eye(3))
+    return X, cov, r
+
+
+def triangulate(stack: CameraStack, uv: np.ndarray, sig: np.ndarray, mask: np.ndarray,
+                gate: float = 5.0, min_views: int = 2):
+    """Triangulate with outlier rejection: drop the worst view of a point while its normalised
+    residual exceeds `gate` and more than `min_views` remain (views with a 2-view point cannot
+    be checked here; the cluster fit checks them).
+
+    Returns (X (M,3), cov (M,3,3), mask (M,C) of views kept, ok (M,) enough views)."""
+    mask = mask.copy()
+    M, C = mask.shape
+    ok = mask.sum(1) >= min_views
+    X = np.full((M, 3), np.nan)
+    cov = np.full((M, 3, 3), np.nan)
+    if not np.any(ok):
+        return X, cov, mask, ok
+    idx = np.flatnonzero(ok)
+    mk = mask[idx]
+    for _ in range(C):
+        Xi = dlt(stack, uv[idx], sig[idx], mk)
+        Xi, ci, r = refine_points(stack, Xi, uv[idx], sig[idx], mk)
+        rn = np.linalg.norm(r, axis=2)
+        # Residuals of an n-view fit shrink by ~sqrt((2n-3)/2n); gate on the raw norm anyway.
+        worst = np.argmax(rn, axis=1)
+        bad = (rn[np.arange(len(idx)), worst] > gate) & (mk.sum(1) > min_views)
+        if not np.any(bad):
+            break
+        mk[np.flatnonzero(bad), worst[bad]] = False
+    X[idx], cov[idx] = Xi, ci
+    mask[idx] = mk
+    # A 2-view point may still hold an outlier far off the epipolar line: refuse it.
+    rn = np.linalg.norm(r, axis=2)
+    ok[idx] = (mk.sum(1) >= min_views) & (rn.max(axis=1) <= gate)
+    return X, cov, mask, ok
+
+
+def epipolar_candidates(stack: CameraStack, blobs: Sequence[np.ndarray], blob_sig: Sequence[np.ndarray],
+                        tol_px: float = 1.0, min_support: int = 3):
+    """3-D candidate points from unlabeled blobs by epipolar matching, supported in >= min_support views.
+
+    For every camera pair, blob pairs within `tol_px` of each other's epipolar line are
+    triangulated; each candidate is re-projected into all cameras and collects the nearest
+    blob within `tol_px`. Candidates are refined on their support and de-duplicated greedily
+    (most support first; a blob is used once). Returns (X (n,3), uv (n,C,2), sig (n,C), mask (n,C)).
+    """
+    C = len(stack)
+    cand = []
+    for a in range(C):
+        for b in range(a + 1, C):
+            A, B = blobs[a], blobs[b]
+            if len(A) == 0 or len(B) == 0:
+                continue
+            xa = stack.to_normalised(A[:, None, :].repeat(C, 1))[:, a]
+            xb = stack.to_normalised(B[:, None, :].repeat(C, 1))[:, b]
+            Rab = stack.R[b] @ stack.R[a].T
+            tab = stack.t[b] - Rab @ stack.t[a]
+            tx = np.array([[0, -tab[2], tab[1]], [tab[2], 0, -tab[0]], [-tab[1], tab[0], 0]])
+            E = tx @ Rab
+            ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
+            lines = ha @ E.T  # epipolar lines in b (normalised)
+            d = np.abs(hb @ lines.T) / np.linalg.norm(lines[:, :2], axis=1)[None]  # (nb, na)
+            ib, ia = np.nonzero(d * stack.f[b].mean() < tol_px)
+            for i, j in zip(ia, ib):
+                cand.append((a, i, b, j))
+    if not cand:
+        return np.zeros((0, 3)), np.zeros((0, C, 2)), np.zeros((0, C)), np.zeros((0, C), bool)
+    n = len(cand)
+    uv = np.zeros((n, C, 2))
+    sg = np.ones((n, C))
+    mk = np.zeros((n, C), bool)
+    for k, (a, i, b, j) in enumerate(cand):
+        uv[k, a], uv[k, b] = blobs[a][i], blobs[b][j]
+        sg[k, a], sg[k, b] = blob_sig[a][i], blob_sig[b][j]
+        mk[k, a] = mk[k, b] = True
+    X = dlt(stack, uv, sg, mk)
+    proj, Xc = stack.project(X)
+    sup_idx = np.full((n, C), -1)
+    for c in range(C):
+        if len(blobs[c]) == 0:
+            continue
+        dd = np.linalg.norm(proj[:, c, None, :] - blobs[c][None], axis=2)
+        j = np.argmin(dd, axis=1)
+        hit = (dd[np.arange(n), j] < tol_px * 2) & (Xc[:, c, 2] > 0)
+        sup_idx[hit, c] = j[hit]
+        uv[hit, c] = blobs[c][j[hit]]
+        sg[hit, c] = blob_sig[c][j[hit]]
+    mk = sup_idx >= 0
+    support = mk.sum(1)
+    order = np.argsort(-support, kind="stable")
+    used = [set() for _ in range(C)]
+    keep = []
+    for k in order:
+        if support[k] < min_support:
+            break
+        cams = np.flatnonzero(mk[k])
+        if any(sup_idx[k, c] in used[c] for c in cams):
+            continue
+        for c in cams:
+            used[c].add(sup_idx[k, c])
+        keep.append(k)
+    keep = np.array(keep, int)
+    if len(keep) == 0:
+        return np.zeros((0, 3)), np.zeros((0, C, 2)), np.zeros((0, C)), np.zeros((0, C), bool)
+    X, _, mkk, ok = triangulate(stack, uv[keep], sg[keep], mk[keep])
+    return X[ok], uv[keep][ok], sg[keep][ok], mkk[ok]

@@ -1,0 +1,165 @@
+"""Simulated drivers: real implementations of the driver protocols over the sim/ cell.
+
+A `SimWorld` owns one simulated cell (plant + instruments on one clock); the robot, tracker
+and camera drivers built on it see the same arm. `SimWorld.truth_tcp()` is the simulator's
+truth, offered so the twin can be *scored* in simulation; no correction path may use it.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pybullet as pb
+
+from drivers.base import JointState, Lifecycle, RigReading, TrackerReading
+from sim.cell import SimCell
+from dt_kernel.errors import DriverError, UnreachableError
+from dt_kernel.geometry import spherical_to_cartesian
+from sim.kinematics import TOOL_DOWN
+
+
+class SimWorld:
+    """Handle on one simulated cell, created from a scenario and a cell config."""
+
+    def __init__(self, scenario: str | Path | dict, cell: str | Path, seed: int | None = None,
+                 source: str = "<scenario>"):
+        self.cell = SimCell.from_files(scenario, cell, seed, source)
+        self.scenario_name = self.cell.scenario.name
+        self.camera_shift = np.zeros(3)
+
+    @property
+    def t(self) -> float:
+        return self.cell.clock.t
+
+    def truth_tcp(self) -> np.ndarray:
+        return self.cell.plant.actual_tcp()
+
+    def truth_in_tracker_frame(self) -> np.ndarray:
+        """The true TCP expressed, noise-free, in the laser tracker's frame.
+
+        The global frame GL is realised by the tracker's registration, so true errors are
+        scored in GL by mapping this point through the twin's tracker registration.
+        """
+        R, t = self.cell.cell.laser_tracker.pose.matrix()
+        return R.T @ (self.truth_tcp() - t)
+
+    def tool_pose(self):
+        return self.cell.plant.tool_pose()
+
+    def predicted_tool_pose(self):
+        """What the twin expects without truth: the commanded TCP with the programmed tool-down
+        orientation (the camera pipeline looks for markers around it)."""
+        return TOOL_DOWN, self.cell.plant.controller_tcp()
+
+    def occluded(self, cam_center: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Markers hidden from a camera by the arm's own links: PyBullet ray tests on the actual
+        arm, from the camera centre to 2 mm short of each marker."""
+        arm = self.cell.plant.actual
+        pts = np.atleast_2d(points)
+        d = pts - cam_center
+        ends = pts - 2e-3 * d / np.linalg.norm(d, axis=1, keepdims=True)
+        hits = pb.rayTestBatch([list(cam_center)] * len(pts), ends.tolist(), physicsClientId=arm.client)
+        return np.array([h[0] == arm.body for h in hits])
+
+    def temperature(self) -> float:
+        return self.cell.plant.temperature()
+
+    def payload(self) -> float:
+        return self.cell.plant.payload()
+
+    def tracker_u(self, distance_m: float) -> float:
+        """The tracker's stated standard uncertainty (m, isotropic) at a distance (m)."""
+        c = self.cell.cell.laser_tracker
+        return c.u_const_m + c.u_per_m * distance_m
+
+    def joint_noise_rad(self) -> float:
+        """The plant's joint repeatability noise (rad, one sigma), for the noise floor."""
+        return self.cell.scenario.joint_noise_rad
+
+    def effects_enabled(self) -> list[str]:
+        return self.cell.scenario.effects.enabled()
+
+    def max_speed(self) -> float:
+        return self.cell.scenario.max_speed_m_s
+
+    def unreachable(self, targets: np.ndarray) -> list[tuple[int, str]]:
+        return self.cell.plant.check_reachable(targets)
+
+    def inject_joint_offset(self, delta_rad) -> None:
+        self.cell.plant.inject_joint_offset(np.asarray(delta_rad, dtype=float))
+
+    def bump_camera(self, shift_m) -> None:
+        """Fault injection: the camera rig is knocked by `shift_m` (world frame), whichever MVS
+        (point stand-in or image rig) reads it."""
+        self.camera_shift = self.camera_shift + np.asarray(shift_m, dtype=float)
+        self.cell.mvs.bump(np.asarray(shift_m, dtype=float))
+
+    def tool_pose_seen_by_camera(self):
+        """The tool pose relative to the (possibly knocked) rig, for the image renderer."""
+        R, p = self.tool_pose()
+        return R, p - self.camera_shift
+
+    def close(self) -> None:
+        self.cell.close()
+
+
+class SimRobot(Lifecycle):
+    """RobotController over the simulated plant."""
+
+    def __init__(self, world: SimWorld):
+        self.world = world
+        self._plant = world.cell.plant
+
+    def move_linear(self, target: np.ndarray, speed: float) -> None:
+        self._require("active")
+        target = np.asarray(target, dtype=float)
+        if target.shape != (3,) or not np.all(np.isfinite(target)) or not np.isfinite(speed) or speed <= 0:
+            raise DriverError(f"invalid move: target {target!r}, speed {speed!r}")
+        try:
+            self._plant.move_linear(target, speed)
+        except UnreachableError:
+            raise
+        except Exception as exc:  # pybullet errors surface as DriverError
+            raise DriverError(f"simulated controller failed: {exc}") from exc
+
+    stream_setpoint = move_linear
+
+    def read_joint_state(self) -> JointState:
+        self._require("active")
+        return JointState(q=self._plant.joint_angles(), t=self.world.t)
+
+    def read_commanded_tcp(self) -> np.ndarray:
+        self._require("active")
+        return self._plant.controller_tcp()
+
+
+class SimTracker(Lifecycle):
+    """LaserTracker over the simulated tracker: spherical measurement -> Cartesian, tracker frame."""
+
+    def __init__(self, world: SimWorld):
+        self.world = world
+        self._lt = world.cell.tracker
+
+    def measure(self) -> TrackerReading:
+        self._require("active")
+        d, az, el, status = self._lt.measure_spherical()
+        point = spherical_to_cartesian(d, az, el) if status == "ok" else np.full(3, np.nan)
+        return TrackerReading(point=point, spherical=(d, az, el), t=self.world.t, status=status)
+
+
+class SimPointCamera(Lifecycle):
+    """CameraRig over the point-noise MVS stand-in (the image pipeline replaces it)."""
+
+    def __init__(self, world: SimWorld, **_: Any):
+        self.world = world
+        self._mvs = world.cell.mvs
+
+    def read(self) -> RigReading:
+        self._require("active")
+        p = self._mvs.measure()
+        if p is None:
+            return RigReading(point=None, t=self.world.t, refused="camera rig dropped out")
+        u = self._mvs.cfg.noise_m
+        return RigReading(point=p, t=self.world.t, cov=np.eye(3) * u * u,
+                          quality={"markers_used": 5, "cameras_used": 8, "reproj_rms_px": 0.0})

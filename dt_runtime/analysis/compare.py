@@ -1,0 +1,347 @@
+"""`dt compare`: error models against measurements, side by side.
+
+For every model (and "as is", no model: e_hat = 0, always the first column) the residual
+r = e - e_hat of each measured row (e = commanded - measured, paper Eq. 8) gives the 3D and
+per-axis figures, the Eq. 17 t-test of every row against the model's stated uncertainty, and
+the residual broken down by factor (workspace region, speed, payload, temperature, time, joint
+configuration), so a user sees where a model fails and which factor the failure follows.
+
+    result, arrays = compare(["models/v1", "models/v2"], read_table("held_out.csv"))
+    compare_report.write_compare_report(result, arrays, "out/")
+
+`result` is JSON-ready (mm); the primary model (the last one given) is also at the top level,
+so `n`, `rmse_mm`, `mae_mm`, `max_mm`, `per_axis`, `failures` are top-level keys (DESIGN.md).
+`arrays` holds the SI arrays the report plots.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.models import effects as fx
+from dt_runtime.analysis.data import groups_of
+from dt_runtime.measurements.dataset import Dataset, read_table
+from dt_runtime.analysis.diagnose import cross_validate, folds_of, noise_floor, rms3
+from dt_kernel.errors import DataError, ModelError
+from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.common.progress import Progress
+from dt_runtime.reports.demo_report import _rms_with_U
+from dt_runtime.metrology.uncertainty import INF, t_test
+
+AS_IS = "as is"
+P95 = 0.95
+MAX_ROWS = 50  # failing row indices listed in the JSON
+MIN_CELL = 5  # a breakdown cell needs this many rows to be named among the worst
+N_WORST = 5
+# With three independent per-axis tests at 95 %, a consistent model still fails "any axis" on
+# 1 - 0.95^3 = 14.3 % of the rows: the number to read the any-axis fraction against.
+EXPECTED_ANY_AXIS = 1 - P95 ** 3
+SIGN = ("-", "0", "+")
+
+
+# --------------------------------------------------------------------------- inputs
+
+def load_models(models: Sequence, names: Sequence[str] | None = None) -> list[tuple[str, HybridModel]]:
+    """(name, model) per entry; entries are HybridModel instances or model directories."""
+    if names is not None and len(names) != len(models):
+        raise DataError(f"compare: {len(names)} names for {len(models)} models")
+    out: list[tuple[str, HybridModel]] = []
+    for i, m in enumerate(models):
+        if isinstance(m, HybridModel):
+            name = f"model {i + 1}"
+        else:
+            p = Path(m)
+            if not p.is_dir():
+                raise ModelError(f"{p}: no such model directory (expected the output of `dt fit`)")
+            try:
+                m = HybridModel.load(p)
+            except ModelError:
+                raise
+            except (OSError, KeyError, ValueError, DataError) as exc:  # a damaged save: name it, not numpy
+                raise ModelError(f"{p}: cannot load the model ({type(exc).__name__}: {exc})") from exc
+            name = p.name or str(p)
+        out.append((names[i] if names is not None else name, m))
+    seen: dict[str, int] = {AS_IS: 1}
+    for i, (name, m) in enumerate(out):  # unique column names: the report keys on them
+        seen[name] = seen.get(name, 0) + 1
+        if seen[name] > 1:
+            out[i] = (f"{name} ({seen[name]})", m)
+    return out
+
+
+def describe(model: HybridModel) -> str:
+    fx = "+".join(model.effects) or "no effects"
+    return f"{fx}, GP on {model.gp_inputs}" if model.gp_inputs != "none" else f"{fx}, no GP"
+
+
+def _noise_of(model: HybridModel) -> tuple[np.ndarray, np.ndarray]:
+    """The model's estimate of the scatter of one measurement about the error map (m) per axis,
+    and its dof: the GP's fitted white noise, else the effect fit's residual RMS."""
+    if model.gp_ is not None:
+        return np.sqrt([g.noise_var_ for g in model.gp_.models_]), _model_dof(model)
+    return np.full(3, float(model.residual_rms_)), np.full(3, INF)
+
+
+def _model_dof(model: HybridModel) -> np.ndarray:
+    """dof of the GP's estimates (latent std, noise): from its training rows (type A)."""
+    if model.gp_ is None:
+        return np.full(3, INF)
+    return np.array([max(g.n_train_ - 1, 1) for g in model.gp_.models_], dtype=float)
+
+
+# --------------------------------------------------------------------------- figures of merit
+
+def metrics(r: np.ndarray) -> dict:
+    """3D and per-axis figures of residuals r (n,3) m, in mm."""
+    norm = np.linalg.norm(r, axis=1)
+    _, U, _ = _rms_with_U(r)  # only its 95 % uncertainty; the RMS itself is rms3
+    return {"rmse_mm": rms3(r) * MM_PER_M, "rmse_U95_mm": U * MM_PER_M if math.isfinite(U) else None,
+            "mae_mm": float(norm.mean()) * MM_PER_M, "max_mm": float(norm.max()) * MM_PER_M,
+            "max_row": int(np.argmax(norm)),
+            "per_axis": {ax: {"rmse_mm": float(np.sqrt(np.mean(r[:, k] ** 2))) * MM_PER_M,
+                              "mae_mm": float(np.mean(np.abs(r[:, k]))) * MM_PER_M,
+                              "max_mm": float(np.max(np.abs(r[:, k]))) * MM_PER_M,
+                              "mean_mm": float(np.mean(r[:, k])) * MM_PER_M} for k, ax in enumerate(AXES)}}
+
+
+def _u_meas(ds: Dataset, fitted: list[tuple[str, HybridModel]]):
+    """Standard uncertainty (n,3) m and dof (n,3) of each measured error, and where it came from.
+
+    The dataset's ux..uz when stated (type B, dof inf). Otherwise the smallest fitted noise of
+    the models, per axis: a model that misses an effect absorbs it into its noise, so the
+    smallest estimate is the closest to the measurement's own scatter; one value for every
+    column keeps the columns comparable. None when neither exists (only "as is")."""
+    n = ds.n
+    est = None
+    if fitted:
+        cands = [(_noise_of(m), name) for name, m in fitted]
+        s = np.array([c[0][0] for c in cands])
+        d = np.array([c[0][1] for c in cands])
+        j = np.argmin(s, axis=0)
+        est = (s[j, range(3)], d[j, range(3)], [cands[k][1] for k in j])
+    if ds.u is not None and np.all(np.isfinite(ds.u)):
+        return ds.u, np.full((n, 3), INF), "dataset columns ux, uy, uz (type B, dof = inf)"
+    if est is None:
+        return None, None, "not available: the dataset has no ux, uy, uz and there is no model"
+    u, dof, who = est
+    txt = ("not in the dataset: the smallest fitted measurement noise of the models, "
+           + ", ".join(f"{ax} {u[k] * MM_PER_M:.4g} mm ({who[k]})" for k, ax in enumerate(AXES)))
+    if ds.u is not None:  # partly stated: stated where given, estimated elsewhere
+        ok = np.isfinite(ds.u)
+        return (np.where(ok, ds.u, u), np.where(ok, INF, np.broadcast_to(dof, (n, 3))),
+                f"dataset ux, uy, uz where stated ({int(ok.all(1).sum())} rows); elsewhere {txt}")
+    return np.broadcast_to(u, (n, 3)), np.broadcast_to(dof, (n, 3)), txt
+
+
+def failures(e, pred, std, dof_model, u_meas, dof_meas, lines=None):
+    """Eq. 17 per row and axis: t = (e - e_hat) / sqrt(u_meas^2 + u_model^2), two-sided 95 %,
+    dof by Welch-Satterthwaite (dt_runtime.metrology.uncertainty.t_test). Returns (summary, TTest)."""
+    n = len(e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tt = t_test(e, pred, u_meas, std, np.broadcast_to(dof_meas, (n, 3)),
+                    np.broadcast_to(dof_model, (n, 3)), alpha=1 - P95)
+    fail = ~tt.passed  # NaN t (zero uncertainty and zero residual) passes below
+    fail &= ~(np.isnan(tt.t))
+    rows = np.flatnonzero(fail.any(axis=1))
+    out = {"fraction": float(len(rows) / n), "count": int(len(rows)),
+           "per_axis": {ax: float(fail[:, k].mean()) for k, ax in enumerate(AXES)},
+           "expected_fraction_if_consistent": EXPECTED_ANY_AXIS,
+           "expected_per_axis_if_consistent": 1 - P95,
+           "t_crit_median": [float(np.median(tt.t_crit[:, k])) for k in range(3)],
+           "rows": rows[:MAX_ROWS].tolist()}
+    if lines is not None:
+        out["lines"] = np.asarray(lines)[rows[:MAX_ROWS]].tolist()
+    return out, tt, fail
+
+
+# --------------------------------------------------------------------------- breakdown
+
+def _bins(v: np.ndarray, unit: str, max_levels: int = 6, n_bins: int = 4, fmt: str = ".4g"):
+    """Cell label per row ('' where v is NaN): the distinct values if few, else quantile bins.
+    None if v is constant (a factor that does not vary explains nothing)."""
+    ok = np.isfinite(v)
+    if ok.sum() == 0:
+        return None
+    uniq = np.unique(np.round(v[ok], 9))
+    if len(uniq) < 2:
+        return None
+    lab = np.full(len(v), "", dtype=object)
+    if len(uniq) <= max_levels:
+        names = [f"{u:{fmt}} {unit}" for u in uniq]
+        lab[ok] = [names[i] for i in np.searchsorted(uniq, np.round(v[ok], 9))]
+        return lab, names
+    edges = np.unique(np.quantile(v[ok], np.linspace(0, 1, n_bins + 1)))
+    idx = np.clip(np.searchsorted(edges, v[ok], side="right") - 1, 0, len(edges) - 2)
+    names = [f"{edges[i]:{fmt}}–{edges[i + 1]:{fmt}} {unit}" for i in range(len(edges) - 1)]
+    lab[ok] = [names[i] for i in idx]
+    return lab, names
+
+
+def _region(P: np.ndarray):
+    """3 x 3 x 3 grid over the commanded TCP bounding box: 'x-,y0,z+' (low, middle, high third)."""
+    lo, span = P.min(0), np.ptp(P, axis=0)
+    idx = np.where(span > 1e-9, np.floor((P - lo) / np.where(span > 0, span, 1) * 3), 1)
+    idx = np.clip(idx, 0, 2).astype(int)
+    lab = np.array([f"x{SIGN[i]},y{SIGN[j]},z{SIGN[k]}" for i, j, k in idx], dtype=object)
+    order = sorted(set(lab), key=lambda s: [SIGN.index(s[p]) for p in (1, 4, 7)])
+    return lab, order
+
+
+def _configuration(q: np.ndarray):
+    """Sign of the elbow (q3: up/down) and the wrist (q5: flip) joints."""
+    cols = [j for j in (2, 4) if j < q.shape[1]]
+    if not cols:
+        return None
+    lab = np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
+    names = sorted(set(lab))
+    return (lab, names) if len(names) > 1 else None
+
+
+def factor_cells(ds: Dataset) -> dict[str, tuple[np.ndarray, list[str]]]:
+    """Factor name -> (cell label per row, cells in order); missing or constant factors skipped."""
+    out = {"region": _region(ds.commanded)}
+    for name, v, unit, fmt in (("speed", ds.speed, "mm/s", ".4g"), ("payload", ds.payload, "kg", ".3g"),
+                               ("temperature", ds.temperature, "°C", ".3g"),
+                               # relative time: epoch seconds would print as equal bins
+                               ("time", None if ds.t is None else ds.t - np.nanmin(ds.t), "s from start", ".4g")):
+        if v is not None:
+            b = _bins(v * (MM_PER_M if name == "speed" else 1.0), unit, fmt=fmt)
+            if b is not None:
+                out[name] = b
+    if ds.joints is not None:
+        c = _configuration(ds.joints)
+        if c is not None:
+            out["configuration"] = c
+    if len(out["region"][1]) < 2:
+        del out["region"]
+    return out
+
+
+def breakdown(r: np.ndarray, cells: dict) -> dict:
+    """3D RMS (mm), n and mean residual vector (mm) of r (n,3) m per cell of each factor."""
+    out = {}
+    for factor, (lab, names) in cells.items():
+        rows = []
+        for c in names:
+            m = lab == c
+            if m.any():
+                rows.append({"cell": c, "n": int(m.sum()), "rmse_mm": rms3(r[m]) * MM_PER_M,
+                             "mean_mm": (r[m].mean(0) * MM_PER_M).tolist()})
+        out[factor] = rows
+    return out
+
+
+def worst_cells(bd: dict, overall_mm: float, k: int = N_WORST, min_n: int = MIN_CELL) -> list[dict]:
+    cand = [{"factor": f, "cell": c["cell"], "n": c["n"], "rmse_mm": c["rmse_mm"],
+             "ratio": c["rmse_mm"] / overall_mm if overall_mm > 0 else None, "mean_mm": c["mean_mm"]}
+            for f, cells in bd.items() for c in cells if c["n"] >= min_n]
+    return sorted(cand, key=lambda c: -c["rmse_mm"])[:k]
+
+
+# --------------------------------------------------------------------------- the comparison
+
+def _clean(v):
+    """JSON-ready: numpy scalars to Python, NaN/inf to None."""
+    if isinstance(v, dict):
+        return {k: _clean(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_clean(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _clean(v.tolist())
+    if isinstance(v, (np.floating, float)):
+        return float(v) if math.isfinite(v) else None
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    return v
+
+
+def _block(name, kind, pred, std, ds, cells, um, dm, dof_model, extra=None):
+    r = ds.error - pred
+    b = {"name": name, "kind": kind, "n": ds.n, **metrics(r)}
+    arr = {"name": name, "predicted": pred, "std": std, "residual": r, "t": None, "fail": None, "t_crit": None}
+    if um is not None:
+        b["failures"], tt, fail = failures(ds.error, pred, std, dof_model, um, dm, ds.lines)
+        arr.update(t=tt.t, fail=fail, t_crit=tt.t_crit)
+    else:
+        b["failures"] = None
+    b["breakdown"] = breakdown(r, cells)
+    b["worst_cells"] = worst_cells(b["breakdown"], b["rmse_mm"])
+    return b | (extra or {}), arr
+
+
+def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np.ndarray):
+    """Held-out prediction and std of every row by the model's configuration (effects, GP inputs,
+    robot, GP options) refitted on the other folds, with the saved model's GP hyperparameters."""
+    thetas = m.gp_.thetas_ if m.gp_ is not None else None
+    cv = cross_validate(m.effects, fx.Inputs.of(ds), ds.error, groups, m.chain, m.gp_inputs, folds,
+                        m.seed, m.gp_kw, thetas=thetas, return_std=True)
+    return ds.error - cv.residual, cv.std
+
+
+def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str] | None = None,
+            noise_floor_m: float | None = None, cv_folds: int = 0, seed: int = 0,
+            progress: Progress | None = None) -> tuple[dict, dict]:
+    """Compare models (HybridModel instances or model directories, oldest first) with the
+    measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
+
+    noise_floor_m: the measurement noise floor (m) if known from elsewhere (e.g. a simulation
+    sidecar); default: 3D RMS of the dataset's ux..uz, if stated.
+    cv_folds: 0 compares the models as saved (use data they were not trained on); K > 1 predicts
+    every row by each model's configuration refitted on the other K-1 folds, grouped by target
+    point (`dt_runtime.diagnose.cross_validate`): held-out figures from the training file itself.
+    Returns (result: JSON-ready dict in mm, arrays: SI arrays for the report)."""
+    ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
+    if ds.n == 0:
+        raise DataError(f"{ds.source}: no data rows to compare with")
+    fitted = load_models(list(models), names)
+    um, dm, u_source = _u_meas(ds, fitted)
+    cells = factor_cells(ds)
+    zeros = np.zeros((ds.n, 3))
+    blocks, arrs = [], []
+    b, a = _block(AS_IS, "as is", zeros, zeros, ds, cells, um, dm, np.full(3, INF),
+                  {"description": "no correction: e_hat = 0"})
+    blocks.append(b), arrs.append(a)
+    if cv_folds > 1:
+        groups = groups_of(ds)
+        folds = folds_of(groups, cv_folds, seed)
+    for i, (name, m) in enumerate(fitted):
+        if progress is not None:
+            progress.step("compare: models" + (f" ({cv_folds}-fold grouped CV)" if cv_folds > 1 else ""),
+                          i, len(fitted))
+        if m.gp_ is not None and m.gp_.n_features_in_ == 4 and ds.speed is None:  # GP on TCP + speed
+            raise DataError(f"model '{name}' was trained on TCP and speed; {ds.source} has no speed column")
+        try:
+            pred, std = (_predict_cv(m, ds, folds, groups) if cv_folds > 1
+                         else m.predict_dataset(ds, return_std=True))
+        except (DataError, ModelError) as exc:
+            raise type(exc)(f"model '{name}' cannot predict the rows of {ds.source}: {exc}") from exc
+        extra = {"description": describe(m), "effects": list(m.effects), "gp_inputs": m.gp_inputs,
+                 "effect_residual_rms_mm": float(m.residual_rms_) * MM_PER_M, "parameters": m.parameters()}
+        b, a = _block(name, "model", pred, std, ds, cells, um, dm, _model_dof(m), extra)
+        blocks.append(b), arrs.append(a)
+    floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)
+    primary = blocks[-1]
+    result = {**{k: v for k, v in primary.items() if k not in ("name", "kind")},
+              "primary": primary["name"], "dataset": ds.source,
+              "noise_floor_mm": floor * MM_PER_M if floor is not None else None,
+              "heldout": ({"method": f"{len(folds)}-fold cross-validation grouped by target point: each row "
+                                     "predicted by the model's configuration refitted without its point",
+                           "folds": len(folds)} if cv_folds > 1 else None),
+              "t_test": {"equation": "Eq. 17: t = (e - e_hat) / sqrt(u_meas^2 + u_model^2) per axis, "
+                                     "two-sided 95 %, dof by Welch-Satterthwaite",
+                         "u_model": "latent GP standard deviation of the prediction; 0 without a GP (the "
+                                    "effect parameters' uncertainty is not propagated)",
+                         "u_meas_source": u_source},
+              "factors": {f: names_ for f, (_, names_) in cells.items()},
+              "models": blocks,
+              "units": "mm; e = commanded - measured (Eq. 8); residual r = e - e_hat"}
+    arrays = {"commanded": ds.commanded, "error": ds.error, "u": ds.u, "u_meas": um,
+              "speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature, "t": ds.t,
+              "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs}
+    return _clean(result), arrays

@@ -1,0 +1,314 @@
+"""Rigid registration of instrument frames to the global frame GL (paper Sect. 2.3).
+
+- `RigidTransform`: p_b = s R p_a + t, the homogeneous matrix of Eq. 3 (s = 1: rigid).
+- `fit_rigid`: least squares over point pairs minimising the SSE of Eq. 4 (Kabsch; Umeyama
+  with scale), never returning a reflection.
+- `three_line_frame`: the paper's three-point method: the TCP moves 100 mm along three
+  orthogonal lines from a common origin; each instrument's view of those lines defines GL.
+- `registration_residuals` (Eqs. 5-7), `ResidualStats` (Table 2), `reproducibility` (Eq. 12).
+- `register_instrument`: all of the above for one instrument in one call.
+
+Units: whatever the caller passes (SI, metres, inside the code); `to_dict(unit="mm")` converts.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dt_kernel.units import AXES
+from dt_kernel.errors import DataError
+
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)  # a private copy, so callers cannot mutate a transform
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class RigidTransform:
+    """p_target = s R p_source + t (s = 1 for a rigid transform)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    s: float = 1.0
+
+    def __post_init__(self):
+        R, t = np.asarray(self.R, dtype=float), np.asarray(self.t, dtype=float)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise DataError(f"RigidTransform needs R (3, 3) and t (3,), got {R.shape} and {t.shape}")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.isfinite(self.s) and self.s > 0):
+            raise DataError("RigidTransform: R, t must be finite and the scale s positive")
+        object.__setattr__(self, "R", _frozen(R))
+        object.__setattr__(self, "t", _frozen(t))
+        object.__setattr__(self, "s", float(self.s))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Map one point (3,) or many (n, 3)."""
+        p = np.asarray(points, dtype=float)
+        if p.shape[-1:] != (3,) or p.ndim > 2:
+            raise DataError(f"apply: expected (3,) or (n, 3) points, got shape {p.shape}")
+        return self.s * p @ self.R.T + self.t
+
+    def inverse(self) -> "RigidTransform":
+        Ri = self.R.T
+        return RigidTransform(Ri, -(Ri @ self.t) / self.s, 1.0 / self.s)
+
+    def compose(self, other: "RigidTransform") -> "RigidTransform":
+        """self after other: x -> self(other(x)) (matrix product self.matrix @ other.matrix)."""
+        return RigidTransform(self.R @ other.R, self.s * self.R @ other.t + self.t, self.s * other.s)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """Homogeneous 4x4 (Eq. 3); the upper-left block is s R."""
+        M = np.eye(4)
+        M[:3, :3] = self.s * self.R
+        M[:3, 3] = self.t
+        return M
+
+    @classmethod
+    def from_matrix(cls, M: np.ndarray, atol: float = 1e-6) -> "RigidTransform":
+        """Inverse of `matrix`; refuses a block that is not a scaled rotation."""
+        M = np.asarray(M, dtype=float)
+        if M.shape != (4, 4) or not np.allclose(M[3], [0, 0, 0, 1], atol=atol):
+            raise DataError(f"from_matrix: expected a homogeneous 4x4 matrix, got shape {M.shape}")
+        A = M[:3, :3]
+        det = np.linalg.det(A)
+        if not np.isfinite(det) or det <= 0:
+            raise DataError(f"from_matrix: the 3x3 block has determinant {det:g} (reflection or singular)")
+        s = det ** (1.0 / 3.0)
+        R = A / s
+        if not np.allclose(R @ R.T, np.eye(3), atol=atol):
+            raise DataError("from_matrix: the 3x3 block is not a (scaled) rotation")
+        return cls(R, M[:3, 3], s)
+
+    @classmethod
+    def identity(cls) -> "RigidTransform":
+        return cls(np.eye(3), np.zeros(3))
+
+    def rotation_angle_to(self, other: "RigidTransform") -> float:
+        """Angle (rad) of the rotation between self.R and other.R."""
+        D = self.R @ other.R.T
+        sin = np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2.0
+        return float(np.arctan2(sin, (np.trace(D) - 1.0) / 2.0))  # accurate near 0, unlike arccos
+
+    def to_dict(self) -> dict:
+        return {"R": self.R.tolist(), "t": self.t.tolist(), "s": float(self.s)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RigidTransform":
+        try:
+            return cls(np.array(d["R"], dtype=float), np.array(d["t"], dtype=float), float(d.get("s", 1.0)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"RigidTransform.from_dict: needs keys R (3x3) and t (3), got {d!r}") from exc
+
+
+def _check(points: np.ndarray, name: str) -> np.ndarray:
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise DataError(f"{name}: expected an (n, 3) array of points, got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise DataError(f"{name}: contains NaN or infinite coordinates")
+    return p
+
+
+def fit_rigid(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None,
+              scale: bool = False) -> RigidTransform:
+    """Least-squares T with T(source) ~ target, minimising the (weighted) SSE of Eq. 4.
+
+    Kabsch (Umeyama 1991 when scale=True). The sign correction D keeps det(R) = +1, so
+    mirrored data give the best proper rotation, never a reflection.
+    """
+    P, Q = _check(source, "source"), _check(target, "target")
+    if len(P) != len(Q):
+        raise DataError(f"source has {len(P)} points, target {len(Q)}")
+    if weights is None:
+        w = np.ones(len(P))
+    else:
+        w = np.asarray(weights, dtype=float)
+        if w.shape != (len(P),) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            raise DataError("weights: need one finite, non-negative weight per point, not all zero")
+    use = w > 0
+    span = np.ptp(P[use], axis=0).max() if use.any() else 0.0
+    if use.sum() < 3 or np.linalg.matrix_rank(P[use] - P[use].mean(0), tol=1e-9 * max(span, 1e-300)) < 2:
+        raise DataError("need at least 3 non-collinear points to fit a rigid transform")
+    w = w / w.sum()
+    mp, mq = w @ P, w @ Q
+    Pc, Qc = P - mp, Q - mq
+    H = (Pc * w[:, None]).T @ Qc  # cross-covariance
+    U, S, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, 1.0 if np.linalg.det(Vt.T @ U.T) > 0 else -1.0])  # no reflections
+    R = Vt.T @ D @ U.T
+    s = float(np.sum(S * np.diag(D)) / np.sum(w * np.sum(Pc ** 2, axis=1))) if scale else 1.0
+    return RigidTransform(R, mq - s * R @ mp, s)
+
+
+def _line_direction(points: np.ndarray, distances: np.ndarray, name: str) -> np.ndarray:
+    """Principal direction of a 3D line fit, oriented towards increasing distance."""
+    if len(np.unique(distances)) < 2:
+        raise DataError(f"{name}: a registration line needs points at 2 or more distinct distances")
+    c = points - points.mean(0)
+    d = np.linalg.svd(c, full_matrices=False)[2][0]
+    if np.dot(c.T @ (distances - distances.mean()), d) < 0:
+        d = -d
+    return d
+
+
+def three_line_frame(points_x, points_y, points_z, distances_x, distances_y, distances_z,
+                     min_cos: float = 0.9) -> RigidTransform:
+    """Instrument frame -> GL from the three orthogonal registration lines (Sect. 2.3, Fig. 7).
+
+    points_k: (n_k, 3) instrument coordinates of the TCP moved a distance distances_k (n_k,)
+    along the robot's k axis from the common start point. GL's axes are the measured
+    directions of motion (x; y made orthogonal to x; z = x cross y, checked against the
+    measured z line: cosine >= min_cos) and its origin the common start point, fitted by least
+    squares so that every point sits at its nominal GL position d * unit_k.
+    """
+    sets = []
+    for p, d, a in ((points_x, distances_x, "x"), (points_y, distances_y, "y"), (points_z, distances_z, "z")):
+        p = _check(p, f"points_{a}")
+        d = np.asarray(d, dtype=float).ravel()
+        if d.shape != (len(p),) or not np.all(np.isfinite(d)):
+            raise DataError(f"distances_{a}: need one finite distance per point ({len(p)}), got shape {d.shape}")
+        sets.append((p, d))
+    dx, dy, dz = (_line_direction(p, d, f"line {a}") for (p, d), a in zip(sets, AXES))
+    ex = dx
+    ey = dy - ex * np.dot(dy, ex)
+    if np.linalg.norm(ey) < 0.1:
+        raise DataError("registration lines x and y are (nearly) parallel")
+    ey /= np.linalg.norm(ey)
+    ez = np.cross(ex, ey)
+    if np.dot(ez, dz) < min_cos:
+        ang = np.degrees(np.arccos(np.clip(np.dot(ez, dz), -1, 1)))
+        raise DataError("registration lines are not a right-handed orthogonal triad "
+                        f"(measured z line is {ang:.1f} deg from x cross y)")
+    R_inst = np.column_stack([ex, ey, ez])  # GL axes in instrument coordinates
+    # p_i = o + R_inst g_i with g_i = d_i unit_k the nominal GL coordinates; least squares in o
+    # (R fixed) is the mean of p_i - R_inst g_i.
+    g = np.vstack([np.outer(d, np.eye(3)[k]) for k, (_, d) in enumerate(sets)])
+    p = np.vstack([pts for pts, _ in sets])
+    origin = np.mean(p - g @ R_inst.T, axis=0)
+    # GL coordinates: R_inst^T (p - origin).
+    return RigidTransform(R_inst.T, -R_inst.T @ origin)
+
+
+def gl_nominal(axes, distances) -> np.ndarray:
+    """Nominal GL coordinates of registration points: d * unit_k, (n, 3)."""
+    axes = np.asarray(axes)
+    d = np.asarray(distances, dtype=float)
+    out = np.zeros((len(d), 3))
+    for k, a in enumerate(AXES):
+        out[axes == a, k] = d[axes == a]
+    bad = ~np.isin(axes, AXES)
+    if bad.any():
+        raise DataError(f"registration axis must be one of {AXES}, got {axes[bad][0]!r}")
+    return out
+
+
+def registration_residuals(T: RigidTransform, points_instrument: np.ndarray,
+                           points_gl: np.ndarray) -> np.ndarray:
+    """Eqs. 5-7: e = T p_instrument - p_GL, (n, 3)."""
+    p, q = _check(points_instrument, "points"), _check(points_gl, "points_gl")
+    if len(p) != len(q):
+        raise DataError(f"points has {len(p)} rows, points_gl {len(q)}")
+    return T.apply(p) - q
+
+
+@dataclass(frozen=True)
+class ResidualStats:
+    """Per-axis mean and standard deviation (ddof=1) of residuals (Table 2), in input units."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    n: int
+
+    @property
+    def dof(self) -> int:
+        return self.n - 1
+
+    @classmethod
+    def of(cls, e: np.ndarray) -> "ResidualStats":
+        e = _check(e, "residuals")
+        if len(e) < 2:
+            raise DataError("residual statistics need at least 2 residuals")
+        return cls(np.mean(e, axis=0), np.std(e, axis=0, ddof=1), len(e))
+
+    def to_dict(self, unit: str = "mm") -> dict:
+        """{x: {mean_mm, std_mm}, y: ..., z: ..., n, dof} (input assumed in metres)."""
+        f = {"mm": 1e3, "m": 1.0, "um": 1e6}.get(unit)
+        if f is None:
+            raise ValueError(f"unit must be 'mm', 'm' or 'um', got {unit!r}")
+        return {a: {f"mean_{unit}": float(self.mean[k] * f), f"std_{unit}": float(self.std[k] * f)}
+                for k, a in enumerate(AXES)} | {"n": int(self.n), "dof": int(self.dof)}
+
+
+def reproducibility(values: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, int]:
+    """Eq. 12: per axis sqrt(mean over locations of the replication variance, ddof=1), and dof.
+
+    dof = sum(n_i - 1). Locations with a single replication carry no variance and are skipped.
+    """
+    v = _check(values, "values")
+    groups = np.asarray(groups)
+    if groups.shape != (len(v),):
+        raise DataError(f"groups: need one label per value ({len(v)}), got shape {groups.shape}")
+    variances, dof = [], 0
+    for g in np.unique(groups):
+        m = groups == g
+        if m.sum() >= 2:
+            variances.append(np.var(v[m], axis=0, ddof=1))
+            dof += int(m.sum()) - 1
+    if not variances:
+        raise DataError("reproducibility needs at least one location with 2 or more replications")
+    return np.sqrt(np.mean(variances, axis=0)), dof
+
+
+@dataclass(frozen=True)
+class Registration:
+    """One instrument registered to GL: transform, residuals (Eqs. 5-7) and Table 2 stats."""
+
+    transform: RigidTransform
+    residuals: np.ndarray
+    stats: ResidualStats
+    method: str
+
+    def to_dict(self, unit: str = "mm") -> dict:
+        return {"method": self.method, "transform": self.transform.to_dict(),
+                "residuals": self.stats.to_dict(unit)}
+
+
+def register_instrument(points_inst: np.ndarray, points_gl: np.ndarray, method: str = "three_line",
+                        axes=None, distances=None, weights=None) -> Registration:
+    """Register one instrument: points_inst (n, 3) measured, points_gl (n, 3) nominal GL.
+
+    method='three_line' (the paper's): needs `axes` ('x'|'y'|'z' per point) and `distances`
+    (m, per point); if omitted they are read off points_gl (exactly one non-zero coordinate).
+    method='least_squares': Kabsch on the pairs (Eq. 4), optional `weights`.
+    Non-finite measurements (lost tracker beam, occluded marker) are dropped.
+    """
+    p = np.asarray(points_inst, dtype=float)
+    q = _check(points_gl, "points_gl")
+    if p.shape != q.shape:
+        raise DataError(f"points_inst has shape {p.shape}, points_gl {q.shape}")
+    ok = np.all(np.isfinite(p), axis=1)
+    if method == "three_line":
+        if axes is None or distances is None:
+            nz = np.abs(q) > 1e-12
+            if not np.all(nz.sum(axis=1) <= 1):
+                raise DataError("three_line: points_gl are not on the GL axes; pass axes and distances")
+            k = np.argmax(nz, axis=1)
+            axes = np.array(AXES)[k]
+            distances = q[np.arange(len(q)), k]
+        axes, distances = np.asarray(axes), np.asarray(distances, dtype=float)
+        sets = []
+        for a in AXES:
+            m = ok & (axes == a)
+            sets.append((p[m], distances[m]))
+        T = three_line_frame(sets[0][0], sets[1][0], sets[2][0], sets[0][1], sets[1][1], sets[2][1])
+    elif method == "least_squares":
+        T = fit_rigid(p[ok], q[ok], None if weights is None else np.asarray(weights, dtype=float)[ok])
+    else:
+        raise DataError(f"method must be 'three_line' or 'least_squares', got {method!r}")
+    e = registration_residuals(T, p[ok], q[ok])
+    return Registration(T, e, ResidualStats.of(e), method)

@@ -1,0 +1,488 @@
+"""The measurement table (DESIGN.md, **contract**) in memory and on disk.
+
+`Dataset` holds one row per measured positioning as SI numpy arrays (metres, rad, s, kg,
+m/s; temperature in deg C). The file form is the contract CSV: UTF-8, comma separated, header
+row, positions and errors in mm, speed in mm/s. Error sign (paper Eq. 8):
+`error = commanded - measured`.
+
+`read_table` / `write_table` read and write exactly that table. Foreign files go through
+`dt_runtime.importer` (an import mapping), which reuses the row parser here so a bad cell is
+reported the same way: a `DataError` naming file, line, column and value, or, with
+`skip_bad=True`, a `SkippedRow` in `Dataset.skipped`.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from dt_kernel.units import M_PER_MM
+from dt_kernel.errors import DataError
+
+log = logging.getLogger(__name__)
+
+
+XYZ = ("x", "y", "z")
+ERROR_COLS = ("ex", "ey", "ez")
+MEASURED_COLS = ("mx", "my", "mz")
+U_COLS = ("ux", "uy", "uz")
+SCALAR_COLS = ("speed", "temperature", "payload", "t")
+ID_COLS = ("point_id", "rep")
+_JOINT_RE = re.compile(r"^q([1-9][0-9]*)$")
+
+# ex and mx given together must agree to this (mm): files may be written with rounded values.
+CONSISTENCY_TOL_MM = 1e-3
+
+
+@dataclass(frozen=True)
+class SkippedRow:
+    """A row left out by `skip_bad=True`: where it was and why."""
+
+    line: int
+    column: str
+    value: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"line {self.line}: column '{self.column}': value {self.value!r}: {self.reason}"
+
+
+def _vec(a, name: str, n: int | None, width: int | None = None, dtype=float) -> np.ndarray | None:
+    if a is None:
+        return None
+    a = np.asarray(a, dtype=dtype)
+    if width is None:
+        ok = a.ndim == 1 and (n is None or a.shape[0] == n)
+    else:
+        ok = a.ndim == 2 and a.shape[1] == width and (n is None or a.shape[0] == n)
+    if not ok:
+        want = f"({n if n is not None else 'n'},{'' if width is None else ' ' + str(width)})"
+        raise DataError(f"Dataset.{name}: expected shape {want}, got {a.shape}")
+    return a
+
+
+@dataclass
+class Dataset:
+    """Measurement rows as SI arrays; `n` rows, every array's first axis is `n`.
+
+    commanded (n,3) m   commanded TCP in the robot frame (required)
+    error     (n,3) m   commanded - measured (required; computed when only `measured` is known)
+    measured  (n,3) m   measured TCP in the robot frame, if known
+    speed (n,) m/s, joints (n,k) rad, temperature (n,) degC, payload (n,) kg, t (n,) s,
+    point_id, rep (n,) int, u (n,3) m standard uncertainty of the measurement,
+    flange_rotation (n,3,3) commanded flange orientation in the robot frame (not part of the
+    contract CSV: kept in memory only, e.g. for registration or orientation-dependent models).
+    Optional float columns may hold NaN where a cell was empty.
+    source: where the rows came from; lines: the source file line of each row (traceability);
+    skipped: rows dropped by skip_bad=True.
+    """
+
+    commanded: np.ndarray
+    error: np.ndarray
+    measured: np.ndarray | None = None
+    speed: np.ndarray | None = None
+    joints: np.ndarray | None = None
+    temperature: np.ndarray | None = None
+    payload: np.ndarray | None = None
+    t: np.ndarray | None = None
+    point_id: np.ndarray | None = None
+    rep: np.ndarray | None = None
+    u: np.ndarray | None = None
+    flange_rotation: np.ndarray | None = None
+    source: str = "<memory>"
+    lines: np.ndarray | None = None
+    skipped: list[SkippedRow] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.commanded = _vec(self.commanded, "commanded", None, 3)
+        n = self.commanded.shape[0]
+        self.error = _vec(self.error, "error", n, 3)
+        self.measured = _vec(self.measured, "measured", n, 3)
+        self.u = _vec(self.u, "u", n, 3)
+        for name in SCALAR_COLS:
+            setattr(self, name, _vec(getattr(self, name), name, n))
+        for name in ID_COLS:
+            setattr(self, name, _vec(getattr(self, name), name, n, dtype=np.int64))
+        self.lines = _vec(self.lines, "lines", n, dtype=np.int64)
+        if self.joints is not None:
+            self.joints = _vec(self.joints, "joints", n, np.asarray(self.joints).shape[-1])
+        if self.flange_rotation is not None:
+            R = np.asarray(self.flange_rotation, dtype=float)
+            if R.shape != (n, 3, 3):
+                raise DataError(f"Dataset.flange_rotation: expected shape ({n}, 3, 3), got {R.shape}")
+            self.flange_rotation = R
+        if not (np.all(np.isfinite(self.commanded)) and np.all(np.isfinite(self.error))):
+            raise DataError(f"{self.source}: commanded positions and errors must be finite")
+
+    @classmethod
+    def from_measured(cls, commanded, measured, **kw) -> "Dataset":
+        """Rows from commanded and measured TCP (m); error = commanded - measured (Eq. 8)."""
+        commanded, measured = np.asarray(commanded, float), np.asarray(measured, float)
+        return cls(commanded=commanded, error=commanded - measured, measured=measured, **kw)
+
+    def __len__(self) -> int:
+        return int(self.commanded.shape[0])
+
+    @property
+    def n(self) -> int:
+        return len(self)
+
+    @property
+    def actual(self) -> np.ndarray:
+        """Measured TCP: given, or commanded - error."""
+        return self.measured if self.measured is not None else self.commanded - self.error
+
+    def select(self, index) -> "Dataset":
+        """Rows picked by a boolean mask or an index array (skipped rows are carried over)."""
+        idx = np.asarray(index)
+        kw = {}
+        for f in ("commanded", "error", "measured", "speed", "joints", "temperature", "payload",
+                  "t", "point_id", "rep", "u", "flange_rotation", "lines"):
+            a = getattr(self, f)
+            kw[f] = None if a is None else a[idx]
+        return replace(self, **kw, skipped=list(self.skipped))
+
+    def columns(self) -> list[str]:
+        """The contract columns `write_table` writes for this dataset, in order."""
+        cols = list(XYZ)
+        if self.speed is not None:
+            cols.append("speed")
+        if self.joints is not None:
+            cols += [f"q{i + 1}" for i in range(self.joints.shape[1])]
+        cols += [c for c in ("temperature", "payload", "t", "point_id", "rep") if getattr(self, c) is not None]
+        cols += list(ERROR_COLS)
+        if self.measured is not None:
+            cols += list(MEASURED_COLS)
+        if self.u is not None:
+            cols += list(U_COLS)
+        return cols
+
+
+# --------------------------------------------------------------------------- row parsing
+# Shared by read_table and the importer: a list of column specs, each turning one cell
+# into a number; a failure names file, line, column and value.
+
+class CellError(ValueError):
+    """One cell is unusable (caught per row; becomes DataError or SkippedRow)."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class ColumnSpec:
+    """Cell `column` of the file -> field `key`. kind: float | int | str.
+
+    required: the cell must be non-empty (and finite for floats); otherwise an empty cell
+    becomes NaN (floats) and is an error for ints. scale multiplies floats (unit -> SI).
+    """
+
+    key: str
+    column: str
+    kind: str = "float"
+    required: bool = True
+    scale: float = 1.0
+
+
+def parse_number(text: str, decimal: str = ".") -> float:
+    s = text.strip()
+    if decimal == ",":
+        if "." in s:  # '.' is not allowed once ',' is the decimal mark (thousands separators?)
+            raise CellError("not a number with decimal comma")
+        s = s.replace(",", ".")
+    elif "," in s:
+        raise CellError("not a number (decimal comma in a '.'-decimal file?)")
+    try:
+        return float(s)
+    except ValueError:
+        raise CellError("not a number") from None
+
+
+def _parse_cell(cell: str, spec: ColumnSpec, decimal: str):
+    text = cell.strip()
+    if spec.kind == "str":
+        if spec.required and not text:
+            raise CellError("empty cell")
+        return text
+    if not text:
+        if spec.required or spec.kind == "int":
+            raise CellError("empty cell")
+        return math.nan
+    v = parse_number(text, decimal)
+    if spec.kind == "int":
+        if not math.isfinite(v) or v != int(v):
+            raise CellError("not an integer")
+        return int(v)
+    if not math.isfinite(v):
+        if spec.required:
+            raise CellError("not a finite number")
+        return math.nan
+    return v * spec.scale
+
+
+def read_header(path: str | Path, separator: str) -> list[str]:
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            first = next(csv.reader(f, delimiter=separator), None)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
+    if not first:
+        raise DataError(f"{path}: line 1: empty file, expected a header row")
+    header = [c.strip() for c in first]
+    dup = sorted({c for c in header if header.count(c) > 1})
+    if dup:
+        raise DataError(f"{path}: line 1: duplicate column(s) {dup}")
+    return header
+
+
+def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[ColumnSpec],
+               skip_bad: bool = False,
+               row_check: Callable[[dict], None] | None = None,
+               ) -> tuple[dict[str, list], list[int], list[SkippedRow], list[str]]:
+    """Parse every data row of `path` by `specs`.
+
+    Returns (values per key, source line per kept row, skipped rows, header). A bad row
+    raises DataError '<file>: line N: column C: value V: reason' unless skip_bad. `row_check`
+    sees each parsed row (a dict key -> value) and may raise CellError with `.column` set.
+    """
+    path = Path(path)
+    header = read_header(path, separator)
+    missing = [s.column for s in specs if s.column not in header]
+    if missing:
+        raise DataError(f"{path}: line 1: missing column(s) {missing}; header has {header}")
+    pos = [header.index(s.column) for s in specs]
+    out: dict[str, list] = {s.key: [] for s in specs}
+    lines: list[int] = []
+    skipped: list[SkippedRow] = []
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f, delimiter=separator)
+            next(reader)
+            while True:
+                try:
+                    row = next(reader)
+                except StopIteration:
+                    break
+                except csv.Error as exc:
+                    bad = SkippedRow(reader.line_num, "<row>", "", f"unreadable CSV ({exc})")
+                    if not skip_bad:
+                        raise DataError(f"{path}: {bad}") from exc
+                    skipped.append(bad)
+                    continue
+                line = reader.line_num
+                if not row or all(not c.strip() for c in row):
+                    continue  # blank lines carry no row
+                try:
+                    if len(row) != len(header):
+                        raise _BadRow("<row>", separator.join(row)[:80],
+                                      f"{len(row)} cells, header has {len(header)}")
+                    parsed = {}
+                    for spec, p in zip(specs, pos):
+                        try:
+                            parsed[spec.key] = _parse_cell(row[p], spec, decimal)
+                        except CellError as exc:
+                            raise _BadRow(spec.column, row[p], exc.reason) from None
+                    if row_check is not None:
+                        try:
+                            row_check(parsed)
+                        except CellError as exc:
+                            col = getattr(exc, "column", "<row>")
+                            raise _BadRow(col, row[header.index(col)] if col in header else "",
+                                          exc.reason) from None
+                except _BadRow as bad:
+                    sk = SkippedRow(line, bad.column, bad.value, bad.reason)
+                    if not skip_bad:
+                        raise DataError(f"{path}: {sk}") from None
+                    skipped.append(sk)
+                    continue
+                for k, v in parsed.items():
+                    out[k].append(v)
+                lines.append(line)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
+    if skipped:
+        log.warning("%s: skipped %d bad row(s), first: %s", path, len(skipped), skipped[0])
+    return out, lines, skipped, header
+
+
+class _BadRow(Exception):
+    def __init__(self, column: str, value: str, reason: str):
+        super().__init__(reason)
+        self.column, self.value, self.reason = column, value, reason
+
+
+def cell_error(column: str, reason: str) -> CellError:
+    exc = CellError(reason)
+    exc.column = column  # type: ignore[attr-defined]
+    return exc
+
+
+# --------------------------------------------------------------------------- contract table
+
+def read_table(path: str | Path, skip_bad: bool = False) -> Dataset:
+    """Read a contract measurement table (mm in the file, SI in the Dataset).
+
+    Needs x, y, z and either ex, ey, ez or mx, my, mz (both: they must agree to 1 um and
+    the error is taken from ex..ez). Unknown columns are ignored with a warning. `t` must not
+    decrease; a row where it does is a bad row.
+    """
+    path = Path(path)
+    header = read_header(path, ",")
+    specs = [ColumnSpec(c, c, scale=M_PER_MM) for c in XYZ]
+    has_e = all(c in header for c in ERROR_COLS)
+    has_m = all(c in header for c in MEASURED_COLS)
+    for group in (ERROR_COLS, MEASURED_COLS, U_COLS):
+        present = [c for c in group if c in header]
+        if present and len(present) != 3:
+            raise DataError(f"{path}: line 1: column group {group} is incomplete, found only {present}")
+    if not (has_e or has_m):
+        raise DataError(f"{path}: line 1: needs columns ex, ey, ez or mx, my, mz; header has {header}")
+    if has_e:
+        specs += [ColumnSpec(c, c, scale=M_PER_MM) for c in ERROR_COLS]
+    if has_m:
+        specs += [ColumnSpec(c, c, scale=M_PER_MM) for c in MEASURED_COLS]
+    if all(c in header for c in U_COLS):
+        specs += [ColumnSpec(c, c, required=False, scale=M_PER_MM) for c in U_COLS]
+    if "speed" in header:
+        specs.append(ColumnSpec("speed", "speed", required=False, scale=M_PER_MM))
+    for c in ("temperature", "payload"):
+        if c in header:
+            specs.append(ColumnSpec(c, c, required=False))
+    if "t" in header:
+        specs.append(ColumnSpec("t", "t"))
+    for c in ID_COLS:
+        if c in header:
+            specs.append(ColumnSpec(c, c, kind="int"))
+    joint_idx = sorted(int(m.group(1)) for c in header if (m := _JOINT_RE.match(c)))
+    if joint_idx and joint_idx != list(range(1, len(joint_idx) + 1)):
+        raise DataError(f"{path}: line 1: joint columns must be q1..qk without gaps, found "
+                        f"{['q%d' % i for i in joint_idx]}")
+    specs += [ColumnSpec(f"q{i}", f"q{i}") for i in joint_idx]
+    known = {s.column for s in specs}
+    unknown = [c for c in header if c not in known]
+    if unknown:
+        log.warning("%s: ignoring column(s) not in the measurement table contract: %s", path, unknown)
+
+    state = {"t_max": -math.inf}
+
+    def check(row: dict) -> None:
+        if has_e and has_m:
+            for i, ax in enumerate(XYZ):
+                e_m = (row[ax] - row[MEASURED_COLS[i]]) / M_PER_MM
+                if abs(e_m - row[ERROR_COLS[i]] / M_PER_MM) > CONSISTENCY_TOL_MM:
+                    raise cell_error(ERROR_COLS[i], f"disagrees with {ax} - {MEASURED_COLS[i]} = {e_m:.6g} mm")
+        if "t" in row:
+            if row["t"] < state["t_max"]:
+                raise cell_error("t", f"time decreases (previous row had t = {state['t_max']:g} s)")
+            state["t_max"] = row["t"]
+
+    vals, lines, skipped, _ = parse_rows(path, ",", ".", specs, skip_bad, check)
+    if not lines:
+        raise DataError(f"{path}: no usable data rows" + (f" ({len(skipped)} skipped)" if skipped else ""))
+
+    def col3(cols):
+        return np.column_stack([vals[c] for c in cols]).astype(float)
+
+    commanded = col3(XYZ)
+    measured = col3(MEASURED_COLS) if has_m else None
+    error = col3(ERROR_COLS) if has_e else commanded - measured
+    arr = lambda k: np.asarray(vals[k], dtype=float) if k in vals else None  # noqa: E731
+    return Dataset(
+        commanded=commanded, error=error, measured=measured,
+        speed=arr("speed"),
+        joints=col3([f"q{i}" for i in joint_idx]) if joint_idx else None,
+        temperature=arr("temperature"), payload=arr("payload"), t=arr("t"),
+        point_id=np.asarray(vals["point_id"], dtype=np.int64) if "point_id" in vals else None,
+        rep=np.asarray(vals["rep"], dtype=np.int64) if "rep" in vals else None,
+        u=col3(U_COLS) if "ux" in vals else None,
+        source=str(path), lines=np.asarray(lines, dtype=np.int64), skipped=skipped,
+    )
+
+
+def _fmt(v: float) -> str:
+    # repr is the shortest string that reads back to the same float: exact round trips.
+    return "" if not math.isfinite(v) else repr(float(v))
+
+
+def write_table(dataset: Dataset, path: str | Path) -> Path:
+    """Write the contract CSV (mm, mm/s). `flange_rotation`, `lines`, `skipped` are not written."""
+    path = Path(path)
+    ds = dataset
+    if ds.t is not None and ds.n > 1 and np.any(np.diff(ds.t) < 0):
+        i = int(np.argmax(np.diff(ds.t) < 0)) + 1
+        raise DataError(f"{path}: cannot write: column 't' decreases at row {i} "
+                        f"({ds.t[i - 1]:g} -> {ds.t[i]:g} s); the contract wants monotonic time")
+    cols = ds.columns()
+    blocks: list[np.ndarray] = [ds.commanded / M_PER_MM]
+    if ds.speed is not None:
+        blocks.append(ds.speed[:, None] / M_PER_MM)
+    if ds.joints is not None:
+        blocks.append(ds.joints)
+    for c in ("temperature", "payload", "t"):
+        if getattr(ds, c) is not None:
+            blocks.append(getattr(ds, c)[:, None])
+    n_float_before_ids = sum(b.shape[1] for b in blocks)
+    tail: list[np.ndarray] = [ds.error / M_PER_MM]
+    if ds.measured is not None:
+        tail.append(ds.measured / M_PER_MM)
+    if ds.u is not None:
+        tail.append(ds.u / M_PER_MM)
+    head = np.hstack(blocks)
+    tail_a = np.hstack(tail)
+    ids = [getattr(ds, c) for c in ID_COLS if getattr(ds, c) is not None]
+    assert len(cols) == n_float_before_ids + len(ids) + tail_a.shape[1]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with path.open("w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f, lineterminator="\n")
+            w.writerow(cols)
+            for i in range(ds.n):
+                w.writerow([_fmt(v) for v in head[i]] + [str(int(a[i])) for a in ids]
+                           + [_fmt(v) for v in tail_a[i]])
+    except OSError as exc:
+        raise DataError(f"{path}: cannot write ({exc.strerror})") from exc
+    return path
+
+
+def concat(datasets: Iterable[Dataset]) -> Dataset:
+    """Rows of several datasets one after the other (a column survives only if all have it)."""
+    ds = list(datasets)
+    if not ds:
+        raise DataError("concat: no datasets")
+    kw = {}
+    for f in ("commanded", "error", "measured", "speed", "joints", "temperature", "payload",
+              "t", "point_id", "rep", "u", "flange_rotation", "lines"):
+        parts = [getattr(d, f) for d in ds]
+        kw[f] = None if any(p is None for p in parts) else np.concatenate(parts)
+    return Dataset(**kw, source="+".join(d.source for d in ds),
+                   skipped=[s for d in ds for s in d.skipped])
+
+
+def meta_path(data: str | Path) -> Path:
+    """The sidecar of a data file, `<file>.meta.json` (`dt simulate` writes its scenario, seed,
+    registration residual and noise floor there)."""
+    data = Path(data)
+    return data.with_name(data.name + ".meta.json")
+
+
+def read_meta_sidecar(data: str | Path) -> dict | None:
+    p = meta_path(data)
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{p}: unreadable sidecar of {data} ({exc}); remove it or write it again") from exc

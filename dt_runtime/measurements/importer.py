@@ -1,0 +1,468 @@
+"""Import mappings: read foreign measurement files into a `Dataset` without editing them.
+
+A mapping (YAML, validated into the frozen `ImportMapping`) says how a foreign file is laid
+out: separator, decimal mark, which column holds each contract field, the unit of each field,
+the error sign, and whether the measurement is in an instrument frame that needs registration.
+
+Registration (measurement in an instrument frame, e.g. a laser tracker): with the commanded
+flange position p_f, its orientation R_f (when the mapping names orientation columns) and the
+measured point p_m, fit by least squares
+
+    R p_m + t = p_f + R_f o                                   (one 3-vector equation per row)
+
+for the rigid transform instrument -> robot (R, t) and the probe/tool offset o in the flange
+frame (the paper's Eqs. 3-4, with the tool offset as extra unknowns). Start: Kabsch on the
+positions; then Levenberg-Marquardt (scipy least_squares). The commanded TCP is then
+p_f + R_f o, the measured TCP R p_m + t, and the error their difference (Eq. 8 sign). What is
+left is what a rigid registration cannot explain: the robot's own error plus noise.
+
+Time: `seconds` (a numeric column), `timestamp` (a date-time text column, e.g. YYYYmmddHHMMSS,
+t = seconds from the earliest row), or `row_order` (t = row index 0, 1, 2 ...: only the order
+is known; e.g. a spreadsheet mangled the timestamps). A timestamp column that does not parse
+can fall back to row order (`fallback: row_order`), which the report's notes record.
+"""
+from __future__ import annotations
+
+import calendar
+import math
+import time as _time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Literal, Union
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from dt_kernel.units import M_PER_MM
+from dt_runtime.measurements.dataset import ColumnSpec, Dataset, parse_rows, read_header
+from dt_kernel.errors import DataError
+from dt_runtime.frames.registration import fit_rigid
+from dt_kernel.config import Frozen, load_yaml
+
+LengthUnit = Literal["m", "mm"]
+AngleUnit = Literal["rad", "deg"]
+_LENGTH = {"m": 1.0, "mm": M_PER_MM}
+_ANGLE = {"rad": 1.0, "deg": math.pi / 180.0}
+_SPEED = {"m/s": 1.0, "mm/s": M_PER_MM}
+
+
+class Columns(Frozen):
+    """File column name for each contract field (None: the file lacks it)."""
+
+    x: str
+    y: str
+    z: str
+    joints: tuple[str, ...] = ()
+    speed: str | None = None
+    temperature: str | None = None
+    payload: str | None = None
+    point_id: str | None = None
+    rep: str | None = None
+    ex: str | None = None
+    ey: str | None = None
+    ez: str | None = None
+    mx: str | None = None
+    my: str | None = None
+    mz: str | None = None
+    ux: str | None = None
+    uy: str | None = None
+    uz: str | None = None
+    # commanded flange orientation, three Euler angles (see ImportMapping.orientation_convention)
+    orientation: tuple[str, str, str] | None = None
+
+
+class Units(Frozen):
+    position: LengthUnit = "mm"      # commanded x, y, z
+    measurement: LengthUnit = "mm"   # ex.. or mx..
+    uncertainty: LengthUnit = "mm"   # ux..
+    joints: AngleUnit = "rad"
+    orientation: AngleUnit = "rad"
+    speed: Literal["m/s", "mm/s"] = "mm/s"
+
+
+class TimeSpec(Frozen):
+    source: Literal["seconds", "timestamp", "row_order"]
+    column: str | None = None
+    format: str = "%Y%m%d%H%M%S"     # strptime format for source: timestamp
+    fallback: Literal["error", "row_order"] = "error"  # when a timestamp does not parse
+    # time going backwards in the file: error, keep the file order, or sort rows by time
+    order: Literal["error", "keep", "sort"] = "error"
+
+    @model_validator(mode="after")
+    def _column_needed(self):
+        if self.source != "row_order" and not self.column:
+            raise ValueError(f"time source '{self.source}' needs 'column'")
+        return self
+
+
+class RegistrationSpec(Frozen):
+    fit_offset: bool = True          # fit the probe/tool offset o on the flange (needs orientation)
+    offset_init_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # start, or fixed if not fitted
+    loss: Literal["linear", "soft_l1", "huber", "cauchy"] = "linear"
+    f_scale_mm: float = Field(1.0, gt=0)  # residual scale of a robust loss
+
+
+class ImportMapping(Frozen):
+    format_version: Literal[1] = 1
+    description: str = ""
+    separator: str = Field(",", min_length=1, max_length=1)
+    decimal: Literal[",", "."] = "."
+    columns: Columns
+    units: Units = Units()
+    # scipy Euler sequence: lowercase = extrinsic (fixed axes), uppercase = intrinsic
+    orientation_convention: str = "xyz"
+    error_sign: Literal["commanded_minus_measured", "measured_minus_commanded"] = "commanded_minus_measured"
+    measured_frame: Literal["robot", "instrument"] = "robot"
+    registration: RegistrationSpec = RegistrationSpec()
+    time: Union[Literal["none", "row_order"], TimeSpec] = "none"
+    # contract field names (x, mx, ux, temperature, joints, orientation, ...) that a file may lack
+    optional_columns: tuple[str, ...] = ()
+    # number the distinct commanded positions (point_id, first appearance = 0) and their
+    # repetitions (rep = 0, 1, ...), when the file has no such columns
+    point_id_from_commanded: bool = False
+    point_id_tolerance_mm: float = Field(0.001, gt=0)
+
+    @field_validator("orientation_convention")
+    @classmethod
+    def _seq(cls, v: str) -> str:
+        if len(v) != 3 or not (set(v) <= set("xyz") or set(v) <= set("XYZ")):
+            raise ValueError("a scipy Euler sequence: three of x/y/z (extrinsic) or X/Y/Z (intrinsic), e.g. 'xyz'")
+        return v
+
+    @model_validator(mode="after")
+    def _groups(self):
+        c = self.columns
+        has = {g: [getattr(c, a + g[1:]) is not None for a in "xyz"] for g in ("e", "m", "u")}
+        grp = {"e": ["ex", "ey", "ez"], "m": ["mx", "my", "mz"], "u": ["ux", "uy", "uz"]}
+        for g, flags in has.items():
+            if any(flags) and not all(flags):
+                raise ValueError(f"columns {grp[g]} must be given together")
+        has_e = all(getattr(c, k) for k in grp["e"])
+        has_m = all(getattr(c, k) for k in grp["m"])
+        if has_e == has_m:
+            raise ValueError("columns: give exactly one of ex/ey/ez (error) or mx/my/mz (measured)")
+        if self.measured_frame == "instrument" and not has_m:
+            raise ValueError("measured_frame 'instrument' needs measured columns mx/my/mz")
+        return self
+
+
+def load_mapping(path: str | Path) -> ImportMapping:
+    """Validate a mapping YAML; a problem raises ConfigError(file, key, value, allowed)."""
+    return load_yaml(path, ImportMapping)
+
+
+@dataclass
+class RegistrationReport:
+    """What the import did and what is left after registration (lengths in mm).
+
+    method: 'none' (robot-frame data), 'rigid' or 'rigid+offset'. rotation/translation map
+    the instrument frame to the robot frame (p_robot = R p_inst + t, t in m); offset is the
+    probe/tool offset on the flange (m, flange frame). rms_axis_mm / rms_3d_mm: the residual
+    after registration (= the error left in the dataset). *_std: 1-sigma parameter
+    uncertainties from the Gauss-Newton covariance s^2 (J^T J)^-1.
+    """
+
+    method: str
+    n: int
+    rms_axis_mm: np.ndarray
+    rms_3d_mm: float
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rotation_std_rad: np.ndarray | None = None
+    translation_std_mm: np.ndarray | None = None
+    offset_std_mm: np.ndarray | None = None
+    n_skipped: int = 0
+    seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def transform(self):
+        """The instrument -> robot transform as a dt_runtime.frames.registration.RigidTransform."""
+        from dt_runtime.frames.registration import RigidTransform
+        return RigidTransform(self.rotation, self.translation)
+
+    def to_dict(self) -> dict:
+        f = lambda a: None if a is None else [float(v) for v in np.ravel(a)]  # noqa: E731
+        return {
+            "method": self.method, "n": self.n, "n_skipped": self.n_skipped,
+            "rms_3d_mm": float(self.rms_3d_mm), "rms_axis_mm": dict(zip("xyz", f(self.rms_axis_mm))),
+            "rotation": np.asarray(self.rotation).tolist(),
+            "translation_mm": f(np.asarray(self.translation) / M_PER_MM),
+            "offset_mm": f(np.asarray(self.offset) / M_PER_MM),
+            "rotation_std_rad": f(self.rotation_std_rad), "translation_std_mm": f(self.translation_std_mm),
+            "offset_std_mm": f(self.offset_std_mm), "seconds": self.seconds, "notes": list(self.notes),
+        }
+
+
+# --------------------------------------------------------------------------- registration
+
+@dataclass
+class RigidOffsetFit:
+    rotation: np.ndarray
+    translation: np.ndarray
+    offset: np.ndarray
+    residual: np.ndarray  # (n,3) R p_m + t - (p_f + R_f o)
+    rotation_std: np.ndarray
+    translation_std: np.ndarray
+    offset_std: np.ndarray
+    nfev: int
+    offset_dof: int  # how many offset components the orientations let us fit (0-3)
+
+
+def fit_rigid_offset(p_meas: np.ndarray, p_flange: np.ndarray, R_flange: np.ndarray | None = None,
+                     offset_init: np.ndarray | None = None, fit_offset: bool = True,
+                     loss: str = "linear", f_scale: float = 1e-3) -> RigidOffsetFit:
+    """Least squares R p_meas + t = p_flange + R_flange o over R, t and (if fit_offset) o.
+
+    Units: any one length unit for all inputs (SI in this project). R_flange None: o = 0.
+    The offset is fitted only when the flange orientations vary enough to separate it from t.
+    """
+    p_meas, p_flange = np.asarray(p_meas, float), np.asarray(p_flange, float)
+    n = p_meas.shape[0]
+    o0 = np.zeros(3) if offset_init is None else np.asarray(offset_init, float)
+    if R_flange is None:
+        fit_offset, Rf = False, None
+        target0 = p_flange
+    else:
+        Rf = np.asarray(R_flange, float)
+        target0 = p_flange + Rf @ o0
+    start = fit_rigid(p_meas, target0)  # Kabsch start (Eq. 4)
+    R0, t0 = start.R.copy(), start.t.copy()
+    # o is identifiable only along directions in which the flange orientation varies: with
+    # R_i = Rbar + D_i, R_i o = Rbar o + D_i o, and Rbar o is absorbed by t. Fit o in the span
+    # of the right singular vectors of stack(D_i) whose RMS spread exceeds 1 mrad; keep the
+    # other components at offset_init (e.g. rotations about one axis only: its component stays).
+    basis = np.zeros((3, 0))
+    if fit_offset:
+        _, sv, Vt = np.linalg.svd((Rf - Rf.mean(0)).reshape(-1, 3), full_matrices=False)
+        basis = Vt[sv / math.sqrt(n) > 1e-3].T
+        fit_offset = basis.shape[1] > 0
+    nb = basis.shape[1]
+    k = 6 + nb
+
+    def unpack(x):
+        R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+        return R, x[3:6], o0 + basis @ x[6:]
+
+    def resid(x):
+        R, t, o = unpack(x)
+        target = p_flange if Rf is None else p_flange + Rf @ o
+        return (p_meas @ R.T + t - target).ravel()
+
+    def jac(x):
+        R, t, o = unpack(x)
+        q = p_meas @ R.T  # d(exp(w) R0 p)/dw at small w = -[R p]x
+        J = np.zeros((n, 3, k))
+        J[:, 0, 1], J[:, 0, 2] = q[:, 2], -q[:, 1]
+        J[:, 1, 0], J[:, 1, 2] = -q[:, 2], q[:, 0]
+        J[:, 2, 0], J[:, 2, 1] = q[:, 1], -q[:, 0]
+        J[:, :, 3:6] = np.eye(3)
+        if nb:
+            J[:, :, 6:] = -Rf @ basis
+        return J.reshape(3 * n, k)
+
+    x0 = np.r_[np.zeros(3), t0, np.zeros(nb)]
+    # rotvec is re-linearised each call (exp(w) R0): the Jacobian above is exact at w = 0 and
+    # a close approximation near it; restart from the solution once so w ends near 0.
+    sol = None
+    for _ in range(2):
+        sol = least_squares(resid, x0, jac=jac, method="lm" if loss == "linear" else "trf",
+                            loss=loss, f_scale=f_scale, x_scale="jac")
+        R0 = unpack(sol.x)[0]
+        x0 = np.r_[np.zeros(3), sol.x[3:]]
+    R, t, o = unpack(x0)
+    r = resid(x0)
+    J = jac(x0)
+    dof = max(3 * n - k, 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((k, k), np.nan)
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    # offset covariance in flange coordinates (components not fitted have zero variance)
+    o_std = np.sqrt(np.clip(np.diag(basis @ cov[6:, 6:] @ basis.T), 0, None)) if nb else np.zeros(3)
+    return RigidOffsetFit(R, t, np.asarray(o, float), r.reshape(n, 3), std[:3], std[3:6],
+                          o_std, int(sol.nfev), nb)
+
+
+# --------------------------------------------------------------------------- import
+
+def _parse_timestamps(texts: list[str], fmt: str) -> np.ndarray | None:
+    out = np.empty(len(texts))
+    for i, s in enumerate(texts):
+        try:
+            out[i] = calendar.timegm(datetime.strptime(s, fmt).timetuple())  # zone-free seconds
+        except ValueError:
+            return None
+    return out
+
+
+def import_file(path: str | Path, mapping: ImportMapping | str | Path,
+                skip_bad: bool = False) -> tuple[Dataset, RegistrationReport]:
+    """Read a foreign file through `mapping` (a model or a YAML path) into an SI Dataset.
+
+    Returns the dataset (commanded TCP, error = commanded - measured, measured in the robot
+    frame, flange orientation when given) and a RegistrationReport (residual RMS, fitted
+    transform and offset, notes, import time). Bad rows: DataError with file, line, column
+    and value, or skipped and listed in `dataset.skipped` with skip_bad=True.
+    """
+    started = _time.perf_counter()
+    path = Path(path)
+    m = mapping if isinstance(mapping, ImportMapping) else load_mapping(mapping)
+    c, u = m.columns, m.units
+    header = read_header(path, m.separator)
+    notes: list[str] = []
+
+    def present(field_name: str, names) -> bool:
+        names = [names] if isinstance(names, str) else list(names)
+        miss = [n for n in names if n not in header]
+        if not miss:
+            return True
+        if field_name in m.optional_columns:
+            return False
+        raise DataError(f"{path}: line 1: mapping field '{field_name}' wants column(s) {miss}, "
+                        f"not in the header {header}")
+
+    specs = [ColumnSpec(a, getattr(c, a), scale=_LENGTH[u.position]) for a in "xyz"]
+    meas_keys = ("mx", "my", "mz") if c.mx else ("ex", "ey", "ez")
+    specs += [ColumnSpec(k, getattr(c, k), scale=_LENGTH[u.measurement]) for k in meas_keys]
+    if c.ux and present("ux", [c.ux, c.uy, c.uz]):
+        specs += [ColumnSpec(k, getattr(c, k), required=False, scale=_LENGTH[u.uncertainty])
+                  for k in ("ux", "uy", "uz")]
+    if c.joints and present("joints", c.joints):
+        specs += [ColumnSpec(f"q{i + 1}", name, scale=_ANGLE[u.joints]) for i, name in enumerate(c.joints)]
+    if c.orientation and present("orientation", c.orientation):
+        specs += [ColumnSpec(f"o{i}", name, scale=_ANGLE[u.orientation]) for i, name in enumerate(c.orientation)]
+    if c.speed and present("speed", c.speed):
+        specs.append(ColumnSpec("speed", c.speed, required=False, scale=_SPEED[u.speed]))
+    for k in ("temperature", "payload"):
+        if getattr(c, k) and present(k, getattr(c, k)):
+            specs.append(ColumnSpec(k, getattr(c, k), required=False))
+    for k in ("point_id", "rep"):
+        if getattr(c, k) and present(k, getattr(c, k)):
+            specs.append(ColumnSpec(k, getattr(c, k), kind="int"))
+    tspec = m.time
+    if isinstance(tspec, TimeSpec) and tspec.source != "row_order":
+        kind = "str" if tspec.source == "timestamp" else "float"
+        specs.append(ColumnSpec("t", tspec.column, kind=kind))
+
+    vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad)
+    n = len(lines)
+    if n == 0:
+        raise DataError(f"{path}: no usable data rows" + (f" ({len(skipped)} skipped)" if skipped else ""))
+    col3 = lambda ks: np.column_stack([vals[k] for k in ks]).astype(float)  # noqa: E731
+    arr = lambda k: np.asarray(vals[k], float) if k in vals else None  # noqa: E731
+    lines_a = np.asarray(lines, dtype=np.int64)
+
+    p_cmd = col3("xyz")
+    R_f = (Rotation.from_euler(m.orientation_convention, col3(["o0", "o1", "o2"])).as_matrix()
+           if "o0" in vals else None)
+    u_meas = col3(["ux", "uy", "uz"]) if "ux" in vals else None
+    reg = m.registration
+    o_init = np.asarray(reg.offset_init_mm, float) * M_PER_MM
+    if np.any(o_init) and R_f is None:
+        raise DataError(f"{path}: registration.offset_init_mm is not zero but the mapping has no "
+                        "orientation columns to carry the offset on the flange")
+
+    # --- measurement -> error (commanded - measured, Eq. 8) in the robot frame
+    method, R, t_vec, offset = "none", np.eye(3), np.zeros(3), (o_init if R_f is not None else np.zeros(3))
+    stds: tuple = (None, None, None)
+    if "mx" in vals:
+        p_meas = col3(["mx", "my", "mz"])
+        if m.measured_frame == "instrument":
+            if n < 3:
+                raise DataError(f"{path}: registration needs at least 3 rows, got {n}")
+            fit = fit_rigid_offset(p_meas, p_cmd, R_f, o_init, reg.fit_offset, reg.loss, reg.f_scale_mm * M_PER_MM)
+            fitted_offset = fit.offset_dof > 0
+            if reg.fit_offset and R_f is not None and fit.offset_dof < 3:
+                notes.append(f"flange orientations vary in {fit.offset_dof} of 3 directions: only "
+                             f"{fit.offset_dof} probe-offset component(s) fitted, the rest kept at offset_init_mm")
+            if reg.fit_offset and R_f is None:
+                notes.append("no orientation columns: probe offset not fitted (rigid registration only)")
+            method = "rigid+offset" if fitted_offset else "rigid"
+            R, t_vec, offset = fit.rotation, fit.translation, fit.offset
+            stds = (fit.rotation_std, fit.translation_std / M_PER_MM, fit.offset_std / M_PER_MM if fitted_offset else None)
+            p_meas = p_meas @ R.T + t_vec
+            if u_meas is not None:
+                # diagonal instrument-frame covariance rotated into the robot frame, per-axis std
+                u_meas = np.sqrt((u_meas ** 2) @ (R ** 2).T)
+        commanded = p_cmd + (R_f @ offset if R_f is not None else 0.0)
+        measured = p_meas
+        error = commanded - measured
+    else:
+        commanded = p_cmd + (R_f @ offset if R_f is not None else 0.0)
+        error = col3(["ex", "ey", "ez"])
+        measured = None
+    if m.error_sign == "measured_minus_commanded":
+        if measured is None:
+            error = -error
+        else:
+            notes.append("error_sign ignored for measured columns: error is computed as commanded - measured")
+
+    # --- time
+    t = order = None
+    if tspec == "row_order" or (isinstance(tspec, TimeSpec) and tspec.source == "row_order"):
+        t = np.arange(n, dtype=float)
+        notes.append("t is the row index (time unknown, row order only)")
+    elif isinstance(tspec, TimeSpec):
+        if tspec.source == "seconds":
+            t = np.asarray(vals["t"], float)
+        else:
+            t = _parse_timestamps(vals["t"], tspec.format)
+            if t is None:
+                bad = next(i for i, s in enumerate(vals["t"]) if _parse_timestamps([s], tspec.format) is None)
+                if tspec.fallback == "error":
+                    raise DataError(f"{path}: line {lines[bad]}: column '{tspec.column}': value "
+                                    f"{vals['t'][bad]!r}: not a timestamp of format {tspec.format!r}")
+                t = np.arange(n, dtype=float)
+                notes.append(f"column '{tspec.column}' does not parse as {tspec.format!r} (line {lines[bad]}: "
+                             f"{vals['t'][bad]!r}): t is the row index (row order only)")
+        back = np.flatnonzero(np.diff(t) < 0)
+        if back.size:
+            where = f"{back.size} place(s), first at line {lines[back[0] + 1]}"
+            if tspec.order == "error":
+                raise DataError(f"{path}: line {lines[back[0] + 1]}: column '{tspec.column}': time goes "
+                                f"backwards ({where}); set time.order to 'sort' or 'keep'")
+            if tspec.order == "sort":
+                order = np.argsort(t, kind="stable")
+                notes.append(f"time goes backwards in the file ({where}): rows sorted by time")
+            else:
+                notes.append(f"time goes backwards in the file ({where}): file order kept")
+        t = t - t.min()
+
+    point_id = np.asarray(vals["point_id"], np.int64) if "point_id" in vals else None
+    rep = np.asarray(vals["rep"], np.int64) if "rep" in vals else None
+    if m.point_id_from_commanded and point_id is None:
+        key = np.round(p_cmd / (m.point_id_tolerance_mm * M_PER_MM)).astype(np.int64)
+        _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        inv = inv.ravel()
+        rank = np.empty_like(first)
+        rank[np.argsort(first)] = np.arange(first.size)  # number points by first appearance
+        point_id = rank[inv]
+        rep = np.zeros(n, np.int64)
+        seen: dict[int, int] = {}
+        for i, p in enumerate(point_id):
+            rep[i] = seen.get(int(p), 0)
+            seen[int(p)] = rep[i] + 1
+
+    ds = Dataset(commanded=commanded, error=error, measured=measured, speed=arr("speed"),
+                 joints=col3([f"q{i + 1}" for i in range(len(c.joints))]) if "q1" in vals else None,
+                 temperature=arr("temperature"), payload=arr("payload"), t=t,
+                 point_id=point_id, rep=rep, u=u_meas, flange_rotation=R_f,
+                 source=str(path), lines=lines_a, skipped=skipped)
+    if order is not None:
+        ds = ds.select(order)
+    res_mm = ds.error / M_PER_MM
+    report = RegistrationReport(
+        method=method, n=n, rms_axis_mm=np.sqrt(np.mean(res_mm ** 2, axis=0)),
+        rms_3d_mm=float(np.sqrt(np.mean(np.sum(res_mm ** 2, axis=1)))),
+        rotation=R, translation=t_vec, offset=np.asarray(offset, float),
+        rotation_std_rad=stds[0], translation_std_mm=stds[1], offset_std_mm=stds[2],
+        n_skipped=len(skipped), notes=notes)
+    report.seconds = _time.perf_counter() - started
+    return ds, report

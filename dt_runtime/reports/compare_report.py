@@ -1,0 +1,295 @@
+"""The `dt compare` report: one self-contained HTML page and the JSON beside it.
+
+`write_compare_report(result, arrays, out_dir)` renders what `dt_runtime.compare.compare`
+returns: the models side by side, the "watch the error fall" plot, where the primary model
+(the last one) fails (residual maps, residual against each factor, the worst cells), whether
+its residuals look normal, and its effect parameters. The HTML helpers and the per-block
+fallback (a block that cannot be drawn becomes a note) are those of the demo report.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.reports.html import Section, figure_block, fig_to_img_tag, headline, html_page, html_table, \
+    note, paragraph, plt
+from dt_runtime.analysis.compare import MIN_CELL
+from dt_runtime.reports.demo_report import COLORS, Missing, _f, _levels, _run_block
+
+
+
+def _primary(a: dict) -> dict:
+    ms = a.get("models") or []
+    if not ms:
+        raise Missing("no model results")
+    return ms[-1]
+
+
+def _rms_txt(b: dict) -> str:
+    u = b.get("rmse_U95_mm")
+    return f"{_f(b.get('rmse_mm'))} ± {_f(u)}" if u is not None else _f(b.get("rmse_mm"))
+
+
+def _fail_txt(b: dict) -> str:
+    f = b.get("failures")
+    return f"{_f(100 * f['fraction'], 1)} % ({f['count']} rows)" if f else "–"
+
+
+# --------------------------------------------------------------------------- tables
+
+def _headline(s: dict, a: dict) -> str:
+    ms = s["models"]
+    p, asis = ms[-1], ms[0]
+    cards = [headline(f"3D RMS residual, {p['name']}", f"{_rms_txt(p)} mm",
+                      f"Root mean square of |e − ê| over {s['n']} measured rows (as is: {_rms_txt(asis)} mm); "
+                      "± is the 95 % uncertainty of the RMS estimate.")]
+    if s.get("noise_floor_mm") is not None:
+        cards.append(headline("Noise floor", f"{_f(s['noise_floor_mm'])} mm",
+                              "3D RMS of the measurement's stated uncertainty: no model can go below this."))
+    f = p.get("failures")
+    if f:
+        cards.append(headline("Outside the stated uncertainty (Eq. 17)", _fail_txt(p),
+                              f"Rows failing the 95 % t-test in any axis; a consistent model fails about "
+                              f"{_f(100 * f['expected_fraction_if_consistent'], 1)} % (5 % per axis, three axes)."))
+    w = p.get("worst_cells") or []
+    if w:
+        c = w[0]
+        cards.append(headline("Worst cell", f"{c['factor']} {c['cell']}: {_f(c['rmse_mm'])} mm",
+                              f"{c['n']} rows, {_f(c['ratio'], 2)} x the overall RMS."))
+    return '<div class="cards">' + "".join(cards) + "</div>"
+
+
+def _table_summary(s: dict, a: dict) -> str:
+    ms = s["models"]
+    names = [m["name"] for m in ms]
+
+    def row(label, fn):
+        return {"quantity": label, **{m["name"]: fn(m) for m in ms}}
+
+    rows = [row("description", lambda m: m.get("description", "")),
+            row("n", lambda m: m["n"]),
+            row("3D RMS of r / mm (± U95)", _rms_txt),
+            row("3D mean |r| / mm", lambda m: _f(m["mae_mm"])),
+            row("3D max |r| / mm", lambda m: _f(m["max_mm"]))]
+    for ax in AXES:
+        rows.append(row(f"RMS r_{ax} / mm", lambda m, ax=ax: _f(m["per_axis"][ax]["rmse_mm"])))
+    for ax in AXES:
+        rows.append(row(f"mean r_{ax} / mm", lambda m, ax=ax: _f(m["per_axis"][ax]["mean_mm"])))
+    rows.append(row("fails Eq. 17, any axis", _fail_txt))
+    for ax in AXES:
+        rows.append(row(f"fails Eq. 17, {ax} / %",
+                        lambda m, ax=ax: _f(100 * m["failures"]["per_axis"][ax], 1) if m.get("failures") else "–"))
+    rows.append(row("training: RMS left after the effect terms, per axis / mm",
+                    lambda m: _f(m["effect_residual_rms_mm"]) if "effect_residual_rms_mm" in m else "–"))
+    return (html_table(rows, ["quantity"] + names, row_header="quantity",
+                       caption=f"Residual r = e − ê on {s['n']} rows of {s.get('dataset', '?')}, one column "
+                               "per model in the order given ('as is': no correction)")
+            + paragraph(f"Measurement uncertainty in the t-test: {s['t_test']['u_meas_source']}."))
+
+
+def _fig_steps(s: dict, a: dict) -> str:
+    ms = s["models"]
+    ho = s.get("heldout")
+    x = np.arange(len(ms))
+    y = np.array([m["rmse_mm"] for m in ms])
+    u = np.array([m.get("rmse_U95_mm") or 0.0 for m in ms])
+    fig, ax = plt.subplots(figsize=(max(5.5, 1.3 * len(ms) + 2), 3.8))
+    ax.bar(x, y, yerr=u, capsize=4, color=["0.6"] + ["tab:blue"] * (len(ms) - 1), alpha=0.85)
+    ax.plot(x, y, "k.-", lw=0.8)
+    for xi, yi in zip(x, y):
+        ax.annotate(f"{yi:.3f}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
+    fl = s.get("noise_floor_mm")
+    if fl is not None:
+        ax.axhline(fl, color="tab:red", ls="--", lw=1, label=f"noise floor {fl:.3f} mm")
+        ax.legend(fontsize=8)
+    ax.set_xticks(x, [m["name"] for m in ms], rotation=15, fontsize=8)
+    ax.set_ylabel(("held-out " if ho else "") + "3D RMS of r / mm")
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    what = (f"Held-out 3D RMS of the residual ({ho['method']})" if ho else
+            "3D RMS of the residual on these data (held out only if the models were trained on other data; "
+            "`dt compare --cv K` refits each model without the point it predicts)")
+    return figure_block(fig_to_img_tag(fig, alt="3D RMS per step"),
+                        what + " per step (mm; error bars: 95 % uncertainty of the RMS "
+                        "estimate), as is and then each model in the order given"
+                        + ("; the dashed line is the noise floor, the 3D RMS of the measurement uncertainty."
+                           if fl is not None else "."))
+
+
+def _tables_worst(s: dict, a: dict) -> str:
+    w = s.get("worst_cells") or []
+    if not w:
+        raise Missing(f"no breakdown cell has {MIN_CELL} or more rows")
+    rows = [{"rank": i + 1, "factor": c["factor"], "cell": c["cell"], "n": c["n"], "3D RMS / mm": _f(c["rmse_mm"]),
+             "ratio to overall": _f(c["ratio"], 2),
+             "mean r (x, y, z) / mm": ", ".join(_f(v) for v in c["mean_mm"])} for i, c in enumerate(w)]
+    return html_table(rows, row_header="rank",
+                      caption=f"Worst cells for {s['primary']} (any factor, n ≥ {MIN_CELL}), overall 3D RMS "
+                              f"{_f(s['rmse_mm'])} mm")
+
+
+def _tables_breakdown(s: dict, a: dict) -> str:
+    ms = s["models"]
+    if not s.get("breakdown"):
+        raise Missing("no factor varies in these data")
+    out = [paragraph("3D RMS of the residual per cell of each factor, one column per model. Region: thirds "
+                     "(−, 0, +) of the commanded TCP bounding box along x, y, z. Configuration: sign of q3 "
+                     "(elbow up/down) and q5 (wrist flip). Factors missing from the data or constant are left out.")]
+    for factor, cells in s["breakdown"].items():
+        per_model = [{c["cell"]: c for c in m["breakdown"].get(factor, [])} for m in ms]
+        rows = []
+        for c in cells:
+            r = {"cell": c["cell"], "n": c["n"]}
+            for m, pm in zip(ms, per_model):
+                r[f"{m['name']}: RMS / mm"] = _f(pm[c["cell"]]["rmse_mm"]) if c["cell"] in pm else "–"
+            r[f"mean r (x, y, z) / mm, {s['primary']}"] = ", ".join(_f(v) for v in c["mean_mm"])
+            rows.append(r)
+        out.append(html_table(rows, row_header="cell", caption=f"By {factor}"))
+    return "".join(out)
+
+
+def _table_parameters(s: dict, a: dict) -> str:
+    out = []
+    for m in s["models"][1:]:
+        ps = m.get("parameters") or []
+        if not ps:
+            out.append(note(f"{m['name']} ({m.get('description', '')}): no physical effect terms."))
+            continue
+        rows = []
+        for p in ps:
+            f, unit = (MM_PER_M, "mm") if p["unit"] == "m" else (1.0, p["unit"])  # lengths in mm
+            rows.append({"effect": p["effect"], "parameter": p["name"],
+                         "value ± u": f"{p['value'] * f:.4g} ± {p['u'] * f:.2g}", "unit": unit})
+        out.append(html_table(rows, caption=f"{m['name']} ({m['description']}): effect parameters, value ± "
+                                            "standard uncertainty"))
+    return "".join(out)
+
+
+def _table_method(s: dict, a: dict) -> str:
+    t = s["t_test"]
+    rows = [{"item": "data", "value": s.get("dataset")}, {"item": "rows", "value": s["n"]},
+            {"item": "t-test", "value": t["equation"]}, {"item": "u_model", "value": t["u_model"]},
+            {"item": "u_meas", "value": t["u_meas_source"]}, {"item": "units", "value": s.get("units")}]
+    return html_table(rows, row_header="item")
+
+
+# --------------------------------------------------------------------------- figures
+
+def _fig_maps(s: dict, a: dict) -> str:
+    p = _primary(a)
+    P = np.asarray(a["commanded"], float) * MM_PER_M
+    r = np.linalg.norm(p["residual"], axis=1) * MM_PER_M
+    fail = p["fail"].any(axis=1) if p["fail"] is not None else np.zeros(len(r), bool)
+    fig, axs = plt.subplots(1, 2, figsize=(12, 4.8))
+    for axp, (i, j) in zip(axs, ((0, 1), (0, 2))):
+        sc = axp.scatter(P[:, i], P[:, j], c=r, cmap="viridis", s=14, vmin=0, vmax=float(r.max()) or 1.0)
+        if fail.any():
+            axp.scatter(P[fail, i], P[fail, j], marker="x", s=36, color="tab:red", lw=1.2,
+                        label=f"fails Eq. 17 ({int(fail.sum())})")
+            axp.legend(fontsize=8, loc="best")
+        axp.set_xlabel(f"{AXES[i]} / mm"), axp.set_ylabel(f"{AXES[j]} / mm")
+        axp.set_title(f"{AXES[i]}-{AXES[j]} view", fontsize=10)
+        axp.grid(alpha=0.3)
+        fig.colorbar(sc, ax=axp).set_label("|r| / mm")
+    fig.tight_layout()
+    return figure_block(fig_to_img_tag(fig, alt="residual maps"),
+                        f"Residual maps of {p['name']}: commanded TCP (robot frame, mm) coloured by the 3D residual "
+                        "|e − ê| (mm); red crosses fail the Eq. 17 t-test in at least one axis.")
+
+
+def _factor_values(a: dict) -> list[tuple[str, np.ndarray]]:
+    out = []
+    for key, label, f in (("speed", "speed / (mm/s)", MM_PER_M), ("payload", "payload / kg", 1.0),
+                          ("temperature", "temperature / °C", 1.0), ("t", "time from start / s", 1.0)):
+        v = a.get(key)
+        if v is not None and np.nanstd(v) > 0:
+            v = np.asarray(v, float) * f
+            out.append((label, v - np.nanmin(v) if key == "t" else v))
+    q = a.get("joints")
+    if q is not None:
+        j = 2 if q.shape[1] > 2 else 0  # the elbow: the joint whose angle most changes the reach
+        out.append((f"q{j + 1} / deg", np.degrees(q[:, j])))
+    return out
+
+
+def _fig_factors(s: dict, a: dict) -> str:
+    p = _primary(a)
+    fv = _factor_values(a)
+    if not fv:
+        raise Missing("the data have no speed, payload, temperature, time or joint columns")
+    r = p["residual"] * MM_PER_M
+    fig, axs = plt.subplots(1, len(fv), figsize=(3.4 * len(fv) + 1, 3.6), squeeze=False, sharey=True)
+    for axp, (label, v) in zip(axs[0], fv):
+        ok = np.isfinite(v)
+        idx, centres = _levels(v[ok])
+        for k, ax in enumerate(AXES):
+            axp.plot(v[ok], r[ok, k], ".", ms=2, alpha=0.35, color=COLORS[ax])
+            means = [r[ok, k][idx == i].mean() if np.any(idx == i) else np.nan for i in range(len(centres))]
+            axp.plot(centres, means, "o-", ms=3, lw=1.2, color=COLORS[ax], label=f"r_{ax}, binned mean")
+        axp.axhline(0, color="k", lw=0.6)
+        axp.set_xlabel(label, fontsize=9)
+        axp.grid(alpha=0.3)
+        axp.tick_params(labelsize=7)
+    axs[0, 0].set_ylabel("residual r / mm")
+    axs[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    return figure_block(fig_to_img_tag(fig, alt="residual against each factor"),
+                        f"Residual components of {p['name']} (mm) against each factor, with the mean per level or "
+                        "quantile bin: a trend or step means the model misses an effect that follows that factor.")
+
+
+def _fig_normal(s: dict, a: dict) -> str:
+    from scipy import stats
+
+    p = _primary(a)
+    r = p["residual"] * MM_PER_M
+    if len(r) < 3:
+        raise Missing("fewer than 3 rows")
+    fig, axs = plt.subplots(1, 3, figsize=(12, 3.6))
+    for k, ax in enumerate(AXES):
+        (osm, osr), (slope, icpt, rr) = stats.probplot(r[:, k], dist="norm")
+        axs[k].plot(osm, osr, ".", ms=3, color=COLORS[ax])
+        axs[k].plot(osm, slope * osm + icpt, "k-", lw=0.8)
+        axs[k].set_title(f"r_{ax}: R = {rr:.3f}, slope {slope:.3f} mm", fontsize=9)
+        axs[k].set_xlabel("theoretical normal quantile", fontsize=8)
+        axs[k].set_ylabel(f"r_{ax} / mm", fontsize=8)
+        axs[k].grid(alpha=0.3)
+    fig.tight_layout()
+    return figure_block(fig_to_img_tag(fig, alt="normal probability plot"),
+                        f"Normal probability plots of the residual components of {p['name']} (mm): a straight line "
+                        "means normal residuals; bent tails or steps mean outliers or a missing effect.")
+
+
+# --------------------------------------------------------------------------- assembly
+
+def compare_sections(result: dict, arrays: dict) -> list[Section]:
+    plan = [("Key figures", "key", [_headline]),
+            ("Models side by side", "summary", [_table_summary, _fig_steps]),
+            ("Where the model fails", "where", [_fig_maps, _tables_worst]),
+            ("Residual against each factor", "factors", [_fig_factors]),
+            ("Normality of the residuals", "normal", [_fig_normal]),
+            ("Breakdown by factor", "breakdown", [_tables_breakdown]),
+            ("Model parameters", "parameters", [_table_parameters]),
+            ("Method and data", "method", [_table_method])]
+    return [Section(title, "".join(_run_block(b, result, arrays) for b in blocks), anchor)
+            for title, anchor, blocks in plan]
+
+
+def build_compare_report(result: dict, arrays: dict) -> str:
+    names = ", ".join(m["name"] for m in result.get("models", []))
+    return html_page("Cobot digital twin: model against measurements", compare_sections(result, arrays),
+                     subtitle=f"{result.get('n', '?')} rows of {result.get('dataset', '?')}; columns: {names}. "
+                              "Lengths in mm; e = commanded − measured (paper Eq. 8), r = e − ê.")
+
+
+def write_compare_report(result: dict, arrays: dict, out_dir) -> Path:
+    """Write out_dir/report.html and out_dir/compare.json; return the HTML path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compare.json").write_text(json.dumps(result, indent=2, ensure_ascii=False), encoding="utf-8")
+    path = out / "report.html"
+    path.write_text(build_compare_report(result, arrays), encoding="utf-8")
+    return path

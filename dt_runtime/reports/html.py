@@ -1,0 +1,179 @@
+"""Small, generic building blocks for self-contained HTML reports.
+
+Every report of the twin (`dt demo`, `dt compare`, ...) is ONE file: figures are inline
+base64 PNGs, the style sheet is inline, nothing is fetched from the network. All text that
+reaches the page goes through `esc` (html.escape); callers pass plain text, never markup,
+except for the `body` of a section, which is already-built HTML from these helpers.
+
+    from dt_runtime.reports.html import fig_to_img_tag, html_table, html_page, Section
+    body = html_table(rows, caption="Budget (mm)") + fig_to_img_tag(fig, alt="...")
+    Path("report.html").write_text(html_page("My report", [Section("Results", body)]))
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Any, Iterable, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")  # headless, before pyplot is imported anywhere through this module
+import matplotlib.pyplot as plt  # noqa: E402
+
+__all__ = ["Section", "esc", "fmt_value", "fig_to_img_tag", "html_table", "html_page", "paragraph",
+           "note", "headline", "figure_block", "plt"]
+
+NONE_MARK = "–"
+
+
+@dataclass(frozen=True)
+class Section:
+    """One titled part of a page. `body` is HTML built with these helpers (not escaped again)."""
+
+    title: str
+    body: str
+    anchor: str | None = None
+
+
+def esc(text: Any) -> str:
+    """Escape any value for HTML text or attribute context."""
+    return html.escape(str(text), quote=True)
+
+
+def fmt_value(v: Any, digits: int = 4, none: str = NONE_MARK) -> str:
+    """Plain-text rendering of a table cell: numbers with `digits` significant figures,
+    NaN as 'NaN', infinities as '∞', None as `none`, sequences joined with ', '."""
+    if v is None:
+        return none
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, numbers.Integral):
+        return str(int(v))
+    if isinstance(v, numbers.Real):
+        f = float(v)
+        if math.isnan(f):
+            return "NaN"
+        if math.isinf(f):
+            return "∞" if f > 0 else "-∞"
+        return f"{f:.{digits}g}"
+    if isinstance(v, dict):
+        return "; ".join(f"{k}: {fmt_value(x, digits, none)}" for k, x in v.items())
+    if isinstance(v, (list, tuple)) or hasattr(v, "tolist"):
+        seq = v.tolist() if hasattr(v, "tolist") else v
+        if not isinstance(seq, list):
+            return fmt_value(seq, digits, none)
+        return ", ".join(fmt_value(x, digits, none) for x in seq)
+    return str(v)
+
+
+def fig_to_img_tag(fig, alt: str = "", dpi: int = 80, close: bool = True, width: str | None = None,
+                   tight: bool = False) -> str:
+    """Render a matplotlib figure as an inline base64 PNG <img> tag (and close it)."""
+    buf = io.BytesIO()
+    try:
+        # bbox_inches="tight" costs a second full draw; callers lay out with tight_layout instead
+        fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
+    finally:
+        if close:
+            plt.close(fig)
+    data = base64.b64encode(buf.getvalue()).decode("ascii")
+    style = f' style="width:{esc(width)}"' if width else ""
+    return f'<img src="data:image/png;base64,{data}" alt="{esc(alt)}"{style}>'
+
+
+def figure_block(img_tag: str, caption: str) -> str:
+    """A figure with a plain-text caption (escaped)."""
+    return f"<figure>{img_tag}<figcaption>{esc(caption)}</figcaption></figure>"
+
+
+def html_table(rows: Iterable[dict], columns: Sequence[str] | None = None, *,
+               headers: dict[str, str] | None = None, caption: str | None = None,
+               digits: int = 4, none: str = NONE_MARK, missing: str = "",
+               row_header: str | None = None) -> str:
+    """A table from a list of dicts. Columns default to the union of the rows' keys in order of
+    first appearance. A None value renders as `none` (e.g. '∞' for dof), a key the row lacks as
+    `missing`. `headers` maps key -> display label. `row_header` names a column rendered as <th>."""
+    rows = list(rows)
+    if columns is None:
+        columns = []
+        for r in rows:
+            for k in r:
+                if k not in columns:
+                    columns.append(k)
+    headers = headers or {}
+    out = ['<table>']
+    if caption:
+        out.append(f"<caption>{esc(caption)}</caption>")
+    out.append("<thead><tr>" + "".join(f"<th>{esc(headers.get(c, c))}</th>" for c in columns)
+               + "</tr></thead><tbody>")
+    for r in rows:
+        cells = []
+        for c in columns:
+            v = r.get(c)
+            tag = "th" if c == row_header else "td"
+            num = isinstance(v, numbers.Real) and not isinstance(v, bool)
+            cls = ' class="num"' if num else ""
+            cells.append(f"<{tag}{cls}>{esc(fmt_value(v, digits, none) if c in r else missing)}</{tag}>")
+        out.append("<tr>" + "".join(cells) + "</tr>")
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
+def paragraph(text: str) -> str:
+    return f"<p>{esc(text)}</p>"
+
+
+def note(text: str) -> str:
+    """A visually distinct remark (e.g. a section skipped for missing data)."""
+    return f'<p class="note">{esc(text)}</p>'
+
+
+def headline(label: str, value: str, sentence: str = "") -> str:
+    """A key figure card: a label, a value (with its unit and uncertainty) and one plain sentence."""
+    return (f'<div class="card"><div class="label">{esc(label)}</div><div class="value">{esc(value)}</div>'
+            f'<div class="say">{esc(sentence)}</div></div>')
+
+
+_CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,Helvetica,Arial,sans-serif;margin:0 auto;
+max-width:1180px;padding:1em 2em;color:#1b1b1b;line-height:1.45}
+h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:2px solid #2b5d8a;padding-bottom:.15em;margin-top:1.8em}
+h3{margin-bottom:.3em}
+table{border-collapse:collapse;margin:.6em 0 1.2em;font-size:.88em}
+caption{caption-side:top;text-align:left;font-weight:600;padding:.3em 0}
+th,td{border:1px solid #c9d2dc;padding:.25em .55em;vertical-align:top}
+thead th{background:#e8eef5}tbody tr:nth-child(even){background:#f7f9fb}
+td.num{text-align:right;font-variant-numeric:tabular-nums}
+figure{margin:1em 0 1.6em}figure img{max-width:100%;height:auto;border:1px solid #e2e6ea}
+figcaption{font-size:.88em;color:#444;margin-top:.3em}
+.cards{display:flex;flex-wrap:wrap;gap:.8em}
+.card{flex:1 1 260px;border:1px solid #c9d2dc;border-radius:6px;padding:.6em .8em;background:#f7f9fb}
+.card .label{font-size:.85em;color:#555}.card .value{font-size:1.3em;font-weight:600;margin:.15em 0}
+.card .say{font-size:.88em}
+.note{background:#fff6e0;border-left:4px solid #e0a800;padding:.4em .7em}
+.meta{color:#555;font-size:.9em}nav a{margin-right:1em}
+"""
+
+
+def html_page(title: str, sections: Sequence[Section | tuple[str, str]], subtitle: str = "",
+              toc: bool = True) -> str:
+    """A complete, self-contained HTML document (inline CSS, no scripts, no external links)."""
+    secs = [s if isinstance(s, Section) else Section(*s) for s in sections]
+    anchors = [s.anchor or f"s{i + 1}" for i, s in enumerate(secs)]
+    parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+             '<meta name="viewport" content="width=device-width, initial-scale=1">',
+             f"<title>{esc(title)}</title><style>{_CSS}</style></head><body>",
+             f"<h1>{esc(title)}</h1>"]
+    if subtitle:
+        parts.append(f'<p class="meta">{esc(subtitle)}</p>')
+    if toc and len(secs) > 1:
+        parts.append("<nav>" + "".join(f'<a href="#{esc(a)}">{esc(s.title)}</a>'
+                                       for a, s in zip(anchors, secs)) + "</nav>")
+    for a, s in zip(anchors, secs):
+        parts.append(f'<section id="{esc(a)}"><h2>{esc(s.title)}</h2>{s.body}</section>')
+    parts.append("</body></html>")
+    return "\n".join(parts)

@@ -1,0 +1,111 @@
+"""The per-command path: bounded GPR correction and the Eq. 17 check of an MVS measurement.
+
+A model that asks for more correction than configured (magnitude or change from the previous
+command) is a fault, never a big move: the command is refused with CorrectionFault and the
+robot is not moved. Targets outside the workspace box or speeds above the limit are refused
+before the model is consulted.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+
+from dt_runtime.metrology import uncertainty as unc
+from dt_kernel.errors import TwinError
+from dt_runtime.twin.twin import Twin
+from dt_kernel.config import Frozen
+
+
+class CorrectionFault(TwinError):
+    """The correction asked for is out of bounds, or an input is invalid; nothing was moved."""
+
+
+class Limits(Frozen):
+    workspace_min_m: tuple[float, float, float] = (0.2, -0.8, 0.05)
+    workspace_max_m: tuple[float, float, float] = (1.6, 0.8, 1.3)
+    max_speed_m_s: float = Field(1.0, gt=0)
+    max_correction_m: float = Field(2.0e-3, gt=0)  # |c - target|
+    # Change of the correction between consecutive commands: an allowance plus a bound on its
+    # gradient along the path (the error map of an arm changes by a few mm per metre; a model
+    # whose correction jumps faster than that is broken).
+    max_correction_step_m: float = Field(0.2e-3, gt=0)
+    max_correction_gradient: float = Field(0.01, gt=0)  # m of correction per m of travel
+
+
+@dataclass(frozen=True)
+class Corrected:
+    target: np.ndarray
+    command: np.ndarray
+    correction: np.ndarray  # command - target (robot frame, m)
+    u_tcp: np.ndarray  # standard uncertainty of the corrected TCP (Eq. 11), m
+    U_tcp: np.ndarray  # expanded, 95 %
+
+
+class Corrector:
+    def __init__(self, twin: Twin, limits: Limits):
+        self.twin, self.limits = twin, limits
+        self._lo, self._hi = np.array(limits.workspace_min_m), np.array(limits.workspace_max_m)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
+        b = twin.u["eq11_tcp_c"]
+        self._u, self._U = np.asarray(b["u"]), np.asarray(b["U"])
+
+    def __call__(self, target: np.ndarray, speed: float) -> Corrected:
+        target = np.asarray(target, dtype=float)
+        if target.shape != (3,) or not np.all(np.isfinite(target)):
+            raise CorrectionFault(f"target {target!r} is not a finite 3-vector")
+        if not (np.isfinite(speed) and 0 < speed <= self.limits.max_speed_m_s):
+            raise CorrectionFault(f"speed {speed!r} m/s outside (0, {self.limits.max_speed_m_s}]")
+        if np.any(target < self._lo) or np.any(target > self._hi):
+            raise CorrectionFault(f"target {np.round(target * 1e3, 1).tolist()} mm outside the workspace "
+                                  f"{(self._lo * 1e3).tolist()} .. {(self._hi * 1e3).tolist()} mm")
+        c = self.twin.corrected_command(target, speed)
+        corr = c - target
+        if not np.all(np.isfinite(corr)):
+            raise CorrectionFault("the error model returned NaN")
+        mag = float(np.linalg.norm(corr))
+        if mag > self.limits.max_correction_m:
+            raise CorrectionFault(f"correction {mag * 1e3:.3f} mm exceeds the bound "
+                                  f"{self.limits.max_correction_m * 1e3:.3f} mm")
+        if self._last is not None:
+            last_target, last_corr = self._last
+            step = float(np.linalg.norm(corr - last_corr))
+            travel = float(np.linalg.norm(target - last_target))
+            bound = self.limits.max_correction_step_m + self.limits.max_correction_gradient * travel
+            if step > bound:
+                raise CorrectionFault(f"correction changes by {step * 1e3:.3f} mm over {travel * 1e3:.1f} mm "
+                                      f"of travel, bound {bound * 1e3:.3f} mm")
+        self._last = (target, corr)
+        return Corrected(target, c, corr, self._u, self._U)
+
+
+@dataclass(frozen=True)
+class Check:
+    t: np.ndarray  # (3,) Eq. 17
+    p_value: np.ndarray
+    passed: bool
+    diff: np.ndarray  # e_LT_hat - e_MVS, GL, m
+    predicted: np.ndarray  # e_MVS-LT_hat, GL, m
+
+
+class Monitor:
+    """Eq. 17 for one MVS measurement of a commanded position, against the twin's prediction."""
+
+    def __init__(self, twin: Twin, alpha: float = 0.05):
+        self.twin, self.alpha = twin, alpha
+        b14, b16 = twin.u["eq14_e_lt_hat_minus_e_mvs"], twin.u["eq16_e_mvs_lt_hat"]
+        self._u14, self._u16 = np.asarray(b14["u"]), np.asarray(b16["u"])
+        self._d14, self._d16 = np.asarray(b14["dof"], dtype=float), np.asarray(b16["dof"], dtype=float)
+
+    def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray) -> Check:
+        p_mvs = np.asarray(p_mvs, dtype=float)
+        if p_mvs.shape != (3,) or not np.all(np.isfinite(p_mvs)):
+            raise CorrectionFault(f"MVS point {p_mvs!r} is not a finite 3-vector")
+        tw = self.twin
+        cmd_gl = tw.T_rdk.apply(command)
+        e_mvs = cmd_gl - tw.T_mvs.apply(p_mvs)
+        e_lt_hat = tw.T_rdk.R @ tw.e_lt_hat(command, speed)[0]  # back to GL axes
+        pred = tw.e_mvs_lt_hat(command, speed)[0]
+        tt = unc.t_test(e_lt_hat - e_mvs, pred, self._u14, self._u16, self._d14, self._d16, self.alpha)
+        return Check(tt.t[0], tt.p_value[0], bool(tt.passed_all[0]), e_lt_hat - e_mvs, pred)

@@ -1,0 +1,336 @@
+"""`dt run`: the long-running twin daemon.
+
+Every tick: take the next target, apply the bounded GPR correction (dt_runtime.correction),
+move the robot, read the MVS, test the measurement against the prediction (Eq. 17), feed the
+escalation state machine, log everything to the durable store and publish over Zenoh. Entering
+`maintenance_requested` writes a request to the store's outbox, which the bus republishes until
+a consumer acknowledges delivery; the machine returns to nominal only when maintenance is
+confirmed done (`Daemon.acknowledge_maintenance`). The machine's
+state is saved on every transition and restored from the store after a restart.
+
+`realtime: true` paces ticks at `rate_hz` on the wall clock (a real cell); `realtime: false`
+runs as fast as it can on the simulated clock (soaks and tests).
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from drivers import registry
+from dt_runtime.service.bus import Bus, BusConfig
+from dt_runtime.service.correction import CorrectionFault, Corrector, Limits, Monitor
+from dt_kernel.errors import ConfigError, DriverError, TwinError
+from dt_runtime.service.escalation import EscalationConfig, Escalator
+from dt_runtime.twin.campaign import Instruments
+from dt_runtime.service.store import Store, StoreError
+from dt_runtime.twin.twin import Twin
+from dt_kernel.config import Frozen, load_yaml
+
+log = logging.getLogger("dt.run")
+
+
+class Fault(Frozen):
+    """A fault injected into the simulated plant at a given (simulated) time."""
+
+    at_s: float = Field(ge=0)
+    joint_offset_rad: tuple[float, float, float, float, float, float] | None = None
+    camera_shift_m: tuple[float, float, float] | None = None
+
+
+class PathConfig(Frozen):
+    """Targets the daemon commands (a stand-in for the cell's program): 'random' points in a
+    box (seeded), or a 'circle' streamed at the loop rate (set-points v / rate_hz apart)."""
+
+    kind: Literal["random", "circle"] = "random"
+    circle_center_m: tuple[float, float, float] = (0.9, 0.0, 0.55)
+    circle_radius_m: float = Field(0.15, gt=0)
+    box_min_m: tuple[float, float, float] = (0.65, -0.3, 0.25)
+    box_max_m: tuple[float, float, float] = (1.15, 0.3, 0.85)
+    speeds: tuple[float, ...] = (0.4, 0.8)  # fractions of the maximum speed
+    seed: int = 0
+
+
+class SimSection(Frozen):
+    scenario: str = "scenarios/paper_default.yaml"
+    cell: str = "cell.yaml"
+    faults: list[Fault] = []
+
+
+class Drivers(Frozen):
+    robot: str = "sim"
+    tracker: str = "sim"
+    camera: str = "sim_images"
+    robot_config: dict[str, Any] = {}
+
+
+class RuntimeConfig(Frozen):
+    twin: str  # a twin directory written by `dt demo` (DIR/model)
+    store: str = "out/run/dt.sqlite"
+    rate_hz: float = Field(10.0, gt=0, le=2000)
+    realtime: bool = True
+    alpha: float = Field(0.05, gt=0, lt=1)
+    drivers: Drivers = Drivers()
+    sim: SimSection = SimSection()
+    path: PathConfig = PathConfig()
+    limits: Limits = Limits()
+    escalation: EscalationConfig = EscalationConfig()
+    bus: BusConfig = BusConfig()
+    publish: bool = True
+
+
+def load_runtime_config(path: str | Path) -> RuntimeConfig:
+    return load_yaml(path, RuntimeConfig)
+
+
+class AsyncWriter:
+    """High-rate rows leave the loop through a deque (append is atomic: the loop never waits
+    on a lock or an fsync); a writer thread hands them to the Store and commits in batches.
+    Rows not yet committed when the process is killed are lost, as with any buffered row;
+    transitions and the maintenance outbox are committed at once by the Store itself."""
+
+    def __init__(self, store: Store, period_s: float = 0.05):
+        import collections
+
+        self.store, self.period_s = store, period_s
+        self._q: collections.deque = collections.deque()
+        self._stop = threading.Event()
+        self.errors = 0
+        self._thread = threading.Thread(target=self._work, name="dt-store-writer", daemon=True)
+        self._thread.start()
+
+    def put(self, method: str, *args, **kwargs) -> None:
+        self._q.append((method, args, kwargs))
+
+    def drain(self) -> None:
+        try:
+            while self._q:
+                method, args, kwargs = self._q.popleft()
+                getattr(self.store, method)(*args, **kwargs)
+            self.store.flush()
+        except StoreError as exc:  # disk full: the Store keeps its rows for the next try
+            self.errors += 1
+            log.error("store write failed, will retry: %s", exc)
+
+    def _work(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.drain()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.drain()
+
+
+class Daemon:
+    def __init__(self, cfg: RuntimeConfig, base: Path, world=None):
+        self.cfg, self.base = cfg, base
+        self.twin = Twin.load(self._p(cfg.twin))
+        trained = self.twin.instruments.get("camera")
+        if trained and trained != cfg.drivers.camera:
+            raise ConfigError(self._p(cfg.twin) / "twin.json", "instruments.camera", trained,
+                              f"the daemon's camera driver '{cfg.drivers.camera}': a twin is valid only "
+                              "with the instruments (and frames) it was calibrated with")
+        self.corrector = Corrector(self.twin, cfg.limits)
+        self.monitor = Monitor(self.twin, cfg.alpha)
+        # The writer thread commits; the Store's own size/time triggers stay out of the loop.
+        self.store = Store(self._p(cfg.store), batch_rows=10**9, batch_ms=1e9)
+        self.writer = AsyncWriter(self.store)
+        self.bus = Bus(cfg.bus, self.store, on_ack=self._on_ack) if cfg.publish else None
+        self.world = world if world is not None else self._make_world()
+        self.inst = self._make_instruments()
+        self.escalator = Escalator(cfg.escalation, on_transition=self._on_transition)
+        saved = self.store.load_state()
+        if saved and saved.get("name") == "escalation":
+            self.escalator.restore(saved["data"])
+            log.info("resumed escalation state %s from %s", self.escalator.state, self.store.path)
+        self._rng = np.random.default_rng(cfg.path.seed)
+        self._phase = 0.0
+        self._faults = sorted(cfg.sim.faults, key=lambda f: f.at_s)
+        self._stop = threading.Event()
+        self.delivered: list[int] = []
+        self._ack_requested = threading.Event()
+        self._ack_note = ""
+        self.ticks = self.failures = self.faults_refused = 0
+        self.requests: list[dict] = []
+        self.tick_times: list[float] | None = None  # set to [] to record tick start times
+
+    def _p(self, rel: str) -> Path:
+        p = Path(rel)
+        return p if p.is_absolute() else self.base / p
+
+    def _make_world(self):
+        if "sim" not in (self.cfg.drivers.robot, self.cfg.drivers.tracker, self.cfg.drivers.camera):
+            return None
+        from drivers.simulated.devices import SimWorld
+
+        return SimWorld(self._p(self.cfg.sim.scenario), self._p(self.cfg.sim.cell))
+
+    def _make_instruments(self) -> Instruments:
+        d = self.cfg.drivers
+        kw = {"world": self.world} if self.world is not None else {}
+        robot = registry.create("robot", d.robot, **({} if d.robot == "serial" else kw))
+        tracker = registry.create("tracker", d.tracker, **({} if d.tracker == "serial" else kw))
+        camera = registry.create("camera", d.camera, **kw)
+        robot.configure(d.robot_config)
+        inst = Instruments(robot, tracker, camera, world=self.world,
+                           max_speed=self.world.max_speed() if self.world else self.cfg.limits.max_speed_m_s)
+        inst.activate()
+        return inst
+
+    # --- callbacks (never block: bus callbacks come from its worker thread) ---------------
+    def _on_transition(self, src: str, dst: str, evidence: dict, t: float) -> None:
+        log.warning("escalation %s -> %s at t=%.1f s: %s", src, dst, t, evidence)
+        self.store.log_transition(src, dst, evidence, t)
+        self.store.save_state("escalation", self.escalator.snapshot())
+        if self.bus:
+            self.bus.publish_state({"src": src, "dst": dst, "t": t, "evidence": evidence})
+        if dst == "maintenance_requested":
+            req = {"t": t, "state": dst, "evidence": evidence, "reason": "repeated Eq. 17 t-test failures"}
+            self.requests.append(req)
+            if self.bus:
+                self.bus.request_maintenance(req)
+
+    def _on_ack(self, oid: int, payload: dict) -> None:
+        # Delivery acknowledgement: the request reached maintenance and leaves the outbox. The
+        # machine stays in maintenance_requested until maintenance is confirmed done
+        # (`acknowledge_maintenance`), or the same fault would page again at once.
+        self.delivered.append(oid)
+
+    def acknowledge_maintenance(self, note: str = "maintenance done") -> None:
+        """Operator confirmation: maintenance_requested -> nominal (statistics reset)."""
+        self._ack_requested.set()
+        self._ack_note = note
+
+    # --- the loop -----------------------------------------------------------------------------
+    def _inject_faults(self, t: float) -> None:
+        while self._faults and self._faults[0].at_s <= t:
+            f = self._faults.pop(0)
+            log.warning("injecting fault at t=%.1f s: %s", t, f.model_dump(exclude_none=True))
+            if f.joint_offset_rad is not None:
+                self.world.inject_joint_offset(f.joint_offset_rad)
+            if f.camera_shift_m is not None:
+                self.world.bump_camera(f.camera_shift_m)
+
+    def _now(self) -> float:
+        return self.world.t if (self.world is not None and not self.cfg.realtime) else time.time()
+
+    def _next_target(self) -> tuple[np.ndarray, float]:
+        pc = self.cfg.path
+        if pc.kind == "circle":
+            v = pc.speeds[0] * self.inst.max_speed
+            self._phase += v / self.cfg.rate_hz / pc.circle_radius_m
+            c = np.array(pc.circle_center_m)
+            return c + pc.circle_radius_m * np.array([np.cos(self._phase), np.sin(self._phase), 0.0]), v
+        target = self._rng.uniform(np.array(pc.box_min_m), np.array(pc.box_max_m))
+        return target, float(self._rng.choice(pc.speeds)) * self.inst.max_speed
+
+    def tick(self) -> None:
+        cfg = self.cfg
+        target, v = self._next_target()
+        if self.world is not None:
+            self._inject_faults(self.world.t)
+        if self._ack_requested.is_set():
+            self._ack_requested.clear()
+            if self.escalator.state == "maintenance_requested":
+                self.escalator.acknowledge(self._now(), note=self._ack_note)
+        try:
+            corr = self.corrector(target, v)
+        except CorrectionFault as exc:
+            self.faults_refused += 1
+            log.error("command refused, robot not moved: %s", exc)
+            return
+        self.inst.robot.move_linear(corr.command, v)
+        t = self._now()
+        self.writer.put("log_command", t, *corr.target, speed=v)
+        self.writer.put("log_correction", t, *corr.correction, *corr.u_tcp)
+        reading = self.inst.camera.read()
+        self.ticks += 1
+        if not reading.ok:
+            log.info("MVS refused: %s", reading.refused)
+            return
+        try:
+            chk = self.monitor(corr.command, v, reading.point)
+        except CorrectionFault as exc:
+            log.error("MVS value rejected: %s", exc)
+            return
+        self.writer.put("log_measurement", t, *reading.point, *chk.diff)
+        worst = int(np.argmax(np.abs(chk.t)))
+        self.writer.put("log_tstat", t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
+                             data={"t": chk.t.tolist()})
+        self.failures += int(not chk.passed)
+        self.escalator.observe(chk.passed, float(chk.t[worst]), t)
+        if self.bus:
+            self.bus.publish_telemetry({"t": t, "target": corr.target.tolist(), "command": corr.command.tolist(),
+                                        "t_stat": chk.t.tolist(), "passed": chk.passed,
+                                        "state": self.escalator.state})
+
+    def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> dict:
+        period = 1.0 / self.cfg.rate_hz
+        t0 = self._now()
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            if max_ticks is not None and self.ticks >= max_ticks:
+                break
+            if duration_s is not None and self._now() - t0 >= duration_s:
+                break
+            if self.tick_times is not None:
+                self.tick_times.append(time.perf_counter())
+            try:
+                self.tick()
+            except StoreError as exc:  # disk full: keep controlling, rows are retried
+                log.error("store write failed, continuing: %s", exc)
+            except DriverError as exc:
+                log.error("driver fault: %s", exc)
+                time.sleep(min(period, 0.1))
+            if self.cfg.realtime:
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    # Sleep to just before the tick, then spin: OS wake-up latency is ~0.1-1 ms.
+                    if delay > 1e-3:
+                        self._stop.wait(delay - 1e-3)
+                    while time.monotonic() < next_t:
+                        pass
+                else:
+                    next_t = time.monotonic()
+        return self.summary()
+
+    def stop(self, *_: Any) -> None:
+        self._stop.set()
+
+    def summary(self) -> dict:
+        return {"ticks": self.ticks, "t_test_failures": self.failures, "refused_commands": self.faults_refused,
+                "state": self.escalator.state, "maintenance_requests": len(self.requests),
+                "requests_delivered": len(self.delivered),
+                "store": str(self.store.path)}
+
+    def close(self) -> None:
+        self.writer.close()
+        try:
+            self.store.save_state("escalation", self.escalator.snapshot())
+            self.store.flush()
+        except TwinError as exc:
+            log.error("could not save state on close: %s", exc)
+        if self.bus:
+            self.bus.close()
+        self.inst.close()
+        self.store.close()
+
+
+def run_daemon(config: str | Path, duration_s: float | None = None) -> dict:
+    config = Path(config)
+    cfg = load_runtime_config(config)
+    d = Daemon(cfg, config.parent)
+    signal.signal(signal.SIGINT, d.stop)
+    signal.signal(signal.SIGTERM, d.stop)
+    try:
+        return d.run(duration_s)
+    finally:
+        d.close()

@@ -1,0 +1,314 @@
+"""Escalation of in-service t-test outcomes to a maintenance request.
+
+States (python-statemachine `EscalationMachine`)::
+
+    nominal --suspect--> suspect --lose_control--> out_of_control --request--> maintenance_requested
+       ^                  |   ^                        |                              |
+       +-----clear--------+   +--------regain----------+                              |
+       +-------------------------------acknowledge---------------------------------------+
+
+Evidence: each measurement gives a t-test outcome; `failed = p < alpha` (the twin's
+prediction is significantly off). Two statistics on the failure indicator x in {0, 1}:
+- window: failures among the last `window_n` tests;
+- Bernoulli CUSUM: S = max(0, S + x - cusum_k), i.e. +0.75 per failure, -0.25 per pass with
+  cusum_k = 0.25 (reference value between p0 = alpha and a faulty rate of ~0.5-1).
+We use the indicator, not |t|: under the null its law is exactly Bernoulli(alpha) whatever the
+t-test's degrees of freedom, so the false-alarm rate below is exact rather than assumed.
+
+Rules (`mode`: "window", "cusum", "either" (OR, default) or "both" (AND)):
+- alarm  = window >= window_k  (mode) S >= cusum_h
+- suspicion = window >= suspect_k or S >= suspect_h (any alarm is also a suspicion)
+- nominal -> suspect on suspicion; suspect -> nominal when nothing is suspicious and the last
+  `recover_passes` tests passed.
+- suspect -> out_of_control on alarm (from nominal both steps happen on the same test, each
+  logged). out_of_control means "the correction is not trustworthy"; the daemon may flag it.
+- out_of_control -> maintenance_requested once the alarm held for `confirm_n` further tests;
+  out_of_control -> suspect if the alarm clears earlier (the evidence faded: one burst is not
+  a fault). Chosen so a transient (e.g. someone bumping the tracker) is visible in the log but
+  does not page maintenance.
+- maintenance_requested stays until `acknowledge()` (a human/consumer acknowledged the
+  maintenance); then -> nominal with the statistics reset (the robot was serviced). It never
+  clears itself: a request must be answered.
+
+False maintenance requests (null: independent tests, P(fail) = alpha = 0.05, 1 test/s,
+86,400 tests/day; target < 0.1 per day). Every out_of_control entry needs a fresh alarm onset
+(it is left only when the alarm clears, or via acknowledge, which resets the statistics), and a
+request needs an entry, so   rate(requests) <= rate(window onsets) + rate(CUSUM upcrossings).
+- window onset at test i needs x_i = 1 and >= k-1 failures among the n-1 previous tests:
+  P <= alpha * P(Bin(n-1, alpha) >= k-1). n = 20, k = 9: 9.0e-8 per test -> 0.0077 per day
+  (k = 8 would give 0.0996/day: too close to the target).
+- CUSUM with k = 0.25 lives on the grid of quarters; its exact Markov chain gives the
+  stationary rate of upcrossings of h = 4.5: 1.3e-7 per test -> 0.0114 per day (ARL0 from
+  S = 0: 9.0e6 tests = 104 days).
+- total (default "either") <= 0.019 false requests per day, i.e. at most one per ~52 days,
+  a 5x margin on the target for mild dependence between tests; the confirmation step only
+  lowers it further. `false_alarm_rates(cfg)` recomputes these numbers for any config (the
+  soak benchmark and tests use it).
+Suspicion onsets (only logged, never paged): ~ 32 per day under the null with these defaults.
+Detection: a fault that fails every test reaches S = 4.5 after 6 tests, -> out_of_control at
+test 6 and maintenance_requested at test 9; a fault failing half the tests needs ~16-25.
+
+Every transition calls `on_transition(src, dst, evidence, t)` (the daemon writes it to the Store
+and publishes it on the Bus); evidence holds the window count, CUSUM value, thresholds, last t
+values, the rule that fired and the test count. `snapshot()` / `restore()` carry the machine
+state and statistics through a daemon restart (JSON-ready dict).
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from fractions import Fraction
+from typing import Any, Callable, Literal
+
+import numpy as np
+from pydantic import model_validator
+from statemachine import State, StateMachine
+from statemachine.exceptions import TransitionNotAllowed
+
+from dt_kernel.config import Frozen
+from dt_kernel.errors import StateError
+
+SNAPSHOT_VERSION = 1
+
+TransitionCallback = Callable[[str, str, dict[str, Any], float], None]
+
+
+class EscalationConfig(Frozen):
+    mode: Literal["window", "cusum", "either", "both"] = "either"
+    alpha: float = 0.05           # per-test significance level of the t-test feeding us
+    window_n: int = 20
+    window_k: int = 9
+    suspect_k: int = 5
+    cusum_k: float = 0.25
+    cusum_h: float = 4.5
+    suspect_h: float = 2.5
+    confirm_n: int = 3
+    recover_passes: int = 10
+    last_t_kept: int = 5
+    tests_per_day: float = 86_400.0   # for false_alarm_rates (1 test per second)
+
+    @model_validator(mode="after")
+    def _check(self) -> "EscalationConfig":
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+        if not 1 <= self.suspect_k <= self.window_k <= self.window_n:
+            raise ValueError("need 1 <= suspect_k <= window_k <= window_n")
+        if not 0 < self.cusum_k < 1:
+            raise ValueError("cusum_k must be in (0, 1) (failure indicator is 0 or 1)")
+        if not 0 < self.suspect_h <= self.cusum_h:
+            raise ValueError("need 0 < suspect_h <= cusum_h")
+        if self.confirm_n < 0 or self.recover_passes < 1:
+            raise ValueError("need confirm_n >= 0 and recover_passes >= 1")
+        return self
+
+
+class EscalationMachine(StateMachine):
+    nominal = State(initial=True)
+    suspect = State()
+    out_of_control = State()
+    maintenance_requested = State()
+
+    raise_suspicion = nominal.to(suspect)
+    clear = suspect.to(nominal)
+    lose_control = suspect.to(out_of_control)
+    regain = out_of_control.to(suspect)
+    request = out_of_control.to(maintenance_requested)
+    acknowledge = maintenance_requested.to(nominal)
+
+
+STATES = ("nominal", "suspect", "out_of_control", "maintenance_requested")
+
+
+class Escalator:
+    """Feeds t-test outcomes to an EscalationMachine; see the module docstring."""
+
+    def __init__(self, config: EscalationConfig | None = None,
+                 on_transition: TransitionCallback | None = None):
+        self.config = config or EscalationConfig()
+        self.on_transition = on_transition
+        self.machine = EscalationMachine()
+        self._reset_stats()
+        self.n_seen = 0
+
+    def _reset_stats(self) -> None:
+        c = self.config
+        self._window: deque[int] = deque(maxlen=c.window_n)
+        self.cusum = 0.0
+        self.consecutive_passes = 0
+        self.confirm_count = 0
+        self._last_t: deque[float | None] = deque(maxlen=c.last_t_kept)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def state(self) -> str:
+        return next(iter(self.machine.configuration)).id
+
+    @property
+    def window_failures(self) -> int:
+        return sum(self._window)
+
+    def _alarm(self) -> str | None:
+        c = self.config
+        w = self.window_failures >= c.window_k
+        s = self.cusum >= c.cusum_h
+        fired = {"window": w, "cusum": s, "either": w or s, "both": w and s}[c.mode]
+        if not fired:
+            return None
+        return "both" if (w and s) else ("window" if w else "cusum")
+
+    def _suspicious(self) -> bool:
+        c = self.config
+        return (self.window_failures >= c.suspect_k or self.cusum >= c.suspect_h
+                or self._alarm() is not None)
+
+    def evidence(self, rule: str | None = None) -> dict[str, Any]:
+        c = self.config
+        return {
+            "window_failures": self.window_failures, "window_len": len(self._window),
+            "window_n": c.window_n, "window_k": c.window_k,
+            "cusum": round(self.cusum, 6), "cusum_h": c.cusum_h, "mode": c.mode,
+            "rule": rule, "confirm_count": self.confirm_count,
+            "consecutive_passes": self.consecutive_passes,
+            "last_t": list(self._last_t), "n_seen": self.n_seen,
+        }
+
+    def _fire(self, event: str, t: float, rule: str | None) -> None:
+        src = self.state
+        self.machine.send(event)
+        if self.on_transition is not None:
+            self.on_transition(src, self.state, self.evidence(rule), t)
+
+    # ------------------------------------------------------------------ input
+    def observe(self, passed: bool, t_value: float | None = None,
+                t: float | None = None) -> str:
+        """Feed one t-test outcome; returns the state after it (transitions are reported)."""
+        c = self.config
+        t = float(self.n_seen if t is None else t)
+        x = 0 if passed else 1
+        self.n_seen += 1
+        self._window.append(x)
+        self.cusum = max(0.0, self.cusum + x - c.cusum_k)
+        self.consecutive_passes = self.consecutive_passes + 1 if passed else 0
+        self._last_t.append(None if t_value is None or not math.isfinite(t_value)
+                            else round(float(t_value), 4))
+        rule = self._alarm()
+        state = self.state
+        if state == "nominal":
+            if self._suspicious():
+                self._fire("raise_suspicion", t, rule)
+                state = "suspect"
+        elif state == "suspect":
+            if not self._suspicious() and self.consecutive_passes >= c.recover_passes:
+                self._fire("clear", t, rule)
+                return self.state
+        if state == "suspect" and rule is not None:
+            self.confirm_count = 0
+            self._fire("lose_control", t, rule)
+            if c.confirm_n == 0:
+                self._fire("request", t, rule)
+            return self.state
+        if state == "out_of_control":
+            if rule is None:
+                self.confirm_count = 0
+                self._fire("regain", t, rule)
+            else:
+                self.confirm_count += 1
+                if self.confirm_count >= c.confirm_n:
+                    self._fire("request", t, rule)
+        return self.state
+
+    def acknowledge(self, t: float | None = None, note: str | None = None) -> None:
+        """Maintenance was done/acknowledged: maintenance_requested -> nominal, stats reset."""
+        if self.state != "maintenance_requested":
+            raise StateError(f"acknowledge is only allowed in maintenance_requested, "
+                             f"the escalation is in {self.state}")
+        t = float(self.n_seen if t is None else t)
+        src = self.state
+        ev = self.evidence(None) | {"acknowledged": True, "note": note}
+        try:
+            self.machine.send("acknowledge")
+        except TransitionNotAllowed as exc:  # pragma: no cover - guarded above
+            raise StateError(str(exc)) from exc
+        self._reset_stats()
+        if self.on_transition is not None:
+            self.on_transition(src, self.state, ev, t)
+
+    # ------------------------------------------------------------------ persistence
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "version": SNAPSHOT_VERSION, "state": self.state, "window": list(self._window),
+            "cusum": self.cusum, "consecutive_passes": self.consecutive_passes,
+            "confirm_count": self.confirm_count, "last_t": list(self._last_t),
+            "n_seen": self.n_seen,
+        }
+
+    def restore(self, snapshot: dict[str, Any]) -> None:
+        """Resume from `snapshot()` (no transition is reported: nothing changed)."""
+        try:
+            if snapshot.get("version") != SNAPSHOT_VERSION:
+                raise ValueError(f"snapshot version {snapshot.get('version')!r}")
+            state = snapshot["state"]
+            if state not in STATES:
+                raise ValueError(f"unknown state {state!r}")
+            self.machine = EscalationMachine(start_value=state)
+            self._reset_stats()
+            self._window.extend(int(bool(v)) for v in snapshot["window"])
+            self.cusum = float(snapshot["cusum"])
+            self.consecutive_passes = int(snapshot["consecutive_passes"])
+            self.confirm_count = int(snapshot["confirm_count"])
+            self._last_t.extend(snapshot.get("last_t", []))
+            self.n_seen = int(snapshot["n_seen"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise StateError(f"cannot restore escalation snapshot: {exc}") from exc
+
+
+# ---------------------------------------------------------------------- false-alarm numbers
+def _binom_sf(k: int, n: int, p: float) -> float:
+    """P(Bin(n, p) >= k)."""
+    if k <= 0:
+        return 1.0
+    return float(sum(math.comb(n, j) * p**j * (1 - p) ** (n - j) for j in range(k, n + 1)))
+
+
+def _cusum_chain(c: EscalationConfig) -> tuple[int, int, int]:
+    frac = Fraction(c.cusum_k).limit_denominator(1000)
+    d = frac.denominator
+    up, down = (1 - frac) * d, frac * d  # integer steps on the grid 1/d
+    return int(up), int(down), math.ceil(c.cusum_h * d - 1e-9)
+
+
+def false_alarm_rates(config: EscalationConfig | None = None) -> dict[str, float]:
+    """Per-day upper bounds of false alarm onsets under the null (see module docstring).
+
+    Keys: window_per_test, window_per_day, cusum_per_test (stationary upcrossing rate of
+    cusum_h), cusum_per_day, cusum_arl0 (tests from S = 0), requests_per_day_bound.
+    """
+    c = config or EscalationConfig()
+    p = c.alpha
+    w = p * _binom_sf(c.window_k - 1, c.window_n - 1, p)
+    up, down, H = _cusum_chain(c)
+    # Chain on S in grid units, capped far above H (mass there is negligible).
+    cap = H + 40 * up
+    P = np.zeros((cap + 1, cap + 1))
+    for s in range(cap + 1):
+        P[s, min(cap, s + up)] += p
+        P[s, max(0, s - down)] += 1 - p
+    # Stationary distribution: solve pi (P - I) = 0 with sum(pi) = 1.
+    A = np.vstack([(P.T - np.eye(cap + 1)), np.ones(cap + 1)])
+    b = np.zeros(cap + 2)
+    b[-1] = 1.0
+    pi = np.linalg.lstsq(A, b, rcond=None)[0]
+    s_rate = float(sum(pi[s] * p for s in range(H) if s + up >= H))
+    # ARL0 from 0: expected steps to reach >= H.
+    Q = np.eye(H)
+    for s in range(H):
+        if s + up < H:
+            Q[s, s + up] -= p
+        Q[s, max(0, s - down)] -= 1 - p
+    arl0 = float(np.linalg.solve(Q, np.ones(H))[0])
+    n = c.tests_per_day
+    bound = {"window": w, "cusum": s_rate, "either": w + s_rate,
+             "both": min(w, s_rate)}[c.mode]
+    return {"window_per_test": w, "window_per_day": w * n, "cusum_per_test": s_rate,
+            "cusum_per_day": s_rate * n, "cusum_arl0": arl0,
+            "requests_per_day_bound": bound * n}

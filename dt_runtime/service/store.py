@@ -1,0 +1,372 @@
+"""Durable store of the twin daemon: one SQLite file in WAL mode.
+
+What it holds (one table each): `commands`, `corrections`, `measurements`, `t_stats` (the
+high-rate path), `transitions` (escalation state changes with their evidence), `outbox`
+(maintenance requests that must reach a consumer; see dt_runtime.bus) and `state` (one row:
+the escalation machine's snapshot, so a restarted daemon resumes where it stopped).
+
+Durability choices (why):
+- `journal_mode=WAL`: readers (`dt status`) never block the writer, and a crash (SIGKILL,
+  power loss) leaves the file consistent: an uncommitted transaction is simply not there.
+- `synchronous=FULL`: every commit fsyncs the WAL, so a committed row survives power loss,
+  not only a process crash. NORMAL would be enough against SIGKILL but may roll back the last
+  commits on power loss, and the outbox contract is "written durably BEFORE publishing": a
+  maintenance request seen on the bus must never be missing from the store. The price (one
+  fsync per commit) is paid rarely because the high-rate path is batched.
+- High-rate rows (`log_command`, `log_correction`, `log_measurement`, `log_tstat`) are
+  buffered and committed in one transaction every `batch_rows` rows or `batch_ms`
+  milliseconds (checked on each call; call `flush()` when idle). A crash loses at most the
+  uncommitted buffer; `flush()` returns only after the rows are committed.
+- `log_transition`, `outbox_*`, `save_state` commit immediately (after flushing the buffer in
+  the same transaction, so the evidence that led to a transition is stored with it).
+
+Errors: any sqlite3 error (disk full, I/O error, locked) becomes a StoreError, chained with
+`from`. The failing transaction is rolled back, so already committed rows stay and the file
+stays consistent; the caller may keep going. Buffered rows of a failed flush are kept (up to
+`max_pending_rows`, oldest dropped and counted in `dropped_rows`) and retried on the next
+flush.
+
+The connection is shared by threads (the daemon loop and the bus worker) behind one lock.
+Times: `t` is the caller's time stamp in seconds; `created` columns are wall-clock epoch s.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from dt_kernel.errors import TwinError
+
+SCHEMA_VERSION = 1
+
+# Table name -> (columns written by the high-rate path, in order).
+_HIGH_RATE: dict[str, tuple[str, ...]] = {
+    "commands": ("t", "x", "y", "z", "speed", "data"),
+    "corrections": ("t", "dx", "dy", "dz", "ux", "uy", "uz", "data"),
+    "measurements": ("t", "x", "y", "z", "ex", "ey", "ez", "data"),
+    "t_stats": ("t", "t_value", "dof", "p_value", "passed", "data"),
+}
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS commands (
+    id INTEGER PRIMARY KEY, t REAL NOT NULL, x REAL, y REAL, z REAL, speed REAL, data TEXT);
+CREATE TABLE IF NOT EXISTS corrections (
+    id INTEGER PRIMARY KEY, t REAL NOT NULL, dx REAL, dy REAL, dz REAL,
+    ux REAL, uy REAL, uz REAL, data TEXT);
+CREATE TABLE IF NOT EXISTS measurements (
+    id INTEGER PRIMARY KEY, t REAL NOT NULL, x REAL, y REAL, z REAL,
+    ex REAL, ey REAL, ez REAL, data TEXT);
+CREATE TABLE IF NOT EXISTS t_stats (
+    id INTEGER PRIMARY KEY, t REAL NOT NULL, t_value REAL, dof REAL, p_value REAL,
+    passed INTEGER, data TEXT);
+CREATE TABLE IF NOT EXISTS transitions (
+    id INTEGER PRIMARY KEY, t REAL NOT NULL, src TEXT NOT NULL, dst TEXT NOT NULL,
+    evidence TEXT NOT NULL, created REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS outbox (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, created REAL NOT NULL, key TEXT NOT NULL,
+    payload TEXT NOT NULL, acked INTEGER NOT NULL DEFAULT 0, acked_at REAL,
+    attempts INTEGER NOT NULL DEFAULT 0, last_attempt REAL);
+CREATE INDEX IF NOT EXISTS outbox_pending ON outbox(acked, id);
+CREATE TABLE IF NOT EXISTS state (
+    id INTEGER PRIMARY KEY CHECK (id = 1), name TEXT NOT NULL, data TEXT NOT NULL,
+    updated REAL NOT NULL);
+"""
+
+
+class StoreError(TwinError):
+    """The store could not read or write (disk full, I/O error, corrupt or locked file)."""
+
+
+@dataclass(frozen=True)
+class OutboxItem:
+    id: int
+    created: float
+    key: str
+    payload: dict[str, Any]
+    attempts: int
+
+
+def _num(v: Any) -> float | None:
+    return None if v is None else float(v)
+
+
+def _dumps(obj: Any) -> str:
+    # allow_nan=False: a NaN would make the JSON unreadable by strict consumers; map to null.
+    return json.dumps(_clean(obj), allow_nan=False, separators=(",", ":"))
+
+
+def _clean(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if hasattr(obj, "tolist"):  # numpy scalars and arrays
+        return _clean(obj.tolist())
+    return obj
+
+
+class Store:
+    """SQLite store; see the module docstring. Use as a context manager or call close()."""
+
+    def __init__(self, path: str | Path, *, batch_rows: int = 200, batch_ms: float = 500.0,
+                 max_pending_rows: int = 100_000, synchronous: str = "FULL",
+                 timeout_s: float = 5.0):
+        self.path = Path(path)
+        self.batch_rows = int(batch_rows)
+        self.batch_s = float(batch_ms) / 1000.0
+        self.max_pending_rows = int(max_pending_rows)
+        self.dropped_rows = 0
+        self._lock = threading.RLock()
+        self._buf: list[tuple[str, tuple]] = []
+        self._last_flush = time.monotonic()
+        self._closed = False
+        if synchronous.upper() not in ("FULL", "NORMAL", "EXTRA"):
+            raise StoreError(f"synchronous={synchronous!r}: allowed FULL, NORMAL, EXTRA")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # isolation_level=None: we issue BEGIN/COMMIT ourselves (one transaction per batch).
+            self._db = sqlite3.connect(str(self.path), timeout=timeout_s,
+                                       isolation_level=None, check_same_thread=False)
+            mode = self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise StoreError(f"{self.path}: cannot switch to WAL journal (got {mode!r})")
+            self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
+            self._db.execute(f"PRAGMA busy_timeout={int(timeout_s * 1000)}")
+            self._db.executescript(_SCHEMA)
+            self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+        except (sqlite3.Error, OSError) as exc:
+            raise StoreError(f"{self.path}: cannot open store: {exc}") from exc
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> "Store":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Flush buffered rows (best effort) and close the file."""
+        with self._lock:
+            if self._closed:
+                return
+            try:
+                self.flush()
+            except StoreError:
+                pass  # rows of a failed final flush are lost; committed rows are safe
+            finally:
+                self._closed = True
+                self._db.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StoreError(f"{self.path}: store is closed")
+
+    # ------------------------------------------------------------------ high-rate path
+    def log_command(self, t: float, x: float, y: float, z: float, speed: float | None = None,
+                    data: Mapping[str, Any] | None = None) -> None:
+        """Commanded TCP (m, robot frame) and speed (m/s); buffered."""
+        self._append("commands", (float(t), _num(x), _num(y), _num(z), _num(speed), data))
+
+    def log_correction(self, t: float, dx: float, dy: float, dz: float,
+                       ux: float | None = None, uy: float | None = None,
+                       uz: float | None = None, data: Mapping[str, Any] | None = None) -> None:
+        """Predicted error e_hat (m) applied to a command and its standard uncertainty; buffered."""
+        self._append("corrections", (float(t), _num(dx), _num(dy), _num(dz), _num(ux),
+                                     _num(uy), _num(uz), data))
+
+    def log_measurement(self, t: float, x: float, y: float, z: float,
+                        ex: float | None = None, ey: float | None = None,
+                        ez: float | None = None, data: Mapping[str, Any] | None = None) -> None:
+        """Measured TCP (m) and error e = commanded - measured (m); buffered."""
+        self._append("measurements", (float(t), _num(x), _num(y), _num(z), _num(ex),
+                                      _num(ey), _num(ez), data))
+
+    def log_tstat(self, t: float, t_value: float, dof: float | None = None,
+                  p_value: float | None = None, passed: bool | None = None,
+                  data: Mapping[str, Any] | None = None) -> None:
+        """One in-service t-test outcome; buffered."""
+        self._append("t_stats", (float(t), _num(t_value), _num(dof), _num(p_value),
+                                 None if passed is None else int(bool(passed)), data))
+
+    def write_batch(self, rows: Iterable[tuple[str, Mapping[str, Any]]]) -> int:
+        """Commit many high-rate rows at once: (table, {column: value}) pairs. Returns count."""
+        with self._lock:
+            for table, row in rows:
+                cols = _HIGH_RATE.get(table)
+                if cols is None:
+                    raise StoreError(f"unknown table {table!r}; allowed {sorted(_HIGH_RATE)}")
+                extra = {k: v for k, v in row.items() if k not in cols}
+                data = dict(row.get("data") or {}) | extra
+                vals = tuple(row.get(c) for c in cols[:-1]) + (data or None,)
+                self._buf.append((table, vals))
+            return self.flush()
+
+    def _append(self, table: str, vals: tuple) -> None:
+        with self._lock:
+            self._check_open()
+            self._buf.append((table, vals))
+            if (len(self._buf) >= self.batch_rows
+                    or time.monotonic() - self._last_flush >= self.batch_s):
+                self.flush()
+
+    def flush(self) -> int:
+        """Commit buffered rows in one transaction; returns how many were committed."""
+        with self._lock:
+            self._check_open()
+            if not self._buf:
+                self._last_flush = time.monotonic()
+                return 0
+            return self._tx(lambda: None)
+
+    def _write_buffer(self) -> int:
+        n = len(self._buf)
+        by_table: dict[str, list[tuple]] = {}
+        for table, vals in self._buf:
+            data = vals[-1]
+            row = vals[:-1] + (_dumps(data) if data else None,)
+            by_table.setdefault(table, []).append(row)
+        for table, rows in by_table.items():
+            cols = _HIGH_RATE[table]
+            sql = (f"INSERT INTO {table} ({','.join(cols)}) "
+                   f"VALUES ({','.join('?' * len(cols))})")
+            self._db.executemany(sql, rows)
+        return n
+
+    def _tx(self, body):
+        """Run body() in one transaction together with the buffered rows; StoreError on failure.
+
+        Returns the number of buffered rows committed if body returns None, else body's value.
+        """
+        with self._lock:
+            self._check_open()
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    n = self._write_buffer()
+                    result = body()
+                    self._db.execute("COMMIT")
+                except BaseException:
+                    if self._db.in_transaction:
+                        self._db.execute("ROLLBACK")
+                    raise
+            except sqlite3.Error as exc:
+                # Keep the buffered rows for a retry, bounded so a full disk cannot exhaust RAM.
+                excess = len(self._buf) - self.max_pending_rows
+                if excess > 0:
+                    del self._buf[:excess]
+                    self.dropped_rows += excess
+                raise StoreError(f"{self.path}: write failed: {exc}") from exc
+            self._buf.clear()
+            self._last_flush = time.monotonic()
+            return n if result is None else result
+
+    # ------------------------------------------------------------------ immediate writes
+    def log_transition(self, src: str, dst: str, evidence: Mapping[str, Any], t: float) -> int:
+        """Escalation transition with its evidence; committed before returning. Returns row id."""
+        return self._tx(lambda: self._db.execute(
+            "INSERT INTO transitions (t, src, dst, evidence, created) VALUES (?,?,?,?,?)",
+            (float(t), str(src), str(dst), _dumps(dict(evidence)), time.time())).lastrowid)
+
+    def outbox_add(self, key: str, payload: Mapping[str, Any]) -> int:
+        """Durably record a message that must be delivered; returns its id (committed)."""
+        text = _dumps(dict(payload))
+        return self._tx(lambda: self._db.execute(
+            "INSERT INTO outbox (created, key, payload) VALUES (?,?,?)",
+            (time.time(), str(key), text)).lastrowid)
+
+    def outbox_pending(self) -> list[OutboxItem]:
+        """Un-acknowledged outbox entries, oldest first."""
+        rows = self._query("SELECT id, created, key, payload, attempts FROM outbox "
+                           "WHERE acked = 0 ORDER BY id")
+        return [OutboxItem(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
+
+    def outbox_get(self, id: int) -> OutboxItem | None:
+        rows = self._query("SELECT id, created, key, payload, attempts FROM outbox WHERE id=?",
+                           (int(id),))
+        return OutboxItem(rows[0][0], rows[0][1], rows[0][2], json.loads(rows[0][3]),
+                          rows[0][4]) if rows else None
+
+    def outbox_attempted(self, id: int) -> None:
+        """Count one (re)publication attempt."""
+        self._tx(lambda: self._db.execute(
+            "UPDATE outbox SET attempts = attempts + 1, last_attempt = ? WHERE id = ?",
+            (time.time(), int(id))) and None)
+
+    def outbox_ack(self, id: int) -> bool:
+        """Mark an entry acknowledged; True if it was pending (acks are idempotent)."""
+        return self._tx(lambda: self._db.execute(
+            "UPDATE outbox SET acked = 1, acked_at = ? WHERE id = ? AND acked = 0",
+            (time.time(), int(id))).rowcount == 1)
+
+    def save_state(self, name: str, data: Mapping[str, Any]) -> None:
+        """Replace the single resume row (e.g. the escalation snapshot)."""
+        self._tx(lambda: self._db.execute(
+            "INSERT INTO state (id, name, data, updated) VALUES (1,?,?,?) ON CONFLICT(id) "
+            "DO UPDATE SET name=excluded.name, data=excluded.data, updated=excluded.updated",
+            (str(name), _dumps(dict(data)), time.time())) and None)
+
+    def load_state(self) -> dict[str, Any] | None:
+        """{'name', 'data', 'updated'} of the resume row, or None on a fresh store."""
+        rows = self._query("SELECT name, data, updated FROM state WHERE id = 1")
+        if not rows:
+            return None
+        return {"name": rows[0][0], "data": json.loads(rows[0][1]), "updated": rows[0][2]}
+
+    # ------------------------------------------------------------------ reading
+    def _query(self, sql: str, params: tuple = ()) -> list[tuple]:
+        with self._lock:
+            self._check_open()
+            try:
+                return self._db.execute(sql, params).fetchall()
+            except sqlite3.Error as exc:
+                raise StoreError(f"{self.path}: read failed: {exc}") from exc
+
+    def count(self, table: str) -> int:
+        if table not in (*_HIGH_RATE, "transitions", "outbox", "state"):
+            raise StoreError(f"unknown table {table!r}")
+        return int(self._query(f"SELECT COUNT(*) FROM {table}")[0][0])
+
+    def transitions(self, limit: int = 100) -> list[dict[str, Any]]:
+        """Latest transitions, oldest first."""
+        rows = self._query("SELECT id, t, src, dst, evidence FROM transitions "
+                           "ORDER BY id DESC LIMIT ?", (int(limit),))
+        return [{"id": r[0], "t": r[1], "src": r[2], "dst": r[3],
+                 "evidence": json.loads(r[4])} for r in reversed(rows)]
+
+    def integrity_ok(self) -> bool:
+        return self._query("PRAGMA integrity_check")[0][0] == "ok"
+
+    def last_figures(self) -> dict[str, Any]:
+        """Small JSON-ready summary for `dt status`: counts, latest rows, state, outbox."""
+        def last(table: str, cols: str) -> dict[str, Any] | None:
+            rows = self._query(f"SELECT {cols} FROM {table} ORDER BY id DESC LIMIT 1")
+            if not rows:
+                return None
+            out = dict(zip([c.strip() for c in cols.split(",")], rows[0]))
+            for k in ("data", "evidence"):
+                if out.get(k):
+                    out[k] = json.loads(out[k])
+            return out
+
+        tstats = self._query("SELECT COUNT(*), SUM(passed = 0) FROM t_stats")[0]
+        pending = self._query("SELECT COUNT(*), MIN(created) FROM outbox WHERE acked = 0")[0]
+        return {
+            "path": str(self.path),
+            "counts": {t: self.count(t) for t in (*_HIGH_RATE, "transitions", "outbox")},
+            "buffered_rows": len(self._buf),
+            "dropped_rows": self.dropped_rows,
+            "last_measurement": last("measurements", "t, x, y, z, ex, ey, ez"),
+            "last_tstat": last("t_stats", "t, t_value, dof, p_value, passed"),
+            "t_tests": {"n": int(tstats[0] or 0), "failed": int(tstats[1] or 0)},
+            "last_transition": last("transitions", "t, src, dst, evidence"),
+            "state": self.load_state(),
+            "outbox_pending": int(pending[0] or 0),
+            "oldest_pending_created": pending[1],
+        }

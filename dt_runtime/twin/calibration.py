@@ -1,0 +1,148 @@
+"""From raw phase data to a calibrated twin (the paper's Sects. 2.3-2.5).
+
+1. Register LT, MVS and robot (RDK) frames to GL by the three-line method (Sect. 2.3).
+2. Registration residuals (Eqs. 5-7, Table 2) and reproducibilities (Eq. 12).
+3. DOE errors e_LT (Eq. 8), e_MVS (Eq. 9), e_MVS-LT (Eq. 10) in GL; Table 3.
+4. GPR models e_LT_hat(TCP, v), e_MVS-LT_hat(TCP, v); residuals r by cross-validation grouped by
+   target point (a model cannot win by remembering a point), Table 4.
+5. Uncertainty budgets Eqs. 11, 13-16.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dt_kernel.units import AXES
+from dt_runtime.frames import registration as reg
+from dt_runtime.metrology import uncertainty as unc
+from dt_kernel.errors import DataError
+from dt_runtime.twin.campaign import PhaseData
+from dt_runtime.models.gp import MultiOutputGP
+from dt_runtime.twin.twin import Twin
+
+
+
+@dataclass
+class Frames:
+    T_rdk: reg.RigidTransform
+    T_lt: reg.RigidTransform
+    T_mvs: reg.RigidTransform
+    residuals: dict  # name -> (n,3) m, Eqs. 5-7
+    reprod_tcp: np.ndarray
+    reprod_tcp_dof: float
+    reprod_mvs: np.ndarray
+    reprod_mvs_dof: float
+
+
+def register(data: PhaseData) -> Frames:
+    p_gl = reg.gl_nominal(data.axis, data.distance)
+    regs = {name: reg.register_instrument(getattr(data, f"p_{name}"), p_gl, "three_line",
+                                          axes=data.axis, distances=data.distance)
+            for name in ("rdk", "lt", "mvs")}
+    T = {name: r.transform for name, r in regs.items()}
+    res = {name: r.residuals for name, r in regs.items()}
+    # Eq. 12: reproducibility from replicated positionings at the 12 registration points.
+    ok_lt = np.all(np.isfinite(data.p_lt), axis=1)
+    ok_mvs = np.all(np.isfinite(data.p_mvs), axis=1)
+    r_tcp, dof_tcp = reg.reproducibility(T["lt"].apply(data.p_lt[ok_lt]), data.point_id[ok_lt])
+    r_mvs, dof_mvs = reg.reproducibility(T["mvs"].apply(data.p_mvs[ok_mvs]), data.point_id[ok_mvs])
+    return Frames(T["rdk"], T["lt"], T["mvs"], res, np.asarray(r_tcp), float(dof_tcp),
+                  np.asarray(r_mvs), float(dof_mvs))
+
+
+@dataclass
+class DoeErrors:
+    X: np.ndarray  # (n,4): commanded TCP robot frame (m) and speed (m/s)
+    e_lt: np.ndarray  # (n,3) GL, m (Eq. 8)
+    e_mvs: np.ndarray  # (n,3) (Eq. 9)
+    e_mvs_lt: np.ndarray  # (n,3) (Eq. 10)
+    groups: np.ndarray  # target point id
+    e_true: np.ndarray | None  # (n,3) truth-based error in GL (simulation only)
+
+
+def doe_errors(data: PhaseData, fr: Frames) -> DoeErrors:
+    ok = np.all(np.isfinite(data.p_lt), axis=1) & np.all(np.isfinite(data.p_mvs), axis=1)
+    cmd_gl = fr.T_rdk.apply(data.p_rdk[ok])
+    e_lt = cmd_gl - fr.T_lt.apply(data.p_lt[ok])
+    e_mvs = cmd_gl - fr.T_mvs.apply(data.p_mvs[ok])
+    e_true = None
+    if data.truth_lt is not None:
+        e_true = cmd_gl - fr.T_lt.apply(data.truth_lt[ok])
+    X = np.column_stack([data.p_rdk[ok], data.speed[ok]])
+    return DoeErrors(X, e_lt, e_mvs, e_lt - e_mvs, data.point_id[ok], e_true)
+
+
+def mean_std(e: np.ndarray) -> dict:
+    """Per-axis mean and standard deviation (mm) of an (n,3) array in metres (Tables 2-4)."""
+    return {ax: {"mean_mm": float(e[:, k].mean() * 1e3), "std_mm": float(e[:, k].std(ddof=1) * 1e3)}
+            for k, ax in enumerate(AXES)} | {"n": int(len(e))}
+
+
+def grouped_cv_residuals(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, folds: int,
+                         seed: int) -> np.ndarray:
+    """Held-out residuals r = y - y_hat, each target point predicted by a model that never saw it."""
+    rng = np.random.default_rng(seed)
+    ids = np.unique(groups)
+    rng.shuffle(ids)
+    r = np.full_like(Y, np.nan)
+    for f in range(folds):
+        test_ids = ids[f::folds]
+        te = np.isin(groups, test_ids)
+        m = MultiOutputGP(seed=seed).fit(X[~te], Y[~te])
+        r[te] = Y[te] - m.predict(X[te])
+    return r
+
+
+def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """Mean residual per (target point, speed): the model's error for the mean positioning.
+
+    Eq. 11 adds the positioning reproducibility separately; residuals of single positionings
+    would count that scatter twice.
+    """
+    keys = np.column_stack([groups, np.round(speed, 9)])
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    counts = np.bincount(inv)
+    return np.column_stack([np.bincount(inv, weights=r[:, k]) / counts for k in range(3)])
+
+
+def fit_models(doe: DoeErrors, folds: int, seed: int):
+    e_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_lt)
+    e_mvs_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_mvs_lt)
+    r_lt = grouped_cv_residuals(doe.X, doe.e_lt, doe.groups, folds, seed)
+    r_mvs_lt = grouped_cv_residuals(doe.X, doe.e_mvs_lt, doe.groups, folds, seed)
+    return e_lt, e_mvs_lt, r_lt, r_mvs_lt
+
+
+def metrology_inputs(fr: Frames, r_lt: np.ndarray, r_mvs_lt: np.ndarray, lt_distance_m: float,
+                     resol_tcp: float = 1e-6, resol_mvs: float = 5e-6,
+                     registration_term: str = "transform") -> unc.MetrologyInputs:
+    def stat(e):
+        return np.mean(e, axis=0), np.std(e, axis=0, ddof=1), len(e)
+
+    return unc.MetrologyInputs(
+        reprod_tcp=fr.reprod_tcp, reprod_tcp_dof=fr.reprod_tcp_dof, resol_tcp=resol_tcp,
+        reg_lt=stat(fr.residuals["lt"]), reg_mvs=stat(fr.residuals["mvs"]),
+        u_lt=unc.lt_standard_uncertainty(lt_distance_m),
+        res_lt=stat(r_lt), res_mvs_lt=stat(r_mvs_lt),
+        reprod_mvs=fr.reprod_mvs, reprod_mvs_dof=fr.reprod_mvs_dof, resol_mvs=resol_mvs,
+        registration_term=registration_term,
+    )
+
+
+def budgets(inp) -> dict:
+    return {
+        "eq11_tcp_c": unc.budget_tcp_corrected(inp),
+        "eq13_e_lt_hat": unc.budget_e_lt_hat(inp),
+        "eq14_e_lt_hat_minus_e_mvs": unc.budget_elt_minus_emvs(inp),
+        "eq15_e_mvs": unc.budget_e_mvs(inp),
+        "eq16_e_mvs_lt_hat": unc.budget_e_mvs_lt_hat(inp),
+    }
+
+
+def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = None) -> Twin:
+    u = {}
+    for key, bud in b.items():
+        u[key] = {"u": bud.combined(), "dof": bud.effective_dof(), "U": bud.expanded(), "k": bud.coverage_factor()}
+    return Twin(fr.T_rdk, fr.T_lt, fr.T_mvs, e_lt, e_mvs_lt, u, dict(instruments or {}))

@@ -1,0 +1,126 @@
+"""Run experiment plans on a cell through the drivers and collect the raw measurements.
+
+Every positioning records the controller's commanded TCP (robot frame), the laser tracker's
+point (tracker frame) and the MVS point (MVS frame). Registration maps all three into the
+global frame GL (Sect. 2.3); the positioning errors then follow Eqs. 8-10.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from drivers.base import CameraRig, LaserTracker, RobotController
+from dt_kernel.errors import UnreachableError
+from dt_runtime.common.progress import Progress
+
+
+@dataclass
+class Instruments:
+    robot: RobotController
+    tracker: LaserTracker
+    camera: CameraRig | None  # None: positions measured by the tracker only (dt simulate)
+    world: object | None = None  # drivers.simulated.SimWorld when simulated: truth for scoring
+    max_speed: float = 1.0  # m/s
+
+    def activate(self) -> None:
+        for d in self.drivers():
+            if d.state == "unconfigured":
+                d.configure({})
+            if d.state == "inactive":
+                d.activate()
+
+    def drivers(self) -> list:
+        return [d for d in (self.robot, self.tracker, self.camera) if d is not None]
+
+    def close(self) -> None:
+        for d in self.drivers():
+            d.close()
+
+
+@dataclass
+class PhaseData:
+    """Raw measurements of one phase; positions in metres, NaN where an instrument refused."""
+
+    phase: str
+    point_id: np.ndarray
+    rep: np.ndarray
+    target: np.ndarray  # commanded target, robot frame
+    speed: np.ndarray  # m/s
+    p_rdk: np.ndarray  # controller TCP, robot frame
+    p_lt: np.ndarray  # tracker frame
+    p_mvs: np.ndarray  # MVS frame
+    t: np.ndarray
+    q: np.ndarray
+    temperature: np.ndarray
+    payload: np.ndarray
+    truth_lt: np.ndarray | None = None  # noise-free truth in the tracker frame (simulation only)
+    axis: np.ndarray | None = None
+    distance: np.ndarray | None = None
+    refusals: list[str] = field(default_factory=list)
+
+    @property
+    def n(self) -> int:
+        return len(self.point_id)
+
+
+def check_reachable(world, targets: np.ndarray) -> None:
+    """Report every unreachable target of a plan before anything moves."""
+    if world is None:
+        return
+    bad = world.unreachable(targets)
+    if bad:
+        lines = "\n".join(f"  target #{i}: {why}" for i, why in bad[:20])
+        more = f"\n  ... and {len(bad) - 20} more" if len(bad) > 20 else ""
+        raise UnreachableError(f"{len(bad)} of {len(targets)} plan targets are unreachable:\n{lines}{more}")
+
+
+def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None,
+             label: str = "", command: Callable[[np.ndarray, float], np.ndarray] | None = None
+             ) -> PhaseData:
+    """Position the robot at every row's target and measure it with both instruments.
+
+    `command(target, speed)` maps a target to the command actually sent (identity by default;
+    the corrected command for the twin's closed loop).
+    """
+    n = len(rows)
+    cols = {k: np.full((n, 3), np.nan) for k in ("target", "p_rdk", "p_lt", "p_mvs", "truth_lt")}
+    speed, t, temp, payload = (np.zeros(n) for _ in range(4))
+    q = np.zeros((n, 6))
+    refusals: list[str] = []
+    for i, row in enumerate(rows):
+        v = row.speed_frac * inst.max_speed
+        target = np.asarray(row.target, dtype=float)
+        cmd = command(target, v) if command else target
+        inst.robot.move_linear(cmd, v)
+        cols["target"][i] = target
+        cols["p_rdk"][i] = inst.robot.read_commanded_tcp()
+        q[i] = inst.robot.read_joint_state().q
+        lt = inst.tracker.measure()
+        if lt.ok:
+            cols["p_lt"][i] = lt.point
+        else:
+            refusals.append(f"{label} row {i}: laser tracker {lt.status}")
+        mv = inst.camera.read() if inst.camera is not None else None
+        if mv is not None and mv.ok:
+            cols["p_mvs"][i] = mv.point
+        elif mv is not None:
+            refusals.append(f"{label} row {i}: MVS refused ({mv.refused})")
+        speed[i] = v
+        t[i] = lt.t
+        if inst.world is not None:
+            cols["truth_lt"][i] = inst.world.truth_in_tracker_frame()
+            temp[i] = inst.world.temperature()
+            payload[i] = inst.world.payload()
+        if progress:
+            progress.step(label, i, n)
+    return PhaseData(
+        phase=label, point_id=np.array([r.point_id for r in rows]), rep=np.array([r.rep for r in rows]),
+        target=cols["target"], speed=speed, p_rdk=cols["p_rdk"], p_lt=cols["p_lt"], p_mvs=cols["p_mvs"],
+        t=t, q=q, temperature=temp, payload=payload,
+        truth_lt=cols["truth_lt"] if inst.world is not None else None,
+        axis=np.array([getattr(r, "axis", None) for r in rows], dtype=object),
+        distance=np.array([getattr(r, "distance", np.nan) or np.nan for r in rows], dtype=float),
+        refusals=refusals,
+    )
