@@ -21,15 +21,16 @@ from typing import Sequence
 
 import numpy as np
 
+from dt_runtime.common.jsonsafe import jsonable
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.models import effects as fx
 from dt_runtime.analysis.data import groups_of
 from dt_runtime.measurements.dataset import Dataset, read_table
-from dt_runtime.analysis.diagnose import cross_validate, folds_of, noise_floor, rms3
+from dt_runtime.analysis.diagnose import cross_validate, folds_of, noise_floor
 from dt_kernel.errors import DataError, ModelError
 from dt_runtime.models.hybrid import HybridModel
 from dt_runtime.common.progress import Progress
-from dt_runtime.reports.demo_report import _rms_with_U
+from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
 
 AS_IS = "as is"
@@ -98,7 +99,7 @@ def _model_dof(model: HybridModel) -> np.ndarray:
 def metrics(r: np.ndarray) -> dict:
     """3D and per-axis figures of residuals r (n,3) m, in mm."""
     norm = np.linalg.norm(r, axis=1)
-    _, U, _ = _rms_with_U(r)  # only its 95 % uncertainty; the RMS itself is rms3
+    _, U, _ = rms_with_U(r)  # only its 95 % uncertainty; the RMS itself is rms3
     return {"rmse_mm": rms3(r) * MM_PER_M, "rmse_U95_mm": U * MM_PER_M if math.isfinite(U) else None,
             "mae_mm": float(norm.mean()) * MM_PER_M, "max_mm": float(norm.max()) * MM_PER_M,
             "max_row": int(np.argmax(norm)),
@@ -244,21 +245,6 @@ def worst_cells(bd: dict, overall_mm: float, k: int = N_WORST, min_n: int = MIN_
 
 # --------------------------------------------------------------------------- the comparison
 
-def _clean(v):
-    """JSON-ready: numpy scalars to Python, NaN/inf to None."""
-    if isinstance(v, dict):
-        return {k: _clean(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_clean(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return _clean(v.tolist())
-    if isinstance(v, (np.floating, float)):
-        return float(v) if math.isfinite(v) else None
-    if isinstance(v, np.integer):
-        return int(v)
-    if isinstance(v, np.bool_):
-        return bool(v)
-    return v
 
 
 def _block(name, kind, pred, std, ds, cells, um, dm, dof_model, extra=None):
@@ -344,4 +330,4 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     arrays = {"commanded": ds.commanded, "error": ds.error, "u": ds.u, "u_meas": um,
               "speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature, "t": ds.t,
               "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs}
-    return _clean(result), arrays
+    return jsonable(result), arrays

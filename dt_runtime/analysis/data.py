@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from dt_runtime.metrology.stats import rms3
 from dt_runtime.models import effects as fx
 from dt_runtime.measurements.dataset import Dataset, read_meta_sidecar, read_table
-from dt_runtime.analysis.diagnose import cross_validate, diagnose, folds_of, noise_floor, rms3
+from dt_runtime.analysis.diagnose import cross_validate, diagnose, folds_of, noise_floor
 from dt_kernel.errors import DataError
 from dt_runtime.models.hybrid import HybridModel
 from dt_runtime.common.paths import CONFIGS

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from dt_runtime.metrology.stats import rms3
 from dt_runtime.models import effects as fx
 from dt_kernel.errors import DataError
 from dt_runtime.models.hybrid import HybridModel
@@ -38,9 +39,6 @@ class CvResult:
     std: np.ndarray | None  # (n,3) the fold models' stated standard uncertainty (return_std)
 
 
-def rms3(e: np.ndarray) -> float:
-    """3D RMS of (n, 3) vectors (same unit as e)."""
-    return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, axis=1))))
 
 
 def folds_of(groups: np.ndarray, k: int, seed: int) -> list[np.ndarray]:

@@ -28,8 +28,15 @@ def command(name: str):
 def _demo(args: argparse.Namespace) -> dict:
     from dt_runtime.twin.demo import run_demo
 
+    from pathlib import Path
+
+    from dt_runtime.reports.demo_report import write_demo_report  # matplotlib only when reporting
+
+    progress = Progress(enabled=not args.no_progress)
     res = run_demo(args.out, quick=args.quick, seed=args.seed, config=args.config,
-                   progress=Progress(enabled=not args.no_progress), camera=args.camera)
+                   progress=progress, camera=args.camera)
+    report = write_demo_report(res, Path(args.out) / "report.html")
+    progress.note(f"wrote {report}")
     return res.summary
 
 

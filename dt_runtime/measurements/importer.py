@@ -36,6 +36,7 @@ from pydantic import Field, field_validator, model_validator
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from dt_runtime.metrology.stats import rms3
 from dt_kernel.units import M_PER_MM
 from dt_runtime.measurements.dataset import ColumnSpec, Dataset, parse_rows, read_header
 from dt_kernel.errors import DataError
@@ -460,7 +461,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     res_mm = ds.error / M_PER_MM
     report = RegistrationReport(
         method=method, n=n, rms_axis_mm=np.sqrt(np.mean(res_mm ** 2, axis=0)),
-        rms_3d_mm=float(np.sqrt(np.mean(np.sum(res_mm ** 2, axis=1)))),
+        rms_3d_mm=rms3(res_mm),
         rotation=R, translation=t_vec, offset=np.asarray(offset, float),
         rotation_std_rad=stds[0], translation_std_mm=stds[1], offset_std_mm=stds[2],
         n_skipped=len(skipped), notes=notes)

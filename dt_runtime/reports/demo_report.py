@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from dt_runtime.metrology.stats import finite_rows, rms_with_U, t95, wilson_interval
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.reports.html import (  # noqa: F401  (re-exported helper API)
     Section,
@@ -84,12 +85,6 @@ def _arr(arrays: dict, key: str, cols: int | None = None, required: bool = True)
     return a
 
 
-def _finite(*arrs) -> np.ndarray:
-    ok = None
-    for a in arrs:
-        m = np.isfinite(a) if a.ndim == 1 else np.all(np.isfinite(a), axis=1)
-        ok = m if ok is None else ok & m
-    return ok
 
 
 def _f(v, nd: int = 3) -> str:
@@ -103,33 +98,10 @@ def _f(v, nd: int = 3) -> str:
     return out[1:] if out.startswith("-") and float(out) == 0 else out  # no "-0.000"
 
 
-def _t95(dof) -> float:
-    from scipy import stats
-
-    return float(stats.t.ppf(0.975, dof)) if dof and np.isfinite(dof) and dof > 0 else 1.959964
 
 
-def _wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    if n == 0:
-        return float("nan"), float("nan")
-    p = k / n
-    d = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / d
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return max(0.0, c - h), min(1.0, c + h)
 
 
-def _rms_with_U(e: np.ndarray) -> tuple[float, float, int]:
-    """3D RMS (m) and its expanded uncertainty (m) by the delta method, positionings treated as
-    independent: u(MS) = s(|e|^2)/sqrt(n), u(RMS) = u(MS)/(2 RMS), k = t_0.975(n-1)."""
-    e = e[_finite(e)]
-    n = len(e)
-    if n < 2:
-        return float("nan"), float("nan"), n
-    sq = np.sum(e ** 2, axis=1)
-    rms = math.sqrt(sq.mean())
-    u = float(sq.std(ddof=1) / math.sqrt(n) / (2 * rms)) if rms > 0 else float("nan")
-    return rms, _t95(n - 1) * u, n
 
 
 def _levels(v: np.ndarray, max_levels: int = 12, bins: int = 6) -> tuple[np.ndarray, np.ndarray]:
@@ -293,7 +265,7 @@ def _table_coverage(s: dict, a: dict) -> str:
         row = {"axis": ax, "coverage / %": _f(100 * c, 1) if c is not None else "–"}
         if n and c is not None:
             k = int(round(float(c) * n))
-            lo, hi = _wilson(k, int(n))
+            lo, hi = wilson_interval(k, int(n))
             row["inside / n"] = f"{k} / {n}"
             row["95 % interval (Wilson) / %"] = f"{100 * lo:.1f} – {100 * hi:.1f}"
         if U is not None and U.ndim == 1 and U.size == 3:
@@ -321,7 +293,7 @@ def _t_crit_and_flags(s: dict, a: dict):
             u = np.sqrt(u1 ** 2 + u2 ** 2)
             den = u1 ** 4 / n1 + u2 ** 4 / n2
             dof = np.where(den > 0, u ** 4 / np.where(den > 0, den, 1), np.inf)
-            tcrit = np.array([_t95(x) for x in dof])
+            tcrit = np.array([t95(x) for x in dof])
         except (KeyError, TypeError, ValueError):
             pass
     return tcrit, u
@@ -396,7 +368,7 @@ def _fig_registration(s: dict, a: dict) -> str:
 def _fig_error_map(s: dict, a: dict) -> str:
     X = _arr(a, "doe_X", 3)
     e = _arr(a, "e_lt", 3)
-    ok = _finite(X[:, :3], e)
+    ok = finite_rows(X[:, :3], e)
     P, E = X[ok, :3] * MM_PER_M, e[ok] * MM_PER_M
     # Mean over replications and speeds per commanded position, so each location shows one colour.
     key = np.round(P, 1)
@@ -454,7 +426,7 @@ def _fig_asis_series(s: dict, a: dict) -> str:
 def _fig_main_effects(s: dict, a: dict) -> str:
     X = _arr(a, "doe_X", 4)
     e = _arr(a, "e_lt", 3)
-    ok = _finite(X[:, :4], e)
+    ok = finite_rows(X[:, :4], e)
     X, E = X[ok], e[ok] * MM_PER_M
     factors = [("X / mm", X[:, 0] * MM_PER_M), ("Y / mm", X[:, 1] * MM_PER_M), ("Z / mm", X[:, 2] * MM_PER_M),
                ("speed / (mm/s)", X[:, 3] * MM_PER_M)]
@@ -466,7 +438,7 @@ def _fig_main_effects(s: dict, a: dict) -> str:
             for i in range(len(centres)):
                 y = E[idx == i, r]
                 means.append(y.mean() if len(y) else np.nan)
-                hw.append(_t95(len(y) - 1) * y.std(ddof=1) / math.sqrt(len(y)) if len(y) > 1 else np.nan)
+                hw.append(t95(len(y) - 1) * y.std(ddof=1) / math.sqrt(len(y)) if len(y) > 1 else np.nan)
             axp = axs[r, c]
             axp.errorbar(centres, means, yerr=hw, fmt="o-", ms=4, capsize=2, color=COLORS[ax], lw=1)
             axp.axhline(E[:, r].mean(), color="k", ls="--", lw=0.7)
@@ -551,8 +523,8 @@ def _fig_validation(s: dict, a: dict) -> str:
     ep = _arr(a, "val_true_err_plain", 3, required=False)
     ec = _arr(a, "val_true_err_corr", 3)
     U = _arr(a, "U_tcp_c")
-    rms_p = _rms_with_U(ep) if ep is not None else None
-    rms_c = _rms_with_U(ec)
+    rms_p = rms_with_U(ep) if ep is not None else None
+    rms_c = rms_with_U(ec)
     fig, axs = plt.subplots(3, 2, figsize=(13, 8.2), sharex=True, squeeze=False)
     i = np.arange(len(ec))
     for c, ax in enumerate(AXES):
@@ -655,11 +627,11 @@ def _fig_envelope(s: dict, a: dict) -> str:
 
     tgt = _arr(a, "val_target", 3)
     U = _arr(a, "U_tcp_c")
-    ok = _finite(tgt)
+    ok = finite_rows(tgt)
     if U.ndim == 2:
         if len(U) != len(tgt):
             raise Missing("per-point U(TCP_c) does not match the validation targets")
-        ok &= _finite(U)
+        ok &= finite_rows(U)
         U = U[ok]
     tgt = tgt[ok]
     if U.ndim == 1:
@@ -729,7 +701,7 @@ def _headline(s: dict, a: dict) -> str:
             e = np.asarray(e, float)
             if e.ndim != 2 or e.shape[1] != 3:
                 return ""
-            _, U, n = _rms_with_U(e)
+            _, U, n = rms_with_U(e)
             return f" ± {_f(U * MM_PER_M)}" if math.isfinite(U) else ""
 
         cards.append(headline("True 3D RMS error, validation targets",

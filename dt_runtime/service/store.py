@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
+from dt_runtime.common.jsonsafe import compact
 from dt_kernel.errors import TwinError
 
 SCHEMA_VERSION = 1
@@ -95,21 +96,8 @@ def _num(v: Any) -> float | None:
     return None if v is None else float(v)
 
 
-def _dumps(obj: Any) -> str:
-    # allow_nan=False: a NaN would make the JSON unreadable by strict consumers; map to null.
-    return json.dumps(_clean(obj), allow_nan=False, separators=(",", ":"))
 
 
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, Mapping):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if hasattr(obj, "tolist"):  # numpy scalars and arrays
-        return _clean(obj.tolist())
-    return obj
 
 
 class Store:
@@ -230,7 +218,7 @@ class Store:
         by_table: dict[str, list[tuple]] = {}
         for table, vals in self._buf:
             data = vals[-1]
-            row = vals[:-1] + (_dumps(data) if data else None,)
+            row = vals[:-1] + (compact(data) if data else None,)
             by_table.setdefault(table, []).append(row)
         for table, rows in by_table.items():
             cols = _HIGH_RATE[table]
@@ -272,11 +260,11 @@ class Store:
         """Escalation transition with its evidence; committed before returning. Returns row id."""
         return self._tx(lambda: self._db.execute(
             "INSERT INTO transitions (t, src, dst, evidence, created) VALUES (?,?,?,?,?)",
-            (float(t), str(src), str(dst), _dumps(dict(evidence)), time.time())).lastrowid)
+            (float(t), str(src), str(dst), compact(dict(evidence)), time.time())).lastrowid)
 
     def outbox_add(self, key: str, payload: Mapping[str, Any]) -> int:
         """Durably record a message that must be delivered; returns its id (committed)."""
-        text = _dumps(dict(payload))
+        text = compact(dict(payload))
         return self._tx(lambda: self._db.execute(
             "INSERT INTO outbox (created, key, payload) VALUES (?,?,?)",
             (time.time(), str(key), text)).lastrowid)
@@ -310,7 +298,7 @@ class Store:
         self._tx(lambda: self._db.execute(
             "INSERT INTO state (id, name, data, updated) VALUES (1,?,?,?) ON CONFLICT(id) "
             "DO UPDATE SET name=excluded.name, data=excluded.data, updated=excluded.updated",
-            (str(name), _dumps(dict(data)), time.time())) and None)
+            (str(name), compact(dict(data)), time.time())) and None)
 
     def load_state(self) -> dict[str, Any] | None:
         """{'name', 'data', 'updated'} of the resume row, or None on a fresh store."""

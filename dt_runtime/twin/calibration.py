@@ -73,10 +73,6 @@ def doe_errors(data: PhaseData, fr: Frames) -> DoeErrors:
     return DoeErrors(X, e_lt, e_mvs, e_lt - e_mvs, data.point_id[ok], e_true)
 
 
-def mean_std(e: np.ndarray) -> dict:
-    """Per-axis mean and standard deviation (mm) of an (n,3) array in metres (Tables 2-4)."""
-    return {ax: {"mean_mm": float(e[:, k].mean() * 1e3), "std_mm": float(e[:, k].std(ddof=1) * 1e3)}
-            for k, ax in enumerate(AXES)} | {"n": int(len(e))}
 
 
 def grouped_cv_residuals(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, folds: int,

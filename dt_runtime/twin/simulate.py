@@ -22,6 +22,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from dt_kernel.units import MM_PER_M
+from dt_runtime.metrology.stats import rms3
 from drivers import registry
 from drivers.simulated.devices import SimWorld
 from dt_runtime.frames import registration as reg
@@ -104,7 +106,7 @@ def simulate(scenario: str | Path, out: str | Path, seed: int | None = None,
     floor = noise_floor(ds, noise_j, load_robot(_resolve(spec.robot, base, "robot", scenario)))
     meta = {"scenario": str(scenario), "name": name, "seed": plan_cfg.seed if seed is None else seed,
             "effects": enabled, "phases": list(spec.phases), "n": ds.n, "dropped_rows": dropped,
-            "registration_rms_mm": float(np.sqrt(np.mean(np.sum(reg_res ** 2, axis=1)))) * 1e3,
+            "registration_rms_mm": rms3(reg_res) * MM_PER_M,
             "noise_floor_mm": floor * 1e3, "out": str(out)}
     meta_path(out).write_text(json.dumps(meta, indent=2))
     progress.note(f"wrote {ds.n} rows to {out} (noise floor {floor * 1e3:.4f} mm)")

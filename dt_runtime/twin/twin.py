@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.models.modelio import read_meta
 from dt_runtime.models.gp import MultiOutputGP
 from dt_runtime.frames.registration import RigidTransform
@@ -68,7 +69,7 @@ class Twin:
             "kind": "cobot-dt twin",
             "units": "SI (m, m/s); errors e = commanded - measured",
             "T_rdk": self.T_rdk.to_dict(), "T_lt": self.T_lt.to_dict(), "T_mvs": self.T_mvs.to_dict(),
-            "u": _jsonable(self.u),
+            "u": jsonable(self.u, finite_only=False),
             "instruments": self.instruments,
         }
         (d / "twin.json").write_text(json.dumps(meta, indent=2))
@@ -83,12 +84,3 @@ class Twin:
                    RigidTransform.from_dict(meta["T_mvs"]), MultiOutputGP.load(d / "e_lt"),
                    MultiOutputGP.load(d / "e_mvs_lt"), u, meta.get("instruments", {}))
 
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
-    return obj
