@@ -1,0 +1,43 @@
+"""What every `dt` command shares: the argument groups for data and output, and the progress
+switch. Each command module holds its own arguments, its run and its human text."""
+from __future__ import annotations
+
+import argparse
+
+from dt_runtime.common.progress import Progress
+
+
+def add_output_args(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    q.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
+
+
+def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
+    q.add_argument("--data", required=True, metavar="FILE", help="measurement table CSV (or a foreign file "
+                   "with --mapping)")
+    q.add_argument("--mapping", default=None, metavar="YAML",
+                   help="import mapping for a foreign file (e.g. configs/import/ur10.yaml)")
+    q.add_argument("--skip-bad", action="store_true", help="skip bad rows (each is listed) instead of stopping")
+    q.add_argument("--seed", type=int, default=0, help="seed of folds and GP restarts (default 0)")
+    if not kinematics:
+        return
+    q.add_argument("--robot", default=None, metavar="YAML",
+                   help="robot kinematic model config (default configs/robots/cobot_hc20_like.yaml)")
+    q.add_argument("--gp-inputs", default="tcp_speed", choices=("tcp_speed", "tcp", "joints", "none"),
+                   help="what the GP on the remaining error sees (default tcp_speed, the paper's)")
+
+
+def names(text: str | None) -> tuple[str, ...]:
+    """A comma-separated list of names (effects, model names) as a tuple, blanks dropped."""
+    return tuple(e.strip() for e in text.split(",") if e.strip()) if text else ()
+
+
+def progress(args: argparse.Namespace) -> Progress:
+    return Progress(enabled=not getattr(args, "no_progress", False))
+
+
+def load(args: argparse.Namespace):
+    """The --data file (through --mapping if given)."""
+    from dt_runtime.analysis.data import load_data
+
+    return load_data(args.data, args.mapping, args.skip_bad)

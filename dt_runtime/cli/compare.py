@@ -1,0 +1,55 @@
+"""`dt compare`: error models against measurements, side by side, and where they fail."""
+from __future__ import annotations
+
+import argparse
+
+from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
+
+NAME = "compare"
+HELP = "error models against measurements, side by side"
+
+
+def add_arguments(cp: argparse.ArgumentParser) -> None:
+    cp.description = ("RMS, mean and max 3D error, per axis, Eq. 17 t-test failures and the residual "
+                      "broken down by region, speed, payload, temperature, time and joint "
+                      "configuration, for 'as is' and every --model in the order given.")
+    add_data_args(cp, kinematics=False)
+    cp.add_argument("--model", required=True, action="append", metavar="MODEL",
+                    help="model directory from `dt fit`; repeat for a side-by-side comparison (oldest first)")
+    cp.add_argument("--names", default="", metavar="a,b,...", help="column names of the models (default: directory names)")
+    cp.add_argument("--cv", type=int, default=0, metavar="K",
+                    help="held-out figures from the training file: refit each model's configuration on K-1 "
+                         "folds grouped by target point (default 0: the models as saved)")
+    cp.add_argument("--report", default=None, metavar="DIR", help="write DIR/report.html and DIR/compare.json")
+    add_output_args(cp)
+
+
+def run(args: argparse.Namespace) -> dict:
+    from dt_runtime.analysis.compare import compare
+    from dt_runtime.analysis.data import floor_of
+    from dt_runtime.common.jsonsafe import jsonable
+
+    d = load(args)
+    result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
+                             cv_folds=args.cv, seed=args.seed, progress=progress(args))
+    result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
+    if args.report:
+        from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
+
+        result["report"] = str(write_compare_report(result, arrays, args.report))
+    return result
+
+
+def human(result: dict) -> str:
+    lines = [f"{result['n']} rows of {result['dataset']}"
+             + (f"; held out by {result['heldout']['folds']}-fold grouped CV" if result.get("heldout") else "")
+             + (f"; noise floor {result['noise_floor_mm']:.4f} mm" if result.get("noise_floor_mm") else "")]
+    for m in result["models"]:
+        f = m.get("failures")
+        lines.append(f"  {m['name']:<24} 3D RMS {m['rmse_mm']:.4f} mm  mean {m['mae_mm']:.4f}  max {m['max_mm']:.4f}"
+                     + (f"  fails Eq. 17: {100 * f['fraction']:.1f} %" if f else ""))
+    for c in result.get("worst_cells") or []:
+        lines.append(f"  worst: {c['factor']} {c['cell']}: {c['rmse_mm']:.4f} mm ({c['n']} rows)")
+    if result.get("report"):
+        lines.append(f"report: {result['report']}")
+    return "\n".join(lines)

@@ -1,0 +1,36 @@
+"""`dt fit`: train an error model (physical effect terms + GP) and save it."""
+from __future__ import annotations
+
+import argparse
+
+from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
+
+NAME = "fit"
+HELP = "train an error model (effect terms + GP)"
+
+
+def add_arguments(ft: argparse.ArgumentParser) -> None:
+    ft.description = ("error = sum of physical effect terms + GP on what is left. Effects: "
+                      "geometric, compliance, gear, backlash, thermal, dynamic, drift.")
+    add_data_args(ft)
+    ft.add_argument("--effects", default="", metavar="a,b,...", help="effect terms (default none: the paper's GP)")
+    ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")
+    ft.add_argument("--cv", type=int, default=0, metavar="K",
+                    help="also report the held-out RMS by K-fold CV grouped by target point")
+    add_output_args(ft)
+
+
+def run(args: argparse.Namespace) -> dict:
+    from dt_runtime.analysis.data import DEFAULT_ROBOT, fit
+
+    return fit(load(args), names(args.effects), args.gp_inputs, args.robot or DEFAULT_ROBOT, args.out,
+               seed=args.seed, cv_folds=args.cv, progress=progress(args))
+
+
+def human(result: dict) -> str:
+    out = [f"model saved to {result['out']} ({result['n']} rows, {result['fit_seconds']:.1f} s); "
+           f"training 3D RMS {result['train_rmse_mm']:.4f} mm"]
+    if "heldout_rmse_mm" in result:
+        out.append(f"held-out 3D RMS {result['heldout_rmse_mm']:.4f} mm (as is {result['as_is_rmse_mm']:.4f} mm)")
+    out += [f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}" for p in result["parameters"]]
+    return "\n".join(out)

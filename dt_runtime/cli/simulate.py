@@ -1,0 +1,31 @@
+"""`dt simulate`: measurement data from the simulated cell for a scenario."""
+from __future__ import annotations
+
+import argparse
+import json
+
+from dt_runtime.cli.common import add_output_args, progress
+
+NAME = "simulate"
+HELP = "measurement data from the simulated cell"
+
+
+def add_arguments(sm: argparse.ArgumentParser) -> None:
+    sm.description = ("Run a scenario's experiment plan on the simulated cell (tracker registered by the "
+                      "three-line method) and write the measurement table (docs/measurement-table.md) as "
+                      "CSV, with FILE.csv.meta.json: scenario, seed, registration residual, noise floor.")
+    sm.add_argument("--scenario", required=True, metavar="FILE",
+                    help="scenario YAML (configs/scenarios/), optional 'data:' block: plan, phases, doe_reps, cell")
+    sm.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV")
+    sm.add_argument("--seed", type=int, default=None, help="overrides the scenario's and the plan's seed")
+    add_output_args(sm)
+
+
+def run(args: argparse.Namespace) -> dict:
+    from dt_runtime.twin.simulate import simulate
+
+    return simulate(args.scenario, args.out, seed=args.seed, progress=progress(args))
+
+
+def human(result: dict) -> str:
+    return json.dumps(result, indent=2)
