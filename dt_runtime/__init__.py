@@ -1,1 +1,82 @@
-"""The digital twin: registration, plans, error models, uncertainty, runtime and CLI."""
+"""The digital twin as a library: read and import measurements, fit error models (GP, physical
+effects + GP), diagnose the missing effect, compare models, state uncertainty budgets, and
+load a calibrated twin.
+
+    >>> from dt_runtime import HybridModel, read_table, diagnose, compare   # doctest: +SKIP
+
+Names are imported on first use (PEP 562), so `import dt_runtime` stays cheap and a name's
+subpackage loads only when asked for: fitting a model never imports the daemon, the drivers
+or matplotlib. The subpackages, lowest layer first, are listed in docs/architecture.md.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from dt_kernel.errors import (
+    ConfigError,
+    DataError,
+    DriverError,
+    ModelError,
+    StateError,
+    TwinError,
+    UnreachableError,
+)
+
+# public name -> the module that defines it
+_EXPORTS: dict[str, str] = {
+    # measurements
+    "Dataset": "dt_runtime.measurements.dataset",
+    "read_table": "dt_runtime.measurements.dataset",
+    "write_table": "dt_runtime.measurements.dataset",
+    "import_file": "dt_runtime.measurements.importer",
+    "load_mapping": "dt_runtime.measurements.importer",
+    # frames
+    "RigidTransform": "dt_runtime.frames.registration",
+    "fit_rigid": "dt_runtime.frames.registration",
+    "load_robot": "dt_runtime.frames.kinematics",
+    # models
+    "MultiOutputGP": "dt_runtime.models.gp",
+    "HybridModel": "dt_runtime.models.hybrid",
+    # metrology
+    "Budget": "dt_runtime.metrology.uncertainty",
+    "Component": "dt_runtime.metrology.uncertainty",
+    "t_test": "dt_runtime.metrology.uncertainty",
+    # analysis
+    "diagnose": "dt_runtime.analysis.diagnose",
+    "compare": "dt_runtime.analysis.compare",
+    # the twin
+    "Twin": "dt_runtime.twin.twin",
+}
+
+__all__ = sorted([*_EXPORTS, "ConfigError", "DataError", "DriverError", "ModelError", "StateError",
+                  "TwinError", "UnreachableError", "__version__"])
+
+
+def __getattr__(name: str) -> Any:
+    if name == "__version__":
+        from dt_runtime.common.version import version
+
+        return version()
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'dt_runtime' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # what type checkers and IDEs see for the lazy names
+    from dt_runtime.analysis.compare import compare
+    from dt_runtime.analysis.diagnose import diagnose
+    from dt_runtime.frames.kinematics import load_robot
+    from dt_runtime.frames.registration import RigidTransform, fit_rigid
+    from dt_runtime.measurements.dataset import Dataset, read_table, write_table
+    from dt_runtime.measurements.importer import import_file, load_mapping
+    from dt_runtime.metrology.uncertainty import Budget, Component, t_test
+    from dt_runtime.models.gp import MultiOutputGP
+    from dt_runtime.models.hybrid import HybridModel
+    from dt_runtime.twin.twin import Twin
