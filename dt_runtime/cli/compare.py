@@ -7,12 +7,12 @@ from dt_runtime.cli.common import add_data_args, add_output_args, load, names, p
 
 NAME = "compare"
 HELP = "error models against measurements, side by side"
+DESCRIPTION = ("RMS, mean and max 3D error, per axis, Eq. 17 t-test failures and the residual "
+               "broken down by region, speed, payload, temperature, time and joint "
+               "configuration, for 'as is' and every --model in the order given.")
 
 
 def add_arguments(cp: argparse.ArgumentParser) -> None:
-    cp.description = ("RMS, mean and max 3D error, per axis, Eq. 17 t-test failures and the residual "
-                      "broken down by region, speed, payload, temperature, time and joint "
-                      "configuration, for 'as is' and every --model in the order given.")
     add_data_args(cp, kinematics=False)
     cp.add_argument("--model", required=True, action="append", metavar="MODEL",
                     help="model directory from `dt fit`; repeat for a side-by-side comparison (oldest first)")

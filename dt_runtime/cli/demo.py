@@ -8,11 +8,11 @@ from dt_runtime.cli.common import progress
 
 NAME = "demo"
 HELP = "the paper's whole experiment on the simulated cell"
+DESCRIPTION = ("Registration, DOE, GPR, uncertainty budget, validation and t-test "
+               "on the simulated cell; writes DIR/summary.json and DIR/report.html.")
 
 
 def add_arguments(d: argparse.ArgumentParser) -> None:
-    d.description = ("Registration, DOE, GPR, uncertainty budget, validation and t-test "
-                     "on the simulated cell; writes DIR/summary.json and DIR/report.html.")
     d.add_argument("--out", default="out/demo", metavar="DIR", help="output directory (default out/demo)")
     d.add_argument("--quick", action="store_true", help="reduced plan, well under a minute")
     d.add_argument("--seed", type=int, default=None, help="plan seed (default: the plan config's)")

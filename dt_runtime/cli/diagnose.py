@@ -7,11 +7,11 @@ from dt_runtime.cli.common import add_data_args, add_output_args, load, names, p
 
 NAME = "diagnose"
 HELP = "rank the physical effects the model lacks"
+DESCRIPTION = ("Grouped cross-validation (by target point) of the model with and without "
+               "each candidate effect; one-sided Wilcoxon test per held-out group.")
 
 
 def add_arguments(dg: argparse.ArgumentParser) -> None:
-    dg.description = ("Grouped cross-validation (by target point) of the model with and without "
-                      "each candidate effect; one-sided Wilcoxon test per held-out group.")
     add_data_args(dg)
     dg.add_argument("--model", default=None, metavar="MODEL", help="starting model (default: --effects + GP)")
     dg.add_argument("--effects", default="", metavar="a,b,...", help="starting model's effects without --model")

@@ -7,11 +7,11 @@ from dt_runtime.cli.common import add_data_args, add_output_args, load, names, p
 
 NAME = "fit"
 HELP = "train an error model (effect terms + GP)"
+DESCRIPTION = ("error = sum of physical effect terms + GP on what is left. Effects: "
+               "geometric, compliance, gear, backlash, thermal, dynamic, drift.")
 
 
 def add_arguments(ft: argparse.ArgumentParser) -> None:
-    ft.description = ("error = sum of physical effect terms + GP on what is left. Effects: "
-                      "geometric, compliance, gear, backlash, thermal, dynamic, drift.")
     add_data_args(ft)
     ft.add_argument("--effects", default="", metavar="a,b,...", help="effect terms (default none: the paper's GP)")
     ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")

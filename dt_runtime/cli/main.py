@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print the version and the git commit, then exit")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     for name, mod in COMMANDS.items():
-        mod.add_arguments(sub.add_parser(name, help=mod.HELP))
+        mod.add_arguments(sub.add_parser(name, help=mod.HELP, description=getattr(mod, "DESCRIPTION", None)))
     return p
 
 

@@ -6,12 +6,12 @@ import json
 
 NAME = "run"
 HELP = "the long-running twin daemon"
+DESCRIPTION = ("Correct every command, test every MVS measurement (Eq. 17), escalate "
+               "repeated failures to maintenance over Zenoh; SIGINT/SIGTERM stop cleanly.")
 JSON_LOGS = True  # a daemon's stderr is read by machines: one JSON object per log line
 
 
 def add_arguments(r: argparse.ArgumentParser) -> None:
-    r.description = ("Correct every command, test every MVS measurement (Eq. 17), escalate "
-                     "repeated failures to maintenance over Zenoh; SIGINT/SIGTERM stop cleanly.")
     r.add_argument("--config", required=True, help="runtime YAML (see configs/runtime.yaml)")
     r.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     r.add_argument("--json", action="store_true", help="print the run summary as one JSON object")

@@ -8,12 +8,12 @@ from dt_runtime.cli.common import add_output_args, progress
 
 NAME = "simulate"
 HELP = "measurement data from the simulated cell"
+DESCRIPTION = ("Run a scenario's experiment plan on the simulated cell (tracker registered by the "
+               "three-line method) and write the measurement table (docs/measurement-table.md) as "
+               "CSV, with FILE.csv.meta.json: scenario, seed, registration residual, noise floor.")
 
 
 def add_arguments(sm: argparse.ArgumentParser) -> None:
-    sm.description = ("Run a scenario's experiment plan on the simulated cell (tracker registered by the "
-                      "three-line method) and write the measurement table (docs/measurement-table.md) as "
-                      "CSV, with FILE.csv.meta.json: scenario, seed, registration residual, noise floor.")
     sm.add_argument("--scenario", required=True, metavar="FILE",
                     help="scenario YAML (configs/scenarios/), optional 'data:' block: plan, phases, doe_reps, cell")
     sm.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV")
