@@ -90,10 +90,12 @@ def _one_thread():
 
 
 def _model(name: str, robot: str, seed: int, gp_kw: dict | None = None):
+    from dt_runtime.models.gp import GPOptions
     from dt_runtime.models.hybrid import HybridModel
 
     effects = MODELS[name]
-    return HybridModel(effects, "tcp", seed=seed, robot=robot if effects else None, gp_kw=gp_kw)
+    return HybridModel(effects, "tcp", seed=seed, robot=robot if effects else None,
+                       gp_options=GPOptions(**(gp_kw or {})))
 
 
 def compare_job(data: str, name: str, robot: str, train: np.ndarray, test: np.ndarray, seed: int,
@@ -105,16 +107,16 @@ def compare_job(data: str, name: str, robot: str, train: np.ndarray, test: np.nd
         n = tr.n
         rss0 = _gb(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
         t0 = time.perf_counter()
-        exact = _model(name, robot, seed, {"sparse_threshold": n, "n_hyper": n}).fit_dataset(tr)
+        exact = _model(name, robot, seed, {"sparse_threshold": n, "n_hyper": n}).fit(tr)
         t_exact = time.perf_counter() - t0
         rss_exact = _gb(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
         kw = {"sparse_threshold": n - 1} | ({} if n_inducing is None else {"n_inducing": n_inducing})
         t0 = time.perf_counter()
-        sparse = _model(name, robot, seed, kw).fit_dataset(tr)
+        sparse = _model(name, robot, seed, kw).fit(tr)
         t_sparse = time.perf_counter() - t0
-        same = _model(name, robot, seed, kw).fit_dataset(tr, thetas=exact.gp_.thetas_)
+        same = _model(name, robot, seed, kw).fit(tr, thetas=exact.gp_.thetas_)
         assert not exact.gp_.models_[0].sparse_ and sparse.gp_.models_[0].sparse_
-        rms = {k: _rms3(te.error - m.predict_dataset(te)) * 1e3
+        rms = {k: _rms3(te.error - m.predict(te)) * 1e3
                for k, m in (("exact", exact), ("sparse", sparse), ("same_hyper", same))}
     return {"n_compare": n, "n_compare_test": te.n, "exact_rms_mm": rms["exact"], "sparse_rms_mm": rms["sparse"],
             "sparse_same_hyper_rms_mm": rms["same_hyper"], "rmse_ratio_vs_exact": rms["sparse"] / rms["exact"],
@@ -129,11 +131,11 @@ def heldout_job(data: str, name: str, robot: str, train: np.ndarray, test: np.nd
         ds = ur10_dataset(data)
         tr, te = ds.select(train), ds.select(test)
         t0 = time.perf_counter()
-        m = _model(name, robot, seed).fit_dataset(tr)
+        m = _model(name, robot, seed).fit(tr)
         t_fit = time.perf_counter() - t0
         return {"n_heldout_train": tr.n, "n_heldout_test": te.n, "heldout_fit_seconds": t_fit,
                 "heldout_sparse": bool(m.gp_.models_[0].sparse_),
-                "heldout_rms_mm": _rms3(te.error - m.predict_dataset(te)) * 1e3,
+                "heldout_rms_mm": _rms3(te.error - m.predict(te)) * 1e3,
                 "asis_rms_mm": _rms3(te.error) * 1e3}
 
 

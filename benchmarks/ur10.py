@@ -12,8 +12,8 @@ Per series:
    GP on the joint angles instead of the TCP (same paired one-sided Wilcoxon test on the
    per-point mean squared residuals as diagnose) and, if the switch wins, go on diagnosing
    with that GP. Also the GP on the joints alone, without effects.
-Every held-out figure is 5-fold cross-validation grouped by target point (analysis.groups_of,
-diagnose.folds_of, diagnose.cross_validate): all rows of a point are on one side, so a model
+Every held-out figure is 5-fold cross-validation grouped by target point (analysis.crossval:
+groups_of, folds_of, cross_validate): all rows of a point are on one side, so a model
 cannot win by remembering a point. cross_validate fits the GP hyperparameters once on all rows
 (a few smoothness/noise numbers see the test fold; no point's error does). For Series C the
 final model is also scored with everything refitted inside every fold ("strict"), and on a
@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import hashlib
-import inspect
 import json
 import os
 import sys
@@ -51,11 +50,13 @@ import numpy as np
 from benchmarks._common import emit
 from benchmarks._data import UR10_MAPPING, UR10_ROBOT, point_split
 from dt_runtime.analysis import diagnose as dg
-from dt_runtime.models import effects as fx
-from dt_runtime.analysis.data import floor_of, groups_of, load_data
-from dt_runtime.models.hybrid import HybridModel
-from dt_runtime.frames.kinematics import load_robot
+from dt_runtime.analysis.crossval import groups_of
+from dt_runtime.analysis.data import floor_of, load_data
 from dt_runtime.common.paths import DATA
+from dt_runtime.frames.kinematics import load_robot
+from dt_runtime.models import effects as fx
+from dt_runtime.models.gp import GPOptions
+from dt_runtime.models.hybrid import HybridModel
 
 FILES = {"A": "Series_A/measurements_grid.csv", "B": "Series_B/measurements_joint_configurations.csv",
          "C": "Series_C/measurements_random_poses.csv", "D": "Series_D/measurements_iso_cubes.csv"}
@@ -65,7 +66,7 @@ FOLDS, SEED = 5, 0
 # default 1,000-input subset (fewer hurt the 6-D joint GP: Series C 0.20 -> 0.26 mm at 600).
 # Cost, not accuracy, chose them: on Series C the exact posterior gives the same held-out RMS
 # to 0.004 mm at 2-3x the time.
-GP_KW = {"n_restarts": 0, "sparse_threshold": 1000, "n_inducing": 500}
+GP_OPTIONS = GPOptions(n_restarts=0, sparse_threshold=1000, n_inducing=500)
 MAX_DIAGNOSE_ROWS = 3200  # larger series (A) are diagnosed on the first visits of every point, about this many rows
 MAX_STEPS = 7  # effects added per loop at most (there are 7 effect names)
 TARGET_C_MM = 0.30
@@ -87,28 +88,36 @@ def robot_chain(path: Path, harmonics: tuple[int, ...] | None):
 
 
 # --- one cross-validation per model and fold set ----------------------------------------------
+def config(effects, gp_inputs: str, chain) -> HybridModel:
+    """The (unfitted) model of a loop step: effects + GP on gp_inputs, the run's GP options."""
+    return HybridModel(tuple(effects), gp_inputs, seed=SEED, robot=chain, gp_options=GP_OPTIONS)
+
+
 @contextlib.contextmanager
 def cv_memo():
     """diagnose() cross-validates its starting model, which the previous loop step (and the
     baseline) already did with the same folds: remember cross_validate's results per dataset,
-    model and folds (it is deterministic)."""
+    model and folds (it is deterministic). Yields cv(effects, inp, error, groups, chain,
+    gp_inputs, folds) through the same memo."""
     orig = dg.cross_validate
-    sig = inspect.signature(orig)
     memo: dict = {}
 
-    def cached(*args, **kwargs):
-        a = sig.bind(*args, **kwargs).arguments
-        h = hashlib.sha1(b"".join(np.asarray(f).tobytes() for f in a["folds"])).hexdigest()
-        key = (id(a["inp"]), tuple(a["effects"]), a["gp_inputs"], h, a["seed"],
-               json.dumps(a.get("gp_kw"), sort_keys=True), a.get("thetas") is None,
-               a.get("return_std", False), a.get("hyper_per_fold", False))
-        if key not in memo:
-            memo[key] = (a["inp"], orig(*args, **kwargs))  # keep inp alive: its id is the key
+    def cached(model, X, y, groups, folds, *, thetas=None, return_std=False, hyper_per_fold=False):
+        h = hashlib.sha1(b"".join(np.asarray(f).tobytes() for f in folds)).hexdigest()
+        p = model.get_params()
+        key = (id(X), tuple(p["effects"]), p["gp_inputs"], h, p["seed"], p["ridge"], id(p["robot"]),
+               p["gp_options"], thetas is None, return_std, hyper_per_fold)
+        if key not in memo:  # keep X alive: its id is the key
+            memo[key] = (X, orig(model, X, y, groups, folds, thetas=thetas, return_std=return_std,
+                                 hyper_per_fold=hyper_per_fold))
         return memo[key][1]
+
+    def cv(effects, inp, error, groups, chain, gp_inputs, folds):
+        return cached(config(effects, gp_inputs, chain), inp, error, groups, folds)
 
     dg.cross_validate = cached
     try:
-        yield cached
+        yield cv
     finally:
         dg.cross_validate = orig
 
@@ -117,7 +126,7 @@ def strict_residual(effects, gp_inputs, inp, error, chain, folds) -> np.ndarray:
     """Held-out residuals with *everything* (effect parameters, GP hyperparameters and
     posterior) fitted on the training side of each fold; rows outside every fold are NaN."""
     groups = np.zeros(inp.n, dtype=int)  # the per-group figures are not used here
-    return dg.cross_validate(effects, inp, error, groups, chain, gp_inputs, folds, SEED, GP_KW,
+    return dg.cross_validate(config(effects, gp_inputs, chain), inp, error, groups, folds,
                              hyper_per_fold=True).residual
 
 
@@ -133,7 +142,7 @@ def diagnose_loop(inp, error, groups, chain, floor, effects, gp_inputs, steps: l
     for _ in range(MAX_STEPS):
         t0 = time.perf_counter()
         r = dg.diagnose(inp, error, groups, chain, effects, gp_inputs, None, FOLDS, SEED,
-                        noise_floor_m=floor, gp_kw=GP_KW, **DIAGNOSE_KW)
+                        noise_floor_m=floor, gp_options=GP_OPTIONS, **DIAGNOSE_KW)
         top = r["ranking"][0] if r["ranking"] else None
         tested = {c["effect"]: round(c["p_value"], 6) for c in r["ranking"]}
         log(f"    diagnose [{', '.join(effects) or '-'}] + GP({gp_inputs}): {r['rmse_base_mm']:.4f} mm; "
@@ -163,10 +172,10 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
     log(f"Series {name}: {ds.n} rows, {res['n_points']} points, registration residual "
         f"{reg['rms_3d_mm']:.4f} mm")
     with cv_memo() as cv:
-        paper = cv((), inp, ds.error, groups, chain, "tcp", folds, SEED, GP_KW)
+        paper = cv((), inp, ds.error, groups, chain, "tcp", folds)
         res["paper_heldout_mm"] = dg.rms3(paper.residual) * 1e3
         log(f"  paper model GP(tcp): {res['paper_heldout_mm']:.4f} mm held out")
-        jo = cv((), inp, ds.error, groups, chain, "joints", folds, SEED, GP_KW)
+        jo = cv((), inp, ds.error, groups, chain, "joints", folds)
         res["gp_joints_only_heldout_mm"] = dg.rms3(jo.residual) * 1e3
         log(f"  GP(joints), no effects: {res['gp_joints_only_heldout_mm']:.4f} mm held out")
 
@@ -185,8 +194,8 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
         effects, last = diagnose_loop(d_inp, d_err, d_groups, chain, d_floor, (), "tcp", steps)
         gp = "tcp"
         # GP inputs: the joint angles instead of the TCP, same effects
-        a = cv(effects, d_inp, d_err, d_groups, chain, "tcp", d_folds, SEED, GP_KW)
-        b = cv(effects, d_inp, d_err, d_groups, chain, "joints", d_folds, SEED, GP_KW)
+        a = cv(effects, d_inp, d_err, d_groups, chain, "tcp", d_folds)
+        b = cv(effects, d_inp, d_err, d_groups, chain, "joints", d_folds)
         ra, rb = dg.rms3(a.residual) * 1e3, dg.rms3(b.residual) * 1e3
         p = paired_p(a, b)
         switch = {"change": "GP inputs tcp -> joints", "gp_inputs": "joints", "p_value": p,
@@ -202,16 +211,15 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
         res["final_effects"], res["final_gp_inputs"] = list(effects), gp
         res["verdict"] = last["verdict"]
 
-        fin = cv(effects, inp, ds.error, groups, chain, gp, folds, SEED, GP_KW)
+        fin = cv(effects, inp, ds.error, groups, chain, gp, folds)
         res["final_heldout_mm"] = dg.rms3(fin.residual) * 1e3
         res["final_p_vs_paper"] = paired_p(paper, fin)
         res["ratio_final_vs_paper"] = res["final_heldout_mm"] / res["paper_heldout_mm"]
         if refold:  # the loop chose the model on these folds: re-score it (and the baseline) on fresh ones
             folds2 = dg.folds_of(groups, FOLDS, SEED + 1)
-            res["final_heldout_mm_refold"] = dg.rms3(cv(effects, inp, ds.error, groups, chain, gp, folds2,
-                                                         SEED, GP_KW).residual) * 1e3
-            res["paper_heldout_mm_refold"] = dg.rms3(cv((), inp, ds.error, groups, chain, "tcp", folds2,
-                                                        SEED, GP_KW).residual) * 1e3
+            fin2 = cv(effects, inp, ds.error, groups, chain, gp, folds2)
+            res["final_heldout_mm_refold"] = dg.rms3(fin2.residual) * 1e3
+            res["paper_heldout_mm_refold"] = dg.rms3(cv((), inp, ds.error, groups, chain, "tcp", folds2).residual) * 1e3
     log(f"  final [{', '.join(effects) or '-'}] + GP({gp}): {res['final_heldout_mm']:.4f} mm held out")
 
     if name == "C":
@@ -251,7 +259,7 @@ def run(series=("A", "B", "C", "D"), robot: Path = UR10_ROBOT, harmonics=None, r
         out["target_mm"] = TARGET_C_MM
         out["target_met"] = bool(max(c["final_heldout_mm"], c["strict_final_heldout_mm"]) <= TARGET_C_MM)
     out["seconds"] = time.perf_counter() - t0
-    out["settings"] = {"folds": FOLDS, "seed": SEED, "gp_kw": GP_KW, "alpha": dg.ALPHA,
+    out["settings"] = {"folds": FOLDS, "seed": SEED, "gp_options": GP_OPTIONS.to_dict(), "alpha": dg.ALPHA,
                        "robot": str(robot), "gear_harmonics": list(chain.gear_harmonics),
                        "max_diagnose_rows": MAX_DIAGNOSE_ROWS, "ridge": "HybridModel default",
                        "cpu_count": os.cpu_count()}

@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from dt_runtime.analysis.compare import AS_IS, EXPECTED_ANY_AXIS, compare
-from dt_runtime.reports.compare_report import write_compare_report
-from dt_runtime.measurements.dataset import Dataset
 from dt_kernel.errors import DataError, ModelError
+from dt_runtime.analysis.compare import AS_IS, EXPECTED_ANY_AXIS, compare
+from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.reports.compare_report import write_compare_report
 
 SIGMA = 50e-6  # measurement noise, m
 LO, HI = np.array([0.3, -0.4, 0.2]), np.array([0.9, 0.4, 0.8])
@@ -49,7 +49,7 @@ def gp_dir(tmp_path_factory):
     ys = ds.error.std(0)
     thetas = [np.array([0.0, 0.0, 0.0, 0.0, 2 * np.log(SIGMA / ys[j])]) for j in range(3)]
     d = tmp_path_factory.mktemp("models") / "gp_tcp"
-    HybridModel((), gp_inputs="tcp").fit_dataset(ds, thetas=thetas).save(d)
+    HybridModel((), gp_inputs="tcp").fit(ds, thetas=thetas).save(d)
     return d
 
 
@@ -57,14 +57,20 @@ def gp_dir(tmp_path_factory):
 def flat_dir(tmp_path_factory):
     """A model that knows nothing (no effects, no GP): predicts 0."""
     d = tmp_path_factory.mktemp("models") / "flat"
-    HybridModel((), gp_inputs="none").fit_dataset(make(1)).save(d)
+    HybridModel((), gp_inputs="none").fit(make(1)).save(d)
     return d
+
+
+def compare_json(*args, **kw):
+    """compare's result as its JSON object (the dict `dt compare --json` prints), and the arrays."""
+    res, arr = compare(*args, **kw)
+    return res.to_dict(), arr
 
 
 def test_figures_match_numpy(gp_dir):
     ds = make(2)
-    res, arr = compare([gp_dir], ds)
-    r = ds.error - HybridModel.load(gp_dir).predict_dataset(ds)
+    res, arr = compare_json([gp_dir], ds)
+    r = ds.error - HybridModel.load(gp_dir).predict(ds)
     norm = np.linalg.norm(r, axis=1)
     assert res["n"] == 300
     assert res["rmse_mm"] == pytest.approx(np.sqrt(np.mean(norm ** 2)) * 1e3, rel=1e-9)
@@ -87,7 +93,7 @@ def test_figures_match_numpy(gp_dir):
 
 
 def test_several_models_side_by_side(gp_dir, flat_dir):
-    res, _ = compare([flat_dir, gp_dir], make(2), names=["nothing", "gp"])
+    res, _ = compare_json([flat_dir, gp_dir], make(2), names=["nothing", "gp"])
     assert [m["name"] for m in res["models"]] == [AS_IS, "nothing", "gp"]
     assert res["primary"] == "gp" and res["rmse_mm"] == res["models"][-1]["rmse_mm"]
     # a model that predicts 0 is as good as no model
@@ -97,7 +103,7 @@ def test_several_models_side_by_side(gp_dir, flat_dir):
 
 def test_injected_region_is_named_worst(gp_dir):
     ds = make(3, extra=lambda P: np.where(P[:, :1] > X_INJECT, [1e-3, 0, 0], 0.0))
-    res, _ = compare([gp_dir], ds)
+    res, _ = compare_json([gp_dir], ds)
     worst = res["worst_cells"]
     assert 1 <= len(worst) <= 5
     assert worst[0]["factor"] == "region" and worst[0]["cell"].startswith("x+")
@@ -110,18 +116,18 @@ def test_injected_region_is_named_worst(gp_dir):
 
 
 def test_breakdown_factors_present_and_constant_skipped(gp_dir):
-    res, arr = compare([gp_dir], make(2))
+    res, arr = compare_json([gp_dir], make(2))
     assert set(res["breakdown"]) == {"region", "speed", "payload", "temperature", "time", "configuration"}
     assert [c["cell"] for c in res["breakdown"]["speed"]] == ["100 mm/s", "250 mm/s", "500 mm/s"]
     assert {c["cell"] for c in res["breakdown"]["configuration"]} == {"q3+,q5+", "q3+,q5-", "q3-,q5+", "q3-,q5-"}
     for cells in res["breakdown"].values():
         assert sum(c["n"] for c in cells) == 300
-    res2, _ = compare([gp_dir], make(2, payload=5.0))
+    res2, _ = compare_json([gp_dir], make(2, payload=5.0))
     assert "payload" not in res2["breakdown"]
 
 
 def test_failure_fraction_consistent_vs_missed_offset(gp_dir, flat_dir):
-    res, arr = compare([gp_dir], make(4))
+    res, arr = compare_json([gp_dir], make(4))
     f = res["failures"]
     assert f["expected_fraction_if_consistent"] == pytest.approx(EXPECTED_ANY_AXIS)
     assert all(v <= 0.10 for v in f["per_axis"].values()), f["per_axis"]  # 5 % per axis expected
@@ -131,7 +137,7 @@ def test_failure_fraction_consistent_vs_missed_offset(gp_dir, flat_dir):
     assert f["count"] == len(fail_rows) and f["rows"] == fail_rows[:50].tolist()
     assert f["lines"] == (fail_rows[:50] + 2).tolist()  # file lines of the failing rows
     # the same data with an offset the model never saw: nearly every row fails
-    off, _ = compare([gp_dir, flat_dir], make(4, extra=lambda P: np.tile([0, 0, 0.4e-3], (len(P), 1))),
+    off, _ = compare_json([gp_dir, flat_dir], make(4, extra=lambda P: np.tile([0, 0, 0.4e-3], (len(P), 1))),
                      names=["gp", "flat"])
     assert off["models"][1]["failures"]["fraction"] > 0.9  # the gp model
     assert off["models"][1]["failures"]["per_axis"]["z"] > 0.9
@@ -139,16 +145,17 @@ def test_failure_fraction_consistent_vs_missed_offset(gp_dir, flat_dir):
 
 
 def test_without_u_the_models_noise_is_used_and_said(gp_dir):
-    res, _ = compare([gp_dir], make(4, u=False))
+    res, _ = compare_json([gp_dir], make(4, u=False))
     assert res["noise_floor_mm"] is None
     assert "not in the dataset" in res["t_test"]["u_meas_source"]
     assert res["failures"]["fraction"] <= 0.25
-    only_asis, _ = compare([], make(4, u=False))
+    only_asis, _ = compare_json([], make(4, u=False))
     assert only_asis["failures"] is None and only_asis["primary"] == AS_IS
 
 
 def test_report_written(gp_dir, flat_dir, tmp_path):
-    res, arr = compare([flat_dir, gp_dir], make(3, extra=lambda P: np.where(P[:, :1] > X_INJECT, [1e-3, 0, 0], 0.0)))
+    ds = make(3, extra=lambda P: np.where(P[:, :1] > X_INJECT, [1e-3, 0, 0], 0.0))
+    res, arr = compare_json([flat_dir, gp_dir], ds)
     path = write_compare_report(res, arr, tmp_path / "rep")
     html = path.read_text(encoding="utf-8")
     assert path.name == "report.html"

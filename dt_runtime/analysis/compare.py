@@ -7,31 +7,31 @@ the residual broken down by factor (workspace region, speed, payload, temperatur
 configuration), so a user sees where a model fails and which factor the failure follows.
 
     result, arrays = compare(["models/v1", "models/v2"], read_table("held_out.csv"))
-    compare_report.write_compare_report(result, arrays, "out/")
+    compare_report.write_compare_report(result.to_dict(), arrays, "out/")
 
-`result` is JSON-ready (mm); the primary model (the last one given) is also at the top level,
-so `n`, `rmse_mm`, `mae_mm`, `max_mm`, `per_axis`, `failures` are top-level keys (DESIGN.md).
-`arrays` holds the SI arrays the report plots.
+`result` is a `CompareResult` (dt_runtime.analysis.results); its `to_dict()` is the JSON object
+(mm), where the primary model (the last one given) is also at the top level, so `n`, `rmse_mm`,
+`mae_mm`, `max_mm`, `per_axis`, `failures` are top-level keys (DESIGN.md). `arrays` holds the
+SI arrays the report plots.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
-from dt_runtime.common.jsonsafe import jsonable
-from dt_kernel.units import AXES, MM_PER_M
-from dt_runtime.models import effects as fx
-from dt_runtime.analysis.data import groups_of
-from dt_runtime.measurements.dataset import Dataset, read_table
-from dt_runtime.analysis.diagnose import cross_validate, folds_of, noise_floor
 from dt_kernel.errors import DataError, ModelError
-from dt_runtime.models.hybrid import HybridModel
+from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
+from dt_runtime.analysis.data import noise_floor
+from dt_runtime.analysis.results import CompareResult, ModelScore
 from dt_runtime.common.progress import Progress
+from dt_runtime.measurements.dataset import Dataset, read_table
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
+from dt_runtime.models.hybrid import HybridModel
 
 AS_IS = "as is"
 P95 = 0.95
@@ -245,34 +245,30 @@ def worst_cells(bd: dict, overall_mm: float, k: int = N_WORST, min_n: int = MIN_
 
 # --------------------------------------------------------------------------- the comparison
 
-
-
-def _block(name, kind, pred, std, ds, cells, um, dm, dof_model, extra=None):
+def _score(name, kind, description, pred, std, ds, cells, um, dm, dof_model, model=None):
+    """One column: its ModelScore and the SI arrays the report plots."""
     r = ds.error - pred
-    b = {"name": name, "kind": kind, "n": ds.n, **metrics(r)}
+    m = metrics(r)
     arr = {"name": name, "predicted": pred, "std": std, "residual": r, "t": None, "fail": None, "t_crit": None}
+    fails = None
     if um is not None:
-        b["failures"], tt, fail = failures(ds.error, pred, std, dof_model, um, dm, ds.lines)
+        fails, tt, fail = failures(ds.error, pred, std, dof_model, um, dm, ds.lines)
         arr.update(t=tt.t, fail=fail, t_crit=tt.t_crit)
-    else:
-        b["failures"] = None
-    b["breakdown"] = breakdown(r, cells)
-    b["worst_cells"] = worst_cells(b["breakdown"], b["rmse_mm"])
-    return b | (extra or {}), arr
+    bd = breakdown(r, cells)
+    return ModelScore(name, kind, ds.n, m, fails, bd, worst_cells(bd, m["rmse_mm"]), description, model), arr
 
 
 def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np.ndarray):
     """Held-out prediction and std of every row by the model's configuration (effects, GP inputs,
     robot, GP options) refitted on the other folds, with the saved model's GP hyperparameters."""
     thetas = m.gp_.thetas_ if m.gp_ is not None else None
-    cv = cross_validate(m.effects, fx.Inputs.of(ds), ds.error, groups, m.chain, m.gp_inputs, folds,
-                        m.seed, m.gp_kw, thetas=thetas, return_std=True)
+    cv = cross_validate(m, ds, ds.error, groups, folds, thetas=thetas, return_std=True)
     return ds.error - cv.residual, cv.std
 
 
 def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str] | None = None,
             noise_floor_m: float | None = None, cv_folds: int = 0, seed: int = 0,
-            progress: Progress | None = None) -> tuple[dict, dict]:
+            progress: Progress | None = None) -> tuple[CompareResult, dict]:
     """Compare models (HybridModel instances or model directories, oldest first) with the
     measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
 
@@ -280,8 +276,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     sidecar); default: 3D RMS of the dataset's ux..uz, if stated.
     cv_folds: 0 compares the models as saved (use data they were not trained on); K > 1 predicts
     every row by each model's configuration refitted on the other K-1 folds, grouped by target
-    point (`dt_runtime.diagnose.cross_validate`): held-out figures from the training file itself.
-    Returns (result: JSON-ready dict in mm, arrays: SI arrays for the report)."""
+    point (`dt_runtime.analysis.crossval.cross_validate`): held-out figures from the training file.
+    Returns (result, arrays: SI arrays for the report); `result.to_dict()` is the JSON (mm)."""
     ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
     if ds.n == 0:
         raise DataError(f"{ds.source}: no data rows to compare with")
@@ -289,10 +285,9 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     um, dm, u_source = _u_meas(ds, fitted)
     cells = factor_cells(ds)
     zeros = np.zeros((ds.n, 3))
-    blocks, arrs = [], []
-    b, a = _block(AS_IS, "as is", zeros, zeros, ds, cells, um, dm, np.full(3, INF),
-                  {"description": "no correction: e_hat = 0"})
-    blocks.append(b), arrs.append(a)
+    scores, arrs = [], []
+    b, a = _score(AS_IS, "as is", "no correction: e_hat = 0", zeros, zeros, ds, cells, um, dm, np.full(3, INF))
+    scores.append(b), arrs.append(a)
     if cv_folds > 1:
         groups = groups_of(ds)
         folds = folds_of(groups, cv_folds, seed)
@@ -304,30 +299,26 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             raise DataError(f"model '{name}' was trained on TCP and speed; {ds.source} has no speed column")
         try:
             pred, std = (_predict_cv(m, ds, folds, groups) if cv_folds > 1
-                         else m.predict_dataset(ds, return_std=True))
+                         else m.predict(ds, return_std=True))
         except (DataError, ModelError) as exc:
             raise type(exc)(f"model '{name}' cannot predict the rows of {ds.source}: {exc}") from exc
-        extra = {"description": describe(m), "effects": list(m.effects), "gp_inputs": m.gp_inputs,
+        about = {"effects": list(m.effects), "gp_inputs": m.gp_inputs,
                  "effect_residual_rms_mm": float(m.residual_rms_) * MM_PER_M, "parameters": m.parameters()}
-        b, a = _block(name, "model", pred, std, ds, cells, um, dm, _model_dof(m), extra)
-        blocks.append(b), arrs.append(a)
+        b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about)
+        scores.append(b), arrs.append(a)
     floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)
-    primary = blocks[-1]
-    result = {**{k: v for k, v in primary.items() if k not in ("name", "kind")},
-              "primary": primary["name"], "dataset": ds.source,
-              "noise_floor_mm": floor * MM_PER_M if floor is not None else None,
-              "heldout": ({"method": f"{len(folds)}-fold cross-validation grouped by target point: each row "
-                                     "predicted by the model's configuration refitted without its point",
-                           "folds": len(folds)} if cv_folds > 1 else None),
-              "t_test": {"equation": "Eq. 17: t = (e - e_hat) / sqrt(u_meas^2 + u_model^2) per axis, "
-                                     "two-sided 95 %, dof by Welch-Satterthwaite",
-                         "u_model": "latent GP standard deviation of the prediction; 0 without a GP (the "
-                                    "effect parameters' uncertainty is not propagated)",
-                         "u_meas_source": u_source},
-              "factors": {f: names_ for f, (_, names_) in cells.items()},
-              "models": blocks,
-              "units": "mm; e = commanded - measured (Eq. 8); residual r = e - e_hat"}
+    result = CompareResult(
+        scores, ds.source, floor * MM_PER_M if floor is not None else None,
+        heldout=({"method": f"{len(folds)}-fold cross-validation grouped by target point: each row "
+                            "predicted by the model's configuration refitted without its point",
+                  "folds": len(folds)} if cv_folds > 1 else None),
+        t_test={"equation": "Eq. 17: t = (e - e_hat) / sqrt(u_meas^2 + u_model^2) per axis, "
+                            "two-sided 95 %, dof by Welch-Satterthwaite",
+                "u_model": "latent GP standard deviation of the prediction; 0 without a GP (the "
+                           "effect parameters' uncertainty is not propagated)",
+                "u_meas_source": u_source},
+        factors={f: names_ for f, (_, names_) in cells.items()})
     arrays = {"commanded": ds.commanded, "error": ds.error, "u": ds.u, "u_meas": um,
               "speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature, "t": ds.t,
               "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs}
-    return jsonable(result), arrays
+    return result, arrays

@@ -24,26 +24,29 @@ sampling (deterministic, so every output of a MultiOutputGP shares them). Hyperp
 then (and whenever there are more than `n_hyper` distinct inputs) learned by the exact collapsed
 marginal likelihood of a seeded random subset of `n_hyper` distinct inputs with their replicates.
 
-Follows scikit-learn's estimator contract (no sklearn import: get_params/set_params are local);
+Follows scikit-learn's estimator contract (no sklearn import: get_params/set_params come from
+`dt_runtime.models.estimator`);
 the per-command path is `MultiOutputGP.predictor()`, a `FastPredictor` of plain numpy arrays.
 Returned standard deviations are those of the latent error map f (the model's uncertainty);
 the replication noise variance is `noise_var_`.
 """
 from __future__ import annotations
 
-import inspect
 import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy import linalg, optimize
-from scipy.linalg import lapack
-from scipy.spatial.distance import cdist
 
 from dt_kernel.errors import DataError, ModelError
+from dt_runtime.models.estimator import Params
+from dt_runtime.models.gp_math import collapse, collapsed_nll, farthest_points, inv_from_chol, se_kernel, sq_dists
+from dt_runtime.models.gp_predictor import FastPredictor
+
+__all__ = ["FORMAT_VERSION", "FastPredictor", "GPOptions", "GPRegressor", "MultiOutputGP", "collapsed_nll"]
 
 FORMAT_VERSION = 2
-LOG2PI = float(np.log(2 * np.pi))
 _KIND = "cobot-dt MultiOutputGP"
 
 
@@ -70,106 +73,8 @@ def _names(obj) -> list[str] | None:
     return [str(c) for c in cols] if cols is not None else None
 
 
-def _inv_from_chol(L: np.ndarray) -> np.ndarray:
-    """K^-1 from its lower Cholesky factor (LAPACK potri), symmetrised."""
-    Kinv, info = lapack.dpotri(L, lower=1)
-    if info != 0:
-        raise linalg.LinAlgError(f"potri failed ({info})")
-    Kinv = np.tril(Kinv)
-    return Kinv + np.tril(Kinv, -1).T
-
-
-def _collapse(X: np.ndarray, y: np.ndarray):
-    """Distinct rows of X, replicate counts, mean targets and per-group sums of squares."""
-    U, inv, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    ybar = np.bincount(inv, weights=y, minlength=len(U)) / counts
-    ss = np.bincount(inv, weights=(y - ybar[inv]) ** 2, minlength=len(U))
-    return U, counts.astype(float), ybar, ss
-
-
-def _farthest_points(U: np.ndarray, m: int) -> np.ndarray:
-    """Indices of m rows of U by farthest-point sampling, started at the row nearest the centroid."""
-    m = min(m, len(U))
-    idx = np.empty(m, dtype=np.intp)
-    idx[0] = int(np.argmin(((U - U.mean(0)) ** 2).sum(1)))
-    dmin = ((U - U[idx[0]]) ** 2).sum(1)
-    for j in range(1, m):
-        idx[j] = int(np.argmax(dmin))
-        np.minimum(dmin, ((U - U[idx[j]]) ** 2).sum(1), out=dmin)
-    return idx
-
-
-def _se(A: np.ndarray, B: np.ndarray, ell: np.ndarray, sf2: float) -> np.ndarray:
-    return sf2 * np.exp(-0.5 * cdist(A / ell, B / ell, "sqeuclidean"))
-
-
-class _Params:
-    """Minimal scikit-learn get_params/set_params (parameters are the keyword-only __init__ args)."""
-
-    @classmethod
-    def _param_names(cls):
-        sig = inspect.signature(cls.__init__)
-        return [p for p in sig.parameters if p != "self"]
-
-    def get_params(self, deep: bool = True) -> dict:
-        return {k: getattr(self, k) for k in self._param_names()}
-
-    def set_params(self, **params):
-        for k, v in params.items():
-            if k not in self._param_names():
-                raise ValueError(f"invalid parameter {k!r} for {type(self).__name__}")
-            setattr(self, k, v)
-        return self
-
-    def __repr__(self):
-        return f"{type(self).__name__}({', '.join(f'{k}={v!r}' for k, v in self.get_params().items())})"
-
-
-# --- likelihood ------------------------------------------------------------------------------
-def collapsed_nll(theta: np.ndarray, D2: np.ndarray, counts: np.ndarray, ybar: np.ndarray,
-                  ss: float, N: int, want_grad: bool = True):
-    """Negative exact log marginal likelihood of all N rows from the collapsed statistics.
-
-    theta = [log l_1..log l_d, log s_f^2, log s_n^2] (standardised units); D2 (d, U, U) holds the
-    per-dimension squared distances of the distinct inputs. Returns (nll, grad, beta)."""
-    d = D2.shape[0]
-    inv_ell2 = np.exp(-2 * theta[:d])
-    sf2, sn2 = np.exp(theta[d]), np.exp(theta[d + 1])
-    U = len(ybar)
-    E = np.exp(-0.5 * np.tensordot(inv_ell2, D2, axes=1))
-    K = sf2 * E
-    K[np.diag_indices(U)] += sn2 / counts
-    try:
-        L = linalg.cholesky(K, lower=True, check_finite=False)
-    except (linalg.LinAlgError, ValueError):
-        return 1e25, np.zeros_like(theta), 0.0
-    one = np.ones(U)
-    Ki1 = linalg.cho_solve((L, True), one, check_finite=False)
-    beta = float(Ki1 @ ybar / (Ki1 @ one))  # GLS constant mean
-    r = ybar - beta
-    alpha = linalg.cho_solve((L, True), r, check_finite=False)
-    nll = 0.5 * r @ alpha + np.log(np.diag(L)).sum() + 0.5 * U * LOG2PI
-    # Within-replicate part (module docstring).
-    nll += 0.5 * (N - U) * (LOG2PI + np.log(sn2)) + 0.5 * np.log(counts).sum() + ss / (2 * sn2)
-    if not want_grad:
-        return float(nll), None, beta
-    W = np.outer(alpha, alpha) - _inv_from_chol(L)  # d lml / dK
-    WK = W * K
-    WE = WK - np.diag(np.diag(W) * sn2 / counts)  # W o (s_f^2 E)
-    g = np.empty_like(theta)
-    g[:d] = -0.5 * np.tensordot(D2, WE, axes=([1, 2], [0, 1])) * inv_ell2
-    g[d] = -0.5 * WE.sum()
-    g[d + 1] = -0.5 * sn2 * np.sum(np.diag(W) / counts) + 0.5 * (N - U) - ss / (2 * sn2)
-    return float(nll), g, beta
-
-
-def _d2(U: np.ndarray) -> np.ndarray:
-    return np.stack([(U[:, k, None] - U[None, :, k]) ** 2 for k in range(U.shape[1])])
-
-
 # --- single output ---------------------------------------------------------------------------
-class GPRegressor(_Params):
+class GPRegressor(Params):
     """One output. Inputs and output are standardised internally; the learned attributes are in
     input/output units: `length_scales_` (input units), `signal_var_`, `noise_var_` (output
     units squared), `mean_` (constant mean, output units), `log_marginal_likelihood_`.
@@ -194,7 +99,7 @@ class GPRegressor(_Params):
         self.n_hyper = n_hyper
 
     # --- fit ----------------------------------------------------------------------------
-    def fit(self, X, y, theta=None) -> "GPRegressor":
+    def fit(self, X, y, theta=None) -> GPRegressor:
         """Learn hyperparameters and the posterior. With `theta` (the standardised log-
         parameters, see `theta_`) the hyperparameters are kept and only the posterior is built."""
         X = _as_2d(X, "GPRegressor.fit X")
@@ -216,7 +121,7 @@ class GPRegressor(_Params):
         self.x_scale_[self.x_scale_ == 0] = 1.0
         self.y_mean_ = float(y.mean())
         self.y_scale_ = float(y.std()) or 1.0
-        Uraw, counts, ybar, ss = _collapse(X, (y - self.y_mean_) / self.y_scale_)
+        Uraw, counts, ybar, ss = collapse(X, (y - self.y_mean_) / self.y_scale_)
         U = (Uraw - self.x_mean_) / self.x_scale_
         self.n_unique_ = len(U)
         # Hyperparameters: exact collapsed likelihood, on a seeded subset if there are many inputs.
@@ -224,7 +129,7 @@ class GPRegressor(_Params):
         if len(U) > self.n_hyper:
             sub = np.sort(np.random.default_rng(self.seed).choice(len(U), self.n_hyper, replace=False))
         Ns = int(counts[sub].sum())
-        stats = (_d2(U[sub]), counts[sub], ybar[sub], float(ss[sub].sum()), Ns)
+        stats = (sq_dists(U[sub]), counts[sub], ybar[sub], float(ss[sub].sum()), Ns)
         if theta is None:
             theta = self._optimise(stats, d)
         theta = np.asarray(theta, dtype=float)
@@ -274,7 +179,7 @@ class GPRegressor(_Params):
         (standardised log-parameters; default the learned ones), optionally with its gradient."""
         self._check_fitted()
         theta = self.theta_ if theta is None else np.asarray(theta, dtype=float)
-        nll, g, _ = collapsed_nll(theta, _d2(self._U), self._counts, self._ybar, float(self._ss.sum()),
+        nll, g, _ = collapsed_nll(theta, sq_dists(self._U), self._counts, self._ybar, float(self._ss.sum()),
                                   self.n_train_, want_grad=eval_gradient)
         return (-nll, -g) if eval_gradient else -nll
 
@@ -284,22 +189,22 @@ class GPRegressor(_Params):
         sf2, sn2 = float(np.exp(self.theta_[d])), float(np.exp(self.theta_[d + 1]))
         U, counts, r = self._U, self._counts, self._ybar - self._beta
         if not self.sparse_:
-            K = _se(U, U, ell, sf2)
+            K = se_kernel(U, U, ell, sf2)
             K[np.diag_indices(len(U))] += sn2 / counts
             L = linalg.cholesky(K, lower=True)
             self._Xb = U
             self._alpha = linalg.cho_solve((L, True), r)
-            self._Q = _inv_from_chol(L)  # var = s_f^2 - k^T K^-1 k
+            self._Q = inv_from_chol(L)  # var = s_f^2 - k^T K^-1 k
             return
         # VFE/DTC posterior: Sigma = (Kzz + Kzu Lam Kuz)^-1, Lam = n_i / s_n^2;
         # mean = k_z^T Sigma Kzu Lam r;  var = s_f^2 - k_z^T (Kzz^-1 - Sigma) k_z.
-        Z = U[_farthest_points(U, self.n_inducing)]
+        Z = U[farthest_points(U, self.n_inducing)]
         M = len(Z)
-        Kzz = _se(Z, Z, ell, sf2)
+        Kzz = se_kernel(Z, Z, ell, sf2)
         Kzz[np.diag_indices(M)] += 1e-8 * sf2
         Lz = linalg.cholesky(Kzz, lower=True)
         sl = np.sqrt(counts / sn2)
-        V = linalg.solve_triangular(Lz, _se(Z, U, ell, sf2), lower=True) * sl  # Lz^-1 Kzu Lam^1/2
+        V = linalg.solve_triangular(Lz, se_kernel(Z, U, ell, sf2), lower=True) * sl  # Lz^-1 Kzu Lam^1/2
         B = V @ V.T
         B[np.diag_indices(M)] += 1.0
         LB = linalg.cholesky(B, lower=True)
@@ -307,7 +212,7 @@ class GPRegressor(_Params):
         self._Xb = Z
         self._alpha = linalg.solve_triangular(Lz, c, lower=True, trans="T")
         Lzi = linalg.solve_triangular(Lz, np.eye(M), lower=True)
-        Mid = np.eye(M) - _inv_from_chol(LB)
+        Mid = np.eye(M) - inv_from_chol(LB)
         self._Q = Lzi.T @ Mid @ Lzi
         self._Q = 0.5 * (self._Q + self._Q.T)
 
@@ -324,7 +229,7 @@ class GPRegressor(_Params):
             raise DataError(f"GPRegressor.predict X: expected {self.n_features_in_} columns, got {X.shape[1]}")
         d = self.n_features_in_
         ell, sf2 = np.exp(self.theta_[:d]), float(np.exp(self.theta_[d]))
-        k = _se((X - self.x_mean_) / self.x_scale_, self._Xb, ell, sf2)
+        k = se_kernel((X - self.x_mean_) / self.x_scale_, self._Xb, ell, sf2)
         mean = self.mean_ + self.y_scale_ * (k @ self._alpha)
         if not return_std:
             return mean
@@ -351,7 +256,7 @@ class GPRegressor(_Params):
         return meta, {k.strip("_"): getattr(self, k) for k in self._ARR}
 
     @classmethod
-    def _from_state(cls, meta: dict, arrays: dict) -> "GPRegressor":
+    def _from_state(cls, meta: dict, arrays: dict) -> GPRegressor:
         g = cls(**meta["params"])
         for k in cls._META:
             setattr(g, k, meta[k.lstrip("_")])
@@ -360,55 +265,35 @@ class GPRegressor(_Params):
         return g
 
 
-# --- lean per-command predictor --------------------------------------------------------------
-class FastPredictor:
-    """Mean (k,) and latent std (k,) of every output at one input x (d,), from precomputed numpy
-    arrays only. When all outputs share training inputs and scaling (always so for a
-    MultiOutputGP), the k outputs are evaluated together: one distance matrix, one stacked
-    matrix-vector product for the variances."""
-
-    def __init__(self, models: list[GPRegressor]):
-        g0 = models[0]
-        self.d = g0.n_features_in_
-        self.k = len(models)
-        self.shared = all(np.array_equal(g._Xb, g0._Xb) and np.array_equal(g.x_mean_, g0.x_mean_)
-                          and np.array_equal(g.x_scale_, g0.x_scale_) for g in models)
-        self._xm, self._xs = g0.x_mean_.copy(), g0.x_scale_.copy()
-        d = self.d
-        self._neg_half_inv_ell2 = np.column_stack([-0.5 * np.exp(-2 * g.theta_[:d]) for g in models])  # (d,k)
-        self._sf2 = np.array([np.exp(g.theta_[d]) for g in models])
-        self._m0 = np.array([g.mean_ for g in models])
-        self._ys = np.array([g.y_scale_ for g in models])
-        if self.shared:
-            self._Xb = np.ascontiguousarray(g0._Xb)
-            self._alpha = np.column_stack([g._alpha for g in models])  # (U,k)
-            self._Q = np.stack([g._Q for g in models])  # (k,U,U)
-        else:
-            self._per = [(g.x_mean_, g.x_scale_, g._Xb, g._alpha, g._Q) for g in models]
-
-    def __call__(self, x) -> tuple[np.ndarray, np.ndarray]:
-        x = np.asarray(x, dtype=float)
-        if x.shape != (self.d,) or not np.isfinite(x).all():
-            raise DataError(f"FastPredictor: x must be {self.d} finite numbers, got shape {x.shape}: {x}")
-        if self.shared:
-            diff = self._Xb - (x - self._xm) / self._xs
-            K = self._sf2 * np.exp((diff * diff) @ self._neg_half_inv_ell2)  # (U,k)
-            mean = self._m0 + self._ys * np.einsum("uk,uk->k", K, self._alpha)
-            Kt = K.T
-            var = self._sf2 - np.einsum("ku,ku->k", Kt, np.matmul(self._Q, Kt[:, :, None])[:, :, 0])
-            return mean, self._ys * np.sqrt(np.maximum(var, 0.0))
-        mean, std = np.empty(self.k), np.empty(self.k)
-        for j, (xm, xs, Xb, alpha, Q) in enumerate(self._per):
-            diff = Xb - (x - xm) / xs
-            kv = self._sf2[j] * np.exp((diff * diff) @ self._neg_half_inv_ell2[:, j])
-            mean[j] = self._m0[j] + self._ys[j] * (kv @ alpha)
-            var = self._sf2[j] - kv @ (Q @ kv)
-            std[j] = self._ys[j] * np.sqrt(max(var, 0.0))
-        return mean, std
-
 
 # --- several outputs -------------------------------------------------------------------------
-class MultiOutputGP(_Params):
+@dataclass(frozen=True)
+class GPOptions:
+    """The GP's fitting options (GPRegressor's documents each), as one typed, immutable value
+    the hybrid model carries and saves; the defaults are MultiOutputGP's."""
+
+    noise_floor: float = 1e-10
+    n_restarts: int = 1
+    max_iter: int = 200
+    sparse_threshold: int = 3000
+    n_inducing: int = 600
+    n_hyper: int = 1000
+    min_length_scale: float = 0.1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> GPOptions:
+        """From a saved dict (every option, or only the overridden ones: the older `gp_kw`)."""
+        d = dict(d or {})
+        unknown = sorted(set(d) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ModelError(f"unknown GP option(s) {', '.join(unknown)}; known: {', '.join(cls.__dataclass_fields__)}")
+        return cls(**d)
+
+
+class MultiOutputGP(Params):
     """One GPRegressor per output column (the paper: one model per axis).
 
     `input_units`/`output_units` are recorded in the saved model (SI inside the code)."""
@@ -430,10 +315,9 @@ class MultiOutputGP(_Params):
         self.input_units = input_units
         self.output_units = output_units
 
-    _GP_PARAMS = ("noise_floor", "n_restarts", "max_iter", "sparse_threshold", "n_inducing", "n_hyper",
-                  "min_length_scale")
+    _GP_PARAMS = tuple(GPOptions.__dataclass_fields__)  # the options GPRegressor takes
 
-    def fit(self, X, Y, *, input_names=None, output_names=None, thetas=None) -> "MultiOutputGP":
+    def fit(self, X, Y, *, input_names=None, output_names=None, thetas=None) -> MultiOutputGP:
         in_names = input_names or _names(X) or self.input_names
         out_names = output_names or _names(Y) or self.output_names
         X = _as_2d(X, "MultiOutputGP.fit X")
@@ -500,7 +384,7 @@ class MultiOutputGP(_Params):
             raise ModelError(f"{stem}: cannot write GP model ({exc})") from exc
 
     @classmethod
-    def load(cls, stem) -> "MultiOutputGP":
+    def load(cls, stem) -> MultiOutputGP:
         stem = Path(stem)
         jpath, npath = stem.with_suffix(".json"), stem.with_suffix(".npz")
         try:

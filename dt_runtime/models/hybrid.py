@@ -1,27 +1,53 @@
 """Hybrid error model: error = sum of physical effect terms + GP on what is left.
 
-The effect parameters (dt_runtime.effects) are estimated jointly by ridge-regularised least
-squares on standardised columns (the complete geometric set is rank deficient on purpose), with
-their standard uncertainties from the residual scatter. A GP (dt_runtime.gp) then models the
-residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed), 'tcp',
-'joints', or 'none'. Follows scikit-learn's estimator contract.
+The effect parameters (dt_runtime.models.effects) are estimated jointly by ridge-regularised
+least squares on standardised columns (the complete geometric set is rank deficient on purpose),
+with their standard uncertainties from the residual scatter. A GP (dt_runtime.models.gp) then
+models the residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed),
+'tcp', 'joints', or 'none'.
+
+Follows scikit-learn's estimator contract: `__init__` only stores its arguments, `fit` validates
+them and returns self, learned attributes end in `_`, `get_params`/`set_params` work, so
+`sklearn.base.clone` does.
+
+    model = HybridModel(effects=("geometric", "backlash"), robot="robots/cobot_hc20_like.yaml")
+    model.fit(dataset)                      # y defaults to dataset.error (rows in time order)
+    e_hat, u = model.predict(dataset, return_std=True)
 """
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from dt_runtime.models import effects as fx
-from dt_kernel.errors import DataError
-from dt_runtime.models.gp import MultiOutputGP
-from dt_runtime.frames.kinematics import Chain, load_robot
-from dt_runtime.models.modelio import read_meta
+from dt_kernel.errors import DataError, ModelError
 from dt_runtime.common.paths import CONFIGS
+from dt_runtime.frames.kinematics import Chain, load_robot
+from dt_runtime.models import effects as fx
+from dt_runtime.models.estimator import Params
+from dt_runtime.models.gp import GPOptions, MultiOutputGP
+from dt_runtime.models.modelio import read_meta
 
 FORMAT_VERSION = 1
 GP_INPUTS = ("tcp_speed", "tcp", "joints", "none")
+DEFAULT_RIDGE = 1e-4
+
+
+def as_inputs(X) -> fx.Inputs:
+    """The effect terms' inputs of X: an `effects.Inputs`, a measurement `Dataset`, or an
+    (n, 3) array of commanded TCP positions (m)."""
+    if isinstance(X, fx.Inputs):
+        return X
+    if hasattr(X, "commanded"):
+        return fx.Inputs.of(X)
+    P = np.asarray(X, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise DataError(f"X must be a Dataset, effects.Inputs or an (n, 3) array of commanded TCP "
+                        f"positions, got shape {P.shape}")
+    return fx.Inputs(commanded=P)
 
 
 def gp_features(inp: fx.Inputs, kind: str) -> np.ndarray | None:
@@ -49,75 +75,101 @@ def robot_ref(path: str | Path | None) -> str | None:
         return str(p)
 
 
-def load_chain(ref: str | None) -> Chain | None:
-    if ref is None:
-        return None
+@lru_cache(maxsize=8)
+def load_chain(ref: str) -> Chain:
+    """The kinematic chain of a robot config reference (robot_ref), parsed once per process."""
     p = Path(ref)
     return load_robot(p if p.is_absolute() else CONFIGS / p)
 
 
-class HybridModel:
+def resolve_chain(robot: str | Path | Chain | None) -> Chain | None:
+    """The kinematic chain a model's `robot` parameter gives: a config path or a Chain."""
+    if robot is None or isinstance(robot, Chain):
+        return robot
+    return load_chain(robot_ref(robot))
+
+
+@dataclass(frozen=True)
+class Design:
+    """The effect terms' regressors on some rows: A (n, 3, p) with e = A theta, and each
+    parameter's (effect, name, unit, report) ('inverse': reported as 1/x, e.g. stiffness)."""
+
+    A: np.ndarray
+    params: tuple[tuple[str, str, str, str], ...]
+
+    def rows(self, mask) -> Design:
+        return Design(self.A[mask], self.params)
+
+
+class HybridModel(Params):
     """error = sum of effect terms (dt_runtime.models.effects) + GP on what is left.
 
-    effects: names from effects.EFFECT_NAMES; gp_inputs: one of GP_INPUTS; robot: path of a
-    robot config (configs/robots/*.yaml) giving the kinematic model the joint-space effects
-    need; gp_kw: MultiOutputGP options (e.g. sparse_threshold, n_inducing).
+    effects: effect names (`effects.names()`); gp_inputs: one of GP_INPUTS; ridge: penalty on
+    the standardised effect parameters; seed: the GP's optimiser starts; robot: path of a robot
+    config (configs/robots/*.yaml) or a `Chain`, the kinematic model the joint-space effects
+    need; gp_options: `GPOptions` (default: MultiOutputGP's defaults).
     """
 
-    def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
-                 ridge: float = 1e-4, seed: int = 0, robot: str | Path | None = None,
-                 gp_kw: dict | None = None):
-        unknown = [e for e in effects if e not in fx.EFFECT_NAMES]
-        if unknown:
-            raise DataError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECT_NAMES)}")
-        if gp_inputs not in GP_INPUTS:
-            raise DataError(f"unknown GP inputs '{gp_inputs}'; allowed: {', '.join(GP_INPUTS)}")
-        self.effects = tuple(effects)
+    def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", ridge: float = DEFAULT_RIDGE,
+                 seed: int = 0, robot: str | Path | Chain | None = None, gp_options: GPOptions | None = None):
+        self.effects = effects
         self.gp_inputs = gp_inputs
         self.ridge = ridge
         self.seed = seed
-        self.robot = robot_ref(robot)
-        self.gp_kw = dict(gp_kw or {})
+        self.robot = robot
+        self.gp_options = gp_options
 
-    @property
-    def chain(self) -> Chain | None:
-        if not hasattr(self, "_chain"):
-            self._chain = load_chain(self.robot)
-        return self._chain
+    def clone(self, **changes) -> HybridModel:
+        """An unfitted model with this one's parameters, `changes` applied."""
+        return type(self)(**(self.get_params() | changes))
 
-    # --- on a measurement table ---------------------------------------------------------------
-    def fit_dataset(self, ds, thetas=None) -> "HybridModel":
-        """Fit on a `Dataset` (rows in time order: backlash and dynamic read the previous row)."""
-        return self.fit(fx.Inputs.of(ds), ds.error, self.chain, thetas=thetas)
-
-    def predict_dataset(self, ds, return_std: bool = False):
-        return self.predict(fx.Inputs.of(ds), self.chain, return_std=return_std)
+    def _check_params(self) -> GPOptions:
+        fx.check_names(self.effects)
+        if self.gp_inputs not in GP_INPUTS:
+            raise DataError(f"unknown GP inputs '{self.gp_inputs}'; allowed: {', '.join(GP_INPUTS)}")
+        if self.gp_options is None:
+            return GPOptions()
+        if not isinstance(self.gp_options, GPOptions):
+            raise DataError(f"gp_options must be a GPOptions, got {type(self.gp_options).__name__}")
+        return self.gp_options
 
     # --- linear effect part ------------------------------------------------------------------
-    def _design(self, inp: fx.Inputs, chain: Chain | None) -> tuple[np.ndarray, list[fx.Block]]:
+    def design_matrix(self, X) -> Design:
+        """The effect terms' regressors on X (rows in time order: backlash and dynamic read the
+        previous row). Cross-validation builds it once on all rows and passes row subsets to
+        fit/predict, so held-out rows keep their true history."""
+        inp = as_inputs(X)
+        fx.check_names(self.effects)
+        chain = resolve_chain(self.robot)
         blocks = [fx.build(e, inp, chain) for e in self.effects]
         if not blocks:
-            return np.zeros((inp.n * 3, 0)), []
-        A = np.concatenate([b.A for b in blocks], axis=2)  # (n, 3, p)
-        return A.reshape(inp.n * 3, -1), blocks
+            return Design(np.zeros((inp.n, 3, 0)), ())
+        return Design(np.concatenate([b.A for b in blocks], axis=2),
+                      tuple((b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)))
 
-    def fit(self, inp: fx.Inputs, error: np.ndarray, chain: Chain | None = None,
-            thetas=None) -> "HybridModel":
-        A, blocks = self._design(inp, chain)
-        self.param_names_ = [(b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)]
-        return self.fit_design(A.reshape(inp.n, 3, -1), inp, error, thetas=thetas)
-
-    def fit_design(self, A3: np.ndarray, inp: fx.Inputs, error: np.ndarray, thetas=None) -> "HybridModel":
-        """Fit from a prebuilt regressor array A3 (n, 3, p) (cross-validation reuses it);
-        `thetas`: fixed GP hyperparameters per axis (skips their optimisation)."""
-        error = np.asarray(error, dtype=float)
+    def fit(self, X, y=None, *, design: Design | None = None, thetas=None) -> HybridModel:
+        """Fit on X (a Dataset, effects.Inputs or (n, 3) commanded TCP array); y: the error
+        e = commanded - measured (n, 3) m, default X.error for a Dataset. design: prebuilt
+        regressors (design_matrix) of these rows; thetas: fixed GP hyperparameters per axis
+        (skips their optimisation)."""
+        options = self._check_params()
+        inp = as_inputs(X)
+        if y is None:
+            if getattr(X, "error", None) is None:
+                raise DataError("HybridModel.fit: y (the error, n x 3) is required unless X is a Dataset")
+            y = X.error
+        error = np.asarray(y, dtype=float)
         if error.shape != (inp.n, 3) or not np.all(np.isfinite(error)):
             raise DataError(f"error must be a finite (n, 3) array matching {inp.n} rows")
-        A = A3.reshape(inp.n * 3, -1)
+        D = design if design is not None else self.design_matrix(inp)
+        if D.A.shape[0] != inp.n:
+            raise DataError(f"design has {D.A.shape[0]} rows, X has {inp.n}")
+        self.robot_ = None if isinstance(self.robot, Chain) else robot_ref(self.robot)
+        self.gp_options_ = options
+        self.param_names_ = list(D.params)
+        A = D.A.reshape(inp.n * 3, -1)
         y = error.ravel()
         p = A.shape[1]
-        if not hasattr(self, "param_names_"):
-            self.param_names_ = [("?", f"p{i}", "", "identity") for i in range(p)]
         if p:
             scale = np.sqrt(np.mean(A ** 2, axis=0))
             scale[scale == 0] = 1.0
@@ -130,33 +182,34 @@ class HybridModel:
             resid = y - A @ self.theta_
             dof = max(len(y) - p, 1)
             s2 = float(resid @ resid) / dof
-            cov_s = s2 * Hinv @ (As.T @ As) @ Hinv
+            cov_s = s2 * Hinv @ (As.T @ As) @ Hinv  # sandwich: covariance of the ridge estimate
             self.theta_u_ = np.sqrt(np.clip(np.diag(cov_s), 0, None)) / scale
         else:
             self.theta_ = np.zeros(0)
             self.theta_u_ = np.zeros(0)
         resid = (y - A @ self.theta_).reshape(-1, 3)
-        X = gp_features(inp, self.gp_inputs)
-        self.gp_ = (MultiOutputGP(seed=self.seed, **self.gp_kw).fit(X, resid, thetas=thetas)
-                    if X is not None else None)
+        Xg = gp_features(inp, self.gp_inputs)
+        self.gp_ = (MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=thetas)
+                    if Xg is not None else None)
         self.residual_rms_ = float(np.sqrt(np.mean(resid ** 2)))
         return self
 
-    def predict(self, inp: fx.Inputs, chain: Chain | None = None, return_std: bool = False):
-        A, _ = self._design(inp, chain)
-        return self.predict_design(A.reshape(inp.n, 3, -1), inp, return_std)
-
-    def predict_design(self, A3: np.ndarray, inp: fx.Inputs, return_std: bool = False):
-        A = A3.reshape(inp.n * 3, -1)
+    def predict(self, X, return_std: bool = False, *, design: Design | None = None):
+        """Predicted error (n, 3) m and, with return_std, the GP's latent standard deviation
+        (zero without a GP: the effect parameters' uncertainty is not propagated)."""
+        if not hasattr(self, "theta_"):
+            raise ModelError("HybridModel is not fitted; call fit(X, y) or HybridModel.load first")
+        inp = as_inputs(X)
+        A = (design if design is not None else self.design_matrix(inp)).A.reshape(inp.n * 3, -1)
         mean = (A @ self.theta_).reshape(-1, 3) if A.shape[1] else np.zeros((inp.n, 3))
         std = np.zeros((inp.n, 3))
         if self.gp_ is not None:
-            X = gp_features(inp, self.gp_inputs)
+            Xg = gp_features(inp, self.gp_inputs)
             if return_std:
-                m, s = self.gp_.predict(X, return_std=True)
+                m, s = self.gp_.predict(Xg, return_std=True)
                 mean, std = mean + m, s
             else:
-                mean = mean + self.gp_.predict(X)
+                mean = mean + self.gp_.predict(Xg)
         return (mean, std) if return_std else mean
 
     def parameters(self) -> list[dict]:
@@ -173,11 +226,16 @@ class HybridModel:
 
     # --- persistence (JSON + NPZ) -----------------------------------------------------------
     def save(self, directory: str | Path) -> Path:
+        if not hasattr(self, "theta_"):
+            raise ModelError("HybridModel is not fitted; nothing to save")
+        if isinstance(self.robot, Chain) and any(fx.get(e).needs_chain for e in self.effects):
+            raise ModelError("a model given its kinematic chain as an object cannot be saved; "
+                             "give robot as the path of a robot config")
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
         meta = {"format_version": FORMAT_VERSION, "kind": "cobot-dt hybrid error model",
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
-                "seed": self.seed, "robot": self.robot, "gp_kw": self.gp_kw,
+                "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
                 "param_names": self.param_names_, "parameters": self.parameters(),
                 "residual_rms_m": self.residual_rms_, "units": "SI; e = commanded - measured"}
         (d / "hybrid.json").write_text(json.dumps(meta, indent=2))
@@ -187,12 +245,16 @@ class HybridModel:
         return d
 
     @classmethod
-    def load(cls, directory: str | Path) -> "HybridModel":
+    def load(cls, directory: str | Path) -> HybridModel:
         d = Path(directory)
         meta = read_meta(d / "hybrid.json", FORMAT_VERSION, "model")
-        m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"])
-        m.robot, m.gp_kw = meta.get("robot"), meta.get("gp_kw", {})
+        ref = meta.get("robot")
+        # Models saved before GPOptions carry only the overridden options as "gp_kw".
+        options = GPOptions.from_dict(meta["gp_options"] if "gp_options" in meta else meta.get("gp_kw"))
+        m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"],
+                robot=None if ref is None else str(CONFIGS / ref), gp_options=options)
         arr = np.load(d / "hybrid.npz", allow_pickle=False)
+        m.robot_, m.gp_options_ = ref, options
         m.theta_, m.theta_u_ = arr["theta"], arr["theta_u"]
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
         m.residual_rms_ = meta["residual_rms_m"]

@@ -1,0 +1,138 @@
+"""Typed results of `fit`, `diagnose` and `compare`. Each `to_dict()` gives the JSON object of
+the command line (DESIGN.md contract keys), in millimetres, JSON-ready (no numpy, no NaN).
+
+    r = diagnose(...)
+    r.ranking[0].effect, r.ranking[0].p_value        # typed
+    dumps(r)                                         # the `dt diagnose --json` object
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from dt_runtime.common.jsonsafe import jsonable
+
+
+# --------------------------------------------------------------------------- fit
+@dataclass
+class FitResult:
+    """A trained and saved model: where, on what, its parameters and (with CV) held-out RMS."""
+
+    out: str
+    n: int
+    effects: list[str]
+    gp_inputs: str
+    robot: str | None
+    fit_seconds: float
+    train_rmse_mm: float
+    parameters: list[dict]  # value +/- u per effect parameter (HybridModel.parameters)
+    source: dict = field(default_factory=dict)  # the data's facts (load_data's info, without n)
+    heldout_rmse_mm: float | None = None  # with cv_folds > 1
+    as_is_rmse_mm: float | None = None
+
+    def to_dict(self) -> dict:
+        d: dict[str, Any] = {"out": self.out, "n": self.n, "effects": self.effects, "gp_inputs": self.gp_inputs,
+                             "robot": self.robot, "fit_seconds": self.fit_seconds,
+                             "train_rmse_mm": self.train_rmse_mm, "parameters": self.parameters, **self.source}
+        if self.heldout_rmse_mm is not None:
+            d |= {"heldout_rmse_mm": self.heldout_rmse_mm, "as_is_rmse_mm": self.as_is_rmse_mm}
+        return jsonable(d)
+
+
+# --------------------------------------------------------------------------- diagnose
+@dataclass
+class Gain:
+    """What one candidate change (an effect added, or the GP on other inputs) does to the
+    starting model's held-out 3D RMS, and whether it is significant (one-sided p < alpha)."""
+
+    kind: str  # "effect" or "gp_inputs": the JSON key naming the candidate
+    candidate: str
+    explained_fraction: float  # 1 - (after / before)^2: share of held-out residual variance
+    p_value: float
+    rmse_before_mm: float
+    rmse_after_mm: float
+    significant: bool
+
+    def to_dict(self) -> dict:
+        return jsonable({self.kind: self.candidate, "explained_fraction": self.explained_fraction,
+                         "p_value": self.p_value, "rmse_before_mm": self.rmse_before_mm,
+                         "rmse_after_mm": self.rmse_after_mm, "significant": self.significant})
+
+
+@dataclass
+class DiagnoseResult:
+    """Candidate effects (and GP inputs) ranked, best first, and the one-sentence verdict."""
+
+    base_effects: list[str]
+    gp_inputs: str
+    n: int
+    n_groups: int
+    folds: int
+    rmse_base_mm: float
+    noise_floor_mm: float | None
+    ranking: list[Gain]
+    gp_inputs_ranking: list[Gain]
+    not_testable: list[str]  # candidates the data's columns (or the kinematic model) do not allow
+    verdict: str
+    source: dict = field(default_factory=dict)  # the data's facts (load_data's info, without n)
+
+    @property
+    def top(self) -> Gain | None:
+        return self.ranking[0] if self.ranking else None
+
+    def to_dict(self) -> dict:
+        return jsonable({"base_effects": self.base_effects, "gp_inputs": self.gp_inputs, "n": self.n,
+                         "n_groups": self.n_groups, "folds": self.folds, "rmse_base_mm": self.rmse_base_mm,
+                         "noise_floor_mm": self.noise_floor_mm, "ranking": self.ranking,
+                         "gp_inputs_ranking": self.gp_inputs_ranking, "not_testable": self.not_testable,
+                         "verdict": self.verdict, **self.source})
+
+
+# --------------------------------------------------------------------------- compare
+@dataclass
+class ModelScore:
+    """One column of a comparison ("as is" or a model): figures of merit in mm, the Eq. 17
+    failures, the residual per factor cell and the worst cells."""
+
+    name: str
+    kind: str  # "as is" or "model"
+    n: int
+    metrics: dict  # rmse_mm, rmse_U95_mm, mae_mm, max_mm, max_row, per_axis (compare.metrics)
+    failures: dict | None  # None without any measurement uncertainty
+    breakdown: dict
+    worst_cells: list[dict]
+    description: str
+    model: dict | None = None  # effects, gp_inputs, effect_residual_rms_mm, parameters (models only)
+
+    @property
+    def rmse_mm(self) -> float:
+        return self.metrics["rmse_mm"]
+
+    def to_dict(self) -> dict:
+        return jsonable({"name": self.name, "kind": self.kind, "n": self.n, **self.metrics,
+                         "failures": self.failures, "breakdown": self.breakdown,
+                         "worst_cells": self.worst_cells, "description": self.description, **(self.model or {})})
+
+
+@dataclass
+class CompareResult:
+    """"as is" and every model, side by side; the primary model (the last) also at the top level
+    of the JSON, so `n`, `rmse_mm`, `mae_mm`, `per_axis`, `failures` are top-level keys."""
+
+    models: list[ModelScore]
+    dataset: str
+    noise_floor_mm: float | None
+    heldout: dict | None  # the CV method and folds, None for the models as saved
+    t_test: dict  # what Eq. 17 used: equation, u_model, u_meas_source
+    factors: dict[str, list[str]]  # factor -> its cells in order
+    units: str = "mm; e = commanded - measured (Eq. 8); residual r = e - e_hat"
+
+    @property
+    def primary(self) -> ModelScore:
+        return self.models[-1]
+
+    def to_dict(self) -> dict:
+        top = {k: v for k, v in self.primary.to_dict().items() if k not in ("name", "kind")}
+        return jsonable({**top, "primary": self.primary.name, "dataset": self.dataset,
+                         "noise_floor_mm": self.noise_floor_mm, "heldout": self.heldout, "t_test": self.t_test,
+                         "factors": self.factors, "models": self.models, "units": self.units})

@@ -1,0 +1,41 @@
+"""`dt fit` on loaded data: train the hybrid error model, save it, and (with CV) state its
+held-out RMS."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from dt_kernel.units import MM_PER_M
+from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
+from dt_runtime.analysis.data import Data
+from dt_runtime.analysis.results import FitResult
+from dt_runtime.common.progress import Progress
+from dt_runtime.metrology.stats import rms3
+from dt_runtime.models.gp import GPOptions
+from dt_runtime.models.hybrid import HybridModel
+
+
+def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | None, out: str | Path,
+        seed: int = 0, cv_folds: int = 0, gp_options: GPOptions | None = None,
+        progress: Progress | None = None) -> FitResult:
+    """Train and save the hybrid model; with cv_folds > 1 also its held-out RMS (grouped CV)."""
+    progress = progress or Progress(enabled=False)
+    ds = d.dataset
+    t0 = time.perf_counter()
+    model = HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options)
+    progress.note(f"fitting effects [{', '.join(effects) or 'none'}] + GP on {gp_inputs} to {ds.n} rows")
+    model.fit(ds)
+    seconds = time.perf_counter() - t0
+    model.save(out)
+    res = FitResult(str(out), ds.n, list(effects), gp_inputs, model.robot_, seconds,
+                    rms3(ds.error - model.predict(ds)) * MM_PER_M, model.parameters(),
+                    {k: v for k, v in d.info.items() if k != "n"})
+    if cv_folds > 1:
+        progress.note(f"held-out error: {cv_folds}-fold cross-validation grouped by target point")
+        g = groups_of(ds)
+        # The model's configuration with its GP hyperparameters: the folds refit the rest.
+        cv = cross_validate(model, ds, ds.error, g, folds_of(g, cv_folds, seed),
+                            thetas=model.gp_.thetas_ if model.gp_ is not None else None)
+        res.heldout_rmse_mm = rms3(cv.residual) * MM_PER_M
+        res.as_is_rmse_mm = rms3(ds.error) * MM_PER_M
+    return res

@@ -1,0 +1,98 @@
+"""What every effect term shares: the inputs it may read, the regressor block it returns, and
+the `Effect` base class that declares an effect once (name, columns, kinematic chain, the factor
+the diagnose verdict names) and checks its inputs before building.
+
+An effect builds, for every row, a 3 x p regressor block A with e = commanded - measured
+= A theta. Joint-space effects act through the TCP Jacobian J of the nominal kinematics: the
+arm reaches fk(q + dq) ~ fk(q) + J dq, so a joint deviation dq contributes e = -J dq.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import ClassVar
+
+import numpy as np
+
+from dt_kernel.errors import DataError
+from dt_runtime.frames.kinematics import Chain
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What the effect terms may use; SI units, rows in time order."""
+
+    commanded: np.ndarray  # (n,3) m
+    joints: np.ndarray | None = None  # (n,dof) rad
+    speed: np.ndarray | None = None  # (n,) m/s
+    temperature: np.ndarray | None = None  # (n,) deg C
+    payload: np.ndarray | None = None  # (n,) kg
+    t: np.ndarray | None = None  # (n,) s
+
+    @property
+    def n(self) -> int:
+        return len(self.commanded)
+
+    @classmethod
+    def of(cls, ds) -> Inputs:
+        """The columns of a `dt_runtime.measurements.dataset.Dataset` the effect terms may use."""
+        return cls(**{f.name: getattr(ds, f.name) for f in fields(cls)})
+
+    def subset(self, mask) -> Inputs:
+        return Inputs(**{f.name: (None if getattr(self, f.name) is None else getattr(self, f.name)[mask])
+                         for f in fields(self)})
+
+    def has(self, *columns: str) -> bool:
+        return all(getattr(self, c) is not None for c in columns)
+
+
+@dataclass(frozen=True)
+class Block:
+    effect: str
+    A: np.ndarray  # (n, 3, p)
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    # Reported quantity per parameter: identity, or 1/x (compliance -> stiffness).
+    report: str = "identity"
+
+
+def approach(x: np.ndarray) -> np.ndarray:
+    """Direction of approach of each row from the previous row (first row: from the second)."""
+    d = np.zeros_like(x)
+    d[1:] = x[1:] - x[:-1]
+    d[0] = d[1] if len(x) > 1 else 0.0
+    return d
+
+
+class Effect:
+    """One physical effect term. A subclass declares, once:
+
+    name: the DESIGN.md contract name (the simulator's scenario uses the same).
+    columns: the `Inputs` columns its regressors read.
+    needs_chain: whether it acts through the robot's kinematic chain (joint-space effects).
+    factor: what the residual follows when the effect is missing (the diagnose verdict).
+    and implements `regressors(inp, chain) -> Block`."""
+
+    name: ClassVar[str]
+    columns: ClassVar[tuple[str, ...]]
+    needs_chain: ClassVar[bool] = True
+    factor: ClassVar[str]
+
+    def allowed(self, inp: Inputs, chain: Chain | None) -> bool:
+        """Whether the data's columns (and the kinematic chain, if needed) allow this effect."""
+        return inp.has(*self.columns) and (chain is not None or not self.needs_chain)
+
+    def build(self, inp: Inputs, chain: Chain | None) -> Block:
+        """The regressor block, after checking that the inputs allow it."""
+        missing = [c for c in self.columns if getattr(inp, c) is None]
+        if missing:
+            raise DataError(f"effect '{self.name}' needs the column(s) {', '.join(missing)}, "
+                            f"which the data does not have")
+        if self.needs_chain and chain is None:
+            raise DataError(f"effect '{self.name}' needs the robot's kinematic model (parameter robot)")
+        return self.regressors(inp, chain)
+
+    def regressors(self, inp: Inputs, chain: Chain | None) -> Block:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"<effect {self.name}>"

@@ -1,0 +1,21 @@
+"""`drift`: slow change of the joints with time."""
+from __future__ import annotations
+
+from dt_runtime.frames.kinematics import Chain
+from dt_runtime.models.effects.base import Block, Effect, Inputs
+
+S_PER_H = 3600.0
+
+
+class Drift(Effect):
+    """Slow joint drift: dq_j = r_j t, t in hours from the first row."""
+
+    name = "drift"
+    columns = ("joints", "t")
+    factor = "the time since the start of the data"
+
+    def regressors(self, inp: Inputs, chain: Chain) -> Block:
+        J = chain.jacobian(inp.joints)
+        h = (inp.t - inp.t[0])[:, None, None] / S_PER_H
+        dof = J.shape[2]
+        return Block(self.name, -J * h, tuple(f"rate_q{j + 1}" for j in range(dof)), ("rad/h",) * dof)
