@@ -3,23 +3,50 @@
 Lifecycle: unconfigured --configure--> inactive --activate--> active --deactivate--> inactive
 --close--> closed. Calling read/write outside `active` raises StateError. Units: SI, robot
 frame for the controller, the instrument's own frame for the tracker and the camera rig.
+
+Construction is uniform: every driver class takes the keywords `world` (the simulated cell, for
+drivers with `needs_world = True`; others ignore it) and `source` (names the config in errors),
+and `Lifecycle.from_config(config, world=..., source=...)` builds one and configures it. The
+registry (drivers.registry.create) uses only that, so no caller branches on a driver's name.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
-from dt_kernel.errors import StateError
+from dt_kernel.errors import ConfigError, StateError
 
 UNCONFIGURED, INACTIVE, ACTIVE, CLOSED = "unconfigured", "inactive", "active", "closed"
+
+
+def reject_keys(config: Mapping[str, Any], source: str, allowed: tuple[str, ...] = (),
+                what: str = "this driver") -> None:
+    """ConfigError naming the first key of `config` that is not in `allowed`."""
+    unknown = sorted(set(config) - set(allowed))
+    if unknown:
+        known = ", ".join(allowed) if allowed else "none"
+        raise ConfigError(source, unknown[0], config[unknown[0]], f"{what} knows the keys: {known}")
 
 
 class Lifecycle:
     """Mixin enforcing the lifecycle; subclasses override the `_on_*` hooks."""
 
     _state: str = UNCONFIGURED
+    #: True for drivers that run on the simulated world: the caller must pass `world`.
+    needs_world: ClassVar[bool] = False
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any] | None = None, *, world: Any = None,
+                    source: str = "<driver config>"):
+        """The one way to build any driver: `cls(world=world, source=source)`, configured with
+        `config` when one is given (state `inactive`), else left `unconfigured`."""
+        drv = cls(world=world, source=source)
+        if config is not None:
+            drv.configure(config)
+        return drv
 
     @property
     def state(self) -> str:

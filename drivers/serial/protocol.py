@@ -1,8 +1,7 @@
 """Line protocol spoken by the robot controller and the laser tracker (codec, shared).
 
-The codec lives in sim/ because both sides use it: the emulators in `sim.controller_emulator`
-serve it, the drivers in `drivers.serial_controller` / `drivers.serial_tracker` speak it
-(dependencies point drivers -> sim, never back).
+Both sides use this codec: the emulators in `drivers.serial.emulator` serve it, the drivers in
+`drivers.serial.controller` / `drivers.serial.tracker` speak it through `drivers.serial.link`.
 
 Frame
 -----

@@ -1,25 +1,26 @@
 """Laser tracker adapter over a serial line, speaking `drivers.serial.protocol` (MEAS, STATUS, PING).
 
-Same link discipline as `drivers.serial_controller` (seq, ACK/NAK, retries, reconnection).
+Same link as the controller (`drivers.serial.link`: seq, ACK/NAK, retries, reconnection).
 A measurement arrives as spherical `d, azimuth, elevation` (m, rad) with a status token; it is
 converted to a Cartesian point in the tracker frame. A reading whose status is not `ok` (e.g.
 `beam_broken`) is returned with that status and a NaN point, as `drivers.simulated.SimTracker`
 does; with status `ok`, NaN or out-of-range numbers raise DriverError.
 
-Config keys: those of `SerialLink` (`url`, `baudrate`, `timeout_s`, `retries`,
+Config keys: those of `LinkConfig` (`url`, `baudrate`, `timeout_s`, `retries`,
 `reconnect_after`) and `limits`: `min_distance_m` (0.0), `max_distance_m` (80.0).
 """
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from pydantic import Field
 
 from drivers.base import Lifecycle, TrackerReading
-from drivers.serial.controller import LinkConfig, SerialLink, ack_fields
 from drivers.serial import protocol as lp
+from drivers.serial.link import LinkConfig, SerialLink, ack_fields
 from dt_kernel.config import Frozen, validate
 from dt_kernel.errors import DriverError
 from dt_kernel.geometry import spherical_to_cartesian
@@ -39,7 +40,8 @@ class SerialTracker(Lifecycle):
 
     name = "serial laser tracker"
 
-    def __init__(self, config: Mapping[str, Any] | None = None, source: str = "<serial tracker config>"):
+    def __init__(self, config: Mapping[str, Any] | None = None, source: str = "<serial tracker config>", *,
+                 world: Any = None):  # world: unused, the registry passes it to every driver
         self._source = source
         self.cfg: TrackerConfig | None = None
         self.link: SerialLink | None = None

@@ -10,15 +10,16 @@ Registration (in drivers/registry.py):
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from drivers.base import Lifecycle, RigReading
+from drivers.base import Lifecycle, RigReading, reject_keys
 from drivers.mvs import MarkerTracker, RigModel
+from dt_kernel.errors import DriverError
 from sim.camera_rig import DEFAULT_CONFIG, Occluder, RigConfig, SimCameraImages, load_rig_config, validate_rig
-from dt_kernel.errors import ConfigError, DriverError
 
 PoseFn = Callable[[], tuple[np.ndarray, np.ndarray]]
 
@@ -39,16 +40,20 @@ class SimCameraRig(Lifecycle):
         place the regions of interest. Without it, the rig finds the cluster by epipolar
         matching on full frames (slower, same accuracy).
     clock: optional callable -> time stamp (s); default world.t, else frame index / 360 Hz.
+    source: names the config in errors (the registry passes the runtime config's name).
 
     `configure({"render": {...}})` changes render settings (fault injection: spurious
     reflections, occlusions, dropped cameras, ...) before activation.
     """
 
     FRAME_RATE_HZ = 360.0
+    needs_world = True  # built by the registry, it renders the simulated world's tool
 
     def __init__(self, tool_pose: PoseFn | None = None, config: str | Path | RigConfig = DEFAULT_CONFIG,
                  seed: int = 0, occluded: Occluder | None = None, predicted_pose: PoseFn | None = None,
-                 world: Any = None, clock: Callable[[], float] | None = None):
+                 world: Any = None, clock: Callable[[], float] | None = None,
+                 source: str = "<SimCameraRig.configure>"):
+        self._source = source
         if tool_pose is None:
             if world is None:
                 raise DriverError("SimCameraRig needs tool_pose() or world")
@@ -78,13 +83,10 @@ class SimCameraRig(Lifecycle):
     def _on_configure(self, config: dict[str, Any]) -> None:
         if not config:
             return
-        unknown = set(config) - {"render", "seed"}
-        if unknown:
-            raise ConfigError("<SimCameraRig.configure>", sorted(unknown)[0], config[sorted(unknown)[0]],
-                              "known keys: render, seed")
+        reject_keys(config, self._source, ("render", "seed"), "the image camera rig")
         data = self.cfg.model_dump()
         data["render"].update(config.get("render", {}))
-        self.cfg = validate_rig(data, "<SimCameraRig.configure>")
+        self.cfg = validate_rig(data, self._source)
         self.seed = int(config.get("seed", self.seed))
         self._build()
 

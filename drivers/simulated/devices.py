@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 import pybullet as pb
 
-from drivers.base import JointState, Lifecycle, RigReading, TrackerReading
-from sim.cell import SimCell
+from drivers.base import JointState, Lifecycle, RigReading, TrackerReading, reject_keys
 from dt_kernel.errors import DriverError, UnreachableError
 from dt_kernel.geometry import spherical_to_cartesian
+from sim.cell import SimCell
 from sim.kinematics import TOOL_DOWN
 
 
@@ -104,12 +104,28 @@ class SimWorld:
         self.cell.close()
 
 
-class SimRobot(Lifecycle):
+class _OnWorld(Lifecycle):
+    """A simulated driver: built on a SimWorld; its faults come from the scenario and the
+    daemon's fault list, so `configure` accepts no keys (a stray key, e.g. a serial `url`
+    left in place, is an error rather than silently ignored)."""
+
+    needs_world = True
+
+    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated driver config>"):
+        if world is None:
+            raise DriverError(f"{type(self).__name__} runs on a simulated world: pass world=SimWorld(...)")
+        self.world, self._source = world, source
+
+    def _on_configure(self, config: dict[str, Any]) -> None:
+        reject_keys(config, self._source, (), f"the simulated {type(self).__name__}")
+
+
+class SimRobot(_OnWorld):
     """RobotController over the simulated plant."""
 
-    def __init__(self, world: SimWorld):
-        self.world = world
-        self._plant = world.cell.plant
+    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated robot config>"):
+        super().__init__(world, source=source)
+        self._plant = self.world.cell.plant
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         self._require("active")
@@ -134,12 +150,12 @@ class SimRobot(Lifecycle):
         return self._plant.controller_tcp()
 
 
-class SimTracker(Lifecycle):
+class SimTracker(_OnWorld):
     """LaserTracker over the simulated tracker: spherical measurement -> Cartesian, tracker frame."""
 
-    def __init__(self, world: SimWorld):
-        self.world = world
-        self._lt = world.cell.tracker
+    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated tracker config>"):
+        super().__init__(world, source=source)
+        self._lt = self.world.cell.tracker
 
     def measure(self) -> TrackerReading:
         self._require("active")
@@ -148,12 +164,12 @@ class SimTracker(Lifecycle):
         return TrackerReading(point=point, spherical=(d, az, el), t=self.world.t, status=status)
 
 
-class SimPointCamera(Lifecycle):
+class SimPointCamera(_OnWorld):
     """CameraRig over the point-noise MVS stand-in (the image pipeline replaces it)."""
 
-    def __init__(self, world: SimWorld, **_: Any):
-        self.world = world
-        self._mvs = world.cell.mvs
+    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated camera config>"):
+        super().__init__(world, source=source)
+        self._mvs = self.world.cell.mvs
 
     def read(self) -> RigReading:
         self._require("active")

@@ -1,0 +1,105 @@
+"""Every registered driver is built one way, `drivers.registry.create(kind, name, config, world=...)`,
+and the conformance checks of tests/test_driver_conformance.py run on what it builds, cameras included.
+"""
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers import registry
+from drivers.base import CameraRig, LaserTracker, RigReading, RobotController
+from drivers.serial.emulator import ControllerEmulator, TrackerEmulator
+from dt_kernel.errors import ConfigError, DriverError, StateError
+from tests.test_driver_conformance import _check_lifecycle_order
+from tests.test_serial import FakePlant
+
+ROOT = Path(__file__).resolve().parents[1]
+PROTOCOLS = {"robot": RobotController, "tracker": LaserTracker, "camera": CameraRig}
+
+
+@contextlib.contextmanager
+def world():
+    from drivers.simulated.devices import SimWorld
+
+    w = SimWorld(ROOT / "configs/scenarios/paper_default.yaml", ROOT / "configs/cell.yaml")
+    try:
+        yield w
+    finally:
+        w.close()
+
+
+@contextlib.contextmanager
+def context(kind: str, name: str):
+    """(world or None, the config the driver takes) for one registered driver."""
+    if not registry.needs_world(kind, name):
+        emu = ControllerEmulator(FakePlant()) if kind == "robot" else TrackerEmulator(lambda: (2.0, 0.3, -0.1, "ok"))
+        with emu:
+            yield None, {"url": emu.port, "timeout_s": 0.5, "retries": 2}
+    else:
+        with world() as w:
+            yield w, {}
+
+
+ALL = [(k, n) for k in ("robot", "tracker", "camera") for n in registry.known(k)]
+
+
+def _calls(kind: str, drv) -> list:
+    if kind == "robot":
+        return [lambda: drv.move_linear(np.array([0.9, 0.0, 0.6]), 0.1), drv.read_joint_state,
+                drv.read_commanded_tcp]
+    return [drv.measure] if kind == "tracker" else [drv.read]
+
+
+@pytest.mark.parametrize("kind, name", ALL, ids=[f"{k}-{n}" for k, n in ALL])
+def test_every_registered_driver_is_built_the_same_way_and_follows_the_lifecycle(kind, name):
+    with context(kind, name) as (w, config):
+        drv = registry.create(kind, name, world=w, source="runtime.yaml")  # no config: unconfigured
+        try:
+            assert isinstance(drv, PROTOCOLS[kind])
+            _check_lifecycle_order(drv, config, _calls(kind, drv))
+        finally:
+            drv.close()
+        drv = registry.create(kind, name, config, world=w, source="runtime.yaml")  # configured
+        try:
+            assert drv.state == "inactive"
+            drv.activate()
+            if kind == "camera":
+                assert isinstance(drv.read(), RigReading)
+            elif kind == "tracker":
+                assert drv.measure().ok
+            else:
+                assert np.all(np.isfinite(drv.read_commanded_tcp()))
+        finally:
+            drv.close()
+        assert drv.state == "closed"
+        with pytest.raises(StateError):
+            _calls(kind, drv)[0]()
+
+
+def test_unknown_names_list_the_known_ones_and_bad_keys_name_the_key():
+    with pytest.raises(ConfigError) as ei:
+        registry.create("robot", "ur10", source="runtime.yaml")
+    assert ei.value.key == "drivers.robot" and "serial" in ei.value.allowed and "sim" in ei.value.allowed
+    with world() as w:
+        # a simulated driver takes no config: a stray serial url is an error, not ignored
+        with pytest.raises(ConfigError) as ei:
+            registry.create("robot", "sim", {"url": "/dev/ttyUSB0"}, world=w, source="runtime.yaml")
+        assert ei.value.file == "runtime.yaml" and ei.value.key == "url"
+        with pytest.raises(ConfigError) as ei:
+            registry.create("camera", "sim_images", {"bogus": 1}, world=w, source="runtime.yaml")
+        assert ei.value.key == "bogus"
+    with pytest.raises(ConfigError) as ei:
+        registry.create("robot", "serial", {"retries": -1}, source="runtime.yaml")
+    assert ei.value.file == "runtime.yaml"
+
+
+def test_simulated_drivers_say_they_need_a_world():
+    assert [registry.needs_world("robot", n) for n in ("serial", "sim")] == [False, True]
+    assert all(registry.needs_world("camera", n) for n in registry.known("camera"))
+    for kind, name in ALL:
+        if registry.needs_world(kind, name):
+            with pytest.raises(DriverError, match="world"):
+                registry.create(kind, name)
