@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field
 
-from dt_runtime.metrology import uncertainty as unc
-from dt_kernel.errors import TwinError
-from dt_runtime.twin.twin import Twin
 from dt_kernel.config import Frozen
+from dt_kernel.errors import TwinError
+from dt_runtime.metrology import uncertainty as unc
+from dt_runtime.twin.twin import Twin
 
 
 class CorrectionFault(TwinError):
@@ -48,8 +48,8 @@ class Corrector:
         self.twin, self.limits = twin, limits
         self._lo, self._hi = np.array(limits.workspace_min_m), np.array(limits.workspace_max_m)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
-        b = twin.u["eq11_tcp_c"]
-        self._u, self._U = np.asarray(b["u"]), np.asarray(b["U"])
+        b = twin.uncertainty.tcp_c  # Eq. 11
+        self._u, self._U = b.u, b.U
 
     def __call__(self, target: np.ndarray, speed: float) -> Corrected:
         target = np.asarray(target, dtype=float)
@@ -94,9 +94,9 @@ class Monitor:
 
     def __init__(self, twin: Twin, alpha: float = 0.05):
         self.twin, self.alpha = twin, alpha
-        b14, b16 = twin.u["eq14_e_lt_hat_minus_e_mvs"], twin.u["eq16_e_mvs_lt_hat"]
-        self._u14, self._u16 = np.asarray(b14["u"]), np.asarray(b16["u"])
-        self._d14, self._d16 = np.asarray(b14["dof"], dtype=float), np.asarray(b16["dof"], dtype=float)
+        b14, b16 = twin.uncertainty.e_lt_hat_minus_e_mvs, twin.uncertainty.e_mvs_lt_hat  # Eqs. 14, 16
+        self._u14, self._u16 = b14.u, b16.u
+        self._d14, self._d16 = b14.dof, b16.dof
 
     def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray) -> Check:
         p_mvs = np.asarray(p_mvs, dtype=float)

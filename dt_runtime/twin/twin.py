@@ -4,21 +4,74 @@ Sign convention (DESIGN.md, Eq. 8): e = commanded - measured. The twin's estimat
 robot really is: TCP_hat = TCP_cmd - e_hat(TCP_cmd, v). To reach a target the corrected command
 solves c - e_hat(c, v) = target by fixed-point iteration, starting at c = target + e_hat(target, v).
 Models predict errors in the GL axes; the robot frame is rotated by R_RDK^GL (nearly identity).
+
+The stated uncertainties are read through `Twin.uncertainty` (`TwinUncertainty`: one
+`StatedUncertainty` per equation, Eqs. 11 and 13-16), never by string keys; `Twin.u` is the same
+data as twin.json holds it (format_version 1: `u.eq11_tcp_c.{u, dof, U, k}`, ...).
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 
+from dt_kernel.errors import ModelError
 from dt_runtime.common.jsonsafe import jsonable
-from dt_runtime.models.modelio import read_meta
-from dt_runtime.models.gp import MultiOutputGP
 from dt_runtime.frames.registration import RigidTransform
+from dt_runtime.models.gp import MultiOutputGP
+from dt_runtime.models.modelio import read_meta
 
 FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class StatedUncertainty:
+    """One equation's stated uncertainty, per axis (x, y, z), in metres."""
+
+    u: np.ndarray  # combined standard uncertainty
+    dof: np.ndarray  # effective degrees of freedom (Welch-Satterthwaite; inf allowed)
+    k: np.ndarray  # coverage factor for 95 %
+    U: np.ndarray  # expanded uncertainty, 95 %
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any], where: str) -> StatedUncertainty:
+        try:
+            vals = {f.name: np.asarray(m[f.name], dtype=float) for f in fields(cls)}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelError(f"{where}: needs u, dof, k and U per axis ({exc!r})") from exc
+        bad = [k for k, v in vals.items() if v.shape != (3,)]
+        if bad:
+            raise ModelError(f"{where}: {bad[0]} has shape {vals[bad[0]].shape}, expected one value per axis (3,)")
+        return cls(**vals)
+
+
+@dataclass(frozen=True)
+class TwinUncertainty:
+    """The twin's stated uncertainties (GUM budgets of calibration), per equation of the paper."""
+
+    tcp_c: StatedUncertainty  # Eq. 11: the corrected TCP
+    e_lt_hat: StatedUncertainty  # Eq. 13: the predicted LT error
+    e_lt_hat_minus_e_mvs: StatedUncertainty  # Eq. 14: e_LT_hat - e_MVS (the t-test difference)
+    e_mvs: StatedUncertainty  # Eq. 15: the MVS error
+    e_mvs_lt_hat: StatedUncertainty  # Eq. 16: the predicted e_MVS-LT
+
+    # field -> key in twin.json's "u" object (format_version 1)
+    KEYS: ClassVar[dict[str, str]] = {"tcp_c": "eq11_tcp_c", "e_lt_hat": "eq13_e_lt_hat",
+            "e_lt_hat_minus_e_mvs": "eq14_e_lt_hat_minus_e_mvs", "e_mvs": "eq15_e_mvs",
+            "e_mvs_lt_hat": "eq16_e_mvs_lt_hat"}
+
+    @classmethod
+    def from_mapping(cls, u: Mapping[str, Any], where: str = "twin") -> TwinUncertainty:
+        """From twin.json's "u" object (or the dict calibration builds); ModelError names a
+        missing or malformed entry."""
+        missing = [k for k in cls.KEYS.values() if k not in u]
+        if missing:
+            raise ModelError(f"{where}: uncertainty '{missing[0]}' missing; a twin states {sorted(cls.KEYS.values())}")
+        return cls(**{f: StatedUncertainty.from_mapping(u[k], f"{where}: u.{k}") for f, k in cls.KEYS.items()})
 
 
 @dataclass
@@ -28,10 +81,12 @@ class Twin:
     T_mvs: RigidTransform  # MVS frame -> GL
     e_lt: MultiOutputGP  # e_LT_hat(TCP robot frame m, v m/s) -> GL axes, m
     e_mvs_lt: MultiOutputGP  # e_MVS-LT_hat(TCP, v)
-    u: dict  # standard uncertainties (m, per axis) and dof: u_tcp_c, u_e_lt, u_diff, u_e_mvs_lt, ...
+    u: dict  # stated uncertainties as twin.json holds them; read them through `uncertainty`
     instruments: dict = field(default_factory=dict)  # drivers it was calibrated with, e.g. camera
+    uncertainty: TwinUncertainty = field(init=False, repr=False)
 
     def __post_init__(self):
+        self.uncertainty = TwinUncertainty.from_mapping(self.u)
         self._p_lt = self.e_lt.predictor()
         self._p_mvs_lt = self.e_mvs_lt.predictor()
         self._Rt = self.T_rdk.R.T  # GL axes -> robot axes
@@ -76,10 +131,13 @@ class Twin:
         return d
 
     @classmethod
-    def load(cls, directory: str | Path) -> "Twin":
+    def load(cls, directory: str | Path) -> Twin:
         d = Path(directory)
         meta = read_meta(d / "twin.json", FORMAT_VERSION, "twin")
+        if not isinstance(meta.get("u"), dict):
+            raise ModelError(f"{d / 'twin.json'}: no 'u' object (the stated uncertainties)")
         u = {k: (np.array(v) if isinstance(v, list) else v) for k, v in meta["u"].items()}
+        TwinUncertainty.from_mapping(u, str(d / "twin.json"))  # a malformed entry names the file
         return cls(RigidTransform.from_dict(meta["T_rdk"]), RigidTransform.from_dict(meta["T_lt"]),
                    RigidTransform.from_dict(meta["T_mvs"]), MultiOutputGP.load(d / "e_lt"),
                    MultiOutputGP.load(d / "e_mvs_lt"), u, meta.get("instruments", {}))
