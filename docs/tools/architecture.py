@@ -252,14 +252,16 @@ def layout(nodes: list[str], edges: set[tuple[str, str]], dx: float = 2.5,
     def place() -> dict[str, float]:
         return {n: (width - len(m)) * dx / 2 + i * dx for m in rows.values() for i, n in enumerate(m)}
 
+    def bary(n: str, x: dict[str, float]) -> float:
+        nb = [x[d] for s, d in red if s == n] + [x[s] for s, d in red if d == n]
+        return sum(nb) / len(nb) if nb else x[n]
+
     x = place()
     for _ in range(4):
         for order in (sorted(rows), sorted(rows, reverse=True)):
             for level in order:
-                def bary(n: str) -> float:
-                    nb = [x[d] for s, d in red if s == n] + [x[s] for s, d in red if d == n]
-                    return sum(nb) / len(nb) if nb else x[n]
-                rows[level].sort(key=lambda n: (round(bary(n), 6), sort_key(n)))
+                now = dict(x)
+                rows[level].sort(key=lambda n: (round(bary(n, now), 6), sort_key(n)))
                 x = place()
     return {n: (x[n], lv[n] * dy) for n in nodes}
 
