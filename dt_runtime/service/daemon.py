@@ -1,8 +1,11 @@
 """`dt run`: the long-running twin daemon.
 
-Every tick: take the next target, apply the bounded GPR correction (dt_runtime.correction),
+Every tick: take the next target, apply the bounded GPR correction (service.correction),
 move the robot, read the MVS, test the measurement against the prediction (Eq. 17), feed the
-escalation state machine, log everything to the durable store and publish over Zenoh. Entering
+escalation state machine, log everything to the durable store (typed rows, `service.rows`, on
+the Store's one lock-free queue: the loop never waits on SQLite) and publish over Zenoh.
+Drivers are built by `drivers.registry.create` from `drivers.<kind>` and `drivers.<kind>_config`,
+the same way whatever their name. Entering
 `maintenance_requested` writes a request to the store's outbox, which the bus republishes until
 a consumer acknowledges delivery; the machine returns to nominal only when maintenance is
 confirmed done (`Daemon.acknowledge_maintenance`). The machine's
@@ -24,14 +27,15 @@ import numpy as np
 from pydantic import Field
 
 from drivers import registry
+from dt_kernel.config import Frozen, load_yaml
+from dt_kernel.errors import ConfigError, DriverError, TwinError
 from dt_runtime.service.bus import Bus, BusConfig
 from dt_runtime.service.correction import CorrectionFault, Corrector, Limits, Monitor
-from dt_kernel.errors import ConfigError, DriverError, TwinError
 from dt_runtime.service.escalation import EscalationConfig, Escalator
-from dt_runtime.twin.campaign import Instruments
+from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
 from dt_runtime.service.store import Store, StoreError
+from dt_runtime.twin.campaign import Instruments
 from dt_runtime.twin.twin import Twin
-from dt_kernel.config import Frozen, load_yaml
 
 log = logging.getLogger("dt.run")
 
@@ -64,10 +68,18 @@ class SimSection(Frozen):
 
 
 class Drivers(Frozen):
+    """Which driver of each kind (drivers.registry names) and the config each one is given."""
+
     robot: str = "sim"
     tracker: str = "sim"
     camera: str = "sim_images"
-    robot_config: dict[str, Any] = {}
+    robot_config: dict[str, Any] = {}  # e.g. {url: /dev/ttyUSB0} for robot: serial
+    tracker_config: dict[str, Any] = {}
+    camera_config: dict[str, Any] = {}  # e.g. {render: {...}} for camera: sim_images
+
+    def chosen(self) -> list[tuple[str, str, dict[str, Any]]]:
+        """(kind, name, config) of the three drivers."""
+        return [(k, getattr(self, k), getattr(self, f"{k}_config")) for k in ("robot", "tracker", "camera")]
 
 
 class RuntimeConfig(Frozen):
@@ -89,45 +101,6 @@ def load_runtime_config(path: str | Path) -> RuntimeConfig:
     return load_yaml(path, RuntimeConfig)
 
 
-class AsyncWriter:
-    """High-rate rows leave the loop through a deque (append is atomic: the loop never waits
-    on a lock or an fsync); a writer thread hands them to the Store and commits in batches.
-    Rows not yet committed when the process is killed are lost, as with any buffered row;
-    transitions and the maintenance outbox are committed at once by the Store itself."""
-
-    def __init__(self, store: Store, period_s: float = 0.05):
-        import collections
-
-        self.store, self.period_s = store, period_s
-        self._q: collections.deque = collections.deque()
-        self._stop = threading.Event()
-        self.errors = 0
-        self._thread = threading.Thread(target=self._work, name="dt-store-writer", daemon=True)
-        self._thread.start()
-
-    def put(self, method: str, *args, **kwargs) -> None:
-        self._q.append((method, args, kwargs))
-
-    def drain(self) -> None:
-        try:
-            while self._q:
-                method, args, kwargs = self._q.popleft()
-                getattr(self.store, method)(*args, **kwargs)
-            self.store.flush()
-        except StoreError as exc:  # disk full: the Store keeps its rows for the next try
-            self.errors += 1
-            log.error("store write failed, will retry: %s", exc)
-
-    def _work(self) -> None:
-        while not self._stop.wait(self.period_s):
-            self.drain()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self.drain()
-
-
 class Daemon:
     def __init__(self, cfg: RuntimeConfig, base: Path, world=None):
         self.cfg, self.base = cfg, base
@@ -139,9 +112,9 @@ class Daemon:
                               "with the instruments (and frames) it was calibrated with")
         self.corrector = Corrector(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
-        # The writer thread commits; the Store's own size/time triggers stay out of the loop.
-        self.store = Store(self._p(cfg.store), batch_rows=10**9, batch_ms=1e9)
-        self.writer = AsyncWriter(self.store)
+        # High-rate rows leave the loop through the Store's lock-free queue; its writer thread
+        # commits them every 50 ms, so the loop never waits on a lock or an fsync.
+        self.store = Store(self._p(cfg.store), batch_ms=50.0, background=True)
         self.bus = Bus(cfg.bus, self.store, on_ack=self._on_ack) if cfg.publish else None
         self.world = world if world is not None else self._make_world()
         self.inst = self._make_instruments()
@@ -166,19 +139,16 @@ class Daemon:
         return p if p.is_absolute() else self.base / p
 
     def _make_world(self):
-        if "sim" not in (self.cfg.drivers.robot, self.cfg.drivers.tracker, self.cfg.drivers.camera):
+        if not any(registry.needs_world(kind, name) for kind, name, _ in self.cfg.drivers.chosen()):
             return None
         from drivers.simulated.devices import SimWorld
 
         return SimWorld(self._p(self.cfg.sim.scenario), self._p(self.cfg.sim.cell))
 
     def _make_instruments(self) -> Instruments:
-        d = self.cfg.drivers
-        kw = {"world": self.world} if self.world is not None else {}
-        robot = registry.create("robot", d.robot, **({} if d.robot == "serial" else kw))
-        tracker = registry.create("tracker", d.tracker, **({} if d.tracker == "serial" else kw))
-        camera = registry.create("camera", d.camera, **kw)
-        robot.configure(d.robot_config)
+        robot, tracker, camera = (
+            registry.create(kind, name, config, world=self.world, source=f"<runtime config drivers.{kind}_config>")
+            for kind, name, config in self.cfg.drivers.chosen())
         inst = Instruments(robot, tracker, camera, world=self.world,
                            max_speed=self.world.max_speed() if self.world else self.cfg.limits.max_speed_m_s)
         inst.activate()
@@ -232,7 +202,6 @@ class Daemon:
         return target, float(self._rng.choice(pc.speeds)) * self.inst.max_speed
 
     def tick(self) -> None:
-        cfg = self.cfg
         target, v = self._next_target()
         if self.world is not None:
             self._inject_faults(self.world.t)
@@ -248,8 +217,8 @@ class Daemon:
             return
         self.inst.robot.move_linear(corr.command, v)
         t = self._now()
-        self.writer.put("log_command", t, *corr.target, speed=v)
-        self.writer.put("log_correction", t, *corr.correction, *corr.u_tcp)
+        self.store.put(CommandRow(t, *corr.target, speed=v))
+        self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
         reading = self.inst.camera.read()
         self.ticks += 1
         if not reading.ok:
@@ -260,10 +229,10 @@ class Daemon:
         except CorrectionFault as exc:
             log.error("MVS value rejected: %s", exc)
             return
-        self.writer.put("log_measurement", t, *reading.point, *chk.diff)
+        self.store.put(MeasurementRow(t, *reading.point, *chk.diff))
         worst = int(np.argmax(np.abs(chk.t)))
-        self.writer.put("log_tstat", t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
-                             data={"t": chk.t.tolist()})
+        self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
+                                data={"t": chk.t.tolist()}))
         self.failures += int(not chk.passed)
         self.escalator.observe(chk.passed, float(chk.t[worst]), t)
         if self.bus:
@@ -312,7 +281,6 @@ class Daemon:
                 "store": str(self.store.path)}
 
     def close(self) -> None:
-        self.writer.close()
         try:
             self.store.save_state("escalation", self.escalator.snapshot())
             self.store.flush()

@@ -57,8 +57,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from fractions import Fraction
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import model_validator
@@ -88,7 +89,7 @@ class EscalationConfig(Frozen):
     tests_per_day: float = 86_400.0   # for false_alarm_rates (1 test per second)
 
     @model_validator(mode="after")
-    def _check(self) -> "EscalationConfig":
+    def _check(self) -> EscalationConfig:
         if not 0 < self.alpha < 1:
             raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
         if not 1 <= self.suspect_k <= self.window_k <= self.window_n:

@@ -2,7 +2,7 @@
 
 What it holds (one table each): `commands`, `corrections`, `measurements`, `t_stats` (the
 high-rate path), `transitions` (escalation state changes with their evidence), `outbox`
-(maintenance requests that must reach a consumer; see dt_runtime.bus) and `state` (one row:
+(maintenance requests that must reach a consumer; see dt_runtime.service.bus) and `state` (one row:
 the escalation machine's snapshot, so a restarted daemon resumes where it stopped).
 
 Durability choices (why):
@@ -13,45 +13,51 @@ Durability choices (why):
   commits on power loss, and the outbox contract is "written durably BEFORE publishing": a
   maintenance request seen on the bus must never be missing from the store. The price (one
   fsync per commit) is paid rarely because the high-rate path is batched.
-- High-rate rows (`log_command`, `log_correction`, `log_measurement`, `log_tstat`) are
-  buffered and committed in one transaction every `batch_rows` rows or `batch_ms`
-  milliseconds (checked on each call; call `flush()` when idle). A crash loses at most the
-  uncommitted buffer; `flush()` returns only after the rows are committed.
-- `log_transition`, `outbox_*`, `save_state` commit immediately (after flushing the buffer in
+- High-rate rows are typed (`dt_runtime.service.rows`: CommandRow, CorrectionRow,
+  MeasurementRow, TTestRow) and leave the caller through one lock-free queue (`put(row)`:
+  a deque append, no lock, no I/O). They are committed in one transaction either by a writer
+  thread every `batch_ms` milliseconds (`background=True`, the daemon: its loop never waits
+  on a lock or an fsync), or on the caller's thread when `batch_rows` rows wait or `batch_ms`
+  elapsed (checked on each call; call `flush()` when idle). `log_command` & co. are the same
+  path with positional arguments. A crash loses at most the uncommitted rows; `flush()`
+  returns only after the rows are committed.
+- `log_transition`, `outbox_*`, `save_state` commit immediately (after flushing the queue in
   the same transaction, so the evidence that led to a transition is stored with it).
 
 Errors: any sqlite3 error (disk full, I/O error, locked) becomes a StoreError, chained with
-`from`. The failing transaction is rolled back, so already committed rows stay and the file
-stays consistent; the caller may keep going. Buffered rows of a failed flush are kept (up to
-`max_pending_rows`, oldest dropped and counted in `dropped_rows`) and retried on the next
-flush.
+`from`, in one place (`_sqlite_errors`). The failing transaction is rolled back, so already
+committed rows stay and the file stays consistent; the caller may keep going. Rows of a
+failed flush are kept (up to `max_pending_rows`, oldest dropped and counted in
+`dropped_rows`) and retried on the next flush; the writer thread logs a failed flush, counts
+it in `write_errors` and keeps going.
 
 The connection is shared by threads (the daemon loop and the bus worker) behind one lock.
 Times: `t` is the caller's time stamp in seconds; `created` columns are wall-clock epoch s.
 """
 from __future__ import annotations
 
+import collections
 import json
-import math
+import logging
 import sqlite3
 import threading
 import time
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
-from dt_runtime.common.jsonsafe import compact
 from dt_kernel.errors import TwinError
+from dt_runtime.common.jsonsafe import compact
+from dt_runtime.service.rows import ROW_TYPES, CommandRow, CorrectionRow, MeasurementRow, Row, TTestRow
+
+log = logging.getLogger("dt.store")
 
 SCHEMA_VERSION = 1
 
-# Table name -> (columns written by the high-rate path, in order).
-_HIGH_RATE: dict[str, tuple[str, ...]] = {
-    "commands": ("t", "x", "y", "z", "speed", "data"),
-    "corrections": ("t", "dx", "dy", "dz", "ux", "uy", "uz", "data"),
-    "measurements": ("t", "x", "y", "z", "ex", "ey", "ez", "data"),
-    "t_stats": ("t", "t_value", "dof", "p_value", "passed", "data"),
-}
+# Table name -> (columns written by the high-rate path, in order): the typed rows' fields.
+_HIGH_RATE: dict[str, tuple[str, ...]] = {table: cls.columns() for table, cls in ROW_TYPES.items()}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS commands (
@@ -83,6 +89,15 @@ class StoreError(TwinError):
     """The store could not read or write (disk full, I/O error, corrupt or locked file)."""
 
 
+@contextmanager
+def _sqlite_errors(what: str) -> Iterator[None]:
+    """The store's one boundary: sqlite3 (and file system) errors become StoreError."""
+    try:
+        yield
+    except (sqlite3.Error, OSError) as exc:
+        raise StoreError(f"{what}: {exc}") from exc
+
+
 @dataclass(frozen=True)
 class OutboxItem:
     id: int
@@ -92,32 +107,27 @@ class OutboxItem:
     attempts: int
 
 
-def _num(v: Any) -> float | None:
-    return None if v is None else float(v)
-
-
-
-
-
-
 class Store:
     """SQLite store; see the module docstring. Use as a context manager or call close()."""
 
     def __init__(self, path: str | Path, *, batch_rows: int = 200, batch_ms: float = 500.0,
-                 max_pending_rows: int = 100_000, synchronous: str = "FULL",
-                 timeout_s: float = 5.0):
+                 background: bool = False, max_pending_rows: int = 100_000,
+                 synchronous: str = "FULL", timeout_s: float = 5.0):
         self.path = Path(path)
         self.batch_rows = int(batch_rows)
         self.batch_s = float(batch_ms) / 1000.0
         self.max_pending_rows = int(max_pending_rows)
         self.dropped_rows = 0
+        self.write_errors = 0  # failed flushes of the writer thread (rows kept for a retry)
         self._lock = threading.RLock()
-        self._buf: list[tuple[str, tuple]] = []
+        # The one queue of high-rate rows: deque.append is atomic, so put() needs no lock.
+        self._queue: collections.deque[Row] = collections.deque()
+        self._pending: list[Row] = []  # taken from the queue, not yet committed
         self._last_flush = time.monotonic()
         self._closed = False
         if synchronous.upper() not in ("FULL", "NORMAL", "EXTRA"):
             raise StoreError(f"synchronous={synchronous!r}: allowed FULL, NORMAL, EXTRA")
-        try:
+        with _sqlite_errors(f"{self.path}: cannot open store"):
             self.path.parent.mkdir(parents=True, exist_ok=True)
             # isolation_level=None: we issue BEGIN/COMMIT ourselves (one transaction per batch).
             self._db = sqlite3.connect(str(self.path), timeout=timeout_s,
@@ -129,18 +139,25 @@ class Store:
             self._db.execute(f"PRAGMA busy_timeout={int(timeout_s * 1000)}")
             self._db.executescript(_SCHEMA)
             self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
-        except (sqlite3.Error, OSError) as exc:
-            raise StoreError(f"{self.path}: cannot open store: {exc}") from exc
+        self._stop = threading.Event()
+        self._writer: threading.Thread | None = None
+        if background:
+            self._writer = threading.Thread(target=self._write_periodically, name="dt-store-writer",
+                                            daemon=True)
+            self._writer.start()
 
     # ------------------------------------------------------------------ lifecycle
-    def __enter__(self) -> "Store":
+    def __enter__(self) -> Store:
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
     def close(self) -> None:
-        """Flush buffered rows (best effort) and close the file."""
+        """Stop the writer thread, flush the queued rows (best effort) and close the file."""
+        self._stop.set()
+        if self._writer is not None:
+            self._writer.join(timeout=5)  # outside the lock: the writer takes it to flush
         with self._lock:
             if self._closed:
                 return
@@ -157,101 +174,111 @@ class Store:
             raise StoreError(f"{self.path}: store is closed")
 
     # ------------------------------------------------------------------ high-rate path
+    def put(self, row: Row) -> None:
+        """Queue one typed row (see `dt_runtime.service.rows`). With the writer thread this is
+        a deque append and nothing else; without it, the batch triggers are checked here."""
+        self._check_open()
+        self._queue.append(row)
+        if self._writer is None and (
+                len(self._queue) + len(self._pending) >= self.batch_rows
+                or time.monotonic() - self._last_flush >= self.batch_s):
+            self.flush()
+
     def log_command(self, t: float, x: float, y: float, z: float, speed: float | None = None,
                     data: Mapping[str, Any] | None = None) -> None:
-        """Commanded TCP (m, robot frame) and speed (m/s); buffered."""
-        self._append("commands", (float(t), _num(x), _num(y), _num(z), _num(speed), data))
+        """Commanded TCP (m, robot frame) and speed (m/s); queued."""
+        self.put(CommandRow(t, x, y, z, speed, data))
 
     def log_correction(self, t: float, dx: float, dy: float, dz: float,
                        ux: float | None = None, uy: float | None = None,
                        uz: float | None = None, data: Mapping[str, Any] | None = None) -> None:
-        """Predicted error e_hat (m) applied to a command and its standard uncertainty; buffered."""
-        self._append("corrections", (float(t), _num(dx), _num(dy), _num(dz), _num(ux),
-                                     _num(uy), _num(uz), data))
+        """Predicted error e_hat (m) applied to a command and its standard uncertainty; queued."""
+        self.put(CorrectionRow(t, dx, dy, dz, ux, uy, uz, data))
 
     def log_measurement(self, t: float, x: float, y: float, z: float,
                         ex: float | None = None, ey: float | None = None,
                         ez: float | None = None, data: Mapping[str, Any] | None = None) -> None:
-        """Measured TCP (m) and error e = commanded - measured (m); buffered."""
-        self._append("measurements", (float(t), _num(x), _num(y), _num(z), _num(ex),
-                                      _num(ey), _num(ez), data))
+        """Measured TCP (m) and error e = commanded - measured (m); queued."""
+        self.put(MeasurementRow(t, x, y, z, ex, ey, ez, data))
 
     def log_tstat(self, t: float, t_value: float, dof: float | None = None,
                   p_value: float | None = None, passed: bool | None = None,
                   data: Mapping[str, Any] | None = None) -> None:
-        """One in-service t-test outcome; buffered."""
-        self._append("t_stats", (float(t), _num(t_value), _num(dof), _num(p_value),
-                                 None if passed is None else int(bool(passed)), data))
+        """One in-service t-test outcome; queued."""
+        self.put(TTestRow(t, t_value, dof, p_value, passed, data))
 
-    def write_batch(self, rows: Iterable[tuple[str, Mapping[str, Any]]]) -> int:
-        """Commit many high-rate rows at once: (table, {column: value}) pairs. Returns count."""
+    def write_batch(self, rows: Iterable[Row | tuple[str, Mapping[str, Any]]]) -> int:
+        """Commit many high-rate rows at once: typed rows or (table, {column: value}) pairs
+        (keys that are not columns go into `data`). Returns how many rows were committed."""
+        typed = []
+        for row in rows:
+            if not isinstance(row, Row):
+                table, mapping = row
+                if table not in ROW_TYPES:
+                    raise StoreError(f"unknown table {table!r}; allowed {sorted(ROW_TYPES)}")
+                row = ROW_TYPES[table].from_mapping(mapping)
+            typed.append(row)
         with self._lock:
-            for table, row in rows:
-                cols = _HIGH_RATE.get(table)
-                if cols is None:
-                    raise StoreError(f"unknown table {table!r}; allowed {sorted(_HIGH_RATE)}")
-                extra = {k: v for k, v in row.items() if k not in cols}
-                data = dict(row.get("data") or {}) | extra
-                vals = tuple(row.get(c) for c in cols[:-1]) + (data or None,)
-                self._buf.append((table, vals))
+            self._check_open()
+            self._queue.extend(typed)
             return self.flush()
 
-    def _append(self, table: str, vals: tuple) -> None:
-        with self._lock:
-            self._check_open()
-            self._buf.append((table, vals))
-            if (len(self._buf) >= self.batch_rows
-                    or time.monotonic() - self._last_flush >= self.batch_s):
-                self.flush()
-
     def flush(self) -> int:
-        """Commit buffered rows in one transaction; returns how many were committed."""
+        """Commit the queued rows in one transaction; returns how many were committed."""
         with self._lock:
             self._check_open()
-            if not self._buf:
+            if not self._queue and not self._pending:
                 self._last_flush = time.monotonic()
                 return 0
             return self._tx(lambda: None)
 
-    def _write_buffer(self) -> int:
-        n = len(self._buf)
+    def _write_periodically(self) -> None:
+        while not self._stop.wait(self.batch_s):
+            try:
+                self.flush()
+            except StoreError as exc:  # disk full: rows are kept (bounded) for the next try
+                self.write_errors += 1
+                log.error("store write failed, will retry: %s", exc)
+
+    def _write_pending(self) -> int:
         by_table: dict[str, list[tuple]] = {}
-        for table, vals in self._buf:
-            data = vals[-1]
-            row = vals[:-1] + (compact(data) if data else None,)
-            by_table.setdefault(table, []).append(row)
-        for table, rows in by_table.items():
+        for row in self._pending:
+            by_table.setdefault(row.TABLE, []).append(row.values())
+        for table, values in by_table.items():
             cols = _HIGH_RATE[table]
-            sql = (f"INSERT INTO {table} ({','.join(cols)}) "
-                   f"VALUES ({','.join('?' * len(cols))})")
-            self._db.executemany(sql, rows)
-        return n
+            self._db.executemany(f"INSERT INTO {table} ({','.join(cols)}) "
+                                 f"VALUES ({','.join('?' * len(cols))})", values)
+        return len(self._pending)
 
-    def _tx(self, body):
-        """Run body() in one transaction together with the buffered rows; StoreError on failure.
+    def _tx(self, body: Callable[[], Any]) -> Any:
+        """Run body() in one transaction together with the queued rows; StoreError on failure.
 
-        Returns the number of buffered rows committed if body returns None, else body's value.
+        Returns the number of queued rows committed if body returns None, else body's value.
         """
         with self._lock:
             self._check_open()
+            queue = self._queue
+            while queue:  # popleft is atomic too: rows put meanwhile stay for the next batch
+                self._pending.append(queue.popleft())
             try:
-                self._db.execute("BEGIN IMMEDIATE")
-                try:
-                    n = self._write_buffer()
-                    result = body()
-                    self._db.execute("COMMIT")
-                except BaseException:
-                    if self._db.in_transaction:
-                        self._db.execute("ROLLBACK")
-                    raise
-            except sqlite3.Error as exc:
-                # Keep the buffered rows for a retry, bounded so a full disk cannot exhaust RAM.
-                excess = len(self._buf) - self.max_pending_rows
+                with _sqlite_errors(f"{self.path}: write failed"):
+                    self._db.execute("BEGIN IMMEDIATE")
+                    try:
+                        n = self._write_pending()
+                        result = body()
+                        self._db.execute("COMMIT")
+                    except BaseException:
+                        if self._db.in_transaction:
+                            self._db.execute("ROLLBACK")
+                        raise
+            except StoreError:
+                # Keep the rows for a retry, bounded so a full disk cannot exhaust RAM.
+                excess = len(self._pending) - self.max_pending_rows
                 if excess > 0:
-                    del self._buf[:excess]
+                    del self._pending[:excess]
                     self.dropped_rows += excess
-                raise StoreError(f"{self.path}: write failed: {exc}") from exc
-            self._buf.clear()
+                raise
+            self._pending.clear()
             self._last_flush = time.monotonic()
             return n if result is None else result
 
@@ -311,10 +338,8 @@ class Store:
     def _query(self, sql: str, params: tuple = ()) -> list[tuple]:
         with self._lock:
             self._check_open()
-            try:
+            with _sqlite_errors(f"{self.path}: read failed"):
                 return self._db.execute(sql, params).fetchall()
-            except sqlite3.Error as exc:
-                raise StoreError(f"{self.path}: read failed: {exc}") from exc
 
     def count(self, table: str) -> int:
         if table not in (*_HIGH_RATE, "transitions", "outbox", "state"):
@@ -348,7 +373,7 @@ class Store:
         return {
             "path": str(self.path),
             "counts": {t: self.count(t) for t in (*_HIGH_RATE, "transitions", "outbox")},
-            "buffered_rows": len(self._buf),
+            "buffered_rows": len(self._queue) + len(self._pending),
             "dropped_rows": self.dropped_rows,
             "last_measurement": last("measurements", "t, x, y, z, ex, ey, ez"),
             "last_tstat": last("t_stats", "t, t_value, dof, p_value, passed"),

@@ -1,0 +1,108 @@
+"""Typed rows of the store's high-rate tables: one small frozen dataclass per table.
+
+The daemon loop builds one row per event and hands it to `Store.put`; the store's writer turns
+it into SQL values (`values()`), so the loop never formats JSON nor touches SQLite. Field names
+are the table's column names, in order. Units: SI (m, m/s); `t` is the caller's time stamp (s);
+`data` is an optional JSON-ready mapping, stored as compact JSON (NaN becomes null).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from functools import cache
+from typing import Any, ClassVar
+
+from dt_runtime.common.jsonsafe import compact
+
+
+def _sql(v: Any) -> Any:
+    """One column value as SQLite takes it: numbers as float, flags as 0/1, data as JSON."""
+    if v is None:
+        return None
+    if isinstance(v, Mapping):
+        return compact(dict(v)) if v else None
+    if isinstance(v, bool):
+        return int(v)
+    return float(v)
+
+
+class Row:
+    """Base of the typed rows: the table it goes to and its column values."""
+
+    __slots__ = ()
+    TABLE: ClassVar[str]
+
+    @classmethod
+    @cache
+    def columns(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in fields(cls))  # type: ignore[arg-type]
+
+    def values(self) -> tuple:
+        return tuple(_sql(getattr(self, c)) for c in self.columns())
+
+    @classmethod
+    def from_mapping(cls, row: Mapping[str, Any]) -> Row:
+        """A row from {column: value}; keys that are not columns go into `data`."""
+        cols = cls.columns()
+        extra = {k: v for k, v in row.items() if k not in cols}
+        data = dict(row.get("data") or {}) | extra
+        return cls(**{c: row.get(c) for c in cols if c != "data"}, data=data or None)  # type: ignore[call-arg]
+
+
+@dataclass(frozen=True, slots=True)
+class CommandRow(Row):
+    """Commanded TCP (m, robot frame) and speed (m/s)."""
+
+    TABLE: ClassVar[str] = "commands"
+    t: float
+    x: float
+    y: float
+    z: float
+    speed: float | None = None
+    data: Mapping[str, Any] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class CorrectionRow(Row):
+    """Predicted error e_hat (m) applied to a command, and its standard uncertainty (m)."""
+
+    TABLE: ClassVar[str] = "corrections"
+    t: float
+    dx: float
+    dy: float
+    dz: float
+    ux: float | None = None
+    uy: float | None = None
+    uz: float | None = None
+    data: Mapping[str, Any] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class MeasurementRow(Row):
+    """Measured TCP (m) and error e = commanded - measured (m)."""
+
+    TABLE: ClassVar[str] = "measurements"
+    t: float
+    x: float
+    y: float
+    z: float
+    ex: float | None = None
+    ey: float | None = None
+    ez: float | None = None
+    data: Mapping[str, Any] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class TTestRow(Row):
+    """One in-service Eq. 17 t-test outcome (the worst axis' t, the smallest p)."""
+
+    TABLE: ClassVar[str] = "t_stats"
+    t: float
+    t_value: float
+    dof: float | None = None
+    p_value: float | None = None
+    passed: bool | None = None
+    data: Mapping[str, Any] | None = None
+
+
+ROW_TYPES: dict[str, type[Row]] = {c.TABLE: c for c in (CommandRow, CorrectionRow, MeasurementRow, TTestRow)}
