@@ -1,6 +1,7 @@
 """The `dt` command line. Every computing command accepts --json and then prints exactly one
 JSON object on stdout; logs and progress go to stderr. Errors exit with status 2 and, with
---json, print {"error": ..., "type": ...} so scripts always get one object.
+--json, print {"error": ..., "type": ...} so scripts always get one object; an internal error
+(a defect) exits 1, logs its traceback on stderr and, with --json, prints the same object.
 
 Each command is one module of this package (arguments, run, human text); this module only
 assembles them."""
@@ -63,6 +64,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"dt {args.cmd}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a defect, not bad input: the traceback for us, one JSON object for scripts
+        logging.getLogger("dt").exception("dt %s: internal error", args.cmd)
+        if as_json:
+            print(json.dumps({"error": f"internal error: {exc}", "type": type(exc).__name__}))
+        return 1
     print(dumps(result) if as_json else mod.human(result))
     return 0
 
