@@ -1,0 +1,107 @@
+"""`MaintenanceConsumer`: receives maintenance requests from every cell and robot on the bus,
+records, de-duplicates and acknowledges them (tests and the `dt` CLI use it)."""
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from dt_runtime.service.bus.config import BusConfig
+from dt_runtime.service.bus.session import BusError, close_session, open_session, put_json, zenoh_errors
+
+log = logging.getLogger("dt_runtime.service.bus")
+
+
+class MaintenanceConsumer:
+    """Receives maintenance requests from every cell/robot, records and acks them.
+
+    Requests are de-duplicated on (cell, robot, uid); every copy is acked (the first ack may
+    have been lost). `on_request(request)` is called once per new request from the worker
+    thread. Used by tests and by the `dt` CLI.
+    """
+
+    def __init__(self, config: BusConfig, *, key_expr: str = "dt/**/maintenance/request",
+                 on_request: Callable[[dict[str, Any]], None] | None = None,
+                 auto_ack: bool = True):
+        self.config = config
+        self.on_request = on_request
+        self.auto_ack = auto_ack
+        self.requests: list[dict[str, Any]] = []
+        self.copies = 0
+        self._seen: set[tuple[str, str, str]] = set()
+        self._cond = threading.Condition()
+        self._tasks: queue.Queue = queue.Queue()
+        self._closed = False
+        self._session = open_session(config)
+        try:
+            with zenoh_errors(f"cannot subscribe to {key_expr}"):
+                self._sub = self._session.declare_subscriber(
+                    key_expr, lambda s: self._tasks.put((str(s.key_expr), s.payload.to_bytes())))
+        except BusError:
+            close_session(self._session, config.close_timeout_s)
+            raise
+        self._worker = threading.Thread(target=self._run, name="maintenance-consumer",
+                                        daemon=True)
+        self._worker.start()
+
+    def _run(self) -> None:
+        while True:
+            task = self._tasks.get()
+            if task is None:
+                return
+            try:
+                self._handle(*task)
+            except Exception:  # noqa: BLE001
+                log.exception("maintenance consumer failed on %s", task[0])
+
+    def _handle(self, key: str, raw: bytes) -> None:
+        try:
+            req = json.loads(raw)
+            oid, uid = int(req["id"]), str(req["uid"])
+        except (ValueError, KeyError, TypeError):
+            log.warning("malformed maintenance request on %s ignored", key)
+            return
+        prefix = key[: -len("/maintenance/request")]  # dt/<cell>/<robot>
+        with self._cond:
+            self.copies += 1
+            ident = (prefix, uid)
+            new = ident not in self._seen
+            if new:
+                self._seen.add(ident)
+                self.requests.append(req | {"key": key})
+                self._cond.notify_all()
+        if new and self.on_request is not None:
+            self.on_request(req | {"key": key})
+        if self.auto_ack:
+            self.ack(prefix, oid, uid)
+
+    def ack(self, prefix: str, oid: int, uid: str) -> None:
+        """Publish the ack for request `oid` of `prefix` (= 'dt/<cell>/<robot>')."""
+        if self._closed:
+            return
+        put_json(self._session, f"{prefix}/maintenance/ack/{oid}", {"id": oid, "uid": uid, "t": time.time()})
+
+    def wait_for(self, n: int, timeout: float) -> bool:
+        """Wait until at least n distinct requests arrived; False on time-out."""
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self.requests) >= n, timeout)
+
+    def close(self, timeout: float | None = None) -> bool:
+        if self._closed:
+            return True
+        self._closed = True
+        timeout = self.config.close_timeout_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        self._tasks.put(None)
+        self._worker.join(timeout)
+        return close_session(self._session, max(0.1, deadline - time.monotonic()))
+
+    def __enter__(self) -> MaintenanceConsumer:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

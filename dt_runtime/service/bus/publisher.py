@@ -1,0 +1,219 @@
+"""`Bus`: the daemon's side of the Zenoh bus for one robot (see the package docstring for the
+keys, QoS, delivery of maintenance requests and threads)."""
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+import uuid
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import zenoh
+
+from dt_kernel.errors import StateError
+from dt_runtime.service.bus.config import BusConfig
+from dt_runtime.service.bus.session import BusError, close_session, encode, open_session, put_json, zenoh_errors
+from dt_runtime.service.store import Store, StoreError
+
+log = logging.getLogger("dt_runtime.service.bus")
+
+_CC, _P, _R = zenoh.CongestionControl, zenoh.Priority, zenoh.Reliability
+# kind -> (congestion control, priority, reliability)
+_QOS = {
+    "telemetry": (_CC.DROP, _P.DATA_LOW, _R.BEST_EFFORT),
+    "correction": (_CC.BLOCK, _P.DATA_HIGH, _R.RELIABLE),
+    "state": (_CC.BLOCK, _P.INTERACTIVE_HIGH, _R.RELIABLE),
+    "maintenance/request": (_CC.BLOCK, _P.INTERACTIVE_HIGH, _R.RELIABLE),
+}
+
+
+class Bus:
+    """Daemon-side bus for one robot; see the module docstring."""
+
+    def __init__(self, config: BusConfig, store: Store | None = None, *,
+                 on_ack: Callable[[int, dict[str, Any]], None] | None = None):
+        self.config = config
+        self.store = store
+        self.on_ack = on_ack
+        self.dropped = 0
+        self.published = 0
+        self.acked = 0
+        self._tasks: queue.Queue = queue.Queue()  # unbounded; sends are bounded by hand
+        self._sends = 0
+        self._count_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._closed = False
+        self._session = open_session(config)
+        s = self._session
+        try:
+            with zenoh_errors("cannot declare bus entities"):
+                self._pub = self._declare(s, config)
+                self._ack_sub = s.declare_subscriber(
+                    config.key("maintenance/ack/*"),
+                    lambda sample: self._tasks.put(("ack", sample.payload.to_bytes())))
+        except BusError:
+            close_session(s, config.close_timeout_s)
+            raise
+        self._worker = threading.Thread(target=self._run, name=f"bus-{config.robot}",
+                                        daemon=True)
+        self._worker.start()
+
+    @staticmethod
+    def _declare(session: zenoh.Session, config: BusConfig) -> dict[str, zenoh.Publisher]:
+        """One publisher per kind, with the QoS of the package docstring."""
+        return {kind: session.declare_publisher(config.key(kind), encoding=zenoh.Encoding.APPLICATION_JSON,
+                                                congestion_control=cc, priority=prio, reliability=rel)
+                for kind, (cc, prio, rel) in _QOS.items()}
+
+    # ------------------------------------------------------------------ publishing
+    def _check(self) -> None:
+        if self._closed:
+            raise StateError("bus is closed")
+
+    def publish_telemetry(self, payload: Mapping[str, Any]) -> None:
+        """Best effort, never blocks (DROP congestion control); may be lost."""
+        self._check()
+        data = encode(payload)
+        try:
+            with zenoh_errors("telemetry put"):
+                self._pub["telemetry"].put(data)
+        except BusError as exc:  # telemetry is droppable by contract
+            with self._count_lock:
+                self.dropped += 1
+            log.debug("telemetry dropped: %s", exc)
+
+    def publish_correction(self, payload: Mapping[str, Any]) -> bool:
+        return self._enqueue_send("correction", payload)
+
+    def publish_state(self, payload: Mapping[str, Any]) -> bool:
+        return self._enqueue_send("state", payload)
+
+    def _enqueue_send(self, kind: str, payload: Mapping[str, Any]) -> bool:
+        """Hand a reliable message to the worker; False (and counted) if the queue is full."""
+        self._check()
+        data = encode(payload)
+        with self._count_lock:
+            if self._sends >= self.config.send_queue:
+                self.dropped += 1
+                return False
+            self._sends += 1
+        self._tasks.put(("send", kind, data))
+        return True
+
+    def request_maintenance(self, payload: Mapping[str, Any]) -> int:
+        """Durably store, then publish until acked. Returns the outbox id.
+
+        Raises StateError without a Store, StoreError if the request could not be committed
+        (then nothing was published).
+        """
+        self._check()
+        if self.store is None:
+            raise StateError("request_maintenance needs a Store (the outbox makes it durable)")
+        body = dict(payload)
+        body.setdefault("uid", uuid.uuid4().hex)
+        body.setdefault("cell", self.config.cell)
+        body.setdefault("robot", self.config.robot)
+        body.setdefault("created", time.time())
+        oid = self.store.outbox_add(self.config.key("maintenance/request"), body)
+        self._tasks.put(("wake",))
+        return oid
+
+    def pending(self) -> list:
+        return [] if self.store is None else self.store.outbox_pending()
+
+    # ------------------------------------------------------------------ worker
+    def _run(self) -> None:
+        next_republish = 0.0  # publish pending entries at once (restart case)
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if self.store is not None and now >= next_republish:
+                self._republish()
+                next_republish = time.monotonic() + self.config.republish_period_s
+            try:
+                task = self._tasks.get(timeout=max(0.0, next_republish - time.monotonic())
+                                       if self.store is not None else 0.5)
+            except queue.Empty:
+                continue
+            try:
+                self._handle(task)
+            except Exception:  # noqa: BLE001 - the worker must survive any single failure
+                log.exception("bus worker task %s failed", task[0])
+            if task[0] == "wake":
+                next_republish = 0.0
+
+    def _handle(self, task: tuple) -> None:
+        kind = task[0]
+        if kind == "send":
+            with self._count_lock:
+                self._sends -= 1
+            with zenoh_errors(f"{task[1]} put"):
+                self._pub[task[1]].put(task[2])
+            self.published += 1
+        elif kind == "ack":
+            self._on_ack_bytes(task[1])
+        elif kind == "stop":
+            self._stop.set()
+
+    def _on_ack_bytes(self, raw: bytes) -> None:
+        try:
+            msg = json.loads(raw)
+            oid, uid = int(msg["id"]), str(msg["uid"])
+        except (ValueError, KeyError, TypeError):
+            log.warning("malformed maintenance ack ignored: %r", raw[:200])
+            return
+        if self.store is None:
+            return
+        item = self.store.outbox_get(oid)
+        if item is None or item.payload.get("uid") != uid:
+            log.warning("ack for unknown request id=%s uid=%s ignored", oid, uid)
+            return
+        if self.store.outbox_ack(oid):
+            self.acked += 1
+            if self.on_ack is not None:
+                self.on_ack(oid, msg)
+
+    def _republish(self) -> None:
+        try:
+            items = self.store.outbox_pending()
+        except StoreError as exc:
+            log.warning("cannot read outbox: %s", exc)
+            return
+        for item in items:
+            if self._stop.is_set():
+                return
+            body = dict(item.payload) | {"id": item.id, "attempt": item.attempts + 1}
+            try:
+                if item.key == self.config.key("maintenance/request"):
+                    with zenoh_errors("maintenance request put"):
+                        self._pub["maintenance/request"].put(encode(body))
+                else:  # written under another cell/robot name: still deliver it there
+                    put_json(self._session, item.key, body)
+                self.published += 1
+                self.store.outbox_attempted(item.id)
+            except StoreError as exc:
+                log.warning("outbox attempt not recorded: %s", exc)
+            except BusError as exc:  # retried next period
+                log.warning("maintenance request %s not published: %s", item.id, exc)
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self, timeout: float | None = None) -> bool:
+        """Stop the worker and close the session, bounded by `timeout` (config default)."""
+        if self._closed:
+            return True
+        self._closed = True
+        timeout = self.config.close_timeout_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        self._stop.set()
+        self._tasks.put(("stop",))
+        self._worker.join(max(0.0, deadline - time.monotonic()))
+        return close_session(self._session, max(0.1, deadline - time.monotonic())) \
+            and not self._worker.is_alive()
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
