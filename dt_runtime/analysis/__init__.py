@@ -1,3 +1,4 @@
-"""Understanding the robot: loading data for analysis, grouped cross-validation, diagnosis of
-the missing effect and the comparison of models with measurements.
+"""Understanding the robot: loading data for analysis (`data`), grouped cross-validation
+(`crossval`), training a model (`training`), diagnosis of the missing effect (`diagnose`), the
+comparison of models with measurements (`compare`), and their typed results (`results`).
 """

@@ -287,7 +287,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     zeros = np.zeros((ds.n, 3))
     scores, arrs = [], []
     b, a = _score(AS_IS, "as is", "no correction: e_hat = 0", zeros, zeros, ds, cells, um, dm, np.full(3, INF))
-    scores.append(b), arrs.append(a)
+    scores.append(b)
+    arrs.append(a)
     if cv_folds > 1:
         groups = groups_of(ds)
         folds = folds_of(groups, cv_folds, seed)
@@ -305,7 +306,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
         about = {"effects": list(m.effects), "gp_inputs": m.gp_inputs,
                  "effect_residual_rms_mm": float(m.residual_rms_) * MM_PER_M, "parameters": m.parameters()}
         b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about)
-        scores.append(b), arrs.append(a)
+        scores.append(b)
+    arrs.append(a)
     floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)
     result = CompareResult(
         scores, ds.source, floor * MM_PER_M if floor is not None else None,

@@ -52,7 +52,7 @@ def heldout(Y: np.ndarray, folds: list[np.ndarray], predict_fold: Callable, retu
     std = np.zeros_like(Y, dtype=float) if return_std else None
     for te in folds:
         out = predict_fold(~te, te)
-        if return_std:
+        if std is not None:
             out, std[te] = out
         resid[te] = Y[te] - out
     return resid, std
@@ -90,10 +90,12 @@ def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, fol
     # the folds (the fold models refit the effect parameters and the GP posterior): a few
     # smoothness/noise numbers leak, no point's error does, and the loop runs 5x faster.
     if model.gp_inputs != "none" and thetas is None and not hyper_per_fold:
-        thetas = model.clone().fit(inp, y, design=design).gp_.thetas_
+        full = model.unfitted().fit(inp, y, design=design)
+        assert full.gp_ is not None  # gp_inputs != "none"
+        thetas = full.gp_.thetas_
 
     def predict_fold(tr, te):
-        m = model.clone().fit(inp.subset(tr), y[tr], design=design.rows(tr), thetas=thetas)
+        m = model.unfitted().fit(inp.subset(tr), y[tr], design=design.rows(tr), thetas=thetas)
         return m.predict(inp.subset(te), return_std=return_std, design=design.rows(te))
 
     resid, std = heldout(y, folds, predict_fold, return_std)

@@ -96,15 +96,16 @@ def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain
                              gp_options=gp_options)
     base = cross_validate(base_model, inp, error, groups, folds)
     before = rms3(base.residual)
-    ranking, gp_ranking = [], []
+    ranking: list[Gain] = []
+    gp_ranking: list[Gain] = []
     steps = [("effect", c) for c in cands] + [("gp_inputs", g) for g in alts]
     for i, (kind, c) in enumerate(steps):
         if progress:
             progress.step("diagnose: candidates", i, len(steps))
         if kind == "effect":
-            res = cross_validate(base_model.clone(effects=tuple(base_effects) + (c,)), inp, error, groups, folds)
+            res = cross_validate(base_model.unfitted(effects=tuple(base_effects) + (c,)), inp, error, groups, folds)
         else:
-            res = cross_validate(base_model.clone(gp_inputs=c), inp, error, groups, folds)
+            res = cross_validate(base_model.unfitted(gp_inputs=c), inp, error, groups, folds)
         p, after = paired_gain(base, res)
         (ranking if kind == "effect" else gp_ranking).append(_gain(kind, c, before, after, p))
     ranking.sort(key=lambda r: (not r.significant, -r.explained_fraction))
@@ -116,7 +117,7 @@ def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain
 
 
 def run_diagnose(d: Data, model_dir: str | Path | None = None, effects: tuple[str, ...] = (),
-                 gp_inputs: str = "tcp_speed", robot: str | Path | None = None,
+                 gp_inputs: str = "tcp_speed", robot: str | Path | Chain | None = None,
                  candidates: tuple[str, ...] | None = None, folds: int = 5, seed: int = 0,
                  gp_options: GPOptions | None = None, progress: Progress | None = None) -> DiagnoseResult:
     """`dt diagnose` on loaded data: rank the effects the model lacks; the starting model is

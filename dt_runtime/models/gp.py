@@ -392,7 +392,8 @@ class MultiOutputGP(Params):
         except (OSError, json.JSONDecodeError) as exc:
             raise ModelError(f"{jpath}: cannot read GP model metadata ({exc})") from exc
         if not isinstance(meta, dict) or meta.get("kind") != _KIND:
-            raise ModelError(f"{jpath}: not a {_KIND} file (kind {meta.get('kind') if isinstance(meta, dict) else None!r})")
+            kind = meta.get("kind") if isinstance(meta, dict) else None
+            raise ModelError(f"{jpath}: not a {_KIND} file (kind {kind!r})")
         v = meta.get("format_version")
         if v != FORMAT_VERSION:
             hint = "written by a newer version; upgrade cobot-dt" if isinstance(v, int) and v > FORMAT_VERSION \

@@ -6,9 +6,9 @@ with their standard uncertainties from the residual scatter. A GP (dt_runtime.mo
 models the residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed),
 'tcp', 'joints', or 'none'.
 
-Follows scikit-learn's estimator contract: `__init__` only stores its arguments, `fit` validates
-them and returns self, learned attributes end in `_`, `get_params`/`set_params` work, so
-`sklearn.base.clone` does.
+Follows scikit-learn's estimator contract (it is a scikit-learn regressor: clone,
+cross_val_score and pipelines work): `__init__` only stores its arguments, `fit` validates them
+and returns self, learned attributes end in `_`.
 
     model = HybridModel(effects=("geometric", "backlash"), robot="robots/cobot_hc20_like.yaml")
     model.fit(dataset)                      # y defaults to dataset.error (rows in time order)
@@ -22,12 +22,12 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from sklearn.base import BaseEstimator, RegressorMixin
 
 from dt_kernel.errors import DataError, ModelError
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.models import effects as fx
-from dt_runtime.models.estimator import Params
 from dt_runtime.models.gp import GPOptions, MultiOutputGP
 from dt_runtime.models.modelio import read_meta
 
@@ -101,7 +101,7 @@ class Design:
         return Design(self.A[mask], self.params)
 
 
-class HybridModel(Params):
+class HybridModel(RegressorMixin, BaseEstimator):
     """error = sum of effect terms (dt_runtime.models.effects) + GP on what is left.
 
     effects: effect names (`effects.names()`); gp_inputs: one of GP_INPUTS; ridge: penalty on
@@ -119,9 +119,10 @@ class HybridModel(Params):
         self.robot = robot
         self.gp_options = gp_options
 
-    def clone(self, **changes) -> HybridModel:
-        """An unfitted model with this one's parameters, `changes` applied."""
-        return type(self)(**(self.get_params() | changes))
+    def unfitted(self, **changes) -> HybridModel:
+        """An unfitted model with this one's parameters, `changes` applied (sklearn.base.clone
+        without the deep copy: the parameters are immutable, a Chain is only read)."""
+        return type(self)(**(self.get_params(deep=False) | changes))
 
     def _check_params(self) -> GPOptions:
         fx.check_names(self.effects)

@@ -9,7 +9,7 @@ arm reaches fk(q + dq) ~ fk(q) + J dq, so a joint deviation dq contributes e = -
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import ClassVar
+from typing import ClassVar, cast
 
 import numpy as np
 
@@ -89,9 +89,10 @@ class Effect:
                             f"which the data does not have")
         if self.needs_chain and chain is None:
             raise DataError(f"effect '{self.name}' needs the robot's kinematic model (parameter robot)")
-        return self.regressors(inp, chain)
+        return self.regressors(inp, cast(Chain, chain))  # None only where needs_chain is False
 
-    def regressors(self, inp: Inputs, chain: Chain | None) -> Block:  # pragma: no cover - abstract
+    def regressors(self, inp: Inputs, chain: Chain) -> Block:  # pragma: no cover - abstract
+        """The block; `build` has checked the columns (and the chain, where needed)."""
         raise NotImplementedError
 
     def __repr__(self) -> str:
