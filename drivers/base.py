@@ -38,6 +38,10 @@ class Lifecycle:
     #: True for drivers that run on the simulated world: the caller must pass `world`.
     needs_world: ClassVar[bool] = False
 
+    def __init__(self, *, world: Any = None, source: str = "<driver config>") -> None:
+        """The constructor every driver offers (its own may take more, all optional)."""
+        self._source = source
+
     @classmethod
     def from_config(cls, config: Mapping[str, Any] | None = None, *, world: Any = None,
                     source: str = "<driver config>"):

@@ -17,6 +17,7 @@ import importlib
 from collections.abc import Mapping
 from typing import Any
 
+from drivers.base import Lifecycle
 from dt_kernel.errors import ConfigError
 
 # name -> "module:Class"; imported lazily so a missing optional part fails only when chosen.
@@ -37,7 +38,7 @@ def known(kind: str) -> list[str]:
     return sorted(_REGISTRY[kind])
 
 
-def driver_class(kind: str, name: str, source: str = "<config>") -> type:
+def driver_class(kind: str, name: str, source: str = "<config>") -> type[Lifecycle]:
     """The class registered under (kind, name); ConfigError listing the known names otherwise."""
     if kind not in _REGISTRY:
         raise ConfigError(source, "kind", kind, "one of " + ", ".join(sorted(_REGISTRY)))

@@ -129,7 +129,7 @@ class SerialLink:
                             problem, cause = str(exc), exc
                     continue
                 timeouts_in_row = 0
-                if reply == "corrupt":
+                if isinstance(reply, str):  # "corrupt"
                     problem = "reply failed its checksum"
                     continue
                 if reply.is_nak:
@@ -168,7 +168,7 @@ class SerialLink:
                 return None
 
 
-def refused(device: str, word: str, reply: lp.Frame) -> DriverError:
+def refused(device: str, word: str, reply: lp.Frame) -> DriverError | UnreachableError:
     text = ",".join(reply.fields[1:])
     if reply.nak_reason == lp.NAK_UNREACHABLE:
         return UnreachableError(f"{device}: {word} refused, target unreachable: {text}")

@@ -107,7 +107,7 @@ class Daemon:
         self.twin = Twin.load(self._p(cfg.twin))
         trained = self.twin.instruments.get("camera")
         if trained and trained != cfg.drivers.camera:
-            raise ConfigError(self._p(cfg.twin) / "twin.json", "instruments.camera", trained,
+            raise ConfigError(str(self._p(cfg.twin) / "twin.json"), "instruments.camera", trained,
                               f"the daemon's camera driver '{cfg.drivers.camera}': a twin is valid only "
                               "with the instruments (and frames) it was calibrated with")
         self.corrector = Corrector(self.twin, cfg.limits)
@@ -217,11 +217,12 @@ class Daemon:
             return
         self.inst.robot.move_linear(corr.command, v)
         t = self._now()
-        self.store.put(CommandRow(t, *corr.target, speed=v))
+        x, y, z = corr.target
+        self.store.put(CommandRow(t, x, y, z, speed=v))
         self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
         reading = self.inst.camera.read()
         self.ticks += 1
-        if not reading.ok:
+        if not reading.ok or reading.point is None:
             log.info("MVS refused: %s", reading.refused)
             return
         try:

@@ -123,7 +123,6 @@ class Store:
         # The one queue of high-rate rows: deque.append is atomic, so put() needs no lock.
         self._queue: collections.deque[Row] = collections.deque()
         self._pending: list[Row] = []  # taken from the queue, not yet committed
-        self._last_flush = time.monotonic()
         self._closed = False
         if synchronous.upper() not in ("FULL", "NORMAL", "EXTRA"):
             raise StoreError(f"synchronous={synchronous!r}: allowed FULL, NORMAL, EXTRA")
@@ -139,6 +138,7 @@ class Store:
             self._db.execute(f"PRAGMA busy_timeout={int(timeout_s * 1000)}")
             self._db.executescript(_SCHEMA)
             self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+        self._last_flush = time.monotonic()  # once open: opening (fsyncs) is not batch time
         self._stop = threading.Event()
         self._writer: threading.Thread | None = None
         if background:

@@ -32,7 +32,7 @@ class MaintenanceConsumer:
         self.auto_ack = auto_ack
         self.requests: list[dict[str, Any]] = []
         self.copies = 0
-        self._seen: set[tuple[str, str, str]] = set()
+        self._seen: set[tuple[str, str]] = set()  # (dt/<cell>/<robot>, uid)
         self._cond = threading.Condition()
         self._tasks: queue.Queue = queue.Queue()
         self._closed = False
