@@ -143,15 +143,15 @@ def diagnose_loop(inp, error, groups, chain, floor, effects, gp_inputs, steps: l
         t0 = time.perf_counter()
         r = dg.diagnose(inp, error, groups, chain, effects, gp_inputs, None, FOLDS, SEED,
                         noise_floor_m=floor, gp_options=GP_OPTIONS, **DIAGNOSE_KW)
-        top = r["ranking"][0] if r["ranking"] else None
-        tested = {c["effect"]: round(c["p_value"], 6) for c in r["ranking"]}
-        log(f"    diagnose [{', '.join(effects) or '-'}] + GP({gp_inputs}): {r['rmse_base_mm']:.4f} mm; "
+        top = r.top
+        tested = {c.candidate: round(c.p_value, 6) for c in r.ranking}
+        log(f"    diagnose [{', '.join(effects) or '-'}] + GP({gp_inputs}): {r.rmse_base_mm:.4f} mm; "
             f"p {tested} ({time.perf_counter() - t0:.0f} s)")
-        if not top or not top["significant"]:
+        if not top or not top.significant:
             return effects, r
-        effects += (top["effect"],)
-        steps.append({"change": f"+{top['effect']}", "gp_inputs": gp_inputs, "p_value": top["p_value"],
-                      "explained_fraction": top["explained_fraction"], "heldout_mm": top["rmse_after_mm"]})
+        effects += (top.candidate,)
+        steps.append({"change": f"+{top.candidate}", "gp_inputs": gp_inputs, "p_value": top.p_value,
+                      "explained_fraction": top.explained_fraction, "heldout_mm": top.rmse_after_mm})
     return effects, r
 
 
@@ -209,7 +209,7 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
         if not switch["accepted"]:
             res["gp_switch_rejected"] = switch
         res["final_effects"], res["final_gp_inputs"] = list(effects), gp
-        res["verdict"] = last["verdict"]
+        res["verdict"] = last.verdict
 
         fin = cv(effects, inp, ds.error, groups, chain, gp, folds)
         res["final_heldout_mm"] = dg.rms3(fin.residual) * 1e3
