@@ -13,8 +13,8 @@ This module knows nothing of the processing side (dt_runtime.mvs).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -45,7 +45,7 @@ class CameraConfig(Frozen):
     position_m: tuple[float, float, float]
     look_at_m: tuple[float, float, float]
     roll_deg: float = 0.0
-    intrinsics: Optional[Intrinsics] = None  # None: the rig's shared intrinsics
+    intrinsics: Intrinsics | None = None  # None: the rig's shared intrinsics
 
 
 class ImageConfig(Frozen):

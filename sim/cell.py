@@ -30,7 +30,7 @@ class SimCell:
 
     @classmethod
     def from_files(cls, scenario: str | Path | dict, cell: str | Path, seed: int | None = None,
-                   source: str = "<scenario>") -> "SimCell":
+                   source: str = "<scenario>") -> SimCell:
         """scenario: a YAML path, or its already-read mapping (`source` names it in errors);
         seed: overrides the scenario's seed (plant noise, geometric draws, instruments)."""
         scn = validate(Scenario, scenario, source) if isinstance(scenario, dict) else load_scenario(scenario)

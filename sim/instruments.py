@@ -7,10 +7,10 @@ The image-based camera rig (sim.camera_rig) can replace the point MVS behind the
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from dt_kernel.config import Frozen
-from pydantic import Field
 
 
 class Pose(Frozen):

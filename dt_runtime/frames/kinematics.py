@@ -15,9 +15,8 @@ import numpy as np
 from pydantic import Field
 from scipy.spatial.transform import Rotation
 
-from dt_kernel.errors import ConfigError
-
 from dt_kernel.config import Frozen, load_yaml
+from dt_kernel.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dt_kernel.units import AXES
 from dt_kernel.errors import DataError
-
+from dt_kernel.units import AXES
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -52,11 +51,11 @@ class RigidTransform:
             raise DataError(f"apply: expected (3,) or (n, 3) points, got shape {p.shape}")
         return self.s * p @ self.R.T + self.t
 
-    def inverse(self) -> "RigidTransform":
+    def inverse(self) -> RigidTransform:
         Ri = self.R.T
         return RigidTransform(Ri, -(Ri @ self.t) / self.s, 1.0 / self.s)
 
-    def compose(self, other: "RigidTransform") -> "RigidTransform":
+    def compose(self, other: RigidTransform) -> RigidTransform:
         """self after other: x -> self(other(x)) (matrix product self.matrix @ other.matrix)."""
         return RigidTransform(self.R @ other.R, self.s * self.R @ other.t + self.t, self.s * other.s)
 
@@ -69,7 +68,7 @@ class RigidTransform:
         return M
 
     @classmethod
-    def from_matrix(cls, M: np.ndarray, atol: float = 1e-6) -> "RigidTransform":
+    def from_matrix(cls, M: np.ndarray, atol: float = 1e-6) -> RigidTransform:
         """Inverse of `matrix`; refuses a block that is not a scaled rotation."""
         M = np.asarray(M, dtype=float)
         if M.shape != (4, 4) or not np.allclose(M[3], [0, 0, 0, 1], atol=atol):
@@ -85,10 +84,10 @@ class RigidTransform:
         return cls(R, M[:3, 3], s)
 
     @classmethod
-    def identity(cls) -> "RigidTransform":
+    def identity(cls) -> RigidTransform:
         return cls(np.eye(3), np.zeros(3))
 
-    def rotation_angle_to(self, other: "RigidTransform") -> float:
+    def rotation_angle_to(self, other: RigidTransform) -> float:
         """Angle (rad) of the rotation between self.R and other.R."""
         D = self.R @ other.R.T
         sin = np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2.0
@@ -98,7 +97,7 @@ class RigidTransform:
         return {"R": self.R.tolist(), "t": self.t.tolist(), "s": float(self.s)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "RigidTransform":
+    def from_dict(cls, d: dict) -> RigidTransform:
         try:
             return cls(np.array(d["R"], dtype=float), np.array(d["t"], dtype=float), float(d.get("s", 1.0)))
         except (KeyError, TypeError, ValueError) as exc:
@@ -229,7 +228,7 @@ class ResidualStats:
         return self.n - 1
 
     @classmethod
-    def of(cls, e: np.ndarray) -> "ResidualStats":
+    def of(cls, e: np.ndarray) -> ResidualStats:
         e = _check(e, "residuals")
         if len(e) < 2:
             raise DataError("residual statistics need at least 2 residuals")

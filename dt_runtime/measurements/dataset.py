@@ -17,14 +17,14 @@ import json
 import logging
 import math
 import re
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from dt_kernel.units import M_PER_MM
 from dt_kernel.errors import DataError
+from dt_kernel.units import M_PER_MM
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class Dataset:
             raise DataError(f"{self.source}: commanded positions and errors must be finite")
 
     @classmethod
-    def from_measured(cls, commanded, measured, **kw) -> "Dataset":
+    def from_measured(cls, commanded, measured, **kw) -> Dataset:
         """Rows from commanded and measured TCP (m); error = commanded - measured (Eq. 8)."""
         commanded, measured = np.asarray(commanded, float), np.asarray(measured, float)
         return cls(commanded=commanded, error=commanded - measured, measured=measured, **kw)
@@ -139,7 +139,7 @@ class Dataset:
         """Measured TCP: given, or commanded - error."""
         return self.measured if self.measured is not None else self.commanded - self.error
 
-    def select(self, index) -> "Dataset":
+    def select(self, index) -> Dataset:
         """Rows picked by a boolean mask or an index array (skipped rows are carried over)."""
         idx = np.asarray(index)
         kw = {}

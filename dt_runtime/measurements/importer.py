@@ -29,19 +29,19 @@ import time as _time
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Literal, Union
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from dt_runtime.metrology.stats import rms3
-from dt_kernel.units import M_PER_MM
-from dt_runtime.measurements.dataset import ColumnSpec, Dataset, parse_rows, read_header
-from dt_kernel.errors import DataError
-from dt_runtime.frames.registration import fit_rigid
 from dt_kernel.config import Frozen, load_yaml
+from dt_kernel.errors import DataError
+from dt_kernel.units import M_PER_MM
+from dt_runtime.frames.registration import fit_rigid
+from dt_runtime.measurements.dataset import ColumnSpec, Dataset, parse_rows, read_header
+from dt_runtime.metrology.stats import rms3
 
 LengthUnit = Literal["m", "mm"]
 AngleUnit = Literal["rad", "deg"]
@@ -118,7 +118,7 @@ class ImportMapping(Frozen):
     error_sign: Literal["commanded_minus_measured", "measured_minus_commanded"] = "commanded_minus_measured"
     measured_frame: Literal["robot", "instrument"] = "robot"
     registration: RegistrationSpec = RegistrationSpec()
-    time: Union[Literal["none", "row_order"], TimeSpec] = "none"
+    time: Literal["none", "row_order"] | TimeSpec = "none"
     # contract field names (x, mx, ux, temperature, joints, orientation, ...) that a file may lack
     optional_columns: tuple[str, ...] = ()
     # number the distinct commanded positions (point_id, first appearance = 0) and their

@@ -26,22 +26,22 @@ class Component:
     note: str = ""
 
     @classmethod
-    def type_a(cls, label: str, s, dof: float, note: str = "") -> "Component":
+    def type_a(cls, label: str, s, dof: float, note: str = "") -> Component:
         return cls(label, np.abs(np.asarray(s, dtype=float)) * np.ones(3), float(dof), "A", "normal", note)
 
     @classmethod
-    def uniform_from_bias(cls, label: str, mean, note: str = "") -> "Component":
+    def uniform_from_bias(cls, label: str, mean, note: str = "") -> Component:
         """A mean error left uncorrected, as a uniform distribution of half-width |mean|:
         u^2 = mean^2 / 3 (the paper's e_bar^2 / 3 terms)."""
         return cls(label, np.abs(np.asarray(mean, dtype=float)) * np.ones(3) / np.sqrt(3), INF, "B", "uniform", note)
 
     @classmethod
-    def uniform_from_resolution(cls, label: str, resol, note: str = "") -> "Component":
+    def uniform_from_resolution(cls, label: str, resol, note: str = "") -> Component:
         """Resolution as the paper writes it: u^2 = resol^2 / 3."""
         return cls(label, np.abs(np.asarray(resol, dtype=float)) * np.ones(3) / np.sqrt(3), INF, "B", "uniform", note)
 
     @classmethod
-    def from_std(cls, label: str, u, dof: float = INF, note: str = "", kind: str = "B") -> "Component":
+    def from_std(cls, label: str, u, dof: float = INF, note: str = "", kind: str = "B") -> Component:
         return cls(label, np.abs(np.asarray(u, dtype=float)) * np.ones(3), float(dof), kind, "normal", note)
 
 
@@ -84,7 +84,7 @@ class Budget:
     def expanded(self, p: float = 0.95) -> np.ndarray:
         return self.coverage_factor(p) * self.combined()
 
-    def extend(self, name: str, more) -> "Budget":
+    def extend(self, name: str, more) -> Budget:
         extra = more.components if isinstance(more, Budget) else tuple(more)
         return Budget(name, self.components + extra)
 

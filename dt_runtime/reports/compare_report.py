@@ -14,11 +14,19 @@ from pathlib import Path
 import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
-from dt_runtime.reports.html import Section, figure_block, fig_to_img_tag, headline, html_page, html_table, \
-    note, paragraph, plt
 from dt_runtime.analysis.compare import MIN_CELL
 from dt_runtime.reports.demo_report import COLORS, Missing, _f, _levels, _run_block
-
+from dt_runtime.reports.html import (
+    Section,
+    fig_to_img_tag,
+    figure_block,
+    headline,
+    html_page,
+    html_table,
+    note,
+    paragraph,
+    plt,
+)
 
 
 def _primary(a: dict) -> dict:

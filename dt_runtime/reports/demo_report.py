@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from dt_runtime.metrology.stats import finite_rows, rms_with_U, t95, wilson_interval
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.metrology.stats import finite_rows, rms_with_U, t95, wilson_interval
 from dt_runtime.reports.html import (  # noqa: F401  (re-exported helper API)
     Section,
     esc,
@@ -487,7 +488,7 @@ def _fig_gpr(s: dict, a: dict, ekey: str = "e_lt", rkey: str = "r_lt", label: st
             axp.set_title(f"{label},{ax}: s(r) = {sr:.3f} mm, n = {len(t)}", fontsize=9)
             axp.legend(fontsize=7, loc="upper left")
         axp.set_xlabel(f"true {label},{ax} / mm", fontsize=8)
-        axp.set_ylabel(f"predicted (held-out) / mm", fontsize=8)
+        axp.set_ylabel("predicted (held-out) / mm", fontsize=8)
         axp.tick_params(labelsize=7)
         axp.grid(alpha=0.3)
         axn = axs[1, c]

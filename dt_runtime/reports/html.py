@@ -16,8 +16,9 @@ import html
 import io
 import math
 import numbers
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import matplotlib
 

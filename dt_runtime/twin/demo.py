@@ -15,18 +15,17 @@ from pathlib import Path
 
 import numpy as np
 
-from dt_runtime.metrology.stats import mean_std_mm, rms3
 from drivers import registry
-from dt_kernel.units import AXES, MM_PER_M
 from drivers.simulated.devices import SimWorld
-from dt_runtime.twin import calibration as cal
-from dt_runtime.metrology import uncertainty as unc
-from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
-from dt_runtime.common.paths import CONFIGS
-from dt_runtime.measurements.plans import build_plan, load_plan
-from dt_runtime.common.progress import Progress
 from dt_kernel.config import Frozen, load_yaml
-
+from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.common.progress import Progress
+from dt_runtime.measurements.plans import build_plan, load_plan
+from dt_runtime.metrology import uncertainty as unc
+from dt_runtime.metrology.stats import mean_std_mm, rms3
+from dt_runtime.twin import calibration as cal
+from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
 
 
 class DriversConfig(Frozen):

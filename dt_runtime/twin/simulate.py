@@ -22,19 +22,19 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from dt_kernel.units import MM_PER_M
-from dt_runtime.metrology.stats import rms3
 from drivers import registry
 from drivers.simulated.devices import SimWorld
-from dt_runtime.frames import registration as reg
-from dt_runtime.measurements.dataset import Dataset, meta_path, write_table
-from dt_kernel.errors import ConfigError, DataError
-from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
-from dt_runtime.frames.kinematics import load_robot
-from dt_runtime.common.paths import CONFIGS
-from dt_runtime.measurements.plans import PlanConfig, build_plan, load_plan
-from dt_runtime.common.progress import Progress
 from dt_kernel.config import Frozen, read_yaml, validate
+from dt_kernel.errors import ConfigError, DataError
+from dt_kernel.units import MM_PER_M
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.common.progress import Progress
+from dt_runtime.frames import registration as reg
+from dt_runtime.frames.kinematics import load_robot
+from dt_runtime.measurements.dataset import Dataset, meta_path, write_table
+from dt_runtime.measurements.plans import PlanConfig, build_plan, load_plan
+from dt_runtime.metrology.stats import rms3
+from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
 
 Phase = Literal["doe", "validation"]
 # Validation point ids follow the DOE ids so that one file can hold both phases.
