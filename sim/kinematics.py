@@ -126,7 +126,8 @@ class Arm:
 
         PyBullet's damped IK gives a start on the elbow-up branch; Newton steps on the full
         6-D pose error then converge to `tol` (m and rad; PyBullet reports link poses in
-        single precision, about 0.1 um here, well inside the 1 um resolution). Raises UnreachableError outside reach or joint limits.
+        single precision, about 0.1 um here, well inside the 1 um resolution). Raises
+        UnreachableError outside reach or joint limits.
         """
         target = np.asarray(target, dtype=float)
         if q_seed is not None:

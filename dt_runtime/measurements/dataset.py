@@ -369,7 +369,7 @@ def read_table(path: str | Path, skip_bad: bool = False) -> Dataset:
     joint_idx = sorted(int(m.group(1)) for c in header if (m := _JOINT_RE.match(c)))
     if joint_idx and joint_idx != list(range(1, len(joint_idx) + 1)):
         raise DataError(f"{path}: line 1: joint columns must be q1..qk without gaps, found "
-                        f"{['q%d' % i for i in joint_idx]}")
+                        f"{[f'q{i}' for i in joint_idx]}")
     specs += [ColumnSpec(f"q{i}", f"q{i}") for i in joint_idx]
     known = {s.column for s in specs}
     unknown = [c for c in header if c not in known]

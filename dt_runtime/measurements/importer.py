@@ -387,7 +387,8 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
                 notes.append("no orientation columns: probe offset not fitted (rigid registration only)")
             method = "rigid+offset" if fitted_offset else "rigid"
             R, t_vec, offset = fit.rotation, fit.translation, fit.offset
-            stds = (fit.rotation_std, fit.translation_std / M_PER_MM, fit.offset_std / M_PER_MM if fitted_offset else None)
+            stds = (fit.rotation_std, fit.translation_std / M_PER_MM,
+                    fit.offset_std / M_PER_MM if fitted_offset else None)
             p_meas = p_meas @ R.T + t_vec
             if u_meas is not None:
                 # diagonal instrument-frame covariance rotated into the robot frame, per-axis std

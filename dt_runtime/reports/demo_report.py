@@ -601,8 +601,9 @@ def _fig_eq17(s: dict, a: dict) -> str:
         axp.errorbar(i[ok], diff[ok, c] * MM_PER_M, yerr=ud[ok], fmt="o", ms=3, color="k", ecolor="0.6", elinewidth=0.8,
                      capsize=1.5, label="actual ê_LT − e_MVS ± U")
         if np.any(fail):
-            axp.errorbar(i[fail], diff[fail, c] * MM_PER_M, yerr=ud[fail], fmt="o", ms=4, color="tab:red", ecolor="tab:red",
-                         elinewidth=0.8, capsize=1.5, label=f"|t| > {tcrit[c]:.2f} (fails Eq. 17)")
+            axp.errorbar(i[fail], diff[fail, c] * MM_PER_M, yerr=ud[fail], fmt="o", ms=4, color="tab:red",
+                         ecolor="tab:red", elinewidth=0.8, capsize=1.5,
+                         label=f"|t| > {tcrit[c]:.2f} (fails Eq. 17)")
         axp.set_ylabel(f"{ax} / mm", fontsize=9)
         axp.set_title(f"{ax}-axis: {int(np.sum(~fail))} of {n} pass", fontsize=9)
         axp.grid(alpha=0.3)
@@ -708,7 +709,8 @@ def _headline(s: dict, a: dict) -> str:
         cards.append(headline("True 3D RMS error, validation targets",
                               f"{_f(ru)}{unc_of('val_true_err_plain')} mm → {_f(rc)}{unc_of('val_true_err_corr')} mm",
                               f"Distance between where the arm was sent and where it really went (simulator truth), "
-                              f"without and with the twin's correction, over {s.get('n_validation', '?')} positionings; "
+                              f"without and with the twin's correction, over {s.get('n_validation', '?')} "
+                              "positionings; "
                               "± is the 95 % uncertainty of the RMS estimate."))
     if red is not None:
         cards.append(headline("True error reduction", f"{_f(red, 1)} %",
