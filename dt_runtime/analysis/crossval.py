@@ -13,10 +13,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dt_runtime.models.hybrid import HybridModel, as_inputs
+from dt_runtime.models.effects import as_inputs
+
+if TYPE_CHECKING:  # only a type here: the twin's calibration imports this module without the hybrid model
+    from dt_runtime.models.hybrid import HybridModel
 
 
 @dataclass

@@ -10,7 +10,7 @@ Follows scikit-learn's estimator contract (it is a scikit-learn regressor: clone
 cross_val_score and pipelines work): `__init__` only stores its arguments, `fit` validates them
 and returns self, learned attributes end in `_`.
 
-    model = HybridModel(effects=("geometric", "backlash"), robot="robots/cobot_hc20_like.yaml")
+    model = HybridModel(effects=("geometric", "backlash"), robot="configs/robots/cobot_hc20_like.yaml")
     model.fit(dataset)                      # y defaults to dataset.error (rows in time order)
     e_hat, u = model.predict(dataset, return_std=True)
 """
@@ -28,26 +28,13 @@ from dt_kernel.errors import DataError, ModelError
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.models import effects as fx
+from dt_runtime.models.effects import as_inputs
 from dt_runtime.models.gp import GPOptions, MultiOutputGP
 from dt_runtime.models.modelio import read_meta
 
 FORMAT_VERSION = 1
 GP_INPUTS = ("tcp_speed", "tcp", "joints", "none")
 DEFAULT_RIDGE = 1e-4
-
-
-def as_inputs(X) -> fx.Inputs:
-    """The effect terms' inputs of X: an `effects.Inputs`, a measurement `Dataset`, or an
-    (n, 3) array of commanded TCP positions (m)."""
-    if isinstance(X, fx.Inputs):
-        return X
-    if hasattr(X, "commanded"):
-        return fx.Inputs.of(X)
-    P = np.asarray(X, dtype=float)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise DataError(f"X must be a Dataset, effects.Inputs or an (n, 3) array of commanded TCP "
-                        f"positions, got shape {P.shape}")
-    return fx.Inputs(commanded=P)
 
 
 def gp_features(inp: fx.Inputs, kind: str) -> np.ndarray | None:

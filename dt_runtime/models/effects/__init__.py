@@ -20,7 +20,7 @@ from types import MappingProxyType
 from dt_kernel.errors import DataError
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.models.effects.backlash import Backlash
-from dt_runtime.models.effects.base import Block, Effect, Inputs
+from dt_runtime.models.effects.base import Block, Effect, Inputs, as_inputs
 from dt_runtime.models.effects.compliance import Compliance
 from dt_runtime.models.effects.drift import Drift
 from dt_runtime.models.effects.dynamic import Dynamic
@@ -32,7 +32,7 @@ from dt_runtime.models.effects.thermal import Thermal
 REGISTRY: MappingProxyType[str, Effect] = MappingProxyType(
     {e.name: e for e in (Geometric(), Compliance(), Gear(), Backlash(), Thermal(), Dynamic(), Drift())})
 
-__all__ = ["REGISTRY", "Block", "Effect", "Inputs", "available", "build", "check_names", "get", "names"]
+__all__ = ["REGISTRY", "Block", "Effect", "Inputs", "as_inputs", "available", "build", "check_names", "get", "names"]
 
 
 def names() -> tuple[str, ...]:

@@ -45,6 +45,20 @@ class Inputs:
         return all(getattr(self, c) is not None for c in columns)
 
 
+def as_inputs(X) -> Inputs:
+    """The effect terms' inputs of X: an `effects.Inputs`, a measurement `Dataset`, or an
+    (n, 3) array of commanded TCP positions (m)."""
+    if isinstance(X, Inputs):
+        return X
+    if hasattr(X, "commanded"):
+        return Inputs.of(X)
+    P = np.asarray(X, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise DataError(f"X must be a Dataset, effects.Inputs or an (n, 3) array of commanded TCP "
+                        f"positions, got shape {P.shape}")
+    return Inputs(commanded=P)
+
+
 @dataclass(frozen=True)
 class Block:
     effect: str
