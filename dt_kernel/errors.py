@@ -6,6 +6,7 @@ with `raise ... from exc`.
 """
 from __future__ import annotations
 
+import os
 from typing import Any
 
 
@@ -16,7 +17,7 @@ class TwinError(Exception):
 class ConfigError(TwinError):
     """A config, scenario or plan is malformed; names file, key, value and what is allowed."""
 
-    def __init__(self, file: str, key: str, value: Any, allowed: str):
+    def __init__(self, file: str | os.PathLike[str], key: str, value: Any, allowed: str):
         self.file, self.key, self.value, self.allowed = str(file), key, value, allowed
         super().__init__(f"{file}: key '{key}': value {value!r} is not allowed; {allowed}")
 

@@ -285,7 +285,8 @@ class SimCameraImages:
         X = self.marker_world(R, p) if points is None else np.atleast_2d(np.asarray(points, float))
         n = len(X)
         d_m = self.cfg.markers.diameter_m
-        images, visible, truth_uv = [], [], []
+        images: list[np.ndarray | None] = []  # None: a dropped camera
+        visible, truth_uv = [], []
         for cam in self.cams:
             dropped = cam.name in r.dropped_cameras or rng.random() < r.dropout_probability
             uv, depth = cam.project(X)

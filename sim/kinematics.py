@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pybullet as pb
 
-from dt_kernel.errors import UnreachableError
+from dt_kernel.errors import ConfigError, UnreachableError
 
 URDF_PATH = Path(__file__).parent / "assets" / "cobot.urdf"
 GRAVITY = 9.80665  # m/s^2, standard gravity
@@ -29,6 +29,8 @@ def perturbed_urdf(joint_xyz: dict[str, np.ndarray], joint_rpy: dict[str, np.nda
     for joint in tree.getroot().iter("joint"):
         name = joint.get("name")
         origin = joint.find("origin")
+        if name is None or origin is None:
+            raise ConfigError(source, "joint", name, "URDF joints with a 'name' and an <origin> to perturb")
         xyz = np.array([float(v) for v in origin.get("xyz", "0 0 0").split()])
         rpy = np.array([float(v) for v in origin.get("rpy", "0 0 0").split()])
         xyz = xyz + joint_xyz.get(name, 0.0)
@@ -67,7 +69,7 @@ class Arm:
         self.tcp_link = n - 1
         self.flange_link = self.joints[-1]
         self.set_payload(0.0)
-        self._q = None
+        self._q: np.ndarray | None = None
 
     @property
     def dof(self) -> int:
@@ -99,10 +101,10 @@ class Arm:
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """6 x dof geometric Jacobian (linear; angular) of the TCP."""
-        q = [float(v) for v in q]
-        zeros = [0.0] * len(q)
-        self._set(np.asarray(q))
-        lin, ang = pb.calculateJacobian(self.body, self.tcp_link, [0.0, 0.0, 0.0], q, zeros,
+        ql = [float(v) for v in q]
+        zeros = [0.0] * len(ql)
+        self._set(np.asarray(ql))
+        lin, ang = pb.calculateJacobian(self.body, self.tcp_link, [0.0, 0.0, 0.0], ql, zeros,
                                         zeros, physicsClientId=self.client)
         return np.vstack([np.array(lin), np.array(ang)])
 

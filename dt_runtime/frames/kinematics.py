@@ -81,6 +81,21 @@ def _transform(xyz, rpy) -> np.ndarray:
     return T
 
 
+def _urdf_attr(path: Path, elem: ET.Element, child: str | None, attr: str) -> str:
+    """Attribute `attr` of `elem` (or of its `child` element), which the URDF requires;
+    a missing one is a ConfigError naming the element."""
+    what = f"{elem.tag} '{elem.get('name', '?')}'"
+    if child is not None:
+        found = elem.find(child)
+        if found is None:
+            raise ConfigError(path, f"{what}/{child}", None, f"a <{child}> element (required by URDF)")
+        elem, what = found, f"{what}/{child}"
+    value = elem.get(attr)
+    if value is None:
+        raise ConfigError(path, f"{what}@{attr}", None, f"a '{attr}' attribute (required by URDF)")
+    return value
+
+
 def chain_from_urdf(path: str | Path, tool_link: str | None = None) -> Chain:
     """Chain from the base to `tool_link` (default: the last link) of a URDF."""
     path = Path(path)
@@ -88,8 +103,8 @@ def chain_from_urdf(path: str | Path, tool_link: str | None = None) -> Chain:
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError) as exc:
         raise ConfigError(path, "<file>", str(path), f"a readable URDF ({exc})") from exc
-    joints = {j.find("child").get("link"): j for j in root.iter("joint")}
-    links = [lk.get("name") for lk in root.iter("link")]
+    joints = {_urdf_attr(path, j, "child", "link"): j for j in root.iter("joint")}
+    links = [_urdf_attr(path, lk, None, "name") for lk in root.iter("link")]
     tip = tool_link or links[-1]
     if tip not in links:
         raise ConfigError(path, "tool_link", tip, "one of " + ", ".join(links))
@@ -97,7 +112,7 @@ def chain_from_urdf(path: str | Path, tool_link: str | None = None) -> Chain:
     link = tip
     while link in joints:
         seq.append(joints[link])
-        link = joints[link].find("parent").get("link")
+        link = _urdf_attr(path, joints[link], "parent", "link")
     seq.reverse()
     origins, axes = [], []
     pending = np.eye(4)
@@ -109,7 +124,8 @@ def chain_from_urdf(path: str | Path, tool_link: str | None = None) -> Chain:
         if j.get("type") in ("revolute", "continuous"):
             a = j.find("axis")
             origins.append(T)
-            axes.append(np.array([float(v) for v in (a.get("xyz") if a is not None else "1 0 0").split()]))
+            axis_xyz = _urdf_attr(path, j, "axis", "xyz") if a is not None else "1 0 0"
+            axes.append(np.array([float(v) for v in axis_xyz.split()]))
             pending = np.eye(4)
         else:
             pending = T
@@ -166,6 +182,7 @@ def load_robot(path: str | Path) -> Chain:
         chain = chain_from_urdf((path.parent / m.urdf).resolve())
         chain = Chain(chain.origins, chain.axes, chain.tool @ _transform(m.tool_xyz_m, [0, 0, 0]), m.name)
     else:
+        assert m.dh is not None  # exactly one of urdf/dh is set, checked above
         chain = chain_from_dh(m.dh, m.tool_xyz_m, m.name)
     base = _transform(m.base_xyz_m, m.base_rpy_rad)
     return Chain((base @ chain.origins[0],) + chain.origins[1:], chain.axes, chain.tool, chain.name,

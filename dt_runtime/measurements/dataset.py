@@ -20,6 +20,7 @@ import re
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -142,7 +143,7 @@ class Dataset:
     def select(self, index) -> Dataset:
         """Rows picked by a boolean mask or an index array (skipped rows are carried over)."""
         idx = np.asarray(index)
-        kw = {}
+        kw: dict[str, Any] = {}
         for f in ("commanded", "error", "measured", "speed", "joints", "temperature", "payload",
                   "t", "point_id", "rep", "u", "flange_rotation", "lines"):
             a = getattr(self, f)
@@ -462,7 +463,7 @@ def concat(datasets: Iterable[Dataset]) -> Dataset:
     ds = list(datasets)
     if not ds:
         raise DataError("concat: no datasets")
-    kw = {}
+    kw: dict[str, Any] = {}
     for f in ("commanded", "error", "measured", "speed", "joints", "temperature", "payload",
               "t", "point_id", "rep", "u", "flange_rotation", "lines"):
         parts = [getattr(d, f) for d in ds]

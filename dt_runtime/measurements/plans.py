@@ -137,12 +137,12 @@ def build_plan(cfg: PlanConfig) -> Plan:
             doe.append(PlanRow("doe", int(i), rep, pts[i], v))
 
     lo, hi = pts.min(0), pts.max(0)
-    val_pts = []
-    while len(val_pts) < cfg.validation_points:
+    val_list: list[np.ndarray] = []
+    while len(val_list) < cfg.validation_points:
         p = rng.uniform(lo, hi)
         if np.min(np.linalg.norm(pts - p, axis=1)) >= 0.06:
-            val_pts.append(p)
-    val_pts = np.array(val_pts)
+            val_list.append(p)
+    val_pts = np.array(val_list)
     validation = []
     rep = 0
     for v in cfg.validation_speeds:

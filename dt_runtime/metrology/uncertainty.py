@@ -9,6 +9,7 @@ Units: metres inside; tables in mm.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -91,7 +92,7 @@ class Budget:
     def table(self, unit: str = "mm") -> list[dict]:
         f = 1e3 if unit == "mm" else 1.0
         uc2 = self.combined() ** 2
-        rows = []
+        rows: list[dict[str, Any]] = []
         for c in self.components:
             share = np.divide(c.u ** 2, uc2, out=np.zeros(3), where=uc2 > 0)
             rows.append({"component": c.label, "equation": c.note, "type": c.kind,
