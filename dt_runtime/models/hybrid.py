@@ -6,9 +6,9 @@ with their standard uncertainties from the residual scatter. A GP (dt_runtime.mo
 models the residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed),
 'tcp', 'joints', or 'none'.
 
-Follows scikit-learn's estimator contract (it is a scikit-learn regressor: clone,
-cross_val_score and pipelines work): `__init__` only stores its arguments, `fit` validates them
-and returns self, learned attributes end in `_`.
+Follows scikit-learn's estimator contract (it is a scikit-learn regressor: sklearn.base.clone
+and cross_val_score work): `__init__` only stores its arguments, `fit` validates them and
+returns self, learned attributes end in `_`.
 
     model = HybridModel(effects=("geometric", "backlash"), robot="configs/robots/cobot_hc20_like.yaml")
     model.fit(dataset)                      # y defaults to dataset.error (rows in time order)
