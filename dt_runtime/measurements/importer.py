@@ -190,7 +190,8 @@ class RegistrationReport:
         f = lambda a: None if a is None else [float(v) for v in np.ravel(a)]  # noqa: E731
         return {
             "method": self.method, "n": self.n, "n_skipped": self.n_skipped,
-            "rms_3d_mm": float(self.rms_3d_mm), "rms_axis_mm": dict(zip("xyz", f(self.rms_axis_mm))),
+            "rms_3d_mm": float(self.rms_3d_mm),
+            "rms_axis_mm": dict(zip("xyz", [float(v) for v in np.ravel(self.rms_axis_mm)])),
             "rotation": np.asarray(self.rotation).tolist(),
             "translation_mm": f(np.asarray(self.translation) / M_PER_MM),
             "offset_mm": f(np.asarray(self.offset) / M_PER_MM),
@@ -238,7 +239,7 @@ def fit_rigid_offset(p_meas: np.ndarray, p_flange: np.ndarray, R_flange: np.ndar
     # of the right singular vectors of stack(D_i) whose RMS spread exceeds 1 mrad; keep the
     # other components at offset_init (e.g. rotations about one axis only: its component stays).
     basis = np.zeros((3, 0))
-    if fit_offset:
+    if fit_offset and Rf is not None:  # fit_offset is forced False above when R_flange is None
         _, sv, Vt = np.linalg.svd((Rf - Rf.mean(0)).reshape(-1, 3), full_matrices=False)
         basis = Vt[sv / math.sqrt(n) > 1e-3].T
         fit_offset = basis.shape[1] > 0
@@ -275,6 +276,7 @@ def fit_rigid_offset(p_meas: np.ndarray, p_flange: np.ndarray, R_flange: np.ndar
                             loss=loss, f_scale=f_scale, x_scale="jac")
         R0 = unpack(sol.x)[0]
         x0 = np.r_[np.zeros(3), sol.x[3:]]
+    assert sol is not None  # the loop above runs twice
     R, t, o = unpack(x0)
     r = resid(x0)
     J = jac(x0)
@@ -350,6 +352,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     tspec = m.time
     if isinstance(tspec, TimeSpec) and tspec.source != "row_order":
         kind = "str" if tspec.source == "timestamp" else "float"
+        assert tspec.column is not None  # TimeSpec._column_needed requires it for these sources
         specs.append(ColumnSpec("t", tspec.column, kind=kind))
 
     vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad)

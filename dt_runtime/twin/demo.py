@@ -49,7 +49,8 @@ class DemoResult:
     arrays: dict = field(default_factory=dict)  # raw arrays for the report figures (SI units)
 
 
-def _open(cfg: DemoConfig, base: Path, seed: int | None) -> Instruments:  # noqa: ARG001
+def _open(cfg: DemoConfig, base: Path, seed: int | None) -> tuple[Instruments, SimWorld]:  # noqa: ARG001
+    """The activated instruments and the simulated world behind them (typed: Instruments.world is not)."""
     world = SimWorld(base / cfg.scenario, base / cfg.cell)
     src = str(base / "demo.yaml")
     robot = registry.create("robot", cfg.drivers.robot, source=src, world=world)
@@ -57,7 +58,7 @@ def _open(cfg: DemoConfig, base: Path, seed: int | None) -> Instruments:  # noqa
     camera = registry.create("camera", cfg.drivers.camera, source=src, world=world)
     inst = Instruments(robot, tracker, camera, world=world, max_speed=world.max_speed())
     inst.activate()
-    return inst
+    return inst, world
 
 
 def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
@@ -75,10 +76,10 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
         plan_cfg = plan_cfg.model_copy(update={"seed": seed})
     plan = build_plan(plan_cfg)
     seed = plan_cfg.seed
-    inst = _open(cfg, base, seed)
+    inst, world = _open(cfg, base, seed)
     try:
         targets = np.array([r.target for r in plan.registration + plan.doe + plan.validation])
-        check_reachable(inst.world, targets)
+        check_reachable(world, targets)
         progress.note(f"plan: {len(plan.registration)} registration, {len(plan.doe)} DOE, "
                       f"{len(plan.validation)} validation positionings")
         reg_data = run_rows(inst, plan.registration, progress, "phase 1 registration")
@@ -101,11 +102,11 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
         out.mkdir(parents=True, exist_ok=True)
         twin.save(out / "model")
         result = _summarise(plan_cfg, quick, frames, doe, r_lt, r_mvs_lt, budgets, literal, twin,
-                            val_plain, val_corr, inst.world, time.monotonic() - t0,
+                            val_plain, val_corr, world, time.monotonic() - t0,
                             reg_data.refusals + doe_data.refusals + val_plain.refusals + val_corr.refusals)
     finally:
         inst.close()
-        inst.world.close()
+        world.close()
     (out / "summary.json").write_text(json.dumps(result.summary, indent=2))
     progress.note(f"wrote {out / 'summary.json'} and the twin in {out / 'model'}")
     return result

@@ -32,7 +32,7 @@ from dt_runtime.common.progress import Progress
 from dt_runtime.frames import registration as reg
 from dt_runtime.frames.kinematics import load_robot
 from dt_runtime.measurements.dataset import Dataset, meta_path, write_table
-from dt_runtime.measurements.plans import PlanConfig, build_plan, load_plan
+from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
 
@@ -78,7 +78,7 @@ def simulate(scenario: str | Path, out: str | Path, seed: int | None = None,
     update = {} if seed is None else {"seed": int(seed)}
     if spec.doe_reps is not None:
         update["doe_reps"] = spec.doe_reps
-    plan_cfg: PlanConfig = plan_cfg.model_copy(update=update)
+    plan_cfg = plan_cfg.model_copy(update=update)
     plan = build_plan(plan_cfg)
     world = SimWorld(scn, _resolve(spec.cell, base, "cell", scenario), seed=seed, source=str(scenario))
     src = str(scenario)
@@ -147,6 +147,8 @@ def _to_dataset(phases, names, T_lt_to_robot: reg.RigidTransform, world: SimWorl
 def noise_floor(ds: Dataset, joint_noise_rad: float, chain) -> float:
     """3D RMS of the noise the simulator injected, per row: the tracker's isotropic noise
     (3 u^2) and the joint repeatability through the nominal Jacobian (sigma_q^2 |J|_F^2)."""
+    if ds.u is None or ds.joints is None:
+        raise DataError(f"{ds.source}: the noise floor needs the per-row tracker uncertainty u and the joints")
     J = chain.jacobian(ds.joints)
     var = np.sum(ds.u ** 2, axis=1) + joint_noise_rad ** 2 * np.sum(J ** 2, axis=(1, 2))
     return float(np.sqrt(np.mean(var)))
