@@ -15,7 +15,7 @@ import logging
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -70,7 +70,16 @@ def _get(d: dict, *keys):
     return cur
 
 
+@overload
+def _arr(arrays: dict, key: str, cols: int | None = None, required: Literal[True] = True) -> np.ndarray: ...
+
+
+@overload
+def _arr(arrays: dict, key: str, cols: int | None = None, *, required: bool) -> np.ndarray | None: ...
+
+
 def _arr(arrays: dict, key: str, cols: int | None = None, required: bool = True) -> np.ndarray | None:
+    """`arrays[key]` as a float array (n, >= cols); None only when not `required` and absent."""
     v = arrays.get(key) if isinstance(arrays, dict) else None
     if v is None:
         if required:
@@ -133,7 +142,7 @@ def _mean_std_table(d: dict, names: list[str] | None = None, caption: str = "") 
         s = d.get(name)
         if not isinstance(s, dict):
             continue
-        row = {"quantity": NAME_LABEL.get(name, name)}
+        row: dict[str, Any] = {"quantity": NAME_LABEL.get(name, name)}
         for ax in AXES:
             a = s.get(ax) or {}
             row[f"{ax}: ē / mm"] = _f(a.get("mean_mm"))
@@ -397,8 +406,8 @@ def _fig_error_map(s: dict, a: dict) -> str:
 
 
 def _fig_asis_series(s: dict, a: dict) -> str:
-    series = [(n, a.get(n)) for n in ("e_lt", "e_mvs", "e_mvs_lt")]
-    series = [(n, np.asarray(v, float) * MM_PER_M) for n, v in series if v is not None]
+    given = [(n, a.get(n)) for n in ("e_lt", "e_mvs", "e_mvs_lt")]
+    series = [(n, np.asarray(v, float) * MM_PER_M) for n, v in given if v is not None]
     if not series:
         raise Missing("arrays 'e_lt', 'e_mvs', 'e_mvs_lt' not available")
     lab = {"e_lt": "e_LT", "e_mvs": "e_MVS", "e_mvs_lt": "e_MVS-LT"}
