@@ -15,7 +15,7 @@ import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.analysis.compare import MIN_CELL
-from dt_runtime.reports.demo_report import COLORS, Missing, _f, _levels, _run_block
+from dt_runtime.reports.blocks import COLORS, Missing, fixed, levels, run_block
 from dt_runtime.reports.html import (
     Section,
     fig_to_img_tag,
@@ -38,12 +38,12 @@ def _primary(a: dict) -> dict:
 
 def _rms_txt(b: dict) -> str:
     u = b.get("rmse_U95_mm")
-    return f"{_f(b.get('rmse_mm'))} ± {_f(u)}" if u is not None else _f(b.get("rmse_mm"))
+    return f"{fixed(b.get('rmse_mm'))} ± {fixed(u)}" if u is not None else fixed(b.get("rmse_mm"))
 
 
 def _fail_txt(b: dict) -> str:
     f = b.get("failures")
-    return f"{_f(100 * f['fraction'], 1)} % ({f['count']} rows)" if f else "–"
+    return f"{fixed(100 * f['fraction'], 1)} % ({f['count']} rows)" if f else "–"
 
 
 # --------------------------------------------------------------------------- tables
@@ -55,18 +55,18 @@ def _headline(s: dict, a: dict) -> str:
                       f"Root mean square of |e − ê| over {s['n']} measured rows (as is: {_rms_txt(asis)} mm); "
                       "± is the 95 % uncertainty of the RMS estimate.")]
     if s.get("noise_floor_mm") is not None:
-        cards.append(headline("Noise floor", f"{_f(s['noise_floor_mm'])} mm",
+        cards.append(headline("Noise floor", f"{fixed(s['noise_floor_mm'])} mm",
                               "3D RMS of the measurement's stated uncertainty: no model can go below this."))
     f = p.get("failures")
     if f:
         cards.append(headline("Outside the stated uncertainty (Eq. 17)", _fail_txt(p),
                               f"Rows failing the 95 % t-test in any axis; a consistent model fails about "
-                              f"{_f(100 * f['expected_fraction_if_consistent'], 1)} % (5 % per axis, three axes)."))
+                              f"{fixed(100 * f['expected_fraction_if_consistent'], 1)} % (5 % per axis, three axes)."))
     w = p.get("worst_cells") or []
     if w:
         c = w[0]
-        cards.append(headline("Worst cell", f"{c['factor']} {c['cell']}: {_f(c['rmse_mm'])} mm",
-                              f"{c['n']} rows, {_f(c['ratio'], 2)} x the overall RMS."))
+        cards.append(headline("Worst cell", f"{c['factor']} {c['cell']}: {fixed(c['rmse_mm'])} mm",
+                              f"{c['n']} rows, {fixed(c['ratio'], 2)} x the overall RMS."))
     return '<div class="cards">' + "".join(cards) + "</div>"
 
 
@@ -80,18 +80,18 @@ def _table_summary(s: dict, a: dict) -> str:
     rows = [row("description", lambda m: m.get("description", "")),
             row("n", lambda m: m["n"]),
             row("3D RMS of r / mm (± U95)", _rms_txt),
-            row("3D mean |r| / mm", lambda m: _f(m["mae_mm"])),
-            row("3D max |r| / mm", lambda m: _f(m["max_mm"]))]
+            row("3D mean |r| / mm", lambda m: fixed(m["mae_mm"])),
+            row("3D max |r| / mm", lambda m: fixed(m["max_mm"]))]
     for ax in AXES:
-        rows.append(row(f"RMS r_{ax} / mm", lambda m, ax=ax: _f(m["per_axis"][ax]["rmse_mm"])))
+        rows.append(row(f"RMS r_{ax} / mm", lambda m, ax=ax: fixed(m["per_axis"][ax]["rmse_mm"])))
     for ax in AXES:
-        rows.append(row(f"mean r_{ax} / mm", lambda m, ax=ax: _f(m["per_axis"][ax]["mean_mm"])))
+        rows.append(row(f"mean r_{ax} / mm", lambda m, ax=ax: fixed(m["per_axis"][ax]["mean_mm"])))
     rows.append(row("fails Eq. 17, any axis", _fail_txt))
     for ax in AXES:
         rows.append(row(f"fails Eq. 17, {ax} / %",
-                        lambda m, ax=ax: _f(100 * m["failures"]["per_axis"][ax], 1) if m.get("failures") else "–"))
+                        lambda m, ax=ax: fixed(100 * m["failures"]["per_axis"][ax], 1) if m.get("failures") else "–"))
     rows.append(row("training: RMS left after the effect terms, per axis / mm",
-                    lambda m: _f(m["effect_residual_rms_mm"]) if "effect_residual_rms_mm" in m else "–"))
+                    lambda m: fixed(m["effect_residual_rms_mm"]) if "effect_residual_rms_mm" in m else "–"))
     return (html_table(rows, ["quantity"] + names, row_header="quantity",
                        caption=f"Residual r = e − ê on {s['n']} rows of {s.get('dataset', '?')}, one column "
                                "per model in the order given ('as is': no correction)")
@@ -131,12 +131,12 @@ def _tables_worst(s: dict, a: dict) -> str:
     w = s.get("worst_cells") or []
     if not w:
         raise Missing(f"no breakdown cell has {MIN_CELL} or more rows")
-    rows = [{"rank": i + 1, "factor": c["factor"], "cell": c["cell"], "n": c["n"], "3D RMS / mm": _f(c["rmse_mm"]),
-             "ratio to overall": _f(c["ratio"], 2),
-             "mean r (x, y, z) / mm": ", ".join(_f(v) for v in c["mean_mm"])} for i, c in enumerate(w)]
+    rows = [{"rank": i + 1, "factor": c["factor"], "cell": c["cell"], "n": c["n"], "3D RMS / mm": fixed(c["rmse_mm"]),
+             "ratio to overall": fixed(c["ratio"], 2),
+             "mean r (x, y, z) / mm": ", ".join(fixed(v) for v in c["mean_mm"])} for i, c in enumerate(w)]
     return html_table(rows, row_header="rank",
                       caption=f"Worst cells for {s['primary']} (any factor, n ≥ {MIN_CELL}), overall 3D RMS "
-                              f"{_f(s['rmse_mm'])} mm")
+                              f"{fixed(s['rmse_mm'])} mm")
 
 
 def _tables_breakdown(s: dict, a: dict) -> str:
@@ -152,8 +152,8 @@ def _tables_breakdown(s: dict, a: dict) -> str:
         for c in cells:
             r = {"cell": c["cell"], "n": c["n"]}
             for m, pm in zip(ms, per_model):
-                r[f"{m['name']}: RMS / mm"] = _f(pm[c["cell"]]["rmse_mm"]) if c["cell"] in pm else "–"
-            r[f"mean r (x, y, z) / mm, {s['primary']}"] = ", ".join(_f(v) for v in c["mean_mm"])
+                r[f"{m['name']}: RMS / mm"] = fixed(pm[c["cell"]]["rmse_mm"]) if c["cell"] in pm else "–"
+            r[f"mean r (x, y, z) / mm, {s['primary']}"] = ", ".join(fixed(v) for v in c["mean_mm"])
             rows.append(r)
         out.append(html_table(rows, row_header="cell", caption=f"By {factor}"))
     return "".join(out)
@@ -232,7 +232,7 @@ def _fig_factors(s: dict, a: dict) -> str:
     fig, axs = plt.subplots(1, len(fv), figsize=(3.4 * len(fv) + 1, 3.6), squeeze=False, sharey=True)
     for axp, (label, v) in zip(axs[0], fv):
         ok = np.isfinite(v)
-        idx, centres = _levels(v[ok])
+        idx, centres = levels(v[ok])
         for k, ax in enumerate(AXES):
             axp.plot(v[ok], r[ok, k], ".", ms=2, alpha=0.35, color=COLORS[ax])
             means = [r[ok, k][idx == i].mean() if np.any(idx == i) else np.nan for i in range(len(centres))]
@@ -282,7 +282,7 @@ def compare_sections(result: dict, arrays: dict) -> list[Section]:
             ("Breakdown by factor", "breakdown", [_tables_breakdown]),
             ("Model parameters", "parameters", [_table_parameters]),
             ("Method and data", "method", [_table_method])]
-    return [Section(title, "".join(_run_block(b, result, arrays) for b in blocks), anchor)
+    return [Section(title, "".join(run_block(b, result, arrays) for b in blocks), anchor)
             for title, anchor, blocks in plan]
 
 
