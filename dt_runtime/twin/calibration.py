@@ -13,14 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dt_kernel.units import AXES
+from dt_runtime.analysis.crossval import grouped_residuals
 from dt_runtime.frames import registration as reg
 from dt_runtime.metrology import uncertainty as unc
-from dt_kernel.errors import DataError
-from dt_runtime.twin.campaign import PhaseData
 from dt_runtime.models.gp import MultiOutputGP
+from dt_runtime.twin.campaign import PhaseData
 from dt_runtime.twin.twin import Twin
-
 
 
 @dataclass
@@ -75,19 +73,6 @@ def doe_errors(data: PhaseData, fr: Frames) -> DoeErrors:
 
 
 
-def grouped_cv_residuals(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, folds: int,
-                         seed: int) -> np.ndarray:
-    """Held-out residuals r = y - y_hat, each target point predicted by a model that never saw it."""
-    rng = np.random.default_rng(seed)
-    ids = np.unique(groups)
-    rng.shuffle(ids)
-    r = np.full_like(Y, np.nan)
-    for f in range(folds):
-        test_ids = ids[f::folds]
-        te = np.isin(groups, test_ids)
-        m = MultiOutputGP(seed=seed).fit(X[~te], Y[~te])
-        r[te] = Y[te] - m.predict(X[te])
-    return r
 
 
 def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.ndarray:
@@ -106,8 +91,12 @@ def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.
 def fit_models(doe: DoeErrors, folds: int, seed: int):
     e_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_lt)
     e_mvs_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_mvs_lt)
-    r_lt = grouped_cv_residuals(doe.X, doe.e_lt, doe.groups, folds, seed)
-    r_mvs_lt = grouped_cv_residuals(doe.X, doe.e_mvs_lt, doe.groups, folds, seed)
+    # Held-out residuals: each target point predicted by a GP that never saw it (Table 4).
+    def gp(Xtr, Ytr, Xte):
+        return MultiOutputGP(seed=seed).fit(Xtr, Ytr).predict(Xte)
+
+    r_lt = grouped_residuals(doe.X, doe.e_lt, doe.groups, folds, seed, gp)
+    r_mvs_lt = grouped_residuals(doe.X, doe.e_mvs_lt, doe.groups, folds, seed, gp)
     return e_lt, e_mvs_lt, r_lt, r_mvs_lt
 
 
