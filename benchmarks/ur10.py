@@ -141,7 +141,7 @@ def diagnose_loop(inp, error, groups, chain, floor, effects, gp_inputs, steps: l
     effects = tuple(effects)
     for _ in range(MAX_STEPS):
         t0 = time.perf_counter()
-        r = dg.diagnose(inp, error, groups, chain, effects, gp_inputs, None, FOLDS, SEED,
+        r = dg.rank_effects(inp, error, groups, chain, effects, gp_inputs, None, FOLDS, SEED,
                         noise_floor_m=floor, gp_options=GP_OPTIONS, **DIAGNOSE_KW)
         top = r.top
         tested = {c.candidate: round(c.p_value, 6) for c in r.ranking}

@@ -37,17 +37,27 @@ _EXPORTS: dict[str, str] = {
     "load_robot": "dt_runtime.frames.kinematics",
     # models
     "MultiOutputGP": "dt_runtime.models.gp",
+    "GPOptions": "dt_runtime.models.gp",
     "HybridModel": "dt_runtime.models.hybrid",
+    "Effect": "dt_runtime.models.effects",
+    "effect_names": "dt_runtime.models.effects",
     # metrology
     "Budget": "dt_runtime.metrology.uncertainty",
     "Component": "dt_runtime.metrology.uncertainty",
     "t_test": "dt_runtime.metrology.uncertainty",
     # analysis
+    "load_data": "dt_runtime.analysis.data",
+    "cross_validate": "dt_runtime.analysis.crossval",
     "diagnose": "dt_runtime.analysis.diagnose",
     "compare": "dt_runtime.analysis.compare",
+    "FitResult": "dt_runtime.analysis.results",
+    "DiagnoseResult": "dt_runtime.analysis.results",
+    "CompareResult": "dt_runtime.analysis.results",
     # the twin
     "Twin": "dt_runtime.twin.twin",
 }
+
+_RENAMED = {"effect_names": "names"}  # a module-level name too generic for the package's namespace
 
 __all__ = sorted([*_EXPORTS, "ConfigError", "DataError", "DriverError", "ModelError", "StateError",
                   "TwinError", "UnreachableError", "__version__"])
@@ -60,7 +70,7 @@ def __getattr__(name: str) -> Any:
         return version()
     if name not in _EXPORTS:
         raise AttributeError(f"module 'dt_runtime' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    value = getattr(importlib.import_module(_EXPORTS[name]), _RENAMED.get(name, name))
     globals()[name] = value  # later look-ups skip __getattr__
     return value
 
@@ -71,12 +81,17 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # what type checkers and IDEs see for the lazy names
     from dt_runtime.analysis.compare import compare
+    from dt_runtime.analysis.crossval import cross_validate
+    from dt_runtime.analysis.data import load_data
     from dt_runtime.analysis.diagnose import diagnose
+    from dt_runtime.analysis.results import CompareResult, DiagnoseResult, FitResult
     from dt_runtime.frames.kinematics import load_robot
     from dt_runtime.frames.registration import RigidTransform, fit_rigid
     from dt_runtime.measurements.dataset import Dataset, read_table, write_table
     from dt_runtime.measurements.importer import import_file, load_mapping
     from dt_runtime.metrology.uncertainty import Budget, Component, t_test
-    from dt_runtime.models.gp import MultiOutputGP
+    from dt_runtime.models.effects import Effect
+    from dt_runtime.models.effects import names as effect_names
+    from dt_runtime.models.gp import GPOptions, MultiOutputGP
     from dt_runtime.models.hybrid import HybridModel
     from dt_runtime.twin.twin import Twin

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.analysis.diagnose import rank_effects
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.frames.kinematics import load_robot
 from dt_runtime.measurements.plans import PlanConfig, doe_points
@@ -40,7 +40,7 @@ def chain():
 
 def test_hidden_compliance_is_named_first_and_adding_it_cuts_the_error(chain):
     inp, E, G = collect({"compliance": {"enabled": True, "stiffness_nm_per_rad": STIFFNESS}})
-    r = diagnose(inp, E, G, chain, base_effects=("geometric",), gp_inputs="tcp_speed",
+    r = rank_effects(inp, E, G, chain, base_effects=("geometric",), gp_inputs="tcp_speed",
                  candidates=("compliance", "drift", "dynamic"), n_folds=4).to_dict()
     top = r["ranking"][0]
     assert top["effect"] == "compliance" and top["p_value"] < 0.01
@@ -58,7 +58,7 @@ def test_hybrid_model_reports_the_physical_stiffness(chain):
 
 def test_without_a_hidden_effect_nothing_is_named(chain):
     inp, E, G = collect({})
-    r = diagnose(inp, E, G, chain, base_effects=("geometric",), gp_inputs="tcp_speed",
+    r = rank_effects(inp, E, G, chain, base_effects=("geometric",), gp_inputs="tcp_speed",
                  candidates=("compliance", "drift", "dynamic"), n_folds=4).to_dict()
     assert all(x["p_value"] >= 0.01 or not x["significant"] for x in r["ranking"])
     assert r["verdict"].startswith("No candidate effect")
@@ -86,7 +86,7 @@ def test_an_error_that_follows_the_joints_not_the_tcp_asks_for_the_gp_on_joints(
     E = 1e-3 * np.column_stack([np.sin(2 * q[:, 1]), np.cos(2 * q[:, 2]), q[:, 0] * q[:, 3]])
     E += rng.normal(0, 10e-6, (n, 3))
     inp = fx.Inputs(commanded=rng.uniform(0.2, 0.8, (n, 3)), joints=q, speed=rng.choice([0.3, 0.6], n))
-    r = diagnose(inp, E, np.arange(n), None, gp_inputs="tcp", candidates=("dynamic",), n_folds=4).to_dict()
+    r = rank_effects(inp, E, np.arange(n), None, gp_inputs="tcp", candidates=("dynamic",), n_folds=4).to_dict()
     g = {x["gp_inputs"]: x for x in r["gp_inputs_ranking"]}
     assert set(g) == {"joints", "tcp_speed"}
     assert g["joints"]["significant"] and g["joints"]["p_value"] < 0.01

@@ -140,18 +140,18 @@ def test_cross_validate_takes_the_model_configuration():
     assert not hasattr(model, "theta_")  # the template is not fitted, its clones are
 
 
-def test_the_command_functions_stay_importable_where_the_cli_finds_them():
-    from dt_runtime.analysis import crossval, diagnose, training
-    from dt_runtime.analysis.data import DEFAULT_ROBOT, fit, floor_of, groups_of, load_data, run_diagnose
+def test_the_library_surface_is_the_analysis_modules_own():
+    import dt_runtime
+    from dt_runtime.analysis import compare, data, diagnose
 
-    assert fit is training.fit and run_diagnose is diagnose.run_diagnose and groups_of is crossval.groups_of
-    assert DEFAULT_ROBOT.is_file() and callable(floor_of) and callable(load_data)
+    assert dt_runtime.diagnose is diagnose.diagnose and dt_runtime.compare is compare.compare
+    assert dt_runtime.load_data is data.load_data and dt_runtime.HybridModel is HybridModel
 
 
 def test_results_serialise_to_the_contract_keys(tmp_path):
     from dt_runtime.analysis.compare import compare
     from dt_runtime.analysis.data import Data
-    from dt_runtime.analysis.diagnose import run_diagnose
+    from dt_runtime.analysis.diagnose import diagnose
     from dt_runtime.analysis.training import fit
     from dt_runtime.common.jsonsafe import dumps
 
@@ -161,7 +161,7 @@ def test_results_serialise_to_the_contract_keys(tmp_path):
     assert f.heldout_rmse_mm is not None
     assert list(f.to_dict())[:8] == ["out", "n", "effects", "gp_inputs", "robot", "fit_seconds", "train_rmse_mm",
                                      "parameters"]
-    r = run_diagnose(d, effects=(), gp_inputs="none", candidates=("thermal", "dynamic"), folds=3)
+    r = diagnose(d, effects=(), gp_inputs="none", candidates=("thermal", "dynamic"), folds=3)
     assert r.top is r.ranking[0] and r.to_dict()["data"] == "synthetic"
     top = r.to_dict()["ranking"][0]
     assert {"effect", "explained_fraction", "p_value", "rmse_before_mm", "rmse_after_mm"} <= set(top)

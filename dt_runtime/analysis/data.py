@@ -4,10 +4,6 @@ its measurement noise floor.
 
 Rows are used in file order, which must be time order: the backlash and dynamic regressors
 read the direction of approach from the previous row.
-
-The command functions `fit` (dt_runtime.analysis.training) and `run_diagnose`
-(dt_runtime.analysis.diagnose), and `groups_of` (dt_runtime.analysis.crossval), are also
-importable from here, where callers found them before.
 """
 from __future__ import annotations
 
@@ -19,6 +15,7 @@ import numpy as np
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM
 from dt_runtime.common.paths import CONFIGS
+from dt_runtime.metrology.stats import rms3
 from dt_runtime.measurements.dataset import Dataset, read_meta_sidecar, read_table
 
 DEFAULT_ROBOT = CONFIGS / "robots" / "cobot_hc20_like.yaml"
@@ -55,7 +52,7 @@ def noise_floor(u: np.ndarray | None) -> float | None:
     """3D RMS of the stated measurement standard uncertainty (m), if the data states it."""
     if u is None or not np.all(np.isfinite(u)):
         return None
-    return float(np.sqrt(np.mean(np.sum(u ** 2, axis=1))))
+    return rms3(u)
 
 
 def floor_of(d: Data) -> float | None:
@@ -64,16 +61,3 @@ def floor_of(d: Data) -> float | None:
     if sim and sim.get("noise_floor_mm") is not None:
         return sim["noise_floor_mm"] * M_PER_MM
     return noise_floor(d.dataset.u)
-
-
-_MOVED = {"fit": "dt_runtime.analysis.training", "run_diagnose": "dt_runtime.analysis.diagnose",
-          "groups_of": "dt_runtime.analysis.crossval"}
-
-
-def __getattr__(name: str):
-    # Lazy (PEP 562): those modules import this one.
-    if name in _MOVED:
-        import importlib
-
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -15,10 +15,11 @@ import numpy as np
 from scipy import stats
 
 from dt_runtime.analysis.crossval import CvResult, cross_validate, folds_of, groups_of
-from dt_runtime.analysis.data import Data, floor_of
+from dt_runtime.analysis.data import Data, floor_of, load_data
 from dt_runtime.analysis.results import DiagnoseResult, Gain
 from dt_runtime.common.progress import Progress
 from dt_runtime.frames.kinematics import Chain
+from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
@@ -74,7 +75,7 @@ def _verdict(ranking: list[Gain], gp_ranking: list[Gain], before: float, floor: 
     return verdict
 
 
-def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain | None,
+def rank_effects(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain | None,
              base_effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
              candidates: tuple[str, ...] | None = None, n_folds: int = 5, seed: int = 0,
              noise_floor_m: float | None = None, progress: Progress | None = None,
@@ -116,19 +117,25 @@ def diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain
                           _verdict(ranking, gp_ranking, before, floor, gp_inputs))
 
 
-def run_diagnose(d: Data, model_dir: str | Path | None = None, effects: tuple[str, ...] = (),
-                 gp_inputs: str = "tcp_speed", robot: str | Path | Chain | None = None,
-                 candidates: tuple[str, ...] | None = None, folds: int = 5, seed: int = 0,
-                 gp_options: GPOptions | None = None, progress: Progress | None = None) -> DiagnoseResult:
-    """`dt diagnose` on loaded data: rank the effects the model lacks; the starting model is
-    `model_dir`'s, or `effects` + GP on `gp_inputs` (robot: the kinematic model's config)."""
+def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
+             effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
+             robot: str | Path | Chain | None = None, candidates: tuple[str, ...] | None = None,
+             folds: int = 5, seed: int = 0, gp_options: GPOptions | None = None,
+             progress: Progress | None = None) -> DiagnoseResult:
+    """Which effect does the model lack? `data`: loaded data (`load_data`), a Dataset or a
+    contract CSV path. The starting model is `model` (a HybridModel, fitted or not, or a saved
+    model's directory), else `effects` + GP on `gp_inputs` with the kinematic model `robot`.
+    The engine on plain arrays is `rank_effects`."""
+    if isinstance(data, (str, Path)):
+        data = load_data(data)
+    d = data if isinstance(data, Data) else Data(data, {"n": data.n})
     ds = d.dataset
     ridge = DEFAULT_RIDGE
-    if model_dir is not None:
-        m = HybridModel.load(model_dir)
+    if model is not None:
+        m = model if isinstance(model, HybridModel) else HybridModel.load(model)
         effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
-    r = diagnose(fx.Inputs.of(ds), ds.error, groups_of(ds), resolve_chain(robot), tuple(effects), gp_inputs,
-                 candidates, folds, seed, noise_floor_m=floor_of(d), progress=progress, gp_options=gp_options,
-                 ridge=ridge)
+    r = rank_effects(fx.Inputs.of(ds), ds.error, groups_of(ds), resolve_chain(robot), tuple(effects), gp_inputs,
+                     candidates, folds, seed, noise_floor_m=floor_of(d), progress=progress,
+                     gp_options=gp_options, ridge=ridge)
     r.source = {k: v for k, v in d.info.items() if k != "n"}
     return r

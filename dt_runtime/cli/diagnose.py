@@ -21,9 +21,10 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from dt_runtime.analysis.data import DEFAULT_ROBOT, run_diagnose
+    from dt_runtime.analysis.data import DEFAULT_ROBOT
+    from dt_runtime.analysis.diagnose import diagnose
 
-    return run_diagnose(load(args), args.model, names(args.effects), args.gp_inputs,
+    return diagnose(load(args), args.model, names(args.effects), args.gp_inputs,
                         args.robot or DEFAULT_ROBOT, names(args.candidates) or None, args.folds,
                         args.seed, progress=progress(args))
 

@@ -21,7 +21,8 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from dt_runtime.analysis.data import DEFAULT_ROBOT, fit
+    from dt_runtime.analysis.data import DEFAULT_ROBOT
+    from dt_runtime.analysis.training import fit
 
     return fit(load(args), names(args.effects), args.gp_inputs, args.robot or DEFAULT_ROBOT, args.out,
                seed=args.seed, cv_folds=args.cv, progress=progress(args))
