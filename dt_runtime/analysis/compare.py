@@ -53,6 +53,9 @@ def load_models(models: Sequence, names: Sequence[str] | None = None) -> list[tu
     out: list[tuple[str, HybridModel]] = []
     for i, m in enumerate(models):
         if isinstance(m, HybridModel):
+            if not hasattr(m, "theta_"):
+                raise ModelError(f"compare: model {i + 1} ({describe(m)}) is not fitted: call its fit() first "
+                                 "(with cv_folds, compare refits its configuration without each held-out point)")
             name = f"model {i + 1}"
         else:
             p = Path(m)

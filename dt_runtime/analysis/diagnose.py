@@ -71,7 +71,7 @@ def _verdict(ranking: list[Gain], gp_ranking: list[Gain], before: float, floor: 
         # The advice names the command-line option: the verdict is read by the user of `dt`.
         verdict += (f" The GP on {GP_FACTOR[g.candidate]} instead of {GP_FACTOR[gp_inputs]} explains "
                     f"{100 * g.explained_fraction:.0f} % (p = {g.p_value:.2g}): "
-                    f"fit with --gp-inputs {g.candidate}.")
+                    f"fit with gp_inputs='{g.candidate}' (dt fit --gp-inputs {g.candidate}).")
     return verdict
 
 
