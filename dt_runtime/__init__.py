@@ -59,8 +59,40 @@ _EXPORTS: dict[str, str] = {
 
 _RENAMED = {"effect_names": "names"}  # a module-level name too generic for the package's namespace
 
-__all__ = sorted([*_EXPORTS, "ConfigError", "DataError", "DriverError", "ModelError", "StateError",
-                  "TwinError", "UnreachableError", "__version__"])
+__all__ = [
+    "__version__",
+    "Budget",
+    "compare",
+    "CompareResult",
+    "Component",
+    "ConfigError",
+    "cross_validate",
+    "DataError",
+    "Dataset",
+    "diagnose",
+    "DiagnoseResult",
+    "DriverError",
+    "Effect",
+    "effect_names",
+    "fit_rigid",
+    "FitResult",
+    "GPOptions",
+    "HybridModel",
+    "import_file",
+    "load_data",
+    "load_mapping",
+    "load_robot",
+    "ModelError",
+    "MultiOutputGP",
+    "read_table",
+    "RigidTransform",
+    "StateError",
+    "t_test",
+    "Twin",
+    "TwinError",
+    "UnreachableError",
+    "write_table",
+]
 
 
 def __getattr__(name: str) -> Any:

@@ -15,8 +15,8 @@ import numpy as np
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM
 from dt_runtime.common.paths import CONFIGS
-from dt_runtime.metrology.stats import rms3
 from dt_runtime.measurements.dataset import Dataset, read_meta_sidecar, read_table
+from dt_runtime.metrology.stats import rms3
 
 DEFAULT_ROBOT = CONFIGS / "robots" / "cobot_hc20_like.yaml"
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
 
@@ -16,7 +17,8 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
     add_data_args(cp, kinematics=False)
     cp.add_argument("--model", required=True, action="append", metavar="MODEL",
                     help="model directory from `dt fit`; repeat for a side-by-side comparison (oldest first)")
-    cp.add_argument("--names", default="", metavar="a,b,...", help="column names of the models (default: directory names)")
+    cp.add_argument("--names", default="", metavar="a,b,...",
+                    help="column names of the models (default: directory names)")
     cp.add_argument("--cv", type=int, default=0, metavar="K",
                     help="held-out figures from the training file: refit each model's configuration on K-1 "
                          "folds grouped by target point (default 0: the models as saved)")
@@ -24,7 +26,7 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
     add_output_args(cp)
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> Any:
     from dt_runtime.analysis.compare import compare
     from dt_runtime.analysis.data import floor_of
     from dt_runtime.common.jsonsafe import jsonable

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from dt_runtime.cli.common import progress
 
@@ -23,7 +24,7 @@ def add_arguments(d: argparse.ArgumentParser) -> None:
     d.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> Any:
     from dt_runtime.reports.demo_report import write_demo_report  # matplotlib only when reporting
     from dt_runtime.twin.demo import run_demo
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
 
@@ -20,7 +21,7 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     add_output_args(dg)
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> Any:
     from dt_runtime.analysis.data import DEFAULT_ROBOT
     from dt_runtime.analysis.diagnose import diagnose
 

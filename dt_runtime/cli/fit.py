@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
 
@@ -20,7 +21,7 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
     add_output_args(ft)
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> Any:
     from dt_runtime.analysis.data import DEFAULT_ROBOT
     from dt_runtime.analysis.training import fit
 
@@ -33,5 +34,6 @@ def human(result: dict) -> str:
            f"training 3D RMS {result['train_rmse_mm']:.4f} mm"]
     if "heldout_rmse_mm" in result:
         out.append(f"held-out 3D RMS {result['heldout_rmse_mm']:.4f} mm (as is {result['as_is_rmse_mm']:.4f} mm)")
-    out += [f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}" for p in result["parameters"]]
+    out += [f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}"
+            for p in result["parameters"]]
     return "\n".join(out)

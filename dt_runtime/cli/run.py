@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 NAME = "run"
 HELP = "the long-running twin daemon"
@@ -17,7 +18,7 @@ def add_arguments(r: argparse.ArgumentParser) -> None:
     r.add_argument("--json", action="store_true", help="print the run summary as one JSON object")
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> Any:
     from dt_runtime.service.daemon import run_daemon
 
     return run_daemon(args.config, args.duration)

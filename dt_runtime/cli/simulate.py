@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 from dt_runtime.cli.common import add_output_args, progress
 
@@ -21,7 +22,7 @@ def add_arguments(sm: argparse.ArgumentParser) -> None:
     add_output_args(sm)
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> Any:
     from dt_runtime.twin.simulate import simulate
 
     return simulate(args.scenario, args.out, seed=args.seed, progress=progress(args))

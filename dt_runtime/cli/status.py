@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from dt_kernel.errors import TwinError
 
@@ -16,7 +17,7 @@ def add_arguments(st: argparse.ArgumentParser) -> None:
     st.add_argument("--json", action="store_true", help="print one JSON object")
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace) -> Any:
     from dt_runtime.service.store import Store
 
     if not Path(args.store).exists():

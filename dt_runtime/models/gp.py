@@ -170,7 +170,7 @@ class GPRegressor(Params):
                                   bounds=bounds, options={"maxiter": self.max_iter})
             if best is None or r.fun < best.fun:
                 best = r
-        if best.fun >= 1e24:
+        if best is None or best.fun >= 1e24:
             raise ModelError("GPRegressor.fit: marginal-likelihood optimisation failed from every start")
         return best.x
 

@@ -16,8 +16,8 @@ class Backlash(Effect):
     factor = "the direction from which each joint approached"
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
-        J = chain.jacobian(inp.joints)
-        s = np.sign(approach(inp.joints))
+        J = chain.jacobian(inp.column("joints"))
+        s = np.sign(approach(inp.column("joints")))
         A = J * (0.5 * s)[:, None, :]
         dof = J.shape[2]
         return Block(self.name, A, tuple(f"width_q{j + 1}" for j in range(dof)), ("rad",) * dof)

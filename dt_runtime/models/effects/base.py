@@ -8,7 +8,7 @@ arm reaches fk(q + dq) ~ fk(q) + J dq, so a joint deviation dq contributes e = -
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import ClassVar, cast
 
 import numpy as np
@@ -38,11 +38,17 @@ class Inputs:
         return cls(**{f.name: getattr(ds, f.name) for f in fields(cls)})
 
     def subset(self, mask) -> Inputs:
-        return Inputs(**{f.name: (None if getattr(self, f.name) is None else getattr(self, f.name)[mask])
-                         for f in fields(self)})
+        return replace(self, **{f.name: v[mask] for f in fields(self) if (v := getattr(self, f.name)) is not None})
 
     def has(self, *columns: str) -> bool:
         return all(getattr(self, c) is not None for c in columns)
+
+    def column(self, name: str) -> np.ndarray:
+        """An optional column that must be there (an effect declared it: `Effect.build` checks)."""
+        v = getattr(self, name)
+        if v is None:
+            raise DataError(f"the data has no column {name!r}")
+        return v
 
 
 def as_inputs(X) -> Inputs:

@@ -20,8 +20,8 @@ class Compliance(Effect):
     factor = "the payload torque on the joints"
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
-        J = chain.jacobian(inp.joints)
-        tau = J[:, 2, :] * (inp.payload[:, None] * GRAVITY)  # (n, dof) N m
+        J = chain.jacobian(inp.column("joints"))
+        tau = J[:, 2, :] * (inp.column("payload")[:, None] * GRAVITY)  # (n, dof) N m
         A = J * tau[:, None, :]  # e = -J dq = J diag(tau) c
         dof = J.shape[2]
         return Block(self.name, A, tuple(f"compliance_q{j + 1}" for j in range(dof)),

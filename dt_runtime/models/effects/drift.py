@@ -15,7 +15,7 @@ class Drift(Effect):
     factor = "the time since the start of the data"
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
-        J = chain.jacobian(inp.joints)
-        h = (inp.t - inp.t[0])[:, None, None] / S_PER_H
+        J = chain.jacobian(inp.column("joints"))
+        h = (inp.column("t") - inp.column("t")[0])[:, None, None] / S_PER_H
         dof = J.shape[2]
         return Block(self.name, -J * h, tuple(f"rate_q{j + 1}" for j in range(dof)), ("rad/h",) * dof)

@@ -20,7 +20,7 @@ class Dynamic(Effect):
         d = approach(inp.commanded)
         norm = np.linalg.norm(d, axis=1, keepdims=True)
         u = np.divide(d, norm, out=np.zeros_like(d), where=norm > 0)
-        v = inp.speed[:, None]
+        v = inp.column("speed")[:, None]
         lag = -(v * u)
         sag = np.zeros_like(lag)
         sag[:, 2] = v[:, 0]  # actual lower by sag*v -> e_z = +sag*v

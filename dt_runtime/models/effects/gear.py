@@ -16,8 +16,8 @@ class Gear(Effect):
     factor = "a periodic pattern in the joint angles"
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
-        J = chain.jacobian(inp.joints)
-        q = inp.joints
+        J = chain.jacobian(inp.column("joints"))
+        q = inp.column("joints")
         cols, names = [], []
         for j in range(J.shape[2]):
             for h in chain.gear_harmonics:

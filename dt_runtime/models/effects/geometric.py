@@ -26,8 +26,8 @@ class Geometric(Effect):
     factor = "the joint configuration (joint zero offsets and link errors)"
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
-        pos, rot, T = chain.frames(inp.joints)
-        J = chain.jacobian(inp.joints)
+        pos, rot, T = chain.frames(inp.column("joints"))
+        J = chain.jacobian(inp.column("joints"))
         dof = J.shape[2]
         p = T[:, :3, 3]
         blocks = [-J]

@@ -18,6 +18,6 @@ class Thermal(Effect):
     factor = "the temperature, growing with distance from the base"
 
     def regressors(self, inp: Inputs, chain: Chain | None = None) -> Block:
-        dT = inp.temperature - REFERENCE_TEMPERATURE_C
+        dT = inp.column("temperature") - REFERENCE_TEMPERATURE_C
         A = (-dT[:, None] * inp.commanded)[:, :, None]
         return Block(self.name, A, ("alpha",), ("1/K",))
