@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dt_runtime.measurements.dataset import read_table, write_table
 from dt_kernel.errors import ConfigError, DataError
-from dt_runtime.measurements.importer import ImportMapping, fit_rigid_offset, import_file, load_mapping
+from dt_runtime.measurements.dataset import read_table, write_table
+from dt_runtime.measurements.importer import ImportMapping, import_file, load_mapping
+from dt_runtime.measurements.registration_fit import fit_rigid_offset
 
 ROOT = Path(__file__).resolve().parents[1]
 UR10_MAPPING = ROOT / "configs" / "import" / "ur10.yaml"
