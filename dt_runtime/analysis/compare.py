@@ -27,6 +27,7 @@ from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import noise_floor
 from dt_runtime.analysis.results import CompareResult, ModelScore
+from dt_runtime.analysis.training import data_provenance
 from dt_runtime.common.progress import Progress
 from dt_runtime.measurements.dataset import Dataset, read_table
 from dt_runtime.metrology.stats import rms3, rms_with_U
@@ -271,7 +272,8 @@ def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np
 
 def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str] | None = None,
             noise_floor_m: float | None = None, cv_folds: int = 0, seed: int = 0,
-            progress: Progress | None = None) -> tuple[CompareResult, dict]:
+            progress: Progress | None = None, instruments: str | Path | None = None,
+            inputs: Sequence[str | Path] = ()) -> tuple[CompareResult, dict]:
     """Compare models (HybridModel instances or model directories, oldest first) with the
     measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
 
@@ -280,11 +282,16 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     cv_folds: 0 compares the models as saved (use data they were not trained on); K > 1 predicts
     every row by each model's configuration refitted on the other K-1 folds, grouped by target
     point (`dt_runtime.analysis.crossval.cross_validate`): held-out figures from the training file.
+    instruments, inputs: the campaign's instruments YAML and other input files (e.g. an import
+    mapping) for the result's traceability record (`provenance`), beside the data file and the
+    model directories' files.
     Returns (result, arrays: SI arrays for the report); `result.to_dict()` is the JSON (mm)."""
     ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
     if ds.n == 0:
         raise DataError(f"{ds.source}: no data rows to compare with")
-    fitted = load_models(list(models), names)
+    models = list(models)
+    prov = data_provenance(ds, None, None, instruments, inputs, models)
+    fitted = load_models(models, names)
     um, dm, u_source = _u_meas(ds, fitted)
     cells = factor_cells(ds)
     zeros = np.zeros((ds.n, 3))
@@ -322,7 +329,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                 "u_model": "latent GP standard deviation of the prediction; 0 without a GP (the "
                            "effect parameters' uncertainty is not propagated)",
                 "u_meas_source": u_source},
-        factors={f: names_ for f, (_, names_) in cells.items()})
+        factors={f: names_ for f, (_, names_) in cells.items()},
+        provenance=prov)
     arrays = {"commanded": ds.commanded, "error": ds.error, "u": ds.u, "u_meas": um,
               "speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature, "t": ds.t,
               "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs}

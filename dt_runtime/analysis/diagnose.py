@@ -9,6 +9,7 @@ residual variance they explain.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from scipy import stats
 from dt_runtime.analysis.crossval import CvResult, cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import Data, floor_of, load_data
 from dt_runtime.analysis.results import DiagnoseResult, Gain
+from dt_runtime.analysis.training import data_provenance
 from dt_runtime.common.progress import Progress
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.measurements.dataset import Dataset
@@ -121,11 +123,14 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
              effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
              robot: str | Path | Chain | None = None, candidates: tuple[str, ...] | None = None,
              folds: int = 5, seed: int = 0, gp_options: GPOptions | None = None,
-             progress: Progress | None = None) -> DiagnoseResult:
+             progress: Progress | None = None, instruments: str | Path | None = None,
+             inputs: Sequence[str | Path] = ()) -> DiagnoseResult:
     """Which effect does the model lack? `data`: loaded data (`load_data`), a Dataset or a
     contract CSV path. The starting model is `model` (a HybridModel, fitted or not, or a saved
     model's directory), else `effects` + GP on `gp_inputs` with the kinematic model `robot`.
-    The engine on plain arrays is `rank_effects`."""
+    The engine on plain arrays is `rank_effects`. The result's `provenance` records the data
+    file, the saved model's files, `inputs` and the `instruments` YAML (hashed), the robot and
+    the instruments."""
     if isinstance(data, (str, Path)):
         data = load_data(data)
     d = data if isinstance(data, Data) else Data(data, {"n": data.n})
@@ -134,8 +139,10 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
     if model is not None:
         m = model if isinstance(model, HybridModel) else HybridModel.load(model)
         effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
+    prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs, [model] if model is not None else [])
     r = rank_effects(fx.Inputs.of(ds), ds.error, groups_of(ds), resolve_chain(robot), tuple(effects), gp_inputs,
                      candidates, folds, seed, noise_floor_m=floor_of(d), progress=progress,
                      gp_options=gp_options, ridge=ridge)
     r.source = {k: v for k, v in d.info.items() if k != "n"}
+    r.provenance = prov
     return r

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dt_runtime.common.jsonsafe import jsonable
+from dt_runtime.common.provenance import Provenance
 
 
 # --------------------------------------------------------------------------- fit
@@ -29,6 +30,7 @@ class FitResult:
     source: dict = field(default_factory=dict)  # the data's facts (load_data's info, without n)
     heldout_rmse_mm: float | None = None  # with cv_folds > 1
     as_is_rmse_mm: float | None = None
+    provenance: Provenance | None = None  # the traceability record saved with the model
 
     def to_dict(self) -> dict:
         d: dict[str, Any] = {"out": self.out, "n": self.n, "effects": self.effects, "gp_inputs": self.gp_inputs,
@@ -36,6 +38,7 @@ class FitResult:
                              "train_rmse_mm": self.train_rmse_mm, "parameters": self.parameters, **self.source}
         if self.heldout_rmse_mm is not None:
             d |= {"heldout_rmse_mm": self.heldout_rmse_mm, "as_is_rmse_mm": self.as_is_rmse_mm}
+        d["provenance"] = self.provenance
         return jsonable(d)
 
 
@@ -75,6 +78,7 @@ class DiagnoseResult:
     not_testable: list[str]  # candidates the data's columns (or the kinematic model) do not allow
     verdict: str
     source: dict = field(default_factory=dict)  # the data's facts (load_data's info, without n)
+    provenance: Provenance | None = None  # software, data file hashes, robot, instruments
 
     @property
     def top(self) -> Gain | None:
@@ -85,7 +89,7 @@ class DiagnoseResult:
                          "n_groups": self.n_groups, "folds": self.folds, "rmse_base_mm": self.rmse_base_mm,
                          "noise_floor_mm": self.noise_floor_mm, "ranking": self.ranking,
                          "gp_inputs_ranking": self.gp_inputs_ranking, "not_testable": self.not_testable,
-                         "verdict": self.verdict, **self.source})
+                         "verdict": self.verdict, **self.source, "provenance": self.provenance})
 
 
 # --------------------------------------------------------------------------- compare
@@ -126,6 +130,7 @@ class CompareResult:
     t_test: dict  # what Eq. 17 used: equation, u_model, u_meas_source
     factors: dict[str, list[str]]  # factor -> its cells in order
     units: str = "mm; e = commanded - measured (Eq. 8); residual r = e - e_hat"
+    provenance: Provenance | None = None  # software, data and model file hashes, instruments
 
     @property
     def primary(self) -> ModelScore:
@@ -135,4 +140,5 @@ class CompareResult:
         top = {k: v for k, v in self.primary.to_dict().items() if k not in ("name", "kind")}
         return jsonable({**top, "primary": self.primary.name, "dataset": self.dataset,
                          "noise_floor_mm": self.noise_floor_mm, "heldout": self.heldout, "t_test": self.t_test,
-                         "factors": self.factors, "models": self.models, "units": self.units})
+                         "factors": self.factors, "models": self.models, "units": self.units,
+                         "provenance": self.provenance})

@@ -3,6 +3,7 @@ held-out RMS."""
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from dt_kernel.units import MM_PER_M
@@ -10,6 +11,8 @@ from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import Data
 from dt_runtime.analysis.results import FitResult
 from dt_runtime.common.progress import Progress
+from dt_runtime.common.provenance import Provenance, build, files_under, load_instruments
+from dt_runtime.measurements.dataset import Dataset, meta_path
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models.gp import GPOptions
 from dt_runtime.models.hybrid import HybridModel
@@ -17,19 +20,24 @@ from dt_runtime.models.hybrid import HybridModel
 
 def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | None, out: str | Path,
         seed: int = 0, cv_folds: int = 0, gp_options: GPOptions | None = None,
-        progress: Progress | None = None) -> FitResult:
-    """Train and save the hybrid model; with cv_folds > 1 also its held-out RMS (grouped CV)."""
+        progress: Progress | None = None, instruments: str | Path | None = None,
+        inputs: Sequence[str | Path] = ()) -> FitResult:
+    """Train and save the hybrid model; with cv_folds > 1 also its held-out RMS (grouped CV).
+    The model and the result carry the traceability record (`provenance`): the data file, its
+    simulation sidecar and `inputs` (e.g. the import mapping) hashed, the robot config, the
+    instruments of the `instruments` YAML and the temperature range of the data."""
     progress = progress or Progress(enabled=False)
     ds = d.dataset
+    prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs)
     t0 = time.perf_counter()
     model = HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options)
     progress.note(f"fitting effects [{', '.join(effects) or 'none'}] + GP on {gp_inputs} to {ds.n} rows")
     model.fit(ds)
     seconds = time.perf_counter() - t0
-    model.save(out)
+    model.save(out, provenance=prov)
     res = FitResult(str(out), ds.n, list(effects), gp_inputs, model.robot_, seconds,
                     rms3(ds.error - model.predict(ds)) * MM_PER_M, model.parameters(),
-                    {k: v for k, v in d.info.items() if k != "n"})
+                    {k: v for k, v in d.info.items() if k != "n"}, provenance=prov)
     if cv_folds > 1:
         progress.note(f"held-out error: {cv_folds}-fold cross-validation grouped by target point")
         g = groups_of(ds)
@@ -39,3 +47,21 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
         res.heldout_rmse_mm = rms3(cv.residual) * MM_PER_M
         res.as_is_rmse_mm = rms3(ds.error) * MM_PER_M
     return res
+
+
+def data_provenance(ds: Dataset, data_file: str | Path | None = None, robot: object = None,
+                    instruments: str | Path | None = None, inputs: Sequence[str | Path] = (),
+                    models: Sequence[object] = ()) -> Provenance:
+    """The traceability record of a command on measured data: the data file (default the
+    dataset's source) and its simulation sidecar, `inputs` (e.g. an import mapping), the files of
+    the saved `models` (directories; fitted objects have none) and the `instruments` YAML, hashed;
+    the robot config (a path) or its name (a Chain); the instruments; the data's temperature."""
+    src = data_file or ds.source
+    files: list[str | Path] = [src, meta_path(src)] if src and Path(src).is_file() else []
+    for m in models:
+        files += files_under(m) if isinstance(m, (str, Path)) and Path(m).is_dir() else []
+    files += [*inputs, *([instruments] if instruments is not None else [])]
+    return build(files, robot=robot if isinstance(robot, (str, Path)) else None,
+                 robot_name=getattr(robot, "name", None),
+                 instruments=load_instruments(instruments) if instruments is not None else (),
+                 temperature=ds.temperature)

@@ -23,6 +23,9 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
                     help="held-out figures from the training file: refit each model's configuration on K-1 "
                          "folds grouped by target point (default 0: the models as saved)")
     cp.add_argument("--report", default=None, metavar="DIR", help="write DIR/report.html and DIR/compare.json")
+    cp.add_argument("--instruments", default=None, metavar="YAML",
+                    help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
+                         "recorded in the provenance")
     add_output_args(cp)
 
 
@@ -33,7 +36,8 @@ def run(args: argparse.Namespace) -> Any:
 
     d = load(args)
     result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
-                             cv_folds=args.cv, seed=args.seed, progress=progress(args))
+                             cv_folds=args.cv, seed=args.seed, progress=progress(args),
+                             instruments=args.instruments, inputs=[args.mapping] if args.mapping else [])
     result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
     if args.report:
         from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting

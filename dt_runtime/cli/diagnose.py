@@ -18,6 +18,9 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     dg.add_argument("--effects", default="", metavar="a,b,...", help="starting model's effects without --model")
     dg.add_argument("--candidates", default="", metavar="a,b,...", help="effects to test (default all)")
     dg.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    dg.add_argument("--instruments", default=None, metavar="YAML",
+                    help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
+                         "recorded in the provenance")
     add_output_args(dg)
 
 
@@ -27,7 +30,8 @@ def run(args: argparse.Namespace) -> Any:
 
     return diagnose(load(args), args.model, names(args.effects), args.gp_inputs,
                         args.robot or DEFAULT_ROBOT, names(args.candidates) or None, args.folds,
-                        args.seed, progress=progress(args))
+                        args.seed, progress=progress(args), instruments=args.instruments,
+                        inputs=[args.mapping] if args.mapping else [])
 
 
 def human(result: dict) -> str:

@@ -18,6 +18,9 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
     ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")
     ft.add_argument("--cv", type=int, default=0, metavar="K",
                     help="also report the held-out RMS by K-fold CV grouped by target point")
+    ft.add_argument("--instruments", default=None, metavar="YAML",
+                    help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
+                         "recorded in the provenance")
     add_output_args(ft)
 
 
@@ -26,7 +29,8 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.analysis.training import fit
 
     return fit(load(args), names(args.effects), args.gp_inputs, args.robot or DEFAULT_ROBOT, args.out,
-               seed=args.seed, cv_folds=args.cv, progress=progress(args))
+               seed=args.seed, cv_folds=args.cv, progress=progress(args), instruments=args.instruments,
+               inputs=[args.mapping] if args.mapping else [])
 
 
 def human(result: dict) -> str:

@@ -26,6 +26,8 @@ from sklearn.base import BaseEstimator, RegressorMixin
 
 from dt_kernel.errors import DataError, ModelError
 from dt_runtime.common.paths import CONFIGS
+from dt_runtime.common.provenance import Environment, Provenance
+from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.models import effects as fx
 from dt_runtime.models.effects import as_inputs
@@ -180,6 +182,10 @@ class HybridModel(RegressorMixin, BaseEstimator):
         self.gp_ = (MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=thetas)
                     if Xg is not None else None)
         self.residual_rms_ = float(np.sqrt(np.mean(resid ** 2)))
+        # For the traceability record (provenance) of `save`: the training data's file, if any,
+        # and the temperature over the training rows.
+        self.data_source_ = getattr(X, "source", None)
+        self.environment_ = Environment.of(inp.temperature)
         return self
 
     def predict(self, X, return_std: bool = False, *, design: Design | None = None):
@@ -213,7 +219,24 @@ class HybridModel(RegressorMixin, BaseEstimator):
         return rows
 
     # --- persistence (JSON + NPZ) -----------------------------------------------------------
-    def save(self, directory: str | Path) -> Path:
+    def provenance(self) -> Provenance:
+        """The traceability record `save` writes when given none: this software, now, the
+        robot config (hashed; the chain's name when it came from memory) and the training data
+        file (hashed) when the model was fitted on a Dataset read from a file. A loaded model
+        keeps its record's inputs, instruments and environment."""
+        old: Provenance | None = getattr(self, "provenance_", None)
+        if not hasattr(self, "data_source_") and old is not None:
+            return old.renewed()
+        src = getattr(self, "data_source_", None)
+        return build_provenance(
+            inputs=[src] if src and Path(src).is_file() else [],
+            robot=None if self.robot_ is None else CONFIGS / self.robot_,
+            robot_name=self.robot.name if isinstance(self.robot, Chain) else None,
+            environment=getattr(self, "environment_", None))
+
+    def save(self, directory: str | Path, provenance: Provenance | None = None) -> Path:
+        """Write hybrid.json (with the traceability record `provenance`, default
+        `self.provenance()`), hybrid.npz and the GP."""
         if not hasattr(self, "theta_"):
             raise ModelError("HybridModel is not fitted; nothing to save")
         if isinstance(self.robot, Chain) and any(fx.get(e).needs_chain for e in self.effects):
@@ -225,7 +248,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
                 "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
                 "param_names": self.param_names_, "parameters": self.parameters(),
-                "residual_rms_m": self.residual_rms_, "units": "SI; e = commanded - measured"}
+                "residual_rms_m": self.residual_rms_, "units": "SI; e = commanded - measured",
+                "provenance": (provenance or self.provenance()).to_dict()}
         (d / "hybrid.json").write_text(json.dumps(meta, indent=2))
         np.savez(d / "hybrid.npz", theta=self.theta_, theta_u=self.theta_u_)
         if self.gp_ is not None:
@@ -247,4 +271,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
         m.residual_rms_ = meta["residual_rms_m"]
         m.gp_ = MultiOutputGP.load(d / "gp") if meta["gp_inputs"] != "none" else None
+        # Models saved before the traceability record have none.
+        try:
+            m.provenance_ = Provenance.from_dict(meta["provenance"]) if meta.get("provenance") else None
+        except DataError as exc:
+            raise ModelError(f"{d / 'hybrid.json'}: {exc}") from exc
         return m

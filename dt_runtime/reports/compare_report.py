@@ -27,6 +27,7 @@ from dt_runtime.reports.html import (
     paragraph,
     plt,
 )
+from dt_runtime.reports.traceability import traceability
 
 
 def _primary(a: dict) -> dict:
@@ -281,7 +282,8 @@ def compare_sections(result: dict, arrays: dict) -> list[Section]:
             ("Normality of the residuals", "normal", [_fig_normal]),
             ("Breakdown by factor", "breakdown", [_tables_breakdown]),
             ("Model parameters", "parameters", [_table_parameters]),
-            ("Method and data", "method", [_table_method])]
+            ("Method and data", "method", [_table_method]),
+            ("Traceability", "traceability", [traceability])]
     return [Section(title, "".join(run_block(b, result, arrays) for b in blocks), anchor)
             for title, anchor, blocks in plan]
 

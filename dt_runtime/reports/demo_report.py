@@ -31,6 +31,7 @@ from dt_runtime.reports.demo_figures import (
     t_crit_and_flags,
 )
 from dt_runtime.reports.html import Section, esc, headline, html_page, html_table, note, paragraph
+from dt_runtime.reports.traceability import traceability
 
 # The paper's published values, shown beside ours for orientation (mm).
 PAPER_U = {"eq18_tcp_c": (0.118, 0.109, 0.171), "eq19_e_lt_hat": (0.117, 0.108, 0.170),
@@ -285,6 +286,7 @@ def demo_sections(result) -> list[Section]:
          [_table_expanded, _table_precision, fig_envelope, _tables_budgets, _table_literal]),
         ("Phase 3: validation", "validation", [_table_coverage, fig_validation, _table_ttest, fig_eq17]),
         ("Run", "run", [_table_run]),
+        ("Traceability", "traceability", [traceability]),
     ]
     return [Section(title, "".join(run_block(b, s, a) for b in blocks), anchor)
             for title, anchor, blocks in plan]
