@@ -21,11 +21,13 @@ from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
+from dt_runtime.common.provenance import Instrument, Provenance
+from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology import uncertainty as unc
 from dt_runtime.metrology.stats import mean_std_mm, rms3
 from dt_runtime.twin import calibration as cal
-from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
+from dt_runtime.twin.campaign import Instruments, PhaseData, check_reachable, run_rows
 
 
 class DriversConfig(Frozen):
@@ -71,7 +73,8 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
     if camera:
         cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(update={"camera": camera})})
     base = config.parent
-    plan_cfg = load_plan(base / (cfg.quick_plan if quick else cfg.plan))
+    plan_file = base / (cfg.quick_plan if quick else cfg.plan)
+    plan_cfg = load_plan(plan_file)
     if seed is not None:
         plan_cfg = plan_cfg.model_copy(update={"seed": seed})
     plan = build_plan(plan_cfg)
@@ -101,9 +104,11 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         twin.save(out / "model")
+        prov = demo_provenance(cfg, config, plan_file, inst, world, (reg_data, doe_data, val_plain, val_corr))
         result = _summarise(plan_cfg, quick, frames, doe, r_lt, r_mvs_lt, budgets, literal, twin,
                             val_plain, val_corr, world, time.monotonic() - t0,
-                            reg_data.refusals + doe_data.refusals + val_plain.refusals + val_corr.refusals)
+                            reg_data.refusals + doe_data.refusals + val_plain.refusals + val_corr.refusals,
+                            provenance=prov)
     finally:
         inst.close()
         world.close()
@@ -112,12 +117,68 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
     return result
 
 
+def sim_instruments(cfg: DemoConfig, inst: Instruments, world: SimWorld) -> tuple[Instrument, ...]:
+    """The simulated instruments with the uncertainty their simulator configs state (no
+    certificate: they are simulated). The drivers' own truth (e.g. the rig's scale error) is not
+    a statement and is left out."""
+    cell, scn = world.cell.cell, world.cell.scenario
+    lt = cell.laser_tracker
+    out = [
+        Instrument("robot", f"simulated arm (scenario {world.scenario_name})", cfg.drivers.robot,
+                   model="simulated (sim.plant)", uncertainty={
+                       "kind": "standard", "k": None,
+                       "text": f"controller TCP resolution {scn.tcp_resolution_m * 1e6:g} um; joint repeatability "
+                               f"{scn.joint_noise_rad:.3g} rad (1 sigma)",
+                       "terms": {"tcp_resolution": {"value": scn.tcp_resolution_m, "unit": "m"},
+                                 "joint_repeatability": {"value": scn.joint_noise_rad, "unit": "rad"}}}),
+        Instrument("tracker", "simulated laser tracker", cfg.drivers.tracker,
+                   model="simulated (sim.instruments.SimLaserTracker)", uncertainty={
+                       "kind": "standard", "k": None,
+                       "text": f"u = {lt.u_const_m * 1e6:g} um + {lt.u_per_m * 1e6:g} um/m x L (standard "
+                               "uncertainty at distance L, isotropic; paper Sect. 2.5)",
+                       "terms": {"constant": {"value": lt.u_const_m, "unit": "m"},
+                                 "per_length": {"value": lt.u_per_m, "unit": "m/m"}}})]
+    rig = getattr(inst.camera, "cfg", None)
+    sigma_px = getattr(getattr(rig, "processing", None), "centroid_sigma_px", None)
+    if sigma_px is not None:
+        out.append(Instrument("camera", "simulated multi-camera marker tracking rig (synthetic images + OpenCV)",
+                              cfg.drivers.camera, model="simulated (sim.camera_rig, configs/cameras.yaml)",
+                              uncertainty={"kind": "standard", "k": None,
+                                           "text": f"centroid repeatability {sigma_px:g} px (1 sigma), propagated "
+                                                   "to each reading's TCP covariance",
+                                           "terms": {"centroid_sigma": {"value": sigma_px, "unit": "px"}}}))
+    elif inst.camera is not None:
+        u = cell.mvs.noise_m
+        out.append(Instrument("camera", "simulated point-noise MVS stand-in", cfg.drivers.camera,
+                              model="simulated (sim.instruments.SimPointMVS)",
+                              uncertainty={"kind": "standard", "k": None,
+                                           "text": f"u = {u * 1e6:g} um per axis (standard)",
+                                           "terms": {"per_axis": {"value": u, "unit": "m"}}}))
+    return tuple(out)
+
+
+def demo_provenance(cfg: DemoConfig, config: Path, plan_file: Path, inst: Instruments, world: SimWorld,
+                    phases: tuple[PhaseData, ...]) -> Provenance:
+    """The demo's traceability record: the demo, scenario, cell and plan configs (and the camera
+    rig's config with the image driver) hashed, the simulated instruments, the cell temperature."""
+    base = config.parent
+    files = [config, base / cfg.scenario, base / cfg.cell, plan_file]
+    if getattr(inst.camera, "cfg", None) is not None:
+        files.append(CONFIGS / "cameras.yaml")  # the image rig's default config (sim.camera_rig)
+    temps = np.concatenate([np.asarray(p.temperature, dtype=float).ravel() for p in phases])
+    return build_provenance(files, robot_name=f"simulated arm (scenario {world.scenario_name})",
+                            instruments=sim_instruments(cfg, inst, world), temperature=temps)
+
+
+OUTSIDE_BAND_M = (0.05, 0.15)  # the extrapolation check: 50-150 mm outside the DOE hull
+
+
 def _mm(a) -> list[float]:
     return [round(float(v) * 1e3, 6) for v in np.asarray(a).ravel()]
 
 
 def _summarise(plan_cfg, quick, fr, doe, r_lt, r_mvs_lt, budgets, literal, twin, val_plain, val_corr,
-               world, elapsed, refusals) -> DemoResult:
+               world, elapsed, refusals, provenance: Provenance | None = None) -> DemoResult:
     # True errors in GL (the frame the tracker realises): intended target vs where the arm went.
     def true_err(v):
         ok = np.all(np.isfinite(v.truth_lt), axis=1)
@@ -201,6 +262,7 @@ def _summarise(plan_cfg, quick, fr, doe, r_lt, r_mvs_lt, budgets, literal, twin,
         "n_refusals": len(refusals),
         "elapsed_s": round(elapsed, 1),
         "units": "mm; errors e = commanded - measured, in the global frame GL",
+        "provenance": provenance.to_dict() if provenance is not None else None,
     }
     arrays = {
         "reg_residuals": fr.residuals, "doe_X": doe.X, "e_lt": doe.e_lt, "e_mvs": doe.e_mvs,
