@@ -48,6 +48,8 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         data = yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as exc:
         raise ConfigError(path, "<file>", "unparsable YAML", f"valid YAML ({exc})") from exc
+    except ValueError as exc:  # PyYAML's constructors: an impossible date such as 2026-13-01
+        raise ConfigError(path, "<file>", "unreadable value", f"valid YAML values ({exc})") from exc
     if data is None:
         data = {}
     if not isinstance(data, dict):

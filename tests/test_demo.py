@@ -59,3 +59,48 @@ def test_unreachable_plan_targets_are_reported_before_anything_moves(tmp_path, c
     err = json.loads(out.out)["error"]
     assert "unreachable" in err and "target #" in err
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_per_position_uncertainty_is_checked_inside_and_outside_the_calibrated_volume(quick):
+    s = json.loads(quick[1])
+    chk = s["coverage_check"]
+    assert chk["inside"]["n"] >= 100 and chk["outside"]["n"] >= 100  # distinct targets each
+    assert set(s["coverage_95_outside"]) == {"x", "y", "z"}
+    assert all(0.85 <= c <= 1.0 for c in s["coverage_95_outside"].values())
+    assert s["u_ratio_outside_inside"] > 1.0  # extrapolation states a larger uncertainty
+    assert chk["inside"]["flagged_inside_fraction"] == 1.0 and chk["outside"]["flagged_inside_fraction"] == 0.0
+    lo, hi = chk["outside"]["distance_mm"]
+    assert 40.0 <= lo and hi <= 160.0  # the band, measured at the corrected commands
+
+
+def test_the_saved_twin_states_the_uncertainty_of_each_corrected_position(quick, tmp_path):
+    import numpy as np
+
+    from dt_runtime.twin.twin import Twin
+
+    twin = Twin.load(quick[2] / "model")
+    assert twin.volume is not None and twin.position_u is not None
+    pts = np.array(json.loads((quick[2] / "summary.json").read_text())["coverage_check"]["inside"]["distance_mm"])
+    assert pts[0] < 0
+    # A DOE-interior target and one 150 mm beyond the hull's +z face.
+    inside_t = np.array([0.9, 0.0, 0.55])
+    c_in = twin.correct(inside_t, 0.5)
+    far_t = inside_t + np.array([0.0, 0.0, 0.0])
+    while twin.volume.distance(far_t)[0] < 0.15:
+        far_t = far_t + np.array([0.0, 0.0, 0.01])
+    c_out = twin.correct(far_t, 0.5)
+    assert c_in.inside and not c_out.inside and c_out.distance_m > 0.1
+    assert np.all(c_out.U > c_in.U)
+    labels = [c.label for c in c_in.budget.components]
+    assert "lambda sigma_GP(c)" in labels and "kappa d(c)" in labels and "s(r_LT)" not in labels
+    k_in = next(c for c in c_in.budget.components if c.label == "kappa d(c)")
+    assert np.all(k_in.u == 0)  # no extrapolation term inside the hull
+    # An older twin (no volume, no per-position data) still loads and states its global U.
+    old = tmp_path / "old"
+    shutil.copytree(quick[2] / "model", old)
+    meta = json.loads((old / "twin.json").read_text())
+    del meta["volume"], meta["position_uncertainty"]
+    (old / "twin.json").write_text(json.dumps(meta))
+    legacy = Twin.load(old).correct(inside_t, 0.5)
+    assert legacy.inside and legacy.budget is None
+    assert np.allclose(legacy.U, twin.uncertainty.tcp_c.U) and np.allclose(legacy.command, c_in.command)

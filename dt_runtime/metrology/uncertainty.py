@@ -45,6 +45,18 @@ class Component:
     def from_std(cls, label: str, u, dof: float = INF, note: str = "", kind: str = "B") -> Component:
         return cls(label, np.abs(np.asarray(u, dtype=float)) * np.ones(3), float(dof), kind, "normal", note)
 
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form; an infinite dof is written as null (strict JSON has no infinity)."""
+        return {"label": self.label, "u": [float(x) for x in self.u],
+                "dof": float(self.dof) if np.isfinite(self.dof) else None, "kind": self.kind,
+                "distribution": self.distribution, "note": self.note}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Component:
+        dof = d.get("dof")
+        return cls(str(d["label"]), np.asarray(d["u"], dtype=float) * np.ones(3), INF if dof is None else float(dof),
+                   str(d.get("kind", "B")), str(d.get("distribution", "normal")), str(d.get("note", "")))
+
 
 def coverage_factor(dof, p: float = 0.95) -> np.ndarray:
     dof = np.asarray(dof, dtype=float)
@@ -165,6 +177,22 @@ def budget_tcp_corrected(inp: MetrologyInputs) -> Budget:
     return Budget("u(TCP_c)", (Component.type_a("reprod_TCP", inp.reprod_tcp, inp.reprod_tcp_dof, "Eqs. 11-12"),
                                Component.uniform_from_resolution("resol_TCP", inp.resol_tcp, "Eq. 11"))
                   + budget_e_lt_hat(inp).components)
+
+
+MODEL_TERM = "s(r_LT)"  # Eq. 11's model component: the held-out spread of the e_LT model
+
+
+def budget_tcp_corrected_at(rest: Budget, u_model: np.ndarray, model_dof: float,
+                            u_extrapolation: np.ndarray, extrapolation_dof: float) -> Budget:
+    """Eq. 11 at one corrected position: the position-independent components (`rest`: Eq. 11
+    without its global model spread s(r_LT)), the model's standard uncertainty *at that
+    position*, u_model = lambda sigma_GP(c) (the GP's latent standard deviation scaled by its
+    held-out calibration), and, outside the calibrated hull, u_extrapolation = kappa d(c)
+    (see `twin.calibration`)."""
+    return rest.extend("u(TCP_c) at c", (
+        Component.type_a("lambda sigma_GP(c)", u_model, model_dof, "Eq. 11, the e_LT model at the position"),
+        Component.type_a("kappa d(c)", u_extrapolation, extrapolation_dof,
+                         "Eq. 11, extrapolation beyond the DOE hull")))
 
 
 def _mvs_components(inp: MetrologyInputs) -> tuple[Component, ...]:

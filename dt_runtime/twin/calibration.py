@@ -13,12 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dt_runtime.analysis.crossval import grouped_residuals
+from dt_kernel.errors import DataError
+from dt_runtime.analysis.crossval import folds_of, grouped_residuals, heldout
 from dt_runtime.frames import registration as reg
+from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.metrology import uncertainty as unc
+from dt_runtime.metrology.uncertainty import INF
 from dt_runtime.models.gp import MultiOutputGP
 from dt_runtime.twin.campaign import PhaseData
-from dt_runtime.twin.twin import Twin
+from dt_runtime.twin.twin import PositionUncertainty, Twin
 
 
 @dataclass
@@ -88,16 +91,48 @@ def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.
     return np.column_stack([np.bincount(inv, weights=r[:, k]) / counts for k in range(3)])
 
 
-def fit_models(doe: DoeErrors, folds: int, seed: int):
+@dataclass
+class FittedMaps:
+    e_lt: MultiOutputGP  # e_LT_hat(TCP, v)
+    e_mvs_lt: MultiOutputGP  # e_MVS-LT_hat(TCP, v)
+    r_lt: np.ndarray  # (n,3) held-out residuals of e_LT (Table 4)
+    r_mvs_lt: np.ndarray  # (n,3) held-out residuals of e_MVS-LT
+    s_lt: np.ndarray  # (n,3) the fold models' latent standard deviation at each held-out row
+
+
+def fit_models(doe: DoeErrors, folds: int, seed: int) -> FittedMaps:
     e_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_lt)
     e_mvs_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_mvs_lt)
-    # Held-out residuals: each target point predicted by a GP that never saw it (Table 4).
+    # Held-out residuals: each target point predicted by a GP that never saw it (Table 4); for
+    # e_LT also the fold models' stated std there, which calibrates the per-position uncertainty.
+    masks = folds_of(doe.groups, folds, seed)
+
+    def fold_lt(tr, te):
+        return MultiOutputGP(seed=seed).fit(doe.X[tr], doe.e_lt[tr]).predict(doe.X[te], return_std=True)
+
     def gp(Xtr, Ytr, Xte):
         return MultiOutputGP(seed=seed).fit(Xtr, Ytr).predict(Xte)
 
-    r_lt = grouped_residuals(doe.X, doe.e_lt, doe.groups, folds, seed, gp)
+    r_lt, s_lt = heldout(doe.e_lt, masks, fold_lt, return_std=True)
     r_mvs_lt = grouped_residuals(doe.X, doe.e_mvs_lt, doe.groups, folds, seed, gp)
-    return e_lt, e_mvs_lt, r_lt, r_mvs_lt
+    assert s_lt is not None  # return_std=True
+    return FittedMaps(e_lt, e_mvs_lt, r_lt, r_mvs_lt, s_lt)
+
+
+def model_scale(r: np.ndarray, s: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> tuple[np.ndarray, float]:
+    """The calibration lambda of the model's stated standard deviation, per axis, and its dof.
+
+    Over the held-out replicate means (point, speed), lambda^2 = mean((r - mean r)^2) / mean(s^2):
+    the scale that makes the GP's latent std sigma(c) state, on average over the DOE, the
+    held-out spread s(r_LT) that the global budget uses. At a new position lambda sigma(c) then
+    varies as the GP's own uncertainty does: small among the DOE points, growing away from them
+    (extrapolation). dof: the number of replicate means minus one (a variance ratio estimated
+    from them)."""
+    rm = replicate_means(r, groups, speed)
+    sm = replicate_means(s, groups, speed)
+    ms = np.mean(sm ** 2, axis=0)
+    lam = np.sqrt(np.mean((rm - rm.mean(axis=0)) ** 2, axis=0) / np.where(ms > 0, ms, np.inf))
+    return lam, float(len(rm) - 1)
 
 
 def metrology_inputs(fr: Frames, r_lt: np.ndarray, r_mvs_lt: np.ndarray, lt_distance_m: float,
@@ -126,8 +161,55 @@ def budgets(inp) -> dict:
     }
 
 
-def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = None) -> Twin:
+def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, seed: int) -> tuple[np.ndarray, float]:
+    """kappa per axis (m of error per m outside the DOE hull) and its dof: how the e_LT model's
+    error grows beyond what its own standard deviation says when it extrapolates.
+
+    Leave-a-face-out: for each of the six directions +-x, +-y, +-z, the outermost layer of DOE
+    points is held out and predicted by a GP fitted on the rest; each held-out replicate mean
+    lies at a distance d outside the hull of the rest. The squared residual beyond what
+    lambda sigma states is regressed on d^2 through the origin:
+    kappa^2 = sum max(0, r^2 - (lambda sigma)^2) / sum d^2. The twin then adds kappa d(c) for a
+    command c at distance d(c) > 0 outside the calibrated hull."""
+    P = doe.X[:, :3]
+    num, den, n = np.zeros(3), 0.0, 0
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            v = sign * P[:, axis]
+            held = v >= v.max() - 1e-6
+            if held.all():
+                continue
+            try:
+                rest = CalibratedVolume.of_points(P[~held])
+            except DataError:  # the rest is flat: no extrapolation distance to speak of
+                continue
+            mu, sd = MultiOutputGP(seed=seed).fit(doe.X[~held], doe.e_lt[~held]).predict(doe.X[held], return_std=True)
+            g, spd = doe.groups[held], doe.X[held, 3]
+            rm = replicate_means(doe.e_lt[held] - mu, g, spd)
+            sm = replicate_means(sd, g, spd)
+            d = replicate_means(np.repeat(rest.distance(P[held])[:, None], 3, axis=1), g, spd)[:, 0]
+            num += np.sum(np.maximum(rm ** 2 - (scale * sm) ** 2, 0.0), axis=0)
+            den += float(np.sum(np.maximum(d, 0.0) ** 2))
+            n += len(rm)
+    if den <= 0 or n < 2:
+        return np.zeros(3), INF
+    return np.sqrt(num / den), float(n - 1)
+
+
+def position_uncertainty(eq11: unc.Budget, doe: DoeErrors, maps: FittedMaps, seed: int) -> PositionUncertainty:
+    """Eq. 11 made per position: its components but the global model spread s(r_LT), which the
+    calibrated model term lambda sigma_GP(c) replaces at each position, plus kappa d(c) outside
+    the calibrated hull (`model_scale`, `extrapolation_scale`)."""
+    rest = tuple(c for c in eq11.components if c.label != unc.MODEL_TERM)
+    assert len(rest) == len(eq11.components) - 1, f"Eq. 11 has no '{unc.MODEL_TERM}' component"
+    scale, dof = model_scale(maps.r_lt, maps.s_lt, doe.groups, doe.X[:, 3])
+    kappa, kdof = extrapolation_scale(doe, scale, seed)
+    return PositionUncertainty(unc.Budget("u(TCP_c) without the model", rest), scale, dof, kappa, kdof)
+
+
+def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = None,
+              volume: CalibratedVolume | None = None, position_u: PositionUncertainty | None = None) -> Twin:
     u = {}
     for key, bud in b.items():
         u[key] = {"u": bud.combined(), "dof": bud.effective_dof(), "U": bud.expanded(), "k": bud.coverage_factor()}
-    return Twin(fr.T_rdk, fr.T_lt, fr.T_mvs, e_lt, e_mvs_lt, u, dict(instruments or {}))
+    return Twin(fr.T_rdk, fr.T_lt, fr.T_mvs, e_lt, e_mvs_lt, u, dict(instruments or {}), volume, position_u)

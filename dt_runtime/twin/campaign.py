@@ -6,8 +6,8 @@ global frame GL (Sect. 2.3); the positioning errors then follow Eqs. 8-10.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -77,12 +77,13 @@ def check_reachable(world, targets: np.ndarray) -> None:
 
 
 def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None,
-             label: str = "", command: Callable[[np.ndarray, float], np.ndarray] | None = None
-             ) -> PhaseData:
+             label: str = "", command: Callable[[np.ndarray, float], np.ndarray] | None = None,
+             skip_unreachable: bool = False) -> PhaseData:
     """Position the robot at every row's target and measure it with both instruments.
 
     `command(target, speed)` maps a target to the command actually sent (identity by default;
-    the corrected command for the twin's closed loop).
+    the corrected command for the twin's closed loop). With skip_unreachable, a command the arm
+    cannot reach leaves its row NaN and is listed in `refusals` instead of stopping the phase.
     """
     n = len(rows)
     cols = {k: np.full((n, 3), np.nan) for k in ("target", "p_rdk", "p_lt", "p_mvs", "truth_lt")}
@@ -93,7 +94,14 @@ def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None
         v = row.speed_frac * inst.max_speed
         target = np.asarray(row.target, dtype=float)
         cmd = command(target, v) if command else target
-        inst.robot.move_linear(cmd, v)
+        try:
+            inst.robot.move_linear(cmd, v)
+        except UnreachableError as exc:
+            if not skip_unreachable:
+                raise
+            refusals.append(f"{label} row {i}: unreachable ({exc})")
+            speed[i] = v
+            continue
         cols["target"][i] = target
         cols["p_rdk"][i] = inst.robot.read_commanded_tcp()
         q[i] = inst.robot.read_joint_state().q

@@ -14,20 +14,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydantic import Field
 
 from drivers import registry
 from drivers.simulated.devices import SimWorld
 from dt_kernel.config import Frozen, load_yaml
+from dt_kernel.errors import UnreachableError
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, Provenance
 from dt_runtime.common.provenance import build as build_provenance
+from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology import uncertainty as unc
 from dt_runtime.metrology.stats import mean_std_mm, rms3
 from dt_runtime.twin import calibration as cal
 from dt_runtime.twin.campaign import Instruments, PhaseData, check_reachable, run_rows
+from dt_runtime.twin.coverage_check import CoverageCheck, run_check, sample_targets
 
 
 class DriversConfig(Frozen):
@@ -43,6 +47,12 @@ class DemoConfig(Frozen):
     quick_plan: str
     drivers: DriversConfig = DriversConfig()
     cv_folds: int = 5
+    # The calibrated volume: the DOE's convex hull widened by this margin (m); beyond it a
+    # correction is flagged as extrapolation.
+    volume_margin_m: float = Field(0.025, ge=0.0, le=0.5)
+    # Distinct random targets inside the DOE hull and in a band 50-150 mm outside it, commanded
+    # corrected and scored against the simulator's truth (coverage of the per-position U).
+    coverage_targets: int = Field(200, ge=0, le=5000)
 
 
 @dataclass
@@ -90,25 +100,31 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
         doe_data = run_rows(inst, plan.doe, progress, "phase 2 DOE")
         doe = cal.doe_errors(doe_data, frames)
         progress.note("training GPR models e_LT(TCP, v) and e_MVS-LT(TCP, v), grouped cross-validation")
-        e_lt, e_mvs_lt, r_lt, r_mvs_lt = cal.fit_models(doe, cfg.cv_folds, seed)
+        maps = cal.fit_models(doe, cfg.cv_folds, seed)
+        e_lt, e_mvs_lt, r_lt, r_mvs_lt = maps.e_lt, maps.e_mvs_lt, maps.r_lt, maps.r_mvs_lt
         lt_dist = float(np.median(np.linalg.norm(doe_data.p_lt[np.all(np.isfinite(doe_data.p_lt), 1)], axis=1)))
         speed = doe.X[:, 3]
         inp = cal.metrology_inputs(frames, cal.replicate_means(r_lt, doe.groups, speed),
                                    cal.replicate_means(r_mvs_lt, doe.groups, speed), lt_dist)
         budgets = cal.budgets(inp)
         literal = cal.budgets(dataclasses.replace(inp, registration_term="spread"))
-        twin = cal.make_twin(frames, e_lt, e_mvs_lt, budgets, cfg.drivers.model_dump())
+        progress.note("per-position uncertainty: held-out calibration of the GP's std, leave-a-face-out extrapolation")
+        twin = cal.make_twin(frames, e_lt, e_mvs_lt, budgets, cfg.drivers.model_dump(),
+                             CalibratedVolume.of_points(doe.X[:, :3], cfg.volume_margin_m),
+                             cal.position_uncertainty(budgets["eq11_tcp_c"], doe, maps, seed))
         val_plain = run_rows(inst, plan.validation, progress, "phase 3 validation, uncorrected")
         val_corr = run_rows(inst, plan.validation, progress, "phase 3 validation, corrected",
                             command=twin.corrected_command)
+        checks = _coverage_checks(inst, twin, doe, plan_cfg.doe_speeds, cfg.coverage_targets, seed, world, progress)
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        twin.save(out / "model")
         prov = demo_provenance(cfg, config, plan_file, inst, world, (reg_data, doe_data, val_plain, val_corr))
+        twin.provenance = prov
+        twin.save(out / "model")
         result = _summarise(plan_cfg, quick, frames, doe, r_lt, r_mvs_lt, budgets, literal, twin,
                             val_plain, val_corr, world, time.monotonic() - t0,
                             reg_data.refusals + doe_data.refusals + val_plain.refusals + val_corr.refusals,
-                            provenance=prov)
+                            provenance=prov, checks=checks)
     finally:
         inst.close()
         world.close()
@@ -173,12 +189,37 @@ def demo_provenance(cfg: DemoConfig, config: Path, plan_file: Path, inst: Instru
 OUTSIDE_BAND_M = (0.05, 0.15)  # the extrapolation check: 50-150 mm outside the DOE hull
 
 
+def _coverage_checks(inst, twin, doe, speed_fracs, n, seed, world, progress) -> dict[str, CoverageCheck]:
+    """Distinct random targets inside the DOE hull and in the band outside it, corrected and
+    scored against the truth (a check only the simulator allows; the paper's 14 validation
+    points are unchanged)."""
+    if n == 0 or twin.volume is None:
+        return {}
+    rng = np.random.default_rng([seed, 11])
+    pts = np.unique(doe.X[:, :3], axis=0)
+    out = {}
+    for name, band in (("inside", (-np.inf, 0.0)), ("outside", OUTSIDE_BAND_M)):
+        # Spare targets: only those whose corrected command is reachable too, and of those the
+        # first n the arm reaches from where it stands (the IK's branch depends on the path).
+        targets = sample_targets(twin.volume, pts, 3 * n, band, world, rng)
+        speeds = rng.choice(np.asarray(speed_fracs, dtype=float), 3 * n)
+        cmds = np.array([twin.corrected_command(x, s * inst.max_speed) for x, s in zip(targets, speeds)])
+        bad = {i for i, _ in world.unreachable(cmds)}
+        keep = [i for i in range(len(targets)) if i not in bad][:2 * n]
+        res = run_check(inst, twin, targets[keep], speeds[keep], progress, f"coverage check, {name} the DOE volume")
+        if res.n < n:
+            raise UnreachableError(f"coverage check {name}: only {res.n} of {len(keep)} corrected commands reached")
+        out[name] = res.head(n)
+    return out
+
+
 def _mm(a) -> list[float]:
     return [round(float(v) * 1e3, 6) for v in np.asarray(a).ravel()]
 
 
 def _summarise(plan_cfg, quick, fr, doe, r_lt, r_mvs_lt, budgets, literal, twin, val_plain, val_corr,
-               world, elapsed, refusals, provenance: Provenance | None = None) -> DemoResult:
+               world, elapsed, refusals, provenance: Provenance | None = None,
+               checks: dict[str, CoverageCheck] | None = None) -> DemoResult:
     # True errors in GL (the frame the tracker realises): intended target vs where the arm went.
     def true_err(v):
         ok = np.all(np.isfinite(v.truth_lt), axis=1)
@@ -189,9 +230,14 @@ def _summarise(plan_cfg, quick, fr, doe, r_lt, r_mvs_lt, budgets, literal, twin,
     rms_plain, rms_corr = rms3(e_plain), rms3(e_corr)
 
     b11 = budgets["eq11_tcp_c"]
-    U_tcp = b11.expanded()
+    # The stated uncertainty of each corrected validation position (Eq. 11 at its command).
+    U_tcp = np.array([twin.correct(c, v).U for c, v in zip(val_corr.target[ok_corr], val_corr.speed[ok_corr])])
     inside = np.abs(e_corr) <= U_tcp
-    coverage = {ax: float(inside[:, k].mean()) for k, ax in enumerate(AXES)}
+    coverage_val = {ax: float(inside[:, k].mean()) for k, ax in enumerate(AXES)}
+    checks = checks or {}
+    chk = {k: c.summary() for k, c in checks.items()}
+    u_ratio = (float(checks["outside"].U.mean() / checks["inside"].U.mean())
+               if {"inside", "outside"} <= set(checks) else None)
 
     # Eq. 17 on every corrected validation measurement: (e_LT_hat - e_MVS) vs e_MVS-LT_hat.
     vc = val_corr
@@ -234,7 +280,15 @@ def _summarise(plan_cfg, quick, fr, doe, r_lt, r_mvs_lt, budgets, literal, twin,
         "true_rms_uncorrected_mm": round(rms_plain * 1e3, 4),
         "true_rms_corrected_mm": round(rms_corr * 1e3, 4),
         "true_error_reduction_pct": round(100 * (1 - rms_corr / rms_plain), 2),
-        "coverage_95": coverage,
+        "coverage_95": chk["inside"]["coverage_95"] if "inside" in chk else coverage_val,
+        "coverage_95_outside": chk["outside"]["coverage_95"] if "outside" in chk else None,
+        "u_ratio_outside_inside": u_ratio,
+        "coverage_check": {
+            "note": "distinct random targets commanded with the correction, true error (simulator) against the "
+                    "per-position U(TCP_c) of Eq. 11; inside: the DOE's convex hull; outside: "
+                    f"{OUTSIDE_BAND_M[0] * 1e3:.0f}-{OUTSIDE_BAND_M[1] * 1e3:.0f} mm beyond it",
+            **chk, "validation": {"n": int(len(U_tcp)), "coverage_95": coverage_val,
+                                  "mean_U_mm": _mm(U_tcp.mean(axis=0)) if len(U_tcp) else None}},
         "paper_literal_budget": {
             "note": "registration residual spread added as in the paper's Eqs. 13-16 (double counts, see README)",
             "precision_after_mm": round(float(prec_lit["after_avg_mm"]), 4),

@@ -21,7 +21,10 @@ import numpy as np
 
 from dt_kernel.errors import ModelError
 from dt_runtime.common.jsonsafe import jsonable
+from dt_runtime.common.provenance import Provenance
 from dt_runtime.frames.registration import RigidTransform
+from dt_runtime.frames.volume import CalibratedVolume
+from dt_runtime.metrology.uncertainty import Budget, Component, budget_tcp_corrected_at
 from dt_runtime.models.gp import MultiOutputGP
 from dt_runtime.models.modelio import read_meta
 
@@ -74,6 +77,57 @@ class TwinUncertainty:
         return cls(**{f: StatedUncertainty.from_mapping(u[k], f"{where}: u.{k}") for f, k in cls.KEYS.items()})
 
 
+@dataclass(frozen=True)
+class PositionUncertainty:
+    """What Eq. 11 needs at any corrected position: the position-independent components, the
+    calibration of the e_LT model's own standard deviation (lambda, `calibration.model_scale`)
+    and its growth outside the calibrated hull (kappa, `calibration.extrapolation_scale`)."""
+
+    rest: Budget  # Eq. 11 without the global model spread s(r_LT)
+    model_scale: np.ndarray  # (3,) lambda per GL axis
+    model_dof: float
+    extrapolation_scale: np.ndarray  # (3,) kappa per GL axis, m of error per m outside the hull
+    extrapolation_dof: float
+
+    def budget_at(self, sigma_gp: np.ndarray, distance_m: float) -> Budget:
+        """Eq. 11 where the GP states sigma_gp and the command lies distance_m outside the hull."""
+        return budget_tcp_corrected_at(self.rest, self.model_scale * np.asarray(sigma_gp), self.model_dof,
+                                       self.extrapolation_scale * max(float(distance_m), 0.0),
+                                       self.extrapolation_dof)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"rest": [c.to_dict() for c in self.rest.components], "model_scale": self.model_scale.tolist(),
+                "model_dof": self.model_dof, "extrapolation_scale": self.extrapolation_scale.tolist(),
+                "extrapolation_dof": self.extrapolation_dof if np.isfinite(self.extrapolation_dof) else None}
+
+    @classmethod
+    def from_dict(cls, d: Any, where: str) -> PositionUncertainty:
+        try:
+            comps = tuple(Component.from_dict(c) for c in d["rest"])
+            scale = np.asarray(d["model_scale"], dtype=float)
+            dof = float(d["model_dof"])
+            kappa = np.asarray(d["extrapolation_scale"], dtype=float)
+            kdof = float("inf") if d["extrapolation_dof"] is None else float(d["extrapolation_dof"])
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise ModelError(f"{where}: position_uncertainty needs rest, model_scale, model_dof, "
+                             f"extrapolation_scale, extrapolation_dof ({exc!r})") from exc
+        if scale.shape != (3,) or kappa.shape != (3,) or not comps:
+            raise ModelError(f"{where}: position_uncertainty: scales {scale.shape}, {kappa.shape} or no components")
+        return cls(Budget("u(TCP_c) without the model", comps), scale, dof, kappa, kdof)
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A corrected command with the uncertainty of the position it reaches."""
+
+    target: np.ndarray  # (3,) m, robot frame
+    command: np.ndarray  # (3,) m, robot frame: solves c - e_hat(c, v) = target
+    U: np.ndarray  # (3,) m, expanded uncertainty (95 %) of the corrected TCP, per GL axis
+    inside: bool  # the command lies in the calibrated volume (hull of the DOE plus its margin)
+    distance_m: float  # signed distance of the command to the DOE hull (< 0 inside), NaN if unknown
+    budget: Budget | None  # the labelled Eq. 11 budget at this position (None for an old twin)
+
+
 @dataclass
 class Twin:
     T_rdk: RigidTransform  # robot frame -> GL
@@ -83,6 +137,9 @@ class Twin:
     e_mvs_lt: MultiOutputGP  # e_MVS-LT_hat(TCP, v)
     u: dict  # stated uncertainties as twin.json holds them; read them through `uncertainty`
     instruments: dict = field(default_factory=dict)  # drivers it was calibrated with, e.g. camera
+    volume: CalibratedVolume | None = None  # where the maps interpolate (None: an older twin)
+    position_u: PositionUncertainty | None = None  # Eq. 11 per position (None: an older twin)
+    provenance: Provenance | None = None  # traceability record (dt_runtime.common.provenance)
     uncertainty: TwinUncertainty = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -113,6 +170,28 @@ class Twin:
                 break
         return c
 
+    def tcp_budget(self, c: np.ndarray, v: float) -> Budget | None:
+        """Eq. 11 at command c (robot frame, m) and speed v: labelled components, the e_LT
+        model's term from its standard deviation at c, and its growth outside the calibrated
+        hull. None for a twin without it (older format:
+        then only the global `uncertainty.tcp_c` is known)."""
+        if self.position_u is None:
+            return None
+        c = np.asarray(c, dtype=float)
+        dist = float(self.volume.distance(c)[0]) if self.volume is not None else 0.0
+        return self.position_u.budget_at(self.e_lt_hat(c, v)[1], dist)
+
+    def correct(self, target: np.ndarray, v: float) -> Correction:
+        """The corrected command for `target` at speed v, the expanded uncertainty of the
+        position it reaches, and whether the command lies in the calibrated volume."""
+        target = np.asarray(target, dtype=float)
+        c = self.corrected_command(target, v)
+        b = self.tcp_budget(c, v)
+        U = b.expanded() if b is not None else self.uncertainty.tcp_c.U
+        dist = float(self.volume.distance(c)[0]) if self.volume is not None else float("nan")
+        inside = bool(self.volume.inside(c)[0]) if self.volume is not None else True
+        return Correction(target, c, U, inside, dist, b)
+
     # --- persistence: JSON + NPZ, no pickle ------------------------------------------------
     def save(self, directory: str | Path) -> Path:
         d = Path(directory)
@@ -126,7 +205,12 @@ class Twin:
             "T_rdk": self.T_rdk.to_dict(), "T_lt": self.T_lt.to_dict(), "T_mvs": self.T_mvs.to_dict(),
             "u": jsonable(self.u, finite_only=False),
             "instruments": self.instruments,
+            "provenance": self.provenance.to_dict() if self.provenance is not None else None,
         }
+        if self.volume is not None:
+            meta["volume"] = self.volume.to_dict()
+        if self.position_u is not None:
+            meta["position_uncertainty"] = self.position_u.to_dict()
         (d / "twin.json").write_text(json.dumps(meta, indent=2))
         return d
 
@@ -140,5 +224,11 @@ class Twin:
         TwinUncertainty.from_mapping(u, str(d / "twin.json"))  # a malformed entry names the file
         return cls(RigidTransform.from_dict(meta["T_rdk"]), RigidTransform.from_dict(meta["T_lt"]),
                    RigidTransform.from_dict(meta["T_mvs"]), MultiOutputGP.load(d / "e_lt"),
-                   MultiOutputGP.load(d / "e_mvs_lt"), u, meta.get("instruments", {}))
+                   MultiOutputGP.load(d / "e_mvs_lt"), u, meta.get("instruments", {}),
+                   CalibratedVolume.from_dict(meta["volume"], f"{d / 'twin.json'}: volume")
+                   if "volume" in meta else None,
+                   PositionUncertainty.from_dict(meta["position_uncertainty"], str(d / "twin.json"))
+                   if "position_uncertainty" in meta else None,
+                   # twins saved before the record have none
+                   Provenance.from_dict(meta["provenance"]) if meta.get("provenance") else None)
 

@@ -1,0 +1,98 @@
+"""Does the stated per-position uncertainty cover the truth, inside the calibrated volume and
+outside it? A check only a simulator can make: distinct random targets, commanded with the
+twin's correction, scored against where the arm truly went.
+
+Inside targets are drawn uniformly in the convex hull of the DOE; outside targets in a band of
+signed distance (e.g. 50-150 mm) beyond it, by the hull's facet distance (`CalibratedVolume`).
+Every target is checked for reachability before anything moves; unreachable draws are dropped.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.common.progress import Progress
+from dt_runtime.frames.volume import CalibratedVolume
+from dt_runtime.measurements.plans import PlanRow
+from dt_runtime.metrology.stats import rms3
+from dt_runtime.twin.campaign import Instruments, run_rows
+from dt_runtime.twin.twin import Correction, Twin
+
+
+@dataclass(frozen=True)
+class CoverageCheck:
+    target: np.ndarray  # (n,3) m, robot frame
+    command: np.ndarray  # (n,3) m, the corrected commands sent
+    U: np.ndarray  # (n,3) m, stated expanded uncertainty (95 %) of each corrected position
+    error: np.ndarray  # (n,3) m, true error in GL: target - where the arm truly went
+    distance: np.ndarray  # (n,) m, signed distance of the command to the DOE hull
+    inside: np.ndarray  # (n,) bool, the twin's flag
+
+    @property
+    def n(self) -> int:
+        return len(self.target)
+
+    def head(self, n: int) -> CoverageCheck:
+        """The first n positions (the check states coverage over a fixed number of targets)."""
+        return CoverageCheck(self.target[:n], self.command[:n], self.U[:n], self.error[:n], self.distance[:n],
+                             self.inside[:n])
+
+    def coverage(self) -> dict[str, float]:
+        """Per axis, the fraction of positions whose true error lies within +/- U."""
+        ok = np.abs(self.error) <= self.U
+        return {ax: float(ok[:, k].mean()) for k, ax in enumerate(AXES)}
+
+    def summary(self) -> dict:
+        return {"n": self.n, "coverage_95": self.coverage(),
+                "mean_U_mm": [round(float(x) * MM_PER_M, 4) for x in self.U.mean(axis=0)],
+                "true_rms_mm": round(rms3(self.error) * MM_PER_M, 4),
+                "distance_mm": [round(float(self.distance.min()) * MM_PER_M, 1),
+                                round(float(self.distance.max()) * MM_PER_M, 1)],
+                "flagged_inside_fraction": float(self.inside.mean())}
+
+
+def sample_targets(volume: CalibratedVolume, doe_points: np.ndarray, n: int, band_m: tuple[float, float],
+                   world, rng: np.random.Generator, max_draws: int = 200_000) -> np.ndarray:
+    """n reachable targets whose signed distance to the hull lies in `band_m` (m; (-inf, 0) for
+    inside), drawn uniformly in the DOE's bounding box widened by the band's far edge."""
+    lo, hi = band_m
+    pad = max(hi, 0.0)
+    box_lo, box_hi = doe_points.min(axis=0) - pad, doe_points.max(axis=0) + pad
+    out: list[np.ndarray] = []
+    drawn = 0
+    while len(out) < n and drawn < max_draws:
+        P = rng.uniform(box_lo, box_hi, (4 * n, 3))
+        drawn += len(P)
+        d = volume.distance(P)
+        P = P[(d >= lo) & (d <= hi)]
+        if world is not None and len(P):
+            bad = {i for i, _ in world.unreachable(P)}
+            P = P[[i not in bad for i in range(len(P))]]
+        out.extend(P)
+    if len(out) < n:
+        raise ValueError(f"only {len(out)} reachable targets in the band {band_m} m after {drawn} draws")
+    return np.array(out[:n])
+
+
+def run_check(inst: Instruments, twin: Twin, targets: np.ndarray, speeds: np.ndarray,
+              progress: Progress | None = None, label: str = "coverage check") -> CoverageCheck:
+    """Command every target corrected, at its speed fraction, and score against the truth.
+    Only the robot and the truth are needed: the camera is not read."""
+    rows = [PlanRow("check", i, 0, t, float(s)) for i, (t, s) in enumerate(zip(targets, speeds))]
+    cs: list[Correction] = []
+
+    def command(target: np.ndarray, v: float) -> np.ndarray:
+        cs.append(twin.correct(target, v))
+        return cs[-1].command
+
+    data = run_rows(Instruments(inst.robot, inst.tracker, None, world=inst.world, max_speed=inst.max_speed),
+                    rows, progress, label, command=command, skip_unreachable=True)
+    assert data.truth_lt is not None, "the coverage check needs the simulator's truth"
+    # A command the arm cannot reach from where it stands is skipped (its row stays NaN).
+    ok = np.all(np.isfinite(data.truth_lt), axis=1)
+    # True error in GL (the frame the tracker realises): the intended target vs where the arm went.
+    err = twin.T_rdk.apply(data.target[ok]) - twin.T_lt.apply(data.truth_lt[ok])
+    return CoverageCheck(data.target[ok], np.array([c.command for c in cs])[ok], np.array([c.U for c in cs])[ok],
+                         err, np.array([c.distance_m for c in cs])[ok], np.array([c.inside for c in cs])[ok])
