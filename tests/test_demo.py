@@ -12,15 +12,8 @@ KEYS = {"precision_before_mm", "precision_after_mm", "improvement_pct", "true_rm
 
 
 @pytest.fixture(scope="module")
-def quick(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo")
-    import io
-    import contextlib
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        rc = main(["demo", "--quick", "--json", "--no-progress", "--out", str(out)])
-    return rc, buf.getvalue(), out
+def quick(quick_demo):
+    return quick_demo
 
 
 def test_prints_exactly_one_json_object_with_the_contract_keys(quick):

@@ -1,0 +1,51 @@
+"""`dt correct`: a whole program corrected offline, with the uncertainty of every position."""
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from dt_kernel.units import MM_PER_M
+
+NAME = "correct"
+HELP = "corrected commands for a program, with their uncertainty"
+DESCRIPTION = ("For every target of a program file (x, y, z in mm, speed in mm/s, optional point_id), the "
+               "twin's corrected command, the expanded uncertainty (95 %) of the position it reaches and "
+               "whether it lies in the calibrated volume (the DOE's hull plus its margin).")
+
+
+def add_arguments(c: argparse.ArgumentParser) -> None:
+    c.add_argument("--twin", required=True, metavar="TWIN", help="twin directory (e.g. out/demo/model from dt demo)")
+    c.add_argument("--targets", required=True, metavar="FILE.csv", help="the program: x, y, z (mm), speed (mm/s)")
+    c.add_argument("--out", required=True, metavar="FILE.csv", help="the corrected program (written atomically)")
+    c.add_argument("--refuse-outside", action="store_true",
+                   help="exit with an error, writing nothing, if any command lies outside the calibrated volume")
+    c.add_argument("--json", action="store_true", help="print the result as one JSON object")
+
+
+def run(args: argparse.Namespace) -> Any:
+    import numpy as np
+
+    from dt_kernel.errors import DataError
+    from dt_runtime.twin.program import correct_program, read_program, write_corrected
+    from dt_runtime.twin.twin import Twin
+
+    twin = Twin.load(args.twin)
+    prog = read_program(args.targets)
+    corr = correct_program(twin, prog)
+    outside = [i for i, c in enumerate(corr) if not c.inside]
+    if args.refuse_outside and outside:
+        first = ", ".join(f"{prog.point_id[i]} (line {prog.line[i]})" for i in outside[:5])
+        raise DataError(f"{args.targets}: {len(outside)} of {prog.n} targets need a command outside the calibrated "
+                        f"volume: {first}{' ...' if len(outside) > 5 else ''}; nothing written")
+    path = write_corrected(args.out, prog, corr)
+    U = np.array([c.U for c in corr])
+    return {"out": str(path), "n": prog.n, "n_outside": len(outside), "twin": str(args.twin),
+            "max_U_mm": [round(float(x) * MM_PER_M, 4) for x in U.max(axis=0)],
+            "mean_U_mm": [round(float(x) * MM_PER_M, 4) for x in U.mean(axis=0)],
+            "max_correction_mm": round(float(max(np.linalg.norm(c.command - c.target) for c in corr)) * MM_PER_M, 4)}
+
+
+def human(r: dict) -> str:
+    return (f"{r['n']} targets corrected -> {r['out']}; {r['n_outside']} outside the calibrated volume; "
+            f"U (95 %) mean {r['mean_U_mm']} mm, max {r['max_U_mm']} mm; "
+            f"largest correction {r['max_correction_mm']} mm")

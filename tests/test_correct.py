@@ -1,0 +1,70 @@
+"""`dt correct`: a program corrected offline, with the uncertainty and the volume flag of every
+position; bad programs get a clear error and nothing is written."""
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from dt_runtime.cli.main import main
+from dt_runtime.twin.twin import Twin
+
+
+def _program(path, rows):
+    path.write_text("point_id,x,y,z,speed\n" + "".join(f"{r}\n" for r in rows))
+    return path
+
+
+def _far_target(twin):
+    t = np.array([0.9, 0.0, 0.55])
+    while twin.volume.distance(t)[0] < 0.12:
+        t = t + np.array([0.0, 0.0, 0.01])
+    return t
+
+
+def test_corrects_a_program_and_flags_extrapolation(quick_demo, tmp_path, capsys):
+    twin_dir = quick_demo[2] / "model"
+    twin = Twin.load(twin_dir)
+    far = _far_target(twin) * 1e3
+    prog = _program(tmp_path / "p.csv", ["a,900,0,550,500", "b,880,40,560,250", f"far,{far[0]},{far[1]},{far[2]},250"])
+    out = tmp_path / "out" / "p_corr.csv"
+    assert main(["correct", "--twin", str(twin_dir), "--targets", str(prog), "--out", str(out), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["n"] == 3 and res["n_outside"] == 1
+    rows = list(csv.DictReader(out.open()))
+    assert [r["point_id"] for r in rows] == ["a", "b", "far"] and [r["inside"] for r in rows] == ["1", "1", "0"]
+    c = twin.correct(np.array([0.9, 0.0, 0.55]), 0.5)
+    assert [float(rows[0][k]) for k in ("cx", "cy", "cz")] == pytest.approx(c.command * 1e3, abs=1e-6)
+    assert [float(rows[0][k]) for k in ("Ux", "Uy", "Uz")] == pytest.approx(c.U * 1e3, abs=1e-6)
+    assert all(float(rows[2][f"U{a}"]) > float(rows[0][f"U{a}"]) for a in "xyz")
+    assert float(rows[2]["distance_mm"]) > 100 and float(rows[0]["distance_mm"]) < 0
+
+
+def test_refuse_outside_writes_nothing(quick_demo, tmp_path, capsys):
+    twin_dir = quick_demo[2] / "model"
+    far = _far_target(Twin.load(twin_dir)) * 1e3
+    prog = _program(tmp_path / "p.csv", ["a,900,0,550,500", f"far,{far[0]},{far[1]},{far[2]},250"])
+    out = tmp_path / "p_corr.csv"
+    rc = main(["correct", "--twin", str(twin_dir), "--targets", str(prog), "--out", str(out), "--refuse-outside",
+               "--json"])
+    assert rc == 2 and not out.exists()
+    assert "outside the calibrated volume: far (line 3)" in json.loads(capsys.readouterr().out)["error"]
+
+
+@pytest.mark.parametrize("rows, message", [
+    (["a,900,0,550,0"], "line 2: column 'speed'"),
+    (["a,900,zero,550,100"], "line 2: column 'y'"),
+    ([], "no targets"),
+])
+def test_bad_programs_name_line_and_column(quick_demo, tmp_path, capsys, rows, message):
+    prog = _program(tmp_path / "p.csv", rows)
+    out = tmp_path / "p_corr.csv"
+    rc = main(["correct", "--twin", str(quick_demo[2] / "model"), "--targets", str(prog), "--out", str(out), "--json"])
+    assert rc == 2 and not out.exists()
+    assert message in json.loads(capsys.readouterr().out)["error"]
+
+
+def test_not_a_twin(tmp_path, capsys):
+    prog = _program(tmp_path / "p.csv", ["a,900,0,550,500"])
+    rc = main(["correct", "--twin", str(tmp_path), "--targets", str(prog), "--out", str(tmp_path / "o.csv"), "--json"])
+    assert rc == 2 and "twin" in json.loads(capsys.readouterr().out)["error"]
