@@ -1,0 +1,441 @@
+"""Export the calibrated robot: the `geometric` effect of a fitted hybrid model applied to the
+nominal kinematic chain, written as a URDF (joint origins adjusted) or a standard DH table in
+the robot config format (configs/robots/*.yaml), for other tools to load.
+
+**Only identifiable combinations are exported.** The geometric set is complete, hence rank
+deficient (dt_runtime.models.effects.geometric): over a given design several parameters move
+the TCP alike (offset_q1 and a rotation of the base about z; with the DOE's fixed tool
+orientation, many more), and the ridge of the fit splits such a combination between them
+arbitrarily, or (a column that is numerically zero, e.g. a rotation about an axis through the
+TCP) gives a meaningless value. `identify` judges this from the geometric block's columns over
+the training joint angles: angles scaled to metres at the TCP by the arm's reach, the rank is the
+number of singular values above `rtol` times the largest; then a basis of that many parameters is
+chosen (first greedily in the order joint offsets, frames 1..n (translations, rotations), tool,
+keeping a column only if at least `ALIAS_TOL` of it lies outside the span of those kept, then by
+pivoted QR for what is left). Every other parameter's column is (numerically) a combination of
+the basis columns, so its fitted value is moved onto the basis parameters it aliases (the
+exported value of a basis parameter is the identifiable combination it stands for); it is then
+listed as not identifiable, with what absorbed it, and exported as zero. A parameter whose
+column is zero is listed as having no effect on the TCP over these data.
+
+**Why the training data.** Identifiability is a property of the design (which joint
+configurations were measured), which the saved model does not keep; but its traceability
+record names the training data file with its SHA-256. `export_robot` therefore reads the
+joint angles from `data` when given, else from the file the record names, if it is still there
+unchanged (checked by hash) - so a saved model needs no new fields and an export can never
+judge identifiability on other data than the model was fitted on without being told to.
+
+**The check.** The geometric effect is linear in its parameters (first order: e = A theta),
+while the exported chain applies them exactly (a joint offset as a rotation of the joint's
+origin about its axis; a frame's translation d and rotation w as Trans(d) Rot(w) of its
+origin, in its own axes; the tool's translation in the flange axes). `export_robot` loads the
+written file back (URDF: `chain_from_urdf`, and `xml.etree`; DH: `load_robot`) and compares its
+TCP with the calibrated one, fk_nominal(q) - A(q) theta (what the hybrid model's geometric
+block predicts the arm reaches), at the training joint configurations: max and RMS of the 3D
+difference in mm, against `FK_TOL_MM` (0.01 mm).
+"""
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+from scipy.spatial.transform import Rotation
+
+from dt_kernel.errors import ConfigError, DataError, ModelError
+from dt_kernel.units import MM_PER_M
+from dt_runtime.analysis.data import Data, load_data
+from dt_runtime.common.jsonsafe import jsonable
+from dt_runtime.common.paths import ROOT
+from dt_runtime.common.provenance import FileRecord, Provenance, build, files_under, sha256_file
+from dt_runtime.frames.kinematics import Chain, chain_from_urdf, load_robot
+from dt_runtime.frames.robot_export import dh_table, urdf_text
+from dt_runtime.models.effects import Inputs
+from dt_runtime.models.effects.geometric import Geometric
+from dt_runtime.models.hybrid import HybridModel, resolve_chain
+
+FORMATS = ("urdf", "dh")
+RTOL = 1e-5  # singular values below RTOL x the largest: directions the data cannot see
+ALIAS_TOL = 0.05  # a column kept greedily must have >= 5 % of its norm outside the kept span
+ALIAS_SHOWN = 1e-3  # aliases shown: scaled coefficients above this (all are applied)
+FK_TOL_MM = 0.01
+NO_GEOMETRIC = "fit one with dt fit --effects geometric ..."
+
+
+# --------------------------------------------------------------------------- identifiability
+@dataclass(frozen=True)
+class Identifiability:
+    """Which geometric parameters the design identifies: `basis` (indices into names) spans
+    every identifiable combination; `absorbed[j]` maps a non-basis parameter j to the basis
+    parameters its column is a combination of, {i: d theta_i / d theta_j} (physical units),
+    exactly (every coefficient: `combine` uses them); `aliases[j]` the same without the
+    coefficients below ALIAS_SHOWN (scaled), which the report and `groups` show;
+    `no_effect`: parameters whose column is zero over the data."""
+
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    rank: int
+    basis: tuple[int, ...]
+    absorbed: dict[int, dict[int, float]]
+    aliases: dict[int, dict[int, float]]
+    no_effect: tuple[int, ...]
+    singular_values: tuple[float, ...]  # relative to the largest, scaled columns
+    length_m: float  # the reach that scales angles to metres at the TCP
+    rtol: float = RTOL
+
+    def combine(self, theta: np.ndarray) -> np.ndarray:
+        """The identifiable part of `theta`: every non-basis value moved onto the basis
+        parameters its column aliases, non-basis parameters zero (same A theta on the data)."""
+        out = np.zeros_like(theta)
+        out[list(self.basis)] = theta[list(self.basis)]
+        for j, coefs in self.absorbed.items():
+            for i, c in coefs.items():
+                out[i] += c * theta[j]
+        return out
+
+    def groups(self) -> list[list[str]]:
+        """Parameters that alias one another (connected through `absorbed`), each group sorted
+        in parameter order, basis parameters included; no-effect parameters excluded."""
+        parent = list(range(len(self.names)))
+
+        def root(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for j, coefs in self.aliases.items():
+            for i in coefs:
+                parent[root(i)] = root(j)
+        members: dict[int, list[int]] = {}
+        for j in self.aliases:
+            members.setdefault(root(j), [])
+        for k in range(len(self.names)):
+            if root(k) in members and k not in self.no_effect:
+                members[root(k)].append(k)
+        return [[self.names[k] for k in sorted(g)] for g in members.values() if len(g) > 1]
+
+
+def _preferred_order(names: tuple[str, ...]) -> list[int]:
+    def key(i: int) -> tuple[int, int, int]:
+        n = names[i]
+        if n.startswith("offset_q"):
+            return (0, int(n[8:]), 0)
+        if n.startswith("frame"):
+            j, kind = n[5:].split("_")
+            return (1, int(j), "dr".index(kind[0]) * 3 + "xyz".index(kind[1]))
+        return (2, 0, i)
+
+    return sorted(range(len(names)), key=key)
+
+
+def identify(A: np.ndarray, names: tuple[str, ...], units: tuple[str, ...], length_m: float,
+             rtol: float = RTOL) -> Identifiability:
+    """Identifiability of the parameters of the block A (n, 3, p) (module docstring)."""
+    p = A.shape[2]
+    s = np.array([length_m if u == "rad" else 1.0 for u in units])  # theta * s: metres at the TCP
+    M = A.reshape(-1, p) / s / np.sqrt(A.shape[0])
+    sv = np.linalg.svd(M, compute_uv=False)
+    top = float(sv[0]) if sv.size and sv[0] > 0 else 1.0
+    tol = rtol * top
+    rank = int(np.sum(sv > tol))
+    norms = np.linalg.norm(M, axis=0)
+    basis: list[int] = []
+    Q = np.zeros((M.shape[0], 0))
+    for i in _preferred_order(names):
+        if len(basis) == rank:
+            break
+        r = M[:, i] - Q @ (Q.T @ M[:, i])
+        if norms[i] > tol and np.linalg.norm(r) >= max(ALIAS_TOL * norms[i], tol):
+            basis.append(i)
+            Q = np.column_stack([Q, r / np.linalg.norm(r)])
+    rest = [i for i in range(p) if i not in basis]
+    if len(basis) < rank and rest:  # the rest of the rank: the most independent columns left
+        R = M[:, rest] - Q @ (Q.T @ M[:, rest])
+        _, _, piv = scipy.linalg.qr(R, mode="economic", pivoting=True)
+        basis += [rest[k] for k in piv[: rank - len(basis)]]
+    basis.sort()
+    others = [i for i in range(p) if i not in basis]
+    absorbed: dict[int, dict[int, float]] = {}
+    aliases: dict[int, dict[int, float]] = {}
+    no_effect = []
+    if others:
+        C = np.linalg.lstsq(M[:, basis], M[:, others], rcond=None)[0] if basis else np.zeros((0, len(others)))
+        for col, j in enumerate(others):
+            if norms[j] <= tol:
+                no_effect.append(j)
+                continue
+            # physical: theta_i += C_ij s_j / s_i theta_j
+            absorbed[j] = {basis[k]: float(C[k, col] * s[j] / s[basis[k]]) for k in range(len(basis))}
+            big = np.abs(C[:, col]) > ALIAS_SHOWN * max(1.0, float(np.max(np.abs(C[:, col]))))
+            aliases[j] = {basis[k]: absorbed[j][basis[k]] for k in np.flatnonzero(big)}
+    return Identifiability(tuple(names), tuple(units), rank, tuple(basis), absorbed, aliases, tuple(no_effect),
+                           tuple(float(v / top) for v in sv), float(length_m), rtol)
+
+
+# --------------------------------------------------------------------------- the calibrated chain
+def _rotvec_T(w: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(w).as_matrix()
+    return T
+
+
+def _trans_T(d: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = d
+    return T
+
+
+def calibrated_chain(chain: Chain, values: dict[str, float]) -> Chain:
+    """The chain with the geometric parameters (name -> value, SI) applied exactly: joint j's
+    origin becomes origin_j Trans(d_j) Rot(w_j) Rot(axis_j, offset_j), the tool tool Trans(d_tool)."""
+    dof = chain.dof
+    d = np.zeros((dof, 3))
+    w = np.zeros((dof, 3))
+    off = np.zeros(dof)
+    tool = np.zeros(3)
+    for name, v in values.items():
+        if name.startswith("offset_q"):
+            off[int(name[8:]) - 1] = v
+        elif name.startswith("frame"):
+            j, kind = name[5:].split("_")
+            (d if kind[0] == "d" else w)[int(j) - 1, "xyz".index(kind[1])] = v
+        elif name.startswith("tool_d"):
+            tool["xyz".index(name[6])] = v
+        else:
+            raise ModelError(f"unknown geometric parameter {name!r}")
+    origins = tuple(chain.origins[j] @ _trans_T(d[j]) @ _rotvec_T(w[j])
+                    @ _rotvec_T(off[j] * np.asarray(chain.axes[j], dtype=float)) for j in range(dof))
+    return replace(chain, origins=origins, tool=chain.tool @ _trans_T(tool))
+
+
+def _values(names: tuple[str, ...], theta: np.ndarray) -> dict[str, float]:
+    return {nm: float(v) for nm, v in zip(names, theta) if v != 0.0}
+
+
+def refine(chain: Chain, names: tuple[str, ...], theta: np.ndarray, basis: tuple[int, ...], q: np.ndarray,
+           target: np.ndarray, iterations: int = 8, tol_m: float = 1e-10) -> np.ndarray:
+    """The basis parameters adjusted (Gauss-Newton, from `theta`) so that the chain with them
+    applied exactly reaches `target` (n, 3) at q: what the first-order model predicts, without
+    its second-order error at large parameters. Non-basis parameters stay zero."""
+    theta = theta.copy()
+    cols = list(basis)
+    if not cols:
+        return theta
+    for _ in range(iterations):
+        cur = calibrated_chain(chain, _values(names, theta))
+        r = (target - cur.fk(q)).reshape(-1)
+        A = Geometric().build(Inputs(cur.fk(q), joints=q), cur).A[:, :, cols].reshape(len(r), -1)
+        # measured moves by -A dtheta (e = -A ... sign: e = commanded - measured = A theta)
+        step = np.linalg.lstsq(-A, r, rcond=None)[0]
+        theta[cols] += step
+        if np.max(np.abs(A @ step)) < tol_m:
+            break
+    return theta
+
+
+# --------------------------------------------------------------------------- the result
+@dataclass
+class ExportResult:
+    """What `dt export` wrote and how well it holds the calibration."""
+
+    out: str
+    format: str
+    model: str
+    robot: str | None
+    data: str
+    n_points: int
+    n_parameters: int
+    rank: int
+    exported: list[dict]  # basis parameters: name, unit, value (exported), fitted, absorbs
+    not_identifiable: list[dict]  # name, unit, fitted, absorbed_by {name: coefficient}
+    no_effect: list[str]  # columns zero over the data: no effect on the TCP there
+    alias_groups: list[list[str]]
+    singular_values: list[float]
+    fk_check: dict
+    loads_back: dict
+    warnings: list[str] = field(default_factory=list)
+    provenance: Provenance | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return jsonable({"out": self.out, "format": self.format, "model": self.model, "robot": self.robot,
+                         "data": self.data, "n_points": self.n_points, "n_parameters": self.n_parameters,
+                         "rank": self.rank, "n_exported": len(self.exported),
+                         "n_not_identifiable": len(self.not_identifiable) + len(self.no_effect),
+                         "exported": self.exported, "not_identifiable": self.not_identifiable,
+                         "no_effect": self.no_effect, "alias_groups": self.alias_groups,
+                         "singular_values": self.singular_values, "fk_check": self.fk_check,
+                         "loads_back": self.loads_back, "warnings": self.warnings,
+                         "provenance": self.provenance})
+
+
+# --------------------------------------------------------------------------- inputs
+def model_of_twin(twin: str | Path) -> Path:
+    """The directory of a hybrid model with a geometric effect inside a twin directory."""
+    d = Path(twin)
+    if not d.is_dir():
+        raise DataError(f"{d}: no such twin directory")
+    for meta in sorted(d.rglob("hybrid.json")):
+        try:
+            effects = json.loads(meta.read_text()).get("effects", [])
+        except (OSError, ValueError):
+            continue
+        if "geometric" in effects:
+            return meta.parent
+    raise ModelError(f"{d}: this twin's maps hold no geometric effect; {NO_GEOMETRIC}")
+
+
+def _recorded(f: FileRecord) -> Path:
+    """A file the model's provenance names, still there and unchanged (else DataError)."""
+    p = Path(f.path) if Path(f.path).is_absolute() else ROOT / f.path
+    if not p.is_file():
+        raise DataError(f"the model's training input {f.path} (in its provenance) is gone; "
+                        "give --data FILE (the table it was fitted on)")
+    if sha256_file(p) != f.sha256:
+        raise DataError(f"the model's training input {f.path} changed since the fit (SHA-256 differs); "
+                        "give --data FILE (the table it was fitted on)")
+    return p
+
+
+def training_data(model: HybridModel, model_dir: Path, skip_bad: bool = False) -> tuple[Path, Data]:
+    """The training data the model's provenance names (hash checked): the first recorded file
+    that is not a YAML or a sidecar, read as a measurement table, else through each recorded
+    YAML in turn as an import mapping (dt fit records the --mapping it used)."""
+    rec: Provenance | None = getattr(model, "provenance_", None)
+    files = list(rec.inputs) if rec is not None else []
+    data = [f for f in files if not f.path.endswith((".meta.json", ".yaml", ".yml"))]
+    if not data:
+        raise DataError(f"{model_dir}: the model's provenance names no training data; identifiability needs "
+                        "its joint angles: give --data FILE (the table it was fitted on)")
+    path = _recorded(data[0])
+    try:
+        return path, load_data(path, None, skip_bad)
+    except DataError as first:
+        for f in files:
+            if f.path.endswith((".yaml", ".yml")):
+                try:
+                    return path, load_data(path, _recorded(f), skip_bad)
+                except (DataError, ConfigError):
+                    continue
+        raise DataError(f"{first} (the model's training file; give --data FILE and --mapping YAML)") from first
+
+
+def _load_model(model_dir: Path) -> tuple[HybridModel, Chain, Path]:
+    if not (model_dir / "hybrid.json").is_file():
+        raise DataError(f"{model_dir}: no saved model (hybrid.json); train one with dt fit")
+    model = HybridModel.load(model_dir)
+    if "geometric" not in model.effects:
+        raise ModelError(f"{model_dir}: the model holds no geometric effect; {NO_GEOMETRIC}")
+    if not isinstance(model.robot, (str, Path)):  # a loaded model names its config (or none)
+        raise ModelError(f"{model_dir}: the model names no robot config (its kinematic model)")
+    robot = Path(model.robot)
+    if not robot.is_file():
+        raise ModelError(f"{model_dir}: the model's robot config {robot} is missing; the export needs "
+                         "the kinematic model it was fitted with")
+    chain = resolve_chain(robot)
+    assert chain is not None
+    return model, chain, robot
+
+
+# --------------------------------------------------------------------------- export
+def export_robot(model_dir: str | Path, fmt: str, out: str | Path, data: str | Path | None = None,
+                 mapping: str | Path | None = None, skip_bad: bool = False, rtol: float = RTOL,
+                 name: str | None = None, refine_fit: bool = True) -> ExportResult:
+    """Write the calibrated robot of the saved model `model_dir` as `fmt` ('urdf' or 'dh') to
+    `out`, load it back and check its FK against the calibrated FK at the training joint
+    configurations (`data`, default the training file the model's provenance names)."""
+    if fmt not in FORMATS:
+        raise DataError(f"unknown export format {fmt!r}; allowed: {', '.join(FORMATS)}")
+    model_dir = Path(model_dir)
+    model, chain, robot = _load_model(model_dir)
+    if data is not None:
+        data_file, d = Path(data), load_data(data, mapping, skip_bad)
+    else:
+        data_file, d = training_data(model, model_dir, skip_bad)
+    ds = d.dataset
+    if ds.joints is None:
+        raise DataError(f"{data_file}: no joint angle columns q1..q{chain.dof}; the export needs them")
+    if ds.joints.shape[1] != chain.dof:
+        raise DataError(f"{data_file}: {ds.joints.shape[1]} joint columns, the robot has {chain.dof}")
+    q = np.unique(ds.joints, axis=0)
+    geo = [(k, nm, u) for k, (eff, nm, u, _) in enumerate(model.param_names_) if eff == "geometric"]
+    theta = np.array([model.theta_[k] for k, _, _ in geo])
+    u_theta = np.array([model.theta_u_[k] for k, _, _ in geo])
+    block = Geometric().build(Inputs(chain.fk(q), joints=q), chain)
+    names = tuple(nm for _, nm, _ in geo)
+    if block.names != names:
+        raise ModelError(f"{model_dir}: the model's geometric parameters do not match its robot config's chain")
+    units = tuple(u for _, _, u in geo)
+    reach = float(np.sqrt(np.mean(np.sum((chain.fk(q) - chain.frames(q)[0][:, 0]) ** 2, axis=1))))
+    ident = identify(block.A, names, units, max(reach, 1e-3), rtol)
+    theta_x = ident.combine(theta)
+    calibrated = chain.fk(q) - np.einsum("nap,p->na", block.A, theta)
+    first = calibrated_chain(chain, _values(names, theta_x))
+    first_diff = np.linalg.norm(first.fk(q) - calibrated, axis=1) * MM_PER_M
+    theta_r = refine(chain, names, theta_x, ident.basis, q, calibrated) if refine_fit else theta_x
+    cal = calibrated_chain(chain, _values(names, theta_r))
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    robot_name = name or f"{chain.name}_calibrated"
+    header = _header(model_dir, data_file, ident, names, theta_r)
+    warnings: list[str] = []
+    if fmt == "urdf":
+        out.write_text(urdf_text(cal, robot_name, header))
+        ET.parse(out)  # an XML parser that knows nothing of ours
+        back = chain_from_urdf(out)
+        loads = {"xml.etree": True, "chain_from_urdf": True}
+    else:
+        table = dh_table(cal)
+        out.write_text(table.yaml_text(robot_name, chain.gear_harmonics, header))
+        back = load_robot(out)
+        loads = {"load_robot": True}
+        if table.long_rows:
+            warnings.append(f"DH rows {', '.join(map(str, table.long_rows))}: nearly parallel axes give "
+                            "|d| or |a| over ten times the reach (standard DH's singularity; the table is "
+                            "still exact, the URDF export has no such rows)")
+
+    diff = np.linalg.norm(back.fk(q) - calibrated, axis=1) * MM_PER_M
+    zero = np.zeros_like(theta)
+    zero[list(ident.no_effect)] = theta[list(ident.no_effect)]
+    dropped = np.linalg.norm(np.einsum("nap,p->na", block.A, theta - theta_x), axis=1) * MM_PER_M
+    dropped_zero = np.linalg.norm(np.einsum("nap,p->na", block.A, zero), axis=1) * MM_PER_M
+    fk = {"n_points": int(len(q)), "max_mm": float(diff.max()), "rms_mm": float(np.sqrt(np.mean(diff ** 2))),
+          "tolerance_mm": FK_TOL_MM, "ok": bool(diff.max() < FK_TOL_MM), "refined": refine_fit,
+          "first_order_max_mm": float(first_diff.max()),
+          "first_order_rms_mm": float(np.sqrt(np.mean(first_diff ** 2))),
+          "non_identifiable_part_max_mm": float(dropped.max()),
+          "no_effect_part_max_mm": float(dropped_zero.max()),
+          "correction_rms_mm": float(np.sqrt(np.mean(np.sum((calibrated - chain.fk(q)) ** 2, axis=1)))
+                                     * MM_PER_M)}
+    if not fk["ok"]:
+        warnings.append(f"the exported FK differs from the calibrated FK by up to {fk['max_mm']:.4f} mm "
+                        f"(> {FK_TOL_MM} mm), of which up to {fk['non_identifiable_part_max_mm']:.4f} mm is the "
+                        "model's prediction along directions the data cannot identify (up to "
+                        f"{fk['no_effect_part_max_mm']:.4f} mm from parameters with no effect, fitted to rounding "
+                        "noise), which the export leaves out")
+    exported = [{"name": names[i], "unit": units[i], "value": float(theta_r[i]), "first_order": float(theta_x[i]),
+                 "fitted": float(theta[i]),
+                 "u": float(u_theta[i]), "absorbs": sorted(names[j] for j, c in ident.aliases.items() if i in c)}
+                for i in ident.basis]
+    not_id = [{"name": names[j], "unit": units[j], "fitted": float(theta[j]),
+               "absorbed_by": {names[i]: c for i, c in coefs.items()}} for j, coefs in sorted(ident.aliases.items())]
+    prov = build([data_file, *files_under(model_dir)], robot=robot)
+    return ExportResult(str(out), fmt, str(model_dir), model.robot_, str(data_file), int(len(q)), len(names),
+                        ident.rank, exported, not_id, [names[j] for j in ident.no_effect], ident.groups(),
+                        list(ident.singular_values), fk, loads, warnings, prov)
+
+
+def _header(model_dir: Path, data_file: Path, ident: Identifiability, names: tuple[str, ...],
+            theta_x: np.ndarray) -> str:
+    basis = ", ".join(f"{names[i]}={theta_x[i]:.6g} {ident.units[i]}" for i in ident.basis)
+    not_id = ", ".join(names[j] for j in sorted(ident.absorbed)) or "none"
+    no_eff = ", ".join(names[j] for j in ident.no_effect) or "none"
+    return (f"Calibrated by dt export from the model {model_dir} (geometric effect) on the joint angles of "
+            f"{data_file}.\nIdentifiable parameters applied ({ident.rank} of {len(names)}): {basis}.\n"
+            f"Not identifiable (aliases, moved onto the above): {not_id}.\n"
+            f"No effect on the TCP over the data: {no_eff}.")
