@@ -7,8 +7,9 @@ pinhole model and is cheap to evaluate and differentiate.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -26,7 +27,7 @@ class Camera:
     size: tuple[int, int]  # (width, height) px
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "Camera":
+    def from_dict(cls, d: Mapping[str, Any]) -> Camera:
         try:
             K = np.asarray(d["K"], float).reshape(3, 3)
             R = np.asarray(d["R"], float).reshape(3, 3)
@@ -78,7 +79,7 @@ class ProcessingParams:
     cluster_tol_m: float = 1.0e-3  # marker-to-model distance tolerance for identification
 
     @classmethod
-    def from_mapping(cls, m: Mapping[str, Any] | None, source: str = "<processing>") -> "ProcessingParams":
+    def from_mapping(cls, m: Mapping[str, Any] | None, source: str = "<processing>") -> ProcessingParams:
         m = dict(m or {})
         known = set(cls.__dataclass_fields__)
         for k, v in m.items():
@@ -106,7 +107,7 @@ class RigModel:
 
     @classmethod
     def build(cls, cameras: Sequence[Mapping[str, Any] | Camera], markers, marker_diameter_m: float = 0.014,
-              processing: Mapping[str, Any] | ProcessingParams | None = None) -> "RigModel":
+              processing: Mapping[str, Any] | ProcessingParams | None = None) -> RigModel:
         cams = tuple(c if isinstance(c, Camera) else Camera.from_dict(c) for c in cameras)
         mk = np.asarray(markers, float).reshape(-1, 3)
         if len(mk) < 3:

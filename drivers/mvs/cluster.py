@@ -12,9 +12,8 @@ import itertools
 
 import numpy as np
 
-from dt_kernel.geometry import skew
-
 from drivers.mvs.triangulate import CameraStack
+from dt_kernel.geometry import skew
 
 
 def kabsch(model: np.ndarray, meas: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

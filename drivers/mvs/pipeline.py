@@ -18,8 +18,9 @@
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -111,7 +112,6 @@ class MarkerTracker:
     def initial_pose_epipolar(self, images: Sequence[np.ndarray | None]):
         """Pose from unlabeled full-frame blobs (no prediction): epipolar matching, triangulation,
         identification by the cluster's distances. Returns (R, t) or None."""
-        C = len(self.stack)
         blobs, sigs = [], []
         for c, img in enumerate(images):
             if img is None:

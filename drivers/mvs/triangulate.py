@@ -8,7 +8,7 @@ covariance of the point (m^2) propagated from the pixel noise.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
