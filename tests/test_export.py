@@ -57,6 +57,8 @@ def _check_fk(result: dict, back, q: np.ndarray, calibrated: np.ndarray) -> floa
     diff_mm = np.linalg.norm(back.fk(q) - calibrated, axis=1) * 1e3
     assert diff_mm.max() < FK_TOL_MM, f"exported FK off by {diff_mm.max():.4f} mm"
     assert result["fk_check"]["ok"] and result["fk_check"]["max_mm"] == pytest.approx(diff_mm.max(), abs=1e-9)
+    # the first-order values applied exactly already hold (a real check of the linearisation)
+    assert result["fk_check"]["first_order_max_mm"] < FK_TOL_MM
     # the calibration is not trivial: the export moves the TCP by far more than the tolerance
     assert result["fk_check"]["correction_rms_mm"] > 20 * FK_TOL_MM
     return float(diff_mm.max())
@@ -151,8 +153,12 @@ def _cli(argv: list[str]) -> dict:
 
 def test_cli_model_and_twin(fitted, tmp_path):
     d, csv, model_dir = fitted
-    r = _cli(["--model", str(model_dir), "--format", "urdf", "--out", str(tmp_path / "m.urdf"), "--json"])
+    r = _cli(["--model", str(model_dir), "--format", "urdf", "--out", str(tmp_path / "m.urdf"), "--json",
+              "--no-refine"])
     assert r["format"] == "urdf" and "FK of the exported robot" in export_cli.human(r)
+    fk = r["fk_check"]
+    assert not fk["refined"] and fk["max_mm"] == pytest.approx(fk["first_order_max_mm"], abs=1e-9)
+    assert fk["max_mm"] < FK_TOL_MM
     twin = tmp_path / "twin"
     (twin / "maps").mkdir(parents=True)
     (twin / "twin.json").write_text("{}")

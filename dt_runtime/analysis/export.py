@@ -28,11 +28,16 @@ judge identifiability on other data than the model was fitted on without being t
 **The check.** The geometric effect is linear in its parameters (first order: e = A theta),
 while the exported chain applies them exactly (a joint offset as a rotation of the joint's
 origin about its axis; a frame's translation d and rotation w as Trans(d) Rot(w) of its
-origin, in its own axes; the tool's translation in the flange axes). `export_robot` loads the
-written file back (URDF: `chain_from_urdf`, and `xml.etree`; DH: `load_robot`) and compares its
-TCP with the calibrated one, fk_nominal(q) - A(q) theta (what the hybrid model's geometric
-block predicts the arm reaches), at the training joint configurations: max and RMS of the 3D
-difference in mm, against `FK_TOL_MM` (0.01 mm).
+origin, in its own axes; the tool's translation in the flange axes). The calibrated TCP is
+fk_nominal(q) - A(q) theta (what the hybrid model's geometric block predicts the arm reaches).
+The chain with the first-order values applied differs from it by the model's second-order
+error at the size of the fitted errors: reported as `first_order_max_mm`/`first_order_rms_mm`.
+By default the basis values are then refined (Gauss-Newton, `refine`) so that the exact chain
+reaches the calibrated TCP; `refine_fit=False` writes the first-order values. `export_robot`
+loads the written file back (URDF: `chain_from_urdf`, and `xml.etree`; DH: `load_robot`) and
+compares its TCP with the calibrated one at the training joint configurations: max and RMS of
+the 3D difference in mm, against `FK_TOL_MM` (0.01 mm). What remains is the model's prediction
+along directions the export leaves out (`non_identifiable_part_max_mm`).
 """
 from __future__ import annotations
 

@@ -30,6 +30,9 @@ def add_arguments(ex: argparse.ArgumentParser) -> None:
     ex.add_argument("--name", default=None, help="the exported robot's name (default: <nominal>_calibrated)")
     ex.add_argument("--rtol", type=float, default=1e-5,
                     help="relative singular value below which a direction is not identifiable (default 1e-5)")
+    ex.add_argument("--no-refine", action="store_true",
+                    help="write the first-order parameter values (default: refined so that the exact chain "
+                         "reaches the calibrated TCP; the first-order figures are reported either way)")
     add_output_args(ex)
 
 
@@ -38,7 +41,8 @@ def run(args: argparse.Namespace) -> Any:
 
     model = args.model if args.model is not None else model_of_twin(args.twin)
     return export_robot(model, args.format, args.out, data=args.data, mapping=args.mapping,
-                        skip_bad=args.skip_bad, rtol=args.rtol, name=args.name)
+                        skip_bad=args.skip_bad, rtol=args.rtol, name=args.name,
+                        refine_fit=not args.no_refine)
 
 
 def human(result: dict) -> str:
@@ -54,6 +58,7 @@ def human(result: dict) -> str:
     out.append("no effect on the TCP over the data: " + (", ".join(result["no_effect"]) or "none"))
     out += ["  aliases: " + " ~ ".join(g) for g in result["alias_groups"]]
     out.append(f"FK of the exported robot vs the calibrated FK: max {fk['max_mm']:.2e} mm, RMS {fk['rms_mm']:.2e} mm "
-               f"({'within' if fk['ok'] else 'OVER'} {fk['tolerance_mm']} mm)")
+               f"({'within' if fk['ok'] else 'OVER'} {fk['tolerance_mm']} mm); first-order values alone: max "
+               f"{fk['first_order_max_mm']:.2e} mm")
     out += [f"warning: {w}" for w in result["warnings"]]
     return "\n".join(out)
