@@ -68,3 +68,25 @@ def test_not_a_twin(tmp_path, capsys):
     prog = _program(tmp_path / "p.csv", ["a,900,0,550,500"])
     rc = main(["correct", "--twin", str(tmp_path), "--targets", str(prog), "--out", str(tmp_path / "o.csv"), "--json"])
     assert rc == 2 and "twin" in json.loads(capsys.readouterr().out)["error"]
+
+
+def test_the_daemon_corrector_states_per_position_U_and_can_refuse_extrapolation(quick_demo):
+    from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
+
+    twin = Twin.load(quick_demo[2] / "model")
+    far = _far_target(twin)
+    inside_t = np.array([0.9, 0.0, 0.55])
+    flag_only = Corrector(twin, Limits())
+    a, b = flag_only(inside_t, 0.5), Corrector(twin, Limits())(far, 0.5)
+    assert a.inside and not b.inside and np.all(b.U_tcp > a.U_tcp)
+    assert np.allclose(a.U_tcp, twin.correct(inside_t, 0.5).U)
+    strict = Corrector(twin, Limits(refuse_outside_volume=True))
+    assert strict(inside_t, 0.5).inside
+    with pytest.raises(CorrectionFault, match="outside the calibrated volume"):
+        strict(far, 0.5)
+    # The workspace bounds the corrected command, not only the target.
+    c = twin.correct(inside_t, 0.5).command
+    lo = np.minimum(c, inside_t) - 0.5
+    edge = Limits(workspace_min_m=tuple(lo), workspace_max_m=tuple(np.maximum(inside_t, c - 1e-9 * np.sign(c - inside_t))))
+    with pytest.raises(CorrectionFault, match="corrected command .* outside the workspace"):
+        Corrector(twin, edge)(inside_t, 0.5)

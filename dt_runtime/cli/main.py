@@ -14,12 +14,12 @@ import sys
 from types import ModuleType
 
 from dt_kernel.errors import TwinError
-from dt_runtime.cli import compare, correct, demo, diagnose, fit, run, simulate, status
+from dt_runtime.cli import compare, correct, demo, diagnose, export, fit, run, simulate, status
 from dt_runtime.common.jsonsafe import dumps, jsonable
 from dt_runtime.common.threads import limit_blas_threads
 from dt_runtime.common.version import version_string
 
-COMMANDS: dict[str, ModuleType] = {m.NAME: m for m in (demo, run, simulate, fit, diagnose, compare, correct, status)}
+COMMANDS: dict[str, ModuleType] = {m.NAME: m for m in (demo, run, simulate, fit, diagnose, compare, export, correct, status)}
 
 
 def build_parser() -> argparse.ArgumentParser:

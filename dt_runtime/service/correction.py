@@ -3,7 +3,10 @@
 A model that asks for more correction than configured (magnitude or change from the previous
 command) is a fault, never a big move: the command is refused with CorrectionFault and the
 robot is not moved. Targets outside the workspace box or speeds above the limit are refused
-before the model is consulted.
+before the model is consulted; a corrected command outside the workspace is refused too, and,
+when configured (`refuse_outside_volume`), one outside the calibrated volume (the DOE's hull plus
+its margin), where the error model extrapolates. Each accepted command carries the uncertainty of
+the position it reaches (Eq. 11 at that position, `Twin.correct`).
 """
 from __future__ import annotations
 
@@ -32,6 +35,8 @@ class Limits(Frozen):
     # whose correction jumps faster than that is broken).
     max_correction_step_m: float = Field(0.2e-3, gt=0)
     max_correction_gradient: float = Field(0.01, gt=0)  # m of correction per m of travel
+    # Refuse a command outside the calibrated volume instead of only flagging it.
+    refuse_outside_volume: bool = False
 
 
 @dataclass(frozen=True)
@@ -39,8 +44,9 @@ class Corrected:
     target: np.ndarray
     command: np.ndarray
     correction: np.ndarray  # command - target (robot frame, m)
-    u_tcp: np.ndarray  # standard uncertainty of the corrected TCP (Eq. 11), m
+    u_tcp: np.ndarray  # standard uncertainty of the corrected TCP (Eq. 11 at this position), m
     U_tcp: np.ndarray  # expanded, 95 %
+    inside: bool = True  # the command lies in the calibrated volume
 
 
 class Corrector:
@@ -60,10 +66,16 @@ class Corrector:
         if np.any(target < self._lo) or np.any(target > self._hi):
             raise CorrectionFault(f"target {np.round(target * 1e3, 1).tolist()} mm outside the workspace "
                                   f"{(self._lo * 1e3).tolist()} .. {(self._hi * 1e3).tolist()} mm")
-        c = self.twin.corrected_command(target, speed)
+        res = self.twin.correct(target, speed)
+        c = res.command
         corr = c - target
-        if not np.all(np.isfinite(corr)):
+        if not np.all(np.isfinite(corr)) or not np.all(np.isfinite(res.U)):
             raise CorrectionFault("the error model returned NaN")
+        if np.any(c < self._lo) or np.any(c > self._hi):
+            raise CorrectionFault(f"corrected command {np.round(c * 1e3, 1).tolist()} mm outside the workspace")
+        if not res.inside and self.limits.refuse_outside_volume:
+            raise CorrectionFault(f"command {np.round(c * 1e3, 1).tolist()} mm lies {res.distance_m * 1e3:.1f} mm "
+                                  "outside the calibrated volume (the error model would extrapolate)")
         mag = float(np.linalg.norm(corr))
         if mag > self.limits.max_correction_m:
             raise CorrectionFault(f"correction {mag * 1e3:.3f} mm exceeds the bound "
@@ -77,7 +89,9 @@ class Corrector:
                 raise CorrectionFault(f"correction changes by {step * 1e3:.3f} mm over {travel * 1e3:.1f} mm "
                                       f"of travel, bound {bound * 1e3:.3f} mm")
         self._last = (target, corr)
-        return Corrected(target, c, corr, self._u, self._U)
+        if res.budget is None:  # an older twin: the global Eq. 11 figures
+            return Corrected(target, c, corr, self._u, self._U, res.inside)
+        return Corrected(target, c, corr, res.budget.combined(), res.U, res.inside)
 
 
 @dataclass(frozen=True)
