@@ -26,7 +26,7 @@ from drivers.base import JointState, Lifecycle
 from drivers.serial import protocol as lp
 from drivers.serial.link import LinkConfig, SerialLink, ack_fields, refused  # noqa: F401 (re-exported)
 from dt_kernel.config import Frozen, validate
-from dt_kernel.errors import DriverError
+from dt_kernel.errors import DriverError, StateError
 
 
 class ControllerLimits(Frozen):
@@ -53,21 +53,34 @@ class SerialController(Lifecycle):
         if config is not None:
             self.configure(config)
 
+    # --- configured parts (built by `configure`) ----------------------------------------
+    @property
+    def _link(self) -> SerialLink:
+        if self.link is None:
+            raise StateError(f"{self.name}: used before configure()")
+        return self.link
+
+    @property
+    def _cfg(self) -> ControllerConfig:
+        if self.cfg is None:
+            raise StateError(f"{self.name}: used before configure()")
+        return self.cfg
+
     # --- lifecycle hooks ----------------------------------------------------------------
     def _on_configure(self, config: dict[str, Any]) -> None:
         self.cfg = validate(ControllerConfig, config, self._source)
         self.link = SerialLink(self.cfg, self.name)
 
     def _on_activate(self) -> None:
-        self.link.open()
+        self._link.open()
         try:
             self.ping()
         except DriverError:
-            self.link.close()
+            self._link.close()
             raise
 
     def _on_deactivate(self) -> None:
-        self.link.close()
+        self._link.close()
 
     def _on_close(self) -> None:
         if self.link is not None:
@@ -76,14 +89,14 @@ class SerialController(Lifecycle):
     # --- protocol -----------------------------------------------------------------------
     def ping(self) -> str:
         """Handshake; returns the device name. Checks the protocol version."""
-        reply = self.link.request("PING")
+        reply = self._link.request("PING")
         f = ack_fields(self.name, "PING", reply)
         if not f or f[0] != lp.PROTOCOL_VERSION:
             raise DriverError(f"{self.name}: protocol version {f[:1]} not supported (need {lp.PROTOCOL_VERSION})")
         return f[1] if len(f) > 1 else ""
 
     def _check_move(self, target, speed) -> tuple[np.ndarray, float]:
-        lim = self.cfg.limits
+        lim = self._cfg.limits
         target = np.asarray(target, dtype=float)
         if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(np.abs(target) > lim.tcp_abs_m):
             raise DriverError(f"invalid move target {target!r}: need 3 finite coordinates within ±{lim.tcp_abs_m} m")
@@ -95,18 +108,18 @@ class SerialController(Lifecycle):
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         self._require("active")
         target, speed = self._check_move(target, speed)
-        reply = self.link.request("MOVL", *map(float, target), speed, timeout_s=self.cfg.move_timeout_s)
+        reply = self._link.request("MOVL", *map(float, target), speed, timeout_s=self._cfg.move_timeout_s)
         ack_fields(self.name, "MOVL", reply, 0)
 
     def stream_setpoint(self, target: np.ndarray, speed: float) -> None:
         self._require("active")
         target, speed = self._check_move(target, speed)
-        ack_fields(self.name, "SETP", self.link.request("SETP", *map(float, target), speed), 0)
+        ack_fields(self.name, "SETP", self._link.request("SETP", *map(float, target), speed), 0)
 
     def read_joint_state(self) -> JointState:
         self._require("active")
-        lim = self.cfg.limits
-        f = ack_fields(self.name, "GETJ", self.link.request("GETJ"), 1 + lim.n_joints)
+        lim = self._cfg.limits
+        f = ack_fields(self.name, "GETJ", self._link.request("GETJ"), 1 + lim.n_joints)
         t = lp.parse_float(f[0], "GETJ t")
         q = np.array([lp.parse_float(v, f"GETJ q{i + 1}", -lim.joint_abs_rad, lim.joint_abs_rad)
                       for i, v in enumerate(f[1:])])
@@ -114,13 +127,13 @@ class SerialController(Lifecycle):
 
     def read_commanded_tcp(self) -> np.ndarray:
         self._require("active")
-        b = self.cfg.limits.tcp_abs_m
-        f = ack_fields(self.name, "GETT", self.link.request("GETT"), 4)
+        b = self._cfg.limits.tcp_abs_m
+        f = ack_fields(self.name, "GETT", self._link.request("GETT"), 4)
         lp.parse_float(f[0], "GETT t")
         return np.array([lp.parse_float(v, f"GETT {a}", -b, b) for a, v in zip("xyz", f[1:])])
 
     def status(self) -> dict[str, Any]:
         """The controller's state ('idle', 'moving', 'fault') and its count of finished moves."""
         self._require("active")
-        f = ack_fields(self.name, "STATUS", self.link.request("STATUS"), 2)
+        f = ack_fields(self.name, "STATUS", self._link.request("STATUS"), 2)
         return {"state": lp.parse_status(f[0]), "moves": int(lp.parse_float(f[1], "STATUS moves", 0))}

@@ -141,16 +141,26 @@ class SerialLink:
             raise DriverError(f"{self.device} at {self.cfg.url}: {word} (seq {seq}) failed after "
                               f"{1 + self.cfg.retries} attempts; last problem: {problem}") from cause
 
+    def _open_port(self) -> serial.SerialBase:
+        """The open port; DriverError if it was closed meanwhile (`close` does not take the
+        request lock), which `request` treats like any I/O failure: reopen on the next attempt."""
+        port = self._port
+        if port is None:
+            raise DriverError(f"{self.device}: port {self.cfg.url!r} is not open")
+        return port
+
     def _write(self, frame: bytes) -> None:
+        port = self._open_port()
         with port_errors(self.device, "write failed"):
-            self._port.write(frame)
-            self._port.flush()
+            port.write(frame)
+            port.flush()
 
     def _await(self, seq: int, deadline: float) -> lp.Frame | str | None:
         """The reply to `seq`, 'corrupt' for a frame that failed its CRC, None on time-out."""
         while True:
+            port = self._open_port()
             with port_errors(self.device, "read failed"):
-                data = self._port.read(max(1, self._port.in_waiting))
+                data = port.read(max(1, port.in_waiting))
             for line in self._lines.feed(data) if data else ():
                 try:
                     frame = lp.decode(line)

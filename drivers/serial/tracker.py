@@ -22,7 +22,7 @@ from drivers.base import Lifecycle, TrackerReading
 from drivers.serial import protocol as lp
 from drivers.serial.link import LinkConfig, SerialLink, ack_fields
 from dt_kernel.config import Frozen, validate
-from dt_kernel.errors import DriverError
+from dt_kernel.errors import DriverError, StateError
 from dt_kernel.geometry import spherical_to_cartesian
 
 
@@ -48,22 +48,35 @@ class SerialTracker(Lifecycle):
         if config is not None:
             self.configure(config)
 
+    # --- configured parts (built by `configure`) ----------------------------------------
+    @property
+    def _link(self) -> SerialLink:
+        if self.link is None:
+            raise StateError(f"{self.name}: used before configure()")
+        return self.link
+
+    @property
+    def _cfg(self) -> TrackerConfig:
+        if self.cfg is None:
+            raise StateError(f"{self.name}: used before configure()")
+        return self.cfg
+
     def _on_configure(self, config: dict[str, Any]) -> None:
         self.cfg = validate(TrackerConfig, config, self._source)
         self.link = SerialLink(self.cfg, self.name)
 
     def _on_activate(self) -> None:
-        self.link.open()
+        self._link.open()
         try:
-            f = ack_fields(self.name, "PING", self.link.request("PING"))
+            f = ack_fields(self.name, "PING", self._link.request("PING"))
             if not f or f[0] != lp.PROTOCOL_VERSION:
                 raise DriverError(f"{self.name}: protocol version {f[:1]} not supported")
         except DriverError:
-            self.link.close()
+            self._link.close()
             raise
 
     def _on_deactivate(self) -> None:
-        self.link.close()
+        self._link.close()
 
     def _on_close(self) -> None:
         if self.link is not None:
@@ -71,14 +84,14 @@ class SerialTracker(Lifecycle):
 
     def measure(self) -> TrackerReading:
         self._require("active")
-        f = ack_fields(self.name, "MEAS", self.link.request("MEAS"), 5)
+        f = ack_fields(self.name, "MEAS", self._link.request("MEAS"), 5)
         t = lp.parse_float(f[0], "MEAS t")
         status = lp.parse_status(f[4])
         if status != "ok":
             # No measurement: numbers are informative only (often nan); the point is NaN.
-            sph = tuple(lp.parse_float(v, "MEAS " + k, allow_nan=True) for k, v in zip(("d", "az", "el"), f[1:4]))
-            return TrackerReading(point=np.full(3, np.nan), spherical=sph, t=t, status=status)
-        lim = self.cfg.limits
+            d_, az_, el_ = (lp.parse_float(v, "MEAS " + k, allow_nan=True) for k, v in zip(("d", "az", "el"), f[1:4]))
+            return TrackerReading(point=np.full(3, np.nan), spherical=(d_, az_, el_), t=t, status=status)
+        lim = self._cfg.limits
         d = lp.parse_float(f[1], "MEAS d", lim.min_distance_m, lim.max_distance_m)
         az = lp.parse_float(f[2], "MEAS azimuth", -2 * math.pi, 2 * math.pi)
         el = lp.parse_float(f[3], "MEAS elevation", -math.pi / 2, math.pi / 2)
