@@ -78,8 +78,10 @@ def calibrate_camera(images: list[np.ndarray | None], rows: int, cols: int, pitc
 
     Returns None when the board is not found in image 0 or in fewer than 4 images."""
     obj = board_points(rows, cols, pitch)[:-1].astype(np.float32)
-    objs, imgs, first = [], [], None
-    size = None
+    objs: list[np.ndarray] = []
+    imgs: list[np.ndarray] = []
+    first: int | None = None
+    size: tuple[int, int] | None = None
     for k, img in enumerate(images):
         if img is None:
             continue
@@ -94,6 +96,7 @@ def calibrate_camera(images: list[np.ndarray | None], rows: int, cols: int, pitc
         imgs.append(ordered.astype(np.float32).reshape(-1, 1, 2))
     if first is None or len(objs) < 4:
         return None
+    assert size is not None  # set from every image read, and image 0 was read (first is not None)
     flags = cv2.CALIB_FIX_K3
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, size, None, None, flags=flags)
     R = cv2.Rodrigues(rvecs[first])[0]

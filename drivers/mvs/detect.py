@@ -99,19 +99,19 @@ def detect_in_rois_multi(images, centres: np.ndarray, roi_half: int, w: int, foc
     cen = np.where(fin[:, None], cen, -1e6)
     c = np.rint(cen).astype(np.int64)
     ar = np.arange(S)
-    patches, px0, py0, inside = [], [], [], []
+    patches, px0, py0, inside_k = [], [], [], []
     for k, cam in enumerate(cams):
         img = images[cam]
         H, W = img.shape
         cc = c[k * M:(k + 1) * M]
-        inside.append((cc[:, 0] >= 0) & (cc[:, 0] < W) & (cc[:, 1] >= 0) & (cc[:, 1] < H))
+        inside_k.append((cc[:, 0] >= 0) & (cc[:, 0] < W) & (cc[:, 1] >= 0) & (cc[:, 1] < H))
         x0 = np.minimum(np.maximum(cc[:, 0] - h, 0), W - S)
         y0 = np.minimum(np.maximum(cc[:, 1] - h, 0), H - S)
         patches.append(img[(y0[:, None] + ar)[:, :, None], (x0[:, None] + ar)[:, None, :]])
         px0.append(x0)
         py0.append(y0)
     patch = np.concatenate(patches)
-    x0, y0, inside = np.concatenate(px0), np.concatenate(py0), np.concatenate(inside)
+    x0, y0, inside = np.concatenate(px0), np.concatenate(py0), np.concatenate(inside_k)
     n = len(patch)
     # Peak search in the inner ROI (offset w inside the gathered patch).
     inner = patch[:, w:w + Sr, w:w + Sr].astype(np.float32)

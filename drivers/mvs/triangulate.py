@@ -168,18 +168,18 @@ def epipolar_candidates(stack: CameraStack, blobs: Sequence[np.ndarray], blob_si
     mk = sup_idx >= 0
     support = mk.sum(1)
     order = np.argsort(-support, kind="stable")
-    used = [set() for _ in range(C)]
-    keep = []
+    used: list[set[int]] = [set() for _ in range(C)]
+    keep_k: list[int] = []
     for k in order:
         if support[k] < min_support:
             break
         cams = np.flatnonzero(mk[k])
         if any(sup_idx[k, c] in used[c] for c in cams):
             continue
-        for c in cams:
-            used[c].add(sup_idx[k, c])
-        keep.append(k)
-    keep = np.array(keep, int)
+        for cam in cams:
+            used[cam].add(sup_idx[k, cam])
+        keep_k.append(k)
+    keep = np.array(keep_k, int)
     if len(keep) == 0:
         return np.zeros((0, 3)), np.zeros((0, C, 2)), np.zeros((0, C)), np.zeros((0, C), bool)
     X, _, mkk, ok = triangulate(stack, uv[keep], sg[keep], mk[keep])
