@@ -220,7 +220,9 @@ class Daemon:
         x, y, z = corr.target
         self.store.put(CommandRow(t, x, y, z, speed=v))
         self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
-        reading = self.inst.camera.read()
+        camera = self.inst.camera
+        assert camera is not None  # _make_instruments always builds one (drivers.camera names a driver)
+        reading = camera.read()
         self.ticks += 1
         if not reading.ok or reading.point is None:
             log.info("MVS refused: %s", reading.refused)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -16,12 +17,20 @@ from dt_kernel.errors import UnreachableError
 from dt_runtime.common.progress import Progress
 
 
+class SimTruth(Protocol):
+    """What `run_rows` reads from a simulated world (drivers.simulated.SimWorld) for scoring."""
+
+    def truth_in_tracker_frame(self) -> np.ndarray: ...
+    def temperature(self) -> float: ...
+    def payload(self) -> float: ...
+
+
 @dataclass
 class Instruments:
     robot: RobotController
     tracker: LaserTracker
     camera: CameraRig | None  # None: positions measured by the tracker only (dt simulate)
-    world: object | None = None  # drivers.simulated.SimWorld when simulated: truth for scoring
+    world: SimTruth | None = None  # drivers.simulated.SimWorld when simulated: truth for scoring
     max_speed: float = 1.0  # m/s
 
     def activate(self) -> None:

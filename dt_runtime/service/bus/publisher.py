@@ -176,8 +176,11 @@ class Bus:
                 self.on_ack(oid, msg)
 
     def _republish(self) -> None:
+        store = self.store
+        if store is None:  # no outbox: nothing is ever pending
+            return
         try:
-            items = self.store.outbox_pending()
+            items = store.outbox_pending()
         except StoreError as exc:
             log.warning("cannot read outbox: %s", exc)
             return
@@ -192,7 +195,7 @@ class Bus:
                 else:  # written under another cell/robot name: still deliver it there
                     put_json(self._session, item.key, body)
                 self.published += 1
-                self.store.outbox_attempted(item.id)
+                store.outbox_attempted(item.id)
             except StoreError as exc:
                 log.warning("outbox attempt not recorded: %s", exc)
             except BusError as exc:  # retried next period
