@@ -1,16 +1,15 @@
-"""`dt compare`: error models against measurements, side by side, and where they fail."""
+"""`dt compare`: error models against measurements, side by side, and where they fail.
+
+RMS, mean and max 3D error, per axis, Eq. 17 t-test failures and the residual broken down by
+region, speed, payload, temperature, time and joint configuration, for 'as is' and every --model
+in the order given.
+"""
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
 from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
-
-NAME = "compare"
-HELP = "error models against measurements, side by side"
-DESCRIPTION = ("RMS, mean and max 3D error, per axis, Eq. 17 t-test failures and the residual "
-               "broken down by region, speed, payload, temperature, time and joint "
-               "configuration, for 'as is' and every --model in the order given.")
 
 
 def add_arguments(cp: argparse.ArgumentParser) -> None:

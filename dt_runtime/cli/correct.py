@@ -1,16 +1,15 @@
-"""`dt correct`: a whole program corrected offline, with the uncertainty of every position."""
+"""`dt correct`: a whole program corrected offline, with the uncertainty of every position.
+
+For every target of a program file (x, y, z in mm, speed in mm/s, optional point_id), the twin's
+corrected command, the expanded uncertainty (95 %) of the position it reaches and whether it
+lies in the calibrated volume (the DOE's hull plus its margin).
+"""
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
 from dt_kernel.units import MM_PER_M
-
-NAME = "correct"
-HELP = "corrected commands for a program, with their uncertainty"
-DESCRIPTION = ("For every target of a program file (x, y, z in mm, speed in mm/s, optional point_id), the "
-               "twin's corrected command, the expanded uncertainty (95 %) of the position it reaches and "
-               "whether it lies in the calibrated volume (the DOE's hull plus its margin).")
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:

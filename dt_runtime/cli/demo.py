@@ -1,4 +1,8 @@
-"""`dt demo`: the paper's whole experiment on the simulated cell, and its report."""
+"""`dt demo`: the paper's whole experiment on the simulated cell, and its report.
+
+Registration, DOE, GPR, uncertainty budget, validation and t-test on the simulated cell; writes
+DIR/summary.json and DIR/report.html.
+"""
 from __future__ import annotations
 
 import argparse
@@ -6,11 +10,6 @@ from pathlib import Path
 from typing import Any
 
 from dt_runtime.cli.common import progress
-
-NAME = "demo"
-HELP = "the paper's whole experiment on the simulated cell"
-DESCRIPTION = ("Registration, DOE, GPR, uncertainty budget, validation and t-test "
-               "on the simulated cell; writes DIR/summary.json and DIR/report.html.")
 
 
 def add_arguments(d: argparse.ArgumentParser) -> None:

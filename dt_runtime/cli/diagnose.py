@@ -1,15 +1,14 @@
-"""`dt diagnose`: rank the physical effects the model lacks."""
+"""`dt diagnose`: rank the physical effects the model lacks.
+
+Grouped cross-validation (by target point) of the model with and without each candidate effect;
+one-sided Wilcoxon test per held-out group.
+"""
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
 from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
-
-NAME = "diagnose"
-HELP = "rank the physical effects the model lacks"
-DESCRIPTION = ("Grouped cross-validation (by target point) of the model with and without "
-               "each candidate effect; one-sided Wilcoxon test per held-out group.")
 
 
 def add_arguments(dg: argparse.ArgumentParser) -> None:

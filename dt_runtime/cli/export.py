@@ -1,19 +1,17 @@
 """`dt export`: the calibrated robot (the fitted geometric effect applied to the nominal
-kinematics) as a URDF or a DH robot config, loaded back and checked against the calibration."""
+kinematics) as a URDF or a DH robot config, loaded back and checked against the calibration.
+
+Apply the identifiable combinations of a fitted geometric effect to the nominal kinematics and
+write them as a URDF (joint origins adjusted) or a standard DH table in the robot config format
+(configs/robots/*.yaml); the file is loaded back and its TCP compared with the calibrated one at
+the training joint configurations. Parameters the data cannot identify are listed, not exported.
+"""
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
 from dt_runtime.cli.common import add_output_args
-
-NAME = "export"
-HELP = "export the calibrated robot as URDF or DH robot config"
-DESCRIPTION = ("Apply the identifiable combinations of a fitted geometric effect to the nominal "
-               "kinematics and write them as a URDF (joint origins adjusted) or a standard DH table "
-               "in the robot config format (configs/robots/*.yaml); the file is loaded back and its "
-               "TCP compared with the calibrated one at the training joint configurations. "
-               "Parameters the data cannot identify are listed, not exported.")
 
 
 def add_arguments(ex: argparse.ArgumentParser) -> None:

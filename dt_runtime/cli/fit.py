@@ -1,15 +1,14 @@
-"""`dt fit`: train an error model (physical effect terms + GP) and save it."""
+"""`dt fit`: train an error model (physical effect terms + GP) and save it.
+
+error = sum of physical effect terms + GP on what is left. Effects: geometric, compliance, gear,
+backlash, thermal, dynamic, drift.
+"""
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
 from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
-
-NAME = "fit"
-HELP = "train an error model (effect terms + GP)"
-DESCRIPTION = ("error = sum of physical effect terms + GP on what is left. Effects: "
-               "geometric, compliance, gear, backlash, thermal, dynamic, drift.")
 
 
 def add_arguments(ft: argparse.ArgumentParser) -> None:

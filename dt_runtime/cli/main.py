@@ -19,7 +19,17 @@ from dt_runtime.common.jsonsafe import dumps, jsonable
 from dt_runtime.common.threads import limit_blas_threads
 from dt_runtime.common.version import version_string
 
-COMMANDS: dict[str, ModuleType] = {m.NAME: m for m in (demo, run, simulate, fit, diagnose, compare, export, correct, status)}
+COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line help); the module's docstring describes it
+    "demo": (demo, "the paper's whole experiment on the simulated cell"),
+    "run": (run, "the long-running twin daemon"),
+    "simulate": (simulate, "measurement data from the simulated cell"),
+    "fit": (fit, "train an error model (effect terms + GP)"),
+    "diagnose": (diagnose, "rank the physical effects the model lacks"),
+    "compare": (compare, "error models against measurements, side by side"),
+    "export": (export, "export the calibrated robot as URDF or DH robot config"),
+    "correct": (correct, "corrected commands for a program, with their uncertainty"),
+    "status": (status, "current state and last figures from the daemon's store"),
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,8 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"dt {version_string()}",
                    help="print the version and the git commit, then exit")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
-    for name, mod in COMMANDS.items():
-        mod.add_arguments(sub.add_parser(name, help=mod.HELP, description=getattr(mod, "DESCRIPTION", None)))
+    for name, (mod, help_) in COMMANDS.items():
+        mod.add_arguments(sub.add_parser(name, help=help_, description=mod.__doc__,
+                                         formatter_class=argparse.RawDescriptionHelpFormatter))
     return p
 
 
@@ -47,7 +58,7 @@ class JsonLines(logging.Formatter):
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    mod = COMMANDS[args.cmd]
+    mod = COMMANDS[args.cmd][0]
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonLines() if getattr(mod, "JSON_LOGS", False) else
                          logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))

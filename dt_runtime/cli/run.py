@@ -1,14 +1,14 @@
-"""`dt run`: the long-running twin daemon."""
+"""`dt run`: the long-running twin daemon.
+
+Correct every command, test every MVS measurement (Eq. 17), escalate repeated failures to
+maintenance over Zenoh; SIGINT/SIGTERM stop cleanly.
+"""
 from __future__ import annotations
 
 import argparse
 import json
 from typing import Any
 
-NAME = "run"
-HELP = "the long-running twin daemon"
-DESCRIPTION = ("Correct every command, test every MVS measurement (Eq. 17), escalate "
-               "repeated failures to maintenance over Zenoh; SIGINT/SIGTERM stop cleanly.")
 JSON_LOGS = True  # a daemon's stderr is read by machines: one JSON object per log line
 
 

@@ -1,4 +1,9 @@
-"""`dt simulate`: measurement data from the simulated cell for a scenario."""
+"""`dt simulate`: measurement data from the simulated cell for a scenario.
+
+Run a scenario's experiment plan on the simulated cell (tracker registered by the three-line
+method) and write the measurement table (docs/measurement-table.md) as CSV, with
+FILE.csv.meta.json: scenario, seed, registration residual, noise floor.
+"""
 from __future__ import annotations
 
 import argparse
@@ -6,12 +11,6 @@ import json
 from typing import Any
 
 from dt_runtime.cli.common import add_output_args, progress
-
-NAME = "simulate"
-HELP = "measurement data from the simulated cell"
-DESCRIPTION = ("Run a scenario's experiment plan on the simulated cell (tracker registered by the "
-               "three-line method) and write the measurement table (docs/measurement-table.md) as "
-               "CSV, with FILE.csv.meta.json: scenario, seed, registration residual, noise floor.")
 
 
 def add_arguments(sm: argparse.ArgumentParser) -> None:

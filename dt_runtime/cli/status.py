@@ -8,9 +8,6 @@ from typing import Any
 
 from dt_kernel.errors import TwinError
 
-NAME = "status"
-HELP = "current state and last figures from the daemon's store"
-
 
 def add_arguments(st: argparse.ArgumentParser) -> None:
     st.add_argument("--store", default="out/run/dt.sqlite", help="the daemon's SQLite store")
