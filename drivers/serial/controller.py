@@ -16,17 +16,17 @@ bound for targets and received TCPs), `max_speed_m_s` (2.0), `joint_abs_rad` (2 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 from pydantic import Field
 
-from drivers.base import JointState, Lifecycle
+from drivers.base import JointState
 from drivers.serial import protocol as lp
+from drivers.serial.device import SerialDevice
 from drivers.serial.link import LinkConfig, SerialLink, ack_fields, refused  # noqa: F401 (re-exported)
-from dt_kernel.config import Frozen, validate
-from dt_kernel.errors import DriverError, StateError
+from dt_kernel.config import Frozen
+from dt_kernel.errors import DriverError
 
 
 class ControllerLimits(Frozen):
@@ -40,60 +40,11 @@ class ControllerConfig(LinkConfig):
     limits: ControllerLimits = ControllerLimits()
 
 
-class SerialController(Lifecycle):
+class SerialController(SerialDevice[ControllerConfig]):
     """RobotController over the line protocol (see module docstring for the config keys)."""
 
     name = "serial controller"
-
-    def __init__(self, config: Mapping[str, Any] | None = None, source: str = "<serial controller config>", *,
-                 world: Any = None):  # world: unused, the registry passes it to every driver
-        self._source = source
-        self.cfg: ControllerConfig | None = None
-        self.link: SerialLink | None = None
-        if config is not None:
-            self.configure(config)
-
-    # --- configured parts (built by `configure`) ----------------------------------------
-    @property
-    def _link(self) -> SerialLink:
-        if self.link is None:
-            raise StateError(f"{self.name}: used before configure()")
-        return self.link
-
-    @property
-    def _cfg(self) -> ControllerConfig:
-        if self.cfg is None:
-            raise StateError(f"{self.name}: used before configure()")
-        return self.cfg
-
-    # --- lifecycle hooks ----------------------------------------------------------------
-    def _on_configure(self, config: dict[str, Any]) -> None:
-        self.cfg = validate(ControllerConfig, config, self._source)
-        self.link = SerialLink(self.cfg, self.name)
-
-    def _on_activate(self) -> None:
-        self._link.open()
-        try:
-            self.ping()
-        except DriverError:
-            self._link.close()
-            raise
-
-    def _on_deactivate(self) -> None:
-        self._link.close()
-
-    def _on_close(self) -> None:
-        if self.link is not None:
-            self.link.close()
-
-    # --- protocol -----------------------------------------------------------------------
-    def ping(self) -> str:
-        """Handshake; returns the device name. Checks the protocol version."""
-        reply = self._link.request("PING")
-        f = ack_fields(self.name, "PING", reply)
-        if not f or f[0] != lp.PROTOCOL_VERSION:
-            raise DriverError(f"{self.name}: protocol version {f[:1]} not supported (need {lp.PROTOCOL_VERSION})")
-        return f[1] if len(f) > 1 else ""
+    config_type = ControllerConfig
 
     def _check_move(self, target, speed) -> tuple[np.ndarray, float]:
         lim = self._cfg.limits

@@ -12,17 +12,15 @@ Config keys: those of `LinkConfig` (`url`, `baudrate`, `timeout_s`, `retries`,
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 from pydantic import Field
 
-from drivers.base import Lifecycle, TrackerReading
+from drivers.base import TrackerReading
 from drivers.serial import protocol as lp
-from drivers.serial.link import LinkConfig, SerialLink, ack_fields
-from dt_kernel.config import Frozen, validate
-from dt_kernel.errors import DriverError, StateError
+from drivers.serial.device import SerialDevice
+from drivers.serial.link import LinkConfig, ack_fields
+from dt_kernel.config import Frozen
 from dt_kernel.geometry import spherical_to_cartesian
 
 
@@ -35,52 +33,11 @@ class TrackerConfig(LinkConfig):
     limits: TrackerLimits = TrackerLimits()
 
 
-class SerialTracker(Lifecycle):
+class SerialTracker(SerialDevice[TrackerConfig]):
     """LaserTracker over the line protocol."""
 
     name = "serial laser tracker"
-
-    def __init__(self, config: Mapping[str, Any] | None = None, source: str = "<serial tracker config>", *,
-                 world: Any = None):  # world: unused, the registry passes it to every driver
-        self._source = source
-        self.cfg: TrackerConfig | None = None
-        self.link: SerialLink | None = None
-        if config is not None:
-            self.configure(config)
-
-    # --- configured parts (built by `configure`) ----------------------------------------
-    @property
-    def _link(self) -> SerialLink:
-        if self.link is None:
-            raise StateError(f"{self.name}: used before configure()")
-        return self.link
-
-    @property
-    def _cfg(self) -> TrackerConfig:
-        if self.cfg is None:
-            raise StateError(f"{self.name}: used before configure()")
-        return self.cfg
-
-    def _on_configure(self, config: dict[str, Any]) -> None:
-        self.cfg = validate(TrackerConfig, config, self._source)
-        self.link = SerialLink(self.cfg, self.name)
-
-    def _on_activate(self) -> None:
-        self._link.open()
-        try:
-            f = ack_fields(self.name, "PING", self._link.request("PING"))
-            if not f or f[0] != lp.PROTOCOL_VERSION:
-                raise DriverError(f"{self.name}: protocol version {f[:1]} not supported")
-        except DriverError:
-            self._link.close()
-            raise
-
-    def _on_deactivate(self) -> None:
-        self._link.close()
-
-    def _on_close(self) -> None:
-        if self.link is not None:
-            self.link.close()
+    config_type = TrackerConfig
 
     def measure(self) -> TrackerReading:
         self._require("active")
