@@ -9,7 +9,7 @@ lazy imports inside functions included):
 """
 from __future__ import annotations
 
-import ast
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -29,22 +29,23 @@ def module_name(path: Path) -> str:
     return ".".join(parts)
 
 
+def _load_walker():
+    # The one import walker lives with the architecture picture's generator (docs/tools).
+    spec = importlib.util.spec_from_file_location("architecture_tool", ROOT / "docs" / "tools" / "architecture.py")
+    assert spec and spec.loader
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_walker = _load_walker()
+
+
 def imported_modules(source: str, module: str, is_package: bool) -> list[tuple[int, str]]:
-    """(line, absolute module name) of every import in `source`, relative ones resolved."""
-    out = []
-    for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.Import):
-            out += [(node.lineno, a.name) for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = module.split(".")
-                base = base[: len(base) - node.level + (1 if is_package else 0)]
-                name = ".".join(base + ([node.module] if node.module else []))
-            else:
-                name = node.module or ""
-            # `from pkg import sub` may name a submodule: check pkg.sub too
-            out += [(node.lineno, name)] + [(node.lineno, f"{name}.{a.name}") for a in node.names]
-    return out
+    """(line, absolute module name) of every import in `source`; `from pkg import x` also
+    yields pkg.x, which may name a submodule."""
+    return [(line, n) for line, name, names in _walker.import_lines(source, module, is_package)
+            for n in (name, *(f"{name}.{a}" for a in names))]
 
 
 def _layer(module: str) -> int | None:

@@ -62,13 +62,14 @@ def _is_module(name: str, root: Path) -> bool:
     return p.with_suffix(".py").is_file() or (p / "__init__.py").is_file()
 
 
-def imports_of(source: str, module: str, is_package: bool, root: Path = ROOT) -> set[str]:
-    """Absolute names of the project modules `source` imports (relative imports resolved;
-    `from pkg import sub` counts pkg.sub when sub is a module)."""
-    out: set[str] = set()
+def import_lines(source: str, module: str, is_package: bool) -> list[tuple[int, str, list[str]]]:
+    """(line, imported module, names imported from it) of every import statement in `source`,
+    lazy ones inside functions included, relative imports resolved against `module`. The one
+    import walker: tests/test_architecture.py checks the layer rules with it."""
+    out: list[tuple[int, str, list[str]]] = []
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
+            out += [(node.lineno, a.name, []) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = module.split(".")
@@ -76,8 +77,17 @@ def imports_of(source: str, module: str, is_package: bool, root: Path = ROOT) ->
                 name = ".".join(base + ([node.module] if node.module else []))
             else:
                 name = node.module or ""
-            out.add(name)
-            out.update(f"{name}.{a.name}" for a in node.names if _is_module(f"{name}.{a.name}", root))
+            out.append((node.lineno, name, [a.name for a in node.names]))
+    return out
+
+
+def imports_of(source: str, module: str, is_package: bool, root: Path = ROOT) -> set[str]:
+    """Absolute names of the project modules `source` imports (`from pkg import sub` counts
+    pkg.sub when sub is a module)."""
+    out: set[str] = set()
+    for _, name, names in import_lines(source, module, is_package):
+        out.add(name)
+        out.update(f"{name}.{a}" for a in names if _is_module(f"{name}.{a}", root))
     return {n for n in out if n and n.split(".")[0] in PACKAGES}
 
 
