@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from dt_runtime.service.bus.config import BusConfig
-from dt_runtime.service.bus.session import BusError, close_session, open_session, put_json, zenoh_errors
+from dt_runtime.service.bus.session import BusError, close_session, open_session, put_json, shut_down, zenoh_errors
 
 log = logging.getLogger("dt_runtime.service.bus")
 
@@ -94,11 +94,8 @@ class MaintenanceConsumer:
         if self._closed:
             return True
         self._closed = True
-        timeout = self.config.close_timeout_s if timeout is None else timeout
-        deadline = time.monotonic() + timeout
-        self._tasks.put(None)
-        self._worker.join(timeout)
-        return close_session(self._session, max(0.1, deadline - time.monotonic()))
+        return shut_down(self._session, self._worker, lambda: self._tasks.put(None),
+                         self.config.close_timeout_s if timeout is None else timeout)
 
     def __enter__(self) -> MaintenanceConsumer:
         return self

@@ -15,7 +15,15 @@ import zenoh
 
 from dt_kernel.errors import StateError
 from dt_runtime.service.bus.config import BusConfig
-from dt_runtime.service.bus.session import BusError, close_session, encode, open_session, put_json, zenoh_errors
+from dt_runtime.service.bus.session import (
+    BusError,
+    close_session,
+    encode,
+    open_session,
+    put_json,
+    shut_down,
+    zenoh_errors,
+)
 from dt_runtime.service.store import Store, StoreError
 
 log = logging.getLogger("dt_runtime.service.bus")
@@ -207,13 +215,9 @@ class Bus:
         if self._closed:
             return True
         self._closed = True
-        timeout = self.config.close_timeout_s if timeout is None else timeout
-        deadline = time.monotonic() + timeout
         self._stop.set()
-        self._tasks.put(("stop",))
-        self._worker.join(max(0.0, deadline - time.monotonic()))
-        return close_session(self._session, max(0.1, deadline - time.monotonic())) \
-            and not self._worker.is_alive()
+        return shut_down(self._session, self._worker, lambda: self._tasks.put(("stop",)),
+                         self.config.close_timeout_s if timeout is None else timeout)
 
     def __enter__(self) -> Bus:
         return self

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterator, Mapping
+import time
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
@@ -75,3 +76,12 @@ def put_json(session: zenoh.Session, key: str, payload: Mapping[str, Any] | byte
         session.put(key, data, encoding=zenoh.Encoding.APPLICATION_JSON,
                     congestion_control=zenoh.CongestionControl.BLOCK,
                     priority=zenoh.Priority.INTERACTIVE_HIGH)
+
+
+def shut_down(session: zenoh.Session, worker: threading.Thread, wake: Callable[[], None], timeout: float) -> bool:
+    """Wake `worker` (its stop signal), join it and close `session`, all within `timeout` s; True
+    when both are down."""
+    deadline = time.monotonic() + timeout
+    wake()
+    worker.join(max(0.0, deadline - time.monotonic()))
+    return close_session(session, max(0.1, deadline - time.monotonic())) and not worker.is_alive()
