@@ -111,10 +111,12 @@ class _OnWorld(Lifecycle):
 
     needs_world = True
 
-    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated driver config>"):
+    what = "driver"  # names the config in errors: "<simulated robot config>"
+
+    def __init__(self, world: SimWorld | None = None, *, source: str | None = None):
         if world is None:
             raise DriverError(f"{type(self).__name__} runs on a simulated world: pass world=SimWorld(...)")
-        self.world, self._source = world, source
+        self.world, self._source = world, source or f"<simulated {self.what} config>"
 
     def _on_configure(self, config: dict[str, Any]) -> None:
         reject_keys(config, self._source, (), f"the simulated {type(self).__name__}")
@@ -123,9 +125,11 @@ class _OnWorld(Lifecycle):
 class SimRobot(_OnWorld):
     """RobotController over the simulated plant."""
 
-    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated robot config>"):
-        super().__init__(world, source=source)
-        self._plant = self.world.cell.plant
+    what = "robot"
+
+    @property
+    def _plant(self):
+        return self.world.cell.plant
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         self._require("active")
@@ -153,9 +157,11 @@ class SimRobot(_OnWorld):
 class SimTracker(_OnWorld):
     """LaserTracker over the simulated tracker: spherical measurement -> Cartesian, tracker frame."""
 
-    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated tracker config>"):
-        super().__init__(world, source=source)
-        self._lt = self.world.cell.tracker
+    what = "tracker"
+
+    @property
+    def _lt(self):
+        return self.world.cell.tracker
 
     def measure(self) -> TrackerReading:
         self._require("active")
@@ -167,9 +173,11 @@ class SimTracker(_OnWorld):
 class SimPointCamera(_OnWorld):
     """CameraRig over the point-noise MVS stand-in (the image pipeline replaces it)."""
 
-    def __init__(self, world: SimWorld | None = None, *, source: str = "<simulated camera config>"):
-        super().__init__(world, source=source)
-        self._mvs = self.world.cell.mvs
+    what = "camera"
+
+    @property
+    def _mvs(self):
+        return self.world.cell.mvs
 
     def read(self) -> RigReading:
         self._require("active")
