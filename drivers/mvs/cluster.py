@@ -47,16 +47,7 @@ def refine_pose(stack: CameraStack, model: np.ndarray, R: np.ndarray, t: np.ndar
     for it in range(iters + 1):
         RM = model @ R.T  # (M,3) rotated model
         X = RM + t
-        proj, Xc = stack.project(X)
-        r = np.where(m, (proj - uv) / s, 0.0)
-        z = Xc[..., 2:3]
-        x_z = Xc[..., :2] / z
-        J_c = np.zeros(Xc.shape[:2] + (2, 3))
-        J_c[..., 0, 0] = 1.0
-        J_c[..., 1, 1] = 1.0
-        J_c[..., :, 2] = -x_z
-        J_c *= (stack.f[None, :, :, None] / z[..., None])
-        J_X = np.einsum("mcij,cjk->mcik", J_c, stack.R) / s[..., None] * m[..., None]  # (M,C,2,3)
+        r, J_X = stack.residuals(X, uv, s, m)  # (M,C,2), (M,C,2,3)
         # d X / d w = -[R0 m]x, d X / d t = I
         J_w = -np.einsum("mcij,mjk->mcik", J_X, skew(RM))
         J = np.concatenate([J_w, J_X], axis=3).reshape(-1, 6)

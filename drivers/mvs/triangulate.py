@@ -39,6 +39,22 @@ class CameraStack:
         Xc = np.einsum("cij,mj->mci", self.R, X) + self.t[None]
         return Xc[..., :2] / Xc[..., 2:3] * self.f + self.c, Xc
 
+    def residuals(self, X: np.ndarray, uv: np.ndarray, s: np.ndarray, m: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Reprojection residuals of points X (M,3) against pixels uv (M,C,2), normalised by s
+        (M,C,1) and masked by m (M,C,1), and their Jacobian d r / d X (M,C,2,3):
+        d proj / d Xc = f/z [[1, 0, -x/z], [0, 1, -y/z]], d Xc / d X = R."""
+        proj, Xc = self.project(X)
+        r = np.where(m, (proj - uv) / s, 0.0)
+        z = Xc[..., 2:3]
+        x_z = Xc[..., :2] / z
+        J_c = np.zeros(Xc.shape[:2] + (2, 3))
+        J_c[..., 0, 0] = 1.0
+        J_c[..., 1, 1] = 1.0
+        J_c[..., :, 2] = -x_z
+        J_c *= (self.f[None, :, :, None] / z[..., None])
+        return r, np.einsum("mcij,cjk->mcik", J_c, self.R) / s[..., None] * m[..., None]
+
 
 def dlt(stack: CameraStack, uv: np.ndarray, sig: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Linear (DLT) triangulation of M points from masked views; rows weighted by f / sigma."""
@@ -61,17 +77,7 @@ def refine_points(stack: CameraStack, X: np.ndarray, uv: np.ndarray, sig: np.nda
     s = np.where(mask, sig, 1.0)[..., None]
     m = mask[..., None]
     for _ in range(iters + 1):
-        proj, Xc = stack.project(X)
-        r = np.where(m, (proj - uv) / s, 0.0)  # (M,C,2)
-        z = Xc[..., 2:3]
-        # d proj / d Xc = f/z [[1, 0, -x/z], [0, 1, -y/z]]; d Xc / d X = R.
-        x_z = Xc[..., :2] / z
-        J_c = np.zeros(Xc.shape[:2] + (2, 3))
-        J_c[..., 0, 0] = 1.0
-        J_c[..., 1, 1] = 1.0
-        J_c[..., :, 2] = -x_z
-        J_c *= (stack.f[None, :, :, None] / z[..., None])
-        J = np.einsum("mcij,cjk->mcik", J_c, stack.R) / s[..., None] * m[..., None]
+        r, J = stack.residuals(X, uv, s, m)  # (M,C,2), (M,C,2,3)
         H = np.einsum("mcia,mcib->mab", J, J)
         if _ == iters:
             break
