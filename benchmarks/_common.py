@@ -37,14 +37,18 @@ def fit_sklearn(X, Y, thetas=None):
     return models, mu, sd
 
 
-def cli(description: str) -> bool:
-    """Parse --json; BLAS on one thread (or $DT_BLAS_THREADS), as the `dt` command line runs."""
+def cli(description: str, argv: list[str] | None = None, **options) -> argparse.Namespace:
+    """Parse --json and the benchmark's own `options` (name=default, typed by the default); BLAS
+    on one thread (or $DT_BLAS_THREADS), as the `dt` command line runs."""
     from dt_runtime.common.threads import limit_blas_threads
 
     limit_blas_threads()
     p = argparse.ArgumentParser(description=description)
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    return p.parse_args().json
+    for name, default in options.items():
+        p.add_argument(f"--{name.replace('_', '-')}", type=type(default), default=default,
+                       help=f"default {default}")
+    return p.parse_args(argv)
 
 
 def emit(res: dict, as_json: bool, title: str) -> None:

@@ -199,7 +199,7 @@ def run(n_big: int | None = None, n_cmp: int = 3000, holdout: float = 0.3, seed:
 
 
 def main() -> None:
-    as_json = cli(__doc__)
+    as_json = cli(__doc__).json
     emit(run(), as_json, "dt fit at scale: UR10 Series A, sparse GP vs exact GP")
 
 

@@ -35,7 +35,7 @@ def run(seed: int = 0) -> dict:
 
 
 def main() -> None:
-    as_json = cli(__doc__)
+    as_json = cli(__doc__).json
     emit(run(), as_json, "GP fit: ours vs sklearn GaussianProcessRegressor (3 outputs, same data)")
 
 

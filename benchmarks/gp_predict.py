@@ -46,7 +46,7 @@ def run(seed: int = 0) -> dict:
 
 
 def main() -> None:
-    as_json = cli(__doc__)
+    as_json = cli(__doc__).json
     emit(run(), as_json, "GP one-point predict (mean + std, 3 outputs): ours vs sklearn")
 
 

@@ -7,7 +7,6 @@ rate the code could sustain). Keys: rate_hz, target_hz, p99_period_error_ms (DES
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import json
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks._common import cli
 from dt_runtime.cli.main import main as dt_main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
@@ -74,11 +74,7 @@ def measure(seconds: float, rate: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--json", action="store_true")
-    ap.add_argument("--seconds", type=float, default=10.0)
-    ap.add_argument("--rate", type=float, default=500.0)
-    a = ap.parse_args(argv)
+    a = cli(__doc__, argv, seconds=10.0, rate=500.0)
     r = measure(a.seconds, a.rate)
     if a.json:
         print(json.dumps(r))

@@ -15,8 +15,6 @@ import os
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")  # one core
 
-import argparse  # noqa: E402
-import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 
@@ -27,6 +25,7 @@ from drivers.simulated.camera_images import SimCameraRig  # noqa: E402
 from drivers.mvs.detect import baseline_detect  # noqa: E402
 from drivers.mvs.pipeline import MarkerTracker, _distort  # noqa: E402
 from sim.camera_rig import random_tool_rotation, sample_volume  # noqa: E402
+from benchmarks._common import cli, emit  # noqa: E402
 
 
 def _baseline_measure(tr: MarkerTracker, images, pred):
@@ -93,17 +92,8 @@ def run(n_frames: int = 40, seed: int = 0, min_seconds: float = 1.0) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json", action="store_true")
-    ap.add_argument("--frames", type=int, default=40)
-    ap.add_argument("--seed", type=int, default=0)
-    a = ap.parse_args(argv)
-    res = run(a.frames, a.seed)
-    if a.json:
-        print(json.dumps(res))
-    else:
-        for k, v in res.items():
-            print(f"{k:>16}: {v}")
+    a = cli(__doc__.splitlines()[0], argv, frames=40, seed=0)
+    emit(run(a.frames, a.seed), a.json, "MVS: eight frames -> TCP, ours vs the full-frame baseline")
     return 0
 
 
