@@ -176,26 +176,37 @@ def _table_literal(s: dict, a: dict) -> str:
     return out
 
 
-def _table_coverage(s: dict, a: dict) -> str:
-    cov = summary_value(s, "coverage_95")
-    n = s.get("n_validation")
-    U = array(a, "U_tcp_c", required=False)
+def _coverage_rows(where: str, cov: dict, n: int | None, mean_U: list | None) -> list[dict]:
     rows = []
     for i, ax in enumerate(AXES):
         c = cov.get(ax)
-        row = {"axis": ax, "coverage / %": fixed(100 * c, 1) if c is not None else "–"}
+        row = {"targets": where, "axis": ax, "coverage / %": fixed(100 * c, 1) if c is not None else "–"}
         if n and c is not None:
             k = int(round(float(c) * n))
             lo, hi = wilson_interval(k, int(n))
-            row["inside / n"] = f"{k} / {n}"
-            row["95 % interval (Wilson) / %"] = f"{100 * lo:.1f} – {100 * hi:.1f}"
-        if U is not None and U.ndim == 1 and U.size == 3:
-            row["U(TCP_c) / mm"] = fixed(U[i] * MM_PER_M)
+            row |= {"inside / n": f"{k} / {n}", "95 % interval (Wilson) / %": f"{100 * lo:.1f} – {100 * hi:.1f}"}
+        if mean_U:
+            row["mean U(TCP_c) / mm"] = fixed(mean_U[i])
         rows.append(row)
-    return (html_table(rows, caption="Coverage of the 95 % expanded uncertainty U(TCP_c) by the true error of the "
-                                     "corrected validation positionings", row_header="axis")
+    return rows
+
+
+def _table_coverage(s: dict, a: dict) -> str:
+    chk = s.get("coverage_check")
+    if isinstance(chk, dict):  # per-position U, checked inside and outside the calibrated volume
+        parts = [("inside the DOE hull", chk.get("inside")), ("50-150 mm outside", chk.get("outside")),
+                 ("validation phase", chk.get("validation"))]
+        rows = [r for where, c in parts if isinstance(c, dict)
+                for r in _coverage_rows(where, c.get("coverage_95") or {}, c.get("n"), c.get("mean_U_mm"))]
+    else:  # an older summary: one global U at the validation points
+        U = array(a, "U_tcp_c", required=False)
+        mean_U = list(U * MM_PER_M) if U is not None and U.ndim == 1 and U.size == 3 else None
+        rows = _coverage_rows("validation phase", summary_value(s, "coverage_95"), s.get("n_validation"), mean_U)
+    return (html_table(rows, caption="Coverage of the 95 % expanded uncertainty U(TCP_c) of each corrected position "
+                                     "by its true error (simulator truth)", row_header="targets")
             + paragraph("If the uncertainty statement is right, about 95 % of the true errors lie inside ±U; "
-                        "the interval shows how far a finite validation set can confirm that."))
+                        "the interval shows how far a finite set of targets can confirm that. Outside the DOE "
+                        "hull the stated U grows with the distance (extrapolation)."))
 
 
 def _table_ttest(s: dict, a: dict) -> str:
