@@ -8,10 +8,29 @@ import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.metrology.stats import finite_rows, rms_with_U, t95
+from dt_runtime.metrology.uncertainty import welch_satterthwaite
 from dt_runtime.reports.blocks import COLORS, Missing, array, fixed, levels, summary_value, unique_in_order
 from dt_runtime.reports.html import fig_to_img_tag, figure_block, plt
 
 MAGNIFY = 200  # Fig. 15: uncertainty boxes magnified x200 for visibility
+
+
+def _figure(fig, alt: str, caption: str, title: str | None = None, title_size: int = 11, **margins: float) -> str:
+    """A finished figure as an HTML block: optional title, margins, embedded PNG and caption."""
+    if title:
+        fig.suptitle(title, fontsize=title_size)
+    fig.subplots_adjust(right=0.99, **margins)
+    return figure_block(fig_to_img_tag(fig, alt=alt), caption)
+
+
+def _finish_grid(fig, axs, xlabel: str, **margins: float) -> None:
+    """The grid of per-axis series plots: small ticks, a light grid, the x label on the bottom row."""
+    for axp in axs.ravel():
+        axp.tick_params(labelsize=7)
+        axp.grid(alpha=0.3)
+    for axp in axs[-1]:
+        axp.set_xlabel(xlabel, fontsize=8)
+    fig.subplots_adjust(right=0.99, **margins)
 
 
 def t_crit_and_flags(s: dict, a: dict):
@@ -28,9 +47,7 @@ def t_crit_and_flags(s: dict, a: dict):
             n1 = np.array([np.inf if x is None else x for x in d["dof_eff"]], float)
             n2 = np.array([np.inf if x is None else x for x in p["dof_eff"]], float)
             u = np.sqrt(u1 ** 2 + u2 ** 2)
-            den = u1 ** 4 / n1 + u2 ** 4 / n2
-            dof = np.where(den > 0, u ** 4 / np.where(den > 0, den, 1), np.inf)
-            tcrit = np.array([t95(x) for x in dof])
+            tcrit = np.array([t95(x) for x in welch_satterthwaite(np.array([u1, u2]), np.array([n1, n2]))])
         except (KeyError, TypeError, ValueError):
             pass
     return tcrit, u
@@ -60,11 +77,7 @@ def fig_registration(s: dict, a: dict) -> str:
                 axp.axhspan(m - 2 * sd, m + 2 * sd, color=COLORS[ax], alpha=0.12, label="ē ± 2 s")
                 axp.set_title(f"{name.upper()}, {ax}: ē = {fixed(m)} mm, s = {sd:.3f} mm", fontsize=9)
             axp.set_ylabel(f"residual {ax} / mm", fontsize=8)
-            axp.tick_params(labelsize=7)
-            axp.grid(alpha=0.3)
-    for c in range(3):
-        axs[-1, c].set_xlabel("registration positioning #", fontsize=8)
-    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.08, top=0.95, wspace=0.28, hspace=0.42)
+    _finish_grid(fig, axs, "registration positioning #", left=0.07, bottom=0.08, top=0.95, wspace=0.28, hspace=0.42)
     return figure_block(fig_to_img_tag(fig, alt="registration residuals"),
                         "Figs. 8a/9a/10a: registration residuals per instrument and GL axis (mm), "
                         "with mean ē and the band ē ± 2 s(e).")
@@ -119,11 +132,8 @@ def fig_asis_series(s: dict, a: dict) -> str:
                 axp.axhspan(m - 2 * sd, m + 2 * sd, color=COLORS[ax], alpha=0.1)
                 axp.set_title(f"{lab[n]},{ax}: ē = {fixed(m)} mm, s = {sd:.3f} mm", fontsize=9)
             axp.set_ylabel("mm", fontsize=8)
-            axp.tick_params(labelsize=7)
-            axp.grid(alpha=0.3)
-    for c in range(3):
-        axs[-1, c].set_xlabel("DOE positioning # (recorded order)", fontsize=8)
-    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.09, top=0.94, wspace=0.22, hspace=0.38)
+    _finish_grid(fig, axs, "DOE positioning # (recorded order)", left=0.06, bottom=0.09, top=0.94, wspace=0.22,
+                 hspace=0.38)
     return figure_block(fig_to_img_tag(fig, alt="as-is errors per positioning"),
                         "Figs. 8b/9b/10b: as-is errors of every DOE positioning (mm), with mean ē and ē ± 2 s(e).")
 
@@ -153,13 +163,13 @@ def fig_main_effects(s: dict, a: dict) -> str:
                 axp.set_ylabel(f"mean e_LT,{ax} / mm", fontsize=9)
             if r == 2:
                 axp.set_xlabel(fname, fontsize=9)
-    fig.suptitle("Main effects on e_LT (marginal means per level, ± 95 % interval of the mean)", fontsize=11)
-    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.07, top=0.93, wspace=0.06, hspace=0.12)
-    return figure_block(fig_to_img_tag(fig, alt="main effects"),
-                        "Fig. 11 style main-effects plot: mean laser-tracker error per level of each factor (levels "
-                        "of the DOE, or quantile bins where a factor has many values), with the 95 % interval of the "
-                        "mean; the dashed line is the grand mean. A sloped line means that factor drives the error. "
-                        "The DOE is not fully orthogonal, so these are marginal (not adjusted) means.")
+    return _figure(fig, "main effects",
+                   "Fig. 11 style main-effects plot: mean laser-tracker error per level of each factor (levels "
+                   "of the DOE, or quantile bins where a factor has many values), with the 95 % interval of the "
+                   "mean; the dashed line is the grand mean. A sloped line means that factor drives the error. "
+                   "The DOE is not fully orthogonal, so these are marginal (not adjusted) means.",
+                   title="Main effects on e_LT (marginal means per level, ± 95 % interval of the mean)",
+                   left=0.06, bottom=0.07, top=0.93, wspace=0.06, hspace=0.12)
 
 
 def fig_gpr(s: dict, a: dict, ekey: str = "e_lt", rkey: str = "r_lt", label: str = "e_LT",
@@ -261,13 +271,13 @@ def fig_validation(s: dict, a: dict) -> str:
     t = f"3D RMS: corrected {rms_c[0] * MM_PER_M:.3f} ± {rms_c[1] * MM_PER_M:.3f} mm"
     if rms_p:
         t = f"3D RMS: uncorrected {rms_p[0] * MM_PER_M:.3f} ± {rms_p[1] * MM_PER_M:.3f} mm, " + t.split(": ")[1]
-    fig.suptitle(t + " (± U95 of the RMS estimate)", fontsize=10)
-    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.07, top=0.92, hspace=0.25, wspace=0.15)
-    return figure_block(fig_to_img_tag(fig, alt="validation true errors"),
-                        "Validation against the simulator's truth: true error (intended target − where the arm "
-                        "went, GL, mm) of each validation positioning, commanded without (grey) and with (blue) the "
-                        "twin's correction; the band is the 95 % expanded uncertainty U(TCP_c) of Eq. 18. Right: "
-                        "the corrected errors alone, zoomed; red rings lie outside ± U.")
+    return _figure(fig, "validation true errors",
+                   "Validation against the simulator's truth: true error (intended target − where the arm "
+                   "went, GL, mm) of each validation positioning, commanded without (grey) and with (blue) the "
+                   "twin's correction; the band is the 95 % expanded uncertainty U(TCP_c) of Eq. 11 at each "
+                   "corrected position. Right: the corrected errors alone, zoomed; red rings lie outside ± U.",
+                   title=t + " (± U95 of the RMS estimate)", title_size=10,
+                   left=0.06, bottom=0.07, top=0.92, hspace=0.25, wspace=0.15)
 
 
 def fig_eq17(s: dict, a: dict) -> str:
