@@ -90,3 +90,39 @@ def test_the_daemon_corrector_states_per_position_U_and_can_refuse_extrapolation
     edge = Limits(workspace_min_m=tuple(lo), workspace_max_m=tuple(np.maximum(inside_t, c - 1e-9 * np.sign(c - inside_t))))
     with pytest.raises(CorrectionFault, match="corrected command .* outside the workspace"):
         Corrector(twin, edge)(inside_t, 0.5)
+
+
+def test_the_daemon_runs_the_cells_program(quick_demo, tmp_path):
+    from dt_kernel.errors import ConfigError
+    from dt_runtime.common.paths import CONFIGS
+    from dt_runtime.service.daemon import Daemon, RuntimeConfig
+    from dt_runtime.service.store import Store
+
+    prog = _program(tmp_path / "p.csv", ["a,900,0,550,500", "b,880,40,560,250", "c,920,-30,600,400"])
+    base = {"twin": str(quick_demo[2] / "model"), "store": str(tmp_path / "dt.sqlite"), "realtime": False,
+            "publish": False, "sim": {"scenario": str(CONFIGS / "scenarios" / "paper_default.yaml"),
+                                      "cell": str(CONFIGS / "cell.yaml")}}
+    cfg = RuntimeConfig.model_validate(base | {"path": {"kind": "program", "program": str(prog)}})
+    d = Daemon(cfg, CONFIGS)
+    try:
+        d.run(max_ticks=5)
+    finally:
+        d.close()
+    import sqlite3
+
+    db = sqlite3.connect(tmp_path / "dt.sqlite")
+    cmds = db.execute("SELECT x, y, z, speed FROM commands ORDER BY t").fetchall()
+    corrs = db.execute("SELECT dx, dy, dz, ux FROM corrections ORDER BY t").fetchall()
+    db.close()
+    twin = Twin.load(quick_demo[2] / "model")
+    want = [np.array(p) * 1e-3 for p in ([900, 0, 550], [880, 40, 560], [920, -30, 600], [900, 0, 550], [880, 40, 560])]
+    assert len(cmds) == len(corrs) == 5  # the program, in order, then from its start again
+    for cmd, corr, w, v in zip(cmds, corrs, want, (0.5, 0.25, 0.4, 0.5, 0.25)):
+        c = twin.correct(w, v)
+        assert np.allclose(cmd[:3], w, atol=1e-12) and cmd[3] == pytest.approx(v)
+        assert np.allclose(corr[:3], c.command - w, atol=1e-12)
+        assert corr[3] == pytest.approx(c.budget.combined()[0])  # the per-position u, not a constant
+    from dt_kernel.config import validate
+
+    with pytest.raises(ConfigError, match="path.program names the program file"):
+        validate(RuntimeConfig, base | {"path": {"kind": "program"}}, "runtime.yaml")

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from drivers import registry
 from dt_kernel.config import Frozen, load_yaml
@@ -35,6 +35,7 @@ from dt_runtime.service.escalation import EscalationConfig, Escalator
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.twin.campaign import Instruments
+from dt_runtime.twin.program import read_program
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
@@ -49,16 +50,25 @@ class Fault(Frozen):
 
 
 class PathConfig(Frozen):
-    """Targets the daemon commands (a stand-in for the cell's program): 'random' points in a
-    box (seeded), or a 'circle' streamed at the loop rate (set-points v / rate_hz apart)."""
+    """Targets the daemon commands: the cell's 'program' (a program file as `dt correct` reads it:
+    x, y, z in mm, speed in mm/s, optional point_id; repeated from the start when done), or, as
+    simulation stand-ins, 'random' points in a box (seeded) or a 'circle' streamed at the loop
+    rate (set-points v / rate_hz apart)."""
 
-    kind: Literal["random", "circle"] = "random"
+    kind: Literal["random", "circle", "program"] = "random"
+    program: str | None = None  # the program file for kind 'program' (relative to the runtime config)
     circle_center_m: tuple[float, float, float] = (0.9, 0.0, 0.55)
     circle_radius_m: float = Field(0.15, gt=0)
     box_min_m: tuple[float, float, float] = (0.65, -0.3, 0.25)
     box_max_m: tuple[float, float, float] = (1.15, 0.3, 0.85)
     speeds: tuple[float, ...] = (0.4, 0.8)  # fractions of the maximum speed
     seed: int = 0
+
+    @model_validator(mode="after")
+    def _program_named(self) -> PathConfig:
+        if (self.kind == "program") != (self.program is not None):
+            raise ValueError("path.program names the program file exactly when path.kind is 'program'")
+        return self
 
 
 class SimSection(Frozen):
@@ -110,6 +120,9 @@ class Daemon:
             raise ConfigError(str(self._p(cfg.twin) / "twin.json"), "instruments.camera", trained,
                               f"the daemon's camera driver '{cfg.drivers.camera}': a twin is valid only "
                               "with the instruments (and frames) it was calibrated with")
+        # Read before anything is opened: a bad program stops the start with nothing to close.
+        self._program = read_program(self._p(cfg.path.program)) if cfg.path.program else None
+        self._step = 0  # the next program target
         self.corrector = Corrector(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
         # High-rate rows leave the loop through the Store's lock-free queue; its writer thread
@@ -193,6 +206,10 @@ class Daemon:
 
     def _next_target(self) -> tuple[np.ndarray, float]:
         pc = self.cfg.path
+        if self._program is not None:
+            i = self._step % self._program.n
+            self._step += 1
+            return self._program.target[i], float(self._program.speed[i])
         if pc.kind == "circle":
             v = pc.speeds[0] * self.inst.max_speed
             self._phase += v / self.cfg.rate_hz / pc.circle_radius_m
