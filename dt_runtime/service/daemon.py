@@ -29,7 +29,7 @@ from pydantic import Field, model_validator
 from drivers import registry
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import ConfigError, DriverError, TwinError
-from dt_runtime.service.bus import Bus, BusConfig
+from dt_runtime.service.bus import Bus, BusConfig, CorrectionServer
 from dt_runtime.service.correction import CorrectionFault, Corrector, Limits, Monitor
 from dt_runtime.service.escalation import EscalationConfig, Escalator
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
@@ -129,6 +129,10 @@ class Daemon:
         # commits them every 50 ms, so the loop never waits on a lock or an fsync.
         self.store = Store(self._p(cfg.store), batch_ms=50.0, background=True)
         self.bus = Bus(cfg.bus, self.store, on_ack=self._on_ack) if cfg.publish else None
+        # The cell's program may ask for corrections on `.../correct` (its own Corrector: the
+        # step bound follows the program's sequence of requests, not the daemon's path).
+        self.correct_server = (CorrectionServer(Corrector(self.twin, cfg.limits), cfg.bus, self.bus.session)
+                               if self.bus else None)
         self.world = world if world is not None else self._make_world()
         self.inst = self._make_instruments()
         self.escalator = Escalator(cfg.escalation, on_transition=self._on_transition)
@@ -306,6 +310,8 @@ class Daemon:
             self.store.flush()
         except TwinError as exc:
             log.error("could not save state on close: %s", exc)
+        if self.correct_server:
+            self.correct_server.close()
         if self.bus:
             self.bus.close()
         self.inst.close()

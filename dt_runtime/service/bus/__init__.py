@@ -46,10 +46,12 @@ from dt_runtime.service.bus.config import (
     load_bus_config,
 )
 from dt_runtime.service.bus.consumer import MaintenanceConsumer
+from dt_runtime.service.bus.correct import CorrectionServer, request_correction
 from dt_runtime.service.bus.publisher import Bus
 from dt_runtime.service.bus.session import BusError, close_session, open_session
 
 _open = open_session  # the name tests and older callers use
 
 __all__ = ["AccessControlConfig", "AclPolicy", "AclRule", "AclSubject", "Bus", "BusConfig", "BusError",
+           "CorrectionServer", "request_correction",
            "MaintenanceConsumer", "TlsConfig", "close_session", "load_bus_config", "open_session"]

@@ -209,6 +209,11 @@ class Bus:
             except BusError as exc:  # retried next period
                 log.warning("maintenance request %s not published: %s", item.id, exc)
 
+    @property
+    def session(self) -> zenoh.Session:
+        """The bus's Zenoh session, for services of the same process (one listen endpoint)."""
+        return self._session
+
     # ------------------------------------------------------------------ lifecycle
     def close(self, timeout: float | None = None) -> bool:
         """Stop the worker and close the session, bounded by `timeout` (config default)."""
