@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dt_kernel.errors import UnreachableError
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.common.progress import Progress
 from dt_runtime.frames.volume import CalibratedVolume
@@ -72,7 +73,7 @@ def sample_targets(volume: CalibratedVolume, doe_points: np.ndarray, n: int, ban
             P = P[[i not in bad for i in range(len(P))]]
         out.extend(P)
     if len(out) < n:
-        raise ValueError(f"only {len(out)} reachable targets in the band {band_m} m after {drawn} draws")
+        raise UnreachableError(f"only {len(out)} reachable targets in the band {band_m} m after {drawn} draws")
     return np.array(out[:n])
 
 
