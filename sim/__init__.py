@@ -1,4 +1,6 @@
-"""The physical world in software: simulated cobot plant, instruments, controller emulator.
+"""The physical world in software: the simulated cobot plant with switchable error effects,
+the laser tracker, the point MVS stand-in and the camera-rig image simulator.
 
-Knows nothing of the model side (never imports drivers or dt_runtime).
+Knows nothing of the model side: imports only dt_kernel, never drivers or dt_runtime. The
+serial devices' emulators live beside their drivers (drivers/serial/emulator.py).
 """
