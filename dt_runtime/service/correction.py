@@ -47,6 +47,7 @@ class Corrected:
     u_tcp: np.ndarray  # standard uncertainty of the corrected TCP (Eq. 11 at this position), m
     U_tcp: np.ndarray  # expanded, 95 %
     inside: bool = True  # the command lies in the calibrated volume
+    distance_m: float = float("nan")  # signed distance of the command to the DOE hull (< 0 inside)
 
 
 class Corrector:
@@ -90,8 +91,8 @@ class Corrector:
                                       f"of travel, bound {bound * 1e3:.3f} mm")
         self._last = (target, corr)
         if res.budget is None:  # an older twin: the global Eq. 11 figures
-            return Corrected(target, c, corr, self._u, self._U, res.inside)
-        return Corrected(target, c, corr, res.budget.combined(), res.U, res.inside)
+            return Corrected(target, c, corr, self._u, self._U, res.inside, res.distance_m)
+        return Corrected(target, c, corr, res.budget.combined(), res.U, res.inside, res.distance_m)
 
 
 @dataclass(frozen=True)

@@ -170,27 +170,31 @@ class Twin:
                 break
         return c
 
-    def tcp_budget(self, c: np.ndarray, v: float) -> Budget | None:
+    def distance(self, c: np.ndarray) -> float:
+        """Signed distance (m) of command c to the DOE hull (< 0 inside); NaN for an older twin."""
+        return float(self.volume.distance(np.asarray(c, dtype=float))[0]) if self.volume is not None else float("nan")
+
+    def tcp_budget(self, c: np.ndarray, v: float, distance_m: float | None = None) -> Budget | None:
         """Eq. 11 at command c (robot frame, m) and speed v: labelled components, the e_LT
         model's term from its standard deviation at c, and its growth outside the calibrated
-        hull. None for a twin without it (older format:
-        then only the global `uncertainty.tcp_c` is known)."""
+        hull (distance_m: c's `distance`, when the caller has it). None for a twin without it
+        (older format: then only the global `uncertainty.tcp_c` is known)."""
         if self.position_u is None:
             return None
         c = np.asarray(c, dtype=float)
-        dist = float(self.volume.distance(c)[0]) if self.volume is not None else 0.0
-        return self.position_u.budget_at(self.e_lt_hat(c, v)[1], dist)
+        d = self.distance(c) if distance_m is None else distance_m
+        return self.position_u.budget_at(self.e_lt_hat(c, v)[1], d if np.isfinite(d) else 0.0)
 
     def correct(self, target: np.ndarray, v: float) -> Correction:
         """The corrected command for `target` at speed v, the expanded uncertainty of the
         position it reaches, and whether the command lies in the calibrated volume."""
         target = np.asarray(target, dtype=float)
         c = self.corrected_command(target, v)
-        b = self.tcp_budget(c, v)
+        dist = self.distance(c)  # once per command: the budget and the flag share it
+        b = self.tcp_budget(c, v, dist)
         U = b.expanded() if b is not None else self.uncertainty.tcp_c.U
-        dist = float(self.volume.distance(c)[0]) if self.volume is not None else float("nan")
-        inside = bool(self.volume.inside(c)[0]) if self.volume is not None else True
-        return Correction(target, c, U, inside, dist, b)
+        inside = self.volume is None or dist <= self.volume.margin_m
+        return Correction(target, c, U, bool(inside), dist, b)
 
     # --- persistence: JSON + NPZ, no pickle ------------------------------------------------
     def save(self, directory: str | Path) -> Path:

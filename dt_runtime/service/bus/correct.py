@@ -80,10 +80,9 @@ class CorrectionServer:
             self.refused += 1
             return {"id": rid, "error": str(exc), "type": type(exc).__name__}
         self.served += 1
-        dist = self.corrector.twin.volume.distance(c.command)[0] if self.corrector.twin.volume is not None else None
         return {"id": rid, "target_mm": (c.target * MM_PER_M).tolist(), "command_mm": (c.command * MM_PER_M).tolist(),
                 "correction_mm": (c.correction * MM_PER_M).tolist(), "U_mm": (c.U_tcp * MM_PER_M).tolist(),
-                "inside": c.inside, "distance_mm": None if dist is None else float(dist) * MM_PER_M}
+                "inside": c.inside, "distance_mm": c.distance_m * MM_PER_M}
 
     def _on_query(self, query: zenoh.Query) -> None:
         # Never let an exception into zenoh's thread: a reply that cannot be sent is logged.
