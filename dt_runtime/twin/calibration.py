@@ -17,10 +17,10 @@ from dt_kernel.errors import DataError
 from dt_runtime.analysis.crossval import folds_of, grouped_residuals, heldout
 from dt_runtime.frames import registration as reg
 from dt_runtime.frames.volume import CalibratedVolume
+from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.metrology import uncertainty as unc
 from dt_runtime.metrology.uncertainty import INF
 from dt_runtime.models.gp import MultiOutputGP
-from dt_runtime.twin.campaign import PhaseData
 from dt_runtime.twin.twin import PositionUncertainty, Twin
 
 

@@ -7,7 +7,7 @@ global frame GL (Sect. 2.3); the positioning errors then follow Eqs. 8-10.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -15,6 +15,7 @@ import numpy as np
 from drivers.base import CameraRig, LaserTracker, RobotController
 from dt_kernel.errors import UnreachableError
 from dt_runtime.common.progress import Progress
+from dt_runtime.measurements.phase import PhaseData
 
 
 class SimTruth(Protocol):
@@ -46,32 +47,6 @@ class Instruments:
     def close(self) -> None:
         for d in self.drivers():
             d.close()
-
-
-@dataclass
-class PhaseData:
-    """Raw measurements of one phase; positions in metres, NaN where an instrument refused."""
-
-    phase: str
-    point_id: np.ndarray
-    rep: np.ndarray
-    target: np.ndarray  # commanded target, robot frame
-    speed: np.ndarray  # m/s
-    p_rdk: np.ndarray  # controller TCP, robot frame
-    p_lt: np.ndarray  # tracker frame
-    p_mvs: np.ndarray  # MVS frame
-    t: np.ndarray
-    q: np.ndarray
-    temperature: np.ndarray
-    payload: np.ndarray
-    truth_lt: np.ndarray | None = None  # noise-free truth in the tracker frame (simulation only)
-    axis: np.ndarray | None = None
-    distance: np.ndarray | None = None
-    refusals: list[str] = field(default_factory=list)
-
-    @property
-    def n(self) -> int:
-        return len(self.point_id)
 
 
 def check_reachable(world, targets: np.ndarray) -> None:

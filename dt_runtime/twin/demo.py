@@ -26,11 +26,12 @@ from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, Provenance
 from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.frames.volume import CalibratedVolume
+from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology import uncertainty as unc
 from dt_runtime.metrology.stats import mean_std_mm, rms3
 from dt_runtime.twin import calibration as cal
-from dt_runtime.twin.campaign import Instruments, PhaseData, check_reachable, run_rows
+from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
 from dt_runtime.twin.coverage_check import CoverageCheck, run_check, sample_targets
 
 

@@ -1,0 +1,34 @@
+"""The raw measurements of one phase of a calibration campaign (registration, DOE, validation),
+as the campaign runner collects them through the drivers and as the campaign files hold them
+(`measurements.campaign_files`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class PhaseData:
+    """Raw measurements of one phase; positions in metres, NaN where an instrument refused."""
+
+    phase: str
+    point_id: np.ndarray
+    rep: np.ndarray
+    target: np.ndarray  # commanded target, robot frame
+    speed: np.ndarray  # m/s
+    p_rdk: np.ndarray  # controller TCP, robot frame
+    p_lt: np.ndarray  # tracker frame
+    p_mvs: np.ndarray  # MVS frame
+    t: np.ndarray
+    q: np.ndarray
+    temperature: np.ndarray
+    payload: np.ndarray
+    truth_lt: np.ndarray | None = None  # noise-free truth in the tracker frame (simulation only)
+    axis: np.ndarray | None = None
+    distance: np.ndarray | None = None
+    refusals: list[str] = field(default_factory=list)
+
+    @property
+    def n(self) -> int:
+        return len(self.point_id)
