@@ -1,4 +1,5 @@
-"""The robot's nominal kinematic model on the twin side: forward kinematics and Jacobians.
+"""The robot's nominal kinematic model on the twin side: forward kinematics, Jacobians and the
+inverse kinematics of a position (the joint angles a deployed twin's joint-space effects read).
 
 Read from a URDF (our simulated cobot ships one) or a DH table in config (the UR10's ships
 in configs/robots/ur10.yaml). Vectorised numpy: the effect regressors of the hybrid model need
@@ -16,7 +17,7 @@ from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from dt_kernel.config import Frozen, load_yaml
-from dt_kernel.errors import ConfigError
+from dt_kernel.errors import ConfigError, DataError, UnreachableError
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,40 @@ class Chain:
         pos, rot, T = self.frames(q)
         p = T[:, None, :3, 3]
         return np.cross(self.world_axes(rot), p - pos).transpose(0, 2, 1)
+
+    def pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """TCP position (3,) and orientation (3, 3) for one joint vector."""
+        T = self.frames(np.asarray(q, dtype=float)[None, :])[2][0]
+        return T[:3, 3], T[:3, :3]
+
+    def ik(self, target: np.ndarray, q_seed: np.ndarray, R: np.ndarray | None = None,
+           tol: float = 1e-9, max_iter: int = 50) -> np.ndarray:
+        """Joint angles putting the TCP at `target` (m) with orientation R (default: the TCP's
+        at q_seed: a linear move keeps the tool's orientation). Gauss-Newton on the 6-D pose
+        error with the geometric Jacobian (rows: axis_j x (p - p_j); axis_j), from q_seed, so the
+        solution stays on the seed's branch. UnreachableError if it does not converge."""
+        target = np.asarray(target, dtype=float)
+        q = np.array(q_seed, dtype=float)
+        finite = bool(np.all(np.isfinite(target)) and np.all(np.isfinite(q)))
+        if target.shape != (3,) or q.shape != (self.dof,) or not finite:
+            raise DataError(f"ik: target must be 3 finite numbers and q_seed {self.dof}, got {target!r}, {q!r}")
+        Rt = self.pose(q)[1] if R is None else np.asarray(R, dtype=float)
+        for _ in range(max_iter):
+            pos, rot, T = self.frames(q[None, :])
+            p, Rq = T[0, :3, 3], T[0, :3, :3]
+            err = np.concatenate([target - p, Rotation.from_matrix(Rt @ Rq.T).as_rotvec()])
+            if np.linalg.norm(err[:3]) < tol and np.linalg.norm(err[3:]) < tol:
+                return q
+            ax = self.world_axes(rot)[0]  # (dof, 3)
+            J = np.vstack([np.cross(ax, p - pos[0]).T, ax.T])
+            q = q + np.linalg.lstsq(J, err, rcond=None)[0]
+        p, Rq = self.pose(q)
+        res = float(np.linalg.norm(target - p))
+        rres = float(np.linalg.norm(Rotation.from_matrix(Rt @ Rq.T).as_rotvec()))
+        if res > 1e-6 or rres > 1e-5:
+            raise UnreachableError(f"target {np.round(target * 1e3, 2).tolist()} mm: no joint angles of {self.name} "
+                                   f"reach it from the seed (residual {res * 1e3:.3g} mm, {rres:.3g} rad)")
+        return q
 
 
 def _rot_axis(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
