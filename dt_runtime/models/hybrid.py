@@ -17,7 +17,7 @@ returns self, learned attributes end in `_`.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -75,7 +75,10 @@ def resolve_chain(robot: str | Path | Chain | None) -> Chain | None:
     """The kinematic chain a model's `robot` parameter gives: a config path or a Chain."""
     if robot is None or isinstance(robot, Chain):
         return robot
-    return load_chain(robot_ref(robot))
+    ref = robot_ref(robot)
+    if not (Path(ref) if Path(ref).is_absolute() else CONFIGS / ref).is_file():  # the cache must not hide it
+        raise ModelError(f"robot config {robot}: no such file")
+    return load_chain(ref)
 
 
 @dataclass(frozen=True)
@@ -130,6 +133,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         fit/predict, so held-out rows keep their true history."""
         inp = as_inputs(X)
         fx.check_names(self.effects)
+        if inp.t_origin is None and getattr(self, "t_origin_", None) is not None:
+            inp = replace(inp, t_origin=self.t_origin_)
         chain = resolve_chain(self.robot)
         blocks = [fx.build(e, inp, chain) for e in self.effects]
         if not blocks:
@@ -151,6 +156,10 @@ class HybridModel(RegressorMixin, BaseEstimator):
         error = np.asarray(y, dtype=float)
         if error.shape != (inp.n, 3) or not np.all(np.isfinite(error)):
             raise DataError(f"error must be a finite (n, 3) array matching {inp.n} rows")
+        # The drift term's time origin: the first training row's time, kept for prediction on
+        # later data (a deployed twin reads the time in the campaign's time base).
+        self.t_origin_ = inp.t_origin if inp.t_origin is not None else (
+            float(inp.t[0]) if inp.t is not None and inp.n else None)
         D = design if design is not None else self.design_matrix(inp)
         if D.A.shape[0] != inp.n:
             raise DataError(f"design has {D.A.shape[0]} rows, X has {inp.n}")
@@ -173,10 +182,12 @@ class HybridModel(RegressorMixin, BaseEstimator):
             dof = max(len(y) - p, 1)
             s2 = float(resid @ resid) / dof
             cov_s = s2 * Hinv @ (As.T @ As) @ Hinv  # sandwich: covariance of the ridge estimate
-            self.theta_u_ = np.sqrt(np.clip(np.diag(cov_s), 0, None)) / scale
+            self.theta_cov_ = cov_s / np.outer(scale, scale)
+            self.theta_u_ = np.sqrt(np.clip(np.diag(self.theta_cov_), 0, None))
         else:
             self.theta_ = np.zeros(0)
             self.theta_u_ = np.zeros(0)
+            self.theta_cov_ = np.zeros((0, 0))
         resid = (y - A @ self.theta_).reshape(-1, 3)
         Xg = gp_features(inp, self.gp_inputs)
         self.gp_ = (MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=thetas)
@@ -189,22 +200,42 @@ class HybridModel(RegressorMixin, BaseEstimator):
         return self
 
     def predict(self, X, return_std: bool = False, *, design: Design | None = None):
-        """Predicted error (n, 3) m and, with return_std, the GP's latent standard deviation
-        (zero without a GP: the effect parameters' uncertainty is not propagated)."""
-        if not hasattr(self, "theta_"):
-            raise ModelError("HybridModel is not fitted; call fit(X, y) or HybridModel.load first")
+        """Predicted error (n, 3) m and, with return_std, its standard uncertainty per axis: the
+        GP's latent standard deviation and the effect parameters' covariance propagated through
+        their regressors (u^2 = s_GP^2 + a Sigma_theta a^T for each row's axis regressors a)."""
+        self._check_fitted()
         inp = as_inputs(X)
-        A = (design if design is not None else self.design_matrix(inp)).A.reshape(inp.n * 3, -1)
-        mean = (A @ self.theta_).reshape(-1, 3) if A.shape[1] else np.zeros((inp.n, 3))
-        std = np.zeros((inp.n, 3))
+        D = design if design is not None else self.design_matrix(inp)
+        A = D.A
+        mean = np.einsum("nap,p->na", A, self.theta_) if A.shape[2] else np.zeros((inp.n, 3))
+        var = np.einsum("nap,pq,naq->na", A, self.theta_cov_, A) if A.shape[2] and return_std else np.zeros((inp.n, 3))
         if self.gp_ is not None:
             Xg = gp_features(inp, self.gp_inputs)
             if return_std:
                 m, s = self.gp_.predict(Xg, return_std=True)
-                mean, std = mean + m, s
+                mean, var = mean + m, var + s ** 2
             else:
                 mean = mean + self.gp_.predict(Xg)
-        return (mean, std) if return_std else mean
+        return (mean, np.sqrt(np.maximum(var, 0.0))) if return_std else mean
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "theta_"):
+            raise ModelError("HybridModel is not fitted; call fit(X, y) or HybridModel.load first")
+
+    def needs(self) -> tuple[str, ...]:
+        """The input columns (effects.Inputs fields) a prediction reads beside the commanded TCP."""
+        cols = {c for e in self.effects for c in fx.get(e).columns}
+        cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(self.gp_inputs, set())
+        return tuple(c for c in ("joints", "speed", "temperature", "payload", "t") if c in cols)
+
+    def chain(self) -> Chain | None:
+        """The robot's nominal kinematic chain (None when the model was given none)."""
+        return resolve_chain(self.robot)
+
+    def predictor(self) -> MapPredictor:
+        """The lean per-command predictor (what the twin calls on every command)."""
+        self._check_fitted()
+        return MapPredictor(self)
 
     def parameters(self) -> list[dict]:
         """Estimated effect parameters with standard uncertainty, in physical units."""
@@ -237,8 +268,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
     def save(self, directory: str | Path, provenance: Provenance | None = None) -> Path:
         """Write hybrid.json (with the traceability record `provenance`, default
         `self.provenance()`), hybrid.npz and the GP."""
-        if not hasattr(self, "theta_"):
-            raise ModelError("HybridModel is not fitted; nothing to save")
+        self._check_fitted()
         if isinstance(self.robot, Chain) and any(fx.get(e).needs_chain for e in self.effects):
             raise ModelError("a model given its kinematic chain as an object cannot be saved; "
                              "give robot as the path of a robot config")
@@ -248,13 +278,28 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
                 "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
                 "param_names": self.param_names_, "parameters": self.parameters(),
-                "residual_rms_m": self.residual_rms_, "units": "SI; e = commanded - measured",
+                "residual_rms_m": self.residual_rms_, "t_origin_s": self.t_origin_,
+                "units": "SI; e = commanded - measured",
                 "provenance": (provenance or self.provenance()).to_dict()}
         (d / "hybrid.json").write_text(json.dumps(meta, indent=2))
-        np.savez(d / "hybrid.npz", theta=self.theta_, theta_u=self.theta_u_)
+        np.savez(d / "hybrid.npz", theta=self.theta_, theta_u=self.theta_u_, theta_cov=self.theta_cov_)
         if self.gp_ is not None:
             self.gp_.save(d / "gp")
         return d
+
+    @classmethod
+    def of_gp(cls, gp: MultiOutputGP, robot: str | Path | None = None) -> HybridModel:
+        """The paper's map as a fitted hybrid model: no effect terms, a fitted GP(TCP, v)."""
+        if getattr(gp, "n_features_in_", None) != 4:
+            raise ModelError("HybridModel.of_gp: the GP must be fitted on (x, y, z, v)")
+        params = gp.get_params()
+        options = GPOptions.from_dict({k: params[k] for k in GPOptions.__dataclass_fields__ if k in params})
+        m = cls((), "tcp_speed", DEFAULT_RIDGE, params.get("seed", 0), robot=robot, gp_options=options)
+        m.robot_, m.gp_options_, m.gp_ = robot_ref(robot), options, gp
+        m.theta_, m.theta_u_, m.theta_cov_ = np.zeros(0), np.zeros(0), np.zeros((0, 0))
+        m.param_names_, m.t_origin_, m.residual_rms_ = [], None, float("nan")
+        m.provenance_ = None
+        return m
 
     @classmethod
     def load(cls, directory: str | Path) -> HybridModel:
@@ -268,6 +313,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
         arr = np.load(d / "hybrid.npz", allow_pickle=False)
         m.robot_, m.gp_options_ = ref, options
         m.theta_, m.theta_u_ = arr["theta"], arr["theta_u"]
+        # Models saved before the full covariance carry the standard uncertainties only.
+        m.theta_cov_ = arr["theta_cov"] if "theta_cov" in arr.files else np.diag(m.theta_u_ ** 2)
+        m.t_origin_ = meta.get("t_origin_s")
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
         m.residual_rms_ = meta["residual_rms_m"]
         m.gp_ = MultiOutputGP.load(d / "gp") if meta["gp_inputs"] != "none" else None
@@ -277,3 +325,46 @@ class HybridModel(RegressorMixin, BaseEstimator):
         except DataError as exc:
             raise ModelError(f"{d / 'hybrid.json'}: {exc}") from exc
         return m
+
+
+def load_map(path: str | Path) -> HybridModel:
+    """An error map as a HybridModel, from any of the places one is saved: a `dt fit` model
+    directory, a twin's map directory (TWIN/e_lt), a twin directory (its e_LT map), or a
+    GP-only map of a twin saved before format 2 (TWIN/e_lt.json + .npz)."""
+    p = Path(path)
+    if (p / "twin.json").is_file():  # a twin: its e_LT map
+        p = p / "e_lt"
+    if not (p / "hybrid.json").is_file() and p.with_suffix(".json").is_file():
+        return HybridModel.of_gp(MultiOutputGP.load(p))
+    return HybridModel.load(p)  # a ModelError names what is missing
+
+
+class MapPredictor:
+    """Per-command prediction of a fitted HybridModel: mean and standard uncertainty (3,) at the
+    last row of a few rows of inputs (the earlier rows are its history: the direction of
+    approach). A map without effect terms on the paper's inputs goes straight to the GP's lean
+    predictor (`gp_only`)."""
+
+    def __init__(self, model: HybridModel):
+        self.model = model
+        self.needs = model.needs()
+        self._gp = model.gp_.predictor() if model.gp_ is not None else None
+        # The paper's map: GP(TCP, v) only; one call of the GP's lean predictor per command.
+        self.plain = not model.effects and model.gp_inputs == "tcp_speed"
+
+    def gp_only(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The plain map at x = (x, y, z, v) (m, m/s)."""
+        assert self._gp is not None and self.plain
+        return self._gp(x)
+
+    def __call__(self, inp: fx.Inputs) -> tuple[np.ndarray, np.ndarray]:
+        m = self.model
+        A = m.design_matrix(inp).A[-1] if m.effects else np.zeros((3, 0))
+        mean = A @ m.theta_ if A.shape[1] else np.zeros(3)
+        var = np.einsum("ap,pq,aq->a", A, m.theta_cov_, A) if A.shape[1] else np.zeros(3)
+        if self._gp is not None:
+            xg = gp_features(inp, m.gp_inputs)
+            assert xg is not None
+            g, s = self._gp(xg[-1])
+            mean, var = mean + g, var + s ** 2
+        return mean, np.sqrt(np.maximum(var, 0.0))

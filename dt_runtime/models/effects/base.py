@@ -27,6 +27,9 @@ class Inputs:
     temperature: np.ndarray | None = None  # (n,) deg C
     payload: np.ndarray | None = None  # (n,) kg
     t: np.ndarray | None = None  # (n,) s
+    # The time origin of the drift term (s): a fitted model's first training row, so that
+    # predictions on later rows continue its clock; None: the first row's t.
+    t_origin: float | None = None
 
     @property
     def n(self) -> int:
@@ -35,10 +38,11 @@ class Inputs:
     @classmethod
     def of(cls, ds) -> Inputs:
         """The columns of a `dt_runtime.measurements.dataset.Dataset` the effect terms may use."""
-        return cls(**{f.name: getattr(ds, f.name) for f in fields(cls)})
+        return cls(**{f.name: getattr(ds, f.name) for f in fields(cls) if f.name != "t_origin"})
 
     def subset(self, mask) -> Inputs:
-        return replace(self, **{f.name: v[mask] for f in fields(self) if (v := getattr(self, f.name)) is not None})
+        return replace(self, **{f.name: v[mask] for f in fields(self)
+                                if isinstance(v := getattr(self, f.name), np.ndarray)})
 
     def has(self, *columns: str) -> bool:
         return all(getattr(self, c) is not None for c in columns)

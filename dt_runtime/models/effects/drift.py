@@ -8,7 +8,7 @@ S_PER_H = 3600.0
 
 
 class Drift(Effect):
-    """Slow joint drift: dq_j = r_j t, t in hours from the first row."""
+    """Slow joint drift: dq_j = r_j t, t in hours from the first row (or `Inputs.t_origin`)."""
 
     name = "drift"
     columns = ("joints", "t")
@@ -16,6 +16,8 @@ class Drift(Effect):
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
         J = chain.jacobian(inp.column("joints"))
-        h = (inp.column("t") - inp.column("t")[0])[:, None, None] / S_PER_H
+        t = inp.column("t")
+        t0 = inp.t_origin if inp.t_origin is not None else t[0]
+        h = (t - t0)[:, None, None] / S_PER_H
         dof = J.shape[2]
         return Block(self.name, -J * h, tuple(f"rate_q{j + 1}" for j in range(dof)), ("rad/h",) * dof)
