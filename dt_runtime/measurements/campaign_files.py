@@ -1,0 +1,184 @@
+"""A calibration campaign's phase files: what `dt demo` writes from its simulated campaign and
+`dt calibrate` reads (docs/campaign-files.md, the user's description of the same format).
+
+One CSV per phase (UTF-8, comma, header row, one row per positioning, in time order). Columns
+(mm, mm/s, rad, deg C, kg, s; an empty cell of a measurement is NaN: the instrument refused):
+
+| column | required | meaning |
+|---|---|---|
+| `point_id`, `rep` | no (row number, 0) | target point and replication |
+| `axis`, `distance` | registration only | three-line registration: line (x, y, z) and distance along it (mm) |
+| `tx, ty, tz` | no (= x, y, z) | the commanded target, robot frame |
+| `x, y, z` | yes | the controller's commanded TCP, robot frame |
+| `speed` | yes | commanded linear speed (> 0) |
+| `q1..qN` | no | the controller's joint angles (rad) |
+| `temperature`, `payload`, `t` | no | cell temperature, carried mass (>= 0), time of the measurement |
+| `lt_x, lt_y, lt_z` | yes | laser tracker point, tracker frame |
+| `mvs_x, mvs_y, mvs_z` | no | camera-system point, MVS frame |
+| `truth_lt_x, ..._z` | no | simulation only: the noise-free truth in the tracker frame (for scoring) |
+
+Plausibility checks catch the usual unit slips (a DataError names file, column, value and what
+is expected): positions in metres (the largest |x|, |y|, |z| of a file below 10 mm), joint
+angles in degrees (beyond 2 pi), speed <= 0, payload < 0; `check_robot` catches files of another
+robot than the robot config (the joint angles' forward kinematics must give x, y, z).
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from dt_kernel.errors import DataError
+from dt_kernel.units import AXES, M_PER_MM, MM_PER_M
+from dt_runtime.frames.kinematics import Chain
+from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header
+from dt_runtime.measurements.phase import PhaseData
+
+MIN_SPAN_MM = 10.0  # a robot campaign spans more than this: smaller positions are metres
+MAX_ROWS = 2_000_000
+
+_XYZ = ("x", "y", "z")
+_GROUPS = {"target": "t", "lt": "lt_", "mvs": "mvs_", "truth_lt": "truth_lt_"}
+
+
+def _cols(prefix: str) -> list[str]:
+    return [f"{prefix}{a}" for a in AXES]
+
+
+def _fmt(v: float) -> str:
+    return "" if not np.isfinite(v) else repr(float(v))
+
+
+def write_phase(path: str | Path, data: PhaseData) -> Path:
+    """Write one phase (positions in mm), atomically: a crash leaves no half-written file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    nq = data.q.shape[1] if np.ndim(data.q) == 2 else 0
+    header = (["point_id", "rep", "axis", "distance", *_cols("t"), *_XYZ, "speed", *[f"q{j + 1}" for j in range(nq)],
+               "temperature", "payload", "t", *_cols("lt_"), *_cols("mvs_")]
+              + (_cols("truth_lt_") if data.truth_lt is not None else []))
+    axis = data.axis if data.axis is not None else np.full(data.n, None, dtype=object)
+    dist = data.distance if data.distance is not None else np.full(data.n, np.nan)
+    tmp = path.with_suffix(path.suffix + ".part")
+    with tmp.open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for i in range(data.n):
+            row = [str(data.point_id[i]), str(data.rep[i]), axis[i] if axis[i] in AXES else "",
+                   _fmt(dist[i] * MM_PER_M)]
+            row += [_fmt(v * MM_PER_M) for v in data.target[i]] + [_fmt(v * MM_PER_M) for v in data.p_rdk[i]]
+            row += [_fmt(data.speed[i] * MM_PER_M)] + [_fmt(v) for v in (data.q[i] if nq else [])]
+            row += [_fmt(data.temperature[i]), _fmt(data.payload[i]), _fmt(data.t[i])]
+            row += [_fmt(v * MM_PER_M) for v in data.p_lt[i]] + [_fmt(v * MM_PER_M) for v in data.p_mvs[i]]
+            if data.truth_lt is not None:
+                row += [_fmt(v * MM_PER_M) for v in data.truth_lt[i]]
+            w.writerow(row)
+    tmp.replace(path)
+    return path
+
+
+def read_phase(path: str | Path, phase: str, registration: bool = False) -> PhaseData:
+    """Read one phase file (SI inside); DataError naming file, line, column and value."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such campaign file")
+    header = read_header(path, ",")
+    mm = M_PER_MM
+    specs = [ColumnSpec(a, a, scale=mm) for a in _XYZ] + [ColumnSpec("speed", "speed", scale=mm)]
+    specs += [ColumnSpec(c, c, scale=mm, required=False) for c in _cols("lt_")]
+    present = set(header)
+    optional_xyz = [c for p in ("t", "mvs_", "truth_lt_") for c in _cols(p) if c in present]
+    specs += [ColumnSpec(c, c, scale=mm, required=False) for c in optional_xyz]
+    qcols = [f"q{j}" for j in range(1, 13) if f"q{j}" in present]
+    scalars = [c for c in ("temperature", "payload", "t") if c in present]
+    specs += [ColumnSpec(c, c, required=False) for c in qcols + scalars]
+    if "point_id" in present:
+        specs.append(ColumnSpec("point_id", "point_id", kind="str"))
+    if "rep" in present:
+        specs.append(ColumnSpec("rep", "rep", kind="int"))
+    if registration:
+        missing = [c for c in ("axis", "distance") if c not in present]
+        if missing:
+            raise DataError(f"{path}: line 1: a registration file needs the column(s) {missing} (three-line "
+                            f"method: the line x, y or z and the distance along it in mm); header has {header}")
+        specs += [ColumnSpec("axis", "axis", kind="str"), ColumnSpec("distance", "distance", scale=mm)]
+
+    def fail(column: str, why: str) -> None:
+        err = CellError(why)
+        err.column = column  # type: ignore[attr-defined]
+        raise err
+
+    def check(row: dict) -> None:
+        if not row["speed"] > 0:
+            fail("speed", "speed must be > 0 mm/s")
+        if "payload" in row and row["payload"] < 0:
+            fail("payload", "payload must be >= 0 kg")
+        if registration and row["axis"] not in AXES:
+            fail("axis", f"registration axis must be one of {', '.join(AXES)}")
+        for q in qcols:
+            if abs(row[q]) > 2 * np.pi + 0.01:
+                fail(q, "joint angles are in rad; this looks like degrees")
+
+    vals, lines, _, _ = parse_rows(path, ",", ".", specs, row_check=check)
+    n = len(lines)
+    if n == 0:
+        raise DataError(f"{path}: no rows")
+    if n > MAX_ROWS:
+        raise DataError(f"{path}: {n} rows, more than the {MAX_ROWS} a campaign file may hold")
+
+    def xyz(prefix: str) -> np.ndarray:
+        cols = _XYZ if prefix == "" else _cols(prefix)
+        if cols[0] not in vals:
+            return np.full((n, 3), np.nan)
+        return np.column_stack([np.asarray(vals[c], dtype=float) for c in cols])
+
+    def scalar(c: str) -> np.ndarray:
+        return np.asarray(vals[c], dtype=float) if c in vals else np.full(n, np.nan)
+
+    p_rdk = xyz("")
+    target = xyz("t") if "tx" in vals else p_rdk.copy()
+    _check_units(path, {"x, y, z": p_rdk, "tx, ty, tz": target, "lt_x, lt_y, lt_z": xyz("lt_"),
+                        "mvs_x, mvs_y, mvs_z": xyz("mvs_")})
+    return PhaseData(
+        phase=phase,
+        point_id=np.array(vals["point_id"]) if "point_id" in vals else np.arange(1, n + 1),
+        rep=np.asarray(vals["rep"]) if "rep" in vals else np.zeros(n, dtype=int),
+        target=target, speed=np.asarray(vals["speed"], dtype=float), p_rdk=p_rdk, p_lt=xyz("lt_"),
+        p_mvs=xyz("mvs_"), t=scalar("t"),
+        q=np.column_stack([np.asarray(vals[q], dtype=float) for q in qcols]) if qcols else np.full((n, 0), np.nan),
+        temperature=scalar("temperature"), payload=scalar("payload"),
+        truth_lt=xyz("truth_lt_") if "truth_lt_x" in vals else None,
+        axis=np.array(vals["axis"], dtype=object) if registration else None,
+        distance=np.asarray(vals["distance"], dtype=float) if registration else None)
+
+
+def _check_units(path: Path, groups: dict[str, np.ndarray]) -> None:
+    """Positions in metres in a mm file: a robot campaign spans more than MIN_SPAN_MM."""
+    for name, P in groups.items():
+        ok = P[np.all(np.isfinite(P), axis=1)]
+        if len(ok) and np.max(np.abs(ok)) * MM_PER_M < MIN_SPAN_MM:
+            raise DataError(f"{path}: columns {name}: largest |value| {np.max(np.abs(ok)) * MM_PER_M:.4g} mm; "
+                            f"this looks like metres (campaign files hold positions in mm)")
+
+
+def check_robot(data: PhaseData, chain: Chain, where: str, tol_m: float = 1e-3) -> None:
+    """The joint angles' forward kinematics (robot config `chain`) must reproduce the commanded
+    TCP: DataError if the median distance exceeds tol_m (files of another robot, or joints in
+    other units or order)."""
+    q = np.asarray(data.q, dtype=float)
+    if q.ndim != 2 or q.shape[1] == 0:
+        return
+    ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(data.p_rdk), axis=1)
+    if not ok.any():
+        return
+    if q.shape[1] != chain.dof:
+        raise DataError(f"{where}: {q.shape[1]} joint angle columns, the robot config {chain.name} has "
+                        f"{chain.dof} joints: files of another robot?")
+    d = np.linalg.norm(chain.fk(q[ok]) - data.p_rdk[ok], axis=1)
+    med = float(np.median(d))
+    if med > tol_m:
+        raise DataError(f"{where}: the joint angles do not match the robot config {chain.name}: their forward "
+                        f"kinematics differs from the commanded TCP (x, y, z) by {med * MM_PER_M:.3g} mm (median "
+                        f"over {int(ok.sum())} rows, tolerance {tol_m * MM_PER_M:g} mm): files of another robot, or "
+                        "joint angles in other units or order")
