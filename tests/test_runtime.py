@@ -224,8 +224,8 @@ def test_a_twin_of_another_format_version_is_refused(twin_dir, tmp_path):
     d = tmp_path / "model"
     shutil.copytree(twin_dir, d)
     p = d / "twin.json"
-    p.write_text(p.read_text().replace('"format_version": 1', '"format_version": 7'))
-    with pytest.raises(ModelError, match="format_version 7, this version reads 1"):
+    p.write_text(p.read_text().replace('"format_version": 2', '"format_version": 7'))
+    with pytest.raises(ModelError, match="format_version 7, this version reads 1, 2"):
         Twin.load(d)
     with pytest.raises(ModelError, match="not a twin directory"):
         Twin.load(tmp_path)

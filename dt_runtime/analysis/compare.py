@@ -32,7 +32,7 @@ from dt_runtime.common.progress import Progress
 from dt_runtime.measurements.dataset import Dataset, read_table
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
-from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.models.hybrid import HybridModel, load_map
 
 AS_IS = "as is"
 P95 = 0.95
@@ -61,9 +61,9 @@ def load_models(models: Sequence, names: Sequence[str] | None = None) -> list[tu
         else:
             p = Path(m)
             if not p.is_dir():
-                raise ModelError(f"{p}: no such model directory (expected the output of `dt fit`)")
+                raise ModelError(f"{p}: no such model directory (expected the output of `dt fit`, or a twin)")
             try:
-                m = HybridModel.load(p)
+                m = load_map(p)
             except ModelError:
                 raise
             except (OSError, KeyError, ValueError, DataError) as exc:  # a damaged save: name it, not numpy

@@ -25,7 +25,7 @@ from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
-from dt_runtime.models.hybrid import DEFAULT_RIDGE, HybridModel, resolve_chain
+from dt_runtime.models.hybrid import DEFAULT_RIDGE, HybridModel, load_map, resolve_chain
 
 ALPHA = 0.01
 # What the residual follows when the GP's inputs are the wrong ones (an effect's own factor is
@@ -137,7 +137,7 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
     ds = d.dataset
     ridge = DEFAULT_RIDGE
     if model is not None:
-        m = model if isinstance(model, HybridModel) else HybridModel.load(model)
+        m = model if isinstance(model, HybridModel) else load_map(model)
         effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
     prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs, [model] if model is not None else [])
     r = rank_effects(fx.Inputs.of(ds), ds.error, groups_of(ds), resolve_chain(robot), tuple(effects), gp_inputs,

@@ -14,13 +14,14 @@ import sys
 from types import ModuleType
 
 from dt_kernel.errors import TwinError
-from dt_runtime.cli import compare, correct, demo, diagnose, export, fit, run, simulate, status
+from dt_runtime.cli import calibrate, compare, correct, demo, diagnose, export, fit, run, simulate, status
 from dt_runtime.common.jsonsafe import dumps, jsonable
 from dt_runtime.common.threads import limit_blas_threads
 from dt_runtime.common.version import version_string
 
 COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line help); the module's docstring describes it
     "demo": (demo, "the paper's whole experiment on the simulated cell"),
+    "calibrate": (calibrate, "a twin from a campaign's measurement files"),
     "run": (run, "the long-running twin daemon"),
     "simulate": (simulate, "measurement data from the simulated cell"),
     "fit": (fit, "train an error model (effect terms + GP)"),

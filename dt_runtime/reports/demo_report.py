@@ -303,16 +303,18 @@ def demo_sections(result) -> list[Section]:
             for title, anchor, blocks in plan]
 
 
-def build_demo_report(result) -> str:
+def build_demo_report(result, title: str = "Traceable digital twin of the cobot: demo report") -> str:
     s = getattr(result, "summary", None) or {}
-    sub = (f"Scenario {s.get('scenario', '?')}, seed {s.get('seed', '?')}"
-           + (", quick plan" if s.get("quick") else "") + ". " + str(s.get("units", "Units: mm.")))
-    return html_page("Traceable digital twin of the cobot: demo report", demo_sections(result), subtitle=sub)
+    origin = (f"Campaign {s['campaign']}" if "scenario" not in s and s.get("campaign")
+              else f"Scenario {s.get('scenario', '?')}, seed {s.get('seed', '?')}")
+    sub = origin + (", quick plan" if s.get("quick") else "") + ". " + str(s.get("units", "Units: mm."))
+    return html_page(title, demo_sections(result), subtitle=sub)
 
 
-def write_demo_report(result, path) -> Path:
-    """Write the self-contained HTML report of a `DemoResult` to `path` and return the path."""
+def write_demo_report(result, path, title: str | None = None) -> Path:
+    """Write the self-contained HTML report of a `DemoResult` (or of a calibration: its summary
+    and arrays, the truth-based blocks then say they are not available) to `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(build_demo_report(result), encoding="utf-8")
+    path.write_text(build_demo_report(result, *(() if title is None else (title,))), encoding="utf-8")
     return path

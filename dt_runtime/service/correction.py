@@ -16,8 +16,9 @@ import numpy as np
 from pydantic import Field
 
 from dt_kernel.config import Frozen
-from dt_kernel.errors import TwinError
+from dt_kernel.errors import DataError, TwinError, UnreachableError
 from dt_runtime.metrology import uncertainty as unc
+from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.twin import Twin
 
 
@@ -58,7 +59,9 @@ class Corrector:
         b = twin.uncertainty.tcp_c  # Eq. 11
         self._u, self._U = b.u, b.U
 
-    def __call__(self, target: np.ndarray, speed: float) -> Corrected:
+    def __call__(self, target: np.ndarray, speed: float, cond: Conditions | None = None) -> Corrected:
+        """The bounded correction of `target` at `speed` under the cell's conditions `cond` (what
+        the twin's maps read beside the command: `Twin.needs`); CorrectionFault if refused."""
         target = np.asarray(target, dtype=float)
         if target.shape != (3,) or not np.all(np.isfinite(target)):
             raise CorrectionFault(f"target {target!r} is not a finite 3-vector")
@@ -67,7 +70,10 @@ class Corrector:
         if np.any(target < self._lo) or np.any(target > self._hi):
             raise CorrectionFault(f"target {np.round(target * 1e3, 1).tolist()} mm outside the workspace "
                                   f"{(self._lo * 1e3).tolist()} .. {(self._hi * 1e3).tolist()} mm")
-        res = self.twin.correct(target, speed)
+        try:
+            res = self.twin.correct(target, speed, cond)
+        except (DataError, UnreachableError) as exc:  # a condition missing, no IK, a NaN map
+            raise CorrectionFault(f"no correction for target {np.round(target * 1e3, 1).tolist()} mm: {exc}") from exc
         c = res.command
         corr = c - target
         if not np.all(np.isfinite(corr)) or not np.all(np.isfinite(res.U)):
@@ -113,14 +119,17 @@ class Monitor:
         self._u14, self._u16 = b14.u, b16.u
         self._d14, self._d16 = b14.dof, b16.dof
 
-    def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray) -> Check:
+    def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray, cond: Conditions | None = None) -> Check:
         p_mvs = np.asarray(p_mvs, dtype=float)
         if p_mvs.shape != (3,) or not np.all(np.isfinite(p_mvs)):
             raise CorrectionFault(f"MVS point {p_mvs!r} is not a finite 3-vector")
         tw = self.twin
         cmd_gl = tw.T_rdk.apply(command)
         e_mvs = cmd_gl - tw.T_mvs.apply(p_mvs)
-        e_lt_hat = tw.T_rdk.R @ tw.e_lt_hat(command, speed)[0]  # back to GL axes
-        pred = tw.e_mvs_lt_hat(command, speed)[0]
+        try:
+            e_lt_hat = tw.T_rdk.R @ tw.e_lt_hat(command, speed, cond)[0]  # back to GL axes
+            pred = tw.e_mvs_lt_hat(command, speed, cond)[0]
+        except (DataError, UnreachableError) as exc:
+            raise CorrectionFault(f"no prediction at command {np.round(command * 1e3, 1).tolist()} mm: {exc}") from exc
         tt = unc.t_test(e_lt_hat - e_mvs, pred, self._u14, self._u16, self._d14, self._d16, self.alpha)
         return Check(tt.t[0], tt.p_value[0], bool(tt.passed_all[0]), e_lt_hat - e_mvs, pred)

@@ -1,6 +1,9 @@
 """`dt run`: the long-running twin daemon.
 
-Every tick: take the next target, apply the bounded GPR correction (service.correction),
+Every tick: take the next target, apply the bounded correction with the twin's maps
+(service.correction) under the cell's conditions when the maps read them (joint angles from the
+controller, temperature and payload from the program's columns or the simulated cell's sensors,
+the clock: `twin.conditions`),
 move the robot, read the MVS, test the measurement against the prediction (Eq. 17), feed the
 escalation state machine, log everything to the durable store (typed rows, `service.rows`, on
 the Store's one lock-free queue: the loop never waits on SQLite) and publish over Zenoh.
@@ -16,6 +19,7 @@ runs as fast as it can on the simulated clock (soaks and tests).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import signal
 import threading
@@ -35,7 +39,9 @@ from dt_runtime.service.escalation import EscalationConfig, Escalator
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.twin.campaign import Instruments
+from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.program import read_program
+from dt_runtime.twin.simulate import load_scenario_file
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
@@ -93,7 +99,7 @@ class Drivers(Frozen):
 
 
 class RuntimeConfig(Frozen):
-    twin: str  # a twin directory written by `dt demo` (DIR/model)
+    twin: str  # a twin directory written by `dt demo` (DIR/model) or `dt calibrate`
     store: str = "out/run/dt.sqlite"
     rate_hz: float = Field(10.0, gt=0, le=2000)
     realtime: bool = True
@@ -122,6 +128,7 @@ class Daemon:
                               "with the instruments (and frames) it was calibrated with")
         # Read before anything is opened: a bad program stops the start with nothing to close.
         self._program = read_program(self._p(cfg.path.program)) if cfg.path.program else None
+        self._check_condition_sources()
         self._step = 0  # the next program target
         self.corrector = Corrector(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
@@ -131,8 +138,9 @@ class Daemon:
         self.bus = Bus(cfg.bus, self.store, on_ack=self._on_ack) if cfg.publish else None
         # The cell's program may ask for corrections on `.../correct` (its own Corrector: the
         # step bound follows the program's sequence of requests, not the daemon's path).
-        self.correct_server = (CorrectionServer(Corrector(self.twin, cfg.limits), cfg.bus, self.bus.session)
-                               if self.bus else None)
+        self._cond: Conditions | None = None  # the cell's latest conditions (the correct service reads them)
+        self.correct_server = (CorrectionServer(Corrector(self.twin, cfg.limits), cfg.bus, self.bus.session,
+                                                conditions=lambda: self._cond) if self.bus else None)
         self.world = world if world is not None else self._make_world()
         self.inst = self._make_instruments()
         self.escalator = Escalator(cfg.escalation, on_transition=self._on_transition)
@@ -148,8 +156,29 @@ class Daemon:
         self._ack_requested = threading.Event()
         self._ack_note = ""
         self.ticks = self.failures = self.faults_refused = 0
+        self._true_sq: list[float] = []  # squared 3D true error of each command (simulation only)
         self.requests: list[dict] = []
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
+
+    def _check_condition_sources(self) -> None:
+        """Every condition the twin's maps read must have a source, or the start fails (not every
+        command later): joint angles from the controller, the clock always; temperature and
+        payload from the program's columns or the simulated cell (a real cell's sensor driver:
+        not yet available)."""
+        sim = any(registry.needs_world(k, n) for k, n, _ in self.cfg.drivers.chosen())
+        for need in self.twin.needs:
+            if need in ("temperature", "payload") and not sim and getattr(self._program, need, None) is None:
+                raise ConfigError(str(self._p(self.cfg.twin) / "twin.json"), "e_lt effects", need,
+                                  f"a source of {need}: a program (path.kind program) with a {need} column, or "
+                                  "the simulated cell's drivers")
+
+    def _conditions(self, step: int | None) -> Conditions | None:
+        """The conditions of the next command, when the twin's maps read any (else None: the
+        paper's map needs none and the loop reads nothing more)."""
+        if not self.twin.needs:
+            return None
+        base = dataclasses.replace(self.inst.conditions(), t=self._now())
+        return self._program.conditions(step, base) if (self._program is not None and step is not None) else base
 
     def _p(self, rel: str) -> Path:
         p = Path(rel)
@@ -160,7 +189,8 @@ class Daemon:
             return None
         from drivers.simulated.devices import SimWorld
 
-        return SimWorld(self._p(self.cfg.sim.scenario), self._p(self.cfg.sim.cell))
+        scenario, _ = load_scenario_file(self._p(self.cfg.sim.scenario))  # without dt simulate's `data:` block
+        return SimWorld(scenario, self._p(self.cfg.sim.cell), source=str(self._p(self.cfg.sim.scenario)))
 
     def _make_instruments(self) -> Instruments:
         robot, tracker, camera = (
@@ -208,35 +238,41 @@ class Daemon:
     def _now(self) -> float:
         return self.world.t if (self.world is not None and not self.cfg.realtime) else time.time()
 
-    def _next_target(self) -> tuple[np.ndarray, float]:
+    def _next_target(self) -> tuple[np.ndarray, float, int | None]:
+        """The next target, its speed and its program row (None off a program)."""
         pc = self.cfg.path
         if self._program is not None:
             i = self._step % self._program.n
             self._step += 1
-            return self._program.target[i], float(self._program.speed[i])
+            return self._program.target[i], float(self._program.speed[i]), i
         if pc.kind == "circle":
             v = pc.speeds[0] * self.inst.max_speed
             self._phase += v / self.cfg.rate_hz / pc.circle_radius_m
             c = np.array(pc.circle_center_m)
-            return c + pc.circle_radius_m * np.array([np.cos(self._phase), np.sin(self._phase), 0.0]), v
+            return c + pc.circle_radius_m * np.array([np.cos(self._phase), np.sin(self._phase), 0.0]), v, None
         target = self._rng.uniform(np.array(pc.box_min_m), np.array(pc.box_max_m))
-        return target, float(self._rng.choice(pc.speeds)) * self.inst.max_speed
+        return target, float(self._rng.choice(pc.speeds)) * self.inst.max_speed, None
 
     def tick(self) -> None:
-        target, v = self._next_target()
+        target, v, step = self._next_target()
         if self.world is not None:
             self._inject_faults(self.world.t)
         if self._ack_requested.is_set():
             self._ack_requested.clear()
             if self.escalator.state == "maintenance_requested":
                 self.escalator.acknowledge(self._now(), note=self._ack_note)
+        cond = self._cond = self._conditions(step)
         try:
-            corr = self.corrector(target, v)
+            corr = self.corrector(target, v, cond)
         except CorrectionFault as exc:
             self.faults_refused += 1
             log.error("command refused, robot not moved: %s", exc)
             return
         self.inst.robot.move_linear(corr.command, v)
+        if self.world is not None:  # simulation: the true error in GL, as `dt demo` scores it (target - truth)
+            tw = self.twin
+            e = tw.T_rdk.apply(corr.target) - tw.T_lt.apply(self.world.truth_in_tracker_frame())
+            self._true_sq.append(float(np.sum(e ** 2)))
         t = self._now()
         x, y, z = corr.target
         self.store.put(CommandRow(t, x, y, z, speed=v))
@@ -249,7 +285,7 @@ class Daemon:
             log.info("MVS refused: %s", reading.refused)
             return
         try:
-            chk = self.monitor(corr.command, v, reading.point)
+            chk = self.monitor(corr.command, v, reading.point, cond)
         except CorrectionFault as exc:
             log.error("MVS value rejected: %s", exc)
             return
@@ -299,10 +335,14 @@ class Daemon:
         self._stop.set()
 
     def summary(self) -> dict:
-        return {"ticks": self.ticks, "t_test_failures": self.failures, "refused_commands": self.faults_refused,
-                "state": self.escalator.state, "maintenance_requests": len(self.requests),
-                "requests_delivered": len(self.delivered),
-                "store": str(self.store.path)}
+        out = {"ticks": self.ticks, "t_test_failures": self.failures, "refused_commands": self.faults_refused,
+               "state": self.escalator.state, "maintenance_requests": len(self.requests),
+               "requests_delivered": len(self.delivered),
+               "store": str(self.store.path)}
+        if self._true_sq:  # the simulated cell's truth: 3D RMS of target - where the arm went
+            out["true_rms_mm"] = round(float(np.sqrt(np.mean(self._true_sq))) * 1e3, 5)
+            out["true_n"] = len(self._true_sq)
+        return out
 
     def close(self) -> None:
         try:

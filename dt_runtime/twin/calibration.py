@@ -3,7 +3,8 @@
 1. Register LT, MVS and robot (RDK) frames to GL by the three-line method (Sect. 2.3).
 2. Registration residuals (Eqs. 5-7, Table 2) and reproducibilities (Eq. 12).
 3. DOE errors e_LT (Eq. 8), e_MVS (Eq. 9), e_MVS-LT (Eq. 10) in GL; Table 3.
-4. GPR models e_LT_hat(TCP, v), e_MVS-LT_hat(TCP, v); residuals r by cross-validation grouped by
+4. Error maps e_LT_hat and e_MVS-LT_hat (hybrid models: the physical effects the user names + GP
+   on (TCP, v); without effects, the paper's GPR); residuals r by cross-validation grouped by
    target point (a model cannot win by remembering a point), Table 4.
 5. Uncertainty budgets Eqs. 11, 13-16.
 """
@@ -14,13 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from dt_kernel.errors import DataError
-from dt_runtime.analysis.crossval import folds_of, grouped_residuals, heldout
+from dt_runtime.analysis.crossval import cross_validate, folds_of
 from dt_runtime.frames import registration as reg
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.metrology import uncertainty as unc
 from dt_runtime.metrology.uncertainty import INF
-from dt_runtime.models.gp import MultiOutputGP
+from dt_runtime.models.effects import Inputs
+from dt_runtime.models.hybrid import HybridModel
 from dt_runtime.twin.twin import PositionUncertainty, Twin
 
 
@@ -60,6 +62,19 @@ class DoeErrors:
     e_mvs_lt: np.ndarray  # (n,3) (Eq. 10)
     groups: np.ndarray  # target point id
     e_true: np.ndarray | None  # (n,3) truth-based error in GL (simulation only)
+    inputs: Inputs  # what the effect terms may read on these rows (time order)
+
+
+def phase_inputs(data: PhaseData, rows: np.ndarray) -> Inputs:
+    """The effect terms' inputs of a phase's rows: the controller's commanded TCP and joints,
+    speed, and the temperature, payload and time where every row has them."""
+
+    def col(a: np.ndarray) -> np.ndarray | None:
+        a = np.asarray(a, dtype=float)[rows]
+        return a if a.size and np.all(np.isfinite(a)) else None
+
+    return Inputs(commanded=data.p_rdk[rows], joints=col(data.q), speed=data.speed[rows],
+                  temperature=col(data.temperature), payload=col(data.payload), t=col(data.t))
 
 
 def doe_errors(data: PhaseData, fr: Frames) -> DoeErrors:
@@ -71,11 +86,7 @@ def doe_errors(data: PhaseData, fr: Frames) -> DoeErrors:
     if data.truth_lt is not None:
         e_true = cmd_gl - fr.T_lt.apply(data.truth_lt[ok])
     X = np.column_stack([data.p_rdk[ok], data.speed[ok]])
-    return DoeErrors(X, e_lt, e_mvs, e_lt - e_mvs, data.point_id[ok], e_true)
-
-
-
-
+    return DoeErrors(X, e_lt, e_mvs, e_lt - e_mvs, data.point_id[ok], e_true, phase_inputs(data, ok))
 
 
 def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.ndarray:
@@ -93,30 +104,34 @@ def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.
 
 @dataclass
 class FittedMaps:
-    e_lt: MultiOutputGP  # e_LT_hat(TCP, v)
-    e_mvs_lt: MultiOutputGP  # e_MVS-LT_hat(TCP, v)
+    e_lt: HybridModel  # e_LT_hat(TCP, v, ...): the named effects + GP
+    e_mvs_lt: HybridModel  # e_MVS-LT_hat(TCP, v): GP
     r_lt: np.ndarray  # (n,3) held-out residuals of e_LT (Table 4)
     r_mvs_lt: np.ndarray  # (n,3) held-out residuals of e_MVS-LT
-    s_lt: np.ndarray  # (n,3) the fold models' latent standard deviation at each held-out row
+    s_lt: np.ndarray  # (n,3) the fold models' standard uncertainty at each held-out row
 
 
-def fit_models(doe: DoeErrors, folds: int, seed: int) -> FittedMaps:
-    e_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_lt)
-    e_mvs_lt = MultiOutputGP(seed=seed).fit(doe.X, doe.e_mvs_lt)
-    # Held-out residuals: each target point predicted by a GP that never saw it (Table 4); for
-    # e_LT also the fold models' stated std there, which calibrates the per-position uncertainty.
+def map_model(effects: tuple[str, ...] = (), seed: int = 0, robot=None, gp_inputs: str = "tcp_speed",
+              gp_options=None) -> HybridModel:
+    """The e_LT map's configuration (unfitted): the named effects + GP; none: the paper's GPR."""
+    return HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options)
+
+
+def fit_models(doe: DoeErrors, folds: int, seed: int, lt_model: HybridModel | None = None) -> FittedMaps:
+    """Fit e_LT (configuration `lt_model`, default the paper's GPR) and e_MVS-LT (GPR: the two
+    instruments' difference, which the robot's effects do not enter) on the DOE, with their
+    held-out residuals: each target point predicted by a map that never saw it, hyperparameters
+    included (Table 4); for e_LT also the fold maps' stated std there, which calibrates the
+    per-position uncertainty."""
+    cfg = lt_model if lt_model is not None else map_model(seed=seed)
     masks = folds_of(doe.groups, folds, seed)
-
-    def fold_lt(tr, te):
-        return MultiOutputGP(seed=seed).fit(doe.X[tr], doe.e_lt[tr]).predict(doe.X[te], return_std=True)
-
-    def gp(Xtr, Ytr, Xte):
-        return MultiOutputGP(seed=seed).fit(Xtr, Ytr).predict(Xte)
-
-    r_lt, s_lt = heldout(doe.e_lt, masks, fold_lt, return_std=True)
-    r_mvs_lt = grouped_residuals(doe.X, doe.e_mvs_lt, doe.groups, folds, seed, gp)
-    assert s_lt is not None  # return_std=True
-    return FittedMaps(e_lt, e_mvs_lt, r_lt, r_mvs_lt, s_lt)
+    e_lt = cfg.unfitted().fit(doe.inputs, doe.e_lt)
+    cv = cross_validate(cfg, doe.inputs, doe.e_lt, doe.groups, masks, return_std=True, hyper_per_fold=True)
+    mvs = map_model(seed=seed)
+    e_mvs_lt = mvs.unfitted().fit(doe.inputs, doe.e_mvs_lt)
+    r_mvs_lt = cross_validate(mvs, doe.inputs, doe.e_mvs_lt, doe.groups, masks, hyper_per_fold=True).residual
+    assert cv.std is not None  # return_std=True
+    return FittedMaps(e_lt, e_mvs_lt, cv.residual, r_mvs_lt, cv.std)
 
 
 def model_scale(r: np.ndarray, s: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> tuple[np.ndarray, float]:
@@ -161,7 +176,7 @@ def budgets(inp) -> dict:
     }
 
 
-def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, seed: int) -> tuple[np.ndarray, float]:
+def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, lt_model: HybridModel) -> tuple[np.ndarray, float]:
     """kappa per axis (m of error per m outside the DOE hull) and its dof: how the e_LT model's
     error grows beyond what its own standard deviation says when it extrapolates.
 
@@ -172,6 +187,7 @@ def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, seed: int) -> tuple[n
     kappa^2 = sum max(0, r^2 - (lambda sigma)^2) / sum d^2. The twin then adds kappa d(c) for a
     command c at distance d(c) > 0 outside the calibrated hull."""
     P = doe.X[:, :3]
+    design = lt_model.design_matrix(doe.inputs)  # on all rows, in time order (approach direction)
     num, den, n = np.zeros(3), 0.0, 0
     for axis in range(3):
         for sign in (-1.0, 1.0):
@@ -183,7 +199,8 @@ def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, seed: int) -> tuple[n
                 rest = CalibratedVolume.of_points(P[~held])
             except DataError:  # the rest is flat: no extrapolation distance to speak of
                 continue
-            mu, sd = MultiOutputGP(seed=seed).fit(doe.X[~held], doe.e_lt[~held]).predict(doe.X[held], return_std=True)
+            m = lt_model.unfitted().fit(doe.inputs.subset(~held), doe.e_lt[~held], design=design.rows(~held))
+            mu, sd = m.predict(doe.inputs.subset(held), return_std=True, design=design.rows(held))
             g, spd = doe.groups[held], doe.X[held, 3]
             rm = replicate_means(doe.e_lt[held] - mu, g, spd)
             sm = replicate_means(sd, g, spd)
@@ -196,14 +213,14 @@ def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, seed: int) -> tuple[n
     return np.sqrt(num / den), float(n - 1)
 
 
-def position_uncertainty(eq11: unc.Budget, doe: DoeErrors, maps: FittedMaps, seed: int) -> PositionUncertainty:
+def position_uncertainty(eq11: unc.Budget, doe: DoeErrors, maps: FittedMaps) -> PositionUncertainty:
     """Eq. 11 made per position: its components but the global model spread s(r_LT), which the
     calibrated model term lambda sigma_GP(c) replaces at each position, plus kappa d(c) outside
     the calibrated hull (`model_scale`, `extrapolation_scale`)."""
     rest = tuple(c for c in eq11.components if c.label != unc.MODEL_TERM)
     assert len(rest) == len(eq11.components) - 1, f"Eq. 11 has no '{unc.MODEL_TERM}' component"
     scale, dof = model_scale(maps.r_lt, maps.s_lt, doe.groups, doe.X[:, 3])
-    kappa, kdof = extrapolation_scale(doe, scale, seed)
+    kappa, kdof = extrapolation_scale(doe, scale, maps.e_lt)
     return PositionUncertainty(unc.Budget("u(TCP_c) without the model", rest), scale, dof, kappa, kdof)
 
 

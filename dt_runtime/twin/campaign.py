@@ -16,11 +16,14 @@ from drivers.base import CameraRig, LaserTracker, RobotController
 from dt_kernel.errors import UnreachableError
 from dt_runtime.common.progress import Progress
 from dt_runtime.measurements.phase import PhaseData
+from dt_runtime.twin.conditions import Conditions
 
 
 class SimTruth(Protocol):
     """What `run_rows` reads from a simulated world (drivers.simulated.SimWorld) for scoring."""
 
+    @property
+    def t(self) -> float: ...
     def truth_in_tracker_frame(self) -> np.ndarray: ...
     def temperature(self) -> float: ...
     def payload(self) -> float: ...
@@ -48,6 +51,16 @@ class Instruments:
         for d in self.drivers():
             d.close()
 
+    def conditions(self) -> Conditions:
+        """The cell's state before the next command, as the error maps read it: the controller's
+        joint angles and, on the simulated cell, its temperature, payload and clock (a real
+        cell's come from a sensor driver or the program: `twin.conditions`)."""
+        q = self.robot.read_joint_state().q
+        w = self.world
+        if w is None:
+            return Conditions(joints=q)
+        return Conditions(temperature=w.temperature(), payload=w.payload(), t=w.t, joints=q)
+
 
 def check_reachable(world, targets: np.ndarray) -> None:
     """Report every unreachable target of a plan before anything moves."""
@@ -61,23 +74,26 @@ def check_reachable(world, targets: np.ndarray) -> None:
 
 
 def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None,
-             label: str = "", command: Callable[[np.ndarray, float], np.ndarray] | None = None,
+             label: str = "", command: Callable[[np.ndarray, float, Conditions], np.ndarray] | None = None,
              skip_unreachable: bool = False) -> PhaseData:
     """Position the robot at every row's target and measure it with both instruments.
 
-    `command(target, speed)` maps a target to the command actually sent (identity by default;
-    the corrected command for the twin's closed loop). With skip_unreachable, a command the arm
+    `command(target, speed, conditions)` maps a target to the command actually sent (identity
+    by default; the corrected command for the twin's closed loop, given the cell's
+    `Instruments.conditions`). Without a simulated world the temperature and payload columns
+    are NaN (unknown: a real cell's campaign logs them from its own sensors). With skip_unreachable, a command the arm
     cannot reach leaves its row NaN and is listed in `refusals` instead of stopping the phase.
     """
     n = len(rows)
     cols = {k: np.full((n, 3), np.nan) for k in ("target", "p_rdk", "p_lt", "p_mvs", "truth_lt")}
-    speed, t, temp, payload = (np.zeros(n) for _ in range(4))
+    speed, t = np.zeros(n), np.zeros(n)
+    temp, payload = np.full(n, np.nan), np.full(n, np.nan)
     q = np.zeros((n, 6))
     refusals: list[str] = []
     for i, row in enumerate(rows):
         v = row.speed_frac * inst.max_speed
         target = np.asarray(row.target, dtype=float)
-        cmd = command(target, v) if command else target
+        cmd = command(target, v, inst.conditions()) if command else target
         try:
             inst.robot.move_linear(cmd, v)
         except UnreachableError as exc:

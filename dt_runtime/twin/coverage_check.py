@@ -84,8 +84,8 @@ def run_check(inst: Instruments, twin: Twin, targets: np.ndarray, speeds: np.nda
     rows = [PlanRow("check", i, 0, t, float(s)) for i, (t, s) in enumerate(zip(targets, speeds))]
     cs: list[Correction] = []
 
-    def command(target: np.ndarray, v: float) -> np.ndarray:
-        cs.append(twin.correct(target, v))
+    def command(target: np.ndarray, v: float, cond) -> np.ndarray:
+        cs.append(twin.correct(target, v, cond))
         return cs[-1].command
 
     data = run_rows(Instruments(inst.robot, inst.tracker, None, world=inst.world, max_speed=inst.max_speed),

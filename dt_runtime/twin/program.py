@@ -2,8 +2,11 @@
 twin's corrected command, the expanded uncertainty (95 %) of the position it reaches and
 whether it lies in the calibrated volume, for offline programming tools.
 
-Program file (CSV, UTF-8, comma, header row): `x, y, z` (mm, robot frame), `speed` (mm/s) and an
-optional `point_id`. The corrected file repeats them and adds `cx, cy, cz` (the command, mm),
+Program file (CSV, UTF-8, comma, header row): `x, y, z` (mm, robot frame), `speed` (mm/s), an
+optional `point_id` and, for a twin whose maps read them (`Twin.needs`), optional `temperature`
+(deg C), `payload` (kg), `t` (s, the campaign's time base) and `q1..qN` (rad: the joint angles
+the arm stands at before the target, where the inverse kinematics starts; offline tools know
+them). The corrected file repeats the target columns and adds `cx, cy, cz` (the command, mm),
 `Ux, Uy, Uz` (mm, 95 %, per GL axis), `inside` (1 or 0) and `distance_mm` (signed distance of
 the command to the DOE hull, negative inside).
 """
@@ -18,6 +21,7 @@ import numpy as np
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM, MM_PER_M
 from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header
+from dt_runtime.twin.conditions import Conditions, missing
 from dt_runtime.twin.twin import Correction, Twin
 
 MAX_TARGETS = 1_000_000  # a program is read whole: bound what that may cost
@@ -29,6 +33,20 @@ class Program:
     speed: np.ndarray  # (n,) m/s
     point_id: list[str]
     line: list[int]  # source line of each target
+    temperature: np.ndarray | None = None  # (n,) deg C
+    payload: np.ndarray | None = None  # (n,) kg
+    t: np.ndarray | None = None  # (n,) s
+    joints: np.ndarray | None = None  # (n, dof) rad, where the arm stands before each target
+
+    def conditions(self, i: int, base: Conditions | None = None) -> Conditions:
+        """Target i's conditions: the program's columns, else `base`'s (e.g. the sensors')."""
+        b = base or Conditions()
+
+        def at(col: np.ndarray | None, default):
+            return default if col is None else col[i]
+
+        return Conditions(temperature=at(self.temperature, b.temperature), payload=at(self.payload, b.payload),
+                          t=at(self.t, b.t), joints=at(self.joints, b.joints), previous=b.previous)
 
     @property
     def n(self) -> int:
@@ -44,12 +62,23 @@ def read_program(path: str | Path) -> Program:
     specs = [ColumnSpec(k, k, scale=M_PER_MM) for k in ("x", "y", "z")] + [ColumnSpec("speed", "speed", scale=M_PER_MM)]
     if "point_id" in header:
         specs.append(ColumnSpec("point_id", "point_id", kind="str"))
+    opt = [k for k in ("temperature", "payload", "t") if k in header]
+    qcols = [f"q{j}" for j in range(1, 13) if f"q{j}" in header]
+    specs += [ColumnSpec(k, k) for k in opt + qcols]
+
+    def fail(column: str, why: str) -> None:
+        err = CellError(why)
+        err.column = column  # type: ignore[attr-defined]
+        raise err
 
     def check(row: dict) -> None:
         if not row["speed"] > 0:
-            err = CellError("speed must be > 0 mm/s")
-            err.column = "speed"  # type: ignore[attr-defined]
-            raise err
+            fail("speed", "speed must be > 0 mm/s")
+        if "payload" in row and not row["payload"] >= 0:
+            fail("payload", "payload must be >= 0 kg")
+        for q in qcols:  # radians: a joint angle beyond a turn and a bit is in degrees
+            if abs(row[q]) > 2 * np.pi + 0.01:
+                fail(q, "joint angles are in rad; this looks like degrees")
 
     vals, lines, _, _ = parse_rows(path, ",", ".", specs, row_check=check)
     n = len(lines)
@@ -58,12 +87,22 @@ def read_program(path: str | Path) -> Program:
     if n > MAX_TARGETS:
         raise DataError(f"{path}: {n} targets, more than the {MAX_TARGETS} a program may hold")
     ids = [str(v) for v in vals["point_id"]] if "point_id" in vals else [str(i + 1) for i in range(n)]
+    def col(k: str) -> np.ndarray | None:
+        return np.asarray(vals[k], float) if k in vals else None
+
     return Program(np.column_stack([vals[k] for k in ("x", "y", "z")]), np.asarray(vals["speed"], float), ids,
-                   list(lines))
+                   list(lines), col("temperature"), col("payload"), col("t"),
+                   np.column_stack([vals[q] for q in qcols]) if qcols else None)
 
 
 def correct_program(twin: Twin, program: Program) -> list[Correction]:
-    return [twin.correct(t, v) for t, v in zip(program.target, program.speed)]
+    """Every target corrected under its conditions (the program's columns); DataError naming the
+    columns the twin's maps need and the program lacks."""
+    lack = missing(twin.needs, program.conditions(0)) if program.n else []
+    if lack:
+        raise DataError(f"the twin's maps need {', '.join(lack)}; give them as program columns "
+                        f"({', '.join('q1..q6' if n == 'joints' else n for n in lack)})")
+    return [twin.correct(t, v, program.conditions(i)) for i, (t, v) in enumerate(zip(program.target, program.speed))]
 
 
 def write_corrected(path: str | Path, program: Program, corrections: list[Correction]) -> Path:

@@ -1,9 +1,14 @@
-"""The calibrated twin: frames, GPR error models and uncertainty, with the correction law.
+"""The calibrated twin: frames, error maps and uncertainty, with the correction law.
 
 Sign convention (DESIGN.md, Eq. 8): e = commanded - measured. The twin's estimate of where the
 robot really is: TCP_hat = TCP_cmd - e_hat(TCP_cmd, v). To reach a target the corrected command
 solves c - e_hat(c, v) = target by fixed-point iteration, starting at c = target + e_hat(target, v).
-Models predict errors in the GL axes; the robot frame is rotated by R_RDK^GL (nearly identity).
+Maps predict errors in the GL axes; the robot frame is rotated by R_RDK^GL (nearly identity).
+
+The error maps e_LT and e_MVS-LT are hybrid models (`models.hybrid.HybridModel`: physical effect
+terms + GP); the paper's GP-only map is the case without effects. A map with effect terms reads
+the command's `Conditions` (joint angles, temperature, payload, time, direction of approach:
+`twin.conditions`); the paper's map reads only the command and its speed.
 
 The stated uncertainties are read through `Twin.uncertainty` (`TwinUncertainty`: one
 `StatedUncertainty` per equation, Eqs. 11 and 13-16), never by string keys; `Twin.u` is the same
@@ -19,16 +24,20 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from dt_kernel.errors import ModelError
+from dt_kernel.errors import ModelError, TwinError
 from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.provenance import Provenance
 from dt_runtime.frames.registration import RigidTransform
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.metrology.uncertainty import Budget, Component, budget_tcp_corrected_at
-from dt_runtime.models.gp import MultiOutputGP
+from dt_runtime.models.hybrid import HybridModel, load_map
 from dt_runtime.models.modelio import read_meta
+from dt_runtime.twin.conditions import Conditions, command_inputs
 
-FORMAT_VERSION = 1
+# 2: the maps are hybrid model directories (TWIN/e_lt/, TWIN/e_mvs_lt/); 1 (read too): GP-only
+# maps saved as TWIN/e_lt.json + .npz.
+FORMAT_VERSION = 2
+READS = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -133,8 +142,8 @@ class Twin:
     T_rdk: RigidTransform  # robot frame -> GL
     T_lt: RigidTransform  # tracker frame -> GL
     T_mvs: RigidTransform  # MVS frame -> GL
-    e_lt: MultiOutputGP  # e_LT_hat(TCP robot frame m, v m/s) -> GL axes, m
-    e_mvs_lt: MultiOutputGP  # e_MVS-LT_hat(TCP, v)
+    e_lt: HybridModel  # e_LT_hat(TCP robot frame m, v m/s, conditions) -> GL axes, m
+    e_mvs_lt: HybridModel  # e_MVS-LT_hat(TCP, v, conditions)
     u: dict  # stated uncertainties as twin.json holds them; read them through `uncertainty`
     instruments: dict = field(default_factory=dict)  # drivers it was calibrated with, e.g. camera
     volume: CalibratedVolume | None = None  # where the maps interpolate (None: an older twin)
@@ -147,51 +156,85 @@ class Twin:
         self._p_lt = self.e_lt.predictor()
         self._p_mvs_lt = self.e_mvs_lt.predictor()
         self._Rt = self.T_rdk.R.T  # GL axes -> robot axes
+        self._chain = None
+        if "joints" in self.needs:  # the deployment's inverse kinematics: the robot config must be there
+            try:
+                self._chain = self.e_lt.chain()
+            except (TwinError, OSError) as exc:
+                raise ModelError(f"the twin's e_LT map ({', '.join(self.e_lt.effects)}) needs its robot config "
+                                 f"{self.e_lt.robot}, which cannot be read: {exc}") from exc
 
-    def e_lt_hat(self, c: np.ndarray, v: float) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted LT error at command c (robot frame): mean and GP std, robot axes, m."""
-        m, s = self._p_lt(np.array([c[0], c[1], c[2], v]))
+    @property
+    def needs(self) -> tuple[str, ...]:
+        """The conditions the maps read beside the command and its speed (`twin.conditions`)."""
+        return tuple(dict.fromkeys(n for p in (self._p_lt, self._p_mvs_lt) for n in p.needs if n != "speed"))
+
+    def _lt(self, c: np.ndarray, v: float, cond: Conditions | None, q_seed=None):
+        """e_LT_hat at c in GL axes with its std, and c's joint angles (when the map reads them)."""
+        if self._p_lt.plain:
+            m, s = self._p_lt.gp_only(np.array([c[0], c[1], c[2], v]))
+            return m, s, None
+        inp, q = command_inputs(c, v, self._p_lt.needs, cond, self._chain, q_seed)
+        m, s = self._p_lt(inp)
+        return m, s, q
+
+    def e_lt_hat(self, c: np.ndarray, v: float, cond: Conditions | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted LT error at command c (robot frame): mean (robot axes, m) and standard
+        uncertainty (GL axes, m)."""
+        m, s, _ = self._lt(np.asarray(c, dtype=float), v, cond)
         return self._Rt @ m, s
 
-    def e_mvs_lt_hat(self, c: np.ndarray, v: float) -> tuple[np.ndarray, np.ndarray]:
+    def e_mvs_lt_hat(self, c: np.ndarray, v: float, cond: Conditions | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Predicted e_MVS-LT at command c, GL axes, m."""
-        return self._p_mvs_lt(np.array([c[0], c[1], c[2], v]))
+        if self._p_mvs_lt.plain:
+            return self._p_mvs_lt.gp_only(np.array([c[0], c[1], c[2], v]))
+        chain = self._chain or (self.e_mvs_lt.chain() if "joints" in self._p_mvs_lt.needs else None)
+        return self._p_mvs_lt(command_inputs(c, v, self._p_mvs_lt.needs, cond, chain)[0])
 
-    def corrected_command(self, target: np.ndarray, v: float, iters: int = 6,
-                          tol: float = 1e-8) -> np.ndarray:
+    def corrected_command(self, target: np.ndarray, v: float, cond: Conditions | None = None,
+                          iters: int = 6, tol: float = 1e-8) -> np.ndarray:
         """Solve c - e_hat(c, v) = target (fixed point; the map contracts as grad e << 1)."""
-        target = np.asarray(target, dtype=float)
-        c = target + self.e_lt_hat(target, v)[0]
+        return self._solve(np.asarray(target, dtype=float), v, cond, iters, tol)[0]
+
+    def _solve(self, target: np.ndarray, v: float, cond: Conditions | None, iters: int = 6, tol: float = 1e-8):
+        """The corrected command, e_LT_hat's std there (GL axes) and its joint angles (or None)."""
+        m, s, q = self._lt(target, v, cond)
+        c = target + self._Rt @ m
         for _ in range(iters):
-            c_new = target + self.e_lt_hat(c, v)[0]
+            m, s, q = self._lt(c, v, cond, q)  # the IK starts from the last solution
+            c_new = target + self._Rt @ m
             done = np.max(np.abs(c_new - c)) < tol
             c = c_new
             if done:
                 break
-        return c
+        return c, s, q
 
     def distance(self, c: np.ndarray) -> float:
         """Signed distance (m) of command c to the DOE hull (< 0 inside); NaN for an older twin."""
         return float(self.volume.distance(np.asarray(c, dtype=float))[0]) if self.volume is not None else float("nan")
 
-    def tcp_budget(self, c: np.ndarray, v: float, distance_m: float | None = None) -> Budget | None:
+    def tcp_budget(self, c: np.ndarray, v: float, distance_m: float | None = None,
+                   cond: Conditions | None = None, sigma: np.ndarray | None = None) -> Budget | None:
         """Eq. 11 at command c (robot frame, m) and speed v: labelled components, the e_LT
-        model's term from its standard deviation at c, and its growth outside the calibrated
-        hull (distance_m: c's `distance`, when the caller has it). None for a twin without it
-        (older format: then only the global `uncertainty.tcp_c` is known)."""
+        map's term from its standard uncertainty at c (sigma, when the caller has it), and its
+        growth outside the calibrated hull (distance_m: c's `distance`, when the caller has it).
+        None for a twin without it (older format: then only the global `uncertainty.tcp_c` is
+        known)."""
         if self.position_u is None:
             return None
         c = np.asarray(c, dtype=float)
         d = self.distance(c) if distance_m is None else distance_m
-        return self.position_u.budget_at(self.e_lt_hat(c, v)[1], d if np.isfinite(d) else 0.0)
+        s = self.e_lt_hat(c, v, cond)[1] if sigma is None else sigma
+        return self.position_u.budget_at(s, d if np.isfinite(d) else 0.0)
 
-    def correct(self, target: np.ndarray, v: float) -> Correction:
-        """The corrected command for `target` at speed v, the expanded uncertainty of the
-        position it reaches, and whether the command lies in the calibrated volume."""
+    def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> Correction:
+        """The corrected command for `target` at speed v under `cond`, the expanded
+        uncertainty of the position it reaches, and whether the command lies in the calibrated
+        volume."""
         target = np.asarray(target, dtype=float)
-        c = self.corrected_command(target, v)
+        c, s, _ = self._solve(target, v, cond)
         dist = self.distance(c)  # once per command: the budget and the flag share it
-        b = self.tcp_budget(c, v, dist)
+        b = self.tcp_budget(c, v, dist, sigma=s)
         U = b.expanded() if b is not None else self.uncertainty.tcp_c.U
         inside = self.volume is None or dist <= self.volume.margin_m
         return Correction(target, c, U, bool(inside), dist, b)
@@ -200,8 +243,8 @@ class Twin:
     def save(self, directory: str | Path) -> Path:
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
-        self.e_lt.save(d / "e_lt")
-        self.e_mvs_lt.save(d / "e_mvs_lt")
+        self.e_lt.save(d / "e_lt", self.provenance)
+        self.e_mvs_lt.save(d / "e_mvs_lt", self.provenance)
         meta = {
             "format_version": FORMAT_VERSION,
             "kind": "cobot-dt twin",
@@ -221,14 +264,14 @@ class Twin:
     @classmethod
     def load(cls, directory: str | Path) -> Twin:
         d = Path(directory)
-        meta = read_meta(d / "twin.json", FORMAT_VERSION, "twin")
+        meta = read_meta(d / "twin.json", READS, "twin")
         if not isinstance(meta.get("u"), dict):
             raise ModelError(f"{d / 'twin.json'}: no 'u' object (the stated uncertainties)")
         u = {k: (np.array(v) if isinstance(v, list) else v) for k, v in meta["u"].items()}
         TwinUncertainty.from_mapping(u, str(d / "twin.json"))  # a malformed entry names the file
         return cls(RigidTransform.from_dict(meta["T_rdk"]), RigidTransform.from_dict(meta["T_lt"]),
-                   RigidTransform.from_dict(meta["T_mvs"]), MultiOutputGP.load(d / "e_lt"),
-                   MultiOutputGP.load(d / "e_mvs_lt"), u, meta.get("instruments", {}),
+                   RigidTransform.from_dict(meta["T_mvs"]), load_map(d / "e_lt"),
+                   load_map(d / "e_mvs_lt"), u, meta.get("instruments", {}),
                    CalibratedVolume.from_dict(meta["volume"], f"{d / 'twin.json'}: volume")
                    if "volume" in meta else None,
                    PositionUncertainty.from_dict(meta["position_uncertainty"], str(d / "twin.json"))

@@ -1,7 +1,9 @@
 """`dt/<cell>/<robot>/correct`: the cell's program asks the twin for a corrected command.
 
 Request-reply over Zenoh (a queryable). The request's payload is JSON:
-`{"target_mm": [x, y, z], "speed_mm_s": v, "id": any}` (robot frame, mm and mm/s); the reply is
+`{"target_mm": [x, y, z], "speed_mm_s": v, "id": any}` (robot frame, mm and mm/s), optionally
+`"temperature_c"` and `"payload_kg"` (the conditions a twin whose maps hold thermal or payload
+effects reads; default: the daemon's sensors); the reply is
 `{"id", "target_mm", "command_mm", "correction_mm", "U_mm", "inside", "distance_mm"}`: the
 corrected command, the expanded uncertainty (95 %) of the position it reaches, whether it lies in
 the calibrated volume and its signed distance to it. The bounded-correction rules of
@@ -12,9 +14,11 @@ follows the sequence of requests.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -25,12 +29,14 @@ from dt_kernel.units import M_PER_MM, MM_PER_M
 from dt_runtime.service.bus.config import BusConfig
 from dt_runtime.service.bus.session import BusError, close_session, encode, open_session, zenoh_errors
 from dt_runtime.service.correction import CorrectionFault, Corrector
+from dt_runtime.twin.conditions import Conditions
 
 log = logging.getLogger(__name__)
 
 
-def _request(raw: bytes) -> tuple[Any, np.ndarray, float]:
-    """(id, target m, speed m/s) of a request payload; DataError naming what is wrong."""
+def _request(raw: bytes) -> tuple[Any, np.ndarray, float, dict[str, float]]:
+    """(id, target m, speed m/s, condition overrides) of a request payload; DataError naming
+    what is wrong."""
     try:
         req = json.loads(raw)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -47,15 +53,28 @@ def _request(raw: bytes) -> tuple[Any, np.ndarray, float]:
         raise DataError(f"request: target_mm must be 3 numbers and speed_mm_s a number ({exc})") from exc
     if target.shape != (3,):
         raise DataError(f"request: target_mm must be 3 numbers, got {req['target_mm']!r}")
-    return rid, target, speed
+    over: dict[str, float] = {}
+    for key, field in (("temperature_c", "temperature"), ("payload_kg", "payload")):
+        if req.get(key) is not None:
+            v = req[key]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise DataError(f"request: {key} must be a finite number, got {v!r}")
+            if field == "payload" and v < 0:
+                raise DataError(f"request: payload_kg must be >= 0, got {v!r}")
+            over[field] = float(v)
+    return rid, target, speed, over
 
 
 class CorrectionServer:
     """Serves `correct` requests with a Corrector, on a session of its own or one it is given
-    (the daemon shares its Bus's session: one listen endpoint per process)."""
+    (the daemon shares its Bus's session: one listen endpoint per process). `conditions`: the
+    cell's latest conditions (the daemon's; never a driver call from zenoh's thread), which a
+    request's temperature_c / payload_kg override."""
 
-    def __init__(self, corrector: Corrector, config: BusConfig, session: zenoh.Session | None = None):
+    def __init__(self, corrector: Corrector, config: BusConfig, session: zenoh.Session | None = None,
+                 conditions: Callable[[], Conditions | None] | None = None):
         self.corrector, self.config = corrector, config
+        self._conditions = conditions
         self.key = config.key("correct")
         self._own = session is None
         self._session = session if session is not None else open_session(config)
@@ -73,9 +92,14 @@ class CorrectionServer:
         """The reply to one request payload (an error reply for a refused or malformed one)."""
         rid = None
         try:
-            rid, target, speed = _request(raw)
+            rid, target, speed, over = _request(raw)
+            cond = self._conditions() if self._conditions is not None else None
+            if over:
+                base = cond or Conditions()
+                cond = dataclasses.replace(base, temperature=over.get("temperature", base.temperature),
+                                           payload=over.get("payload", base.payload))
             with self._lock:
-                c = self.corrector(target, speed)
+                c = self.corrector(target, speed, cond)
         except (DataError, CorrectionFault) as exc:
             self.refused += 1
             return {"id": rid, "error": str(exc), "type": type(exc).__name__}
@@ -116,11 +140,18 @@ class CorrectionServer:
 
 
 def request_correction(session: zenoh.Session, key: str, target_mm, speed_mm_s: float,
-                       timeout_s: float = 2.0, request_id: Any = None) -> dict[str, Any]:
+                       timeout_s: float = 2.0, request_id: Any = None, temperature_c: float | None = None,
+                       payload_kg: float | None = None) -> dict[str, Any]:
     """Ask the twin on `key` (`BusConfig.key("correct")`) for a corrected command; the reply as a
     dict. A refused request raises CorrectionFault with the twin's reason; no reply within
     timeout_s raises BusError."""
-    payload = encode({"id": request_id, "target_mm": [float(x) for x in target_mm], "speed_mm_s": float(speed_mm_s)})
+    req: dict[str, Any] = {"id": request_id, "target_mm": [float(x) for x in target_mm],
+                           "speed_mm_s": float(speed_mm_s)}
+    if temperature_c is not None:
+        req["temperature_c"] = float(temperature_c)
+    if payload_kg is not None:
+        req["payload_kg"] = float(payload_kg)
+    payload = encode(req)
     with zenoh_errors(f"get {key}"):
         replies = list(session.get(key, payload=payload, timeout=timeout_s))
     if not replies:

@@ -1,0 +1,221 @@
+"""A twin from a campaign's measurements (`dt calibrate`; `dt demo` runs the same code on the
+files its simulated campaign wrote).
+
+Registration (Sect. 2.3, Eqs. 5-7, 12), DOE errors (Eqs. 8-10), the error maps (the effects the
+user names + GP; none: the paper's GPR) with held-out residuals (Table 4), the GUM budgets
+(Eqs. 11, 13-16), the per-position uncertainty and the calibrated volume; optionally a
+validation phase measured without correction: the map's prediction against the tracker at
+points it never saw, the coverage of the per-position U there and the Eq. 17 t-test.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from dt_kernel.config import Frozen
+from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.common.progress import Progress
+from dt_runtime.frames.volume import CalibratedVolume
+from dt_runtime.measurements.phase import PhaseData
+from dt_runtime.metrology import uncertainty as unc
+from dt_runtime.metrology.stats import mean_std_mm, rms3
+from dt_runtime.models import effects as fx
+from dt_runtime.models.hybrid import GP_INPUTS, HybridModel
+from dt_runtime.twin import calibration as cal
+from dt_runtime.twin.twin import Twin
+
+
+class CalibrationOptions(Frozen):
+    """How the maps are fitted and the volume drawn (the demo config and `dt calibrate` flags)."""
+
+    cv_folds: int = Field(5, ge=2, le=50)
+    # The calibrated volume: the DOE's convex hull widened by this margin (m); beyond it a
+    # correction is flagged as extrapolation.
+    volume_margin_m: float = Field(0.025, ge=0.0, le=0.5)
+    effects: tuple[str, ...] = ()  # the e_LT map's physical effect terms (none: the paper's GPR)
+    gp_inputs: str = "tcp_speed"
+    seed: int = 0
+
+    @field_validator("effects")
+    @classmethod
+    def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        fx.check_names(v)
+        return v
+
+    @field_validator("gp_inputs")
+    @classmethod
+    def _gp(cls, v: str) -> str:
+        if v not in GP_INPUTS:
+            raise ValueError(f"one of {', '.join(GP_INPUTS)}")
+        return v
+
+
+@dataclass
+class Campaign:
+    """A campaign's phases (SI), as run through the drivers or read from its files."""
+
+    registration: PhaseData
+    doe: PhaseData
+    validation: PhaseData | None = None
+
+
+@dataclass
+class Calibrated:
+    twin: Twin
+    frames: cal.Frames
+    doe: cal.DoeErrors
+    maps: cal.FittedMaps
+    budgets: dict  # Eqs. 11, 13-16 (registration as a transform: the default)
+    literal: dict  # the same with the registration spread added as in the paper (double counts)
+
+
+def calibrate(campaign: Campaign, options: CalibrationOptions, robot=None, instruments: dict | None = None,
+              progress: Progress | None = None, lt_model: HybridModel | None = None) -> Calibrated:
+    """Register, fit the maps, compute the budgets and the per-position uncertainty: the twin.
+
+    robot: the robot config (path) the joint-space effects and the deployment's inverse
+    kinematics use; lt_model: the e_LT map's configuration (e.g. a `dt fit` model's), default
+    `options.effects` + GP."""
+    progress = progress or Progress(enabled=False)
+    frames = cal.register(campaign.registration)
+    doe = cal.doe_errors(campaign.doe, frames)
+    seed = options.seed
+    cfg = lt_model.unfitted() if lt_model is not None else cal.map_model(
+        options.effects, seed, robot, options.gp_inputs)
+    what = f"effects {', '.join(cfg.effects)} + GP" if cfg.effects else "GPR"
+    progress.note(f"fitting the error maps e_LT ({what}) and e_MVS-LT (GPR), grouped cross-validation")
+    maps = cal.fit_models(doe, options.cv_folds, seed, cfg)
+    p_lt = campaign.doe.p_lt
+    lt_dist = float(np.median(np.linalg.norm(p_lt[np.all(np.isfinite(p_lt), 1)], axis=1)))
+    speed = doe.X[:, 3]
+    inp = cal.metrology_inputs(frames, cal.replicate_means(maps.r_lt, doe.groups, speed),
+                               cal.replicate_means(maps.r_mvs_lt, doe.groups, speed), lt_dist)
+    budgets = cal.budgets(inp)
+    literal = cal.budgets(dataclasses.replace(inp, registration_term="spread"))
+    progress.note("per-position uncertainty: held-out calibration of the map's std, leave-a-face-out extrapolation")
+    twin = cal.make_twin(frames, maps.e_lt, maps.e_mvs_lt, budgets, instruments,
+                         CalibratedVolume.of_points(doe.X[:, :3], options.volume_margin_m),
+                         cal.position_uncertainty(budgets["eq11_tcp_c"], doe, maps))
+    return Calibrated(twin, frames, doe, maps, budgets, literal)
+
+
+def _mm(a) -> list[float]:
+    return [round(float(v) * MM_PER_M, 6) for v in np.asarray(a).ravel()]
+
+
+def expanded(b: unc.Budget) -> dict:
+    return {"U_mm": _mm(b.expanded()), "k": [round(float(k), 4) for k in b.coverage_factor()],
+            "dof_eff": [float(d) if np.isfinite(d) else None for d in b.effective_dof()]}
+
+
+def figures(c: Calibrated) -> dict:
+    """The calibration's figures (mm): the paper's Sect. 3.3 precision, Tables 2-4, the budgets
+    and Eqs. 18-22, the maps' effect parameters. What a summary of `dt calibrate` and of
+    `dt demo` share."""
+    fr, doe, b = c.frames, c.doe, c.budgets
+    s_e_mvs = np.std(doe.e_mvs, axis=0, ddof=1)
+    b16 = b["eq16_e_mvs_lt_hat"]
+    prec = unc.precision_figures(s_e_mvs, b16)
+    prec_lit = unc.precision_figures(s_e_mvs, c.literal["eq16_e_mvs_lt_hat"])
+    g, v = doe.groups, doe.X[:, 3]
+    e_lt = c.twin.e_lt
+    return {
+        "precision_before_mm": round(float(prec["before_avg_mm"]), 4),
+        "precision_after_mm": round(float(prec["after_avg_mm"]), 4),
+        "improvement_pct": round(float(prec["improvement_pct"]), 2),
+        "precision_per_axis": {"before_2s_e_mvs_doe_mm": _mm(2 * s_e_mvs),
+                               "after_U_e_mvs_lt_hat_mm": _mm(b16.expanded())},
+        "maps": {"e_lt": {"effects": list(e_lt.effects), "gp_inputs": e_lt.gp_inputs, "parameters": e_lt.parameters()},
+                 "e_mvs_lt": {"effects": list(c.twin.e_mvs_lt.effects), "gp_inputs": c.twin.e_mvs_lt.gp_inputs}},
+        "paper_literal_budget": {
+            "note": "registration residual spread added as in the paper's Eqs. 13-16 (double counts, see README)",
+            "precision_after_mm": round(float(prec_lit["after_avg_mm"]), 4),
+            "improvement_pct": round(float(prec_lit["improvement_pct"]), 2),
+            "U_tcp_c_mm": _mm(c.literal["eq11_tcp_c"].expanded())},
+        "n_doe": int(len(doe.X)),
+        "table2_registration_residuals": {k: mean_std_mm(r) for k, r in fr.residuals.items()},
+        "reproducibility_mm": {"reprod_tcp": _mm(fr.reprod_tcp), "reprod_mvs": _mm(fr.reprod_mvs)},
+        "table3_as_is": {"e_lt_doe": mean_std_mm(doe.e_lt), "e_mvs_doe": mean_std_mm(doe.e_mvs),
+                         "e_mvs_lt_doe": mean_std_mm(doe.e_mvs_lt)},
+        "table4_model_residuals_cv": {
+            "note": "held-out residuals (grouped by target point); the budget uses the replicate means",
+            "r_lt": mean_std_mm(c.maps.r_lt), "r_mvs_lt": mean_std_mm(c.maps.r_mvs_lt),
+            "r_lt_replicate_means": mean_std_mm(cal.replicate_means(c.maps.r_lt, g, v)),
+            "r_mvs_lt_replicate_means": mean_std_mm(cal.replicate_means(c.maps.r_mvs_lt, g, v))},
+        "expanded_uncertainty_95": {
+            "eq18_tcp_c": expanded(b["eq11_tcp_c"]), "eq19_e_lt_hat": expanded(b["eq13_e_lt_hat"]),
+            "eq20_e_lt_hat_minus_e_mvs": expanded(b["eq14_e_lt_hat_minus_e_mvs"]),
+            "eq21_e_mvs": expanded(b["eq15_e_mvs"]), "eq22_e_mvs_lt_hat": expanded(b16)},
+        "budgets": {k: bud.table(unit="mm") for k, bud in b.items()},
+    }
+
+
+def arrays(c: Calibrated) -> dict:
+    """The raw arrays (SI) the report's figures of the calibration draw."""
+    d = c.doe
+    return {"reg_residuals": c.frames.residuals, "doe_X": d.X, "e_lt": d.e_lt, "e_mvs": d.e_mvs,
+            "e_mvs_lt": d.e_mvs_lt, "r_lt": c.maps.r_lt, "r_mvs_lt": c.maps.r_mvs_lt, "e_true_doe": d.e_true,
+            "U_e_mvs_lt_hat": c.budgets["eq16_e_mvs_lt_hat"].expanded()}
+
+
+@dataclass
+class Eq17:
+    test: unc.TTest
+    diff: np.ndarray  # e_LT_hat - e_MVS, GL, m
+    pred: np.ndarray  # e_MVS-LT_hat, GL, m
+
+
+def eq17(c: Calibrated, phase: PhaseData) -> Eq17:
+    """Eq. 17 on every row of a phase the MVS measured: (e_LT_hat - e_MVS) against
+    e_MVS-LT_hat, with the stated Eqs. 14 and 16 uncertainties."""
+    ok = np.all(np.isfinite(phase.p_mvs), axis=1) & np.all(np.isfinite(phase.p_rdk), axis=1)
+    fr = c.frames
+    e_mvs = fr.T_rdk.apply(phase.p_rdk[ok]) - fr.T_mvs.apply(phase.p_mvs[ok])
+    inp = cal.phase_inputs(phase, ok)
+    e_lt_hat = c.twin.e_lt.predict(inp)
+    e_ml_hat = c.twin.e_mvs_lt.predict(inp)
+    b14, b16 = c.budgets["eq14_e_lt_hat_minus_e_mvs"], c.budgets["eq16_e_mvs_lt_hat"]
+    tt = unc.t_test(e_lt_hat - e_mvs, e_ml_hat, b14.combined(), b16.combined(),
+                    b14.effective_dof(), b16.effective_dof())
+    return Eq17(tt, e_lt_hat - e_mvs, e_ml_hat)
+
+
+def eq17_summary(t: Eq17) -> dict:
+    tt = t.test
+    return {"n": int(len(tt.t)), "pass_fraction_all_axes": float(np.mean(tt.passed_all)) if len(tt.t) else None,
+            "pass_fraction_per_axis": {ax: float(np.mean(tt.passed[:, k])) if len(tt.t) else None
+                                       for k, ax in enumerate(AXES)}}
+
+
+def validate(c: Calibrated, phase: PhaseData) -> dict:
+    """A validation phase measured without correction, against the twin: the tracker's error
+    at points the maps never saw, what is left after subtracting the prediction (the error a
+    corrected command would keep), its coverage by the per-position U(TCP_c) of Eq. 11, and the
+    Eq. 17 t-test."""
+    fr, twin = c.frames, c.twin
+    ok = np.all(np.isfinite(phase.p_lt), axis=1) & np.all(np.isfinite(phase.p_rdk), axis=1)
+    e = fr.T_rdk.apply(phase.p_rdk[ok]) - fr.T_lt.apply(phase.p_lt[ok])
+    inp = cal.phase_inputs(phase, ok)
+    pred, s = twin.e_lt.predict(inp, return_std=True)
+    r = e - pred
+    def U_at(p: np.ndarray, v: float, si: np.ndarray) -> np.ndarray:
+        b = twin.tcp_budget(p, v, sigma=si)
+        return b.expanded() if b is not None else twin.uncertainty.tcp_c.U
+
+    U = np.array([U_at(p, v, si) for p, v, si in zip(phase.p_rdk[ok], phase.speed[ok], s)]).reshape(-1, 3)
+    inside = np.abs(r) <= U
+    n = int(ok.sum())
+    return {
+        "n": n,
+        "note": "tracker-measured error e_LT of uncorrected validation positionings, and e_LT - e_LT_hat: the "
+                "error a corrected command would keep (plus the positioning reproducibility)",
+        "rms_e_lt_mm": round(rms3(e) * MM_PER_M, 4) if n else None,
+        "rms_after_map_mm": round(rms3(r) * MM_PER_M, 4) if n else None,
+        "reduction_pct": round(100 * (1 - rms3(r) / rms3(e)), 2) if n and rms3(e) > 0 else None,
+        "coverage_95": {ax: float(inside[:, k].mean()) if n else None for k, ax in enumerate(AXES)},
+        "mean_U_mm": _mm(U.mean(axis=0)) if n else None,
+        "t_test_eq17": eq17_summary(eq17(c, phase)),
+    }

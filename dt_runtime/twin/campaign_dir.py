@@ -1,0 +1,189 @@
+"""A campaign on disk: its phase files (`measurements.campaign_files`) and the manifest that names
+them, the robot config, the instruments and the drivers that measured (`campaign.yaml`).
+
+    registration: registration.csv      # required (three-line registration, axis + distance)
+    doe: doe.csv                        # required
+    validation: validation.csv          # optional: measured without correction
+    robot: robots/cobot_hc20_like.yaml  # robot config: relative to this file, else to configs/
+    instruments: instruments.yaml       # optional: instruments and certificates (provenance)
+    drivers: {robot: sim, tracker: sim, camera: sim_images}   # optional: what measured
+
+`dt demo` writes one (DIR/campaign/) from its simulated campaign; `dt calibrate --campaign DIR`
+reads it. Every file the twin is built from is hashed into its provenance.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from dt_kernel.config import Frozen, load_yaml
+from dt_kernel.errors import DataError
+from dt_runtime.common.jsonsafe import jsonable
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.common.progress import Progress
+from dt_runtime.common.provenance import Instrument, files_under, load_instruments
+from dt_runtime.common.provenance import build as build_provenance
+from dt_runtime.frames.kinematics import Chain, load_robot
+from dt_runtime.measurements.campaign_files import check_robot, read_phase, write_phase
+from dt_runtime.measurements.phase import PhaseData
+from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.twin.calibrate import Calibrated, CalibrationOptions, Campaign, arrays, calibrate, figures, validate
+
+MANIFEST = "campaign.yaml"
+
+
+class Manifest(Frozen):
+    registration: str
+    doe: str
+    validation: str | None = None
+    robot: str | None = None
+    instruments: str | None = None
+    drivers: dict[str, str] = {}
+    seed: int | None = None  # the campaign's seed: `dt calibrate`'s default (the demo's plan seed)
+
+
+@dataclass
+class CampaignFiles:
+    """Where a campaign's parts are (absolute paths); `load` reads and checks them."""
+
+    registration: Path
+    doe: Path
+    validation: Path | None = None
+    robot: Path | None = None
+    instruments: Path | None = None
+    drivers: dict[str, str] | None = None
+    manifest: Path | None = None
+    seed: int | None = None
+
+    def inputs(self) -> list[Path]:
+        """The files the twin is built from (hashed into its provenance)."""
+        return [p for p in (self.manifest, self.registration, self.doe, self.validation, self.instruments) if p]
+
+    def load(self) -> Campaign:
+        """Read the phases; DataError if a file is malformed, in other units, or of another
+        robot than the robot config (`campaign_files.check_robot`)."""
+        chain = self.chain()
+        phases: list[PhaseData | None] = []
+        for name, path in (("registration", self.registration), ("doe", self.doe), ("validation", self.validation)):
+            if path is None:
+                phases.append(None)
+                continue
+            data = read_phase(path, name, registration=name == "registration")
+            if chain is not None:
+                check_robot(data, chain, str(path))
+            phases.append(data)
+        reg, doe, val = phases
+        assert reg is not None and doe is not None
+        return Campaign(reg, doe, val)
+
+    def chain(self) -> Chain | None:
+        return load_robot(self.robot) if self.robot is not None else None
+
+
+def resolve_robot(ref: str | Path, base: Path) -> Path:
+    """A robot config named in a manifest or on the command line: as given (relative to `base`),
+    else under configs/ (the shipped robots: robots/ur10.yaml)."""
+    p = Path(ref)
+    for cand in ((p,) if p.is_absolute() else (base / p, CONFIGS / p)):
+        if cand.is_file():
+            return cand.resolve()
+    raise DataError(f"robot config {ref}: no such file (looked in {base} and {CONFIGS})")
+
+
+def read_manifest(path: str | Path) -> CampaignFiles:
+    """A campaign directory (its campaign.yaml) or a manifest file."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / MANIFEST
+    if not p.is_file():
+        raise DataError(f"{p}: no campaign manifest (a campaign directory holds {MANIFEST}, "
+                        "see docs/campaign-files.md)")
+    m = load_yaml(p, Manifest)
+    base = p.parent
+
+    def f(rel: str | None) -> Path | None:
+        if rel is None:
+            return None
+        q = Path(rel) if Path(rel).is_absolute() else base / rel
+        if not q.is_file():
+            raise DataError(f"{p}: the file {rel} it names does not exist")
+        return q
+
+    reg, doe = f(m.registration), f(m.doe)
+    assert reg is not None and doe is not None
+    return CampaignFiles(reg, doe, f(m.validation), resolve_robot(m.robot, base) if m.robot else None,
+                         f(m.instruments), dict(m.drivers) or None, p, m.seed)
+
+
+def write_campaign(directory: str | Path, campaign: Campaign, robot: str | None = None, seed: int | None = None,
+                   instruments: tuple[Instrument, ...] = (), drivers: dict[str, str] | None = None,
+                   campaign_name: str | None = None) -> CampaignFiles:
+    """Write the phases, the instruments YAML (the records' certificate statements) and the
+    manifest; `robot`: the robot config's reference as the manifest keeps it; `seed`: the one
+    `dt calibrate` uses by default (the same twin as the demo's)."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    names = {"registration": campaign.registration, "doe": campaign.doe, "validation": campaign.validation}
+    man: dict = {}
+    for name, data in names.items():
+        if data is not None:
+            write_phase(d / f"{name}.csv", data)
+            man[name] = f"{name}.csv"
+    if instruments:
+        doc = {"campaign": campaign_name, "instruments": [
+            {k: v for k, v in i.to_dict().items() if v is not None} for i in instruments]}
+        (d / "instruments.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+        man["instruments"] = "instruments.yaml"
+    if robot is not None:
+        man["robot"] = robot
+    if drivers:
+        man["drivers"] = dict(drivers)
+    if seed is not None:
+        man["seed"] = int(seed)
+    (d / MANIFEST).write_text("# A calibration campaign (docs/campaign-files.md): `dt calibrate --campaign DIR`\n"
+                              + yaml.safe_dump(man, sort_keys=False))
+    return read_manifest(d)
+
+
+@dataclass
+class CalibrationRun:
+    summary: dict  # mm, JSON-ready: what `dt calibrate --json` prints and TWIN/summary.json holds
+    arrays: dict  # raw arrays (SI) for the report's figures
+    calibrated: Calibrated
+
+
+def calibrate_campaign(files: CampaignFiles, options: CalibrationOptions, out: str | Path,
+                       lt_model: HybridModel | None = None, lt_model_dir: str | Path | None = None,
+                       progress: Progress | None = None) -> CalibrationRun:
+    """`dt calibrate`: read and check the campaign's files, calibrate, validate on the
+    validation phase if there is one, and write the twin (OUT, `Twin.load` reads it) with its
+    summary.json. Nothing is written if any input is bad."""
+    progress = progress or Progress(enabled=False)
+    campaign = files.load()
+    instruments = load_instruments(files.instruments) if files.instruments else ()
+    progress.note(f"campaign: {campaign.registration.n} registration, {campaign.doe.n} DOE"
+                  + (f", {campaign.validation.n} validation" if campaign.validation else "") + " positionings")
+    c = calibrate(campaign, options, files.robot, files.drivers, progress, lt_model)
+    temps = np.concatenate([np.asarray(p.temperature, dtype=float)
+                            for p in (campaign.registration, campaign.doe, campaign.validation) if p is not None])
+    extra = files_under(lt_model_dir) if lt_model_dir is not None else []
+    chain = files.chain()
+    prov = build_provenance([*files.inputs(), *extra], robot=files.robot,
+                            robot_name=chain.name if chain is not None else None,
+                            instruments=instruments, temperature=temps[np.isfinite(temps)])
+    c.twin.provenance = prov
+    summary = {"campaign": str(files.manifest or files.doe), **figures(c)}
+    if campaign.validation is not None:
+        summary["validation"] = validate(c, campaign.validation)
+    summary["units"] = "mm; errors e = commanded - measured, in the global frame GL"
+    summary["provenance"] = prov.to_dict()
+    out = Path(out)
+    c.twin.save(out)
+    summary["twin"] = str(out)
+    (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=2))
+    progress.note(f"wrote the twin in {out}")
+    return CalibrationRun(summary, arrays(c), c)

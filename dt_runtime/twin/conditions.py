@@ -1,0 +1,74 @@
+"""What a twin's error maps read beside the command, at the moment it is corrected.
+
+The paper's map reads only the commanded TCP and speed. A map with physical effect terms reads
+more (`HybridModel.needs`): the joint angles of the command (the nominal inverse kinematics of
+the robot config, started from where the controller says the arm stands), the temperature and
+payload (a sensor driver or the program), the time (the campaign's time base, for drift) and
+the direction of approach (the previous command: backlash and dynamic). `command_inputs` turns a
+command and its `Conditions` into the rows the map's regressors need: the previous command as
+history, then the command itself.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dt_kernel.errors import DataError
+from dt_runtime.frames.kinematics import Chain
+from dt_runtime.models.effects import Inputs
+
+# Condition -> where a cell gets it (the error message of a missing one says so).
+SOURCES = {"temperature": "a temperature sensor (drivers) or the program's temperature column",
+           "payload": "the program's payload column or the robot controller",
+           "t": "the clock (the campaign's time base)",
+           "joints": "the robot controller's joint angles (the inverse kinematics starts there)"}
+
+
+@dataclass(frozen=True)
+class Conditions:
+    """The state of the cell a command is corrected in (SI: deg C, kg, s, rad, m)."""
+
+    temperature: float | None = None
+    payload: float | None = None
+    t: float | None = None
+    joints: np.ndarray | None = None  # where the arm stands now (before this command), rad
+    previous: np.ndarray | None = None  # the previous command (robot frame, m); default FK(joints)
+
+
+def missing(needs: tuple[str, ...], cond: Conditions | None) -> list[str]:
+    """The conditions a map needs that `cond` does not give (speed always comes with the command)."""
+    cond = cond or Conditions()
+    return [n for n in needs if n != "speed" and getattr(cond, n) is None]
+
+
+def command_inputs(c: np.ndarray, v: float, needs: tuple[str, ...], cond: Conditions | None,
+                   chain: Chain | None, q_seed: np.ndarray | None = None) -> tuple[Inputs, np.ndarray | None]:
+    """The map's input rows for command c at speed v: [previous command, c] (the direction of
+    approach) or [c] without history, and the joint angles of c (None if the map needs none).
+    q_seed: where the inverse kinematics of c starts (default: the arm's joints now)."""
+    cond = cond or Conditions()
+    lack = missing(needs, cond)
+    if lack:
+        raise DataError("the twin's error map needs " + "; ".join(f"{n} (from {SOURCES[n]})" for n in lack)
+                        + ", which the command's conditions do not give")
+    q_now = None if cond.joints is None else np.asarray(cond.joints, dtype=float)
+    prev = cond.previous
+    if prev is None and q_now is not None and chain is not None:
+        prev = chain.fk(q_now)[0]
+    rows = [np.asarray(c, dtype=float)] if prev is None else [np.asarray(prev, dtype=float), np.asarray(c, dtype=float)]
+    n = len(rows)
+    q_c = None
+    joints = None
+    if "joints" in needs:
+        if chain is None:
+            raise DataError("the twin's error map needs joint angles but names no robot config")
+        assert q_now is not None  # `missing` checked it
+        q_c = chain.ik(rows[-1], q_now if q_seed is None else q_seed)
+        joints = np.vstack([q_now, q_c])[-n:]
+
+    def col(x: float | None) -> np.ndarray | None:
+        return None if x is None else np.full(n, float(x))
+
+    return Inputs(commanded=np.vstack(rows), joints=joints, speed=np.full(n, float(v)),
+                  temperature=col(cond.temperature), payload=col(cond.payload), t=col(cond.t)), q_c
