@@ -159,3 +159,36 @@ def test_calibrate_needs_its_files(tmp_path, capsys):
     assert rc == 2 and "--campaign" in s["error"]
     rc, s = _calibrate(["--campaign", str(tmp_path), "--out", str(tmp_path / "t")], capsys)
     assert rc == 2 and "campaign.yaml" in s["error"]
+
+
+def test_a_map_reading_the_temperature_gets_it_or_refuses(quick_demo, tmp_path, capsys):
+    """The bounded correction refuses (robot not moved) when a condition its map reads is missing;
+    a bus request may carry it; a program file's column gives it offline."""
+    from dt_runtime.service.bus.correct import _request
+    from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
+    from dt_runtime.twin.conditions import Conditions
+    from dt_runtime.twin.program import correct_program, read_program
+
+    rc, s = _calibrate(["--campaign", str(quick_demo[2] / "campaign"), "--effects", "geometric,thermal",
+                        "--out", str(tmp_path / "twin")], capsys)
+    assert rc == 0, s
+    twin = Twin.load(tmp_path / "twin")
+    assert set(twin.needs) == {"joints", "temperature"}
+    corr = Corrector(twin, Limits())
+    target = np.array([0.9, 0.0, 0.5])
+    with pytest.raises(CorrectionFault, match="temperature"):
+        corr(target, 0.5, Conditions(joints=np.array([0.0, 0.4, 0.8, 0.0, 0.6, 0.0])))
+    q0 = np.array([0.0, 0.4, 0.8, 0.0, 0.6, 0.0])
+    a = corr(target, 0.5, Conditions(temperature=20.0, joints=q0))  # (this campaign's cell stays at 20 C:
+    assert np.all(np.isfinite(a.command)) and a.inside  # tests/test_deploy_effects.py shows the effect act)
+    _, _, _, over = _request(b'{"target_mm": [900, 0, 500], "speed_mm_s": 500, "temperature_c": 21.5}')
+    assert over == {"temperature": 21.5}
+    with pytest.raises(DataError, match="payload_kg"):
+        _request(b'{"target_mm": [900, 0, 500], "speed_mm_s": 500, "payload_kg": -1}')
+    prog = tmp_path / "p.csv"
+    prog.write_text("x,y,z,speed\n900,0,500,500\n")
+    with pytest.raises(DataError, match="temperature"):
+        correct_program(twin, read_program(prog))
+    prog.write_text("x,y,z,speed,temperature,q1,q2,q3,q4,q5,q6\n900,0,500,500,21,0,0.4,0.8,0,0.6,0\n")
+    out = correct_program(twin, read_program(prog))
+    assert np.all(np.isfinite(out[0].command))

@@ -19,6 +19,8 @@ from scipy.spatial.transform import Rotation
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import ConfigError, DataError, UnreachableError
 
+MAX_IK_STEP_RAD = 0.2  # a Newton step longer than this near a singularity is shortened
+
 
 @dataclass(frozen=True)
 class Chain:
@@ -91,7 +93,9 @@ class Chain:
                 return q
             ax = self.world_axes(rot)[0]  # (dof, 3)
             J = np.vstack([np.cross(ax, p - pos[0]).T, ax.T])
-            q = q + np.linalg.lstsq(J, err, rcond=None)[0]
+            dq = np.linalg.lstsq(J, err, rcond=None)[0]
+            norm = float(np.linalg.norm(dq))
+            q = q + (dq if norm <= MAX_IK_STEP_RAD else dq * (MAX_IK_STEP_RAD / norm))  # no leaps off the branch
         p, Rq = self.pose(q)
         res = float(np.linalg.norm(target - p))
         rres = float(np.linalg.norm(Rotation.from_matrix(Rt @ Rq.T).as_rotvec()))
