@@ -76,6 +76,7 @@ def resolve_chain(robot: str | Path | Chain | None) -> Chain | None:
     if robot is None or isinstance(robot, Chain):
         return robot
     ref = robot_ref(robot)
+    assert ref is not None  # robot is a path here
     if not (Path(ref) if Path(ref).is_absolute() else CONFIGS / ref).is_file():  # the cache must not hide it
         raise ModelError(f"robot config {robot}: no such file")
     return load_chain(ref)
