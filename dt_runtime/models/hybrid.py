@@ -136,7 +136,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         fx.check_names(self.effects)
         if inp.t_origin is None and getattr(self, "t_origin_", None) is not None:
             inp = replace(inp, t_origin=self.t_origin_)
-        chain = resolve_chain(self.robot)
+        # Only joint-space effects read the robot config (a GP-only map works without it).
+        chain = resolve_chain(self.robot) if any(fx.get(e).needs_chain for e in self.effects) else None
         blocks = [fx.build(e, inp, chain) for e in self.effects]
         if not blocks:
             return Design(np.zeros((inp.n, 3, 0)), ())
