@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from dt_kernel.errors import DataError, UnreachableError
+from dt_runtime.analysis.crossval import folds_of
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.frames.kinematics import load_robot
 from dt_runtime.measurements.campaign_files import check_robot, read_phase, write_phase
@@ -34,8 +35,39 @@ def test_a_phase_round_trips(tmp_path):
         assert np.allclose(getattr(back, f), getattr(d, f), rtol=0, atol=1e-12), f
     assert np.isnan(back.p_mvs[3]).all() and np.allclose(np.delete(back.p_mvs, 3, 0), np.delete(d.p_mvs, 3, 0),
                                                          atol=1e-12)
-    assert list(back.axis) == list(d.axis) and np.array_equal(back.point_id.astype(int), d.point_id)
+    assert list(back.axis) == list(d.axis) and back.refusals == []
+    assert back.point_id.dtype.kind == "i" and np.array_equal(back.point_id, d.point_id)
+    assert np.array_equal(back.rep, d.rep) and back.q.shape == (12, 6)
+    assert not (tmp_path / "r.csv.part").exists()
     check_robot(back, COBOT, "r.csv")  # consistent
+
+
+def test_integer_point_ids_group_and_fold_as_in_memory(tmp_path):
+    """A twin from the files equals the in-memory one: ids read as text would sort '10' < '2'
+    and give other seeded cross-validation folds."""
+    d = _phase(n=60)
+    d.point_id = np.arange(60) % 20
+    back = read_phase(write_phase(tmp_path / "doe.csv", d), "doe")
+    for a, b in zip(folds_of(back.point_id, 5, 3), folds_of(d.point_id, 5, 3)):
+        assert np.array_equal(a, b)
+    d.point_id = np.array([f"P{i}" for i in range(60)])  # named points stay text
+    assert list(read_phase(write_phase(tmp_path / "named.csv", d), "doe").point_id) == list(d.point_id)
+
+
+def test_without_truth_and_optional_columns(tmp_path):
+    back = read_phase(write_phase(tmp_path / "doe.csv", _phase(truth=False)), "doe")
+    assert back.truth_lt is None and "truth_lt" not in (tmp_path / "doe.csv").read_text()
+    p = tmp_path / "min.csv"
+    p.write_text("x,y,z,speed,lt_x,lt_y,lt_z\n850,-120,450,250,2841.2,-112.6,151.9\n"
+                 "800,100,500,100,2791.5,107.1,201.0\n")
+    m = read_phase(p, "doe")
+    assert np.allclose(m.p_rdk[0], [0.85, -0.12, 0.45], rtol=0, atol=1e-15) and np.array_equal(m.target, m.p_rdk)
+    assert np.allclose(m.speed, [0.25, 0.1], rtol=0, atol=1e-15)
+    assert list(m.point_id) == [1, 2] and list(m.rep) == [0, 0] and m.q.shape == (2, 0)
+    for f in ("t", "temperature", "payload"):
+        assert np.isnan(getattr(m, f)).all(), f
+    assert np.isnan(m.p_mvs).all() and m.truth_lt is None and m.axis is None
+    check_robot(m, UR10, "min.csv")  # no joints: nothing to check
 
 
 def _edit(path, col, fn):
@@ -54,30 +86,61 @@ def _edit(path, col, fn):
     ("x", lambda v: "", "empty cell"),
     ("speed", lambda v: "-1", "speed must be > 0"),
     ("payload", lambda v: "-2", "payload must be >= 0"),
+    ("speed", lambda v: "", "empty cell"),
     ("q2", lambda v: str(float(v) * 57.3 + 90), "degrees"),
+    ("axis", lambda v: "w", "x, y, z"),
 ])
 def test_bad_cells_name_file_and_column(tmp_path, col, fn, message):
-    p = write_phase(tmp_path / "doe.csv", _phase())
+    p = write_phase(tmp_path / "doe.csv", _phase(registration=True))
     _edit(p, col, fn)
     with pytest.raises(DataError, match=message) as e:
+        read_phase(p, "doe", registration=col == "axis")
+    assert "doe.csv" in str(e.value) and f"column '{col}'" in str(e.value) and "line 2" in str(e.value)
+
+
+def test_an_empty_measurement_cell_is_a_refused_reading(tmp_path):
+    p = write_phase(tmp_path / "doe.csv", _phase())
+    _edit(p, "lt_y", lambda v: "")
+    back = read_phase(p, "doe")
+    assert np.isnan(back.p_lt[:, 1]).all() and np.isfinite(back.p_lt[:, [0, 2]]).all()
+
+
+@pytest.mark.parametrize("drop", ["lt_y", "speed", "x"])
+def test_a_missing_required_column_is_named(tmp_path, drop):
+    p = write_phase(tmp_path / "doe.csv", _phase())
+    _edit(p, drop, lambda v: v)
+    p.write_text(p.read_text().replace(f",{drop},", ",other,", 1))
+    with pytest.raises(DataError, match="missing column") as e:
         read_phase(p, "doe")
-    assert "doe.csv" in str(e.value) and col in str(e.value)
+    assert "doe.csv" in str(e.value) and f"'{drop}'" in str(e.value)
+
+
+def test_joint_columns_with_a_gap(tmp_path):
+    p = write_phase(tmp_path / "doe.csv", _phase())
+    p.write_text(p.read_text().replace(",q3,", ",q7,", 1))
+    with pytest.raises(DataError, match="q1 to qN") as e:
+        read_phase(p, "doe")
+    assert "doe.csv" in str(e.value) and "q7" in str(e.value)
 
 
 def test_metres_in_a_mm_file_and_missing_columns(tmp_path):
     p = write_phase(tmp_path / "doe.csv", _phase())
     for c in "xyz":
         _edit(p, c, lambda v: str(float(v) / 1000))
-    with pytest.raises(DataError, match="looks like metres"):
+    with pytest.raises(DataError, match="looks like metres") as e:
         read_phase(p, "doe")
+    assert "doe.csv" in str(e.value) and "x, y, z" in str(e.value) and "mm" in str(e.value)
     with pytest.raises(DataError, match="axis"):
         read_phase(write_phase(tmp_path / "r.csv", _phase()), "registration", registration=True)
 
 
 def test_files_of_another_robot(tmp_path):
     back = read_phase(write_phase(tmp_path / "doe.csv", _phase()), "doe")
-    with pytest.raises(DataError, match="ur10.*another robot|another robot"):
+    with pytest.raises(DataError, match=r"doe\.csv.*robot config ur10.* by [0-9.]+ mm.*another robot"):
         check_robot(back, UR10, "doe.csv")
+    back.q = np.degrees(back.q)  # joints in other units: the robot's own config refuses them too
+    with pytest.raises(DataError, match="other units"):
+        check_robot(back, COBOT, "doe.csv")
 
 
 @pytest.mark.parametrize("chain", [COBOT, UR10], ids=["cobot", "ur10"])

@@ -6,16 +6,19 @@ One CSV per phase (UTF-8, comma, header row, one row per positioning, in time or
 
 | column | required | meaning |
 |---|---|---|
-| `point_id`, `rep` | no (row number, 0) | target point and replication |
+| `point_id`, `rep` | no (row number from 1, 0) | target point (integer ids read as integers) and replication |
 | `axis`, `distance` | registration only | three-line registration: line (x, y, z) and distance along it (mm) |
 | `tx, ty, tz` | no (= x, y, z) | the commanded target, robot frame |
 | `x, y, z` | yes | the controller's commanded TCP, robot frame |
 | `speed` | yes | commanded linear speed (> 0) |
-| `q1..qN` | no | the controller's joint angles (rad) |
-| `temperature`, `payload`, `t` | no | cell temperature, carried mass (>= 0), time of the measurement |
+| `q1..qN` | no | the controller's joint angles (rad; q1 to qN without a gap) |
+| `temperature`, `payload`, `t` | no (NaN) | cell temperature, carried mass (>= 0), time of the measurement |
 | `lt_x, lt_y, lt_z` | yes | laser tracker point, tracker frame |
 | `mvs_x, mvs_y, mvs_z` | no | camera-system point, MVS frame |
 | `truth_lt_x, ..._z` | no | simulation only: the noise-free truth in the tracker frame (for scoring) |
+
+A missing optional column reads as NaN (`t` too, not the row index: a made-up clock would let the
+`drift` effect fit time it never saw; an effect that needs a missing column refuses when fitted).
 
 Plausibility checks catch the usual unit slips (a DataError names file, column, value and what
 is expected): positions in metres (the largest |x|, |y|, |z| of a file below 10 mm), joint
@@ -25,6 +28,7 @@ robot than the robot config (the joint angles' forward kinematics must give x, y
 from __future__ import annotations
 
 import csv
+import re
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +43,7 @@ MIN_SPAN_MM = 10.0  # a robot campaign spans more than this: smaller positions a
 MAX_ROWS = 2_000_000
 
 _XYZ = ("x", "y", "z")
-_GROUPS = {"target": "t", "lt": "lt_", "mvs": "mvs_", "truth_lt": "truth_lt_"}
+_QCOL = re.compile(r"q(\d+)")
 
 
 def _cols(prefix: str) -> list[str]:
@@ -61,20 +65,24 @@ def write_phase(path: str | Path, data: PhaseData) -> Path:
     axis = data.axis if data.axis is not None else np.full(data.n, None, dtype=object)
     dist = data.distance if data.distance is not None else np.full(data.n, np.nan)
     tmp = path.with_suffix(path.suffix + ".part")
-    with tmp.open("w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f)
-        w.writerow(header)
-        for i in range(data.n):
-            row = [str(data.point_id[i]), str(data.rep[i]), axis[i] if axis[i] in AXES else "",
-                   _fmt(dist[i] * MM_PER_M)]
-            row += [_fmt(v * MM_PER_M) for v in data.target[i]] + [_fmt(v * MM_PER_M) for v in data.p_rdk[i]]
-            row += [_fmt(data.speed[i] * MM_PER_M)] + [_fmt(v) for v in (data.q[i] if nq else [])]
-            row += [_fmt(data.temperature[i]), _fmt(data.payload[i]), _fmt(data.t[i])]
-            row += [_fmt(v * MM_PER_M) for v in data.p_lt[i]] + [_fmt(v * MM_PER_M) for v in data.p_mvs[i]]
-            if data.truth_lt is not None:
-                row += [_fmt(v * MM_PER_M) for v in data.truth_lt[i]]
-            w.writerow(row)
-    tmp.replace(path)
+    try:
+        with tmp.open("w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            for i in range(data.n):
+                row = [str(data.point_id[i]), str(data.rep[i]), axis[i] if axis[i] in AXES else "",
+                       _fmt(dist[i] * MM_PER_M)]
+                row += [_fmt(v * MM_PER_M) for v in data.target[i]] + [_fmt(v * MM_PER_M) for v in data.p_rdk[i]]
+                row += [_fmt(data.speed[i] * MM_PER_M)] + [_fmt(v) for v in (data.q[i] if nq else [])]
+                row += [_fmt(data.temperature[i]), _fmt(data.payload[i]), _fmt(data.t[i])]
+                row += [_fmt(v * MM_PER_M) for v in data.p_lt[i]] + [_fmt(v * MM_PER_M) for v in data.p_mvs[i]]
+                if data.truth_lt is not None:
+                    row += [_fmt(v * MM_PER_M) for v in data.truth_lt[i]]
+                w.writerow(row)
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise DataError(f"{path}: cannot write the campaign file ({exc.strerror})") from exc
     return path
 
 
@@ -90,7 +98,11 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
     present = set(header)
     optional_xyz = [c for p in ("t", "mvs_", "truth_lt_") for c in _cols(p) if c in present]
     specs += [ColumnSpec(c, c, scale=mm, required=False) for c in optional_xyz]
-    qcols = [f"q{j}" for j in range(1, 13) if f"q{j}" in present]
+    qnums = sorted(int(m.group(1)) for c in header if (m := _QCOL.fullmatch(c)))
+    if qnums != list(range(1, len(qnums) + 1)):
+        raise DataError(f"{path}: line 1: joint angle columns {[f'q{j}' for j in qnums]}; expected q1 to qN "
+                        "without a gap (the controller's joints in order)")
+    qcols = [f"q{j}" for j in qnums]
     scalars = [c for c in ("temperature", "payload", "t") if c in present]
     specs += [ColumnSpec(c, c, required=False) for c in qcols + scalars]
     if "point_id" in present:
@@ -118,7 +130,7 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
             fail("axis", f"registration axis must be one of {', '.join(AXES)}")
         for q in qcols:
             if abs(row[q]) > 2 * np.pi + 0.01:
-                fail(q, "joint angles are in rad; this looks like degrees")
+                fail(q, "joint angles are in rad (|q| <= 2 pi); this looks like degrees")
 
     vals, lines, _, _ = parse_rows(path, ",", ".", specs, row_check=check)
     n = len(lines)
@@ -142,7 +154,7 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
                         "mvs_x, mvs_y, mvs_z": xyz("mvs_")})
     return PhaseData(
         phase=phase,
-        point_id=np.array(vals["point_id"]) if "point_id" in vals else np.arange(1, n + 1),
+        point_id=_ids(vals["point_id"]) if "point_id" in vals else np.arange(1, n + 1),
         rep=np.asarray(vals["rep"]) if "rep" in vals else np.zeros(n, dtype=int),
         target=target, speed=np.asarray(vals["speed"], dtype=float), p_rdk=p_rdk, p_lt=xyz("lt_"),
         p_mvs=xyz("mvs_"), t=scalar("t"),
@@ -151,6 +163,16 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
         truth_lt=xyz("truth_lt_") if "truth_lt_x" in vals else None,
         axis=np.array(vals["axis"], dtype=object) if registration else None,
         distance=np.asarray(vals["distance"], dtype=float) if registration else None)
+
+
+def _ids(cells: list[str]) -> np.ndarray:
+    """Point ids: integers when every id is one (as the campaign runner numbers them: grouping and
+    the seeded cross-validation folds then see the same ids, in the same order, as in memory),
+    else the text."""
+    try:
+        return np.array([int(c) for c in cells], dtype=np.int64)
+    except (ValueError, OverflowError):  # OverflowError: beyond int64
+        return np.array(cells)
 
 
 def _check_units(path: Path, groups: dict[str, np.ndarray]) -> None:
@@ -179,6 +201,6 @@ def check_robot(data: PhaseData, chain: Chain, where: str, tol_m: float = 1e-3) 
     med = float(np.median(d))
     if med > tol_m:
         raise DataError(f"{where}: the joint angles do not match the robot config {chain.name}: their forward "
-                        f"kinematics differs from the commanded TCP (x, y, z) by {med * MM_PER_M:.3g} mm (median "
+                        f"kinematics differs from the commanded TCP (x, y, z) by {med * MM_PER_M:.3f} mm (median "
                         f"over {int(ok.sum())} rows, tolerance {tol_m * MM_PER_M:g} mm): files of another robot, or "
                         "joint angles in other units or order")
