@@ -32,6 +32,11 @@ class SimWorld:
     def t(self) -> float:
         return self.cell.clock.t
 
+    def idle(self, dt: float) -> None:
+        """Let `dt` seconds of simulated time pass with the arm standing still (a tick that
+        commanded nothing: its clock must still run, or a refusing loop would never end)."""
+        self.cell.clock.advance(float(dt))
+
     def truth_tcp(self) -> np.ndarray:
         return self.cell.plant.actual_tcp()
 
