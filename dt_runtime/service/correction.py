@@ -10,10 +10,11 @@ the position it reaches (Eq. 11 at that position, `Twin.correct`).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from dt_kernel.config import Frozen
 from dt_kernel.errors import DataError, TwinError, UnreachableError
@@ -27,17 +28,34 @@ class CorrectionFault(TwinError):
 
 
 class Limits(Frozen):
+    """Bounds of every command, in metres (m/s for speed), each within a stated plausible range
+    so that neither a typo (2.0 meant as mm) nor `.inf` can switch a safeguard off:
+    workspace corners within +-5 m of the base and min < max on every axis; max_speed_m_s in
+    (0, 5]; max_correction_m in (0, 0.05] (a cobot's error map corrects millimetres: 50 mm is
+    already a broken model); max_correction_step_m in (0, 0.05];
+    max_correction_gradient in (0, 1]."""
+
     workspace_min_m: tuple[float, float, float] = (0.2, -0.8, 0.05)
     workspace_max_m: tuple[float, float, float] = (1.6, 0.8, 1.3)
-    max_speed_m_s: float = Field(1.0, gt=0)
-    max_correction_m: float = Field(2.0e-3, gt=0)  # |c - target|
+    max_speed_m_s: float = Field(1.0, gt=0, le=5.0)
+    max_correction_m: float = Field(2.0e-3, gt=0, le=0.05)  # |c - target|
     # Change of the correction between consecutive commands: an allowance plus a bound on its
     # gradient along the path (the error map of an arm changes by a few mm per metre; a model
     # whose correction jumps faster than that is broken).
-    max_correction_step_m: float = Field(0.2e-3, gt=0)
-    max_correction_gradient: float = Field(0.01, gt=0)  # m of correction per m of travel
+    max_correction_step_m: float = Field(0.2e-3, gt=0, le=0.05)
+    max_correction_gradient: float = Field(0.01, gt=0, le=1.0)  # m of correction per m of travel
     # Refuse a command outside the calibrated volume instead of only flagging it.
     refuse_outside_volume: bool = False
+
+    @model_validator(mode="after")
+    def _check(self) -> Limits:
+        lo, hi = self.workspace_min_m, self.workspace_max_m
+        if not all(math.isfinite(v) and abs(v) <= 5.0 for v in (*lo, *hi)):
+            raise ValueError(f"workspace corners {list(lo)}, {list(hi)} m must be finite and within +-5 m "
+                             "(metres, not mm)")
+        if not all(a < b for a, b in zip(lo, hi)):
+            raise ValueError(f"workspace_min_m {list(lo)} must be below workspace_max_m {list(hi)} on every axis")
+        return self
 
 
 @dataclass(frozen=True)
@@ -59,9 +77,7 @@ class Corrector:
         b = twin.uncertainty.tcp_c  # Eq. 11
         self._u, self._U = b.u, b.U
 
-    def __call__(self, target: np.ndarray, speed: float, cond: Conditions | None = None) -> Corrected:
-        """The bounded correction of `target` at `speed` under the cell's conditions `cond` (what
-        the twin's maps read beside the command: `Twin.needs`); CorrectionFault if refused."""
+    def _check_target(self, target: np.ndarray, speed: float) -> np.ndarray:
         target = np.asarray(target, dtype=float)
         if target.shape != (3,) or not np.all(np.isfinite(target)):
             raise CorrectionFault(f"target {target!r} is not a finite 3-vector")
@@ -70,16 +86,34 @@ class Corrector:
         if np.any(target < self._lo) or np.any(target > self._hi):
             raise CorrectionFault(f"target {np.round(target * 1e3, 1).tolist()} mm outside the workspace "
                                   f"{(self._lo * 1e3).tolist()} .. {(self._hi * 1e3).tolist()} mm")
+        return target
+
+    def uncorrected(self, target: np.ndarray, speed: float) -> Corrected:
+        """The target commanded as is (the twin's correction is not trusted): the same checks of
+        target and speed; no uncertainty is claimed (NaN). The next corrected command starts a
+        new step sequence."""
+        target = self._check_target(target, speed)
+        self._last = None
+        nan = np.full(3, np.nan)
+        return Corrected(target, target.copy(), np.zeros(3), nan, nan, True, float("nan"))
+
+    def __call__(self, target: np.ndarray, speed: float, cond: Conditions | None = None) -> Corrected:
+        """The bounded correction of `target` at `speed` under the cell's conditions `cond` (what
+        the twin's maps read beside the command: `Twin.needs`); CorrectionFault if refused."""
+        target = self._check_target(target, speed)
         try:
             res = self.twin.correct(target, speed, cond)
-        except (DataError, UnreachableError) as exc:  # a condition missing, no IK, a NaN map
+        except (DataError, UnreachableError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            # a condition missing, no IK, a NaN map: refused, never a crash of the loop
             raise CorrectionFault(f"no correction for target {np.round(target * 1e3, 1).tolist()} mm: {exc}") from exc
         c = res.command
         corr = c - target
         if not np.all(np.isfinite(corr)) or not np.all(np.isfinite(res.U)):
             raise CorrectionFault("the error model returned NaN")
+        # The corrected command, not only the target, must lie in the workspace.
         if np.any(c < self._lo) or np.any(c > self._hi):
-            raise CorrectionFault(f"corrected command {np.round(c * 1e3, 1).tolist()} mm outside the workspace")
+            raise CorrectionFault(f"corrected command {np.round(c * 1e3, 1).tolist()} mm outside the workspace "
+                                  f"{(self._lo * 1e3).tolist()} .. {(self._hi * 1e3).tolist()} mm")
         if not res.inside and self.limits.refuse_outside_volume:
             raise CorrectionFault(f"command {np.round(c * 1e3, 1).tolist()} mm lies {res.distance_m * 1e3:.1f} mm "
                                   "outside the calibrated volume (the error model would extrapolate)")
@@ -129,7 +163,9 @@ class Monitor:
         try:
             e_lt_hat = tw.T_rdk.R @ tw.e_lt_hat(command, speed, cond)[0]  # back to GL axes
             pred = tw.e_mvs_lt_hat(command, speed, cond)[0]
-        except (DataError, UnreachableError) as exc:
+        except (DataError, UnreachableError, FloatingPointError, np.linalg.LinAlgError) as exc:
             raise CorrectionFault(f"no prediction at command {np.round(command * 1e3, 1).tolist()} mm: {exc}") from exc
+        if not (np.all(np.isfinite(e_lt_hat)) and np.all(np.isfinite(pred))):
+            raise CorrectionFault(f"the error model predicts NaN at command {np.round(command * 1e3, 1).tolist()} mm")
         tt = unc.t_test(e_lt_hat - e_mvs, pred, self._u14, self._u16, self._d14, self._d16, self.alpha)
         return Check(tt.t[0], tt.p_value[0], bool(tt.passed_all[0]), e_lt_hat - e_mvs, pred)

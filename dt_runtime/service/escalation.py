@@ -7,6 +7,22 @@ States (python-statemachine `EscalationMachine`)::
        +-----clear--------+   +--------regain----------+                              |
        +-------------------------------acknowledge---------------------------------------+
 
+    any of the four --halt(reason)--> halted --resume--> the state it came from
+                                        +----acknowledge----> nominal
+
+`halted`: the daemon cannot do its job (every command refused for N ticks, a driver down, the
+model unusable, or `out_of_control` under the policy 'halt'); the reason is kept in the machine
+(`halt_reason`) and published. A halt whose cause clears (`resume`) returns to the state it
+interrupted, evidence included; a halt that needs a person (`sticky`, e.g. the policy halt)
+leaves only by `acknowledge`. Entering `maintenance_requested` or `halted` opens a new
+*episode* (`episode`, a counter in the snapshot): the daemon writes that episode's maintenance
+requests in the same transaction as the transition, and at start-up re-creates them if a store
+holds the state without them (`Store.record_transition`, `Daemon._reconcile`).
+
+Transitions are recorded before they count: `on_transition` runs after the machine moved; if it
+raises (the store could not commit), the machine is put back where it was, the exception
+propagates, and the same evidence fires the transition again on the next test.
+
 Evidence: each measurement gives a t-test outcome; `failed = p < alpha` (the twin's
 prediction is significantly off). Two statistics on the failure indicator x in {0, 1}:
 - window: failures among the last `window_n` tests;
@@ -69,7 +85,10 @@ from statemachine.exceptions import TransitionNotAllowed
 from dt_kernel.config import Frozen
 from dt_kernel.errors import StateError
 
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2  # 2 added halted, halt_reason, halt_sticky, halted_from, episode (1 still loads)
+
+#: States that page: entering one opens an episode whose maintenance requests must be delivered.
+PAGING = ("maintenance_requested", "halted")
 
 TransitionCallback = Callable[[str, str, dict[str, Any], float], None]
 
@@ -100,6 +119,14 @@ class EscalationConfig(Frozen):
             raise ValueError("need 0 < suspect_h <= cusum_h")
         if self.confirm_n < 0 or self.recover_passes < 1:
             raise ValueError("need confirm_n >= 0 and recover_passes >= 1")
+        # Bounded counts: a typo such as confirm_n 1e9 would silently switch paging off.
+        for key, value, most in (("window_n", self.window_n, 10_000), ("confirm_n", self.confirm_n, 1_000),
+                                 ("recover_passes", self.recover_passes, 100_000),
+                                 ("last_t_kept", self.last_t_kept, 1_000)):
+            if value > most:
+                raise ValueError(f"{key} = {value} is above the allowed {most} (tests, not seconds)")
+        if not (math.isfinite(self.cusum_h) and self.cusum_h <= 1_000):
+            raise ValueError(f"cusum_h = {self.cusum_h} must be finite and <= 1000")
         return self
 
 
@@ -114,10 +141,17 @@ class EscalationMachine(StateMachine):
     lose_control = suspect.to(out_of_control)
     regain = out_of_control.to(suspect)
     request = out_of_control.to(maintenance_requested)
-    acknowledge = maintenance_requested.to(nominal)
+    halted = State()
+    halt = (nominal.to(halted) | suspect.to(halted) | out_of_control.to(halted)
+            | maintenance_requested.to(halted))
+    resume_nominal = halted.to(nominal)
+    resume_suspect = halted.to(suspect)
+    resume_out_of_control = halted.to(out_of_control)
+    resume_maintenance_requested = halted.to(maintenance_requested)
+    acknowledge = maintenance_requested.to(nominal) | halted.to(nominal)
 
 
-STATES = ("nominal", "suspect", "out_of_control", "maintenance_requested")
+STATES = ("nominal", "suspect", "out_of_control", "maintenance_requested", "halted")
 
 
 class Escalator:
@@ -130,6 +164,10 @@ class Escalator:
         self.machine = EscalationMachine()
         self._reset_stats()
         self.n_seen = 0
+        self.episode = 0  # paging episodes opened so far (see the module docstring)
+        self.halt_reason: str | None = None
+        self.halt_sticky = False
+        self.halted_from: str | None = None
 
     def _reset_stats(self) -> None:
         c = self.config
@@ -173,11 +211,26 @@ class Escalator:
             "last_t": list(self._last_t), "n_seen": self.n_seen,
         }
 
-    def _fire(self, event: str, t: float, rule: str | None) -> None:
+    def evidence_of_halt(self) -> dict[str, Any]:
+        return {"halt_reason": self.halt_reason, "halt_sticky": self.halt_sticky,
+                "halted_from": self.halted_from}
+
+    def _fire(self, event: str, t: float, rule: str | None, extra: dict[str, Any] | None = None,
+              before: dict[str, Any] | None = None) -> None:
+        """Move the machine and report it; put it back if the report raises (module docstring).
+        `before`: the snapshot to return to, when the caller changed more than the state."""
+        before = self.snapshot() if before is None else before
         src = self.state
         self.machine.send(event)
-        if self.on_transition is not None:
-            self.on_transition(src, self.state, self.evidence(rule), t)
+        if self.state in PAGING and src not in PAGING:
+            self.episode += 1
+        if self.on_transition is None:
+            return
+        try:
+            self.on_transition(src, self.state, self.evidence(rule) | (extra or {}), t)
+        except BaseException:
+            self.restore(before)
+            raise
 
     # ------------------------------------------------------------------ input
     def observe(self, passed: bool, t_value: float | None = None,
@@ -194,6 +247,8 @@ class Escalator:
                             else round(float(t_value), 4))
         rule = self._alarm()
         state = self.state
+        if state == "halted":  # statistics go on; the state waits for resume/acknowledge
+            return state
         if state == "nominal":
             if self._suspicious():
                 self._fire("raise_suspicion", t, rule)
@@ -218,21 +273,45 @@ class Escalator:
                     self._fire("request", t, rule)
         return self.state
 
-    def acknowledge(self, t: float | None = None, note: str | None = None) -> None:
-        """Maintenance was done/acknowledged: maintenance_requested -> nominal, stats reset."""
-        if self.state != "maintenance_requested":
-            raise StateError(f"acknowledge is only allowed in maintenance_requested, "
+    def halt(self, reason: str, t: float | None = None, *, sticky: bool = False) -> bool:
+        """Enter `halted` for `reason` (True if this was a transition; an existing halt keeps its
+        first reason). `sticky`: only `acknowledge` leaves it, not `resume`."""
+        if self.state == "halted":
+            return False
+        t = float(self.n_seen if t is None else t)
+        before = self.snapshot()
+        self.halted_from, self.halt_reason, self.halt_sticky = self.state, str(reason), bool(sticky)
+        self._fire("halt", t, None, self.evidence_of_halt(), before=before)
+        return True
+
+    def resume(self, t: float | None = None) -> bool:
+        """The cause of a non-sticky halt cleared: back to the state it interrupted (True if this
+        was a transition)."""
+        if self.state != "halted" or self.halt_sticky:
+            return False
+        t = float(self.n_seen if t is None else t)
+        before = self.snapshot()
+        target, reason = self.halted_from or "nominal", self.halt_reason
+        self.halted_from, self.halt_reason = None, None
+        self._fire(f"resume_{target}", t, None, {"resumed_from_halt": reason}, before=before)
+        return True
+
+    def acknowledge(self, t: float | None = None, note: str | None = None,
+                    by: str | None = None) -> None:
+        """Maintenance was done: maintenance_requested or halted -> nominal, statistics reset."""
+        if self.state not in PAGING:
+            raise StateError(f"acknowledge is only allowed in {' or '.join(PAGING)}, "
                              f"the escalation is in {self.state}")
         t = float(self.n_seen if t is None else t)
-        src = self.state
-        ev = self.evidence(None) | {"acknowledged": True, "note": note}
+        before = self.snapshot()
+        ev = self.evidence(None) | {"acknowledged": True, "note": note, "by": by} | (
+            self.evidence_of_halt() if self.state == "halted" else {})
+        self._reset_stats()
+        self.halt_reason, self.halt_sticky, self.halted_from = None, False, None
         try:
-            self.machine.send("acknowledge")
+            self._fire("acknowledge", t, None, ev, before=before)
         except TransitionNotAllowed as exc:  # pragma: no cover - guarded above
             raise StateError(str(exc)) from exc
-        self._reset_stats()
-        if self.on_transition is not None:
-            self.on_transition(src, self.state, ev, t)
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, Any]:
@@ -240,13 +319,14 @@ class Escalator:
             "version": SNAPSHOT_VERSION, "state": self.state, "window": list(self._window),
             "cusum": self.cusum, "consecutive_passes": self.consecutive_passes,
             "confirm_count": self.confirm_count, "last_t": list(self._last_t),
-            "n_seen": self.n_seen,
+            "n_seen": self.n_seen, "episode": self.episode, "halt_reason": self.halt_reason,
+            "halt_sticky": self.halt_sticky, "halted_from": self.halted_from,
         }
 
     def restore(self, snapshot: dict[str, Any]) -> None:
         """Resume from `snapshot()` (no transition is reported: nothing changed)."""
         try:
-            if snapshot.get("version") != SNAPSHOT_VERSION:
+            if snapshot.get("version") not in (1, SNAPSHOT_VERSION):
                 raise ValueError(f"snapshot version {snapshot.get('version')!r}")
             state = snapshot["state"]
             if state not in STATES:
@@ -259,6 +339,12 @@ class Escalator:
             self.confirm_count = int(snapshot["confirm_count"])
             self._last_t.extend(snapshot.get("last_t", []))
             self.n_seen = int(snapshot["n_seen"])
+            self.episode = int(snapshot.get("episode", 0))
+            self.halt_reason = snapshot.get("halt_reason")
+            self.halt_sticky = bool(snapshot.get("halt_sticky", False))
+            self.halted_from = snapshot.get("halted_from")
+            if state == "halted" and self.halted_from not in STATES[:4]:
+                raise ValueError(f"halted from unknown state {self.halted_from!r}")
         except (KeyError, TypeError, ValueError) as exc:
             raise StateError(f"cannot restore escalation snapshot: {exc}") from exc
 

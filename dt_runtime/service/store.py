@@ -2,8 +2,25 @@
 
 What it holds (one table each): `commands`, `corrections`, `measurements`, `t_stats` (the
 high-rate path), `transitions` (escalation state changes with their evidence), `outbox`
-(maintenance requests that must reach a consumer; see dt_runtime.service.bus) and `state` (one row:
-the escalation machine's snapshot, so a restarted daemon resumes where it stopped).
+(maintenance requests that must reach a consumer; see dt_runtime.service.bus), `state` (one row:
+the escalation machine's snapshot, so a restarted daemon resumes where it stopped) and
+`operator_actions` (an operator's or a maintenance system's "delivered" / "done", who and why,
+and when the daemon applied it).
+
+A transition is one transaction (`record_transition`): the transition row, the machine's new
+snapshot, the maintenance requests it opens and the operator action it applies are committed
+together or not at all, so no crash or full disk can leave a paging state without its request.
+The escalation statistics move between transitions too: `stage_state` hands the latest
+snapshot to the next batch commit, so the statistics on disk always match the committed
+t-tests (a restart resumes the window and CUSUM, losing at most the last uncommitted batch).
+
+Retention (`prune`): the high-rate tables keep rows by age (the caller's time `t`) and/or count;
+transitions, outbox, state and operator actions are never pruned. Freed pages are reused, so the
+file stops growing once the retained window is full.
+
+One daemon per store: `exclusive=True` takes an advisory lock (`flock`) on `<store>.lock`
+for the Store's lifetime, released by the kernel when the process dies (kill -9 included);
+readers (`dt status`, `dt ack`) do not take it.
 
 Durability choices (why):
 - `journal_mode=WAL`: readers (`dt status`) never block the writer, and a crash (SIGKILL,
@@ -54,7 +71,7 @@ from dt_runtime.service.rows import ROW_TYPES, CommandRow, CorrectionRow, Measur
 
 log = logging.getLogger("dt.store")
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2 added operator_actions (a version-1 file gains it on open)
 
 # Table name -> (columns written by the high-rate path, in order): the typed rows' fields.
 _HIGH_RATE: dict[str, tuple[str, ...]] = {table: cls.columns() for table, cls in ROW_TYPES.items()}
@@ -82,7 +99,16 @@ CREATE INDEX IF NOT EXISTS outbox_pending ON outbox(acked, id);
 CREATE TABLE IF NOT EXISTS state (
     id INTEGER PRIMARY KEY CHECK (id = 1), name TEXT NOT NULL, data TEXT NOT NULL,
     updated REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS operator_actions (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, created REAL NOT NULL, kind TEXT NOT NULL,
+    request_id INTEGER, by_whom TEXT NOT NULL, note TEXT NOT NULL, source TEXT NOT NULL,
+    applied_at REAL, result TEXT);
+CREATE INDEX IF NOT EXISTS operator_pending ON operator_actions(applied_at, id);
 """
+
+#: Operator actions: 'delivered' (the request reached maintenance: stop republishing it) and
+#: 'done' (maintenance was done: leave maintenance_requested / halted).
+ACTION_KINDS = ("delivered", "done")
 
 
 class StoreError(TwinError):
@@ -99,6 +125,19 @@ def _sqlite_errors(what: str) -> Iterator[None]:
 
 
 @dataclass(frozen=True)
+class OperatorAction:
+    id: int
+    created: float
+    kind: str
+    request_id: int | None
+    by: str
+    note: str
+    source: str
+    applied_at: float | None = None
+    result: str | None = None
+
+
+@dataclass(frozen=True)
 class OutboxItem:
     id: int
     created: float
@@ -112,20 +151,66 @@ class Store:
 
     def __init__(self, path: str | Path, *, batch_rows: int = 200, batch_ms: float = 500.0,
                  background: bool = False, max_pending_rows: int = 100_000,
-                 synchronous: str = "FULL", timeout_s: float = 5.0):
+                 synchronous: str = "FULL", timeout_s: float = 5.0, exclusive: bool = False):
         self.path = Path(path)
+        self._lock_file = self._take_lock() if exclusive else None
         self.batch_rows = int(batch_rows)
         self.batch_s = float(batch_ms) / 1000.0
         self.max_pending_rows = int(max_pending_rows)
         self.dropped_rows = 0
         self.write_errors = 0  # failed flushes of the writer thread (rows kept for a retry)
+        self.write_errors_in_row = 0  # failed commits since the last good one (the daemon's health)
         self._lock = threading.RLock()
         # The one queue of high-rate rows: deque.append is atomic, so put() needs no lock.
         self._queue: collections.deque[Row] = collections.deque()
         self._pending: list[Row] = []  # taken from the queue, not yet committed
         self._closed = False
+        self._staged_state: tuple[str, dict[str, Any]] | None = None
         if synchronous.upper() not in ("FULL", "NORMAL", "EXTRA"):
+            self._release_lock()
             raise StoreError(f"synchronous={synchronous!r}: allowed FULL, NORMAL, EXTRA")
+        try:
+            self._open(synchronous, timeout_s)
+        except BaseException:
+            self._release_lock()
+            raise
+        self._last_flush = time.monotonic()  # once open: opening (fsyncs) is not batch time
+        self._stop = threading.Event()
+        self._writer: threading.Thread | None = None
+        if background:
+            self._writer = threading.Thread(target=self._write_periodically, name="dt-store-writer",
+                                            daemon=True)
+            self._writer.start()
+
+    def _take_lock(self):
+        """The advisory one-daemon-per-store lock (module docstring); StoreError naming the holder."""
+        import fcntl
+        import os
+
+        lock_path = self.path.with_name(self.path.name + ".lock")
+        with _sqlite_errors(f"{lock_path}: cannot create the store's lock file"):
+            lock_path.parent.mkdir(parents=True, exist_ok=True)
+            f = open(lock_path, "a+")  # noqa: SIM115 - held open for the Store's lifetime
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            f.close()
+            raise StoreError(f"{self.path} is in use by {holder}: one daemon per store (stop it, or give this "
+                             "daemon its own `store:`)") from exc
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()}")
+        f.flush()
+        return f
+
+    def _release_lock(self) -> None:
+        if self._lock_file is not None:
+            self._lock_file.close()  # closing the descriptor releases the flock
+            self._lock_file = None
+
+    def _open(self, synchronous: str, timeout_s: float) -> None:
         with _sqlite_errors(f"{self.path}: cannot open store"):
             self.path.parent.mkdir(parents=True, exist_ok=True)
             # isolation_level=None: we issue BEGIN/COMMIT ourselves (one transaction per batch).
@@ -138,13 +223,6 @@ class Store:
             self._db.execute(f"PRAGMA busy_timeout={int(timeout_s * 1000)}")
             self._db.executescript(_SCHEMA)
             self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
-        self._last_flush = time.monotonic()  # once open: opening (fsyncs) is not batch time
-        self._stop = threading.Event()
-        self._writer: threading.Thread | None = None
-        if background:
-            self._writer = threading.Thread(target=self._write_periodically, name="dt-store-writer",
-                                            daemon=True)
-            self._writer.start()
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> Store:
@@ -168,6 +246,7 @@ class Store:
             finally:
                 self._closed = True
                 self._db.close()
+                self._release_lock()
 
     def _check_open(self) -> None:
         if self._closed:
@@ -260,11 +339,14 @@ class Store:
             queue = self._queue
             while queue:  # popleft is atomic too: rows put meanwhile stay for the next batch
                 self._pending.append(queue.popleft())
+            staged, self._staged_state = self._staged_state, None
             try:
                 with _sqlite_errors(f"{self.path}: write failed"):
                     self._db.execute("BEGIN IMMEDIATE")
                     try:
                         n = self._write_pending()
+                        if staged is not None:
+                            self._write_state(*staged)
                         result = body()
                         self._db.execute("COMMIT")
                     except BaseException:
@@ -272,6 +354,9 @@ class Store:
                             self._db.execute("ROLLBACK")
                         raise
             except StoreError:
+                self.write_errors_in_row += 1
+                if self._staged_state is None:  # nothing newer was staged meanwhile: retry this one
+                    self._staged_state = staged
                 # Keep the rows for a retry, bounded so a full disk cannot exhaust RAM.
                 excess = len(self._pending) - self.max_pending_rows
                 if excess > 0:
@@ -279,6 +364,7 @@ class Store:
                     self.dropped_rows += excess
                 raise
             self._pending.clear()
+            self.write_errors_in_row = 0
             self._last_flush = time.monotonic()
             return n if result is None else result
 
@@ -295,6 +381,17 @@ class Store:
         return self._tx(lambda: self._db.execute(
             "INSERT INTO outbox (created, key, payload) VALUES (?,?,?)",
             (time.time(), str(key), text)).lastrowid)
+
+    def outbox_add_many(self, items: Iterable[tuple[str, Mapping[str, Any]]]) -> list[int]:
+        """Several messages (key, payload) in one transaction (all or none); their ids."""
+        rows = [(str(k), compact(dict(p))) for k, p in items]
+        return self._tx(lambda: [self._insert_outbox(k, text) for k, text in rows])
+
+    def _insert_outbox(self, key: str, text: str) -> int:
+        rowid = self._db.execute("INSERT INTO outbox (created, key, payload) VALUES (?,?,?)",
+                                 (time.time(), key, text)).lastrowid
+        assert rowid is not None  # an INSERT always sets it
+        return rowid
 
     def outbox_pending(self) -> list[OutboxItem]:
         """Un-acknowledged outbox entries, oldest first."""
@@ -320,12 +417,129 @@ class Store:
             "UPDATE outbox SET acked = 1, acked_at = ? WHERE id = ? AND acked = 0",
             (time.time(), int(id))).rowcount == 1)
 
-    def save_state(self, name: str, data: Mapping[str, Any]) -> None:
-        """Replace the single resume row (e.g. the escalation snapshot)."""
-        self._tx(lambda: self._db.execute(
+    def _write_state(self, name: str, data: Mapping[str, Any]) -> None:
+        self._db.execute(
             "INSERT INTO state (id, name, data, updated) VALUES (1,?,?,?) ON CONFLICT(id) "
             "DO UPDATE SET name=excluded.name, data=excluded.data, updated=excluded.updated",
-            (str(name), compact(dict(data)), time.time())) and None)
+            (str(name), compact(dict(data)), time.time()))
+
+    def save_state(self, name: str, data: Mapping[str, Any]) -> None:
+        """Replace the single resume row (e.g. the escalation snapshot); committed at once."""
+        self._staged_state = None  # this one is newer than anything staged
+        self._tx(lambda: self._write_state(name, data))
+
+    def stage_state(self, name: str, data: Mapping[str, Any]) -> None:
+        """Hand the latest resume row to the next commit (the batch of high-rate rows, or any
+        immediate write): no I/O here. A later stage or save replaces it."""
+        self._staged_state = (str(name), dict(data))
+
+    def record_transition(self, src: str, dst: str, evidence: Mapping[str, Any], t: float, *,
+                          state: tuple[str, Mapping[str, Any]],
+                          requests: Iterable[tuple[str, Mapping[str, Any]]] = (),
+                          applied: tuple[int, str] | None = None) -> tuple[int, list[int]]:
+        """One transition as one transaction (module docstring): the transition row, the resume
+        row `state` (name, snapshot), the outbox `requests` (key, payload) it opens and the
+        operator action `applied` (id, result) it carries out. Returns (transition id, outbox
+        ids); StoreError and nothing written if it cannot commit."""
+        reqs = [(str(k), compact(dict(p))) for k, p in requests]
+        self._staged_state = None
+
+        def body() -> tuple[int, list[int]]:
+            now = time.time()
+            tid = self._db.execute(
+                "INSERT INTO transitions (t, src, dst, evidence, created) VALUES (?,?,?,?,?)",
+                (float(t), str(src), str(dst), compact(dict(evidence)), now)).lastrowid
+            self._write_state(*state)
+            ids = [self._insert_outbox(k, text) for k, text in reqs]
+            if applied is not None:
+                self._db.execute("UPDATE operator_actions SET applied_at = ?, result = ? WHERE id = ?",
+                                 (now, str(applied[1]), int(applied[0])))
+            assert tid is not None  # an INSERT always sets it
+            return tid, ids
+        return self._tx(body)
+
+    # ------------------------------------------------------------------ episodes and operators
+    def outbox_of_episode(self, episode: int) -> list[OutboxItem]:
+        """Outbox entries (pending or delivered) of one paging episode of the escalation."""
+        rows = self._query("SELECT id, created, key, payload, attempts FROM outbox "
+                           "WHERE json_extract(payload, '$.episode') = ? ORDER BY id", (int(episode),))
+        return [OutboxItem(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
+
+    def outbox_ack_episode(self, episode: int) -> int:
+        """Mark every pending entry of an episode acknowledged (maintenance done implies
+        delivered); returns how many were pending."""
+        return self._tx(lambda: self._db.execute(
+            "UPDATE outbox SET acked = 1, acked_at = ? WHERE acked = 0 AND "
+            "json_extract(payload, '$.episode') = ?", (time.time(), int(episode))).rowcount)
+
+    def add_action(self, kind: str, by: str, note: str, *, request_id: int | None = None,
+                   source: str = "store", applied: str | None = None) -> int:
+        """Record an operator action (committed); `applied`: its result if it needs no daemon
+        (a delivery confirmation), else the daemon applies it and fills in the result."""
+        if kind not in ACTION_KINDS:
+            raise StoreError(f"operator action {kind!r}: allowed {', '.join(ACTION_KINDS)}")
+        if not str(by).strip() or not str(note).strip():
+            raise StoreError("an operator action needs who (by) and why (note)")
+        now = time.time()
+        return self._tx(lambda: self._db.execute(
+            "INSERT INTO operator_actions (created, kind, request_id, by_whom, note, source, applied_at, result) "
+            "VALUES (?,?,?,?,?,?,?,?)",
+            (now, kind, request_id, str(by), str(note), str(source), now if applied else None, applied)).lastrowid)
+
+    def apply_action(self, id: int, result: str) -> None:
+        """Mark an operator action applied with its result (an action that changed no state)."""
+        self._tx(lambda: self._db.execute("UPDATE operator_actions SET applied_at = ?, result = ? WHERE id = ?",
+                                          (time.time(), str(result), int(id))) and None)
+
+    def actions(self, pending_only: bool = False, limit: int = 100) -> list[OperatorAction]:
+        """Operator actions, oldest first (only those not yet applied with `pending_only`)."""
+        where = "WHERE applied_at IS NULL" if pending_only else ""
+        rows = self._query("SELECT id, created, kind, request_id, by_whom, note, source, applied_at, result "
+                           f"FROM operator_actions {where} ORDER BY id DESC LIMIT ?", (int(limit),))
+        return [OperatorAction(*r) for r in reversed(rows)]
+
+    def requests(self, limit: int = 20) -> list[dict[str, Any]]:
+        """The latest outbox entries (maintenance requests), newest first, for `dt status`/`dt ack`."""
+        rows = self._query("SELECT id, created, payload, acked, acked_at, attempts FROM outbox "
+                           "ORDER BY id DESC LIMIT ?", (int(limit),))
+        return [{"id": r[0], "created": r[1], "acked": bool(r[3]), "acked_at": r[4], "attempts": r[5],
+                 **{k: v for k, v in json.loads(r[2]).items()
+                    if k in ("uid", "episode", "group", "kind", "reason", "state", "t")}} for r in rows]
+
+    # ------------------------------------------------------------------ retention
+    def prune(self, *, before_t: float | None = None, keep_rows: int | None = None,
+              chunk: int = 5_000) -> int:
+        """Delete high-rate rows older than `before_t` (the callers' time `t`) and/or beyond the
+        newest `keep_rows` of each table, in short transactions of at most `chunk` rows per
+        table (the writer never waits long). Returns how many rows were deleted."""
+        total = 0
+        for table in _HIGH_RATE:
+            conds, params = [], []
+            if before_t is not None:
+                conds.append("t < ?")
+                params.append(float(before_t))
+            if keep_rows is not None:
+                conds.append(f"id <= (SELECT COALESCE(MAX(id), 0) FROM {table}) - ?")
+                params.append(int(keep_rows))
+            if not conds:
+                continue
+            sql = (f"DELETE FROM {table} WHERE id IN (SELECT id FROM {table} WHERE "
+                   f"{' OR '.join(conds)} ORDER BY id LIMIT {int(chunk)})")
+            args = tuple(params)
+            while True:
+                n = self._delete(sql, args)
+                total += n
+                if n < chunk:
+                    break
+        return total
+
+    def _delete(self, sql: str, args: tuple) -> int:
+        return int(self._tx(lambda: self._db.execute(sql, args).rowcount))
+
+    def size_bytes(self) -> int:
+        """Bytes on disk: the database, its WAL and shared-memory files."""
+        return sum(p.stat().st_size for p in (self.path, self.path.with_name(self.path.name + "-wal"),
+                                              self.path.with_name(self.path.name + "-shm")) if p.exists())
 
     def load_state(self) -> dict[str, Any] | None:
         """{'name', 'data', 'updated'} of the resume row, or None on a fresh store."""
@@ -342,7 +556,7 @@ class Store:
                 return self._db.execute(sql, params).fetchall()
 
     def count(self, table: str) -> int:
-        if table not in (*_HIGH_RATE, "transitions", "outbox", "state"):
+        if table not in (*_HIGH_RATE, "transitions", "outbox", "state", "operator_actions"):
             raise StoreError(f"unknown table {table!r}")
         return int(self._query(f"SELECT COUNT(*) FROM {table}")[0][0])
 

@@ -128,6 +128,11 @@ class BusConfig(Frozen):
     connect: list[str] = []
     multicast_scouting: bool = False
     gossip_scouting: bool = True
+    # Every group receives its own copy of each maintenance request (its own outbox row, id and
+    # acknowledgement): a maintenance system and, say, the plant's MES each get every request,
+    # instead of the first acker taking it for everyone. A consumer says which group it is.
+    consumer_groups: list[str] = Field(["maintenance"], min_length=1, max_length=16)
+    health_period_s: float = Field(1.0, gt=0, le=3600)  # `.../health` is also sent on every change
     republish_period_s: float = Field(2.0, gt=0)
     close_timeout_s: float = Field(3.0, gt=0)
     send_queue: int = Field(1000, ge=1)
@@ -140,6 +145,15 @@ class BusConfig(Frozen):
     def _chunk(cls, v: str) -> str:
         if not v or any(c in v for c in "/*$?#"):
             raise ValueError(f"{v!r} must be one non-empty key chunk (no / * $ ? #)")
+        return v
+
+    @field_validator("consumer_groups")
+    @classmethod
+    def _groups(cls, v: list[str]) -> list[str]:
+        for g in v:
+            cls._chunk(g)
+        if len(set(v)) != len(v):
+            raise ValueError(f"consumer_groups {v} name a group twice")
         return v
 
     @field_validator("listen", "connect")

@@ -20,14 +20,18 @@ class MaintenanceConsumer:
     """Receives maintenance requests from every cell/robot, records and acks them.
 
     Requests are de-duplicated on (cell, robot, uid); every copy is acked (the first ack may
-    have been lost). `on_request(request)` is called once per new request from the worker
-    thread. Used by tests and by the `dt` CLI.
+    have been lost). A consumer belongs to one consumer `group` and takes only its group's copy
+    of each request (the twin sends one per configured group; a copy without a group, from an
+    older twin, is everybody's). `on_request(request)` is called once per new request from the
+    worker thread. `done(...)` tells the twin that maintenance was done. Used by tests and by
+    `dt consume`.
     """
 
     def __init__(self, config: BusConfig, *, key_expr: str = "dt/**/maintenance/request",
                  on_request: Callable[[dict[str, Any]], None] | None = None,
-                 auto_ack: bool = True):
+                 auto_ack: bool = True, group: str = "maintenance"):
         self.config = config
+        self.group = group
         self.on_request = on_request
         self.auto_ack = auto_ack
         self.requests: list[dict[str, Any]] = []
@@ -65,6 +69,8 @@ class MaintenanceConsumer:
         except (ValueError, KeyError, TypeError):
             log.warning("malformed maintenance request on %s ignored", key)
             return
+        if req.get("group", self.group) != self.group:
+            return  # another group's copy: its consumers ack it
         prefix = key[: -len("/maintenance/request")]  # dt/<cell>/<robot>
         with self._cond:
             self.copies += 1
@@ -83,7 +89,16 @@ class MaintenanceConsumer:
         """Publish the ack for request `oid` of `prefix` (= 'dt/<cell>/<robot>')."""
         if self._closed:
             return
-        put_json(self._session, f"{prefix}/maintenance/ack/{oid}", {"id": oid, "uid": uid, "t": time.time()})
+        put_json(self._session, f"{prefix}/maintenance/ack/{oid}",
+                 {"id": oid, "uid": uid, "group": self.group, "t": time.time()})
+
+    def done(self, prefix: str, oid: int, uid: str, by: str, note: str) -> None:
+        """Tell the twin of `prefix` (= 'dt/<cell>/<robot>') that the maintenance asked for by
+        request `oid` was done: who and why are stored with the transition back to nominal."""
+        if self._closed:
+            raise BusError("consumer is closed")
+        put_json(self._session, f"{prefix}/maintenance/done/{oid}",
+                 {"id": oid, "uid": uid, "by": by, "note": note, "t": time.time()})
 
     def wait_for(self, n: int, timeout: float) -> bool:
         """Wait until at least n distinct requests arrived; False on time-out."""

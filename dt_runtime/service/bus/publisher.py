@@ -34,18 +34,32 @@ _QOS = {
     "telemetry": (_CC.DROP, _P.DATA_LOW, _R.BEST_EFFORT),
     "correction": (_CC.BLOCK, _P.DATA_HIGH, _R.RELIABLE),
     "state": (_CC.BLOCK, _P.INTERACTIVE_HIGH, _R.RELIABLE),
+    "health": (_CC.BLOCK, _P.INTERACTIVE_HIGH, _R.RELIABLE),
     "maintenance/request": (_CC.BLOCK, _P.INTERACTIVE_HIGH, _R.RELIABLE),
 }
+
+
+def new_requests(config: BusConfig, body: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """The outbox entries (key, payload) of one maintenance request: one per consumer group, all
+    with the same `uid` (consumers of a group de-duplicate on it) and each with its `group`."""
+    base = dict(body)
+    base.setdefault("uid", uuid.uuid4().hex)
+    base.setdefault("cell", config.cell)
+    base.setdefault("robot", config.robot)
+    base.setdefault("created", time.time())
+    return [(config.key("maintenance/request"), base | {"group": g}) for g in config.consumer_groups]
 
 
 class Bus:
     """Daemon-side bus for one robot; see the module docstring."""
 
     def __init__(self, config: BusConfig, store: Store | None = None, *,
-                 on_ack: Callable[[int, dict[str, Any]], None] | None = None):
+                 on_ack: Callable[[int, dict[str, Any]], None] | None = None,
+                 on_done: Callable[[int], None] | None = None):
         self.config = config
         self.store = store
         self.on_ack = on_ack
+        self.on_done = on_done  # an operator's 'done' arrived and was stored as an action (its id)
         self.dropped = 0
         self.published = 0
         self.acked = 0
@@ -62,6 +76,9 @@ class Bus:
                 self._ack_sub = s.declare_subscriber(
                     config.key("maintenance/ack/*"),
                     lambda sample: self._tasks.put(("ack", sample.payload.to_bytes())))
+                self._done_sub = s.declare_subscriber(
+                    config.key("maintenance/done/*"),
+                    lambda sample: self._tasks.put(("done", sample.payload.to_bytes())))
         except BusError:
             close_session(s, config.close_timeout_s)
             raise
@@ -99,6 +116,14 @@ class Bus:
     def publish_state(self, payload: Mapping[str, Any]) -> bool:
         return self._enqueue_send("state", payload)
 
+    def publish_health(self, payload: Mapping[str, Any]) -> bool:
+        return self._enqueue_send("health", payload)
+
+    def wake(self) -> None:
+        """Publish the pending outbox entries now (a transition just committed some)."""
+        if not self._closed:
+            self._tasks.put(("wake",))
+
     def _enqueue_send(self, kind: str, payload: Mapping[str, Any]) -> bool:
         """Hand a reliable message to the worker; False (and counted) if the queue is full."""
         self._check()
@@ -120,14 +145,9 @@ class Bus:
         self._check()
         if self.store is None:
             raise StateError("request_maintenance needs a Store (the outbox makes it durable)")
-        body = dict(payload)
-        body.setdefault("uid", uuid.uuid4().hex)
-        body.setdefault("cell", self.config.cell)
-        body.setdefault("robot", self.config.robot)
-        body.setdefault("created", time.time())
-        oid = self.store.outbox_add(self.config.key("maintenance/request"), body)
-        self._tasks.put(("wake",))
-        return oid
+        ids = [self.store.outbox_add(key, body) for key, body in new_requests(self.config, payload)]
+        self.wake()
+        return ids[0]
 
     def pending(self) -> list:
         return [] if self.store is None else self.store.outbox_pending()
@@ -162,6 +182,8 @@ class Bus:
             self.published += 1
         elif kind == "ack":
             self._on_ack_bytes(task[1])
+        elif kind == "done":
+            self._on_done_bytes(task[1])
         elif kind == "stop":
             self._stop.set()
 
@@ -182,6 +204,25 @@ class Bus:
             self.acked += 1
             if self.on_ack is not None:
                 self.on_ack(oid, msg)
+
+    def _on_done_bytes(self, raw: bytes) -> None:
+        """Maintenance done, from a maintenance system: stored as an operator action (who, why)
+        for the daemon to apply; only for a request this store sent (id and uid match)."""
+        try:
+            msg = json.loads(raw)
+            oid, uid = int(msg["id"]), str(msg["uid"])
+            by, note = str(msg["by"]), str(msg["note"])
+        except (ValueError, KeyError, TypeError):
+            log.warning("malformed maintenance done ignored (needs id, uid, by, note): %r", raw[:200])
+            return
+        item = None if self.store is None else self.store.outbox_get(oid)
+        if item is None or item.payload.get("uid") != uid:
+            log.warning("done for unknown request id=%s uid=%s ignored", oid, uid)
+            return
+        assert self.store is not None
+        aid = self.store.add_action("done", by, note, request_id=oid, source="bus")
+        if self.on_done is not None:
+            self.on_done(aid)
 
     def _republish(self) -> None:
         store = self.store
