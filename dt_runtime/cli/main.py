@@ -14,7 +14,20 @@ import sys
 from types import ModuleType
 
 from dt_kernel.errors import TwinError
-from dt_runtime.cli import calibrate, compare, correct, demo, diagnose, export, fit, run, simulate, status
+from dt_runtime.cli import (
+    ack,
+    calibrate,
+    compare,
+    consume,
+    correct,
+    demo,
+    diagnose,
+    export,
+    fit,
+    run,
+    simulate,
+    status,
+)
 from dt_runtime.common.jsonsafe import dumps, jsonable
 from dt_runtime.common.threads import limit_blas_threads
 from dt_runtime.common.version import version_string
@@ -30,6 +43,8 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line hel
     "export": (export, "export the calibrated robot as URDF or DH robot config"),
     "correct": (correct, "corrected commands for a program, with their uncertainty"),
     "status": (status, "current state and last figures from the daemon's store"),
+    "ack": (ack, "confirm that maintenance was done (or a request delivered)"),
+    "consume": (consume, "receive and acknowledge maintenance requests (a maintenance system's side)"),
 }
 
 

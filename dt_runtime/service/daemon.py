@@ -150,7 +150,7 @@ class Daemon:
         self.requests: list[dict] = []
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
         self._last_tick_wall: float | None = None
-        self._last_tick_mono = time.monotonic()
+        self._last_tick_mono = float("-inf")  # the watchdog is fed from READY on
         self._health_key: tuple | None = None
         self._health_due = threading.Event()  # the loop saw a change: the housekeeper publishes
         self._applying: OperatorAction | None = None  # the 'done' whose transition is being recorded
@@ -536,6 +536,7 @@ class Daemon:
         t0 = self._now()
         next_t = time.monotonic()
         sdnotify.notify("READY=1")
+        self._last_tick_mono = time.monotonic()
         iterations = 0
         while not self._stop.is_set():
             # max_ticks counts loop iterations, moved or not: a run of refused commands ends too

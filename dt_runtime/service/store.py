@@ -596,4 +596,6 @@ class Store:
             "state": self.load_state(),
             "outbox_pending": int(pending[0] or 0),
             "oldest_pending_created": pending[1],
+            "requests": self.requests(limit=5),
+            "operator_actions": [a.__dict__ for a in self.actions(limit=5)],
         }

@@ -1,0 +1,132 @@
+"""`dt ack`: the operator's path out of `maintenance_requested` (or `halted`).
+
+Maintenance was done (default), or only the delivery of a request is confirmed
+(`--delivered-only`: the bus stops republishing it, the state stays). Who (`--by`) and why
+(`--note`) are stored with the action and, once the daemon applies it, with the transition back to
+nominal.
+
+Two ways to reach the daemon:
+- `--store FILE` (at the cell): the action is written to the daemon's store; a running daemon
+  applies it within about half a second, a stopped one at its next start. `--wait S` waits until
+  it is applied and prints the result.
+- `--bus FILE --uid UID` (a maintenance system elsewhere): the action is published on
+  `dt/<cell>/<robot>/maintenance/done/<id>` with the request's uid (as `dt consume` printed
+  it); the daemon checks id and uid against its outbox. Run beyond loopback only with TLS client
+  certificates and the access-control rules of configs/bus_tls_acl_example.yaml, which let only
+  the maintenance system put there.
+
+`--request ID` names the request the action answers (default, with --store: the newest one); a
+'done' for a request of an earlier episode is recorded and ignored.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from dt_kernel.errors import TwinError
+
+
+def add_arguments(a: argparse.ArgumentParser) -> None:
+    where = a.add_mutually_exclusive_group(required=True)
+    where.add_argument("--store", metavar="FILE", help="the daemon's SQLite store (the runtime YAML's `store:`)")
+    where.add_argument("--bus", metavar="YAML", help="a bus config (configs/bus.yaml) to publish the action on")
+    a.add_argument("--by", required=True, help="who confirms (a name or badge id)")
+    a.add_argument("--note", required=True, help="why: what was done")
+    a.add_argument("--request", type=int, default=None, metavar="ID", help="the request's id (default: newest)")
+    a.add_argument("--uid", default=None, help="the request's uid (with --bus; as `dt consume` printed it)")
+    a.add_argument("--cell", default=None, help="with --bus: the twin's cell (default: the bus config's)")
+    a.add_argument("--robot", default=None, help="with --bus: the twin's robot (default: the bus config's)")
+    a.add_argument("--delivered-only", action="store_true",
+                   help="only confirm that the request was delivered (the state stays)")
+    a.add_argument("--wait", type=float, default=0.0, metavar="S",
+                   help="with --store: wait up to S seconds for the daemon to apply it")
+    a.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def run(args: argparse.Namespace) -> Any:
+    if not args.by.strip() or not args.note.strip():
+        raise TwinError("--by and --note must not be empty: the record says who confirmed what")
+    return _via_bus(args) if args.bus else _via_store(args)
+
+
+def _via_store(args: argparse.Namespace) -> dict[str, Any]:
+    from dt_runtime.service.store import Store
+
+    if not Path(args.store).exists():
+        raise TwinError(f"{args.store}: no such store (the runtime YAML's `store:`)")
+    with Store(args.store) as st:
+        requests = st.requests(limit=1000)
+        if not requests:
+            raise TwinError(f"{args.store}: no maintenance request was ever made; nothing to acknowledge")
+        rid = requests[0]["id"] if args.request is None else args.request
+        req = next((r for r in requests if r["id"] == rid), None)
+        if req is None:
+            raise TwinError(f"{args.store}: no request {rid}; the newest are "
+                            + ", ".join(str(r["id"]) for r in requests[:10]))
+        if args.delivered_only:
+            same = [r["id"] for r in requests if r.get("episode") == req.get("episode") and not r["acked"]]
+            for i in same if req.get("episode") is not None else [rid]:
+                st.outbox_ack(i)
+            aid = st.add_action("delivered", args.by, args.note, request_id=rid, source="cli",
+                                applied=f"delivery of {len(same)} copies confirmed")
+            return {"action": aid, "kind": "delivered", "request": rid, "applied": True,
+                    "result": f"delivery of {len(same)} copies confirmed"}
+        aid = st.add_action("done", args.by, args.note, request_id=rid, source="cli")
+        deadline = time.monotonic() + max(0.0, args.wait)
+        while True:
+            act = next((a for a in st.actions(limit=1000) if a.id == aid), None)
+            if (act is not None and act.applied_at is not None) or time.monotonic() >= deadline:
+                break
+            time.sleep(0.1)
+        applied = act is not None and act.applied_at is not None
+        return {"action": aid, "kind": "done", "request": rid, "applied": applied,
+                "result": act.result if applied and act else
+                "recorded: the daemon applies it at its next tick (or its next start)"}
+
+
+def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
+    import threading
+
+    from dt_runtime.service.bus import load_bus_config
+    from dt_runtime.service.bus.session import close_session, open_session, put_json, zenoh_errors
+
+    if args.request is None or not args.uid:
+        raise TwinError("--bus needs --request ID and --uid UID of the request (as `dt consume` printed them)")
+    if args.delivered_only:
+        raise TwinError("--delivered-only over the bus is what a consumer's ack does: `dt consume` sends it")
+    cfg = load_bus_config(args.bus)
+    prefix = f"dt/{args.cell or cfg.cell}/{args.robot or cfg.robot}"
+    body = {"id": args.request, "uid": args.uid, "by": args.by, "note": args.note, "t": time.time()}
+    applied = threading.Event()
+
+    def on_state(sample: Any) -> None:
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+            ev = msg.get("evidence", {})
+            if msg.get("dst") == "nominal" and ev.get("by") == args.by and ev.get("note") == args.note:
+                applied.set()
+        except (ValueError, AttributeError):
+            pass
+
+    session = open_session(cfg)
+    try:
+        with zenoh_errors(f"cannot subscribe to {prefix}/state"):
+            sub = session.declare_subscriber(f"{prefix}/state", on_state)
+        # Re-sent until the twin's state shows it applied (or --wait ends): a put made before
+        # the peers have met is lost, and the twin ignores copies once it is back to nominal.
+        deadline = time.monotonic() + max(0.0, args.wait)
+        put_json(session, f"{prefix}/maintenance/done/{args.request}", body)
+        while not applied.wait(1.0) and time.monotonic() < deadline:
+            put_json(session, f"{prefix}/maintenance/done/{args.request}", body)
+        sub.undeclare()
+    finally:
+        close_session(session, cfg.close_timeout_s)
+    return {"kind": "done", "request": args.request, "published": f"{prefix}/maintenance/done/{args.request}",
+            "applied": applied.is_set() if args.wait else None}
+
+
+def human(result: dict) -> str:
+    return json.dumps(result, indent=2)

@@ -1,0 +1,169 @@
+"""The runtime YAML of `dt run` (configs/runtime.yaml), validated once into frozen objects.
+
+Every bound is checked here, before anything is opened: a value that would silently switch a
+safeguard off (an infinite or metre-sized correction bound, a path box outside the workspace, a
+speed above the maximum, a count so large that paging never happens) is a ConfigError naming the
+key, the value and what is allowed. Plausible ranges are physical: this is a cobot cell of a few
+metres, and its error map corrects millimetres.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from drivers import registry
+from dt_kernel.config import Frozen, load_yaml
+from dt_runtime.service.bus import BusConfig
+from dt_runtime.service.correction import Limits
+from dt_runtime.service.escalation import EscalationConfig
+
+Vec3 = tuple[float, float, float]
+
+
+def _finite(name: str, *values: float) -> None:
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{name} must be finite, got {values if len(values) > 1 else values[0]}")
+
+
+class Fault(Frozen):
+    """A fault injected into the simulated plant at a given (simulated) time."""
+
+    at_s: float = Field(ge=0)
+    joint_offset_rad: tuple[float, float, float, float, float, float] | None = None
+    camera_shift_m: Vec3 | None = None
+
+
+class PathConfig(Frozen):
+    """Targets the daemon commands: the cell's 'program' (a program file as `dt correct` reads it:
+    x, y, z in mm, speed in mm/s, optional point_id; repeated from the start when done), or, as
+    simulation stand-ins, 'random' points in a box (seeded) or a 'circle' streamed at the loop
+    rate (set-points v / rate_hz apart). Speeds are fractions of the maximum speed, in (0, 1]."""
+
+    kind: Literal["random", "circle", "program"] = "random"
+    program: str | None = None  # the program file for kind 'program' (relative to the runtime config)
+    circle_center_m: Vec3 = (0.9, 0.0, 0.55)
+    circle_radius_m: float = Field(0.15, gt=0, le=2.0)
+    box_min_m: Vec3 = (0.65, -0.3, 0.25)
+    box_max_m: Vec3 = (1.15, 0.3, 0.85)
+    speeds: tuple[float, ...] = Field((0.4, 0.8), min_length=1, max_length=100)
+    seed: int = 0
+
+    @field_validator("speeds")
+    @classmethod
+    def _speeds(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        bad = [s for s in v if not (math.isfinite(s) and 0 < s <= 1)]
+        if bad:
+            raise ValueError(f"speeds are fractions of the maximum speed in (0, 1], got {bad[0]}")
+        return v
+
+    @model_validator(mode="after")
+    def _check(self) -> PathConfig:
+        if (self.kind == "program") != (self.program is not None):
+            raise ValueError("path.program names the program file exactly when path.kind is 'program'")
+        _finite("box_min_m/box_max_m/circle_center_m", *self.box_min_m, *self.box_max_m, *self.circle_center_m)
+        if not all(lo < hi for lo, hi in zip(self.box_min_m, self.box_max_m)):
+            raise ValueError(f"box_min_m {list(self.box_min_m)} must be below box_max_m {list(self.box_max_m)} "
+                             "on every axis")
+        return self
+
+
+class SimSection(Frozen):
+    scenario: str = "scenarios/paper_default.yaml"
+    cell: str = "cell.yaml"
+    faults: list[Fault] = []
+
+
+class Drivers(Frozen):
+    """Which driver of each kind (drivers.registry names) and the config each one is given."""
+
+    robot: str = "sim"
+    tracker: str = "sim"
+    camera: str = "sim_images"
+    robot_config: dict[str, Any] = {}  # e.g. {url: /dev/ttyUSB0} for robot: serial
+    tracker_config: dict[str, Any] = {}
+    camera_config: dict[str, Any] = {}  # e.g. {render: {...}} for camera: sim_images
+
+    @model_validator(mode="after")
+    def _known(self) -> Drivers:
+        # Checked with the config, so an unknown driver stops the start before anything is opened.
+        for kind in ("robot", "tracker", "camera"):
+            name = getattr(self, kind)
+            if name not in registry.known(kind):
+                raise ValueError(f"{kind} driver {name!r} is not known; known: {', '.join(registry.known(kind))}")
+        return self
+
+    def chosen(self) -> list[tuple[str, str, dict[str, Any]]]:
+        """(kind, name, config) of the three drivers."""
+        return [(k, getattr(self, k), getattr(self, f"{k}_config")) for k in ("robot", "tracker", "camera")]
+
+
+class HaltConfig(Frozen):
+    """When the daemon halts (a state of the escalation machine, stored and published on
+    `.../health`), and what it does with corrections it does not trust."""
+
+    after_refused: int = Field(10, ge=1, le=100_000)  # consecutive commands refused -> halted
+    after_driver_faults: int = Field(3, ge=1, le=1_000)  # consecutive driver faults -> halted
+    # In out_of_control and maintenance_requested the twin's correction is not trusted:
+    # 'uncorrected' commands the target as is (the arm's native accuracy, still tested),
+    # 'halt' stops moving until maintenance is confirmed done, 'correct' goes on correcting.
+    on_untrusted: Literal["uncorrected", "halt", "correct"] = "uncorrected"
+
+
+class RetentionConfig(Frozen):
+    """Rolling retention of the store's high-rate rows (commands, corrections, measurements,
+    t-tests); transitions, requests and operator actions are always kept."""
+
+    max_age_s: float | None = Field(7 * 86_400.0, gt=0)  # rows older than this (daemon time) go
+    max_rows: int | None = Field(None, ge=1_000)  # newest rows kept per table
+    every_s: float = Field(60.0, gt=0, le=86_400)  # how often the daemon prunes (wall clock)
+
+
+class RuntimeConfig(Frozen):
+    twin: str  # a twin directory written by `dt demo` (DIR/model) or `dt calibrate`
+    store: str = "out/run/dt.sqlite"
+    rate_hz: float = Field(10.0, gt=0, le=2000)
+    realtime: bool = True
+    alpha: float = Field(0.05, gt=0, lt=1)
+    # SIGTERM -> exit within this time even with a silent device (the move is aborted, the
+    # store flushed, the bus closed; past it the process exits hard: committed rows are safe).
+    stop_timeout_s: float = Field(8.0, gt=0, le=60)
+    drivers: Drivers = Drivers()
+    sim: SimSection = SimSection()
+    path: PathConfig = PathConfig()
+    limits: Limits = Limits()
+    escalation: EscalationConfig = EscalationConfig()
+    halt: HaltConfig = HaltConfig()
+    retention: RetentionConfig = RetentionConfig()
+    bus: BusConfig = BusConfig()
+    publish: bool = True
+
+    @model_validator(mode="after")
+    def _path_in_workspace(self) -> RuntimeConfig:
+        """A path that leaves the workspace would have every command refused: refuse the config."""
+        lo, hi = self.limits.workspace_min_m, self.limits.workspace_max_m
+        p = self.path
+        corners: tuple[Vec3, ...]
+        if p.kind == "random":
+            corners = (p.box_min_m, p.box_max_m)
+        elif p.kind == "circle":
+            c, r = p.circle_center_m, p.circle_radius_m
+            corners = ((c[0] - r, c[1] - r, c[2]), (c[0] + r, c[1] + r, c[2]))
+        else:
+            corners = ()
+        for corner in corners:
+            if any(not (a <= v <= b) for v, a, b in zip(corner, lo, hi)):
+                raise ValueError(f"path ({p.kind}) reaches {list(corner)} m, outside the workspace "
+                                 f"{list(lo)} .. {list(hi)} m (limits.workspace_*): every command there "
+                                 "would be refused")
+        return self
+
+
+def load_runtime_config(path: str | Path) -> RuntimeConfig:
+    return load_yaml(path, RuntimeConfig)
+
+
+__all__ = ["Drivers", "Fault", "HaltConfig", "PathConfig", "RetentionConfig", "RuntimeConfig",
+           "SimSection", "load_runtime_config"]
