@@ -549,3 +549,46 @@ def test_retention_prunes_high_rate_rows_and_keeps_transitions_and_requests(twin
         assert len(d.store.transitions()) == 3 and d.store.outbox_of_episode(1)
     finally:
         d.close()
+
+
+# --- 10. kill -9 at random moments, over and over ---------------------------------------------------
+def _kill_cycles(twin_dir: Path, tmp_path: Path, cycles: int, seed: int) -> list[str]:
+    """`dt run` on the simulated clock with a fault that pages, killed (SIGKILL) at a random
+    moment of each run; after every kill the store must be consistent (a paging state has its
+    requests, the statistics match the committed t-tests, the transitions form one path)."""
+    rng = np.random.default_rng(seed)
+    fault = "[{at_s: 120, joint_offset_rad: [0, 1.0e-3, 0, 0, 0, 0]}]"
+    cfg = tmp_path / "runtime.yaml"
+    cfg.write_text(f"twin: {twin_dir}\nstore: {tmp_path / 'dt.sqlite'}\nrealtime: false\npublish: false\n"
+                   f"sim: {{scenario: {SCENARIO}, cell: {CELL}, faults: {fault}}}\n"
+                   "bus: {consumer_groups: [maintenance, mes]}\n")
+    db = tmp_path / "dt.sqlite"
+    for _ in range(cycles):
+        proc = subprocess.Popen(_dt("run", "--config", str(cfg)), stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        assert wait_until(lambda p=proc: _count(db, "commands") > 0 or p.poll() is not None, 120)
+        time.sleep(float(rng.uniform(0.0, 1.5)))
+        proc.kill()
+        proc.wait(timeout=30)
+        with Store(db) as st:
+            paging_consistent(st)
+            tr = st.transitions(1000)
+            for a, b in zip(tr, tr[1:]):
+                assert a["dst"] == b["src"], (a, b)
+    with Store(db) as st:
+        snap = st.load_state()["data"]
+        assert st.count("t_stats") > 0
+        if snap["state"] in ("maintenance_requested", "halted"):
+            groups = sorted(r.payload["group"] for r in st.outbox_of_episode(snap["episode"]))
+            assert groups == ["maintenance", "mes"]
+        return [t["dst"] for t in st.transitions(1000)]
+
+
+def test_kill_9_at_random_moments_keeps_the_store_consistent(twin_dir, tmp_path):
+    _kill_cycles(twin_dir, tmp_path, cycles=3, seed=1)
+
+
+@pytest.mark.soak
+def test_kill_9_at_random_moments_many_times(twin_dir, tmp_path):
+    dsts = _kill_cycles(twin_dir, tmp_path, cycles=30, seed=2)
+    assert "maintenance_requested" in dsts  # the kills fell before, during and after paging
