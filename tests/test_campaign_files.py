@@ -139,7 +139,7 @@ def test_files_of_another_robot(tmp_path):
     with pytest.raises(DataError, match=r"doe\.csv.*robot config ur10.* by [0-9.]+ mm.*another robot"):
         check_robot(back, UR10, "doe.csv")
     back.q = np.degrees(back.q)  # joints in other units: the robot's own config refuses them too
-    with pytest.raises(DataError, match="other units"):
+    with pytest.raises(DataError, match="q columns look like degrees"):
         check_robot(back, COBOT, "doe.csv")
 
 

@@ -29,6 +29,7 @@ from dt_runtime.analysis.data import noise_floor
 from dt_runtime.analysis.results import CompareResult, ModelScore
 from dt_runtime.analysis.training import data_provenance
 from dt_runtime.common.progress import Progress
+from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, read_table
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
@@ -289,6 +290,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
     if ds.n == 0:
         raise DataError(f"{ds.source}: no data rows to compare with")
+    check_dataset(ds, None)  # units and ranges; the models' robots check their joints when they read them
     models = list(models)
     prov = data_provenance(ds, None, None, instruments, inputs, models)
     fitted = load_models(models, names)

@@ -21,6 +21,7 @@ from dt_runtime.analysis.results import DiagnoseResult, Gain
 from dt_runtime.analysis.training import data_provenance
 from dt_runtime.common.progress import Progress
 from dt_runtime.frames.kinematics import Chain
+from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models import effects as fx
@@ -139,8 +140,10 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
     if model is not None:
         m = model if isinstance(model, HybridModel) else load_map(model)
         effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
+    chain = resolve_chain(robot)
+    d.info.update(check_dataset(ds, chain, d.info.get("data")))
     prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs, [model] if model is not None else [])
-    r = rank_effects(fx.Inputs.of(ds), ds.error, groups_of(ds), resolve_chain(robot), tuple(effects), gp_inputs,
+    r = rank_effects(fx.Inputs.of(ds), ds.error, groups_of(ds), chain, tuple(effects), gp_inputs,
                      candidates, folds, seed, noise_floor_m=floor_of(d), progress=progress,
                      gp_options=gp_options, ridge=ridge)
     r.source = {k: v for k, v in d.info.items() if k != "n"}

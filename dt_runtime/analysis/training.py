@@ -12,10 +12,12 @@ from dt_runtime.analysis.data import Data
 from dt_runtime.analysis.results import FitResult
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Provenance, build, files_under, load_instruments
+from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, meta_path
 from dt_runtime.metrology.stats import rms3
+from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
-from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.models.hybrid import HybridModel, resolve_chain
 
 
 def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | None, out: str | Path,
@@ -28,6 +30,10 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
     instruments of the `instruments` YAML and the temperature range of the data."""
     progress = progress or Progress(enabled=False)
     ds = d.dataset
+    # The joints are checked against the robot config when the model reads them.
+    reads_joints = gp_inputs == "joints" or any(fx.get(e).needs_chain for e in effects)
+    d.info.update(check_dataset(ds, resolve_chain(robot) if reads_joints and ds.joints is not None else None,
+                                d.info.get("data")))
     prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs)
     t0 = time.perf_counter()
     model = HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options)

@@ -13,7 +13,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dt_runtime.cli.common import add_output_args, names, progress
+from dt_runtime.cli.common import add_output_args, folds, names, progress
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
@@ -34,7 +34,7 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
     c.add_argument("--model", default=None, metavar="MODEL",
                    help="take the e_LT map's configuration (effects, GP inputs and options, robot) from this "
                         "`dt fit` model; the map is refitted on the DOE so that its budget is the twin's")
-    c.add_argument("--folds", type=int, default=5, metavar="K", help="grouped cross-validation folds (default 5)")
+    c.add_argument("--folds", type=folds, default=5, metavar="K", help="grouped cross-validation folds (default 5)")
     c.add_argument("--margin-mm", type=float, default=25.0, metavar="MM",
                    help="calibrated volume: the DOE hull widened by this margin (default 25 mm)")
     c.add_argument("--seed", type=int, default=None,

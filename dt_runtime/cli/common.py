@@ -7,6 +7,28 @@ import argparse
 from dt_runtime.common.progress import Progress
 
 
+def folds(text: str) -> int:
+    """--folds K: an integer >= 2 (one fold leaves nothing to train on)."""
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if k < 2:
+        raise argparse.ArgumentTypeError(f"{k}: cross-validation needs at least 2 folds")
+    return k
+
+
+def cv_folds(text: str) -> int:
+    """--cv K: 0 (no cross-validation) or an integer >= 2."""
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if k != 0 and k < 2:
+        raise argparse.ArgumentTypeError(f"{k}: 0 (none) or at least 2 folds")
+    return k
+
+
 def add_output_args(q: argparse.ArgumentParser) -> None:
     q.add_argument("--json", action="store_true", help="print the result as one JSON object")
     q.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")

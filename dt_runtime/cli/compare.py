@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
+from dt_runtime.cli.common import add_data_args, add_output_args, cv_folds, load, names, progress
 
 
 def add_arguments(cp: argparse.ArgumentParser) -> None:
@@ -18,7 +18,7 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
                     help="model directory from `dt fit`; repeat for a side-by-side comparison (oldest first)")
     cp.add_argument("--names", default="", metavar="a,b,...",
                     help="column names of the models (default: directory names)")
-    cp.add_argument("--cv", type=int, default=0, metavar="K",
+    cp.add_argument("--cv", type=cv_folds, default=0, metavar="K",
                     help="held-out figures from the training file: refit each model's configuration on K-1 "
                          "folds grouped by target point (default 0: the models as saved)")
     cp.add_argument("--report", default=None, metavar="DIR", help="write DIR/report.html and DIR/compare.json")

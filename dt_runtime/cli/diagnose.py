@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
+from dt_runtime.cli.common import add_data_args, add_output_args, folds, load, names, progress
 
 
 def add_arguments(dg: argparse.ArgumentParser) -> None:
@@ -16,7 +16,7 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     dg.add_argument("--model", default=None, metavar="MODEL", help="starting model (default: --effects + GP)")
     dg.add_argument("--effects", default="", metavar="a,b,...", help="starting model's effects without --model")
     dg.add_argument("--candidates", default="", metavar="a,b,...", help="effects to test (default all)")
-    dg.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    dg.add_argument("--folds", type=folds, default=5, help="cross-validation folds (default 5)")
     dg.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
                          "recorded in the provenance")

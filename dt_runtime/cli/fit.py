@@ -8,14 +8,14 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_output_args, load, names, progress
+from dt_runtime.cli.common import add_data_args, add_output_args, cv_folds, load, names, progress
 
 
 def add_arguments(ft: argparse.ArgumentParser) -> None:
     add_data_args(ft)
     ft.add_argument("--effects", default="", metavar="a,b,...", help="effect terms (default none: the paper's GP)")
     ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")
-    ft.add_argument("--cv", type=int, default=0, metavar="K",
+    ft.add_argument("--cv", type=cv_folds, default=0, metavar="K",
                     help="also report the held-out RMS by K-fold CV grouped by target point")
     ft.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "

@@ -37,6 +37,7 @@ from dt_kernel.errors import DataError
 from dt_kernel.units import AXES, M_PER_MM, MM_PER_M
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header
+from dt_runtime.measurements.checks import joints_vs_commanded
 from dt_runtime.measurements.phase import PhaseData
 
 MIN_SPAN_MM = 10.0  # a robot campaign spans more than this: smaller positions are metres
@@ -186,21 +187,6 @@ def _check_units(path: Path, groups: dict[str, np.ndarray]) -> None:
 
 def check_robot(data: PhaseData, chain: Chain, where: str, tol_m: float = 1e-3) -> None:
     """The joint angles' forward kinematics (robot config `chain`) must reproduce the commanded
-    TCP: DataError if the median distance exceeds tol_m (files of another robot, or joints in
-    other units or order)."""
-    q = np.asarray(data.q, dtype=float)
-    if q.ndim != 2 or q.shape[1] == 0:
-        return
-    ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(data.p_rdk), axis=1)
-    if not ok.any():
-        return
-    if q.shape[1] != chain.dof:
-        raise DataError(f"{where}: {q.shape[1]} joint angle columns, the robot config {chain.name} has "
-                        f"{chain.dof} joints: files of another robot?")
-    d = np.linalg.norm(chain.fk(q[ok]) - data.p_rdk[ok], axis=1)
-    med = float(np.median(d))
-    if med > tol_m:
-        raise DataError(f"{where}: the joint angles do not match the robot config {chain.name}: their forward "
-                        f"kinematics differs from the commanded TCP (x, y, z) by {med * MM_PER_M:.3f} mm (median "
-                        f"over {int(ok.sum())} rows, tolerance {tol_m * MM_PER_M:g} mm): files of another robot, or "
-                        "joint angles in other units or order")
+    TCP: DataError naming the likely cause if the median distance exceeds tol_m (joints in
+    degrees, positions in metres, files of another robot: `measurements.checks`)."""
+    joints_vs_commanded(data.q, data.p_rdk, chain, where, refuse_m=tol_m)

@@ -1,0 +1,129 @@
+"""Checks of measured data against physics, before anything is fitted: units and plausible ranges.
+
+A wrong unit passes every format check (a number is a number) and then spoils the analysis
+silently: joint angles in degrees hide a joint-space effect, positions in metres shrink every
+error a thousandfold. Two checks catch them and say which unit is likely wrong:
+
+- `joints_vs_commanded`: with a robot config, the forward kinematics of the joint columns must
+  reproduce the commanded TCP. A mismatch is reported (median over the rows); beyond `refuse_m`
+  it is a DataError that names the likely cause, found by trying the usual mistakes: the joints
+  in degrees, the positions in metres, the joints of another robot (count, or nothing fits).
+- `plausible_ranges`: speed > 0 and at most 10 m/s, payload in [0, 1000] kg, temperature in
+  [-50, 150] deg C, commanded positions within 5 m of the base: a value outside names its column,
+  its row and the allowed range.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dt_kernel.errors import DataError
+from dt_kernel.units import MM_PER_M
+from dt_runtime.frames.kinematics import Chain
+
+#: column -> (low, high in SI, unit as the file states it, factor from SI to that unit)
+RANGES = {
+    "speed": (0.0, 10.0, "mm/s", MM_PER_M),
+    "payload": (0.0, 1000.0, "kg", 1.0),
+    "temperature": (-50.0, 150.0, "deg C", 1.0),
+}
+MAX_REACH_M = 5.0
+
+
+@dataclass(frozen=True)
+class JointCheck:
+    """How well the joints' forward kinematics reproduces the commanded TCP."""
+
+    median_mm: float
+    p95_mm: float
+    rows: int
+    robot: str
+
+    def to_dict(self) -> dict:
+        return {"median_mm": round(self.median_mm, 4), "p95_mm": round(self.p95_mm, 4), "rows": self.rows,
+                "robot": self.robot}
+
+
+def _mismatch(chain: Chain, q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(chain.fk(q) - p, axis=1)
+
+
+def joints_vs_commanded(q: np.ndarray | None, commanded: np.ndarray, chain: Chain, where: str,
+                        refuse_m: float = 0.02) -> JointCheck | None:
+    """The mismatch of FK(q) and the commanded TCP (both robot frame, SI); DataError naming the
+    likely unit error when its median exceeds `refuse_m`. None when there are no joint columns."""
+    if q is None:
+        return None
+    q = np.asarray(q, dtype=float)
+    p = np.asarray(commanded, dtype=float)
+    if q.ndim != 2 or q.shape[1] == 0:
+        return None
+    ok = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(p), axis=1)
+    if not ok.any():
+        return None
+    if q.shape[1] != chain.dof:
+        raise DataError(f"{where}: {q.shape[1]} joint angle columns (q1..q{q.shape[1]}), the robot config "
+                        f"{chain.name} has {chain.dof} joints: data of another robot? (give its config with --robot)")
+    q, p = q[ok], p[ok]
+    d = _mismatch(chain, q, p)
+    check = JointCheck(float(np.median(d)) * MM_PER_M, float(np.percentile(d, 95)) * MM_PER_M, int(ok.sum()),
+                       chain.name)
+    if np.median(d) <= refuse_m:
+        return check
+    # Which usual mistake explains the data? Each alternative is tried on the same rows.
+    tries = {
+        "the q columns look like degrees (in radians their forward kinematics matches the commanded TCP "
+        "within {:.2f} mm): the table wants radians": lambda: _mismatch(chain, np.deg2rad(q), p),
+        "the x, y, z columns look like metres (scaled by 1000 they match the joints' forward kinematics "
+        "within {:.2f} mm): the table wants millimetres": lambda: _mismatch(chain, q, p * 1000.0),
+        "the q columns look like degrees and x, y, z like metres (converted, they match within {:.2f} mm)":
+            lambda: _mismatch(chain, np.deg2rad(q), p * 1000.0),
+    }
+    for text, f in tries.items():
+        alt = float(np.median(f()))
+        if alt <= refuse_m:
+            raise DataError(f"{where}: the joint angles do not match the commanded TCP through the robot config "
+                            f"{chain.name}: they differ by {check.median_mm:.3f} mm (median over {check.rows} rows): "
+                            + text.format(alt * MM_PER_M))
+    looks_deg = float(np.max(np.abs(q))) > 2.5 * np.pi
+    raise DataError(f"{where}: the joint angles do not match the commanded TCP through the robot config {chain.name}: "
+                    f"they differ by {check.median_mm:.3f} mm (median over {check.rows} rows, allowed "
+                    f"{refuse_m * MM_PER_M:g} mm): "
+                    + ("the q columns exceed 2.5 pi, so they look like degrees; " if looks_deg else "")
+                    + "data of another robot (give its config with --robot), or joints in another order or "
+                    "zero convention")
+
+
+def plausible_ranges(columns: dict[str, np.ndarray | None], commanded: np.ndarray, where: str) -> None:
+    """DataError for the first implausible value: column, 1-based data row, value, allowed range.
+    `columns`: SI arrays by column name (speed m/s, payload kg, temperature deg C)."""
+    for name, values in columns.items():
+        if values is None or name not in RANGES:
+            continue
+        lo, hi, unit, k = RANGES[name]
+        v = np.asarray(values, dtype=float)
+        bad = np.flatnonzero(np.isfinite(v) & ((v < lo) | (v > hi) | ((v <= 0) if name == "speed" else False)))
+        if bad.size:
+            i = int(bad[0])
+            low = f"> {lo * k:g}" if name == "speed" else f">= {lo * k:g}"
+            raise DataError(f"{where}: column '{name}', data row {i + 1}: {v[i] * k:g} {unit} is not plausible "
+                            f"(allowed {low} and <= {hi * k:g} {unit}; {bad.size} rows outside)")
+    p = np.asarray(commanded, dtype=float)
+    far = np.flatnonzero(np.isfinite(p).all(axis=1) & (np.abs(p) > MAX_REACH_M).any(axis=1))
+    if far.size:
+        i = int(far[0])
+        raise DataError(f"{where}: columns x, y, z, data row {i + 1}: {np.round(p[i] * MM_PER_M, 1).tolist()} mm lies "
+                        f"more than {MAX_REACH_M * MM_PER_M:g} mm from the base: positions in another unit "
+                        "(micrometres?) or another frame")
+
+
+def check_dataset(ds, chain: Chain | None, where: str | None = None, refuse_m: float = 0.02) -> dict:
+    """Both checks on a Dataset (ranges always; joints with a robot config and joint columns).
+    Returns the facts for the result's `source` block: {'joint_check': {...}} or {}."""
+    where = where or ds.source
+    plausible_ranges({"speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature}, ds.commanded, where)
+    if chain is None or ds.joints is None:
+        return {}
+    jc = joints_vs_commanded(ds.joints, ds.commanded, chain, where, refuse_m)
+    return {} if jc is None else {"joint_check": jc.to_dict()}
