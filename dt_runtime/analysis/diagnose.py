@@ -10,6 +10,7 @@ residual variance they explain.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from dt_runtime.analysis.crossval import CvResult, cross_validate, folds_of, gro
 from dt_runtime.analysis.data import Data, floor_of, load_data
 from dt_runtime.analysis.results import DiagnoseResult, Gain
 from dt_runtime.analysis.training import data_provenance
+from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.progress import Progress
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.measurements.checks import check_dataset
@@ -117,7 +119,7 @@ def rank_effects(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: C
     floor = noise_floor_m
     return DiagnoseResult(list(base_effects), gp_inputs, int(inp.n), int(len(np.unique(groups))), len(folds),
                           before * 1e3, None if floor is None else floor * 1e3, ranking, gp_ranking, skipped,
-                          _verdict(ranking, gp_ranking, before, floor, gp_inputs))
+                          _verdict(ranking, gp_ranking, before, floor, gp_inputs), base_group_mse=base.group_mse)
 
 
 def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
@@ -148,4 +150,152 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
                      gp_options=gp_options, ridge=ridge)
     r.source = {k: v for k, v in d.info.items() if k != "n"}
     r.provenance = prov
+    return r
+
+
+# --------------------------------------------------------------------------- the whole loop
+@dataclass
+class Step:
+    """One step of `auto_diagnose`: the model before it, what was added and its evidence."""
+
+    model: str  # the model before the step, e.g. "geometric + GP(joints)"
+    rmse_mm: float  # its held-out 3D RMS
+    u_rmse_mm: float  # standard uncertainty of that RMS (from the spread over held-out groups)
+    change: str | None  # what the step added ("+backlash", "GP -> joints"), None on the last step
+    p_value: float | None
+    explained_fraction: float | None
+    alpha: float  # the step's significance level (alpha / number of candidates tested)
+
+    def to_dict(self) -> dict:
+        return jsonable(self.__dict__)
+
+
+@dataclass
+class AutoResult:
+    """`dt diagnose --auto`: the steps, what was added, and how far the residual is from the floor."""
+
+    start: str
+    steps: list[Step]
+    added: list[str]
+    effects: list[str]
+    gp_inputs: str
+    final_rmse_mm: float
+    noise_floor_mm: float | None
+    floor_ratio: float | None
+    verdict: str
+    alpha: float
+    min_explained: float
+    n: int
+    folds: int
+    source: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source")}
+        return jsonable(d | {"steps": [s.to_dict() for s in self.steps]} | self.source)
+
+
+def _label(effects: Sequence[str], gp_inputs: str) -> str:
+    gp = {"tcp_speed": "GP(TCP, v)", "tcp": "GP(TCP)", "joints": "GP(joints)", "none": "no GP"}[gp_inputs]
+    return " + ".join([*effects, gp]) if effects else gp
+
+
+def _rms_u(res_mse: np.ndarray) -> float:
+    """Standard uncertainty of the held-out RMS from the per-group mean squares (delta method)."""
+    m = float(np.mean(res_mse))
+    if len(res_mse) < 2 or m <= 0:
+        return float("nan")
+    return float(np.std(res_mse, ddof=1) / np.sqrt(len(res_mse)) / (2 * np.sqrt(m)))
+
+
+def auto_diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: Chain | None,
+                  effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", *, n_folds: int = 5, seed: int = 0,
+                  alpha: float = ALPHA, min_explained: float = 0.02, max_steps: int = 10,
+                  noise_floor_m: float | None = None, candidates: tuple[str, ...] | None = None,
+                  gp_options: GPOptions | None = None, ridge: float = DEFAULT_RIDGE,
+                  progress: Progress | None = None) -> AutoResult:
+    """Forward selection over the candidate effects and the GP's inputs, from any starting model.
+
+    Each step tests every candidate change (each missing effect, the GP on each other input) by
+    grouped cross-validation (`rank_effects`) and takes the one that explains most held-out
+    variance, if its one-sided p is below alpha / m (m: candidates tested at that step,
+    Bonferroni) and it explains at least `min_explained`. The selection stops at the first step
+    where nothing qualifies, so once the model holds every real effect, the chance that a step
+    adds a spurious one is at most alpha (the family of that step is controlled at alpha);
+    `min_explained` keeps effects too small to matter out even when the data are many."""
+    steps: list[Step] = []
+    added: list[str] = []
+    cur_effects, cur_gp = tuple(effects), gp_inputs
+    start = _label(cur_effects, cur_gp)
+    last = None
+    for k in range(max_steps + 1):
+        if progress:
+            progress.note(f"diagnose --auto: step {k + 1}: {_label(cur_effects, cur_gp)}")
+        r = rank_effects(inp, error, groups, chain, cur_effects, cur_gp, candidates, n_folds, seed,
+                         noise_floor_m=noise_floor_m, gp_options=gp_options, ridge=ridge)
+        last = r
+        tested = r.ranking + r.gp_inputs_ranking
+        level = alpha / max(len(tested), 1)
+        ok = [g for g in tested if g.p_value < level and g.explained_fraction >= min_explained
+              and g.rmse_after_mm < g.rmse_before_mm]
+        base_u = _rms_u(r.base_group_mse)
+        best = max(ok, key=lambda g: g.explained_fraction) if ok and k < max_steps else None
+        if best is None:
+            steps.append(Step(_label(cur_effects, cur_gp), r.rmse_base_mm, base_u * 1e3, None, None, None, level))
+            break
+        change = f"+{best.candidate}" if best.kind == "effect" else f"GP -> {best.candidate}"
+        steps.append(Step(_label(cur_effects, cur_gp), r.rmse_base_mm, base_u * 1e3, change, best.p_value,
+                          best.explained_fraction, level))
+        added.append(change)
+        if best.kind == "effect":
+            cur_effects = (*cur_effects, best.candidate)
+        else:
+            cur_gp = best.candidate
+    assert last is not None
+    final = steps[-1].rmse_mm
+    floor = None if noise_floor_m is None else noise_floor_m * 1e3
+    ratio = None if floor is None else final / floor
+    verdict = _auto_verdict(added, steps, final, floor, ratio)
+    return AutoResult(start, steps, added, list(cur_effects), cur_gp, final, floor, ratio, verdict, alpha,
+                      min_explained, int(inp.n), len(folds_of(groups, n_folds, seed)))
+
+
+def _auto_verdict(added: list[str], steps: list[Step], final: float, floor: float | None,
+                  ratio: float | None) -> str:
+    first = steps[0].rmse_mm
+    if added:
+        why = "; ".join(f"{s.change} (explains {100 * (s.explained_fraction or 0):.0f} %, p = {s.p_value:.2g})"
+                        for s in steps if s.change)
+        text = (f"Added {', '.join(added)}: the held-out 3D RMS fell from {first:.4f} to {final:.4f} mm ({why}).")
+    else:
+        text = f"Nothing significant to add: the held-out 3D RMS stays {final:.4f} mm."
+    if ratio is None:
+        return text + (" The noise floor is not known (state the measurement uncertainty ux..uz or the "
+                       "instrument's MPE).")
+    if ratio <= 1.3:
+        return text + f" The residual is at the noise floor ({final:.4f} mm vs {floor:.4f} mm: {ratio:.2f}x)."
+    return text + (f" The residual is still {ratio:.1f}x the noise floor ({floor:.4f} mm) and no candidate of the "
+                   "catalogue explains a significant part of it: something the catalogue does not know is missing "
+                   "(look at the residual against the data's other columns, or declare an effect of your own).")
+
+
+def diagnose_auto(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
+                  effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
+                  robot: str | Path | Chain | None = None, candidates: tuple[str, ...] | None = None,
+                  folds: int = 5, seed: int = 0, alpha: float = ALPHA, min_explained: float = 0.02,
+                  progress: Progress | None = None) -> AutoResult:
+    """`dt diagnose --auto` on loaded data (or a contract CSV path) from `model` or `effects` + GP."""
+    if isinstance(data, (str, Path)):
+        data = load_data(data)
+    d = data if isinstance(data, Data) else Data(data, {"n": data.n})
+    ds = d.dataset
+    ridge, gp_options = DEFAULT_RIDGE, None
+    if model is not None:
+        m = model if isinstance(model, HybridModel) else load_map(model)
+        effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
+    chain = resolve_chain(robot)
+    d.info.update(check_dataset(ds, chain, d.info.get("data")))
+    r = auto_diagnose(fx.Inputs.of(ds), ds.error, groups_of(ds), chain, tuple(effects), gp_inputs, n_folds=folds,
+                      seed=seed, alpha=alpha, min_explained=min_explained, noise_floor_m=floor_of(d),
+                      candidates=candidates, gp_options=gp_options, ridge=ridge, progress=progress)
+    r.source = {k: v for k, v in d.info.items() if k != "n"}
     return r

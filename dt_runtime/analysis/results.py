@@ -79,6 +79,7 @@ class DiagnoseResult:
     verdict: str
     source: dict = field(default_factory=dict)  # the data's facts (load_data's info, without n)
     provenance: Provenance | None = None  # software, data file hashes, robot, instruments
+    base_group_mse: Any = None  # the starting model's held-out mean square per group (m^2; not in the JSON)
 
     @property
     def top(self) -> Gain | None:

@@ -1,0 +1,46 @@
+"""`dt diagnose --auto`: the whole compare/diagnose/add loop as one command (forward selection over
+the effects and the GP's inputs, Bonferroni per step, a minimum effect size)."""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import pytest
+
+from dt_runtime.analysis.diagnose import diagnose_auto
+from dt_runtime.cli.main import main
+from dt_runtime.common.paths import CONFIGS
+
+
+@pytest.fixture(scope="module")
+def hidden(tmp_path_factory):
+    out = tmp_path_factory.mktemp("auto")
+    files = {}
+    for name in ("backlash", "none"):
+        files[name] = out / f"{name}.csv"
+        with contextlib.redirect_stdout(io.StringIO()):
+            assert main(["simulate", "--scenario", str(CONFIGS / "scenarios" / "hidden" / f"{name}.yaml"),
+                         "--out", str(files[name]), "--json"]) == 0
+    return files
+
+
+def test_auto_from_geometric_names_the_hidden_backlash_and_reaches_the_floor(hidden):
+    r = diagnose_auto(hidden["backlash"], effects=("geometric",), robot=CONFIGS / "robots" / "cobot_hc20_like.yaml")
+    assert r.added == ["+backlash"]
+    assert r.floor_ratio is not None and r.floor_ratio < 1.3
+    assert r.steps[0].rmse_mm > 2 * r.final_rmse_mm  # the backlash was most of the held-out error
+    assert r.steps[0].p_value < r.steps[0].alpha and r.steps[0].explained_fraction > 0.5
+    assert "at the noise floor" in r.verdict
+
+
+def test_auto_on_a_clean_arm_adds_nothing_but_geometric(hidden, capsys):
+    rc = main(["diagnose", "--data", str(hidden["none"]), "--auto", "--json", "--no-progress"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0
+    assert set(out["added"]) <= {"+geometric"}
+    assert out["floor_ratio"] < 1.3
+    step = out["steps"][0]
+    assert {"model", "rmse_mm", "u_rmse_mm", "change", "p_value", "explained_fraction", "alpha"} <= step.keys()
+    # the level of each step is alpha / candidates tested there (Bonferroni)
+    assert step["alpha"] < out["alpha"]
