@@ -11,13 +11,14 @@ registry (drivers.registry.create) uses only that, so no caller branches on a dr
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
-from dt_kernel.errors import ConfigError, StateError
+from dt_kernel.errors import ConfigError, DriverError, StateError
 
 UNCONFIGURED, INACTIVE, ACTIVE, CLOSED = "unconfigured", "inactive", "active", "closed"
 
@@ -99,6 +100,34 @@ class Lifecycle:
     def _on_close(self) -> None: ...
 
 
+class Abortable:
+    """The host's stop button for a robot driver (mixin): `abort(reason)` makes a move or request
+    in flight end promptly with DriverError and refuses later ones until `clear_abort()`. It only
+    sets an Event: safe from any thread or a signal handler, it never blocks or takes a lock.
+    A driver calls `_check_abort()` before a move and wherever it waits (the serial link checks
+    the event while it polls for a reply)."""
+
+    _abort_reason: str = ""
+
+    @property
+    def abort_event(self) -> threading.Event:
+        ev = self.__dict__.get("_abort_ev")
+        if ev is None:
+            ev = self.__dict__.setdefault("_abort_ev", threading.Event())
+        return ev
+
+    def abort(self, reason: str = "stopping") -> None:
+        self._abort_reason = str(reason)
+        self.abort_event.set()
+
+    def clear_abort(self) -> None:
+        self.abort_event.clear()
+
+    def _check_abort(self) -> None:
+        if self.abort_event.is_set():
+            raise DriverError(f"{type(self).__name__}: aborted ({self._abort_reason})")
+
+
 @dataclass(frozen=True)
 class JointState:
     q: np.ndarray  # rad, encoder reading
@@ -149,6 +178,12 @@ class RobotController(Protocol):
 
     def read_commanded_tcp(self) -> np.ndarray:
         """The controller's own TCP (m, robot frame) from its encoders and nominal kinematics."""
+
+    def abort(self, reason: str = "stopping") -> None:
+        """End a move in flight promptly (DriverError) and refuse moves until `clear_abort`;
+        callable from any thread or a signal handler (`Abortable`)."""
+
+    def clear_abort(self) -> None: ...
 
 
 @runtime_checkable

@@ -486,7 +486,7 @@ def test_sigterm_with_a_silent_device_stops_within_the_bound(twin_dir, tmp_path)
         emu.stop()
     print(f"SIGTERM with a silent device: exit {proc.returncode} after {elapsed:.2f} s")
     assert elapsed < 10.0, err[-3000:]  # the default stop_timeout_s is 8 s; the old code took 120 s
-    assert proc.returncode in (0, 75)
+    assert proc.returncode == 0  # a clean stop: the move was aborted, not the hard exit (75)
     with Store(tmp_path / "dt.sqlite") as st:
         assert st.integrity_ok()
 

@@ -182,6 +182,22 @@ def test_robot_refuses_nan_target(factory):
 
 
 @_robot
+def test_robot_abort_refuses_moves_until_cleared(factory):
+    """The daemon's SIGTERM path: abort() (from any thread) makes moves fail at once; clear_abort
+    restores them."""
+    with factory() as (drv, config):
+        drv.configure(config)
+        drv.activate()
+        p0 = np.asarray(drv.read_commanded_tcp(), dtype=float)
+        drv.abort("test")
+        with pytest.raises(DriverError, match="abort"):
+            drv.move_linear(p0 + np.array([0.01, 0.0, 0.0]), 0.2)
+        drv.clear_abort()
+        drv.move_linear(p0 + np.array([0.01, 0.0, 0.0]), 0.2)
+        assert np.allclose(drv.read_commanded_tcp(), p0 + np.array([0.01, 0.0, 0.0]), atol=2e-6)
+
+
+@_robot
 def test_robot_close_is_idempotent_from_active(factory):
     with factory() as (drv, config):
         drv.configure(config)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar, Generic, TypeVar
 
-from drivers.base import Lifecycle
+from drivers.base import Abortable, Lifecycle
 from drivers.serial import protocol as lp
 from drivers.serial.link import LinkConfig, SerialLink, ack_fields
 from dt_kernel.config import validate
@@ -15,7 +15,7 @@ from dt_kernel.errors import DriverError, StateError
 C = TypeVar("C", bound=LinkConfig)
 
 
-class SerialDevice(Lifecycle, Generic[C]):
+class SerialDevice(Abortable, Lifecycle, Generic[C]):
     name: ClassVar[str]
     config_type: ClassVar[type[LinkConfig]]  # the device's config (a LinkConfig with its limits)
 
@@ -43,7 +43,7 @@ class SerialDevice(Lifecycle, Generic[C]):
     # --- lifecycle hooks ----------------------------------------------------------------
     def _on_configure(self, config: dict[str, Any]) -> None:
         self.cfg = validate(self.config_type, config, self._source)  # type: ignore[assignment]  # C is config_type
-        self.link = SerialLink(self._cfg, self.name)
+        self.link = SerialLink(self._cfg, self.name, abort=self.abort_event)
 
     def _on_activate(self) -> None:
         self._link.open()

@@ -53,8 +53,10 @@ class LinkConfig(Frozen):
 class SerialLink:
     """Host side of the line protocol: one request in flight, retried until acknowledged."""
 
-    def __init__(self, cfg: LinkConfig, device: str = "device"):
+    def __init__(self, cfg: LinkConfig, device: str = "device", abort: threading.Event | None = None):
         self.cfg, self.device = cfg, device
+        # Set by the device's `abort()`: the request in flight ends at the next poll (_POLL_S).
+        self.abort = abort if abort is not None else threading.Event()
         self._port: serial.SerialBase | None = None
         self._lines = lp.LineBuffer()
         self._seq = 0
@@ -105,6 +107,7 @@ class SerialLink:
             self.stats["requests"] += 1
             timeouts_in_row, problem, cause = 0, "", None
             for attempt in range(1 + self.cfg.retries):
+                self._check_abort(word, seq)
                 if attempt:
                     self.stats["retries"] += 1
                 try:
@@ -114,8 +117,9 @@ class SerialLink:
                     reply = self._await(seq, time.monotonic() + wait)
                 except DriverError as exc:  # port vanished or I/O failed: reopen next attempt
                     problem, cause = str(exc), exc
+                    self._check_abort(word, seq)
                     self.close()
-                    time.sleep(min(wait, 0.1))
+                    self.abort.wait(min(wait, 0.1))
                     continue
                 if reply is None:
                     self.stats["timeouts"] += 1
@@ -140,6 +144,10 @@ class SerialLink:
                 return reply
             raise DriverError(f"{self.device} at {self.cfg.url}: {word} (seq {seq}) failed after "
                               f"{1 + self.cfg.retries} attempts; last problem: {problem}") from cause
+
+    def _check_abort(self, word: str, seq: int) -> None:
+        if self.abort.is_set():
+            raise DriverError(f"{self.device} at {self.cfg.url}: {word} (seq {seq}) aborted: the host is stopping")
 
     def _open_port(self) -> serial.SerialBase:
         """The open port; DriverError if it was closed meanwhile (`close` does not take the
@@ -174,7 +182,7 @@ class SerialLink:
                     self.stats["stale"] += 1  # answer to an earlier, abandoned request
                     continue
                 return frame
-            if time.monotonic() >= deadline:
+            if time.monotonic() >= deadline or self.abort.is_set():
                 return None
 
 

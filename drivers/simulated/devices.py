@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pybullet as pb
 
-from drivers.base import JointState, Lifecycle, RigReading, TrackerReading, reject_keys
+from drivers.base import Abortable, JointState, Lifecycle, RigReading, TrackerReading, reject_keys
 from dt_kernel.errors import DriverError, UnreachableError
 from dt_kernel.geometry import spherical_to_cartesian
 from sim.cell import SimCell
@@ -127,7 +127,7 @@ class _OnWorld(Lifecycle):
         reject_keys(config, self._source, (), f"the simulated {type(self).__name__}")
 
 
-class SimRobot(_OnWorld):
+class SimRobot(Abortable, _OnWorld):
     """RobotController over the simulated plant."""
 
     what = "robot"
@@ -138,6 +138,7 @@ class SimRobot(_OnWorld):
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         self._require("active")
+        self._check_abort()
         target = np.asarray(target, dtype=float)
         if target.shape != (3,) or not np.all(np.isfinite(target)) or not np.isfinite(speed) or speed <= 0:
             raise DriverError(f"invalid move: target {target!r}, speed {speed!r}")
