@@ -110,16 +110,22 @@ def test_failed_flush_buffer_is_bounded(tmp_path):
 
 
 def test_batching_commits_by_rows_and_by_time(tmp_path):
-    with Store(tmp_path / "t.db", batch_rows=10, batch_ms=50) as s:
+    # The batch timer runs on a clock the test moves by hand: no wall-clock time in the test, so a
+    # loaded machine cannot flush early (it did: the timer started before the file was synced).
+    now = [0.0]
+    with Store(tmp_path / "t.db", batch_rows=10, batch_ms=50, clock=lambda: now[0]) as s:
         for i in range(9):
             s.log_measurement(float(i), 0, 0, 0)
         assert s.count("measurements") == 0  # still buffered
         s.log_measurement(9.0, 0, 0, 0)
         assert s.count("measurements") == 10  # row threshold
         s.log_measurement(10.0, 0, 0, 0)
-        time.sleep(0.06)
+        now[0] += 0.049
         s.log_measurement(11.0, 0, 0, 0)
-        assert s.count("measurements") == 12  # time threshold
+        assert s.count("measurements") == 10  # 49 ms: not yet
+        now[0] += 0.002
+        s.log_measurement(12.0, 0, 0, 0)
+        assert s.count("measurements") == 13  # time threshold
         assert s.write_batch([("corrections", {"t": 1.0, "dx": 1e-4, "dy": 0, "dz": 0,
                                                "note": "extra"})]) == 1
 

@@ -151,8 +151,10 @@ class Store:
 
     def __init__(self, path: str | Path, *, batch_rows: int = 200, batch_ms: float = 500.0,
                  background: bool = False, max_pending_rows: int = 100_000,
-                 synchronous: str = "FULL", timeout_s: float = 5.0, exclusive: bool = False):
+                 synchronous: str = "FULL", timeout_s: float = 5.0, exclusive: bool = False,
+                 clock: Callable[[], float] = time.monotonic):
         self.path = Path(path)
+        self._clock = clock  # the batch timer's clock (seconds; a test may drive it by hand)
         self._lock_file = self._take_lock() if exclusive else None
         self.batch_rows = int(batch_rows)
         self.batch_s = float(batch_ms) / 1000.0
@@ -174,7 +176,7 @@ class Store:
         except BaseException:
             self._release_lock()
             raise
-        self._last_flush = time.monotonic()  # once open: opening (fsyncs) is not batch time
+        self._last_flush = self._clock()  # once open: opening (fsyncs) is not batch time
         self._stop = threading.Event()
         self._writer: threading.Thread | None = None
         if background:
@@ -260,7 +262,7 @@ class Store:
         self._queue.append(row)
         if self._writer is None and (
                 len(self._queue) + len(self._pending) >= self.batch_rows
-                or time.monotonic() - self._last_flush >= self.batch_s):
+                or self._clock() - self._last_flush >= self.batch_s):
             self.flush()
 
     def log_command(self, t: float, x: float, y: float, z: float, speed: float | None = None,
@@ -307,7 +309,7 @@ class Store:
         with self._lock:
             self._check_open()
             if not self._queue and not self._pending:
-                self._last_flush = time.monotonic()
+                self._last_flush = self._clock()
                 return 0
             return self._tx(lambda: None)
 
@@ -365,7 +367,7 @@ class Store:
                 raise
             self._pending.clear()
             self.write_errors_in_row = 0
-            self._last_flush = time.monotonic()
+            self._last_flush = self._clock()
             return n if result is None else result
 
     # ------------------------------------------------------------------ immediate writes
