@@ -29,6 +29,7 @@ RANGES = {
     "temperature": (-50.0, 150.0, "deg C", 1.0),
 }
 MAX_REACH_M = 5.0
+MAX_ERROR_M = 1.0  # a positioning "error" of a metre is a wrong file or unit, not an arm's error
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,12 @@ def check_dataset(ds, chain: Chain | None, where: str | None = None, refuse_m: f
     Returns the facts for the result's `source` block: {'joint_check': {...}} or {}."""
     where = where or ds.source
     plausible_ranges({"speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature}, ds.commanded, where)
+    big = np.flatnonzero(np.abs(np.asarray(ds.error, dtype=float)).max(axis=1) > MAX_ERROR_M)
+    if big.size:
+        i = int(big[0])
+        raise DataError(f"{where}: the error (ex, ey, ez or commanded - measured), data row {i + 1}: "
+                        f"{np.asarray(ds.error[i]) * MM_PER_M} mm exceeds {MAX_ERROR_M * MM_PER_M:g} mm: not a "
+                        f"positioning error (a wrong value, unit or frame; {big.size} rows)")
     if chain is None or ds.joints is None:
         return {}
     jc = joints_vs_commanded(ds.joints, ds.commanded, chain, where, refuse_m)

@@ -34,14 +34,16 @@ class PlanConfig(Frozen):
     spacing_m: float = Field(0.15, gt=0, le=0.5)
     plane_separation_m: float = Field(0.35, gt=0, le=1.0)
     registration_origin_m: tuple[float, float, float] = (0.9, 0.0, 0.55)
-    registration_distances_m: tuple[float, ...] = (0.025, 0.05, 0.075, 0.1)
-    registration_reps: int = Field(10, ge=2)
+    registration_distances_m: tuple[float, ...] = Field((0.025, 0.05, 0.075, 0.1), max_length=100)
+    # Counts are bounded (a typo such as doe_reps: 100000000 would eat memory until killed):
+    # the paper's plan is 10 / 9 / 14 x 5; the bounds leave room for any real campaign.
+    registration_reps: int = Field(10, ge=2, le=100)
     registration_speed: float = Speed
-    doe_speeds: tuple[float, ...] = (0.3, 0.6, 0.9)
-    doe_reps: int = Field(9, ge=1)
-    validation_points: int = Field(14, ge=1)
-    validation_speeds: tuple[float, ...] = (0.8, 0.4)
-    validation_reps_per_speed: int = Field(5, ge=1)
+    doe_speeds: tuple[float, ...] = Field((0.3, 0.6, 0.9), max_length=100)
+    doe_reps: int = Field(9, ge=1, le=100)
+    validation_points: int = Field(14, ge=1, le=10_000)
+    validation_speeds: tuple[float, ...] = Field((0.8, 0.4), max_length=100)
+    validation_reps_per_speed: int = Field(5, ge=1, le=100)
 
     @field_validator("doe_speeds", "validation_speeds")
     @classmethod

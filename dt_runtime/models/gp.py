@@ -33,6 +33,7 @@ the replication noise variance is `noise_var_`.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -40,6 +41,7 @@ import numpy as np
 from scipy import linalg, optimize
 
 from dt_kernel.errors import DataError, ModelError
+from dt_runtime.common.safe_npz import load_npz
 from dt_runtime.models.estimator import Params
 from dt_runtime.models.gp_math import collapse, collapsed_nll, farthest_points, inv_from_chol, se_kernel, sq_dists
 from dt_runtime.models.gp_predictor import FastPredictor
@@ -371,6 +373,10 @@ class MultiOutputGP(Params):
             m, a = g._state()
             metas.append(m)
             arrays.update({f"{k}_{j}": v for k, v in a.items()})
+        bad = [k for k, v in arrays.items() if not np.all(np.isfinite(v))]
+        if bad or not all(math.isfinite(float(g.mean_)) for g in self.models_):
+            raise ModelError(f"{stem}: the fitted GP holds NaN or infinite values ({', '.join(bad) or 'mean'}); "
+                             "not saved: check the training data for absurd values")
         meta = {"format_version": FORMAT_VERSION, "kind": _KIND,
                 "kernel": "constant mean + signal_var * ARD squared exponential + white noise",
                 "input_names": self.input_names_, "output_names": self.output_names_,
@@ -378,7 +384,7 @@ class MultiOutputGP(Params):
                           "length_scales": "input units", "signal_var/noise_var": "output units squared"},
                 "params": self.get_params(), "models": metas}
         try:
-            stem.with_suffix(".json").write_text(json.dumps(meta, indent=1))
+            stem.with_suffix(".json").write_text(json.dumps(meta, indent=1, allow_nan=False))
             np.savez(stem.with_suffix(".npz"), **arrays)
         except OSError as exc:
             raise ModelError(f"{stem}: cannot write GP model ({exc})") from exc
@@ -401,8 +407,9 @@ class MultiOutputGP(Params):
             raise ModelError(f"{jpath}: format_version {v!r} is not supported; this version reads "
                              f"{FORMAT_VERSION} ({hint})")
         try:
-            with np.load(npath, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
+            # Names, sizes and dtypes checked before anything is read (common.safe_npz).
+            arrays = load_npz(npath, {f"{k.strip('_')}_{j}" for j in range(len(meta["models"]))
+                                      for k in GPRegressor._ARR})
             m = cls(**meta["params"])
             m.input_names_, m.output_names_ = meta["input_names"], meta["output_names"]
             m.models_ = [GPRegressor._from_state(mm, {k.strip("_"): arrays[f"{k.strip('_')}_{j}"]

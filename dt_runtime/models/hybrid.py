@@ -28,6 +28,7 @@ from dt_kernel.errors import DataError, ModelError
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.provenance import Environment, Provenance
 from dt_runtime.common.provenance import build as build_provenance
+from dt_runtime.common.safe_npz import load_npz
 from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.models import effects as fx
 from dt_runtime.models.effects import as_inputs
@@ -274,6 +275,12 @@ class HybridModel(RegressorMixin, BaseEstimator):
         if isinstance(self.robot, Chain) and any(fx.get(e).needs_chain for e in self.effects):
             raise ModelError("a model given its kinematic chain as an object cannot be saved; "
                              "give robot as the path of a robot config")
+        bad = [k for k, v in (("theta", self.theta_), ("theta_u", self.theta_u_), ("theta_cov", self.theta_cov_))
+               if not np.all(np.isfinite(v))]
+        if bad or not np.isfinite(self.residual_rms_):
+            raise DataError(f"{directory}: the fitted model holds NaN or infinite values "
+                            f"({', '.join(bad) or 'residual_rms'}); not saved: check the training data for absurd "
+                            "values (an error of 1e300 mm, a unit mistake)")
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
         meta = {"format_version": FORMAT_VERSION, "kind": "cobot-dt hybrid error model",
@@ -283,7 +290,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "residual_rms_m": self.residual_rms_, "t_origin_s": self.t_origin_,
                 "units": "SI; e = commanded - measured",
                 "provenance": (provenance or self.provenance()).to_dict()}
-        (d / "hybrid.json").write_text(json.dumps(meta, indent=2))
+        (d / "hybrid.json").write_text(json.dumps(meta, indent=2, allow_nan=False))
         np.savez(d / "hybrid.npz", theta=self.theta_, theta_u=self.theta_u_, theta_cov=self.theta_cov_)
         if self.gp_ is not None:
             self.gp_.save(d / "gp")
@@ -312,11 +319,11 @@ class HybridModel(RegressorMixin, BaseEstimator):
         options = GPOptions.from_dict(meta["gp_options"] if "gp_options" in meta else meta.get("gp_kw"))
         m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"],
                 robot=None if ref is None else str(CONFIGS / ref), gp_options=options)
-        arr = np.load(d / "hybrid.npz", allow_pickle=False)
+        arr = load_npz(d / "hybrid.npz", ("theta", "theta_u", "theta_cov"))  # checked before reading
         m.robot_, m.gp_options_ = ref, options
         m.theta_, m.theta_u_ = arr["theta"], arr["theta_u"]
         # Models saved before the full covariance carry the standard uncertainties only.
-        m.theta_cov_ = arr["theta_cov"] if "theta_cov" in arr.files else np.diag(m.theta_u_ ** 2)
+        m.theta_cov_ = arr["theta_cov"] if "theta_cov" in arr else np.diag(m.theta_u_ ** 2)
         m.t_origin_ = meta.get("t_origin_s")
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
         m.residual_rms_ = meta["residual_rms_m"]
