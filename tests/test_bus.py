@@ -192,7 +192,7 @@ def test_configs_validate_and_map_onto_zenoh():
     z = ex.zenoh_config()  # zenoh itself accepts the mapped TLS and ACL sections
     assert json.loads(z.get_json("transport/link/tls/enable_mtls")) is True
     acl = json.loads(z.get_json("access_control"))
-    assert acl["enabled"] is True and acl["policies"][0]["rules"] == ["twin_publishes"]
+    assert acl["enabled"] is True and acl["policies"][0]["rules"] == ["with_twin_own_keys", "with_twin_subscriptions"]
     assert json.loads(cfg.zenoh_config().get_json("scouting/multicast/enabled")) is False
 
 
