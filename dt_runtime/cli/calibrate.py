@@ -13,7 +13,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dt_runtime.cli.common import add_output_args, folds, names, progress
+from dt_runtime.cli.common import add_output_args, folds, names, parameter_line, progress
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
@@ -108,7 +108,7 @@ def human(s: dict) -> str:
     lines = [f"twin written to {s['twin']} (e_LT map: {', '.join(e['effects']) + ' + GP' if e['effects'] else 'GPR'})",
              f"precision (Sect. 3.3): {s['precision_before_mm']:.3f} mm -> {s['precision_after_mm']:.3f} mm "
              f"({s['improvement_pct']:.1f} % better)"]
-    lines += [f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}" for p in e["parameters"]]
+    lines += [parameter_line(p) for p in e["parameters"]]
     v = s.get("validation")
     if v and v["n"]:
         cov = v["coverage_95"]

@@ -63,3 +63,10 @@ def load(args: argparse.Namespace):
     from dt_runtime.analysis.data import load_data
 
     return load_data(args.data, args.mapping, args.skip_bad)
+
+
+def parameter_line(p: dict) -> str:
+    """One effect parameter for the human summary: value +/- u unit, or why it has no value."""
+    if p["value"] is None:
+        return f"  {p['effect']}.{p['name']}: not identified (aliased with {', '.join(p.get('group', []))})"
+    return f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}"

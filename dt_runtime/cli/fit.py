@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_output_args, cv_folds, load, names, progress
+from dt_runtime.cli.common import add_data_args, add_output_args, cv_folds, load, names, parameter_line, progress
 
 
 def add_arguments(ft: argparse.ArgumentParser) -> None:
@@ -37,6 +37,6 @@ def human(result: dict) -> str:
            f"training 3D RMS {result['train_rmse_mm']:.4f} mm"]
     if "heldout_rmse_mm" in result:
         out.append(f"held-out 3D RMS {result['heldout_rmse_mm']:.4f} mm (as is {result['as_is_rmse_mm']:.4f} mm)")
-    out += [f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}"
+    out += [parameter_line(p)
             for p in result["parameters"]]
     return "\n".join(out)

@@ -31,6 +31,7 @@ from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.common.safe_npz import load_npz
 from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.models import effects as fx
+from dt_runtime.models import identifiability as idf
 from dt_runtime.models.effects import as_inputs
 from dt_runtime.models.gp import GPOptions, MultiOutputGP
 from dt_runtime.models.modelio import read_meta
@@ -174,8 +175,13 @@ class HybridModel(RegressorMixin, BaseEstimator):
         p = A.shape[1]
         if p:
             scale = np.sqrt(np.mean(A ** 2, axis=0))
-            scale[scale == 0] = 1.0
+            # A column that is zero to round-off (a joint offset that cannot move a TCP on its
+            # axis) is not standardised by its round-off scale (that gave offsets of 1e10 rad):
+            # it stays zero, its parameter 0 and not identified (models.identifiability).
+            zero = idf.zero_columns(scale)
+            scale[zero] = 1.0
             As = A / scale
+            As[:, zero] = 0.0
             # Ridge on standardised columns: picks the smallest parameters among alike ones.
             H = As.T @ As + self.ridge * len(y) * 1e-3 * np.eye(p) / 3
             Hinv = np.linalg.inv(H)
@@ -187,10 +193,12 @@ class HybridModel(RegressorMixin, BaseEstimator):
             cov_s = s2 * Hinv @ (As.T @ As) @ Hinv  # sandwich: covariance of the ridge estimate
             self.theta_cov_ = cov_s / np.outer(scale, scale)
             self.theta_u_ = np.sqrt(np.clip(np.diag(self.theta_cov_), 0, None))
+            self.identifiability_ = idf.analyse(As, zero)
         else:
             self.theta_ = np.zeros(0)
             self.theta_u_ = np.zeros(0)
             self.theta_cov_ = np.zeros((0, 0))
+            self.identifiability_ = idf.analyse(np.zeros((0, 0)))
         resid = (y - A @ self.theta_).reshape(-1, 3)
         Xg = gp_features(inp, self.gp_inputs)
         self.gp_ = (MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=thetas)
@@ -240,11 +248,29 @@ class HybridModel(RegressorMixin, BaseEstimator):
         self._check_fitted()
         return MapPredictor(self)
 
+    def identifiability(self) -> dict | None:
+        """Rank, condition number, the parameters the data cannot determine and their aliased
+        groups (by name), or None for a model loaded from a file written before it was kept."""
+        ident = getattr(self, "identifiability_", None)
+        return None if ident is None else ident.to_dict([f"{e}.{n}" for e, n, _, _ in self.param_names_])
+
     def parameters(self) -> list[dict]:
-        """Estimated effect parameters with standard uncertainty, in physical units."""
+        """Estimated effect parameters with standard uncertainty, in physical units. A parameter
+        the data cannot determine (`identified: false`, models.identifiability) has no value: the
+        ridge's choice along an unseen direction is not a measurement; its `group` names the
+        parameters it is aliased with."""
         rows = []
-        for (effect, name, unit, report), v, u in zip(self.param_names_, self.theta_, self.theta_u_):
+        ident = getattr(self, "identifiability_", None)
+        group_of = {i: g for g in (ident.groups if ident else []) for i in g}
+        for i, ((effect, name, unit, report), v, u) in enumerate(zip(self.param_names_, self.theta_, self.theta_u_)):
             row = {"effect": effect, "name": name, "value": float(v), "u": float(u), "unit": unit}
+            if ident is not None:
+                row["identified"] = bool(ident.identified[i])
+                if not row["identified"]:
+                    names = [f"{self.param_names_[j][0]}.{self.param_names_[j][1]}" for j in group_of.get(i, [i])]
+                    row.update(value=None, u=None, group=names)
+                    rows.append(row)
+                    continue
             if report == "inverse" and v > 0:
                 # Stiffness k = 1/c, u(k) = u(c)/c^2 (first order).
                 row.update(name=name.replace("compliance", "stiffness"), value=float(1 / v),
@@ -287,6 +313,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
                 "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
                 "param_names": self.param_names_, "parameters": self.parameters(),
+                "identifiability": None if getattr(self, "identifiability_", None) is None else
+                self.identifiability_.state(),
                 "residual_rms_m": self.residual_rms_, "t_origin_s": self.t_origin_,
                 "units": "SI; e = commanded - measured",
                 "provenance": (provenance or self.provenance()).to_dict()}
@@ -326,6 +354,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.theta_cov_ = arr["theta_cov"] if "theta_cov" in arr else np.diag(m.theta_u_ ** 2)
         m.t_origin_ = meta.get("t_origin_s")
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
+        if meta.get("identifiability") is not None:  # models saved before it was kept have none
+            m.identifiability_ = idf.Identifiability.from_state(meta["identifiability"])
         m.residual_rms_ = meta["residual_rms_m"]
         m.gp_ = MultiOutputGP.load(d / "gp") if meta["gp_inputs"] != "none" else None
         # Models saved before the traceability record have none.

@@ -171,7 +171,9 @@ def _table_parameters(s: dict, a: dict) -> str:
         for p in ps:
             f, unit = (MM_PER_M, "mm") if p["unit"] == "m" else (1.0, p["unit"])  # lengths in mm
             rows.append({"effect": p["effect"], "parameter": p["name"],
-                         "value ± u": f"{p['value'] * f:.4g} ± {p['u'] * f:.2g}", "unit": unit})
+                         "value ± u": (f"{p['value'] * f:.4g} ± {p['u'] * f:.2g}" if p["value"] is not None else
+                                       "not identified (aliased with " + ", ".join(p.get("group", [])) + ")"),
+                         "unit": unit})
         out.append(html_table(rows, caption=f"{m['name']} ({m['description']}): effect parameters, value ± "
                                             "standard uncertainty"))
     return "".join(out)
