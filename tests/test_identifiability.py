@@ -43,3 +43,27 @@ def test_ur10_geometric_parameters_are_honest(tmp_path, capsys):
     ok = [p for p in ps.values() if p["identified"]]
     assert ok and all(abs(p["value"]) < (0.05 if p["unit"] == "rad" else 0.02) for p in ok)  # physical sizes
     assert any(not p["identified"] for p in ps.values())
+
+
+def test_backlash_widths_are_never_negative(tmp_path, capsys):
+    """A clean arm (no backlash in the plant): the widths the fit finds are >= 0 (a negative width,
+    -1.03 mrad, was printed as physics before); those the data push below 0 are held at 0."""
+    import contextlib
+    import io
+
+    from dt_runtime.common.paths import CONFIGS
+
+    csv = tmp_path / "none.csv"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["simulate", "--scenario", str(CONFIGS / "scenarios" / "hidden" / "none.yaml"),
+                     "--out", str(csv), "--json"]) == 0
+    rc = main(["fit", "--data", str(csv), "--effects", "geometric,backlash", "--gp-inputs", "none",
+               "--out", str(tmp_path / "m"), "--json", "--no-progress"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0
+    widths = [p for p in out["parameters"] if p["effect"] == "backlash" and p["value"] is not None]
+    assert widths and all(p["value"] >= 0 for p in widths)
+    assert any(p.get("at_bound") for p in widths)  # the noise pushed some below 0: held at the bound
+    saved = json.loads((tmp_path / "m" / "hybrid.json").read_text())
+    kept = [b for b, p in zip(saved["at_bound"], out["parameters"]) if p["value"] is not None]
+    assert kept == [bool(p.get("at_bound")) for p in out["parameters"] if p["value"] is not None]

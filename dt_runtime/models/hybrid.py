@@ -22,6 +22,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from scipy import optimize
 from sklearn.base import BaseEstimator, RegressorMixin
 
 from dt_kernel.errors import DataError, ModelError
@@ -91,9 +92,10 @@ class Design:
 
     A: np.ndarray
     params: tuple[tuple[str, str, str, str], ...]
+    nonnegative: np.ndarray | None = None  # (p,) bool: the parameters physics wants >= 0
 
     def rows(self, mask) -> Design:
-        return Design(self.A[mask], self.params)
+        return Design(self.A[mask], self.params, self.nonnegative)
 
 
 class HybridModel(RegressorMixin, BaseEstimator):
@@ -144,7 +146,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         if not blocks:
             return Design(np.zeros((inp.n, 3, 0)), ())
         return Design(np.concatenate([b.A for b in blocks], axis=2),
-                      tuple((b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)))
+                      tuple((b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)),
+                      np.array([b.nonnegative for b in blocks for _ in b.names], dtype=bool))
 
     def fit(self, X, y=None, *, design: Design | None = None, thetas=None) -> HybridModel:
         """Fit on X (a Dataset, effects.Inputs or (n, 3) commanded TCP array); y: the error
@@ -183,9 +186,21 @@ class HybridModel(RegressorMixin, BaseEstimator):
             As = A / scale
             As[:, zero] = 0.0
             # Ridge on standardised columns: picks the smallest parameters among alike ones.
-            H = As.T @ As + self.ridge * len(y) * 1e-3 * np.eye(p) / 3
+            lam = self.ridge * len(y) * 1e-3 / 3
+            H = As.T @ As + lam * np.eye(p)
             Hinv = np.linalg.inv(H)
             theta_s = Hinv @ As.T @ y
+            self.at_bound_ = np.zeros(p, bool)
+            sign = D.nonnegative if D.nonnegative is not None else np.zeros(p, bool)
+            if np.any(sign & (theta_s < 0)):
+                # Physics demands widths and compliances >= 0: the same ridge problem with those
+                # bounds (scipy's bounded least squares on the augmented system).
+                M = np.vstack([As, np.sqrt(lam) * np.eye(p)])
+                b = np.concatenate([y, np.zeros(p)])
+                res = optimize.lsq_linear(M, b, bounds=(np.where(sign, 0.0, -np.inf), np.full(p, np.inf)),
+                                          method="bvls")
+                theta_s = res.x
+                self.at_bound_ = sign & (theta_s <= 1e-12 * max(1.0, float(np.abs(theta_s).max())))
             self.theta_ = theta_s / scale
             resid = y - A @ self.theta_
             dof = max(len(y) - p, 1)
@@ -198,6 +213,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
             self.theta_ = np.zeros(0)
             self.theta_u_ = np.zeros(0)
             self.theta_cov_ = np.zeros((0, 0))
+            self.at_bound_ = np.zeros(0, bool)
             self.identifiability_ = idf.analyse(np.zeros((0, 0)))
         resid = (y - A @ self.theta_).reshape(-1, 3)
         Xg = gp_features(inp, self.gp_inputs)
@@ -271,6 +287,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
                     row.update(value=None, u=None, group=names)
                     rows.append(row)
                     continue
+            if getattr(self, "at_bound_", None) is not None and i < len(self.at_bound_) and self.at_bound_[i]:
+                row["at_bound"] = True  # physics' sign held it at 0: the data pushed the other way
             if report == "inverse" and v > 0:
                 # Stiffness k = 1/c, u(k) = u(c)/c^2 (first order).
                 row.update(name=name.replace("compliance", "stiffness"), value=float(1 / v),
@@ -315,6 +333,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "param_names": self.param_names_, "parameters": self.parameters(),
                 "identifiability": None if getattr(self, "identifiability_", None) is None else
                 self.identifiability_.state(),
+                "at_bound": [bool(v) for v in getattr(self, "at_bound_", [])],
                 "residual_rms_m": self.residual_rms_, "t_origin_s": self.t_origin_,
                 "units": "SI; e = commanded - measured",
                 "provenance": (provenance or self.provenance()).to_dict()}
@@ -354,6 +373,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.theta_cov_ = arr["theta_cov"] if "theta_cov" in arr else np.diag(m.theta_u_ ** 2)
         m.t_origin_ = meta.get("t_origin_s")
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
+        m.at_bound_ = np.asarray(meta.get("at_bound", [False] * len(m.param_names_)), dtype=bool)
         if meta.get("identifiability") is not None:  # models saved before it was kept have none
             m.identifiability_ = idf.Identifiability.from_state(meta["identifiability"])
         m.residual_rms_ = meta["residual_rms_m"]

@@ -20,4 +20,4 @@ class Backlash(Effect):
         s = np.sign(approach(inp.column("joints")))
         A = J * (0.5 * s)[:, None, :]
         dof = J.shape[2]
-        return Block(self.name, A, tuple(f"width_q{j + 1}" for j in range(dof)), ("rad",) * dof)
+        return Block(self.name, A, tuple(f"width_q{j + 1}" for j in range(dof)), ("rad",) * dof, nonnegative=True)

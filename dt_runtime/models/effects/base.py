@@ -77,6 +77,8 @@ class Block:
     units: tuple[str, ...]
     # Reported quantity per parameter: identity, or 1/x (compliance -> stiffness).
     report: str = "identity"
+    # Physics' sign: every parameter of the block >= 0 (a backlash width, a compliance), else free.
+    nonnegative: bool = False
 
 
 def approach(x: np.ndarray) -> np.ndarray:

@@ -25,4 +25,4 @@ class Compliance(Effect):
         A = J * tau[:, None, :]  # e = -J dq = J diag(tau) c
         dof = J.shape[2]
         return Block(self.name, A, tuple(f"compliance_q{j + 1}" for j in range(dof)),
-                     ("rad/(N m)",) * dof, report="inverse")
+                     ("rad/(N m)",) * dof, report="inverse", nonnegative=True)
