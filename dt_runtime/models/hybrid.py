@@ -4,7 +4,10 @@ The effect parameters (dt_runtime.models.effects) are estimated jointly by ridge
 least squares on standardised columns (the complete geometric set is rank deficient on purpose),
 with their standard uncertainties from the residual scatter. A GP (dt_runtime.models.gp) then
 models the residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed),
-'tcp', 'joints', or 'none'.
+'tcp', 'joints', or 'none'; with a GP, the effect parameters are estimated again by generalised
+least squares under its covariance (universal kriging, `_gls`) and the GP refitted on what they
+leave, its hyperparameters kept. What the data cannot determine is reported
+(`models.identifiability`); widths and compliances are kept >= 0.
 
 Follows scikit-learn's estimator contract (it is a scikit-learn regressor: sklearn.base.clone
 and cross_val_score work): `__init__` only stores its arguments, `fit` validates them and
@@ -176,6 +179,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         A = D.A.reshape(inp.n * 3, -1)
         y = error.ravel()
         p = A.shape[1]
+        lam, sign, zero, scale = 0.0, np.zeros(p, bool), np.zeros(p, bool), np.ones(p)
         if p:
             scale = np.sqrt(np.mean(A ** 2, axis=0))
             # A column that is zero to round-off (a joint offset that cannot move a TCP on its
@@ -219,12 +223,73 @@ class HybridModel(RegressorMixin, BaseEstimator):
         Xg = gp_features(inp, self.gp_inputs)
         self.gp_ = (MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=thetas)
                     if Xg is not None else None)
+        if p and self.gp_ is not None and Xg is not None:
+            # Effects and GP jointly: the effect parameters again by generalised least squares
+            # under the GP's covariance (universal kriging), then the GP on what they leave. By
+            # ordinary least squares first, a joint-space effect takes up part of the smooth
+            # error the GP would model and can make the model worse, so a diagnosis from the
+            # paper's GP-only model missed a backlash that is there.
+            gls = self._gls(D.A / scale, error, Xg, zero, lam, sign)
+            if gls is not None:
+                theta_s, cov_s = gls
+                self.theta_ = theta_s / scale
+                self.theta_cov_ = cov_s / np.outer(scale, scale)
+                self.theta_u_ = np.sqrt(np.clip(np.diag(self.theta_cov_), 0, None))
+                resid = error - np.einsum("nap,p->na", D.A, self.theta_)
+                self.gp_ = MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=self.gp_.thetas_)
         self.residual_rms_ = float(np.sqrt(np.mean(resid ** 2)))
         # For the traceability record (provenance) of `save`: the training data's file, if any,
         # and the temperature over the training rows.
         self.data_source_ = getattr(X, "source", None)
         self.environment_ = Environment.of(inp.temperature)
         return self
+
+    def _gls(self, As3: np.ndarray, error: np.ndarray, Xg: np.ndarray, zero: np.ndarray, lam: float,
+             sign: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Standardised effect parameters by GLS under the fitted GP (per axis: the rows' noise
+        within replicate groups, the GP's collapsed covariance K^-1 between groups) and their
+        covariance; None when an axis GP is sparse (no exact K^-1 to use).
+
+        With rows grouped by distinct GP input (Z), Sigma = Z K_f Z' + s_n^2 I, and
+        a' Sigma^-1 b = (a - abar)'(b - bbar) / s_n^2 + abar' (K_f + s_n^2 W^-1)^-1 bbar, where
+        the last inverse is the GP's own `_Q` (W: replicate counts); all in the GP's standardised
+        units, so divided by its y scale squared."""
+        gps = self.gp_.models_ if self.gp_ is not None else []
+        if not gps or any(g.sparse_ for g in gps):
+            return None
+        _, inv = np.unique(Xg, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        p = As3.shape[2]
+        N, r = np.zeros((p, p)), np.zeros(p)
+        for a, g in enumerate(gps):
+            d = g.n_features_in_
+            sn2, ys2, cnt = float(np.exp(g.theta_[d + 1])), g.y_scale_ ** 2, g._counts
+            Aa = As3[:, a, :].copy()
+            Aa[:, zero] = 0.0
+            ya = error[:, a] - g.mean_
+            Abar = np.stack([np.bincount(inv, weights=Aa[:, k], minlength=len(cnt)) for k in range(p)], axis=1) \
+                / cnt[:, None]
+            ybar = np.bincount(inv, weights=ya, minlength=len(cnt)) / cnt
+            Aw, yw = Aa - Abar[inv], ya - ybar[inv]
+            N += (Aw.T @ Aw / sn2 + Abar.T @ g._Q @ Abar) / ys2
+            r += (Aw.T @ yw / sn2 + Abar.T @ g._Q @ ybar) / ys2
+        # The same relative ridge as the ordinary fit (its penalty against As' As).
+        lam_g = lam * np.trace(N) / max(float(np.sum(As3 ** 2)), 1e-300)
+        Hg = N + lam_g * np.eye(p)
+        try:
+            Hinv = np.linalg.inv(Hg)
+        except np.linalg.LinAlgError:
+            return None
+        theta = Hinv @ r
+        if np.any(sign & (theta < 0)):  # physics' signs, as in the ordinary fit
+            L = np.linalg.cholesky(Hg)
+            res = optimize.lsq_linear(L.T, np.linalg.solve(L, r),
+                                      bounds=(np.where(sign, 0.0, -np.inf), np.full(p, np.inf)), method="bvls")
+            theta = res.x
+            self.at_bound_ = sign & (theta <= 1e-12 * max(1.0, float(np.abs(theta).max())))
+        else:
+            self.at_bound_ = np.zeros(p, bool)
+        return theta, Hinv @ N @ Hinv
 
     def predict(self, X, return_std: bool = False, *, design: Design | None = None):
         """Predicted error (n, 3) m and, with return_std, its standard uncertainty per axis: the
