@@ -51,3 +51,38 @@ def test_auto_on_a_clean_arm_adds_nothing_but_geometric(hidden, capsys):
     assert {"model", "rmse_mm", "u_rmse_mm", "change", "p_value", "explained_fraction", "alpha"} <= step.keys()
     # the level of each step is alpha / candidates tested there (Bonferroni)
     assert step["alpha"] < out["alpha"]
+
+
+def _with_humidity(src, dst, effect_mm: float, seed: int = 3):
+    """The clean arm's file plus a logged column no effect term reads: 'humidity' (%), drifting
+    over the campaign; the error gains effect_mm per 10 % of it along x and z."""
+    import numpy as np
+
+    from dt_runtime.measurements.dataset import read_table, write_table
+
+    ds = read_table(src)
+    rng = np.random.default_rng(seed)
+    # one value per visit of a point (a slow random walk over the campaign)
+    h = 45 + np.cumsum(rng.normal(0, 1.5, ds.n))
+    ds.error = ds.error + np.outer((h - h.mean()) / 10 * effect_mm * 1e-3, [1.0, 0.0, 0.5])
+    ds.measured = None  # the error columns carry it
+    write_table(ds, dst)
+    lines = dst.read_text().splitlines()
+    dst.write_text("\n".join([lines[0] + ",humidity,operator"] +
+                             [f"{line},{v:.3f},ana" for line, v in zip(lines[1:], h)]) + "\n")
+    return dst
+
+
+def test_an_error_driven_by_an_unknown_column_is_flagged(hidden, tmp_path):
+    r = diagnose_auto(_with_humidity(hidden["none"], tmp_path / "h.csv", 0.03))
+    top = r.columns[0]
+    assert top["column"] == "humidity" and top["significant"] and top["explained_fraction"] > 0.3
+    assert "follows the column 'humidity'" in r.verdict and "declare an effect of your own" in r.verdict
+    assert "operator" not in {c["column"] for c in r.columns}  # a text column is not a factor
+
+
+def test_a_column_without_effect_is_not_flagged(hidden, tmp_path):
+    r = diagnose_auto(_with_humidity(hidden["none"], tmp_path / "h0.csv", 0.0))
+    hum = next(c for c in r.columns if c["column"] == "humidity")
+    assert not hum["significant"]
+    assert "humidity" not in r.verdict

@@ -119,7 +119,8 @@ def rank_effects(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: C
     floor = noise_floor_m
     return DiagnoseResult(list(base_effects), gp_inputs, int(inp.n), int(len(np.unique(groups))), len(folds),
                           before * 1e3, None if floor is None else floor * 1e3, ranking, gp_ranking, skipped,
-                          _verdict(ranking, gp_ranking, before, floor, gp_inputs), base_group_mse=base.group_mse)
+                          _verdict(ranking, gp_ranking, before, floor, gp_inputs), base_group_mse=base.group_mse,
+                          base_residual=base.residual)
 
 
 def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
@@ -148,6 +149,9 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
     r = rank_effects(fx.Inputs.of(ds), ds.error, groups_of(ds), chain, tuple(effects), gp_inputs,
                      candidates, folds, seed, noise_floor_m=floor_of(d), progress=progress,
                      gp_options=gp_options, ridge=ridge)
+    r.columns = column_check(r.base_residual, groups_of(ds), factor_columns(ds))
+    k = 0 if ds.joints is None else ds.joints.shape[1]
+    r.verdict += _column_sentence(r.columns, read_columns(effects, gp_inputs, k))
     r.source = {k: v for k, v in d.info.items() if k != "n"}
     r.provenance = prov
     return r
@@ -188,6 +192,7 @@ class AutoResult:
     n: int
     folds: int
     source: dict = field(default_factory=dict)
+    columns: list = field(default_factory=list)  # column_check on the final model's held-out residual
 
     def to_dict(self) -> dict:
         d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source")}
@@ -212,7 +217,7 @@ def auto_diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: 
                   alpha: float = ALPHA, min_explained: float = 0.02, max_steps: int = 10,
                   noise_floor_m: float | None = None, candidates: tuple[str, ...] | None = None,
                   gp_options: GPOptions | None = None, ridge: float = DEFAULT_RIDGE,
-                  progress: Progress | None = None) -> AutoResult:
+                  progress: Progress | None = None, columns: dict[str, np.ndarray] | None = None) -> AutoResult:
     """Forward selection over the candidate effects and the GP's inputs, from any starting model.
 
     Each step tests every candidate change (each missing effect, the GP on each other input) by
@@ -254,13 +259,16 @@ def auto_diagnose(inp: fx.Inputs, error: np.ndarray, groups: np.ndarray, chain: 
     final = steps[-1].rmse_mm
     floor = None if noise_floor_m is None else noise_floor_m * 1e3
     ratio = None if floor is None else final / floor
-    verdict = _auto_verdict(added, steps, final, floor, ratio)
+    checks = column_check(last.base_residual, groups, columns or {}) if columns else []
+    k = 0 if inp.joints is None else inp.joints.shape[1]
+    verdict = _auto_verdict(added, steps, final, floor, ratio, _column_sentence(checks, read_columns(
+        cur_effects, cur_gp, k)))
     return AutoResult(start, steps, added, list(cur_effects), cur_gp, final, floor, ratio, verdict, alpha,
-                      min_explained, int(inp.n), len(folds_of(groups, n_folds, seed)))
+                      min_explained, int(inp.n), len(folds_of(groups, n_folds, seed)), columns=checks)
 
 
 def _auto_verdict(added: list[str], steps: list[Step], final: float, floor: float | None,
-                  ratio: float | None) -> str:
+                  ratio: float | None, column: str = "") -> str:
     first = steps[0].rmse_mm
     if added:
         why = "; ".join(f"{s.change} (explains {100 * (s.explained_fraction or 0):.0f} %, p = {s.p_value:.2g})"
@@ -268,14 +276,16 @@ def _auto_verdict(added: list[str], steps: list[Step], final: float, floor: floa
         text = (f"Added {', '.join(added)}: the held-out 3D RMS fell from {first:.4f} to {final:.4f} mm ({why}).")
     else:
         text = f"Nothing significant to add: the held-out 3D RMS stays {final:.4f} mm."
+    text += column
     if ratio is None:
         return text + (" The noise floor is not known (state the measurement uncertainty ux..uz or the "
                        "instrument's MPE).")
     if ratio <= 1.3:
         return text + f" The residual is at the noise floor ({final:.4f} mm vs {floor:.4f} mm: {ratio:.2f}x)."
     return text + (f" The residual is still {ratio:.1f}x the noise floor ({floor:.4f} mm) and no candidate of the "
-                   "catalogue explains a significant part of it: something the catalogue does not know is missing "
-                   "(look at the residual against the data's other columns, or declare an effect of your own).")
+                   "catalogue explains a significant part of it: something the catalogue does not know is missing"
+                   + (" (see the column above)." if column else
+                      " (no column of the data explains it either: a factor that was not logged?)."))
 
 
 def diagnose_auto(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
@@ -296,6 +306,82 @@ def diagnose_auto(data: Data | Dataset | str | Path, model: HybridModel | str | 
     d.info.update(check_dataset(ds, chain, d.info.get("data")))
     r = auto_diagnose(fx.Inputs.of(ds), ds.error, groups_of(ds), chain, tuple(effects), gp_inputs, n_folds=folds,
                       seed=seed, alpha=alpha, min_explained=min_explained, noise_floor_m=floor_of(d),
-                      candidates=candidates, gp_options=gp_options, ridge=ridge, progress=progress)
+                      candidates=candidates, gp_options=gp_options, ridge=ridge, progress=progress,
+                      columns=factor_columns(ds))
     r.source = {k: v for k, v in d.info.items() if k != "n"}
     return r
+
+
+# --------------------------------------------------------------------------- beyond the catalogue
+def factor_columns(ds: Dataset) -> dict[str, np.ndarray]:
+    """Every numeric column of the data a residual could follow: the contract's (speed,
+    temperature, payload, t, q1..qk) and the file's own (`Dataset.extra`), by name (speed m/s)."""
+    cols: dict[str, np.ndarray] = {}
+    for name in ("speed", "temperature", "payload", "t"):
+        v = getattr(ds, name)
+        if v is not None:
+            cols[name] = np.asarray(v, dtype=float)
+    if ds.joints is not None:
+        cols.update({f"q{j + 1}": ds.joints[:, j] for j in range(ds.joints.shape[1])})
+    cols.update(ds.extra)
+    return cols
+
+
+def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np.ndarray],
+                 alpha: float = ALPHA) -> list[dict]:
+    """Does the held-out residual follow a column? For each column: the per-point means of the
+    residual (3 axes) regressed on the per-point mean of the column (a slope per axis; points,
+    not rows, are the independent units), the fraction of the residual's variance it explains
+    and the F-test p-value; significant below alpha / number of columns (Bonferroni). Best first."""
+    ok = np.all(np.isfinite(residual), axis=1)
+    out: list[dict] = []
+    ids = np.unique(groups[ok])
+    if len(ids) < 6:
+        return out
+    inv = np.searchsorted(ids, groups[ok])
+    cnt = np.bincount(inv, minlength=len(ids)).astype(float)
+    R = np.stack([np.bincount(inv, weights=residual[ok, a], minlength=len(ids)) for a in range(3)], 1) / cnt[:, None]
+    R0 = R - R.mean(0)
+    rss0 = float(np.sum(R0 ** 2))
+    m = max(len(columns), 1)
+    for name, col in columns.items():
+        x = np.asarray(col, dtype=float)[ok]
+        if not np.all(np.isfinite(x)):
+            continue
+        xg = np.bincount(inv, weights=x, minlength=len(ids)) / cnt
+        xc = xg - xg.mean()
+        sxx = float(xc @ xc)
+        if sxx <= 1e-30 * max(1.0, float(np.abs(xg).max()) ** 2) or rss0 <= 0:
+            continue
+        slope = xc @ R0 / sxx
+        rss1 = float(np.sum((R0 - np.outer(xc, slope)) ** 2))
+        g = len(ids)
+        dof = 3 * g - 6
+        if dof <= 0:
+            continue
+        F = ((rss0 - rss1) / 3) / max(rss1 / dof, 1e-300)
+        pval = float(stats.f.sf(F, 3, dof))
+        out.append({"column": name, "explained_fraction": 1 - rss1 / rss0, "p_value": pval,
+                    "significant": pval < alpha / m})
+    out.sort(key=lambda r: (not r["significant"], -float(r["explained_fraction"])))
+    return out
+
+
+def _column_sentence(checks: list[dict], model_columns: set[str]) -> str:
+    """'The residual follows column X' for the best significant column the model does not read."""
+    top = next((c for c in checks if c["significant"] and c["column"] not in model_columns), None)
+    if top is None:
+        return ""
+    return (f" The held-out residual follows the column '{top['column']}' (p = {top['p_value']:.2g}, "
+            f"{100 * top['explained_fraction']:.0f} % of its variance over the points)"
+            + (": no effect of the catalogue reads it; declare an effect of your own." if top["column"] not in
+               ("speed", "temperature", "payload", "t") and not top["column"].startswith("q") else "."))
+
+
+def read_columns(effects: Sequence[str], gp_inputs: str, n_joints: int) -> set[str]:
+    """The columns a model with these effects and GP inputs reads (joints as q1..qk)."""
+    cols = {c for e in effects for c in fx.get(e).columns}
+    cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(gp_inputs, set())
+    if "joints" in cols:
+        cols = (cols - {"joints"}) | {f"q{j + 1}" for j in range(n_joints)}
+    return cols

@@ -80,6 +80,8 @@ class DiagnoseResult:
     source: dict = field(default_factory=dict)  # the data's facts (load_data's info, without n)
     provenance: Provenance | None = None  # software, data file hashes, robot, instruments
     base_group_mse: Any = None  # the starting model's held-out mean square per group (m^2; not in the JSON)
+    base_residual: Any = None  # the starting model's held-out residual per row (m; not in the JSON)
+    columns: list = field(default_factory=list)  # column_check: what the held-out residual follows
 
     @property
     def top(self) -> Gain | None:
@@ -90,7 +92,8 @@ class DiagnoseResult:
                          "n_groups": self.n_groups, "folds": self.folds, "rmse_base_mm": self.rmse_base_mm,
                          "noise_floor_mm": self.noise_floor_mm, "ranking": self.ranking,
                          "gp_inputs_ranking": self.gp_inputs_ranking, "not_testable": self.not_testable,
-                         "verdict": self.verdict, **self.source, "provenance": self.provenance})
+                         "columns": self.columns, "verdict": self.verdict, **self.source,
+                         "provenance": self.provenance})
 
 
 # --------------------------------------------------------------------------- compare

@@ -89,6 +89,9 @@ class Dataset:
     source: str = "<memory>"
     lines: np.ndarray | None = None
     skipped: list[SkippedRow] = field(default_factory=list)
+    # Numeric columns outside the contract (a fixture's temperature, humidity, a tool id), kept so
+    # that the diagnosis can test the residual against them: name -> (n,) float (NaN where empty).
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self):
         self.commanded = _vec(self.commanded, "commanded", None, 3)
@@ -110,6 +113,7 @@ class Dataset:
             self.flange_rotation = R
         if not (np.all(np.isfinite(self.commanded)) and np.all(np.isfinite(self.error))):
             raise DataError(f"{self.source}: commanded positions and errors must be finite")
+        self.extra = {str(k): _vec(v, f"extra column {k}", n) for k, v in (self.extra or {}).items()}
 
     @classmethod
     def from_measured(cls, commanded, measured, **kw) -> Dataset:
@@ -137,7 +141,7 @@ class Dataset:
                   "t", "point_id", "rep", "u", "flange_rotation", "lines"):
             a = getattr(self, f)
             kw[f] = None if a is None else a[idx]
-        return replace(self, **kw, skipped=list(self.skipped))
+        return replace(self, **kw, skipped=list(self.skipped), extra={k: v[idx] for k, v in self.extra.items()})
 
     def columns(self) -> list[str]:
         """The contract columns `write_table` writes for this dataset, in order."""
@@ -198,8 +202,6 @@ def read_table(path: str | Path, skip_bad: bool = False) -> Dataset:
     specs += [ColumnSpec(f"q{i}", f"q{i}") for i in joint_idx]
     known = {s.column for s in specs}
     unknown = [c for c in header if c not in known]
-    if unknown:
-        log.warning("%s: ignoring column(s) not in the measurement table contract: %s", path, unknown)
 
     state = {"t_max": -math.inf}
 
@@ -234,7 +236,34 @@ def read_table(path: str | Path, skip_bad: bool = False) -> Dataset:
         rep=np.asarray(vals["rep"], dtype=np.int64) if "rep" in vals else None,
         u=col3(U_COLS) if "ux" in vals else None,
         source=str(path), lines=np.asarray(lines, dtype=np.int64), skipped=skipped,
+        extra=_extra_columns(path, header, unknown, lines),
     )
+
+
+def _extra_columns(path: Path, header: list[str], names: list[str], lines) -> dict[str, np.ndarray]:
+    """The numeric columns outside the contract, on the kept rows (NaN where a cell is empty);
+    a column with any text cell is ignored with a warning naming it."""
+    if not names:
+        return {}
+    import csv
+
+    want = {int(line) for line in lines}
+    idx = {c: header.index(c) for c in names}
+    cols: dict[str, list[float]] = {c: [] for c in names}
+    bad: set[str] = set()
+    with path.open(newline="", encoding="utf-8-sig") as f:
+        for lineno, row in enumerate(csv.reader(f), start=1):
+            if lineno == 1 or lineno not in want:
+                continue
+            for c, i in idx.items():
+                cell = row[i].strip() if i < len(row) else ""
+                try:
+                    cols[c].append(float(cell) if cell else float("nan"))
+                except ValueError:
+                    bad.add(c)
+    if bad:
+        log.warning("%s: ignoring non-numeric column(s) outside the measurement table contract: %s", path, sorted(bad))
+    return {c: np.asarray(v, dtype=float) for c, v in cols.items() if c not in bad and len(v) == len(want)}
 
 
 def _fmt(v: float) -> str:
