@@ -2,25 +2,21 @@
 from __future__ import annotations
 
 import json
-import socket
 import threading
 import time
 
 import pytest
 
-from dt_runtime.service.bus import Bus, BusConfig, MaintenanceConsumer, _open, load_bus_config
-from dt_runtime.service.store import Store
 from dt_kernel.config import validate
 from dt_kernel.errors import ConfigError, StateError
+from dt_runtime.service.bus import Bus, BusConfig, MaintenanceConsumer, _open, load_bus_config
+from dt_runtime.service.store import Store
+from tests.loopback import free_port, wait_until
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 PERIOD = 0.2  # fast republish for tests
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def ep(port: int) -> str:
@@ -37,13 +33,6 @@ def consumer_cfg(port: int) -> BusConfig:
     return BusConfig(cell="c1", robot="maint", listen=[ep(port)], close_timeout_s=3.0)
 
 
-def wait_until(pred, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return pred()
 
 
 def test_two_robots_one_consumer_requests_acked_and_outbox_empties(tmp_path):

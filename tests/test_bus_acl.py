@@ -8,7 +8,6 @@ the same file."""
 from __future__ import annotations
 
 import shutil
-import socket
 import subprocess
 import time
 from pathlib import Path
@@ -18,14 +17,13 @@ import pytest
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.bus import Bus, BusConfig, MaintenanceConsumer, load_bus_config
 from dt_runtime.service.store import Store
+from tests.loopback import free_port as _free_port
+from tests.loopback import wait_until as _wait
 
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make certificates")
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None,
+                                reason="needs the openssl command to make certificates")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +39,8 @@ def certs(tmp_path_factory) -> Path:
                      ("rogue", "rogue.plant.local")):
         (d / f"{name}.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n"
                                        "extendedKeyUsage=serverAuth,clientAuth\n")
-        run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={cn}")
+        run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
+            "-subj", f"/CN={cn}")
         run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
             "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext")
     return d
@@ -58,13 +57,6 @@ def _peer(shipped: BusConfig, certs: Path, who: str, listen: list[str], connect:
                                       "republish_period_s": 0.3, **({"robot": robot} if robot else {})})
 
 
-def _wait(pred, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return bool(pred())
 
 
 def _run(certs: Path, tmp_path: Path, shipped: BusConfig, consumer_cert: str = "maint"):

@@ -1,6 +1,5 @@
 """The `correct` request-reply on a real Zenoh session on loopback: the cell's program asks the
 twin for a corrected command and gets the command, its U and the calibrated-volume flag."""
-import socket
 
 import numpy as np
 import pytest
@@ -10,12 +9,7 @@ from dt_runtime.service.bus.correct import CorrectionServer, request_correction
 from dt_runtime.service.bus.session import close_session, open_session
 from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
 from dt_runtime.twin.twin import Twin
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.loopback import free_port
 
 
 @pytest.fixture

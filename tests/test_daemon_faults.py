@@ -29,6 +29,7 @@ from dt_runtime.service.bus import BusConfig, MaintenanceConsumer
 from dt_runtime.service.bus.session import close_session, open_session
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from dt_runtime.service.store import Store, StoreError
+from tests.loopback import free_port, wait_until
 
 SCENARIO, CELL = CONFIGS / "scenarios" / "paper_default.yaml", CONFIGS / "cell.yaml"
 BIG_FAULT = {"at_s": 0.0, "joint_offset_rad": [0, 1e-3, 0, 0, 0, 0]}  # every test fails: pages in ~10 tests
@@ -41,10 +42,6 @@ def twin_dir(quick_demo):
     return out / "model"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cfg_of(twin_dir, tmp_path, *, port=None, faults=(), publish=False, **over) -> RuntimeConfig:
@@ -59,14 +56,6 @@ def cfg_of(twin_dir, tmp_path, *, port=None, faults=(), publish=False, **over) -
     return RuntimeConfig.model_validate(d)
 
 
-def wait_until(pred, timeout: float) -> bool:
-    """Hang detection, not timing: generous deadlines, polled."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return bool(pred())
 
 
 def consumer(port: int, group: str = "maintenance") -> MaintenanceConsumer:

@@ -3,19 +3,18 @@ from __future__ import annotations
 
 import contextlib
 import io
-import socket
-import time
 
 import numpy as np
 import pytest
 
-from dt_runtime.service.bus import BusConfig, MaintenanceConsumer
 from dt_runtime.cli.main import main
-from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
 from dt_runtime.common.paths import CONFIGS
+from dt_runtime.service.bus import BusConfig, MaintenanceConsumer
+from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from dt_runtime.service.store import Store
 from dt_runtime.twin.twin import Twin
+from tests.loopback import free_port, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -26,10 +25,6 @@ def twin_dir(tmp_path_factory):
     return out / "model"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def daemon_cfg(twin_dir, tmp_path, port, faults=(), publish=True) -> RuntimeConfig:
@@ -43,11 +38,6 @@ def daemon_cfg(twin_dir, tmp_path, port, faults=(), publish=True) -> RuntimeConf
     })
 
 
-def wait_until(pred, timeout):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and not pred():
-        time.sleep(0.02)
-    return pred()
 
 
 def test_fault_is_detected_and_the_request_reaches_a_zenoh_consumer(twin_dir, tmp_path):
@@ -155,8 +145,8 @@ def test_twin_used_with_another_camera_is_refused(twin_dir, tmp_path):
 def test_daemon_drives_the_cell_through_the_serial_emulator_on_a_pty(twin_dir, tmp_path):
     """The robot is commanded over the line protocol on a pseudo-terminal; the emulator serves
     the simulated plant; a fault mid-run reaches a Zenoh consumer as a maintenance request."""
-    from drivers.simulated.devices import SimWorld
     from drivers.serial.emulator import ControllerEmulator
+    from drivers.simulated.devices import SimWorld
 
     world = SimWorld(CONFIGS / "scenarios" / "paper_default.yaml", CONFIGS / "cell.yaml")
     emu = ControllerEmulator(world.cell.plant)
