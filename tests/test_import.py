@@ -168,3 +168,19 @@ def test_ur10_data_ships_with_licence():
     for s in "ABCD":
         assert list((UR10_DATA / f"Series_{s}").glob("measurements_*.csv"))
         assert (UR10_DATA / f"Series_{s}" / "Trafo_TM_F_init.txt").exists()
+
+
+def test_a_latin1_export_reads_with_the_mappings_encoding(tmp_path):
+    """A tracker's export in Latin-1 (a degree sign in a header, an umlaut in a note): refused as
+    UTF-8 with a message that names the option, read with `encoding: latin-1`."""
+    header = ["time", "X [m]", "Y [m]", "Z [m]", "A1", "A2", "v", "T", "dX", "dY", "dZ", "Bemerkung"]
+    rows = [["10,5", "0,5", "-0,25", "1,0", "90", "-45,5", "0,25", "21,5", "0,1", "-0,2", "0,3", "Prüfung"],
+            ["12,0", "0,6", "-0,25", "1,0", "180", "0", "0,5", "21,6", "0,01", "0", "0", "größer"]]
+    p = tmp_path / "export.csv"
+    p.write_text(";".join(header) + "\n" + "\n".join(";".join(r) for r in rows) + "\n", encoding="latin-1")
+    with pytest.raises(DataError, match="encoding: latin-1"):
+        import_file(p, ImportMapping.model_validate(FOREIGN))
+    ds, _ = import_file(p, ImportMapping.model_validate(FOREIGN | {"encoding": "latin-1"}))
+    assert ds.n == 2 and ds.temperature[1] == pytest.approx(21.6)
+    with pytest.raises(ValueError, match="unknown text encoding"):
+        ImportMapping.model_validate(FOREIGN | {"encoding": "klingon-8"})

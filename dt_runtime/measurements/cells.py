@@ -90,15 +90,16 @@ def _parse_cell(cell: str, spec: ColumnSpec, decimal: str):
     return v * spec.scale
 
 
-def read_header(path: str | Path, separator: str) -> list[str]:
+def read_header(path: str | Path, separator: str, encoding: str = "utf-8-sig") -> list[str]:
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8-sig") as f:
+        with path.open(newline="", encoding=encoding) as f:
             first = next(csv.reader(f, delimiter=separator), None)
     except OSError as exc:
         raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
     except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
+        raise DataError(f"{path}: not {encoding} text ({exc}); an instrument's export may be latin-1: "
+                        "set `encoding: latin-1` in the import mapping") from exc
     if not first:
         raise DataError(f"{path}: line 1: empty file, expected a header row")
     header = [c.strip() for c in first]
@@ -111,6 +112,7 @@ def read_header(path: str | Path, separator: str) -> list[str]:
 def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[ColumnSpec],
                skip_bad: bool = False,
                row_check: Callable[[dict], None] | None = None,
+               encoding: str = "utf-8-sig",
                ) -> tuple[dict[str, list], list[int], list[SkippedRow], list[str]]:
     """Parse every data row of `path` by `specs`.
 
@@ -119,7 +121,7 @@ def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[C
     sees each parsed row (a dict key -> value) and may raise CellError with `.column` set.
     """
     path = Path(path)
-    header = read_header(path, separator)
+    header = read_header(path, separator, encoding)
     missing = [s.column for s in specs if s.column not in header]
     if missing:
         raise DataError(f"{path}: line 1: missing column(s) {missing}; header has {header}")
@@ -128,7 +130,7 @@ def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[C
     lines: list[int] = []
     skipped: list[SkippedRow] = []
     try:
-        with path.open(newline="", encoding="utf-8-sig") as f:
+        with path.open(newline="", encoding=encoding) as f:
             reader = csv.reader(f, delimiter=separator)
             next(reader)
             while True:

@@ -110,6 +110,9 @@ class ImportMapping(Frozen):
     description: str = ""
     separator: str = Field(",", min_length=1, max_length=1)
     decimal: Literal[",", "."] = "."
+    # The file's text encoding (a tracker's export is often latin-1 / cp1252); utf-8-sig reads
+    # UTF-8 with or without a byte-order mark.
+    encoding: str = "utf-8-sig"
     columns: Columns
     units: Units = Units()
     # scipy Euler sequence: lowercase = extrinsic (fixed axes), uppercase = intrinsic
@@ -124,6 +127,17 @@ class ImportMapping(Frozen):
     # repetitions (rep = 0, 1, ...), when the file has no such columns
     point_id_from_commanded: bool = False
     point_id_tolerance_mm: float = Field(0.001, gt=0)
+
+    @field_validator("encoding")
+    @classmethod
+    def _encoding(cls, v: str) -> str:
+        import codecs
+
+        try:
+            codecs.lookup(v)
+        except LookupError:
+            raise ValueError(f"unknown text encoding {v!r} (e.g. utf-8, latin-1, cp1252)") from None
+        return v
 
     @field_validator("orientation_convention")
     @classmethod
@@ -179,7 +193,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     path = Path(path)
     m = mapping if isinstance(mapping, ImportMapping) else load_mapping(mapping)
     c, u = m.columns, m.units
-    header = read_header(path, m.separator)
+    header = read_header(path, m.separator, m.encoding)
     notes: list[str] = []
 
     def present(field_name: str, names) -> bool:
@@ -216,7 +230,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         assert tspec.column is not None  # TimeSpec._column_needed requires it for these sources
         specs.append(ColumnSpec("t", tspec.column, kind=kind))
 
-    vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad)
+    vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad, encoding=m.encoding)
     n = len(lines)
     if n == 0:
         raise DataError(f"{path}: no usable data rows" + (f" ({len(skipped)} skipped)" if skipped else ""))
