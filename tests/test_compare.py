@@ -223,3 +223,23 @@ def test_cli_compare_bad_model_is_one_json_error(capsys, tmp_path):
     csv = write_table(make(2, n=20), tmp_path / "d.csv")
     code, res = _dt(capsys, "compare", "--data", str(csv), "--model", str(tmp_path / "missing"))
     assert code == 2 and "no such model directory" in res["error"]
+
+
+def test_comparing_on_the_training_file_warns_that_the_figures_are_in_sample(capsys, tmp_path):
+    from dt_runtime.measurements.dataset import write_table
+
+    ds = make(6)
+    ds.point_id = np.arange(ds.n) // 2  # two replicates per point
+    csv = write_table(ds, tmp_path / "train.csv")
+    other = write_table(make(7), tmp_path / "other.csv")
+    code, _ = _dt(capsys, "fit", "--data", str(csv), "--gp-inputs", "tcp", "--out", str(tmp_path / "m"))
+    assert code == 0
+    code, res = _dt(capsys, "compare", "--data", str(csv), "--model", str(tmp_path / "m"),
+                    "--report", str(tmp_path / "rep"))
+    assert code == 0 and res["in_sample"] == ["m"]
+    html = (tmp_path / "rep" / "report.html").read_text()
+    assert "in-sample figures" in html and "one marker per commanded point" in html
+    code, res = _dt(capsys, "compare", "--data", str(other), "--model", str(tmp_path / "m"))
+    assert code == 0 and res["in_sample"] == []
+    code, res = _dt(capsys, "compare", "--data", str(csv), "--model", str(tmp_path / "m"), "--cv", "3")
+    assert code == 0 and res["in_sample"] == []  # held out: no warning

@@ -16,25 +16,28 @@ SI arrays the report plots.
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from dt_kernel.errors import DataError, ModelError
+from dt_kernel.errors import DataError, ModelError, TwinError
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import noise_floor
 from dt_runtime.analysis.results import CompareResult, ModelScore
 from dt_runtime.analysis.training import data_provenance
 from dt_runtime.common.progress import Progress
+from dt_runtime.common.provenance import FileRecord
 from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, read_table
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
 from dt_runtime.models.hybrid import HybridModel, load_map
 
+log = logging.getLogger("dt.compare")
 AS_IS = "as is"
 P95 = 0.95
 MAX_ROWS = 50  # failing row indices listed in the JSON
@@ -47,6 +50,23 @@ SIGN = ("-", "0", "+")
 
 
 # --------------------------------------------------------------------------- inputs
+
+def trained_on(fitted: Sequence[tuple[str, HybridModel]], ds: Dataset) -> list[str]:
+    """The models whose training data was this dataset's file (same SHA-256 in their provenance)."""
+    src = Path(ds.source)
+    if not src.is_file():
+        return []
+    digest = FileRecord.of(src).sha256
+    out = []
+    for name, m in fitted:
+        try:
+            prov = m.provenance()  # a loaded model's record, or a fitted one's training file
+        except (TwinError, OSError):
+            continue
+        if any(f.sha256 == digest for f in prov.inputs):
+            out.append(name)
+    return out
+
 
 def load_models(models: Sequence, names: Sequence[str] | None = None) -> list[tuple[str, HybridModel]]:
     """(name, model) per entry; entries are HybridModel instances or model directories."""
@@ -332,7 +352,10 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                            "effect parameters' uncertainty is not propagated)",
                 "u_meas_source": u_source},
         factors={f: names_ for f, (_, names_) in cells.items()},
-        provenance=prov)
+        provenance=prov, in_sample=[] if cv_folds > 1 else trained_on(fitted, ds))
+    if result.in_sample:
+        log.warning("%s was used to train %s: these figures are in-sample, not a test (use --cv K or other data)",
+                    ds.source, ", ".join(result.in_sample))
     arrays = {"commanded": ds.commanded, "error": ds.error, "u": ds.u, "u_meas": um,
               "speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature, "t": ds.t,
               "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs}

@@ -135,6 +135,7 @@ class CompareResult:
     factors: dict[str, list[str]]  # factor -> its cells in order
     units: str = "mm; e = commanded - measured (Eq. 8); residual r = e - e_hat"
     provenance: Provenance | None = None  # software, data and model file hashes, instruments
+    in_sample: list[str] = field(default_factory=list)  # models trained on these very data (figures not held out)
 
     @property
     def primary(self) -> ModelScore:
@@ -145,4 +146,4 @@ class CompareResult:
         return jsonable({**top, "primary": self.primary.name, "dataset": self.dataset,
                          "noise_floor_mm": self.noise_floor_mm, "heldout": self.heldout, "t_test": self.t_test,
                          "factors": self.factors, "models": self.models, "units": self.units,
-                         "provenance": self.provenance})
+                         "in_sample": self.in_sample, "provenance": self.provenance})

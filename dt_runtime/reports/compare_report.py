@@ -49,6 +49,17 @@ def _fail_txt(b: dict) -> str:
 
 # --------------------------------------------------------------------------- tables
 
+def _banner(s: dict, a: dict) -> str:
+    """A warning when a model was trained on these very data: its figures are in-sample."""
+    ins = s.get("in_sample") or []
+    if not ins:
+        return ""
+    return note(f"<strong>Warning: in-sample figures.</strong> {', '.join(ins)} "
+                f"{'was' if len(ins) == 1 else 'were'} trained on this very file: "
+                "their residuals here say how well they fit, not how well they predict. Compare on other "
+                "data, or with <code>dt compare --cv K</code> (each row predicted without its point).")
+
+
 def _headline(s: dict, a: dict) -> str:
     ms = s["models"]
     p, asis = ms[-1], ms[0]
@@ -116,6 +127,8 @@ def _fig_steps(s: dict, a: dict) -> str:
         ax.legend(fontsize=8)
     ax.set_xticks(x, [m["name"] for m in ms], rotation=15, fontsize=8)
     ax.set_ylabel(("held-out " if ho else "") + "3D RMS of r / mm")
+    if y.min() > 0 and y.max() / y.min() > 4:  # the as-is bar must not squash the steps that matter
+        ax.set_yscale("log")
     ax.grid(alpha=0.3, axis="y")
     fig.tight_layout()
     what = (f"Held-out 3D RMS of the residual ({ho['method']})" if ho else
@@ -189,26 +202,46 @@ def _table_method(s: dict, a: dict) -> str:
 
 # --------------------------------------------------------------------------- figures
 
+def per_point(commanded: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Replicates aggregated per commanded position (1 um): (positions, mean of `values` per
+    position, row count per position)."""
+    key = np.round(np.asarray(commanded, float) / 1e-6).astype(np.int64)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    cnt = np.bincount(inv).astype(float)
+    v = np.asarray(values, float).reshape(len(inv), -1)
+    means = np.stack([np.bincount(inv, weights=v[:, k]) for k in range(v.shape[1])], axis=1) / cnt[:, None]
+    return np.asarray(commanded)[first], means, cnt
+
+
 def _fig_maps(s: dict, a: dict) -> str:
     p = _primary(a)
-    P = np.asarray(a["commanded"], float) * MM_PER_M
-    r = np.linalg.norm(p["residual"], axis=1) * MM_PER_M
-    fail = p["fail"].any(axis=1) if p["fail"] is not None else np.zeros(len(r), bool)
+    fail_rows = p["fail"].any(axis=1) if p["fail"] is not None else np.zeros(len(p["residual"]), bool)
+    P, agg, cnt = per_point(a["commanded"], np.column_stack([p["residual"], fail_rows]))
+    P = P * MM_PER_M
+    r = np.linalg.norm(agg[:, :3], axis=1) * MM_PER_M  # |mean residual| of each point's replicates
+    frac = agg[:, 3]
+    fail = frac >= 0.5
+    vmax = float(np.percentile(r, 95)) or 1.0  # robust: one outlier must not set the scale
     fig, axs = plt.subplots(1, 2, figsize=(12, 4.8))
     for axp, (i, j) in zip(axs, ((0, 1), (0, 2))):
-        sc = axp.scatter(P[:, i], P[:, j], c=r, cmap="viridis", s=14, vmin=0, vmax=float(r.max()) or 1.0)
+        sc = axp.scatter(P[:, i], P[:, j], c=np.minimum(r, vmax), cmap="viridis", s=10 + 6 * np.sqrt(cnt),
+                         vmin=0, vmax=vmax)
         if fail.any():
-            axp.scatter(P[fail, i], P[fail, j], marker="x", s=36, color="tab:red", lw=1.2,
-                        label=f"fails Eq. 17 ({int(fail.sum())})")
+            axp.scatter(P[fail, i], P[fail, j], marker="x", s=40, color="tab:red", lw=1.2,
+                        label=f"fails Eq. 17 in >= half its rows ({int(fail.sum())} of {len(r)} points)")
             axp.legend(fontsize=8, loc="best")
         axp.set_xlabel(f"{AXES[i]} / mm"), axp.set_ylabel(f"{AXES[j]} / mm")
         axp.set_title(f"{AXES[i]}-{AXES[j]} view", fontsize=10)
         axp.grid(alpha=0.3)
-        fig.colorbar(sc, ax=axp).set_label("|r| / mm")
+        fig.colorbar(sc, ax=axp, extend="max").set_label("|mean r| per point / mm")
     fig.tight_layout()
     return figure_block(fig_to_img_tag(fig, alt="residual maps"),
-                        f"Residual maps of {p['name']}: commanded TCP (robot frame, mm) coloured by the 3D residual "
-                        "|e − ê| (mm); red crosses fail the Eq. 17 t-test in at least one axis.")
+                        f"Residual maps of {p['name']}, one marker per commanded point (robot frame, mm; size: its "
+                        f"number of rows): colour is the 3D norm of the point's mean residual |mean(e − ê)| (mm; the "
+                        f"scale ends at the 95th percentile, {vmax:.3f} mm, so one outlier does not wash out the "
+                        f"rest); red crosses mark points failing the Eq. 17 t-test in at least half of their rows "
+                        f"({100 * float(fail_rows.mean()):.1f} % of all rows fail in at least one axis).")
 
 
 def _factor_values(a: dict) -> list[tuple[str, np.ndarray]]:
@@ -226,30 +259,41 @@ def _factor_values(a: dict) -> list[tuple[str, np.ndarray]]:
     return out
 
 
+def _approach(a: dict) -> list[tuple[str, np.ndarray]]:
+    """The direction from which each joint approached (sign of its change from the previous row;
+    rows in time order), for the joints that move: what backlash and lag follow."""
+    q = a.get("joints")
+    if q is None or len(q) < 3:
+        return []
+    d = np.sign(np.diff(q, axis=0, prepend=q[:1]))
+    d[0] = d[1]
+    return [(f"approach of q{j + 1} (-1 / +1)", d[:, j]) for j in range(q.shape[1]) if np.any(d[:, j] != 0)][:3]
+
+
 def _fig_factors(s: dict, a: dict) -> str:
-    p = _primary(a)
-    fv = _factor_values(a)
+    models = (a.get("models") or [])[1:] or [_primary(a)]  # every model (as is has its own table)
+    fv = _factor_values(a) + _approach(a)
     if not fv:
         raise Missing("the data have no speed, payload, temperature, time or joint columns")
-    r = p["residual"] * MM_PER_M
-    fig, axs = plt.subplots(1, len(fv), figsize=(3.4 * len(fv) + 1, 3.6), squeeze=False, sharey=True)
+    fig, axs = plt.subplots(1, len(fv), figsize=(3.3 * len(fv) + 1, 3.6), squeeze=False, sharey=True)
+    cmap = plt.get_cmap("tab10")
     for axp, (label, v) in zip(axs[0], fv):
         ok = np.isfinite(v)
         idx, centres = levels(v[ok])
-        for k, ax in enumerate(AXES):
-            axp.plot(v[ok], r[ok, k], ".", ms=2, alpha=0.35, color=COLORS[ax])
-            means = [r[ok, k][idx == i].mean() if np.any(idx == i) else np.nan for i in range(len(centres))]
-            axp.plot(centres, means, "o-", ms=3, lw=1.2, color=COLORS[ax], label=f"r_{ax}, binned mean")
-        axp.axhline(0, color="k", lw=0.6)
+        for mi, m in enumerate(models):
+            r = np.linalg.norm(m["residual"], axis=1)[ok] * MM_PER_M
+            means = [np.sqrt(np.mean(r[idx == i] ** 2)) if np.any(idx == i) else np.nan for i in range(len(centres))]
+            axp.plot(centres, means, "o-", ms=3, lw=1.2, color=cmap(mi % 10), label=m["name"])
         axp.set_xlabel(label, fontsize=9)
         axp.grid(alpha=0.3)
         axp.tick_params(labelsize=7)
-    axs[0, 0].set_ylabel("residual r / mm")
+    axs[0, 0].set_ylabel("3D RMS of r per level / mm")
     axs[0, 0].legend(fontsize=7)
     fig.tight_layout()
     return figure_block(fig_to_img_tag(fig, alt="residual against each factor"),
-                        f"Residual components of {p['name']} (mm) against each factor, with the mean per level or "
-                        "quantile bin: a trend or step means the model misses an effect that follows that factor.")
+                        "3D RMS of the residual (mm) of every model per level or quantile bin of each factor, "
+                        "the direction of approach of the moving joints included: a model whose curve rises or "
+                        "steps where the others stay flat misses the effect that follows that factor.")
 
 
 def _fig_normal(s: dict, a: dict) -> str:
@@ -277,7 +321,7 @@ def _fig_normal(s: dict, a: dict) -> str:
 # --------------------------------------------------------------------------- assembly
 
 def compare_sections(result: dict, arrays: dict) -> list[Section]:
-    plan = [("Key figures", "key", [_headline]),
+    plan = [("Key figures", "key", [_banner, _headline]),
             ("Models side by side", "summary", [_table_summary, _fig_steps]),
             ("Where the model fails", "where", [_fig_maps, _tables_worst]),
             ("Residual against each factor", "factors", [_fig_factors]),
