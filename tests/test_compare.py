@@ -243,3 +243,22 @@ def test_comparing_on_the_training_file_warns_that_the_figures_are_in_sample(cap
     assert code == 0 and res["in_sample"] == []
     code, res = _dt(capsys, "compare", "--data", str(csv), "--model", str(tmp_path / "m"), "--cv", "3")
     assert code == 0 and res["in_sample"] == []  # held out: no warning
+
+
+def test_rows_outside_the_training_domain_are_counted(capsys, tmp_path):
+    from dt_runtime.measurements.dataset import write_table
+
+    train = make(8)
+    csv = write_table(train, tmp_path / "train.csv")
+    code, _ = _dt(capsys, "fit", "--data", str(csv), "--gp-inputs", "tcp", "--out", str(tmp_path / "m"))
+    assert code == 0
+    test = make(9)
+    test.commanded = test.commanded.copy()
+    test.commanded[:50, 0] += 1.5  # 50 rows beyond the training box in x
+    test.joints = test.joints.copy()
+    test.joints[50:60, 3] = 4.5  # 10 rows with a wrist angle the training never reached (259 deg)
+    code, res = _dt(capsys, "compare", "--data", str(write_table(test, tmp_path / "t.csv")),
+                    "--model", str(tmp_path / "m"))
+    out = res["models"][-1]["outside_training"]
+
+    assert code == 0 and out["rows"] == 60 and out["columns"] == {"x": 50, "q4": 10}

@@ -335,7 +335,11 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                          else m.predict(ds, return_std=True))
         except (DataError, ModelError) as exc:
             raise type(exc)(f"model '{name}' cannot predict the rows of {ds.source}: {exc}") from exc
-        about = {"effects": list(m.effects), "gp_inputs": m.gp_inputs,
+        dom = m.outside_domain(ds)
+        if dom and dom["rows"]:
+            log.warning("model '%s': %d of %d rows of %s lie outside its training domain (%s): it extrapolates there",
+                        name, dom["rows"], ds.n, ds.source, ", ".join(f"{c} {n}" for c, n in dom["columns"].items()))
+        about = {"outside_training": dom, "effects": list(m.effects), "gp_inputs": m.gp_inputs,
                  "effect_residual_rms_mm": float(m.residual_rms_) * MM_PER_M, "parameters": m.parameters()}
         b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about)
         scores.append(b)

@@ -238,6 +238,10 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 resid = error - np.einsum("nap,p->na", D.A, self.theta_)
                 self.gp_ = MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=self.gp_.thetas_)
         self.residual_rms_ = float(np.sqrt(np.mean(resid ** 2)))
+        # The training domain (ranges of the TCP and the joint angles): what the model has seen.
+        self.domain_ = {"x": [float(v) for v in inp.commanded.min(0)] + [float(v) for v in inp.commanded.max(0)]}
+        if inp.joints is not None:
+            self.domain_["q"] = [float(v) for v in inp.joints.min(0)] + [float(v) for v in inp.joints.max(0)]
         # For the traceability record (provenance) of `save`: the training data's file, if any,
         # and the temperature over the training rows.
         self.data_source_ = getattr(X, "source", None)
@@ -309,6 +313,28 @@ class HybridModel(RegressorMixin, BaseEstimator):
             else:
                 mean = mean + self.gp_.predict(Xg)
         return (mean, np.sqrt(np.maximum(var, 0.0))) if return_std else mean
+
+    def outside_domain(self, X, margin: float = 0.02) -> dict | None:
+        """Rows of X outside the training domain (TCP box or joint ranges, each widened by
+        `margin` of its range): {'rows', 'fraction', 'columns': {name: rows}}; None when the
+        model does not know its domain."""
+        dom = getattr(self, "domain_", None)
+        if not dom:
+            return None
+        inp = as_inputs(X)
+        outside = np.zeros(inp.n, bool)
+        cols: dict[str, int] = {}
+        for key, values, names in (("x", inp.commanded, ("x", "y", "z")),
+                                   ("q", inp.joints, tuple(f"q{j + 1}" for j in range(len(dom.get("q", [])) // 2)))):
+            if key not in dom or values is None or values.shape[1] != len(dom[key]) // 2:
+                continue
+            k = values.shape[1]
+            lo, hi = np.asarray(dom[key][:k]), np.asarray(dom[key][k:])
+            w = margin * np.maximum(hi - lo, 1e-9)
+            out = (values < lo - w) | (values > hi + w)
+            outside |= out.any(axis=1)
+            cols.update({n: int(c) for n, c in zip(names, out.sum(0)) if c})
+        return {"rows": int(outside.sum()), "fraction": float(outside.mean()) if inp.n else 0.0, "columns": cols}
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "theta_"):
@@ -399,6 +425,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "identifiability": None if getattr(self, "identifiability_", None) is None else
                 self.identifiability_.state(),
                 "at_bound": [bool(v) for v in getattr(self, "at_bound_", [])],
+                "domain": getattr(self, "domain_", None),
                 "residual_rms_m": self.residual_rms_, "t_origin_s": self.t_origin_,
                 "units": "SI; e = commanded - measured",
                 "provenance": (provenance or self.provenance()).to_dict()}
@@ -439,6 +466,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.t_origin_ = meta.get("t_origin_s")
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
         m.at_bound_ = np.asarray(meta.get("at_bound", [False] * len(m.param_names_)), dtype=bool)
+        m.domain_ = meta.get("domain") or {}  # empty for a model saved before it was kept
         if meta.get("identifiability") is not None:  # models saved before it was kept have none
             m.identifiability_ = idf.Identifiability.from_state(meta["identifiability"])
         m.residual_rms_ = meta["residual_rms_m"]
