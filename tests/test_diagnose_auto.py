@@ -86,3 +86,17 @@ def test_a_column_without_effect_is_not_flagged(hidden, tmp_path):
     hum = next(c for c in r.columns if c["column"] == "humidity")
     assert not hum["significant"]
     assert "humidity" not in r.verdict
+
+
+def test_the_instruments_mpe_is_the_noise_floor_when_the_data_state_none(hidden, tmp_path, capsys):
+    from dt_runtime.measurements.dataset import read_table, write_table
+
+    ds = read_table(hidden["none"])
+    ds.u = None  # a tracker export states no per-point uncertainty
+    csv = write_table(ds, tmp_path / "no_u.csv")
+    assert main(["diagnose", "--data", str(csv), "--auto", "--json", "--no-progress"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["noise_floor_mm"] is None and "not known" in out["verdict"]
+    assert main(["diagnose", "--data", str(csv), "--auto", "--mpe-mm", "0.02", "--json", "--no-progress"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["noise_floor_mm"] == pytest.approx(0.02) and "at the noise floor" in out["verdict"]

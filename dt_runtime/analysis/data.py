@@ -56,8 +56,15 @@ def noise_floor(u: np.ndarray | None) -> float | None:
 
 
 def floor_of(d: Data) -> float | None:
-    """The measurement noise floor (m): the simulator's, else the stated uncertainty's."""
+    """The measurement noise floor (m): the simulator's, else the stated uncertainty's (ux..uz),
+    else the instrument's maximum permissible error (`info['mpe_mm']`, `--mpe-mm`): an MPE that
+    bounds each coordinate's error is a rectangular distribution of standard uncertainty MPE/sqrt(3)
+    per axis, whose 3D RMS over three axes is the MPE itself."""
     sim = d.info.get("simulation")
     if sim and sim.get("noise_floor_mm") is not None:
         return sim["noise_floor_mm"] * M_PER_MM
-    return noise_floor(d.dataset.u)
+    stated = noise_floor(d.dataset.u)
+    if stated is not None:
+        return stated
+    mpe = d.info.get("mpe_mm")
+    return None if mpe is None else float(mpe) * M_PER_MM

@@ -49,6 +49,22 @@ def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
                    help="what the GP on the remaining error sees (default tcp_speed, the paper's)")
 
 
+def add_mpe_arg(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--mpe-mm", type=_positive, default=None, metavar="MM",
+                   help="the instrument's maximum permissible error (mm): the noise floor when the data state "
+                        "no uncertainty ux..uz")
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (v > 0 and v < 100):
+        raise argparse.ArgumentTypeError(f"{v}: a length in mm, > 0 and < 100")
+    return v
+
+
 def names(text: str | None) -> tuple[str, ...]:
     """A comma-separated list of names (effects, model names) as a tuple, blanks dropped."""
     return tuple(e.strip() for e in text.split(",") if e.strip()) if text else ()
@@ -62,7 +78,10 @@ def load(args: argparse.Namespace):
     """The --data file (through --mapping if given)."""
     from dt_runtime.analysis.data import load_data
 
-    return load_data(args.data, args.mapping, args.skip_bad)
+    d = load_data(args.data, args.mapping, args.skip_bad)
+    if getattr(args, "mpe_mm", None) is not None:
+        d.info["mpe_mm"] = args.mpe_mm
+    return d
 
 
 def parameter_line(p: dict) -> str:

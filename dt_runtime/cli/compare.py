@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_output_args, cv_folds, load, names, progress
+from dt_runtime.cli.common import add_data_args, add_mpe_arg, add_output_args, cv_folds, load, names, progress
 
 
 def add_arguments(cp: argparse.ArgumentParser) -> None:
@@ -25,6 +25,7 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
     cp.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
                          "recorded in the provenance")
+    add_mpe_arg(cp)
     add_output_args(cp)
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_output_args, folds, load, names, progress
+from dt_runtime.cli.common import add_data_args, add_mpe_arg, add_output_args, folds, load, names, progress
 
 
 def add_arguments(dg: argparse.ArgumentParser) -> None:
@@ -32,6 +32,7 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     dg.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
                          "recorded in the provenance")
+    add_mpe_arg(dg)
     add_output_args(dg)
 
 
