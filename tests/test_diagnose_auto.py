@@ -100,3 +100,22 @@ def test_the_instruments_mpe_is_the_noise_floor_when_the_data_state_none(hidden,
     assert main(["diagnose", "--data", str(csv), "--auto", "--mpe-mm", "0.02", "--json", "--no-progress"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["noise_floor_mm"] == pytest.approx(0.02) and "at the noise floor" in out["verdict"]
+
+
+def test_several_files_are_one_campaign_with_leave_one_session_out_figures(hidden, tmp_path, capsys):
+    """Two sessions of the same arm (two seeds): one command reads both, time continues, point ids
+    do not collide, and the verdict reports each session predicted from the other."""
+    from dt_runtime.measurements.dataset import read_table
+
+    second = tmp_path / "second.csv"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["simulate", "--scenario", str(CONFIGS / "scenarios" / "hidden" / "none.yaml"),
+                     "--seed", "5", "--out", str(second), "--json"]) == 0
+    rc = main(["diagnose", "--data", str(hidden["none"]), str(second), "--auto", "--json", "--no-progress"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0
+    a, b = read_table(hidden["none"]), read_table(second)
+    assert [s["rows"] for s in out["sessions"]] == [a.n, b.n]
+    assert all(s["final_rmse_mm"] > 0 for s in out["sessions"])
+    assert "Held out by session" in out["verdict"]
+    assert out["n"] == a.n + b.n

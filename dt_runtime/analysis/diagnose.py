@@ -193,6 +193,7 @@ class AutoResult:
     folds: int
     source: dict = field(default_factory=dict)
     columns: list = field(default_factory=list)  # column_check on the final model's held-out residual
+    sessions: list = field(default_factory=list)  # leave-one-session-out: start vs final model per session
 
     def to_dict(self) -> dict:
         d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source")}
@@ -308,8 +309,33 @@ def diagnose_auto(data: Data | Dataset | str | Path, model: HybridModel | str | 
                       seed=seed, alpha=alpha, min_explained=min_explained, noise_floor_m=floor_of(d),
                       candidates=candidates, gp_options=gp_options, ridge=ridge, progress=progress,
                       columns=factor_columns(ds))
+    if "session" in ds.extra and len(np.unique(ds.extra["session"])) > 1:
+        r.sessions = leave_one_session_out(fx.Inputs.of(ds), ds.error, ds.extra["session"].astype(int), chain,
+                                           (tuple(effects), gp_inputs), (tuple(r.effects), r.gp_inputs), seed,
+                                           gp_options, ridge)
+        worse = [x["session"] for x in r.sessions if x["final_rmse_mm"] > x["start_rmse_mm"]]
+        r.verdict += (" Held out by session, the final model predicts every session better than the start."
+                      if not worse else
+                      f" Held out by session, the final model predicts session(s) {worse} worse than the start: "
+                      "what it added wins inside the training data only (check the domain: joints or "
+                      "positions outside the other sessions' range); do not deploy it for such tasks.")
     r.source = {k: v for k, v in d.info.items() if k != "n"}
     return r
+
+
+def leave_one_session_out(inp: fx.Inputs, error: np.ndarray, session: np.ndarray, chain: Chain | None,
+                          start: tuple[tuple[str, ...], str], final: tuple[tuple[str, ...], str], seed: int,
+                          gp_options: GPOptions | None, ridge: float) -> list[dict]:
+    """Held-out 3D RMS of each session predicted by the start and the final configuration fitted
+    on the other sessions (a new task, not a new point of the same task)."""
+    folds = [session == s for s in np.unique(session)]
+    out = {}
+    for label, (effects, gp) in (("start", start), ("final", final)):
+        model = HybridModel(effects, gp, ridge=ridge, seed=seed, robot=chain, gp_options=gp_options)
+        res = cross_validate(model, inp, error, session, folds).residual
+        out[label] = [rms3(res[f]) * 1e3 for f in folds]
+    return [{"session": int(s), "rows": int(f.sum()), "start_rmse_mm": a, "final_rmse_mm": b}
+            for s, f, a, b in zip(np.unique(session), folds, out["start"], out["final"])]
 
 
 # --------------------------------------------------------------------------- beyond the catalogue

@@ -55,15 +55,16 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
     return res
 
 
-def data_provenance(ds: Dataset, data_file: str | Path | None = None, robot: object = None,
+def data_provenance(ds: Dataset, data_file: str | Path | Sequence[str | Path] | None = None, robot: object = None,
                     instruments: str | Path | None = None, inputs: Sequence[str | Path] = (),
                     models: Sequence[object] = ()) -> Provenance:
     """The traceability record of a command on measured data: the data file (default the
     dataset's source) and its simulation sidecar, `inputs` (e.g. an import mapping), the files of
     the saved `models` (directories; fitted objects have none) and the `instruments` YAML, hashed;
     the robot config (a path) or its name (a Chain); the instruments; the data's temperature."""
-    src = data_file or ds.source
-    files: list[str | Path] = [src, meta_path(src)] if src and Path(src).is_file() else []
+    srcs: list[str | Path] = ([Path(f) for f in data_file] if isinstance(data_file, (list, tuple))
+                              else [Path(data_file) if isinstance(data_file, (str, Path)) else ds.source])
+    files: list[str | Path] = [f for src in srcs if src and Path(src).is_file() for f in (src, meta_path(src))]
     for m in models:
         files += files_under(m) if isinstance(m, (str, Path)) and Path(m).is_dir() else []
     files += [*inputs, *([instruments] if instruments is not None else [])]

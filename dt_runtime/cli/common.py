@@ -35,8 +35,9 @@ def add_output_args(q: argparse.ArgumentParser) -> None:
 
 
 def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
-    q.add_argument("--data", required=True, metavar="FILE", help="measurement table CSV (or a foreign file "
-                   "with --mapping)")
+    q.add_argument("--data", required=True, nargs="+", metavar="FILE",
+                   help="measurement table CSV (or a foreign file with --mapping); several files are one campaign, "
+                        "each a session (time shifted, points renumbered, a 'session' column)")
     q.add_argument("--mapping", default=None, metavar="YAML",
                    help="import mapping for a foreign file (e.g. configs/import/ur10.yaml)")
     q.add_argument("--skip-bad", action="store_true", help="skip bad rows (each is listed) instead of stopping")
@@ -78,7 +79,19 @@ def load(args: argparse.Namespace):
     """The --data file (through --mapping if given)."""
     from dt_runtime.analysis.data import load_data
 
-    d = load_data(args.data, args.mapping, args.skip_bad)
+    files = args.data if isinstance(args.data, list) else [args.data]
+    if len(files) == 1:
+        d = load_data(files[0], args.mapping, args.skip_bad)
+    else:
+        from dt_runtime.analysis.data import Data
+        from dt_runtime.measurements.dataset import sessions
+
+        each = [load_data(f, args.mapping, args.skip_bad) for f in files]
+        ds = sessions([e.dataset for e in each])
+        d = Data(ds, {"data": list(files), "n": ds.n,
+                      "session_files": [{"file": str(f), "rows": e.dataset.n} | {k: v for k, v in e.info.items()
+                                                                           if k in ("registration", "skipped_rows")}
+                                   for f, e in zip(files, each)]})
     if getattr(args, "mpe_mm", None) is not None:
         d.info["mpe_mm"] = args.mpe_mm
     return d

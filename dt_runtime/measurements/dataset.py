@@ -18,7 +18,7 @@ import json
 import logging
 import math
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -323,6 +323,32 @@ def concat(datasets: Iterable[Dataset]) -> Dataset:
         kw[f] = None if any(p is None for p in parts) else np.concatenate(parts)
     return Dataset(**kw, source="+".join(d.source for d in ds),
                    skipped=[s for d in ds for s in d.skipped])
+
+
+def sessions(datasets: Sequence[Dataset]) -> Dataset:
+    """Several files of one campaign as one dataset, each a *session*: rows in file order, each
+    session's time shifted to start 1 s after the previous one ends (so time stays monotonic),
+    point ids offset so no two sessions share one (a point re-measured in another session, with
+    its own tracker set-up, is another group), the session's index in the `session` column
+    (`Dataset.extra`; `dt diagnose --group-by session` holds one out at a time). Columns survive
+    only if every session has them."""
+    ds = list(datasets)
+    if not ds:
+        raise DataError("sessions: no datasets")
+    parts, offset_t, offset_id = [], 0.0, 0
+    common = set.intersection(*(set(d.extra) for d in ds))
+    for i, d in enumerate(ds):
+        kw: dict[str, Any] = {"extra": {k: d.extra[k] for k in common} | {"session": np.full(d.n, float(i))}}
+        if d.t is not None and d.n:
+            kw["t"] = d.t - d.t[0] + offset_t
+            offset_t = float(kw["t"][-1]) + 1.0
+        if d.point_id is not None:
+            kw["point_id"] = d.point_id - d.point_id.min() + offset_id
+            offset_id = int(kw["point_id"].max()) + 1
+        parts.append(replace(d, **kw, skipped=list(d.skipped)))
+    out = concat(parts)
+    out.extra = {k: np.concatenate([p.extra[k] for p in parts]) for k in parts[0].extra}
+    return out
 
 
 def meta_path(data: str | Path) -> Path:
