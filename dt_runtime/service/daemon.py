@@ -316,11 +316,11 @@ class Daemon:
                 episode = esc.episode
                 self._applying = a
                 try:
-                    esc.acknowledge(t, note=a.note, by=a.by)
+                    esc.acknowledge(t, note=a.note, by=a.by)  # records the action as applied, same transaction
                 finally:
                     self._applying = None
+                self._actions.popleft()  # applied: a failing write below must not judge it again
                 self.store.outbox_ack_episode(episode)  # done implies delivered: stop republishing
-                self._actions.popleft()
                 continue
             self.store.apply_action(a.id, result)
             log.info("operator action %d (%s by %s) %s", a.id, a.kind, a.by, result)
