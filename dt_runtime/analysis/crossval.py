@@ -89,7 +89,7 @@ def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, fol
     y = np.asarray(y, dtype=float)
     # Regressors that look at the previous row (approach direction) are built on the full,
     # time-ordered data and then split, so held-out rows keep their true history.
-    design = model.design_matrix(inp)
+    design = model.design_matrix(inp, y)
     # GP hyperparameters are fitted once per candidate model on all rows and kept fixed in
     # the folds (the fold models refit the effect parameters and the GP posterior): a few
     # smoothness/noise numbers leak, no point's error does, and the loop runs 5x faster.

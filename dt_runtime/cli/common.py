@@ -99,6 +99,10 @@ def load(args: argparse.Namespace):
 
 def parameter_line(p: dict) -> str:
     """One effect parameter for the human summary: value +/- u unit, or why it has no value."""
+    from dt_runtime.models.hybrid import unidentified
+
     if p["value"] is None:
-        return f"  {p['effect']}.{p['name']}: not identified (aliased with {', '.join(p.get('group', []))})"
-    return f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}"
+        return f"  {p['effect']}.{p['name']}: {unidentified(p)}"
+    return f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}" + (
+        f" (profile likelihood, interval {p['interval'][0]:.4g}..{p['interval'][1]:.4g})" if "interval" in p else "")
+

@@ -28,15 +28,17 @@ import numpy as np
 from scipy import optimize
 from sklearn.base import BaseEstimator, RegressorMixin
 
-from dt_kernel.errors import DataError, ModelError
+from dt_kernel.errors import ConfigError, DataError, ModelError
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.provenance import Environment, Provenance
 from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.common.safe_npz import load_npz
 from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.models import effects as fx
+from dt_runtime.models import hyper as hp
 from dt_runtime.models import identifiability as idf
 from dt_runtime.models.effects import as_inputs
+from dt_runtime.models.effects.thermal import lagged
 from dt_runtime.models.gp import GPOptions, MultiOutputGP
 from dt_runtime.models.modelio import read_meta
 
@@ -96,9 +98,12 @@ class Design:
     A: np.ndarray
     params: tuple[tuple[str, str, str, str], ...]
     nonnegative: np.ndarray | None = None  # (p,) bool: the parameters physics wants >= 0
+    # The effects' nonlinear parameters the regressors were built with ({effect: {name: Estimate}},
+    # models.hyper), e.g. the thermal lag.
+    hyper: dict | None = None
 
     def rows(self, mask) -> Design:
-        return Design(self.A[mask], self.params, self.nonnegative)
+        return Design(self.A[mask], self.params, self.nonnegative, self.hyper)
 
 
 class HybridModel(RegressorMixin, BaseEstimator):
@@ -135,22 +140,27 @@ class HybridModel(RegressorMixin, BaseEstimator):
         return self.gp_options
 
     # --- linear effect part ------------------------------------------------------------------
-    def design_matrix(self, X) -> Design:
+    def design_matrix(self, X, y=None) -> Design:
         """The effect terms' regressors on X (rows in time order: backlash and dynamic read the
         previous row). Cross-validation builds it once on all rows and passes row subsets to
-        fit/predict, so held-out rows keep their true history."""
+        fit/predict, so held-out rows keep their true history. The effects' nonlinear parameters
+        (the thermal lag): a fitted model's; else estimated on (X, y) by profile likelihood
+        (models.hyper) when the error y is given; else their defaults."""
         inp = as_inputs(X)
         fx.check_names(self.effects)
         if inp.t_origin is None and getattr(self, "t_origin_", None) is not None:
             inp = replace(inp, t_origin=self.t_origin_)
         # Only joint-space effects read the robot config (a GP-only map works without it).
         chain = resolve_chain(self.robot) if any(fx.get(e).needs_chain for e in self.effects) else None
-        blocks = [fx.build(e, inp, chain) for e in self.effects]
+        hyper = getattr(self, "hyper_", None)
+        if hyper is None:
+            hyper = hp.profile(self.effects, inp, y, chain, self.ridge) if y is not None else {}
+        blocks = [fx.build(e, inp, chain, {k: v.value for k, v in hyper.get(e, {}).items()}) for e in self.effects]
         if not blocks:
-            return Design(np.zeros((inp.n, 3, 0)), ())
+            return Design(np.zeros((inp.n, 3, 0)), (), hyper=hyper)
         return Design(np.concatenate([b.A for b in blocks], axis=2),
                       tuple((b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)),
-                      np.array([b.nonnegative for b in blocks for _ in b.names], dtype=bool))
+                      np.array([b.nonnegative for b in blocks for _ in b.names], dtype=bool), hyper)
 
     def fit(self, X, y=None, *, design: Design | None = None, thetas=None) -> HybridModel:
         """Fit on X (a Dataset, effects.Inputs or (n, 3) commanded TCP array); y: the error
@@ -170,9 +180,10 @@ class HybridModel(RegressorMixin, BaseEstimator):
         # later data (a deployed twin reads the time in the campaign's time base).
         self.t_origin_ = inp.t_origin if inp.t_origin is not None else (
             float(inp.t[0]) if inp.t is not None and inp.n else None)
-        D = design if design is not None else self.design_matrix(inp)
+        D = design if design is not None else self.design_matrix(inp, error)
         if D.A.shape[0] != inp.n:
             raise DataError(f"design has {D.A.shape[0]} rows, X has {inp.n}")
+        self.hyper_ = D.hyper or {}
         self.robot_ = None if isinstance(self.robot, Chain) else robot_ref(self.robot)
         self.gp_options_ = options
         self.param_names_ = list(D.params)
@@ -344,7 +355,16 @@ class HybridModel(RegressorMixin, BaseEstimator):
         """The input columns (effects.Inputs fields) a prediction reads beside the commanded TCP."""
         cols = {c for e in self.effects for c in fx.get(e).columns}
         cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(self.gp_inputs, set())
-        return tuple(c for c in ("joints", "speed", "temperature", "payload", "t") if c in cols)
+        if self.lag_s() > 0:
+            cols |= {"t"}  # the structure's temperature follows the logged one with time
+        own = ("joints", "speed", "temperature", "payload", "t")
+        # then the data's own columns the user's declared effects read (humidity, ...)
+        return tuple(c for c in own if c in cols) + tuple(sorted(cols - set(own)))
+
+    def lag_s(self) -> float:
+        """The structure's thermal time constant the model uses (s; 0: the air temperature as logged)."""
+        est = getattr(self, "hyper_", {}).get("thermal", {}).get("lag_s")
+        return 0.0 if est is None else float(est.value)
 
     def chain(self) -> Chain | None:
         """The robot's nominal kinematic chain (None when the model was given none)."""
@@ -385,6 +405,13 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 row.update(name=name.replace("compliance", "stiffness"), value=float(1 / v),
                            u=float(u / v ** 2), unit="N m/rad")
             rows.append(row)
+        for effect, params in getattr(self, "hyper_", {}).items():
+            for name, est in params.items():
+                # A nonlinear parameter, by profile likelihood (models.hyper): no value when the
+                # data do not bound it (the model then uses its default, est.value).
+                rows.append({"effect": effect, "name": name, "value": est.value if est.identified else None,
+                             "u": est.u, "unit": est.unit, "identified": est.identified,
+                             "interval": [est.lo, est.hi], "method": "profile likelihood"})
         return rows
 
     # --- persistence (JSON + NPZ) -----------------------------------------------------------
@@ -420,12 +447,16 @@ class HybridModel(RegressorMixin, BaseEstimator):
         d.mkdir(parents=True, exist_ok=True)
         meta = {"format_version": FORMAT_VERSION, "kind": "cobot-dt hybrid error model",
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
+                # The user's declared effects travel with the model (it loads without their file).
+                "declared_effects": [eff.spec.model_dump(mode="json") for eff in map(fx.get, self.effects)
+                                     if isinstance(eff, fx.declared.DeclaredEffect)],
                 "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
                 "param_names": self.param_names_, "parameters": self.parameters(),
                 "identifiability": None if getattr(self, "identifiability_", None) is None else
                 self.identifiability_.state(),
                 "at_bound": [bool(v) for v in getattr(self, "at_bound_", [])],
                 "domain": getattr(self, "domain_", None),
+                "hyper": {e: {k: v.to_dict() for k, v in ps.items()} for e, ps in getattr(self, "hyper_", {}).items()},
                 "residual_rms_m": self.residual_rms_, "t_origin_s": self.t_origin_,
                 "units": "SI; e = commanded - measured",
                 "provenance": (provenance or self.provenance()).to_dict()}
@@ -445,7 +476,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m = cls((), "tcp_speed", DEFAULT_RIDGE, params.get("seed", 0), robot=robot, gp_options=options)
         m.robot_, m.gp_options_, m.gp_ = robot_ref(robot), options, gp
         m.theta_, m.theta_u_, m.theta_cov_ = np.zeros(0), np.zeros(0), np.zeros((0, 0))
-        m.param_names_, m.t_origin_, m.residual_rms_ = [], None, float("nan")
+        m.param_names_, m.t_origin_, m.residual_rms_, m.hyper_ = [], None, float("nan"), {}
         m.provenance_ = None
         return m
 
@@ -454,6 +485,12 @@ class HybridModel(RegressorMixin, BaseEstimator):
         d = Path(directory)
         meta = read_meta(d / "hybrid.json", FORMAT_VERSION, "model")
         ref = meta.get("robot")
+        try:
+            for spec in meta.get("declared_effects") or []:
+                fx.register(fx.declared.from_dict(spec), source=f"model {d}")
+            fx.check_names(meta["effects"])  # a plugin effect whose package is not installed
+        except (DataError, ConfigError) as exc:
+            raise ModelError(f"{d / 'hybrid.json'}: {exc}") from exc
         # Models saved before GPOptions carry only the overridden options as "gp_kw".
         options = GPOptions.from_dict(meta["gp_options"] if "gp_options" in meta else meta.get("gp_kw"))
         m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"],
@@ -467,6 +504,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
         m.at_bound_ = np.asarray(meta.get("at_bound", [False] * len(m.param_names_)), dtype=bool)
         m.domain_ = meta.get("domain") or {}  # empty for a model saved before it was kept
+        m.hyper_ = {e: {k: hp.Estimate.from_dict(v) for k, v in ps.items()}
+                    for e, ps in (meta.get("hyper") or {}).items()}
         if meta.get("identifiability") is not None:  # models saved before it was kept have none
             m.identifiability_ = idf.Identifiability.from_state(meta["identifiability"])
         m.residual_rms_ = meta["residual_rms_m"]
@@ -477,6 +516,14 @@ class HybridModel(RegressorMixin, BaseEstimator):
         except DataError as exc:
             raise ModelError(f"{d / 'hybrid.json'}: {exc}") from exc
         return m
+
+
+def unidentified(p: dict) -> str:
+    """Why a parameter (a `HybridModel.parameters` row) has no value."""
+    if "group" in p:
+        return f"not identified (aliased with {', '.join(p['group'])})"
+    lo, hi = p.get("interval", (float("nan"), float("nan")))
+    return f"not bounded by the data (profile interval {lo:.4g}..{hi:.4g} {p['unit']}); the model uses the default"
 
 
 def load_map(path: str | Path) -> HybridModel:
@@ -503,6 +550,22 @@ class MapPredictor:
         self._gp = model.gp_.predictor() if model.gp_ is not None else None
         # The paper's map: GP(TCP, v) only; one call of the GP's lean predictor per command.
         self.plain = not model.effects and model.gp_inputs == "tcp_speed"
+        # The structure's temperature, carried from command to command when it lags the air
+        # (t, logged T, structure T of the last command): a few rows of history cannot hold a
+        # time constant of tens of minutes. The first command starts in equilibrium.
+        self._lag = model.lag_s() if "thermal" in model.effects else 0.0
+        self._thermal: tuple[float, float, float] | None = None
+
+    def _structure_temperature(self, inp: fx.Inputs) -> fx.Inputs:
+        assert inp.t is not None and inp.temperature is not None  # needs() asks for both
+        t1, T1 = float(inp.t[-1]), float(inp.temperature[-1])
+        if self._thermal is None or t1 < self._thermal[0]:
+            ts = T1
+        else:
+            t0, T0, ts0 = self._thermal
+            ts = float(lagged(np.array([t0, t1]), np.array([T0, T1]), self._lag, start=ts0)[1])
+        self._thermal = (t1, T1, ts)
+        return replace(inp, structure_temperature=np.full(inp.n, ts))
 
     def gp_only(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The plain map at x = (x, y, z, v) (m, m/s)."""
@@ -511,6 +574,8 @@ class MapPredictor:
 
     def __call__(self, inp: fx.Inputs) -> tuple[np.ndarray, np.ndarray]:
         m = self.model
+        if self._lag > 0:
+            inp = self._structure_temperature(inp)
         A = m.design_matrix(inp).A[-1] if m.effects else np.zeros((3, 0))
         mean = A @ m.theta_ if A.shape[1] else np.zeros(3)
         var = np.einsum("ap,pq,aq->a", A, m.theta_cov_, A) if A.shape[1] else np.zeros(3)

@@ -15,6 +15,7 @@ import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.analysis.compare import MIN_CELL
+from dt_runtime.models.hybrid import unidentified
 from dt_runtime.reports.blocks import COLORS, Missing, fixed, levels, run_block
 from dt_runtime.reports.html import (
     Section,
@@ -185,7 +186,7 @@ def _table_parameters(s: dict, a: dict) -> str:
             f, unit = (MM_PER_M, "mm") if p["unit"] == "m" else (1.0, p["unit"])  # lengths in mm
             rows.append({"effect": p["effect"], "parameter": p["name"],
                          "value ± u": (f"{p['value'] * f:.4g} ± {p['u'] * f:.2g}" if p["value"] is not None else
-                                       "not identified (aliased with " + ", ".join(p.get("group", [])) + ")"),
+                                       unidentified(p)),
                          "unit": unit})
         out.append(html_table(rows, caption=f"{m['name']} ({m['description']}): effect parameters, value ± "
                                             "standard uncertainty"))

@@ -34,12 +34,19 @@ class Conditions:
     t: float | None = None
     joints: np.ndarray | None = None  # where the arm stands now (before this command), rad
     previous: np.ndarray | None = None  # the previous command (robot frame, m); default FK(joints)
+    # Other columns the user's declared effects read (humidity, a fixture's temperature), by name.
+    extra: dict[str, float] | None = None
+
+    def get(self, name: str):
+        if name in ("temperature", "payload", "t", "joints", "previous"):
+            return getattr(self, name)
+        return None if self.extra is None else self.extra.get(name)
 
 
 def missing(needs: tuple[str, ...], cond: Conditions | None) -> list[str]:
     """The conditions a map needs that `cond` does not give (speed always comes with the command)."""
     cond = cond or Conditions()
-    return [n for n in needs if n != "speed" and getattr(cond, n) is None]
+    return [n for n in needs if n != "speed" and cond.get(n) is None]
 
 
 def command_inputs(c: np.ndarray, v: float, needs: tuple[str, ...], cond: Conditions | None,
@@ -50,7 +57,8 @@ def command_inputs(c: np.ndarray, v: float, needs: tuple[str, ...], cond: Condit
     cond = cond or Conditions()
     lack = missing(needs, cond)
     if lack:
-        raise DataError("the twin's error map needs " + "; ".join(f"{n} (from {SOURCES[n]})" for n in lack)
+        raise DataError("the twin's error map needs " + "; ".join(
+            f"{n} (from {SOURCES.get(n, f'the column {n!r} of the program or Conditions.extra')})" for n in lack)
                         + ", which the command's conditions do not give")
     q_now = None if cond.joints is None else np.asarray(cond.joints, dtype=float)
     prev = cond.previous
@@ -70,5 +78,6 @@ def command_inputs(c: np.ndarray, v: float, needs: tuple[str, ...], cond: Condit
     def col(x: float | None) -> np.ndarray | None:
         return None if x is None else np.full(n, float(x))
 
+    extra = {k: np.full(n, float(x)) for k, x in (cond.extra or {}).items()} or None
     return Inputs(commanded=np.vstack(rows), joints=joints, speed=np.full(n, float(v)),
-                  temperature=col(cond.temperature), payload=col(cond.payload), t=col(cond.t)), q_c
+                  temperature=col(cond.temperature), payload=col(cond.payload), t=col(cond.t), extra=extra), q_c

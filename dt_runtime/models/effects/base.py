@@ -30,6 +30,12 @@ class Inputs:
     # The time origin of the drift term (s): a fitted model's first training row, so that
     # predictions on later rows continue its clock; None: the first row's t.
     t_origin: float | None = None
+    # The structure's temperature (n,) deg C when known already (a deployed twin's running
+    # thermal state, `MapPredictor`): the thermal effect then does not lag the logged one itself.
+    structure_temperature: np.ndarray | None = None
+    # The data's own numeric columns by name (`Dataset.extra`: humidity, a fixture's
+    # temperature), which the user's declared effects read.
+    extra: dict[str, np.ndarray] | None = None
 
     @property
     def n(self) -> int:
@@ -38,21 +44,33 @@ class Inputs:
     @classmethod
     def of(cls, ds) -> Inputs:
         """The columns of a `dt_runtime.measurements.dataset.Dataset` the effect terms may use."""
-        return cls(**{f.name: getattr(ds, f.name) for f in fields(cls) if f.name != "t_origin"})
+        return cls(**{f.name: getattr(ds, f.name) for f in fields(cls)
+                      if f.name not in ("t_origin", "structure_temperature", "extra")},
+                   extra=dict(getattr(ds, "extra", {}) or {}) or None)
 
     def subset(self, mask) -> Inputs:
         return replace(self, **{f.name: v[mask] for f in fields(self)
-                                if isinstance(v := getattr(self, f.name), np.ndarray)})
+                                if isinstance(v := getattr(self, f.name), np.ndarray)},
+                       extra=None if self.extra is None else {k: v[mask] for k, v in self.extra.items()})
+
+    def get(self, name: str) -> np.ndarray | None:
+        """A column by name: a field of Inputs, else one of the data's own (`extra`), else None."""
+        if name in _FIELDS:
+            return getattr(self, name)
+        return None if self.extra is None else self.extra.get(name)
 
     def has(self, *columns: str) -> bool:
-        return all(getattr(self, c) is not None for c in columns)
+        return all(self.get(c) is not None for c in columns)
 
     def column(self, name: str) -> np.ndarray:
         """An optional column that must be there (an effect declared it: `Effect.build` checks)."""
-        v = getattr(self, name)
+        v = self.get(name)
         if v is None:
             raise DataError(f"the data has no column {name!r}")
         return v
+
+
+_FIELDS = frozenset(f.name for f in fields(Inputs))
 
 
 def as_inputs(X) -> Inputs:
@@ -96,26 +114,36 @@ class Effect:
     columns: the `Inputs` columns its regressors read.
     needs_chain: whether it acts through the robot's kinematic chain (joint-space effects).
     factor: what the residual follows when the effect is missing (the diagnose verdict).
-    and implements `regressors(inp, chain) -> Block`."""
+    hyper: the grid of each nonlinear parameter (keyword of `regressors`), which the fit
+    chooses by profile likelihood (`models.hyper`), e.g. the thermal lag; hyper_units their
+    units, hyper_columns the columns their estimate needs (the lag: the time t).
+    and implements `regressors(inp, chain, **hyper) -> Block`."""
 
     name: ClassVar[str]
     columns: ClassVar[tuple[str, ...]]
     needs_chain: ClassVar[bool] = True
     factor: ClassVar[str]
+    hyper: ClassVar[dict[str, np.ndarray]] = {}
+    hyper_units: ClassVar[dict[str, str]] = {}
+    hyper_columns: ClassVar[tuple[str, ...]] = ()  # the columns without which they cannot be estimated
 
     def allowed(self, inp: Inputs, chain: Chain | None) -> bool:
         """Whether the data's columns (and the kinematic chain, if needed) allow this effect."""
         return inp.has(*self.columns) and (chain is not None or not self.needs_chain)
 
-    def build(self, inp: Inputs, chain: Chain | None) -> Block:
-        """The regressor block, after checking that the inputs allow it."""
-        missing = [c for c in self.columns if getattr(inp, c) is None]
+    def build(self, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
+        """The regressor block, after checking that the inputs allow it; `hyper`: values of the
+        nonlinear parameters (default: each one's `regressors` default)."""
+        missing = [c for c in self.columns if inp.get(c) is None]
         if missing:
             raise DataError(f"effect '{self.name}' needs the column(s) {', '.join(missing)}, "
                             f"which the data does not have")
         if self.needs_chain and chain is None:
             raise DataError(f"effect '{self.name}' needs the robot's kinematic model (parameter robot)")
-        return self.regressors(inp, cast(Chain, chain))  # None only where needs_chain is False
+        unknown = set(hyper or {}) - set(self.hyper)
+        if unknown:
+            raise DataError(f"effect '{self.name}' has no nonlinear parameter {', '.join(sorted(unknown))}")
+        return self.regressors(inp, cast(Chain, chain), **(hyper or {}))  # None only where needs_chain is False
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:  # pragma: no cover - abstract
         """The block; `build` has checked the columns (and the chain, where needed)."""

@@ -1,0 +1,136 @@
+"""Effects of the user's own, beyond the catalogue, without editing the project (issue 13):
+
+- declared in YAML as regressors built from the data's columns (`--effects-file`):
+
+      effects:
+        - name: humidity                      # lower-case, not a catalogue name
+          factor: the hall's relative humidity  # what the diagnosis says the residual follows
+          terms:
+            - column: humidity                # a numeric column of the data file
+              reference: 45.0                 # the regressor is (column - reference)
+              unit: "%"                       # the column's unit: parameters in m/% (or rad/%)
+              space: cartesian                # TCP offset per unit along `axes`
+              axes: [x, y, z]
+            - column: fixture_temp
+              space: joints                   # joint offsets per unit (rad/unit) through the Jacobian
+              joints: [2, 3]                  # 1-based; default every joint
+
+  A fitted model keeps the declaration (hybrid.json), so it loads without the file.
+- written in Python: an `Effect` subclass published by any installed package under the entry
+  point group `cobot_dt.effects` (name = the effect's name, value = "module:Class");
+  `load_entry_points` registers them (every `names()` call sees them).
+"""
+from __future__ import annotations
+
+import re
+from importlib import metadata
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from dt_kernel.config import Frozen, load_yaml, validate
+from dt_kernel.errors import DataError
+from dt_runtime.frames.kinematics import Chain
+from dt_runtime.models.effects.base import Block, Effect, Inputs
+
+ENTRY_POINT_GROUP = "cobot_dt.effects"
+_NAME = re.compile(r"^[a-z][a-z0-9_]{0,39}$")
+
+
+class TermSpec(Frozen):
+    column: str = Field(min_length=1)
+    reference: float = 0.0
+    unit: str = "1"
+    space: Literal["cartesian", "joints"] = "cartesian"
+    axes: tuple[Literal["x", "y", "z"], ...] = ("x", "y", "z")
+    joints: tuple[int, ...] | None = None  # 1-based joint numbers (space: joints); None: all
+
+    @field_validator("joints")
+    @classmethod
+    def _joints(cls, v):
+        if v is not None and (not v or min(v) < 1):
+            raise ValueError("joint numbers start at 1")
+        return v
+
+
+class EffectSpec(Frozen):
+    name: str
+    factor: str = Field(min_length=3)
+    terms: tuple[TermSpec, ...] = Field(min_length=1)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not _NAME.match(v):
+            raise ValueError(f"{v!r}: lower-case letters, digits and _, starting with a letter")
+        return v
+
+
+class EffectsFile(Frozen):
+    effects: tuple[EffectSpec, ...] = Field(min_length=1)
+
+
+class DeclaredEffect(Effect):
+    """An effect built from a declaration (`EffectSpec`): one regressor per term and axis/joint."""
+
+    spec: EffectSpec
+
+    def regressors(self, inp: Inputs, chain: Chain) -> Block:
+        cols, names, units = [], [], []
+        J = chain.jacobian(inp.column("joints")) if self.needs_chain else None
+        for term in self.spec.terms:
+            x = inp.column(term.column) - term.reference
+            if term.space == "cartesian":
+                for ax in term.axes:
+                    a = np.zeros((inp.n, 3))
+                    a[:, "xyz".index(ax)] = x
+                    cols.append(a)
+                    names.append(f"{term.column}_{ax}")
+                    units.append(f"m/{term.unit}")
+            else:
+                assert J is not None
+                dof = J.shape[2]
+                bad = [j for j in (term.joints or ()) if j > dof]
+                if bad:
+                    raise DataError(f"effect '{self.name}': joint(s) {bad} beyond the robot's {dof}")
+                for j in term.joints or range(1, dof + 1):
+                    cols.append(-J[:, :, j - 1] * x[:, None])  # e = -J dq, dq_j = c_j x
+                    names.append(f"q{j}_per_{term.column}")
+                    units.append(f"rad/{term.unit}")
+        return Block(self.name, np.stack(cols, axis=2), tuple(names), tuple(units))
+
+
+def declare(spec: EffectSpec) -> Effect:
+    """The effect a declaration describes (a class of its own, so it has its name and columns)."""
+    joints = any(t.space == "joints" for t in spec.terms)
+    columns = tuple(dict.fromkeys((["joints"] if joints else []) + [t.column for t in spec.terms]))
+    cls = type(f"Declared_{spec.name}", (DeclaredEffect,),
+               {"name": spec.name, "columns": columns, "needs_chain": joints, "factor": spec.factor, "spec": spec})
+    return cls()
+
+
+def read_file(path: str | Path) -> list[Effect]:
+    """The effects declared in a YAML file (ConfigError names the key, the value and what is allowed)."""
+    return [declare(s) for s in load_yaml(path, EffectsFile).effects]
+
+
+def from_dict(d: dict) -> Effect:
+    """A declaration kept in a saved model (`EffectSpec` as a dict)."""
+    return declare(validate(EffectSpec, d, "<saved model>"))
+
+
+def entry_point_effects() -> list[tuple[str, Effect]]:
+    """(entry point name, effect) of every installed package's `cobot_dt.effects` entry point."""
+    out = []
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            obj = ep.load()
+            effect = obj() if isinstance(obj, type) else obj
+        except Exception as exc:  # a broken plugin must say which one, not stop the catalogue
+            raise DataError(f"effect plugin {ep.name!r} ({ep.value}) does not load: {exc}") from exc
+        if not isinstance(effect, Effect):
+            raise DataError(f"effect plugin {ep.name!r} ({ep.value}) is not an Effect subclass")
+        out.append((ep.name, effect))
+    return out
