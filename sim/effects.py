@@ -45,6 +45,16 @@ def thermal_scale(scn: Scenario, temperature_c: float) -> float:
     return th.expansion_per_k * (temperature_c - th.reference_c)
 
 
+def lag_step(ts0: float, air0: float, air1: float, dt: float, tau: float) -> float:
+    """The structure's temperature after dt (s) of dTs/dt = (T - Ts)/tau, the air going linearly
+    from air0 to air1 (exact for that)."""
+    if dt <= 0:
+        return ts0
+    a = np.exp(-dt / tau)
+    ramp = (air1 - air0) / dt * tau
+    return float(air1 - ramp + (ts0 - air0 + ramp) * a)
+
+
 def dynamic(scn: Scenario, speed: float, approach_dir: np.ndarray) -> np.ndarray:
     d = scn.effects.dynamic
     return speed * (d.lag_s * approach_dir + d.sag_s * np.array([0.0, 0.0, -1.0]))

@@ -43,6 +43,7 @@ class SimulatedCobot:
         self._target = self.nominal.fk(self.q_cmd)[0]
         self._speed = 0.0
         self._approach = np.zeros(3)
+        self._structure: tuple[float, float] | None = None  # (t, T) of the structure: thermal lag
         self._settle()
 
     # --- commands -----------------------------------------------------------------------
@@ -85,7 +86,7 @@ class SimulatedCobot:
         p, R = self.actual.fk(q)
         if e.thermal.enabled:
             # The arm expands about its base mount (robot frame origin).
-            p = p * (1.0 + fx.thermal_scale(scn, self.temperature()))
+            p = p * (1.0 + fx.thermal_scale(scn, self.structure_temperature()))
         if e.dynamic.enabled:
             p = p + fx.dynamic(scn, self._speed, self._approach)
         self._actual_p, self._actual_R = p, R
@@ -107,9 +108,30 @@ class SimulatedCobot:
         return self.q_cmd.copy()
 
     def temperature(self) -> float:
+        """The air temperature the cell logs (deg C)."""
+        return self.temperature_at(self.clock.t)
+
+    def temperature_at(self, t: float) -> float:
         tm = self.scn.temperature
-        h = self.clock.t / 3600.0
+        h = t / 3600.0
         return tm.base_c + tm.ramp_c_per_h * h + tm.amplitude_c * np.sin(2 * np.pi * h / tm.period_h)
+
+    def structure_temperature(self) -> float:
+        """The arm structure's temperature (truth): the air's through a first-order lag of
+        effects.thermal.lag_s, integrated in steps of at most 10 s from the previous call (in
+        equilibrium with the air at the first)."""
+        t, tau = self.clock.t, self.scn.effects.thermal.lag_s
+        if tau <= 0:
+            return self.temperature()
+        if self._structure is None:
+            self._structure = (t, self.temperature())
+        t0, ts = self._structure
+        grid = np.linspace(t0, t, max(1, int(np.ceil((t - t0) / 10.0))) + 1)
+        air = [self.temperature_at(x) for x in grid]
+        for k in range(len(grid) - 1):
+            ts = fx.lag_step(ts, air[k], air[k + 1], float(grid[k + 1] - grid[k]), tau)
+        self._structure = (t, ts)
+        return ts
 
     def payload(self) -> float:
         return self.scn.payload_at(self.clock.t)

@@ -64,6 +64,9 @@ class Thermal(Frozen):
     enabled: bool = False
     expansion_per_k: float = Field(2.3e-5, ge=0, le=1e-3)  # aluminium arm
     reference_c: float = 20.0
+    # The structure follows the air temperature through a first-order lag (s; 0: at once).
+    # Industrial arms warm up over tens of minutes.
+    lag_s: float = Field(0.0, ge=0, le=86400)
 
 
 class Dynamic(Frozen):

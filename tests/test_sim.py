@@ -78,6 +78,22 @@ def test_thermal_expansion_follows_temperature():
     assert np.allclose(-e, TARGET * 23e-6 * 10, atol=2e-6)
 
 
+def test_the_structure_lags_the_air_temperature():
+    # the air ramps 10 K/h from the 20 C reference; the structure follows with a 30 min lag
+    scn = Scenario.model_validate({"seed": 1, "joint_noise_rad": 0.0, "dwell_s": 600.0,
+                                   "temperature": {"base_c": 20.0, "ramp_c_per_h": 10.0, "amplitude_c": 0.0},
+                                   "effects": {"thermal": {"enabled": True, "lag_s": 1800.0}}})
+    p = SimulatedCobot(scn)
+    for _ in range(12):  # about 2 h of moves and dwells
+        error_at(p, TARGET)
+    air, structure = p.temperature(), p.structure_temperature()
+    # a ramp r through a first-order lag tau: the structure trails by r tau (1 - exp(-t/tau))
+    h = p.clock.t / 3600
+    assert structure == pytest.approx(air - 5.0 * (1 - np.exp(-h / 0.5)), abs=1e-6)
+    e = error_at(p, TARGET)  # the expansion follows the structure, not the air
+    assert np.allclose(-e, TARGET * 23e-6 * (p.structure_temperature() - 20.0), atol=2e-6)
+
+
 def test_drift_grows_with_time():
     p = SimulatedCobot(scenario(drift={}).model_copy(update={"dwell_s": 1800.0}))
     e1 = error_at(p, TARGET)
