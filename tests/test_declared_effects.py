@@ -3,11 +3,12 @@ regressors built from the data's columns or published by a package under the ent
 `cobot_dt.effects`, are tested by `dt diagnose`, estimated by `dt fit` in their declared unit,
 and kept by the saved model.
 
-The data: a UR10 campaign from tests/ur10_generator.py (not the project's plant; geometric
-errors, 15 um tracker noise per axis, so the noise floor is a 3D RMS of sqrt(3) * 15 um =
-0.026 mm), 40 points x 3 passes, with a logged `humidity` column (%) that drives an error no
-catalogue effect reads (a random walk over the campaign), and a `fixture_temp` column (deg C)
-that turns joints 2 and 3 (rad/K) in a second file."""
+The data (tests/humidity_campaign.py, the README's example): a UR10 campaign from
+tests/ur10_generator.py (not the project's plant; geometric errors, 15 um tracker noise per axis,
+so the noise floor is a 3D RMS of sqrt(3) * 15 um = 0.026 mm), 40 points x 3 passes, with a
+logged `humidity` column (%) that drives an error no catalogue effect reads (a random walk over
+the campaign), and a `fixture_temp` column (deg C) that turns joints 2 and 3 (rad/K) in a second
+file."""
 from __future__ import annotations
 
 import json
@@ -21,43 +22,20 @@ import pytest
 
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
-from dt_runtime.measurements.dataset import write_table
 from dt_runtime.models import effects as fx
-from tests.ur10_generator import fk, generate, noise_floor_mm
+from tests.humidity_campaign import K_FIXTURE, K_HUMIDITY, campaign
+from tests.ur10_generator import noise_floor_mm
 
 UR10 = str(CONFIGS / "robots" / "ur10.yaml")
 HUMIDITY_YAML = str(CONFIGS / "effects" / "humidity.yaml")
-K_HUMIDITY = np.array([6e-6, -4e-6, 5e-6])  # m/% along x, y, z: 0.06, -0.04, 0.05 mm per 10 %
-K_FIXTURE = {2: 2e-5, 3: -1.5e-5}  # rad/K: joints 2 and 3 turn with the fixture's temperature
 PLUGINS = Path(__file__).parent / "plugins"
-
-
-def _campaign(path: Path, k_humidity=K_HUMIDITY, fixture: bool = False, seed: int = 3) -> Path:
-    """The generator's clean arm plus the hidden effects of the logged columns, as a contract CSV
-    with two columns of the file's own (`humidity` %, `fixture_temp` deg C)."""
-    ds = generate("none", seed=seed, n_points=40, passes=3)
-    rng = np.random.default_rng(100 + seed)
-    h = 45 + np.cumsum(rng.normal(0, 3.0, ds.n))  # one reading per row, a slow random walk
-    tf = 20 + 5 * np.sin(np.arange(ds.n) / 17.0) + rng.normal(0, 1, ds.n)
-    ds.error = ds.error + np.outer(h - 45, k_humidity)
-    if fixture:
-        dq = np.zeros_like(ds.joints)
-        for j, c in K_FIXTURE.items():
-            dq[:, j - 1] = c * (tf - 20)
-        ds.error = ds.error - (fk(ds.joints + dq) - fk(ds.joints))  # e = commanded - measured
-    ds.measured = None  # the error columns carry it
-    write_table(ds, path)
-    lines = path.read_text().splitlines()
-    path.write_text("\n".join([lines[0] + ",humidity,fixture_temp"]
-                              + [f"{line},{a:.4f},{b:.4f}" for line, a, b in zip(lines[1:], h, tf)]) + "\n")
-    return path
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
     d = tmp_path_factory.mktemp("declared")
-    return {"humidity": _campaign(d / "humidity.csv"), "fixture": _campaign(d / "fixture.csv", 0 * K_HUMIDITY, True),
-            "swelling": _campaign(d / "swelling.csv", np.array([0.0, 0.0, -5e-6]))}
+    return {"humidity": campaign(d / "humidity.csv"), "fixture": campaign(d / "fixture.csv", 0 * K_HUMIDITY, True),
+            "swelling": campaign(d / "swelling.csv", np.array([0.0, 0.0, -5e-6]))}
 
 
 @pytest.fixture(autouse=True)
