@@ -198,3 +198,50 @@ def test_bad_declarations_say_what_is_wrong(data, tmp_path, capsys, yaml, effect
     for m in message:
         assert m in r["error"], (m, r["error"])
     assert "bad.yaml" in r["error"]
+
+
+def _twin(data, tmp_path) -> Path:
+    """A twin whose e_LT map holds the declared humidity effect (registration frames identity,
+    stated uncertainties made up: this checks the deployment's inputs, not a budget)."""
+    from dt_runtime.frames.registration import RigidTransform
+    from dt_runtime.measurements.dataset import read_table
+    from dt_runtime.models.hybrid import HybridModel
+    from dt_runtime.twin.twin import Twin, TwinUncertainty
+
+    fx.register_file(HUMIDITY_YAML)
+    ds = read_table(data["humidity"])
+    e_lt = HybridModel(("geometric", "humidity"), "tcp_speed", robot=UR10).fit(ds)
+    e_mvs = HybridModel((), "tcp_speed").fit(ds)
+    stated = {"u": [1e-5] * 3, "dof": [50.0] * 3, "k": [2.0] * 3, "U": [2e-5] * 3}
+    u = {k: stated for k in TwinUncertainty.KEYS.values()}
+    ident = RigidTransform.identity()
+    Twin(ident, ident, ident, e_lt, e_mvs, u).save(tmp_path / "twin")
+    return tmp_path / "twin"
+
+
+def test_dt_correct_reads_the_declared_column_from_the_program_or_refuses(data, tmp_path, capsys):
+    from dt_runtime.measurements.dataset import read_table
+
+    twin = _twin(data, tmp_path)
+    fx.unregister("humidity")  # `dt correct` finds the declaration in the twin's map, not in a file
+    ds = read_table(data["humidity"])
+    rows = [f"p{i},{','.join(f'{v * 1e3:.4f}' for v in ds.commanded[i])},250,"
+            + ",".join(f"{q:.6f}" for q in ds.joints[i - 1]) for i in (5, 17, 40)]
+    head = "point_id,x,y,z,speed," + ",".join(f"q{j}" for j in range(1, 7))
+    out = {}
+    for h in (35.0, 55.0):
+        prog = tmp_path / f"prog{h:.0f}.csv"
+        prog.write_text(head + ",humidity\n" + "".join(f"{r},{h}\n" for r in rows))
+        dst = tmp_path / f"c{h:.0f}.csv"
+        rc, r = _run(capsys, "correct", "--twin", str(twin), "--targets", str(prog), "--out", str(dst))
+        assert rc == 0 and r["n"] == 3, r
+        lines = dst.read_text().splitlines()[1:]
+        out[h] = np.array([[float(v) for v in line.split(",")[5:8]] for line in lines])  # cx, cy, cz (mm)
+    # 20 % more humidity moves every command by the humidity's fitted offset: ~(6, -4, 5) um/% x 20 %
+    shift = (out[55.0] - out[35.0]) / 20.0 * 1e-3  # m/%
+    assert np.allclose(shift, K_HUMIDITY, atol=1e-6), shift
+    prog = tmp_path / "no_humidity.csv"
+    prog.write_text(head + "\n" + "".join(f"{r}\n" for r in rows))
+    rc, r = _run(capsys, "correct", "--twin", str(twin), "--targets", str(prog), "--out", str(tmp_path / "c.csv"))
+    assert rc == 2 and not (tmp_path / "c.csv").exists()
+    assert "need humidity" in r["error"] and "declared effect(s) humidity" in r["error"], r
