@@ -272,8 +272,8 @@ def _auto_verdict(added: list[str], steps: list[Step], final: float, floor: floa
                   ratio: float | None, column: str = "") -> str:
     first = steps[0].rmse_mm
     if added:
-        why = "; ".join(f"{s.change} (explains {100 * (s.explained_fraction or 0):.0f} %, p = {s.p_value:.2g})"
-                        for s in steps if s.change)
+        why = "; ".join(f"{s.change} (explains {100 * (s.explained_fraction or 0):.0f} %, p = {s.p_value:.2g}"
+                        + _follows(s.change) + ")" for s in steps if s.change)
         text = (f"Added {', '.join(added)}: the held-out 3D RMS fell from {first:.4f} to {final:.4f} mm ({why}).")
     else:
         text = f"Nothing significant to add: the held-out 3D RMS stays {final:.4f} mm."
@@ -287,6 +287,11 @@ def _auto_verdict(added: list[str], steps: list[Step], final: float, floor: floa
                    "catalogue explains a significant part of it: something the catalogue does not know is missing"
                    + (" (see the column above)." if column else
                       " (no column of the data explains it either: a factor that was not logged?)."))
+
+
+def _follows(change: str) -> str:
+    """'; the residual followed <factor>' for an added effect (the user's own effects say theirs)."""
+    return f": the residual followed {fx.get(change[1:]).factor}" if change.startswith("+") else ""
 
 
 def diagnose_auto(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,

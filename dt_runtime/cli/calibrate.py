@@ -13,7 +13,15 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dt_runtime.cli.common import add_output_args, folds, names, parameter_line, progress
+from dt_runtime.cli.common import (
+    add_effects_file_arg,
+    add_output_args,
+    declare_effects,
+    folds,
+    names,
+    parameter_line,
+    progress,
+)
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
@@ -29,6 +37,7 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
                    help="instruments and certificates (e.g. configs/instruments_example.yaml), in the provenance")
     c.add_argument("--effects", default="", metavar="a,b,...",
                    help="physical effect terms of the e_LT map (default none: the paper's GPR)")
+    add_effects_file_arg(c)
     c.add_argument("--gp-inputs", default="tcp_speed", choices=("tcp_speed", "tcp", "joints", "none"),
                    help="what the map's GP sees (default tcp_speed, the paper's)")
     c.add_argument("--model", default=None, metavar="MODEL",
@@ -84,6 +93,7 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.twin.campaign_dir import calibrate_campaign
 
     files = files_of(args)
+    declare_effects(args)  # before --effects is checked
     seed = args.seed if args.seed is not None else files.seed if files.seed is not None else 0
     try:
         options = CalibrationOptions(cv_folds=args.folds, volume_margin_m=args.margin_mm / 1000.0,

@@ -50,6 +50,41 @@ def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
                    help="what the GP on the remaining error sees (default tcp_speed, the paper's)")
 
 
+def add_effects_file_arg(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--effects-file", default=None, metavar="YAML",
+                   help="effects of your own, declared in YAML as regressors built from the data's columns "
+                        "(e.g. configs/effects/humidity.yaml; docs/effects.md): usable in --effects, tested by "
+                        "diagnose after the catalogue")
+
+
+def declare_effects(args: argparse.Namespace) -> list[str]:
+    """Register the --effects-file's effects (before any --effects name is checked); their names."""
+    from dt_runtime.models import effects as fx
+
+    path = getattr(args, "effects_file", None)
+    return fx.register_file(path) if path else []
+
+
+def input_files(args: argparse.Namespace) -> list[str]:
+    """The files beside the data that shaped the result, for the provenance (hashed): the import
+    mapping and the declared effects."""
+    return [f for f in (getattr(args, "mapping", None), getattr(args, "effects_file", None)) if f]
+
+
+def check_declared(names_: list[str], inp, where: str, path: str) -> None:
+    """DataError when the data lack a column a declared effect of --effects-file reads: the user
+    named the file's effects to test them, so a typo must not pass as 'not testable'."""
+    from dt_kernel.errors import DataError
+    from dt_runtime.models import effects as fx
+    from dt_runtime.models.effects.declared import columns_of
+
+    for name in names_:
+        missing = [c if c != "joints" else "q1..qk" for c in fx.get(name).columns if not inp.has(c)]
+        if missing:
+            raise DataError(f"{where}: effect '{name}' (declared in {path}) reads the column(s) {', '.join(missing)}, "
+                            f"which the data do not have; their columns: {', '.join(columns_of(inp)) or 'none'}")
+
+
 def add_mpe_arg(q: argparse.ArgumentParser) -> None:
     q.add_argument("--mpe-mm", type=_positive, default=None, metavar="MM",
                    help="the instrument's maximum permissible error (mm): the noise floor when the data state "
@@ -76,8 +111,12 @@ def progress(args: argparse.Namespace) -> Progress:
 
 
 def load(args: argparse.Namespace):
-    """The --data file (through --mapping if given)."""
+    """The --data file (through --mapping if given), after registering --effects-file's effects,
+    whose columns the data must have."""
     from dt_runtime.analysis.data import load_data
+    from dt_runtime.models import effects as fx
+
+    declared = declare_effects(args)
 
     files = args.data if isinstance(args.data, list) else [args.data]
     if len(files) == 1:
@@ -94,6 +133,9 @@ def load(args: argparse.Namespace):
                                    for f, e in zip(files, each)]})
     if getattr(args, "mpe_mm", None) is not None:
         d.info["mpe_mm"] = args.mpe_mm
+    if declared:
+        check_declared(declared, fx.Inputs.of(d.dataset), ", ".join(map(str, files)), args.effects_file)
+        d.info["declared_effects"] = {"file": str(args.effects_file), "effects": declared}
     return d
 
 

@@ -9,7 +9,17 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_mpe_arg, add_output_args, cv_folds, load, names, progress
+from dt_runtime.cli.common import (
+    add_data_args,
+    add_effects_file_arg,
+    add_mpe_arg,
+    add_output_args,
+    cv_folds,
+    input_files,
+    load,
+    names,
+    progress,
+)
 
 
 def add_arguments(cp: argparse.ArgumentParser) -> None:
@@ -22,6 +32,7 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
                     help="held-out figures from the training file: refit each model's configuration on K-1 "
                          "folds grouped by target point (default 0: the models as saved)")
     cp.add_argument("--report", default=None, metavar="DIR", help="write DIR/report.html and DIR/compare.json")
+    add_effects_file_arg(cp)
     cp.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
                          "recorded in the provenance")
@@ -37,7 +48,7 @@ def run(args: argparse.Namespace) -> Any:
     d = load(args)
     result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
                              cv_folds=args.cv, seed=args.seed, progress=progress(args),
-                             instruments=args.instruments, inputs=[args.mapping] if args.mapping else [])
+                             instruments=args.instruments, inputs=input_files(args))
     result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
     if args.report:
         from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting

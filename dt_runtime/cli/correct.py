@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.twin.twin import Twin
 
     twin = Twin.load(args.twin)
-    prog = read_program(args.targets)
+    prog = read_program(args.targets, twin.needs)  # with the columns a declared effect reads
     corr = correct_program(twin, prog)
     outside = [i for i, c in enumerate(corr) if not c.inside]
     if args.refuse_outside and outside:

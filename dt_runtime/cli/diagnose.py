@@ -15,7 +15,17 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_mpe_arg, add_output_args, folds, load, names, progress
+from dt_runtime.cli.common import (
+    add_data_args,
+    add_effects_file_arg,
+    add_mpe_arg,
+    add_output_args,
+    folds,
+    input_files,
+    load,
+    names,
+    progress,
+)
 
 
 def add_arguments(dg: argparse.ArgumentParser) -> None:
@@ -23,6 +33,7 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     dg.add_argument("--model", default=None, metavar="MODEL", help="starting model (default: --effects + GP)")
     dg.add_argument("--effects", default="", metavar="a,b,...", help="starting model's effects without --model")
     dg.add_argument("--candidates", default="", metavar="a,b,...", help="effects to test (default all)")
+    add_effects_file_arg(dg)
     dg.add_argument("--folds", type=folds, default=5, help="cross-validation folds (default 5)")
     dg.add_argument("--auto", action="store_true", help="the whole loop: add effects / switch GP inputs while "
                     "significant (forward selection), then the verdict")
@@ -58,7 +69,7 @@ def run(args: argparse.Namespace) -> Any:
     return diagnose(load(args), args.model, names(args.effects), args.gp_inputs,
                         args.robot or DEFAULT_ROBOT, names(args.candidates) or None, args.folds,
                         args.seed, progress=progress(args), instruments=args.instruments,
-                        inputs=[args.mapping] if args.mapping else [])
+                        inputs=input_files(args))
 
 
 def human(result: dict) -> str:

@@ -8,12 +8,23 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from dt_runtime.cli.common import add_data_args, add_output_args, cv_folds, load, names, parameter_line, progress
+from dt_runtime.cli.common import (
+    add_data_args,
+    add_effects_file_arg,
+    add_output_args,
+    cv_folds,
+    input_files,
+    load,
+    names,
+    parameter_line,
+    progress,
+)
 
 
 def add_arguments(ft: argparse.ArgumentParser) -> None:
     add_data_args(ft)
     ft.add_argument("--effects", default="", metavar="a,b,...", help="effect terms (default none: the paper's GP)")
+    add_effects_file_arg(ft)
     ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")
     ft.add_argument("--cv", type=cv_folds, default=0, metavar="K",
                     help="also report the held-out RMS by K-fold CV grouped by target point")
@@ -29,7 +40,7 @@ def run(args: argparse.Namespace) -> Any:
 
     return fit(load(args), names(args.effects), args.gp_inputs, args.robot or DEFAULT_ROBOT, args.out,
                seed=args.seed, cv_folds=args.cv, progress=progress(args), instruments=args.instruments,
-               inputs=[args.mapping] if args.mapping else [])
+               inputs=input_files(args))
 
 
 def human(result: dict) -> str:

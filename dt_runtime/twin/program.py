@@ -6,7 +6,9 @@ Program file (CSV, UTF-8, comma, header row): `x, y, z` (mm, robot frame), `spee
 optional `point_id` and, for a twin whose maps read them (`Twin.needs`), optional `temperature`
 (deg C), `payload` (kg), `t` (s, the campaign's time base) and `q1..qN` (rad: the joint angles
 the arm stands at before the target, where the inverse kinematics starts; offline tools know
-them). The corrected file repeats the target columns and adds `cx, cy, cz` (the command, mm),
+them), and any other numeric column a map's declared effect reads (`humidity`: docs/effects.md,
+"Your own effects"; `read_program(path, needs)`). The corrected file repeats the target
+columns and adds `cx, cy, cz` (the command, mm),
 `Ux, Uy, Uz` (mm, 95 %, per GL axis), `inside` (1 or 0) and `distance_mm` (signed distance of
 the command to the DOE hull, negative inside).
 """
@@ -21,7 +23,7 @@ import numpy as np
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM, MM_PER_M
 from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header
-from dt_runtime.twin.conditions import Conditions, missing
+from dt_runtime.twin.conditions import SOURCES, Conditions, missing
 from dt_runtime.twin.twin import Correction, Twin
 
 MAX_TARGETS = 1_000_000  # a program is read whole: bound what that may cost
@@ -37,6 +39,7 @@ class Program:
     payload: np.ndarray | None = None  # (n,) kg
     t: np.ndarray | None = None  # (n,) s
     joints: np.ndarray | None = None  # (n, dof) rad, where the arm stands before each target
+    extra: dict[str, np.ndarray] | None = None  # (n,) each: the columns the user's declared effects read
 
     def conditions(self, i: int, base: Conditions | None = None) -> Conditions:
         """Target i's conditions: the program's columns, else `base`'s (e.g. the sensors')."""
@@ -45,16 +48,20 @@ class Program:
         def at(col: np.ndarray | None, default):
             return default if col is None else col[i]
 
+        extra = dict(b.extra or {}) | {k: float(v[i]) for k, v in (self.extra or {}).items()}
         return Conditions(temperature=at(self.temperature, b.temperature), payload=at(self.payload, b.payload),
-                          t=at(self.t, b.t), joints=at(self.joints, b.joints), previous=b.previous)
+                          t=at(self.t, b.t), joints=at(self.joints, b.joints), previous=b.previous,
+                          extra=extra or None)
 
     @property
     def n(self) -> int:
         return len(self.target)
 
 
-def read_program(path: str | Path) -> Program:
-    """Read a program file; a bad cell names file, line, column and value."""
+def read_program(path: str | Path, needs: tuple[str, ...] = ()) -> Program:
+    """Read a program file; a bad cell names file, line, column and value. `needs`: the
+    conditions the twin's maps read (`Twin.needs`); those beyond the known columns (a declared
+    effect's `humidity`) are read as numbers when the file has them."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such program file")
@@ -64,7 +71,9 @@ def read_program(path: str | Path) -> Program:
         specs.append(ColumnSpec("point_id", "point_id", kind="str"))
     opt = [k for k in ("temperature", "payload", "t") if k in header]
     qcols = [f"q{j}" for j in range(1, 13) if f"q{j}" in header]
-    specs += [ColumnSpec(k, k) for k in opt + qcols]
+    known = {"x", "y", "z", "speed", "point_id", "temperature", "payload", "t", "joints"}
+    own = [k for k in needs if k not in known and k in header]
+    specs += [ColumnSpec(k, k) for k in opt + qcols + own]
 
     def fail(column: str, why: str) -> None:
         err = CellError(why)
@@ -92,7 +101,8 @@ def read_program(path: str | Path) -> Program:
 
     return Program(np.column_stack([vals[k] for k in ("x", "y", "z")]), np.asarray(vals["speed"], float), ids,
                    list(lines), col("temperature"), col("payload"), col("t"),
-                   np.column_stack([vals[q] for q in qcols]) if qcols else None)
+                   np.column_stack([vals[q] for q in qcols]) if qcols else None,
+                   {k: np.asarray(vals[k], float) for k in own} or None)
 
 
 def correct_program(twin: Twin, program: Program) -> list[Correction]:
@@ -100,9 +110,20 @@ def correct_program(twin: Twin, program: Program) -> list[Correction]:
     columns the twin's maps need and the program lacks."""
     lack = missing(twin.needs, program.conditions(0)) if program.n else []
     if lack:
+        own = [n for n in lack if n not in SOURCES]
         raise DataError(f"the twin's maps need {', '.join(lack)}; give them as program columns "
-                        f"({', '.join('q1..q6' if n == 'joints' else n for n in lack)})")
+                        f"({', '.join('q1..q6' if n == 'joints' else n for n in lack)})"
+                        + (f"; {', '.join(own)}: read by the map's declared effect(s) "
+                           f"{', '.join(declared_readers(twin, own))}" if own else ""))
     return [twin.correct(t, v, program.conditions(i)) for i, (t, v) in enumerate(zip(program.target, program.speed))]
+
+
+def declared_readers(twin: Twin, columns: list[str]) -> list[str]:
+    """The effects of the twin's maps that read any of `columns` (for the error message)."""
+    from dt_runtime.models import effects as fx
+
+    effects = dict.fromkeys((*twin.e_lt.effects, *twin.e_mvs_lt.effects))
+    return [e for e in effects if set(fx.get(e).columns) & set(columns)]
 
 
 def write_corrected(path: str | Path, program: Program, corrections: list[Correction]) -> Path:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from types import MappingProxyType
 
-from dt_kernel.errors import DataError
+from dt_kernel.errors import ConfigError, DataError
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.models.effects import declared
 from dt_runtime.models.effects.backlash import Backlash
@@ -36,10 +36,11 @@ REGISTRY: MappingProxyType[str, Effect] = MappingProxyType(
 # The user's own effects (models.effects.declared): declared in YAML or from installed packages'
 # entry points; tested by diagnose after the catalogue.
 _USER: dict[str, Effect] = {}
+_SOURCE: dict[str, str] = {}  # name -> where it came from ("entry point x", a YAML file, a saved model)
 _entry_points_loaded = False
 
 __all__ = ["REGISTRY", "Block", "Effect", "Inputs", "as_inputs", "available", "build", "check_names", "get", "names",
-           "register", "unregister", "user_effects"]
+           "register", "register_file", "reload_entry_points", "unregister", "user_effects"]
 
 
 def _load_entry_points() -> None:
@@ -60,12 +61,54 @@ def register(effect: Effect, source: str = "") -> Effect:
     if old is not None and getattr(old, "spec", old) != getattr(effect, "spec", effect):
         raise DataError(f"effect {effect.name!r}{f' ({source})' if source else ''} is already defined differently")
     _USER.setdefault(effect.name, effect)
+    _SOURCE.setdefault(effect.name, source)
     return _USER[effect.name]
+
+
+def register_file(path) -> list[str]:
+    """Register the effects a YAML file declares (`--effects-file`, `models.effects.declared`) and
+    return their names. ConfigError naming the file, the key and the value: a bad key or value
+    (pydantic), a catalogue name, a name declared twice, or a name registered already with another
+    definition (a plugin's, a loaded model's)."""
+    _load_entry_points()  # a clash with a plugin is found here, not on first use
+    found = declared.read_file(path)
+    seen: set[str] = set()
+    for i, effect in enumerate(found):
+        key = f"effects.{i}.name"
+        if effect.name in REGISTRY:
+            raise ConfigError(path, key, effect.name, f"not a catalogue effect's name ({', '.join(REGISTRY)}); "
+                              "name your own effect after what drives it")
+        if effect.name in seen:
+            raise ConfigError(path, key, effect.name, "each name once in the file")
+        seen.add(effect.name)
+        try:
+            register(effect, source=str(path))
+        except DataError as exc:
+            raise ConfigError(path, key, effect.name, f"a name not taken ({exc}; from {_SOURCE.get(effect.name)})"
+                              ) from exc
+    return [e.name for e in found]
 
 
 def unregister(name: str) -> None:
     """Forget a user effect (tests; a session that declared another file)."""
     _USER.pop(name, None)
+    _SOURCE.pop(name, None)
+
+
+def reload_entry_points() -> list[str]:
+    """Read the installed packages' `cobot_dt.effects` entry points again and return the plugin
+    effects' names. `names()` reads them once per process (scanning every installed distribution
+    on each call would cost milliseconds per call), so a plugin installed into a running process
+    (a notebook, a test) is seen only after this."""
+    import importlib
+
+    global _entry_points_loaded
+    for name in [n for n, s in _SOURCE.items() if s.startswith("entry point ")]:
+        unregister(name)
+    importlib.invalidate_caches()  # importlib.metadata caches directory listings
+    _entry_points_loaded = False
+    _load_entry_points()
+    return [n for n, s in _SOURCE.items() if s.startswith("entry point ")]
 
 
 def user_effects() -> dict[str, Effect]:

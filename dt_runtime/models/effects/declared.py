@@ -76,11 +76,24 @@ class DeclaredEffect(Effect):
     """An effect built from a declaration (`EffectSpec`): one regressor per term and axis/joint."""
 
     spec: EffectSpec
+    source: str = ""  # where it was declared (the YAML file, a saved model), for the errors
+
+    def _where(self) -> str:
+        return f" (declared in {self.source})" if self.source else ""
+
+    def build(self, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
+        # The catalogue's message names the missing column; a declared one may be a typo in the
+        # user's file, so name the file and the columns the data do have.
+        missing = [c for c in self.columns if inp.get(c) is None]
+        if missing:
+            raise DataError(f"effect '{self.name}'{self._where()} reads the column(s) {', '.join(missing)}, which "
+                            f"the data do not have; their columns: {', '.join(columns_of(inp)) or 'none'}")
+        return super().build(inp, chain, hyper)
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
         cols, names, units = [], [], []
         J = chain.jacobian(inp.column("joints")) if self.needs_chain else None
-        for term in self.spec.terms:
+        for i, term in enumerate(self.spec.terms):
             x = inp.column(term.column) - term.reference
             if term.space == "cartesian":
                 for ax in term.axes:
@@ -94,7 +107,8 @@ class DeclaredEffect(Effect):
                 dof = J.shape[2]
                 bad = [j for j in (term.joints or ()) if j > dof]
                 if bad:
-                    raise DataError(f"effect '{self.name}': joint(s) {bad} beyond the robot's {dof}")
+                    raise DataError(f"effect '{self.name}'{self._where()}: terms.{i}.joints names joint(s) "
+                                    f"{', '.join(map(str, bad))}, beyond the robot's {dof} (joints are 1..{dof})")
                 for j in term.joints or range(1, dof + 1):
                     cols.append(-J[:, :, j - 1] * x[:, None])  # e = -J dq, dq_j = c_j x
                     names.append(f"q{j}_per_{term.column}")
@@ -102,23 +116,32 @@ class DeclaredEffect(Effect):
         return Block(self.name, np.stack(cols, axis=2), tuple(names), tuple(units))
 
 
-def declare(spec: EffectSpec) -> Effect:
+def columns_of(inp: Inputs) -> list[str]:
+    """The data's columns by their file names (q1..qk for the joints), for error messages."""
+    out = [c for c in ("speed", "temperature", "payload", "t") if inp.get(c) is not None]
+    if inp.joints is not None:
+        out += [f"q{j + 1}" for j in range(inp.joints.shape[1])]
+    return out + sorted(inp.extra or {})
+
+
+def declare(spec: EffectSpec, source: str = "") -> Effect:
     """The effect a declaration describes (a class of its own, so it has its name and columns)."""
     joints = any(t.space == "joints" for t in spec.terms)
     columns = tuple(dict.fromkeys((["joints"] if joints else []) + [t.column for t in spec.terms]))
     cls = type(f"Declared_{spec.name}", (DeclaredEffect,),
-               {"name": spec.name, "columns": columns, "needs_chain": joints, "factor": spec.factor, "spec": spec})
+               {"name": spec.name, "columns": columns, "needs_chain": joints, "factor": spec.factor, "spec": spec,
+                "source": source})
     return cls()
 
 
 def read_file(path: str | Path) -> list[Effect]:
     """The effects declared in a YAML file (ConfigError names the key, the value and what is allowed)."""
-    return [declare(s) for s in load_yaml(path, EffectsFile).effects]
+    return [declare(s, str(path)) for s in load_yaml(path, EffectsFile).effects]
 
 
 def from_dict(d: dict) -> Effect:
     """A declaration kept in a saved model (`EffectSpec` as a dict)."""
-    return declare(validate(EffectSpec, d, "<saved model>"))
+    return declare(validate(EffectSpec, d, "<saved model>"), "a saved model")
 
 
 def entry_point_effects() -> list[tuple[str, Effect]]:
