@@ -45,6 +45,7 @@ joints:
   columns: ["Achse 1 [°]", "Achse 2 [°]", "Achse 3 [°]", "Achse 4 [°]", "Achse 5 [°]", "Achse 6 [°]"]
   unit: deg
   join: {key: Punkt}
+robot: configs/robots/ur10.yaml   # beside the mapping, else the working directory, else the project
 """
 
 
@@ -97,6 +98,7 @@ def write_campaign(folder: Path, seed: int = 7, n_points: int = 30, passes: int 
     """`sessions` sessions s1..sN of one arm (the last one with wrist 3 up to 259 deg) and the
     mapping that reads them all (mapping.yaml). Returns {'files', 'mapping', 'geo', 'sessions'}."""
     folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     geo = arm(seed)
     truth = []
