@@ -159,3 +159,21 @@ def test_reregistration_absorbs_a_rigid_difference_and_only_that():
     bend = 1e-4 * np.column_stack([m[:, 0] ** 2, np.zeros(50), np.zeros(50)])  # not rigid: mostly kept
     after, _ = reregistered(m, bend)
     assert np.sqrt(np.mean(np.sum(after ** 2, 1))) > 0.5 * np.sqrt(np.mean(np.sum((bend - bend.mean(0)) ** 2, 1)))
+
+
+def test_the_mapping_in_campaigns_md_is_the_one_the_example_campaign_ships(tmp_path):
+    import re
+
+    from dt_runtime.common.paths import ROOT
+    from tests.campaign_generator import MAPPING
+
+    blocks = re.findall(r"^```yaml\n(.*?)^```", (ROOT / "docs" / "campaigns.md").read_text(encoding="utf-8"),
+                        flags=re.S | re.M)
+    (tmp_path / "doc.yaml").write_text(blocks[0], encoding="utf-8")
+    (tmp_path / "gen.yaml").write_text(MAPPING, encoding="utf-8")
+    assert load_mapping(tmp_path / "doc.yaml") == load_mapping(tmp_path / "gen.yaml")
+    # the given-registration block of the page, in place of the example's fitted one
+    given_yaml = MAPPING.replace("registration: {fit_offset: false}\n", "") + blocks[1]
+    (tmp_path / "given.yaml").write_text(given_yaml, encoding="utf-8")
+    reg = load_mapping(tmp_path / "given.yaml").registration
+    assert (reg.transform, reg.transform_unit, reg.transform_maps) == ("{stem}_trafo.txt", "mm", "instrument_to_robot")
