@@ -177,3 +177,17 @@ def test_the_mapping_in_campaigns_md_is_the_one_the_example_campaign_ships(tmp_p
     (tmp_path / "given.yaml").write_text(given_yaml, encoding="utf-8")
     reg = load_mapping(tmp_path / "given.yaml").registration
     assert (reg.transform, reg.transform_unit, reg.transform_maps) == ("{stem}_trafo.txt", "mm", "instrument_to_robot")
+
+
+def test_row_join_with_skip_bad_drops_the_row_whose_joints_are_bad(tmp_path):
+    q, err = _files(tmp_path)
+    jt = tmp_path / "m_joints.csv"
+    lines = jt.read_text(encoding="utf-8").splitlines()
+    cells = lines[3].split(";")
+    lines[3] = ";".join([cells[0], "n/a", *cells[2:]])  # data row 3 of the joints: a bad cell
+    jt.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    with pytest.raises(DataError, match=r"m_joints.csv: line 4: column 'J1': value 'n/a'"):
+        import_file(tmp_path / "m.csv", _mapping("row"), robot=UR10)
+    ds, _ = import_file(tmp_path / "m.csv", _mapping("row"), robot=UR10, skip_bad=True)
+    assert ds.n == 11 and [(s.line, s.column) for s in ds.skipped] == [(4, "<joints>")]
+    np.testing.assert_allclose(ds.error, np.delete(err, 2, axis=0), atol=1e-9)
