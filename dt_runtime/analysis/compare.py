@@ -25,6 +25,7 @@ import numpy as np
 
 from dt_kernel.errors import DataError, ModelError, TwinError
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.analysis import reregister
 from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import noise_floor
 from dt_runtime.analysis.results import CompareResult, ModelScore
@@ -283,6 +284,18 @@ def _score(name, kind, description, pred, std, ds, cells, um, dm, dof_model, mod
     return ModelScore(name, kind, ds.n, m, fails, bd, worst_cells(bd, m["rmse_mm"]), description, model), arr
 
 
+def _after_reregistration(ds: Dataset, pred: np.ndarray, session: np.ndarray) -> dict | None:
+    """The model's 3D RMS after each fitted session is registered again against the corrected
+    commanded points (the rigid part the session's own registration absorbed is not the model's
+    error; 6 dof per session absorbed). None when no row's registration was fitted."""
+    refit = {int(s) for s in np.unique(session) if s >= 0}
+    if not refit:
+        return None
+    rr = reregister.by_session(ds.actual, ds.error - pred, np.asarray(session), refit)
+    return {"rmse_mm": rms3(rr) * MM_PER_M, "sessions": len(refit), "dof_absorbed": reregister.DOF * len(refit),
+            "method": "per session, the rigid registration refitted: measured points -> commanded - predicted error"}
+
+
 def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np.ndarray):
     """Held-out prediction and std of every row by the model's configuration (effects, GP inputs,
     robot, GP options) refitted on the other folds, with the saved model's GP hyperparameters."""
@@ -294,7 +307,8 @@ def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np
 def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str] | None = None,
             noise_floor_m: float | None = None, cv_folds: int = 0, seed: int = 0,
             progress: Progress | None = None, instruments: str | Path | None = None,
-            inputs: Sequence[str | Path] = ()) -> tuple[CompareResult, dict]:
+            inputs: Sequence[str | Path] = (), refit_sessions: np.ndarray | None = None,
+            ) -> tuple[CompareResult, dict]:
     """Compare models (HybridModel instances or model directories, oldest first) with the
     measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
 
@@ -306,6 +320,9 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     instruments, inputs: the campaign's instruments YAML and other input files (e.g. an import
     mapping) for the result's traceability record (`provenance`), beside the data file and the
     model directories' files.
+    refit_sessions: per row, the session whose registration was fitted on its own points (-1:
+    given or none); each model then also gets its figure after re-registration
+    (`after_reregistration`, dt_runtime.analysis.reregister).
     Returns (result, arrays: SI arrays for the report); `result.to_dict()` is the JSON (mm)."""
     ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
     if ds.n == 0:
@@ -341,6 +358,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                         name, dom["rows"], ds.n, ds.source, ", ".join(f"{c} {n}" for c, n in dom["columns"].items()))
         about = {"outside_training": dom, "effects": list(m.effects), "gp_inputs": m.gp_inputs,
                  "effect_residual_rms_mm": float(m.residual_rms_) * MM_PER_M, "parameters": m.parameters()}
+        if refit_sessions is not None:
+            about["after_reregistration"] = _after_reregistration(ds, pred, refit_sessions)
         b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about)
         scores.append(b)
     arrs.append(a)

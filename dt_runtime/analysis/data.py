@@ -27,16 +27,23 @@ class Data:
     info: dict  # source, rows, skipped rows, registration report (import), sidecar facts
 
 
-def load_data(path: str | Path, mapping: str | Path | None = None, skip_bad: bool = False) -> Data:
-    """The contract CSV, or a foreign file read through `mapping` (registered if needed)."""
+def load_data(path: str | Path, mapping: str | Path | None = None, skip_bad: bool = False,
+              robot: str | Path | None = None) -> Data:
+    """The contract CSV, or a foreign file read through `mapping` (registered if needed; `robot`,
+    else the mapping's `robot:`, gives the commanded TCP of a file that has only joint angles).
+    `info['robot']`: the mapping's robot config, which the analysis uses when no --robot is given."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such data file")
     info: dict = {"data": str(path)}
     if mapping is not None:
-        from dt_runtime.measurements.importer import import_file
+        from dt_runtime.measurements.importer import import_file, load_mapping, mapping_robot
 
-        ds, report = import_file(path, mapping, skip_bad=skip_bad)
+        m = load_mapping(mapping)
+        ds, report = import_file(path, mapping, skip_bad=skip_bad, robot=robot)
+        mr = mapping_robot(m, Path(mapping))
+        if mr is not None:
+            info["robot"] = str(mr)
         info["registration"] = report.to_dict()
     else:
         ds = read_table(path, skip_bad=skip_bad)
@@ -68,3 +75,18 @@ def floor_of(d: Data) -> float | None:
         return stated
     mpe = d.info.get("mpe_mm")
     return None if mpe is None else float(mpe) * M_PER_MM
+
+
+def refit_sessions(d: Data) -> np.ndarray | None:
+    """Per row, the session whose registration was fitted on its own points (-1: given or none),
+    or None when no row's was: the rows a model is scored on after re-registration."""
+    fitted = ("rigid", "rigid+offset")
+    files = d.info.get("session_files")
+    if files is None:
+        method = (d.info.get("registration") or {}).get("method")
+        return np.zeros(d.dataset.n, int) if method in fitted else None
+    ok = [(f.get("registration") or {}).get("method") in fitted for f in files]
+    if not any(ok):
+        return None
+    s = d.dataset.extra["session"].astype(int)
+    return np.where(np.asarray(ok)[s], s, -1)

@@ -9,6 +9,7 @@ residual variance they explain.
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,8 +17,9 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from dt_runtime.analysis import reregister
 from dt_runtime.analysis.crossval import CvResult, cross_validate, folds_of, groups_of
-from dt_runtime.analysis.data import Data, floor_of, load_data
+from dt_runtime.analysis.data import Data, floor_of, load_data, refit_sessions
 from dt_runtime.analysis.results import DiagnoseResult, Gain
 from dt_runtime.analysis.training import data_provenance
 from dt_runtime.common.jsonsafe import jsonable
@@ -30,6 +32,7 @@ from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
 from dt_runtime.models.hybrid import DEFAULT_RIDGE, HybridModel, load_map, resolve_chain
 
+log = logging.getLogger("dt.diagnose")
 ALPHA = 0.01
 # What the residual follows when the GP's inputs are the wrong ones (an effect's own factor is
 # `Effect.factor`).
@@ -315,32 +318,95 @@ def diagnose_auto(data: Data | Dataset | str | Path, model: HybridModel | str | 
                       candidates=candidates, gp_options=gp_options, ridge=ridge, progress=progress,
                       columns=factor_columns(ds))
     if "session" in ds.extra and len(np.unique(ds.extra["session"])) > 1:
+        # sessions whose registration was fitted on their own points: scored after re-registration
+        labels = refit_sessions(d)
+        refit = set() if labels is None else {int(v) for v in np.unique(labels) if v >= 0}
         r.sessions = leave_one_session_out(fx.Inputs.of(ds), ds.error, ds.extra["session"].astype(int), chain,
                                            (tuple(effects), gp_inputs), (tuple(r.effects), r.gp_inputs), seed,
-                                           gp_options, ridge)
-        worse = [x["session"] for x in r.sessions if x["final_rmse_mm"] > x["start_rmse_mm"]]
-        r.verdict += (" Held out by session, the final model predicts every session better than the start."
-                      if not worse else
-                      f" Held out by session, the final model predicts session(s) {worse} worse than the start: "
-                      "what it added wins inside the training data only (check the domain: joints or "
-                      "positions outside the other sessions' range); do not deploy it for such tasks.")
+                                           gp_options, ridge, measured=ds.actual, refit=refit)
+        for x, f in zip(r.sessions, d.info.get("session_files", [])):
+            x["file"] = f["file"]
+        r.verdict += _session_verdict(r.sessions)
     r.source = {k: v for k, v in d.info.items() if k != "n"}
     return r
 
 
 def leave_one_session_out(inp: fx.Inputs, error: np.ndarray, session: np.ndarray, chain: Chain | None,
                           start: tuple[tuple[str, ...], str], final: tuple[tuple[str, ...], str], seed: int,
-                          gp_options: GPOptions | None, ridge: float) -> list[dict]:
+                          gp_options: GPOptions | None, ridge: float, measured: np.ndarray | None = None,
+                          refit: set[int] | None = None) -> list[dict]:
     """Held-out 3D RMS of each session predicted by the start and the final configuration fitted
-    on the other sessions (a new task, not a new point of the same task)."""
-    folds = [session == s for s in np.unique(session)]
-    out = {}
+    on the other sessions (a new task, not a new point of the same task). Sessions in `refit`
+    (registration fitted on their own points; `measured` robot-frame points needed) are scored
+    after re-registration (`reregister`: 6 dof absorbed), the raw figures kept beside; each session
+    also lists its rows outside the other sessions' domain (`outside_training`)."""
+    ids = np.unique(session)
+    folds = [session == s for s in ids]
+    refit = set() if measured is None else (refit or set())
+    out: dict[str, list] = {}
     for label, (effects, gp) in (("start", start), ("final", final)):
         model = HybridModel(effects, gp, ridge=ridge, seed=seed, robot=chain, gp_options=gp_options)
         res = cross_validate(model, inp, error, session, folds).residual
         out[label] = [rms3(res[f]) * 1e3 for f in folds]
-    return [{"session": int(s), "rows": int(f.sum()), "start_rmse_mm": a, "final_rmse_mm": b}
-            for s, f, a, b in zip(np.unique(session), folds, out["start"], out["final"])]
+        if refit:
+            assert measured is not None  # refit is emptied above without it
+            rr = reregister.by_session(measured, res, session, refit)
+            out[label + "_rereg"] = [rms3(rr[f]) * 1e3 for f in folds]
+    rows = []
+    for i, (s, f) in enumerate(zip(ids, folds)):
+        row = {"session": int(s), "rows": int(f.sum()), "start_rmse_mm": out["start"][i],
+               "final_rmse_mm": out["final"][i], "reregistered": int(s) in refit,
+               "outside_training": outside_others(inp, f)}
+        if int(s) in refit:
+            row |= {"start_rmse_reregistered_mm": out["start_rereg"][i],
+                    "final_rmse_reregistered_mm": out["final_rereg"][i], "dof_absorbed": reregister.DOF}
+        rows.append(row)
+    return rows
+
+
+def outside_others(inp: fx.Inputs, test: np.ndarray, margin: float = 0.02) -> dict:
+    """Rows of the `test` mask outside the range of the other rows (TCP box, joint ranges; each
+    widened by `margin` of its range, as HybridModel.outside_domain): {'rows', 'columns': {name: rows}}."""
+    outside = np.zeros(int(test.sum()), bool)
+    cols: dict[str, int] = {}
+    blocks: list[tuple[np.ndarray, tuple[str, ...]]] = [(inp.commanded, ("x", "y", "z"))]
+    if inp.joints is not None:
+        blocks.append((inp.joints, tuple(f"q{j + 1}" for j in range(inp.joints.shape[1]))))
+    for values, names in blocks:
+        lo, hi = values[~test].min(0), values[~test].max(0)
+        w = margin * np.maximum(hi - lo, 1e-9)
+        out = (values[test] < lo - w) | (values[test] > hi + w)
+        outside |= out.any(axis=1)
+        cols.update({n: int(c) for n, c in zip(names, out.sum(0)) if c})
+    return {"rows": int(outside.sum()), "columns": cols}
+
+
+def _session_verdict(sessions: list[dict]) -> str:
+    """The leave-one-session-out sentence: sessions the final model predicts worse than the start
+    (after re-registration where the session's registration was fitted), and sessions outside
+    the others' domain (joints or positions the training never saw)."""
+    key = lambda x, k: x.get(f"{k}_rmse_reregistered_mm", x[f"{k}_rmse_mm"])  # noqa: E731
+    worse = [x["session"] for x in sessions if key(x, "final") > key(x, "start")]
+    text = (" Held out by session, the final model predicts every session better than the start"
+            if not worse else
+            f" Held out by session, the final model predicts session(s) {worse} worse than the start: "
+            "what it added wins inside the training data only (check the domain: joints or "
+            "positions outside the other sessions' range); do not deploy it for such tasks")
+    rereg = [x["session"] for x in sessions if x["reregistered"]]
+    text += (f" (session(s) {rereg} scored after re-registration: their registration was fitted on their own "
+             f"points, so a rigid part of {reregister.DOF} dof is absorbed again)." if rereg else ".")
+    for x in sessions:
+        dom = x["outside_training"]
+        if dom["rows"]:
+            name = f" ({Path(x['file']).name})" if x.get("file") else ""
+            log.warning("session %d%s: %d of %d rows lie outside the other sessions' domain (%s): predicting it "
+                        "extrapolates", x["session"], name, dom["rows"], x["rows"],
+                        ", ".join(f"{c} {n}" for c, n in dom["columns"].items()))
+            text += (f" Session {x['session']}{name} leaves the other sessions' domain in {dom['rows']} of "
+                     f"{x['rows']} rows ("
+                     + ", ".join(f"{c}: {n}" for c, n in dom["columns"].items())
+                     + "): its figures are an extrapolation.")
+    return text
 
 
 # --------------------------------------------------------------------------- beyond the catalogue

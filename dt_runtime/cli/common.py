@@ -3,6 +3,7 @@ switch. Each command module holds its own arguments, its run and its human text.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from dt_runtime.common.progress import Progress
 
@@ -119,24 +120,33 @@ def load(args: argparse.Namespace):
     declared = declare_effects(args)
 
     files = args.data if isinstance(args.data, list) else [args.data]
+    robot = getattr(args, "robot", None)  # joints-only files: their commanded TCP is its forward kinematics
     if len(files) == 1:
-        d = load_data(files[0], args.mapping, args.skip_bad)
+        d = load_data(files[0], args.mapping, args.skip_bad, robot)
     else:
         from dt_runtime.analysis.data import Data
         from dt_runtime.measurements.dataset import sessions
 
-        each = [load_data(f, args.mapping, args.skip_bad) for f in files]
+        each = [load_data(f, args.mapping, args.skip_bad, robot) for f in files]
         ds = sessions([e.dataset for e in each])
         d = Data(ds, {"data": list(files), "n": ds.n,
                       "session_files": [{"file": str(f), "rows": e.dataset.n} | {k: v for k, v in e.info.items()
                                                                            if k in ("registration", "skipped_rows")}
-                                   for f, e in zip(files, each)]})
+                                   for f, e in zip(files, each)]}
+                 | ({"robot": each[0].info["robot"]} if "robot" in each[0].info else {}))
     if getattr(args, "mpe_mm", None) is not None:
         d.info["mpe_mm"] = args.mpe_mm
     if declared:
         check_declared(declared, fx.Inputs.of(d.dataset), ", ".join(map(str, files)), args.effects_file)
         d.info["declared_effects"] = {"file": str(args.effects_file), "effects": declared}
     return d
+
+
+def robot_of(args: argparse.Namespace, d) -> str | Path:
+    """The robot config of the analysis: --robot, else the import mapping's `robot:`, else the default."""
+    from dt_runtime.analysis.data import DEFAULT_ROBOT
+
+    return args.robot or d.info.get("robot") or DEFAULT_ROBOT
 
 
 def parameter_line(p: dict) -> str:

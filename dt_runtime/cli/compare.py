@@ -42,13 +42,14 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> Any:
     from dt_runtime.analysis.compare import compare
-    from dt_runtime.analysis.data import floor_of
+    from dt_runtime.analysis.data import floor_of, refit_sessions
     from dt_runtime.common.jsonsafe import jsonable
 
     d = load(args)
     result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
                              cv_folds=args.cv, seed=args.seed, progress=progress(args),
-                             instruments=args.instruments, inputs=input_files(args))
+                             instruments=args.instruments, inputs=input_files(args),
+                             refit_sessions=refit_sessions(d))
     result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
     if args.report:
         from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
@@ -65,6 +66,10 @@ def human(result: dict) -> str:
         f = m.get("failures")
         lines.append(f"  {m['name']:<24} 3D RMS {m['rmse_mm']:.4f} mm  mean {m['mae_mm']:.4f}  max {m['max_mm']:.4f}"
                      + (f"  fails Eq. 17: {100 * f['fraction']:.1f} %" if f else ""))
+        if m.get("after_reregistration"):
+            rr = m["after_reregistration"]
+            lines.append(f"  {'':<24} after re-registration ({rr['dof_absorbed']} dof absorbed): 3D RMS "
+                         f"{rr['rmse_mm']:.4f} mm")
     for c in result.get("worst_cells") or []:
         lines.append(f"  worst: {c['factor']} {c['cell']}: {c['rmse_mm']:.4f} mm ({c['n']} rows)")
     if result.get("report"):

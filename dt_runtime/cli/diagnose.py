@@ -58,16 +58,17 @@ def _fraction(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> Any:
-    from dt_runtime.analysis.data import DEFAULT_ROBOT
     from dt_runtime.analysis.diagnose import diagnose, diagnose_auto
+    from dt_runtime.cli.common import robot_of
 
+    d = load(args)
     if args.auto:
-        return diagnose_auto(load(args), args.model, names(args.effects), args.gp_inputs, args.robot or DEFAULT_ROBOT,
+        return diagnose_auto(d, args.model, names(args.effects), args.gp_inputs, robot_of(args, d),
                              names(args.candidates) or None, args.folds, args.seed, alpha=args.alpha,
                              min_explained=args.min_explained, progress=progress(args))
 
-    return diagnose(load(args), args.model, names(args.effects), args.gp_inputs,
-                        args.robot or DEFAULT_ROBOT, names(args.candidates) or None, args.folds,
+    return diagnose(d, args.model, names(args.effects), args.gp_inputs,
+                        robot_of(args, d), names(args.candidates) or None, args.folds,
                         args.seed, progress=progress(args), instruments=args.instruments,
                         inputs=input_files(args))
 

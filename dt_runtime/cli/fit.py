@@ -35,10 +35,11 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
-    from dt_runtime.analysis.data import DEFAULT_ROBOT
     from dt_runtime.analysis.training import fit
+    from dt_runtime.cli.common import robot_of
 
-    return fit(load(args), names(args.effects), args.gp_inputs, args.robot or DEFAULT_ROBOT, args.out,
+    d = load(args)
+    return fit(d, names(args.effects), args.gp_inputs, robot_of(args, d), args.out,
                seed=args.seed, cv_folds=args.cv, progress=progress(args), instruments=args.instruments,
                inputs=input_files(args))
 

@@ -194,3 +194,20 @@ def cell_error(column: str, reason: str) -> CellError:
     return exc
 
 
+
+
+def data_row_lines(path: str | Path, separator: str, encoding: str = "utf-8-sig") -> list[int]:
+    """The file line of every data row (blank lines skipped, as `parse_rows` does): a row's index
+    in this list is its position in the file, which a join by row order pairs across two files."""
+    path = Path(path)
+    out: list[int] = []
+    try:
+        with path.open(newline="", encoding=encoding) as f:
+            reader = csv.reader(f, delimiter=separator)
+            next(reader, None)
+            for row in reader:
+                if row and any(c.strip() for c in row):
+                    out.append(reader.line_num)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DataError(f"{path}: cannot read its rows ({exc})") from exc
+    return out

@@ -35,11 +35,15 @@ from pydantic import Field, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from dt_kernel.config import Frozen, load_yaml
-from dt_kernel.errors import DataError
+from dt_kernel.errors import ConfigError, DataError
 from dt_kernel.units import M_PER_MM
+from dt_runtime.common.paths import ROOT
+from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.measurements.cells import ColumnSpec, parse_rows, read_header
 from dt_runtime.measurements.dataset import Dataset
-from dt_runtime.measurements.registration_fit import RegistrationReport, fit_rigid_offset
+from dt_runtime.measurements.joint_table import JointsSpec, KeyJoin, join_joints
+from dt_runtime.measurements.registration_fit import RegistrationReport, fit_rigid_offset, read_transform
+from dt_runtime.measurements.session_paths import companion
 from dt_runtime.metrology.stats import rms3
 
 LengthUnit = Literal["m", "mm"]
@@ -50,11 +54,12 @@ _SPEED = {"m/s": 1.0, "mm/s": M_PER_MM}
 
 
 class Columns(Frozen):
-    """File column name for each contract field (None: the file lacks it)."""
+    """File column name for each contract field (None: the file lacks it). Without x, y, z the
+    commanded TCP is the robot config's forward kinematics of the joint angles."""
 
-    x: str
-    y: str
-    z: str
+    x: str | None = None
+    y: str | None = None
+    z: str | None = None
     joints: tuple[str, ...] = ()
     speed: str | None = None
     temperature: str | None = None
@@ -103,6 +108,12 @@ class RegistrationSpec(Frozen):
     offset_init_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # start, or fixed if not fitted
     loss: Literal["linear", "soft_l1", "huber", "cauchy"] = "linear"
     f_scale_mm: float = Field(1.0, gt=0)  # residual scale of a robust loss
+    # A given registration instead of a fit (the tracker's own set-up, measured separately): a
+    # 4x4 matrix file per session, named by a template ({stem}, {name} of the data file) or a
+    # table {data file name: matrix file}; relative to the data file, else to the mapping.
+    transform: str | dict[str, str] | None = None
+    transform_unit: LengthUnit = "mm"  # of the matrix's translation column
+    transform_maps: Literal["instrument_to_robot", "robot_to_instrument"] = "instrument_to_robot"
 
 
 class ImportMapping(Frozen):
@@ -127,6 +138,11 @@ class ImportMapping(Frozen):
     # repetitions (rep = 0, 1, ...), when the file has no such columns
     point_id_from_commanded: bool = False
     point_id_tolerance_mm: float = Field(0.001, gt=0)
+    # a joint-angle table joined to the measurement file (joint_table.JointsSpec)
+    joints: JointsSpec | None = None
+    # robot config (path relative to the mapping, else to the working directory, else to the
+    # project): its forward kinematics gives the commanded TCP when the file has no x, y, z
+    robot: str | None = None
 
     @field_validator("encoding")
     @classmethod
@@ -160,12 +176,37 @@ class ImportMapping(Frozen):
             raise ValueError("columns: give exactly one of ex/ey/ez (error) or mx/my/mz (measured)")
         if self.measured_frame == "instrument" and not has_m:
             raise ValueError("measured_frame 'instrument' needs measured columns mx/my/mz")
+        xyz = [getattr(c, a) is not None for a in "xyz"]
+        if any(xyz) and not all(xyz):
+            raise ValueError("columns ['x', 'y', 'z'] must be given together (or none: commanded TCP from the joints)")
+        if c.joints and self.joints is not None:
+            raise ValueError("joint angles in columns.joints (this file) or in a joints: table, not both")
+        if not any(xyz) and not (c.joints or self.joints is not None):
+            raise ValueError("no commanded x/y/z: name the joint angles (columns.joints or a joints: table) "
+                             "so the robot config's forward kinematics gives the commanded TCP")
+        if self.registration.transform is not None and self.measured_frame != "instrument":
+            raise ValueError("registration.transform (a given registration) needs measured_frame: instrument")
         return self
 
 
 def load_mapping(path: str | Path) -> ImportMapping:
     """Validate a mapping YAML; a problem raises ConfigError(file, key, value, allowed)."""
     return load_yaml(path, ImportMapping)
+
+
+def mapping_robot(m: ImportMapping, mapping_path: Path | None) -> Path | None:
+    """The mapping's `robot:` config as an existing path (beside the mapping, the working
+    directory, the project), or None when the mapping names none."""
+    if m.robot is None:
+        return None
+    p = Path(m.robot)
+    tried = [p] if p.is_absolute() else (
+        ([mapping_path.parent / p] if mapping_path is not None else []) + [Path.cwd() / p, ROOT / p])
+    for c in tried:
+        if c.is_file():
+            return c
+    raise ConfigError(mapping_path or "<mapping>", "robot", m.robot,
+                      "a robot config file (looked for " + ", ".join(str(c) for c in tried) + ")")
 
 
 # --------------------------------------------------------------------------- import
@@ -180,19 +221,40 @@ def _parse_timestamps(texts: list[str], fmt: str) -> np.ndarray | None:
     return out
 
 
+def _chain(robot: Chain | str | Path | None, m: ImportMapping, mapping_path: Path | None, path: Path) -> Chain:
+    """The robot whose forward kinematics gives the commanded TCP: the caller's (--robot) first,
+    else the mapping's `robot:`."""
+    if isinstance(robot, Chain):
+        return robot
+    if robot is not None:
+        return load_robot(robot)
+    p = mapping_robot(m, mapping_path)
+    if p is None:
+        raise DataError(f"{path}: the mapping names no commanded x, y, z, so the commanded TCP is the forward "
+                        "kinematics of the joint angles, which needs the robot config: give --robot FILE "
+                        "(or `robot:` in the mapping)")
+    return load_robot(p)
+
+
 def import_file(path: str | Path, mapping: ImportMapping | str | Path,
-                skip_bad: bool = False) -> tuple[Dataset, RegistrationReport]:
+                skip_bad: bool = False, robot: Chain | str | Path | None = None) -> tuple[Dataset, RegistrationReport]:
     """Read a foreign file through `mapping` (a model or a YAML path) into an SI Dataset.
 
     Returns the dataset (commanded TCP, error = commanded - measured, measured in the robot
-    frame, flange orientation when given) and a RegistrationReport (residual RMS, fitted
-    transform and offset, notes, import time). Bad rows: DataError with file, line, column
-    and value, or skipped and listed in `dataset.skipped` with skip_bad=True.
+    frame, flange orientation when given) and a RegistrationReport (residual RMS, fitted or
+    given transform and offset, notes, import time). Bad rows: DataError with file, line, column
+    and value, or skipped and listed in `dataset.skipped` with skip_bad=True. `robot` (a Chain
+    or a config path; default the mapping's `robot:`) is needed only when the file has no
+    commanded x, y, z: the commanded TCP is then the forward kinematics of the joint angles.
     """
     started = _time.perf_counter()
     path = Path(path)
+    mapping_path = None if isinstance(mapping, ImportMapping) else Path(mapping)
     m = mapping if isinstance(mapping, ImportMapping) else load_mapping(mapping)
+    mapping_dir = None if mapping_path is None else mapping_path.parent
+    mfile = "<mapping>" if mapping_path is None else str(mapping_path)
     c, u = m.columns, m.units
+    has_xyz = c.x is not None
     header = read_header(path, m.separator, m.encoding)
     notes: list[str] = []
 
@@ -206,7 +268,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         raise DataError(f"{path}: line 1: mapping field '{field_name}' wants column(s) {miss}, "
                         f"not in the header {header}")
 
-    specs = [ColumnSpec(a, getattr(c, a), scale=_LENGTH[u.position]) for a in "xyz"]
+    specs = [ColumnSpec(a, getattr(c, a), scale=_LENGTH[u.position]) for a in "xyz"] if has_xyz else []
     meas_keys = ("mx", "my", "mz") if c.mx else ("ex", "ey", "ez")
     specs += [ColumnSpec(k, getattr(c, k), scale=_LENGTH[u.measurement]) for k in meas_keys]
     if c.ux and present("ux", [c.ux, c.uy, c.uz]):
@@ -229,18 +291,47 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         kind = "str" if tspec.source == "timestamp" else "float"
         assert tspec.column is not None  # TimeSpec._column_needed requires it for these sources
         specs.append(ColumnSpec("t", tspec.column, kind=kind))
+    if m.joints is not None and isinstance(m.joints.join, KeyJoin):
+        specs.append(ColumnSpec("join_key", m.joints.join.key, kind="str"))
 
     vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad, encoding=m.encoding)
+    if m.joints is not None and lines:
+        jj = join_joints(m.joints, path, lines, vals.get("join_key"), m.separator, m.encoding, mapping_dir,
+                         skip_bad, mfile)
+        if not jj.keep.all():  # rows whose joints were skipped (skip_bad) leave with them
+            vals = {k: [v for v, ok in zip(vs, jj.keep) if ok] for k, vs in vals.items()}
+            lines = [ln for ln, ok in zip(lines, jj.keep) if ok]
+            skipped = sorted(skipped + jj.skipped, key=lambda r: r.line)
+        vals.update({f"q{i + 1}": list(jj.q[:, i]) for i in range(jj.q.shape[1])})
+        how = "row order" if m.joints.join == "row" else f"key column '{m.joints.join.key}'"
+        notes.append(f"joint angles joined from {jj.source} by {how}")
     n = len(lines)
     if n == 0:
         raise DataError(f"{path}: no usable data rows" + (f" ({len(skipped)} skipped)" if skipped else ""))
     col3 = lambda ks: np.column_stack([vals[k] for k in ks]).astype(float)  # noqa: E731
     arr = lambda k: np.asarray(vals[k], float) if k in vals else None  # noqa: E731
     lines_a = np.asarray(lines, dtype=np.int64)
+    n_joints = len(c.joints) if c.joints else (len(m.joints.columns) if m.joints is not None else 0)
+    joint_keys = [f"q{i + 1}" for i in range(n_joints)]
 
-    p_cmd = col3("xyz")
+    R_fk = None
+    if has_xyz:
+        p_cmd = col3("xyz")
+    else:
+        if "q1" not in vals:
+            raise DataError(f"{path}: no commanded x, y, z and no joint angles to compute them from")
+        chain = _chain(robot, m, mapping_path, path)
+        q = col3(joint_keys)
+        if q.shape[1] != chain.dof:
+            raise DataError(f"{path}: {q.shape[1]} joint angle columns, the robot config {chain.name} has "
+                            f"{chain.dof} joints: data of another robot? (give its config with --robot)")
+        T = chain.frames(q)[2]
+        # the nominal pose the controller commanded: position for the error, orientation to
+        # carry a probe offset (registration.fit_offset) like a file's orientation columns
+        p_cmd, R_fk = T[:, :3, 3].copy(), T[:, :3, :3].copy()
+        notes.append(f"commanded TCP = nominal forward kinematics of the joint angles (robot config {chain.name})")
     R_f = (Rotation.from_euler(m.orientation_convention, col3(["o0", "o1", "o2"])).as_matrix()
-           if "o0" in vals else None)
+           if "o0" in vals else R_fk)
     u_meas = col3(["ux", "uy", "uz"]) if "ux" in vals else None
     reg = m.registration
     o_init = np.asarray(reg.offset_init_mm, float) * M_PER_MM
@@ -253,7 +344,16 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     stds: tuple = (None, None, None)
     if "mx" in vals:
         p_meas = col3(["mx", "my", "mz"])
-        if m.measured_frame == "instrument":
+        if m.measured_frame == "instrument" and reg.transform is not None:
+            # the session's registration as measured by the user: applied, not fitted
+            tpath = companion(reg.transform, path, mapping_dir, "registration.transform", mfile)
+            R, t_vec = read_transform(tpath, reg.transform_unit, reg.transform_maps)
+            method = "given"
+            notes.append(f"registration given by {tpath} ({reg.transform_maps}), not fitted")
+            p_meas = p_meas @ R.T + t_vec
+            if u_meas is not None:
+                u_meas = np.sqrt((u_meas ** 2) @ (R ** 2).T)
+        elif m.measured_frame == "instrument":
             if n < 3:
                 raise DataError(f"{path}: registration needs at least 3 rows, got {n}")
             fit = fit_rigid_offset(p_meas, p_cmd, R_f, o_init, reg.fit_offset, reg.loss, reg.f_scale_mm * M_PER_MM)
@@ -331,7 +431,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
             seen[int(p)] = rep[i] + 1
 
     ds = Dataset(commanded=commanded, error=error, measured=measured, speed=arr("speed"),
-                 joints=col3([f"q{i + 1}" for i in range(len(c.joints))]) if "q1" in vals else None,
+                 joints=col3(joint_keys) if "q1" in vals else None,
                  temperature=arr("temperature"), payload=arr("payload"), t=t,
                  point_id=point_id, rep=rep, u=u_meas, flange_rotation=R_f,
                  source=str(path), lines=lines_a, skipped=skipped)

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM
-from dt_runtime.frames.registration import fit_rigid
+from dt_runtime.frames.registration import RigidTransform, fit_rigid
 
 
 @dataclass
@@ -47,7 +49,6 @@ class RegistrationReport:
     @property
     def transform(self):
         """The instrument -> robot transform as a dt_runtime.frames.registration.RigidTransform."""
-        from dt_runtime.frames.registration import RigidTransform
         return RigidTransform(self.rotation, self.translation)
 
     def to_dict(self) -> dict:
@@ -155,3 +156,31 @@ def fit_rigid_offset(p_meas: np.ndarray, p_flange: np.ndarray, R_flange: np.ndar
                           o_std, int(sol.nfev), nb)
 
 
+
+
+def read_transform(path, unit: str = "mm", maps: str = "instrument_to_robot") -> tuple[np.ndarray, np.ndarray]:
+    """A given registration: a 4x4 homogeneous matrix in a text file (16 numbers, whitespace
+    separated, row by row, like the UR10 series' Trafo_*.txt), translation in `unit` (mm or m).
+    `maps`: instrument_to_robot (p_robot = R p_inst + t) or robot_to_instrument (inverted here).
+    Returns (R, t in m). A block that is not a rotation (a scale, a reflection) is refused."""
+    path = Path(path)
+    try:
+        nums = [float(v) for v in path.read_text(encoding="utf-8-sig").split()]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: cannot read the registration ({exc})") from exc
+    except ValueError as exc:
+        raise DataError(f"{path}: not a 4x4 matrix of numbers ({exc})") from exc
+    if len(nums) != 16:
+        raise DataError(f"{path}: {len(nums)} numbers, a 4x4 homogeneous matrix has 16")
+    M = np.asarray(nums).reshape(4, 4)
+    M[:3, 3] *= M_PER_MM if unit == "mm" else 1.0
+    try:
+        T = RigidTransform.from_matrix(M)
+    except DataError as exc:
+        raise DataError(f"{path}: {exc}") from exc
+    if abs(T.s - 1.0) > 1e-4:
+        raise DataError(f"{path}: the 3x3 block scales by {T.s:.6g}: a registration is rigid (scale 1)")
+    T = RigidTransform(T.R, T.t)
+    if maps == "robot_to_instrument":
+        T = T.inverse()
+    return np.array(T.R), np.array(T.t)

@@ -1,0 +1,113 @@
+"""A multi-session laser-tracker campaign written the way the instruments export it (issue 13,
+part 7): per session a tracker file of points only (Latin-1, a German header with '°', measured
+positions in the tracker's own frame, the tracker set up anew each session) and the controller's
+joint angles in a separate spreadsheet CSV (';', decimal comma, degrees, UTF-8 with a byte-order
+mark), joined by the point number. No commanded positions anywhere: the twin computes them from
+the joints with the robot config.
+
+The truth is the independent UR10 generator's forward kinematics (tests/ur10_generator.py) with
+its geometric errors (DH lengths +-0.2 mm, angles and joint zeros +-0.2 mrad, 1 sigma); the
+nominal model the twin is given is configs/robots/ur10.yaml.
+
+    truth = write_campaign(tmp_path, seed=7)   # s1.csv, s1_joints.csv, ..., mapping.yaml
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from tests.ur10_generator import ALPHA, A, D, fk
+
+JOINT_COLS = [f"Achse {j} [°]" for j in range(1, 7)]
+TRACKER_COLS = ["Punkt", "X [mm]", "Y [mm]", "Z [mm]", "Temperatur [°C]"]
+# the training sessions' joint ranges (rad; elbow up, wrist 3 within +-170 deg)
+LO = np.array([-1.3, -2.3, -2.3, -2.6, 0.6, np.deg2rad(-170)])
+HI = np.array([1.3, -0.9, -0.7, -0.6, 2.5, np.deg2rad(170)])
+WRIST_MAX_DEG = 259.0  # the test session turns wrist 3 beyond anything trained
+
+MAPPING = """\
+format_version: 1
+description: "tracker points (Latin-1, ',') joined by 'Punkt' to the controller's joints (';', decimal comma, deg)"
+separator: ","
+encoding: latin-1
+columns: {mx: "X [mm]", my: "Y [mm]", mz: "Z [mm]", point_id: Punkt, temperature: "Temperatur [°C]"}
+units: {measurement: mm}
+measured_frame: instrument
+registration: {fit_offset: false}
+time: row_order
+joints:
+  path: "{stem}_joints.csv"
+  separator: ";"
+  decimal: ","
+  encoding: utf-8-sig
+  columns: ["Achse 1 [°]", "Achse 2 [°]", "Achse 3 [°]", "Achse 4 [°]", "Achse 5 [°]", "Achse 6 [°]"]
+  unit: deg
+  join: {key: Punkt}
+robot: configs/robots/ur10.yaml   # beside the mapping, else the working directory, else the project
+"""
+
+
+def arm(seed: int) -> dict:
+    """The true arm's geometric errors, as ur10_generator draws them."""
+    rng = np.random.default_rng(1000 + seed)
+    return {"a": A + rng.normal(0, 2e-4, 6) * (A != 0), "d": D + rng.normal(0, 2e-4, 6),
+            "alpha": ALPHA + rng.normal(0, 2e-4, 6), "theta0": rng.normal(0, 2e-4, 6)}
+
+
+def tracker_pose(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A tracker set up somewhere 2-3 m from the base, turned anyhow about its vertical and
+    slightly tilted: instrument -> robot, p_robot = R p_inst + t (m)."""
+    R = Rotation.from_euler("zyx", [rng.uniform(-np.pi, np.pi), rng.normal(0, 0.01), rng.normal(0, 0.01)]).as_matrix()
+    ang = rng.uniform(-np.pi, np.pi)
+    t = np.array([2.5 * np.cos(ang), 2.5 * np.sin(ang), rng.uniform(-0.5, 0.2)])
+    return R, t
+
+
+def _num(v: float, decimals: int, comma: bool) -> str:
+    s = f"{v:.{decimals}f}"
+    return s.replace(".", ",") if comma else s
+
+
+def write_session(folder: Path, name: str, q_deg: np.ndarray, passes: int, pose, geo: dict,
+                  rng: np.random.Generator, noise_mm: float) -> dict:
+    """One session: `name`.csv (tracker) and `name`_joints.csv (controller). Returns its truth."""
+    q = np.deg2rad(q_deg)
+    n_points = len(q)
+    order = np.concatenate([rng.permutation(n_points) for _ in range(passes)])
+    actual = fk(q[order], **geo)  # where the true arm put the probe, robot frame
+    measured = actual + rng.normal(0, noise_mm * 1e-3, actual.shape)
+    R, t = pose
+    inst = (measured - t) @ R  # R^T (p - t) row by row: the tracker's own coordinates
+    air = 20.5 + 0.3 * np.sin(np.linspace(0, np.pi, len(order)))  # the tracker's weather station (deg C)
+    rows = [",".join([str(i + 1)] + [_num(v * 1e3, 4, False) for v in p] + [_num(a, 2, False)])
+            for i, p, a in zip(order, inst, air)]
+    (folder / f"{name}.csv").write_text(",".join(TRACKER_COLS) + "\n" + "\n".join(rows) + "\n", encoding="latin-1")
+    jrows = [";".join([str(i + 1)] + [_num(v, 4, True) for v in q_deg[i]]) for i in range(n_points)]
+    (folder / f"{name}_joints.csv").write_text(";".join(["Punkt"] + JOINT_COLS) + "\n" + "\n".join(jrows) + "\n",
+                                               encoding="utf-8-sig")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t * 1e3  # the set-up as a surveyor would hand it over (mm)
+    np.savetxt(folder / f"{name}_trafo.txt", T, fmt="%.10f")
+    return {"q": q[order], "commanded": fk(q[order]), "actual": actual, "R": R, "t": t, "order": order}
+
+
+def write_campaign(folder: Path, seed: int = 7, n_points: int = 30, passes: int = 2, noise_mm: float = 0.01,
+                   sessions: int = 3) -> dict:
+    """`sessions` sessions s1..sN of one arm (the last one with wrist 3 up to 259 deg) and the
+    mapping that reads them all (mapping.yaml). Returns {'files', 'mapping', 'geo', 'sessions'}."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    geo = arm(seed)
+    truth = []
+    for s in range(sessions):
+        q_deg = np.rad2deg(LO + (HI - LO) * rng.random((n_points, 6)))
+        if s == sessions - 1:  # the new task: wrist 3 from 100 to 259 deg
+            q_deg[:, 5] = np.linspace(100.0, WRIST_MAX_DEG, n_points)[rng.permutation(n_points)]
+        q_deg = np.round(q_deg, 4)  # what the file holds is the truth the arm was commanded with
+        truth.append(write_session(folder, f"s{s + 1}", q_deg, passes, tracker_pose(rng), geo, rng, noise_mm))
+    (folder / "mapping.yaml").write_text(MAPPING, encoding="utf-8")
+    return {"files": [folder / f"s{s + 1}.csv" for s in range(sessions)], "mapping": folder / "mapping.yaml",
+            "geo": geo, "sessions": truth}
