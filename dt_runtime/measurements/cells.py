@@ -90,6 +90,17 @@ def _parse_cell(cell: str, spec: ColumnSpec, decimal: str):
     return v * spec.scale
 
 
+def text_encoding(name: str) -> str:
+    """`name` if Python knows the codec (a mapping's `encoding:` key), else ValueError saying what is allowed."""
+    import codecs
+
+    try:
+        codecs.lookup(name)
+    except LookupError:
+        raise ValueError(f"unknown text encoding {name!r} (e.g. utf-8, latin-1, cp1252)") from None
+    return name
+
+
 def read_header(path: str | Path, separator: str, encoding: str = "utf-8-sig") -> list[str]:
     path = Path(path)
     try:

@@ -39,7 +39,7 @@ from dt_kernel.errors import ConfigError, DataError
 from dt_kernel.units import M_PER_MM
 from dt_runtime.common.paths import ROOT
 from dt_runtime.frames.kinematics import Chain, load_robot
-from dt_runtime.measurements.cells import ColumnSpec, parse_rows, read_header
+from dt_runtime.measurements.cells import ColumnSpec, parse_rows, read_header, text_encoding
 from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.measurements.joint_table import JointsSpec, KeyJoin, join_joints
 from dt_runtime.measurements.registration_fit import RegistrationReport, fit_rigid_offset, read_transform
@@ -147,13 +147,7 @@ class ImportMapping(Frozen):
     @field_validator("encoding")
     @classmethod
     def _encoding(cls, v: str) -> str:
-        import codecs
-
-        try:
-            codecs.lookup(v)
-        except LookupError:
-            raise ValueError(f"unknown text encoding {v!r} (e.g. utf-8, latin-1, cp1252)") from None
-        return v
+        return text_encoding(v)
 
     @field_validator("orientation_convention")
     @classmethod

@@ -20,7 +20,7 @@ from pydantic import Field, field_validator
 
 from dt_kernel.config import Frozen
 from dt_kernel.errors import DataError
-from dt_runtime.measurements.cells import ColumnSpec, SkippedRow, data_row_lines, parse_rows
+from dt_runtime.measurements.cells import ColumnSpec, SkippedRow, data_row_lines, parse_rows, text_encoding
 from dt_runtime.measurements.session_paths import companion
 
 _ANGLE = {"rad": 1.0, "deg": math.pi / 180.0}
@@ -46,13 +46,7 @@ class JointsSpec(Frozen):
     @field_validator("encoding")
     @classmethod
     def _encoding(cls, v: str) -> str:
-        import codecs
-
-        try:
-            codecs.lookup(v)
-        except LookupError:
-            raise ValueError(f"unknown text encoding {v!r} (e.g. utf-8, latin-1, cp1252)") from None
-        return v
+        return text_encoding(v)
 
 
 @dataclass
