@@ -118,3 +118,39 @@ def test_dt_fit_reports_the_lag(campaign, tmp_path, capsys):
     rc = main(["fit", "--data", str(tmp_path / "train.csv"), "--effects", "geometric,thermal", "--gp-inputs", "none",
                "--robot", str(UR10), "--out", str(tmp_path / "m2")])
     assert rc == 0 and "lag_s = " in capsys.readouterr().out
+
+
+def test_expansion_per_link_where_the_robot_config_lists_the_links(tmp_path):
+    """A steel upper arm (12e-6 /K) and an aluminium forearm (23e-6 /K): with `thermal_links` in
+    the robot config the thermal effect fits a coefficient per group of links, in 1/K."""
+    robot = tmp_path / "ur10_links.yaml"
+    robot.write_text(UR10.read_text() + "thermal_links: [[1], [2], [3], [4, 5, 6]]\n")
+    link_alpha = np.array([0.0, 23e-6, 12e-6, 23e-6, 23e-6, 23e-6, 23e-6])
+    truth: dict = {}
+    train = gen.generate("thermal", 3, truth=truth, link_alpha=link_alpha)
+    model = HybridModel(("geometric", "thermal"), "none", robot=robot).fit(train)
+    assert model.needs() == ("joints", "temperature", "t")
+    rows = {p["name"]: p for p in model.parameters() if p["effect"] == "thermal"}
+    assert set(rows) == {"alpha_link1", "alpha_link2", "alpha_link3", "alpha_links4_5_6", "lag_s"}
+    for name, true in (("alpha_link2", 12e-6), ("alpha_link3", 23e-6)):  # the long links: 0.61 and 0.57 m
+        p = rows[name]
+        assert p["identified"] and p["unit"] == "1/K", p
+        assert abs(p["value"] - true) < max(3 * p["u"], 0.15 * true), (name, p)
+    assert abs(rows["lag_s"]["value"] - truth["tau_s"]) < 0.15 * truth["tau_s"]
+    # the uniform term cannot tell the steel link from the aluminium ones: a new session says so
+    test = gen.generate("thermal", 53, arm_seed=3, link_alpha=link_alpha)
+    uniform = HybridModel(("geometric", "thermal"), "none", robot=UR10).fit(train)
+    per_link_rms = _rms_mm(test.error - model.predict(test))
+    uniform_rms = _rms_mm(test.error - uniform.predict(test))
+    assert per_link_rms < 1.3 * gen.noise_floor_mm() and per_link_rms < uniform_rms, (per_link_rms, uniform_rms)
+
+
+def test_thermal_links_are_checked_when_the_robot_config_is_read(tmp_path):
+    from dt_kernel.errors import ConfigError
+    from dt_runtime.frames.kinematics import load_robot
+
+    for bad in ("[[1], [1, 2]]", "[[7]]", "[[]]"):
+        robot = tmp_path / "bad.yaml"
+        robot.write_text(UR10.read_text() + f"thermal_links: {bad}\n")
+        with pytest.raises(ConfigError, match="thermal_links"):
+            load_robot(robot)

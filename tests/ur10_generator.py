@@ -39,13 +39,17 @@ G = 9.80665
 
 def fk(q: np.ndarray, a=A, d=D, alpha=ALPHA, theta0=None, scale=None) -> np.ndarray:
     """TCP positions (n, 3) of the standard-DH arm: T_i = Rz(q_i + theta0_i) Tz(d_i) Tx(a_i) Rx(alpha_i),
-    lengths multiplied by `scale` (n,) (thermal expansion)."""
+    lengths multiplied by `scale` (thermal expansion): (n,) for the whole arm, or (n, 7) per link
+    (column i + 1 scales DH row i, column 6 the tool too; column 0, the base, has no length here)."""
     q = np.atleast_2d(q)
     n = len(q)
     th0 = np.zeros(6) if theta0 is None else theta0
-    s = np.ones(n) if scale is None else scale
+    per_link = np.ones((n, 7)) if scale is None else np.asarray(scale, dtype=float)
+    if per_link.ndim == 1:
+        per_link = np.repeat(per_link[:, None], 7, axis=1)
     T = np.broadcast_to(np.diag([-1.0, -1.0, 1.0, 1.0]), (n, 4, 4)).copy()  # base: pi about z
     for i in range(6):
+        s = per_link[:, i + 1]
         th = q[:, i] + th0[i]
         ct, st, ca, sa = np.cos(th), np.sin(th), np.cos(alpha[i]), np.sin(alpha[i])
         Ti = np.zeros((n, 4, 4))
@@ -54,7 +58,7 @@ def fk(q: np.ndarray, a=A, d=D, alpha=ALPHA, theta0=None, scale=None) -> np.ndar
         Ti[:, 2, 1], Ti[:, 2, 2], Ti[:, 2, 3] = sa, ca, d[i] * s
         Ti[:, 3, 3] = 1.0
         T = T @ Ti
-    return T[:, :3, 3] + T[:, :3, 2] * (TOOL * s)[:, None]
+    return T[:, :3, 3] + T[:, :3, 2] * (TOOL * per_link[:, 6])[:, None]
 
 
 def jacobian(q: np.ndarray, **kw) -> np.ndarray:
@@ -83,10 +87,12 @@ def lagged(t: np.ndarray, air: np.ndarray, tau: float) -> np.ndarray:
 
 
 def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: float = 60.0,
-             noise_mm: float = 0.015, arm_seed: int | None = None, truth: dict | None = None) -> Dataset:
+             noise_mm: float = 0.015, arm_seed: int | None = None, truth: dict | None = None,
+             link_alpha: np.ndarray | None = None) -> Dataset:
     """One campaign with the hidden `effect` (EFFECTS). `seed` draws the points, the path, the
     temperatures and the noise; `arm_seed` (default `seed`) the arm: a training and a test file
-    of the same arm share it. `truth`, if given, receives the hidden values (e.g. tau_s)."""
+    of the same arm share it. `truth`, if given, receives the hidden values (e.g. tau_s).
+    `link_alpha` (7,) 1/K: thermal expansion per link (fk's scale columns) instead of 23e-6 for all."""
     if effect not in EFFECTS:
         raise ValueError(f"effect {effect!r}; known: {EFFECTS}")
     arm = np.random.default_rng(1000 + (seed if arm_seed is None else arm_seed))
@@ -106,12 +112,13 @@ def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: 
     speed = rng.choice([0.1, 0.25, 0.5], n)
     payload = rng.choice([0.0, 5.0, 10.0], n)
     dq = np.zeros((n, 6))
-    scale = np.ones(n)
+    scale: np.ndarray = np.ones(n)
     if effect == "thermal":
         tau = rng.uniform(20, 40) * 60
         if truth is not None:
-            truth.update(tau_s=tau, alpha_per_K=23e-6)
-        scale = 1 + 23e-6 * (lagged(t, air, tau) - 20.0)
+            truth.update(tau_s=tau, alpha_per_K=23e-6, link_alpha=link_alpha)
+        dT = lagged(t, air, tau) - 20.0
+        scale = 1 + (23e-6 * dT if link_alpha is None else np.outer(dT, link_alpha))
     elif effect == "compliance":
         J = jacobian(q, **geo)
         torque = np.einsum("naj,a->nj", J, np.array([0.0, 0.0, -G])) * payload[:, None]

@@ -31,7 +31,8 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
     progress = progress or Progress(enabled=False)
     ds = d.dataset
     # The joints are checked against the robot config when the model reads them.
-    reads_joints = gp_inputs == "joints" or any(fx.get(e).needs_chain for e in effects)
+    chain = resolve_chain(robot) if any(fx.get(e).needs_chain or fx.get(e).uses_chain for e in effects) else None
+    reads_joints = gp_inputs == "joints" or any("joints" in fx.get(e).reads(chain) for e in effects)
     d.info.update(check_dataset(ds, resolve_chain(robot) if reads_joints and ds.joints is not None else None,
                                 d.info.get("data")))
     prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs)

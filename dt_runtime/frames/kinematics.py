@@ -34,6 +34,9 @@ class Chain:
     # Candidate harmonics of the transmission error per joint revolution (the gear effect's
     # regressors): from the gearbox design (tooth, wave-generator and bearing orders).
     gear_harmonics: tuple[int, ...] = (1, 2, 3)
+    # Links that expand with one coefficient each (the thermal effect, per link): groups of link
+    # numbers (`segments`); empty: the arm expands uniformly about its base.
+    thermal_links: tuple[tuple[int, ...], ...] = ()
 
     @property
     def dof(self) -> int:
@@ -53,6 +56,14 @@ class Chain:
             rot[:, j] = T[:, :3, :3]
             T = T @ _rot_axis(self.axes[j], q[:, j])
         return pos, rot, T @ self.tool
+
+    def segments(self, q: np.ndarray) -> np.ndarray:
+        """The links as vectors in the world (n, dof + 1, 3), summing to the TCP: link 0 from the
+        robot frame's origin to joint 1's frame, link j from joint j's frame to joint j + 1's,
+        link dof from the last joint's frame to the TCP (the tool included)."""
+        pos, _, T = self.frames(q)
+        ends = np.concatenate([pos, T[:, None, :3, 3]], axis=1)
+        return np.diff(ends, axis=1, prepend=np.zeros((len(ends), 1, 3)))
 
     def world_axes(self, rot: np.ndarray) -> np.ndarray:
         """Joint axes in the world (n, dof, 3) from frame orientations."""
@@ -191,6 +202,10 @@ class RobotModel(Frozen):
     # Orders of the transmission error per joint revolution the gear effect tests for: a
     # strain-wave gear of ratio N has its wave generator's orders at N and 2N (ratios to ~160).
     gear_harmonics: tuple[Annotated[int, Field(ge=1, le=1000)], ...] = (1, 2, 3)
+    # Links whose thermal expansion the thermal effect fits with a coefficient each (groups of
+    # link numbers, Chain.segments: 0 base to joint 1, ..., dof last joint to TCP), e.g.
+    # [[1], [2], [3], [4, 5, 6]]; links in no group are taken not to expand. Empty: uniform.
+    thermal_links: tuple[tuple[Annotated[int, Field(ge=0)], ...], ...] = ()
 
 
 def chain_from_dh(rows: list[DHRow], tool_xyz=(0.0, 0.0, 0.0), name="robot") -> Chain:
@@ -223,6 +238,10 @@ def load_robot(path: str | Path) -> Chain:
     else:
         assert m.dh is not None  # exactly one of urdf/dh is set, checked above
         chain = chain_from_dh(m.dh, m.tool_xyz_m, m.name)
+    links = [j for g in m.thermal_links for j in g]
+    if any(not g for g in m.thermal_links) or len(set(links)) != len(links) or any(j > chain.dof for j in links):
+        raise ConfigError(path, "thermal_links", [list(g) for g in m.thermal_links],
+                          f"non-empty groups of link numbers 0..{chain.dof}, each link in one group at most")
     base = _transform(m.base_xyz_m, m.base_rpy_rad)
     return Chain((base @ chain.origins[0],) + chain.origins[1:], chain.axes, chain.tool, chain.name,
-                 tuple(m.gear_harmonics))
+                 tuple(m.gear_harmonics), tuple(tuple(g) for g in m.thermal_links))

@@ -150,8 +150,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         fx.check_names(self.effects)
         if inp.t_origin is None and getattr(self, "t_origin_", None) is not None:
             inp = replace(inp, t_origin=self.t_origin_)
-        # Only joint-space effects read the robot config (a GP-only map works without it).
-        chain = resolve_chain(self.robot) if any(fx.get(e).needs_chain for e in self.effects) else None
+        chain = self._effects_chain()
         hyper = getattr(self, "hyper_", None)
         if hyper is None:
             hyper = hp.profile(self.effects, inp, y, chain, self.ridge) if y is not None else {}
@@ -351,9 +350,16 @@ class HybridModel(RegressorMixin, BaseEstimator):
         if not hasattr(self, "theta_"):
             raise ModelError("HybridModel is not fitted; call fit(X, y) or HybridModel.load first")
 
+    def _effects_chain(self) -> Chain | None:
+        """The chain the effect terms read: only joint-space effects, or those that use it when
+        given (per-link thermal), read the robot config (a GP-only map works without it)."""
+        used = any(fx.get(e).needs_chain or fx.get(e).uses_chain for e in self.effects)
+        return resolve_chain(self.robot) if used else None
+
     def needs(self) -> tuple[str, ...]:
         """The input columns (effects.Inputs fields) a prediction reads beside the commanded TCP."""
-        cols = {c for e in self.effects for c in fx.get(e).columns}
+        chain = self._effects_chain()
+        cols = {c for e in self.effects for c in fx.get(e).reads(chain)}
         cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(self.gp_inputs, set())
         if self.lag_s() > 0:
             cols |= {"t"}  # the structure's temperature follows the logged one with time
@@ -434,7 +440,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         """Write hybrid.json (with the traceability record `provenance`, default
         `self.provenance()`), hybrid.npz and the GP."""
         self._check_fitted()
-        if isinstance(self.robot, Chain) and any(fx.get(e).needs_chain for e in self.effects):
+        if isinstance(self.robot, Chain) and any(fx.get(e).needs_chain or fx.get(e).uses_chain for e in self.effects):
             raise ModelError("a model given its kinematic chain as an object cannot be saved; "
                              "give robot as the path of a robot config")
         bad = [k for k, v in (("theta", self.theta_), ("theta_u", self.theta_u_), ("theta_cov", self.theta_cov_))

@@ -122,19 +122,26 @@ class Effect:
     name: ClassVar[str]
     columns: ClassVar[tuple[str, ...]]
     needs_chain: ClassVar[bool] = True
+    # True for an effect that reads the kinematic chain when the model has one, but does not
+    # need it (the thermal effect per link, Chain.thermal_links).
+    uses_chain: ClassVar[bool] = False
     factor: ClassVar[str]
     hyper: ClassVar[dict[str, np.ndarray]] = {}
     hyper_units: ClassVar[dict[str, str]] = {}
     hyper_columns: ClassVar[tuple[str, ...]] = ()  # the columns without which they cannot be estimated
 
+    def reads(self, chain: Chain | None) -> tuple[str, ...]:
+        """The columns its regressors read with this chain (default: `columns`)."""
+        return self.columns
+
     def allowed(self, inp: Inputs, chain: Chain | None) -> bool:
         """Whether the data's columns (and the kinematic chain, if needed) allow this effect."""
-        return inp.has(*self.columns) and (chain is not None or not self.needs_chain)
+        return inp.has(*self.reads(chain)) and (chain is not None or not self.needs_chain)
 
     def build(self, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
         """The regressor block, after checking that the inputs allow it; `hyper`: values of the
         nonlinear parameters (default: each one's `regressors` default)."""
-        missing = [c for c in self.columns if inp.get(c) is None]
+        missing = [c for c in self.reads(chain) if inp.get(c) is None]
         if missing:
             raise DataError(f"effect '{self.name}' needs the column(s) {', '.join(missing)}, "
                             f"which the data does not have")

@@ -45,21 +45,36 @@ class Thermal(Effect):
     means the same on new data; the geometric terms or the GP take up the part at the data's mean
     temperature). The structure follows the logged temperature with the time constant `lag_s`
     (`lagged`), which the fit estimates by profile likelihood over LAG_GRID_S when the data have
-    a time column (`HybridModel`); 0 s is the air temperature as logged."""
+    a time column (`HybridModel`); 0 s is the air temperature as logged. When the robot config
+    lists `thermal_links`, each group of links gets its own coefficient (`regressors`)."""
 
     name = "thermal"
     columns = ("temperature",)
     needs_chain = False
     factor = "the temperature, growing with distance from the base"
+    uses_chain = True  # per link when the robot config lists thermal_links
     hyper = {"lag_s": LAG_GRID_S}
     hyper_units = {"lag_s": "s"}
     hyper_columns = ("t",)
 
+    def reads(self, chain: Chain | None) -> tuple[str, ...]:
+        # per link, the links' directions come from the joint angles
+        return self.columns + ("joints",) if chain is not None and chain.thermal_links else self.columns
+
     def regressors(self, inp: Inputs, chain: Chain | None = None, lag_s: float = 0.0) -> Block:
         T = self.structure_temperature(inp, lag_s)
         dT = T - REFERENCE_TEMPERATURE_C
-        A = (-dT[:, None] * inp.commanded)[:, :, None]
-        return Block(self.name, A, ("alpha",), ("1/K",))
+        if chain is None or not chain.thermal_links:
+            A = (-dT[:, None] * inp.commanded)[:, :, None]
+            return Block(self.name, A, ("alpha",), ("1/K",))
+        # Per link: link j grows by alpha_j dT along itself (Chain.segments), so the TCP moves by
+        # the sum over links, e = -sum_j alpha_j dT s_j. With every link in one group this is the
+        # uniform term about the robot frame's origin.
+        seg = chain.segments(inp.column("joints"))
+        A = np.stack([-dT[:, None] * seg[:, list(g)].sum(axis=1) for g in chain.thermal_links], axis=2)
+        names = tuple(f"alpha_link{g[0]}" if len(g) == 1 else "alpha_links" + "_".join(map(str, g))
+                      for g in chain.thermal_links)
+        return Block(self.name, A, names, ("1/K",) * len(names))
 
     @staticmethod
     def structure_temperature(inp: Inputs, lag_s: float) -> np.ndarray:
