@@ -62,6 +62,7 @@ from dt_runtime.frames.robot_export import dh_table, urdf_text
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.effects.geometric import Geometric
 from dt_runtime.models.hybrid import HybridModel, resolve_chain
+from dt_runtime.models.identifiability import connected
 
 FORMATS = ("urdf", "dh")
 RTOL = 1e-5  # singular values below RTOL x the largest: directions the data cannot see
@@ -103,26 +104,15 @@ class Identifiability:
         return out
 
     def groups(self) -> list[list[str]]:
-        """Parameters that alias one another (connected through `absorbed`), each group sorted
+        """Parameters that alias one another (connected through `aliases`), each group sorted
         in parameter order, basis parameters included; no-effect parameters excluded."""
-        parent = list(range(len(self.names)))
-
-        def root(i: int) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        for j, coefs in self.aliases.items():
-            for i in coefs:
-                parent[root(i)] = root(j)
-        members: dict[int, list[int]] = {}
-        for j in self.aliases:
-            members.setdefault(root(j), [])
-        for k in range(len(self.names)):
-            if root(k) in members and k not in self.no_effect:
-                members[root(k)].append(k)
-        return [[self.names[k] for k in sorted(g)] for g in members.values() if len(g) > 1]
+        links = [(i, j) for j, coefs in self.aliases.items() for i in coefs]
+        out = []
+        for g in connected(len(self.names), links):
+            kept = [k for k in g if k not in self.no_effect]
+            if any(j in self.aliases for j in g) and len(kept) > 1:
+                out.append([self.names[k] for k in kept])
+        return out
 
 
 def _preferred_order(names: tuple[str, ...]) -> list[int]:

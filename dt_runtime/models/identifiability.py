@@ -17,6 +17,7 @@ is an artefact of the penalty, not a measurement: reports and `dt fit --json` ma
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -86,20 +87,25 @@ def analyse(As: np.ndarray, zero: np.ndarray | None = None) -> Identifiability:
     bad = np.flatnonzero(load >= LOADING)
     if bad.size:
         couple = np.abs(Vn[bad] @ Vn[bad].T) >= LOADING
-        parent = list(range(bad.size))
-
-        def find(i: int) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        for i in range(bad.size):
-            for j in range(i + 1, bad.size):
-                if couple[i, j]:
-                    parent[find(i)] = find(j)
-        by_root: dict[int, list[int]] = {}
-        for i in range(bad.size):
-            by_root.setdefault(find(i), []).append(int(live[bad[i]]))
-        groups.extend(sorted(by_root.values()))
+        links = [(i, j) for i in range(bad.size) for j in range(i + 1, bad.size) if couple[i, j]]
+        groups.extend(sorted([int(live[bad[i]]) for i in g] for g in connected(bad.size, links)))
     return Identifiability(p, rank, cond, identified, groups)
+
+
+def connected(n: int, links: Iterable[tuple[int, int]]) -> list[list[int]]:
+    """The groups of 0..n-1 that `links` (pairs) connect, each sorted, in order of their smallest
+    member (union-find): the aliased parameters here and in the kinematic export."""
+    parent = list(range(n))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in links:
+        parent[root(i)] = root(j)
+    members: dict[int, list[int]] = {}
+    for i in range(n):
+        members.setdefault(root(i), []).append(i)
+    return sorted(members.values())
