@@ -124,6 +124,38 @@ def test_registration_recovers_transform_and_probe_offset(tmp_path):
     assert rep.to_dict()["offset_mm"] == pytest.approx(list(o_true * 1e3), abs=0.02)
 
 
+@pytest.mark.parametrize("order", ["quaternion_wxyz", "quaternion_xyzw"])
+def test_quaternion_orientation_columns_carry_the_probe_offset(tmp_path, order):
+    """A tracker export with the flange orientation as a quaternion (scalar first or last)."""
+    p_f, _, R_f, p_inst, _, t_true, o_true = _synthetic_tracker()
+    q = Rotation.from_matrix(R_f).as_quat()  # x, y, z, w
+    q = q if order == "quaternion_xyzw" else q[:, [3, 0, 1, 2]]
+    header = ["px", "py", "pz", "q1", "q2", "q3", "q4", "tx", "ty", "tz"]
+    rows = [[f"{v:.12g}" for v in np.r_[p_f[i], q[i], p_inst[i] * 1e3]] for i in range(len(p_f))]
+    path = tmp_path / "tracker.csv"
+    path.write_text("\n".join([",".join(header)] + [",".join(r) for r in rows]) + "\n")
+    mapping = {"measured_frame": "instrument", "orientation_convention": order,
+               "columns": {"x": "px", "y": "py", "z": "pz", "orientation": ["q1", "q2", "q3", "q4"],
+                           "mx": "tx", "my": "ty", "mz": "tz"},
+               "units": {"position": "m", "measurement": "mm"}}
+    ds, rep = import_file(path, ImportMapping.model_validate(mapping))
+    assert rep.method == "rigid+offset"
+    np.testing.assert_allclose(rep.offset, o_true, atol=2e-5)
+    np.testing.assert_allclose(rep.translation, t_true, atol=2e-5)
+    np.testing.assert_allclose(ds.commanded, p_f + R_f @ o_true, atol=3e-5)
+    # a quaternion that is not of unit length (a column in the wrong place, a unit) is refused
+    rows[4][3] = "2"
+    path.write_text("\n".join([",".join(header)] + [",".join(r) for r in rows]) + "\n")
+    with pytest.raises(DataError, match="quaternion of data row 5 has length"):
+        import_file(path, ImportMapping.model_validate(mapping))
+    # three columns for a quaternion, or four for Euler angles: named
+    with pytest.raises(DataError, match="takes 4"):
+        import_file(path, ImportMapping.model_validate(
+            mapping | {"columns": mapping["columns"] | {"orientation": ["q1", "q2", "q3"]}}))
+    with pytest.raises(DataError, match="takes 3"):
+        import_file(path, ImportMapping.model_validate(mapping | {"orientation_convention": "xyz"}))
+
+
 def test_registration_without_orientation_variety_keeps_offset():
     p_f, eul, R_f, p_inst, R_true, t_true, o_true = _synthetic_tracker()
     fixed = np.broadcast_to(R_f[0], R_f.shape)

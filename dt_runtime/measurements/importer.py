@@ -53,6 +53,9 @@ _ANGLE = {"rad": 1.0, "deg": math.pi / 180.0}
 _SPEED = {"m/s": 1.0, "mm/s": M_PER_MM}
 
 
+# Quaternion orientation columns, by the order of the mapping's four columns (scalar first or last).
+QUATERNIONS = ("quaternion_wxyz", "quaternion_xyzw")
+
 class Columns(Frozen):
     """File column name for each contract field (None: the file lacks it). Without x, y, z the
     commanded TCP is the robot config's forward kinematics of the joint angles."""
@@ -75,8 +78,9 @@ class Columns(Frozen):
     ux: str | None = None
     uy: str | None = None
     uz: str | None = None
-    # commanded flange orientation, three Euler angles (see ImportMapping.orientation_convention)
-    orientation: tuple[str, str, str] | None = None
+    # commanded flange orientation: three Euler angles, or four quaternion components (see
+    # ImportMapping.orientation_convention)
+    orientation: tuple[str, str, str] | tuple[str, str, str, str] | None = None
 
 
 class Units(Frozen):
@@ -152,8 +156,11 @@ class ImportMapping(Frozen):
     @field_validator("orientation_convention")
     @classmethod
     def _seq(cls, v: str) -> str:
+        if v in QUATERNIONS:
+            return v
         if len(v) != 3 or not (set(v) <= set("xyz") or set(v) <= set("XYZ")):
-            raise ValueError("a scipy Euler sequence: three of x/y/z (extrinsic) or X/Y/Z (intrinsic), e.g. 'xyz'")
+            raise ValueError("a scipy Euler sequence: three of x/y/z (extrinsic) or X/Y/Z (intrinsic), e.g. 'xyz'; "
+                             f"or a quaternion, {' or '.join(QUATERNIONS)} (the order of the four columns)")
         return v
 
     @model_validator(mode="after")
@@ -182,6 +189,27 @@ class ImportMapping(Frozen):
             raise ValueError("registration.transform (a given registration) needs measured_frame: instrument")
         return self
 
+
+
+def flange_rotation(m: ImportMapping, o: np.ndarray, path: Path) -> np.ndarray:
+    """The commanded flange orientations (n, 3, 3) of the orientation columns `o` (n, 3 or 4):
+    Euler angles in the mapping's convention, or a quaternion (normalised; a row far from unit
+    length is refused: a column mix-up or another unit)."""
+    if m.orientation_convention not in QUATERNIONS:
+        if o.shape[1] != 3:
+            raise DataError(f"{path}: {o.shape[1]} orientation columns for the Euler sequence "
+                            f"{m.orientation_convention!r}, which takes 3 (set orientation_convention to "
+                            f"{' or '.join(QUATERNIONS)} for a quaternion)")
+        return Rotation.from_euler(m.orientation_convention, o).as_matrix()
+    if o.shape[1] != 4:
+        raise DataError(f"{path}: {o.shape[1]} orientation columns for {m.orientation_convention}, which takes 4")
+    xyzw = o if m.orientation_convention == "quaternion_xyzw" else o[:, [1, 2, 3, 0]]
+    norm = np.linalg.norm(xyzw, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1) > 1e-3)
+    if bad.size:
+        raise DataError(f"{path}: the quaternion of data row {int(bad[0]) + 1} has length {norm[bad[0]]:.6g}, not 1 "
+                        f"(columns {', '.join(m.columns.orientation or ())} in the order {m.orientation_convention})")
+    return Rotation.from_quat(xyzw / norm[:, None]).as_matrix()
 
 def load_mapping(path: str | Path) -> ImportMapping:
     """Validate a mapping YAML; a problem raises ConfigError(file, key, value, allowed)."""
@@ -271,7 +299,8 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     if c.joints and present("joints", c.joints):
         specs += [ColumnSpec(f"q{i + 1}", name, scale=_ANGLE[u.joints]) for i, name in enumerate(c.joints)]
     if c.orientation and present("orientation", c.orientation):
-        specs += [ColumnSpec(f"o{i}", name, scale=_ANGLE[u.orientation]) for i, name in enumerate(c.orientation)]
+        scale = 1.0 if m.orientation_convention in QUATERNIONS else _ANGLE[u.orientation]  # quaternions: no unit
+        specs += [ColumnSpec(f"o{i}", name, scale=scale) for i, name in enumerate(c.orientation)]
     if c.speed and present("speed", c.speed):
         specs.append(ColumnSpec("speed", c.speed, required=False, scale=_SPEED[u.speed]))
     for k in ("temperature", "payload"):
@@ -324,8 +353,8 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         # carry a probe offset (registration.fit_offset) like a file's orientation columns
         p_cmd, R_fk = T[:, :3, 3].copy(), T[:, :3, :3].copy()
         notes.append(f"commanded TCP = nominal forward kinematics of the joint angles (robot config {chain.name})")
-    R_f = (Rotation.from_euler(m.orientation_convention, col3(["o0", "o1", "o2"])).as_matrix()
-           if "o0" in vals else R_fk)
+    R_f = flange_rotation(m, np.column_stack([vals[f"o{i}"] for i in range(len(c.orientation or ()))]), path) \
+        if "o0" in vals else R_fk
     u_meas = col3(["ux", "uy", "uz"]) if "ux" in vals else None
     reg = m.registration
     o_init = np.asarray(reg.offset_init_mm, float) * M_PER_MM
