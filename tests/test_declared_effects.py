@@ -245,3 +245,17 @@ def test_dt_correct_reads_the_declared_column_from_the_program_or_refuses(data, 
     rc, r = _run(capsys, "correct", "--twin", str(twin), "--targets", str(prog), "--out", str(tmp_path / "c.csv"))
     assert rc == 2 and not (tmp_path / "c.csv").exists()
     assert "need humidity" in r["error"] and "declared effect(s) humidity" in r["error"], r
+
+
+def test_a_declared_effect_of_the_wrong_form_is_named_when_its_column_still_explains_the_residual(
+        data, capsys, tmp_path):
+    """The user declared humidity as turning the wrist (it moves the TCP along x, y and z): the
+    column check still flags humidity, and the verdict says the declared form is not the data's."""
+    wrong = tmp_path / "wrong.yaml"
+    wrong.write_text("effects:\n  - name: wrist_humidity\n    factor: humidity turning the wrist\n"
+                     "    terms:\n      - {column: humidity, reference: 45.0, unit: '%', space: joints, joints: [6]}\n")
+    rc, r = _run(capsys, "diagnose", "--auto", "--data", str(data["humidity"]), "--robot", UR10,
+                 "--effects-file", str(wrong))
+    assert rc == 0, r
+    assert "+wrist_humidity" not in r["added"] and r["columns"][0]["column"] == "humidity"
+    assert "your effect(s) wrist_humidity read it but did not explain a significant part" in r["verdict"]

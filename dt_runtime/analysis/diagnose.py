@@ -469,10 +469,16 @@ def _column_sentence(checks: list[dict], model_columns: set[str]) -> str:
     top = next((c for c in checks if c["significant"] and c["column"] not in model_columns), None)
     if top is None:
         return ""
-    return (f" The held-out residual follows the column '{top['column']}' (p = {top['p_value']:.2g}, "
-            f"{100 * top['explained_fraction']:.0f} % of its variance over the points)"
-            + (": no effect of the catalogue reads it; declare an effect of your own." if top["column"] not in
-               ("speed", "temperature", "payload", "t") and not top["column"].startswith("q") else "."))
+    text = (f" The held-out residual follows the column '{top['column']}' (p = {top['p_value']:.2g}, "
+            f"{100 * top['explained_fraction']:.0f} % of its variance over the points)")
+    if top["column"] in ("speed", "temperature", "payload", "t") or top["column"].startswith("q"):
+        return text + "."
+    # The user's own effects that read it were candidates and did not make it: their form is wrong.
+    own = sorted(name for name, e in fx.user_effects().items() if top["column"] in e.columns)
+    if own:
+        return text + (f": your effect(s) {', '.join(own)} read it but did not explain a significant part; the "
+                       "error follows it in another form (another axis, joint-space, a lag?).")
+    return text + ": no effect of the catalogue reads it; declare an effect of your own."
 
 
 def read_columns(effects: Sequence[str], gp_inputs: str, n_joints: int) -> set[str]:

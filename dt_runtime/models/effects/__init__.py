@@ -46,9 +46,11 @@ __all__ = ["REGISTRY", "Block", "Effect", "Inputs", "as_inputs", "available", "b
 def _load_entry_points() -> None:
     global _entry_points_loaded
     if not _entry_points_loaded:
-        _entry_points_loaded = True
+        # Marked loaded only once every plugin registered: a broken one raises on every call,
+        # rather than once and then being silently left out.
         for name, effect in declared.entry_point_effects():
             register(effect, source=f"entry point {name}")
+        _entry_points_loaded = True
 
 
 def register(effect: Effect, source: str = "") -> Effect:
