@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
+from pydantic import BaseModel
 
 from dt_kernel.errors import ConfigError, DriverError, StateError
 
@@ -38,6 +39,10 @@ class Lifecycle:
     _state: str = UNCONFIGURED
     #: True for drivers that run on the simulated world: the caller must pass `world`.
     needs_world: ClassVar[bool] = False
+    #: The driver's options (a pydantic model, e.g. a dt_kernel.config.Frozen): declared, they are
+    #: checked with the runtime YAML before any driver is opened (drivers.registry.check);
+    #: None: the driver checks them in `configure`.
+    config_model: ClassVar[type[BaseModel] | None] = None
 
     def __init__(self, *, world: Any = None, source: str = "<driver config>") -> None:
         """The constructor every driver offers (its own may take more, all optional)."""

@@ -44,7 +44,7 @@ class SerialController(SerialDevice[ControllerConfig]):
     """RobotController over the line protocol (see module docstring for the config keys)."""
 
     name = "serial controller"
-    config_type = ControllerConfig
+    config_model = ControllerConfig
 
     def _check_move(self, target, speed) -> tuple[np.ndarray, float]:
         lim = self._cfg.limits

@@ -37,7 +37,7 @@ class SerialTracker(SerialDevice[TrackerConfig]):
     """LaserTracker over the line protocol."""
 
     name = "serial laser tracker"
-    config_type = TrackerConfig
+    config_model = TrackerConfig
 
     def measure(self) -> TrackerReading:
         self._require("active")

@@ -13,6 +13,7 @@ import numpy as np
 import pybullet as pb
 
 from drivers.base import Abortable, JointState, Lifecycle, RigReading, TrackerReading, reject_keys
+from dt_kernel.config import Frozen
 from dt_kernel.errors import DriverError, UnreachableError
 from dt_kernel.geometry import spherical_to_cartesian
 from sim.cell import SimCell
@@ -109,12 +110,17 @@ class SimWorld:
         self.cell.close()
 
 
+class NoOptions(Frozen):
+    """A simulated driver's options: none (its faults come from the scenario)."""
+
+
 class _OnWorld(Lifecycle):
     """A simulated driver: built on a SimWorld; its faults come from the scenario and the
     daemon's fault list, so `configure` accepts no keys (a stray key, e.g. a serial `url`
     left in place, is an error rather than silently ignored)."""
 
     needs_world = True
+    config_model = NoOptions
 
     what = "driver"  # names the config in errors: "<simulated robot config>"
 
