@@ -6,8 +6,8 @@ controller, temperature and payload from the program's columns or the simulated 
 the clock: `twin.conditions`), move the robot, read the MVS, test the measurement against the
 prediction (Eq. 17), feed the escalation state machine, log everything to the durable store
 (typed rows, `service.rows`, on the Store's one lock-free queue: the loop never waits on SQLite)
-and publish over Zenoh. Drivers are built by `drivers.registry.create` from `drivers.<kind>` and
-`drivers.<kind>_config`, the same way whatever their name.
+and publish over Zenoh. Drivers are built by `drivers.registry.create` from `drivers.<kind>`
+(`kind` and the driver's options, checked before anything opens), the same way whatever their name.
 
 Escalation and paging. Every transition of the machine (`service.escalation`) is one store
 transaction with the machine's new snapshot and, on entering `maintenance_requested` or
@@ -84,8 +84,8 @@ log = logging.getLogger("dt.run")
 
 
 class Daemon:
-    def __init__(self, cfg: RuntimeConfig, base: Path, world=None):
-        self.cfg, self.base = cfg, base
+    def __init__(self, cfg: RuntimeConfig, base: Path, world=None, source: str = "<runtime config>"):
+        self.cfg, self.base, self.source = cfg, base, source  # source: names the runtime YAML in errors
         self._closers: list[Callable[[], Any]] = []  # what is open, closed in reverse on failure
         try:
             self._start(world)
@@ -95,11 +95,12 @@ class Daemon:
 
     def _start(self, world) -> None:
         cfg = self.cfg
+        cfg.drivers.check(self.source)  # an unknown driver or a bad option: nothing is opened yet
         self.twin = Twin.load(self._p(cfg.twin))
         trained = self.twin.instruments.get("camera")
-        if trained and trained != cfg.drivers.camera:
+        if trained and trained != cfg.drivers.camera.kind:
             raise ConfigError(str(self._p(cfg.twin) / "twin.json"), "instruments.camera", trained,
-                              f"the daemon's camera driver '{cfg.drivers.camera}': a twin is valid only "
+                              f"the daemon's camera driver '{cfg.drivers.camera.kind}': a twin is valid only "
                               "with the instruments (and frames) it was calibrated with")
         # Read before anything is opened: a bad program stops the start with nothing to close.
         self._program = read_program(self._p(cfg.path.program)) if cfg.path.program else None
@@ -227,8 +228,8 @@ class Daemon:
         drivers = []
         try:
             for kind, name, config in self.cfg.drivers.chosen():
-                drivers.append(registry.create(kind, name, config, world=self.world,
-                                               source=f"<runtime config drivers.{kind}_config>"))
+                drivers.append(registry.create(kind, name, config, world=self.world, source=self.source,
+                                               key=f"drivers.{kind}"))
         except BaseException:
             for drv in drivers:
                 drv.close()
@@ -609,7 +610,7 @@ def run_daemon(config: str | Path, duration_s: float | None = None) -> dict:
     SIGTERM/SIGINT, stop within `stop_timeout_s` whatever a device does."""
     config = Path(config)
     cfg = load_runtime_config(config)
-    d = Daemon(cfg, config.parent)
+    d = Daemon(cfg, config.parent, source=str(config))
     deadline: list[threading.Timer] = []
 
     def on_signal(signum: int, _frame: Any) -> None:
