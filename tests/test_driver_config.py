@@ -111,3 +111,39 @@ def test_a_plugin_that_does_not_import_exits_2_naming_itself(twin_dir, tmp_path)
     p, _ = _dt_run(_yaml(tmp_path, twin_dir, "{robot: {kind: broken}}"), env)
     assert p.returncode == 2, p.stderr[-2000:]
     assert "dt-broken-driver" in p.stderr and "dt_broken_driver.robot" in p.stderr and "ModuleNotFoundError" in p.stderr
+
+
+def test_a_stale_measurement_is_refused_counted_and_not_tested(twin_dir, tmp_path):
+    """The MVS reading must match the command's arrival: one received (host clock) longer than
+    max_measurement_age_s before the move returned is refused, counted and reported."""
+    import dataclasses
+
+    cfg = load_runtime_config(_yaml(tmp_path, twin_dir, "{camera: sim_images}"))
+    cfg = cfg.model_copy(update={"max_measurement_age_s": 0.5})
+    d = Daemon(cfg, CONFIGS)
+    try:
+        read = d.inst.camera.read
+        d.latencies = []
+        s = d.run(max_ticks=3)
+        assert s["stale_measurements"] == 0 and len(d.latencies) == 3  # polled: read after the arrival
+        assert all(lat >= 0 for lat in d.latencies)
+        # a stream's frame from 2 s before (the clock's offset is what matters, not how long we wait)
+        d.inst.camera.read = lambda: dataclasses.replace(read(), host_time=time.monotonic() - 2.0)
+        d.store.flush()
+        n_tests = d.store._query("SELECT COUNT(*) FROM t_stats")[0][0]
+        s = d.run(max_ticks=4)
+        assert s["stale_measurements"] == 4 and s["ticks"] == 7
+        assert d.health()["stale_measurements"] == 4 and "stale measurement" in d.last_problem
+        d.store.flush()
+        assert d.store._query("SELECT COUNT(*) FROM t_stats")[0][0] == n_tests == 3  # none tested
+    finally:
+        d.close()
+
+
+def test_max_measurement_age_is_validated(tmp_path):
+    for bad in ("0", "-1", ".inf", "3600"):
+        cfg = tmp_path / "runtime.yaml"
+        cfg.write_text(f"twin: x\nmax_measurement_age_s: {bad}\n")
+        with pytest.raises(ConfigError) as ei:
+            load_runtime_config(cfg)
+        assert ei.value.key == "max_measurement_age_s"

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -122,6 +123,17 @@ def test_every_registered_driver_has_a_fixture(kind, name):
                                         "conformance fixture: add one to FIXTURES in tests/test_driver_conformance.py")
 
 
+def _timed(read: Callable):
+    """A reading and the host's monotonic clock around the call: its `host_time` (receipt) must
+    fall between them, and its device time must be a finite number (drivers.base: clocks)."""
+    before = time.monotonic()
+    r = read()
+    after = time.monotonic()
+    assert before <= r.host_time <= after, (before, r.host_time, after)
+    assert math.isfinite(r.device_time) and r.device_time == r.t
+    return r
+
+
 def _check_lifecycle_order(drv, config, calls):
     """Reads/writes before configure, before activate and after close raise StateError."""
     assert drv.state == "unconfigured"
@@ -182,7 +194,7 @@ def test_robot_move_then_read(factory):
         target = p0 + np.array([0.02, -0.03, -0.05])
         drv.move_linear(target, 0.2)
         assert np.allclose(drv.read_commanded_tcp(), target, atol=2e-6)  # controller resolution
-        js = drv.read_joint_state()
+        js = _timed(drv.read_joint_state)
         assert isinstance(js, JointState) and js.q.ndim == 1 and js.q.size >= 6
         assert np.all(np.isfinite(js.q)) and math.isfinite(js.t)
         drv.stream_setpoint(p0, 0.2)
@@ -241,7 +253,7 @@ def test_tracker_measure_is_consistent(factory):
         drv.configure(config)
         drv.activate()
         for _ in range(5):
-            r = drv.measure()
+            r = _timed(drv.measure)
             assert isinstance(r, TrackerReading) and isinstance(r.status, str) and math.isfinite(r.t)
             if r.ok:
                 d, az, el = r.spherical
@@ -269,7 +281,7 @@ def test_camera_read_is_consistent(factory):
         drv.configure(config)
         drv.activate()
         for _ in range(3):
-            r = drv.read()
+            r = _timed(drv.read)
             assert isinstance(r, RigReading) and math.isfinite(r.t)
             if r.ok:
                 assert r.point.shape == (3,) and np.all(np.isfinite(r.point))

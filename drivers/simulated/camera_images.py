@@ -10,6 +10,7 @@ Registration (pyproject.toml, entry point group `cobot_dt.drivers.camera`):
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -119,6 +120,7 @@ class SimCameraRig(Lifecycle):
         try:
             R, p = self._tool_pose()
             images, _ = self.renderer.render(np.asarray(R, float), np.asarray(p, float))
+            host_time = time.monotonic()  # the frames are in: what follows is our processing
             pred = None
             if self._predicted is not None:
                 pred = self.world_to_mvs_nominal(*self._predicted())
@@ -130,5 +132,5 @@ class SimCameraRig(Lifecycle):
         self._frames += 1
         q = dict(meas.quality)
         if not meas.ok:
-            return RigReading(point=None, t=t, quality=q, refused=meas.refused)
-        return RigReading(point=meas.tcp, t=t, cov=meas.cov, quality=q)
+            return RigReading(point=None, t=t, quality=q, refused=meas.refused, host_time=host_time)
+        return RigReading(point=meas.tcp, t=t, cov=meas.cov, quality=q, host_time=host_time)

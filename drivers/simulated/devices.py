@@ -1,5 +1,8 @@
 """Simulated drivers: real implementations of the driver protocols over the sim/ cell.
 
+Readings carry the simulated clock as the device's time (`t`) and the host's monotonic clock at
+the moment the simulator answered (`host_time`, set when the reading is built).
+
 A `SimWorld` owns one simulated cell (plant + instruments on one clock); the robot, tracker
 and camera drivers built on it see the same arm. `SimWorld.truth_tcp()` is the simulator's
 truth, offered so the twin can be *scored* in simulation; no correction path may use it.

@@ -172,6 +172,10 @@ class RuntimeConfig(Frozen):
     # SIGTERM -> exit within this time even with a silent device (the move is aborted, the
     # store flushed, the bus closed; past it the process exits hard: committed rows are safe).
     stop_timeout_s: float = Field(8.0, gt=0, le=60)
+    # A measurement received (host clock) longer than this before the command arrived (the move
+    # returned) saw the arm elsewhere: refused, not tested (a streaming driver's last frame from
+    # before the move, a stalled stream). A polled driver's reading comes after the arrival.
+    max_measurement_age_s: float = Field(0.25, gt=0, le=10)
     drivers: Drivers = Drivers()
     sim: SimSection = SimSection()
     path: PathConfig = PathConfig()
