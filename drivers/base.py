@@ -12,11 +12,13 @@ registry (drivers.registry.create) uses only that, so no caller branches on a dr
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
+from pydantic import BaseModel
 
 from dt_kernel.errors import ConfigError, DriverError, StateError
 
@@ -38,6 +40,10 @@ class Lifecycle:
     _state: str = UNCONFIGURED
     #: True for drivers that run on the simulated world: the caller must pass `world`.
     needs_world: ClassVar[bool] = False
+    #: The driver's options (a pydantic model, e.g. a dt_kernel.config.Frozen): declared, they are
+    #: checked with the runtime YAML before any driver is opened (drivers.registry.check);
+    #: None: the driver checks them in `configure`.
+    config_model: ClassVar[type[BaseModel] | None] = None
 
     def __init__(self, *, world: Any = None, source: str = "<driver config>") -> None:
         """The constructor every driver offers (its own may take more, all optional)."""
@@ -128,18 +134,35 @@ class Abortable:
             raise DriverError(f"{type(self).__name__}: aborted ({self._abort_reason})")
 
 
+# Clocks. Every reading carries two times: `t`, the device's own clock (s; `device_time`: the
+# controller's or instrument's time stamp, the simulated clock for simulated drivers), and
+# `host_time`, this host's time.monotonic() when the reading arrived (s). The device's clock
+# orders a device's readings; only the host's can be compared with the host's other events (a
+# command's arrival), so the daemon's staleness check and latency use `host_time`. A driver sets
+# it at receipt (before parsing); left out, it is the moment the reading is built.
+class _Stamped:
+    t: float
+
+    @property
+    def device_time(self) -> float:
+        """The device's time stamp (s, its own clock): `t`."""
+        return self.t
+
+
 @dataclass(frozen=True)
-class JointState:
+class JointState(_Stamped):
     q: np.ndarray  # rad, encoder reading
-    t: float  # s
+    t: float  # s, device clock
+    host_time: float = field(default_factory=time.monotonic)  # s, host monotonic clock at receipt
 
 
 @dataclass(frozen=True)
-class TrackerReading:
+class TrackerReading(_Stamped):
     point: np.ndarray  # (3,) m, tracker frame (cartesian from d, azimuth, elevation)
     spherical: tuple[float, float, float]  # (d m, azimuth rad, elevation rad)
-    t: float
+    t: float  # s, device clock
     status: str = "ok"  # "ok" or a reason such as "beam_broken"
+    host_time: float = field(default_factory=time.monotonic)  # s, host monotonic clock at receipt
 
     @property
     def ok(self) -> bool:
@@ -147,12 +170,13 @@ class TrackerReading:
 
 
 @dataclass(frozen=True)
-class RigReading:
+class RigReading(_Stamped):
     point: np.ndarray | None  # (3,) m, MVS frame; None when refused
-    t: float
+    t: float  # s, device clock (the frame's exposure)
     cov: np.ndarray | None = None  # (3,3) m^2 propagated from pixel noise, if known
     quality: Mapping[str, Any] = field(default_factory=dict)  # markers_used, cameras_used, reproj_rms_px
     refused: str | None = None  # reason, when no measurement is reported
+    host_time: float = field(default_factory=time.monotonic)  # s, host monotonic clock at receipt of the frames
 
     @property
     def ok(self) -> bool:

@@ -1,27 +1,53 @@
-"""Drivers chosen by config string: `kind` (robot, tracker, camera) and `name`.
+"""Drivers by name, found through Python entry points: one group per kind of driver,
+`cobot_dt.drivers.robot`, `cobot_dt.drivers.tracker` and `cobot_dt.drivers.camera`; an entry's
+name is the driver's name in the runtime YAML and its value the class ("module:Class", a
+drivers.base.Lifecycle subclass). The built-in drivers are entry points of this project
+(pyproject.toml), so an out-of-tree package adds a driver the same way, without editing ours::
+
+    [project.entry-points."cobot_dt.drivers.tracker"]
+    my_tracker = "my_package.tracker:MyTracker"
 
 Every driver is built the same way, whatever its name::
 
-    create(kind, name, config=None, *, world=None, source="<config>")
+    create(kind, name, config=None, *, world=None, source="<config>", key=None)
 
 which calls the class's `from_config(config, world=world, source=source)` (drivers.base.Lifecycle):
 the driver is constructed from the context (`world`: the simulated cell, for drivers that run on
 it; others ignore it) and, when `config` is given, configured with it (state `inactive`); with
-`config=None` it is returned unconfigured. `source` names the config in error messages. Callers
-never branch on a driver's name: `needs_world(kind, name)` says whether a simulated world must
-exist.
+`config=None` it is returned unconfigured. `source` names the config file in errors and `key`
+where the driver's section sits in it (`drivers.tracker`): a bad option is reported as
+`drivers.tracker.url`. `check(kind, name, config, ...)` validates the options against the class's
+`config_model` without building anything (the runtime checks every driver before it opens one).
+Callers never branch on a driver's name: `needs_world(kind, name)` says whether a simulated
+world must exist.
+
+Entry points are read once per process (scanning every installed distribution costs
+milliseconds); `reload()` reads them again (a plugin installed into a running process, a test).
+A class is imported only when its driver is chosen, so a plugin that does not import fails only
+then, with a ConfigError naming the plugin, its package and the import error. Two packages
+giving one name to different classes is a ConfigError naming both when that name is used.
+
+`BUILTIN` mirrors pyproject.toml's entry points (tests/test_registry.py checks they agree): an
+editable checkout whose installed metadata predates them (entry points are installed metadata:
+`pip install -e .` writes them) still finds its own drivers.
 """
 from __future__ import annotations
 
 import importlib
 from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import metadata
 from typing import Any
 
 from drivers.base import Lifecycle
+from dt_kernel.config import validate
 from dt_kernel.errors import ConfigError
 
-# name -> "module:Class"; imported lazily so a missing optional part fails only when chosen.
-_REGISTRY: dict[str, dict[str, str]] = {
+KINDS = ("robot", "tracker", "camera")
+GROUP_PREFIX = "cobot_dt.drivers."
+PROJECT = "cobot-dt"  # the distribution whose entry points BUILTIN mirrors
+
+BUILTIN: dict[str, dict[str, str]] = {
     "robot": {"sim": "drivers.simulated.devices:SimRobot", "serial": "drivers.serial.controller:SerialController"},
     "tracker": {"sim": "drivers.simulated.devices:SimTracker", "serial": "drivers.serial.tracker:SerialTracker"},
     "camera": {"sim_point": "drivers.simulated.devices:SimPointCamera",
@@ -29,23 +55,108 @@ _REGISTRY: dict[str, dict[str, str]] = {
 }
 
 
+@dataclass(frozen=True)
+class Entry:
+    """One registered driver: its class as "module:Class" and the package that registered it."""
+
+    target: str
+    package: str
+
+
+_entries: dict[str, dict[str, Entry]] | None = None
+_clashes: dict[tuple[str, str], list[Entry]] = {}
+_classes: dict[tuple[str, str], type[Lifecycle]] = {}
+
+
+def group(kind: str) -> str:
+    """The entry-point group of a kind of driver."""
+    return GROUP_PREFIX + kind
+
+
+def _add(table: dict[str, dict[str, Entry]], kind: str, name: str, entry: Entry) -> None:
+    old = table[kind].get(name)
+    if old is None:
+        table[kind][name] = entry
+    elif old.target != entry.target:  # the same class twice (BUILTIN and our metadata) is no clash
+        _clashes.setdefault((kind, name), [old]).append(entry)
+
+
+def _table() -> dict[str, dict[str, Entry]]:
+    global _entries
+    if _entries is None:
+        _clashes.clear()
+        table: dict[str, dict[str, Entry]] = {k: {} for k in KINDS}
+        for kind, names in BUILTIN.items():
+            for name, target in names.items():
+                table[kind][name] = Entry(target, PROJECT)
+        for kind in KINDS:
+            for ep in metadata.entry_points(group=group(kind)):
+                package = ep.dist.name if ep.dist is not None else "an unnamed package"
+                _add(table, kind, ep.name, Entry(ep.value, package))
+        _entries = table
+    return _entries
+
+
+def reload() -> dict[str, list[str]]:
+    """Read the installed entry points again; returns the known names of every kind."""
+    global _entries
+    importlib.invalidate_caches()  # importlib.metadata caches directory listings
+    _entries = None
+    _classes.clear()
+    return {k: known(k) for k in KINDS}
+
+
 def register(kind: str, name: str, target: str) -> None:
-    """Add a driver: `target` is "module:Class", a Lifecycle subclass."""
-    _REGISTRY[kind][name] = target
+    """Add a driver in process (a notebook, a test): `target` is "module:Class", a Lifecycle
+    subclass. Packages register through entry points instead (module docstring)."""
+    _check_kind(kind)
+    _add(_table(), kind, name, Entry(target, "registry.register()"))
 
 
 def known(kind: str) -> list[str]:
-    return sorted(_REGISTRY[kind])
+    _check_kind(kind)
+    return sorted(_table()[kind])
 
 
-def driver_class(kind: str, name: str, source: str = "<config>") -> type[Lifecycle]:
-    """The class registered under (kind, name); ConfigError listing the known names otherwise."""
-    if kind not in _REGISTRY:
-        raise ConfigError(source, "kind", kind, "one of " + ", ".join(sorted(_REGISTRY)))
-    if name not in _REGISTRY[kind]:
-        raise ConfigError(source, f"drivers.{kind}", name, "one of " + ", ".join(known(kind)))
-    module, cls = _REGISTRY[kind][name].split(":")
-    return getattr(importlib.import_module(module), cls)
+def entries(kind: str) -> dict[str, Entry]:
+    """name -> Entry (class and package) of every driver of a kind."""
+    _check_kind(kind)
+    return dict(_table()[kind])
+
+
+def _check_kind(kind: str, source: str = "<config>") -> None:
+    if kind not in KINDS:
+        raise ConfigError(source, "kind", kind, "one of " + ", ".join(KINDS))
+
+
+def driver_class(kind: str, name: str, source: str = "<config>", key: str | None = None) -> type[Lifecycle]:
+    """The class registered under (kind, name); ConfigError at `key` (default `drivers.<kind>`)
+    listing the known names otherwise, or naming the plugin that does not load."""
+    _check_kind(kind, source)
+    key = key or f"drivers.{kind}"
+    cached = _classes.get((kind, name))
+    if cached is not None:
+        return cached
+    table = _table()
+    if name not in table[kind]:
+        raise ConfigError(source, key, name, f"one of {', '.join(known(kind))} (the {kind} drivers installed: "
+                                             f"entry point group {group(kind)})")
+    if (kind, name) in _clashes:
+        claims = "; ".join(f"{e.package} ({e.target})" for e in _clashes[kind, name])
+        raise ConfigError(source, key, name, f"a name one package claims; {claims} all register it in "
+                                             f"{group(kind)}: uninstall one")
+    entry = table[kind][name]
+    what = f"{kind} driver {name!r} of {entry.package} ({entry.target})"
+    try:
+        module, _, attr = entry.target.partition(":")
+        cls = getattr(importlib.import_module(module), attr)
+    except Exception as exc:  # a broken plugin names itself, whatever it raised on import
+        raise ConfigError(source, key, name, f"a driver that loads; {what} does not: "
+                                             f"{type(exc).__name__}: {exc}") from exc
+    if not (isinstance(cls, type) and issubclass(cls, Lifecycle)):
+        raise ConfigError(source, key, name, f"a drivers.base.Lifecycle subclass; {what} is {cls!r}")
+    _classes[kind, name] = cls
+    return cls
 
 
 def needs_world(kind: str, name: str, source: str = "<config>") -> bool:
@@ -53,7 +164,34 @@ def needs_world(kind: str, name: str, source: str = "<config>") -> bool:
     return bool(getattr(driver_class(kind, name, source), "needs_world", False))
 
 
+def _rekeyed(exc: ConfigError, key: str) -> ConfigError:
+    """The driver's own error (key `url`) placed in the file's key path (`drivers.tracker.url`)."""
+    return ConfigError(exc.file, f"{key}.{exc.key}", exc.value, exc.allowed)
+
+
+def check(kind: str, name: str, config: Mapping[str, Any] | None, *, source: str = "<config>",
+          key: str | None = None) -> None:
+    """Validate a driver's options without building it: the class must load, and the options
+    must fit its `config_model` when it declares one (a driver without one checks them in
+    `configure`)."""
+    cls = driver_class(kind, name, source, f"{key}.kind" if key else None)
+    model = getattr(cls, "config_model", None)
+    if model is not None:
+        try:
+            validate(model, dict(config or {}), source)
+        except ConfigError as exc:
+            if key is None:
+                raise
+            raise _rekeyed(exc, key) from exc
+
+
 def create(kind: str, name: str, config: Mapping[str, Any] | None = None, *, world: Any = None,
-           source: str = "<config>"):
+           source: str = "<config>", key: str | None = None):
     """Build the driver (kind, name); see the module docstring."""
-    return driver_class(kind, name, source).from_config(config, world=world, source=source)
+    cls = driver_class(kind, name, source, f"{key}.kind" if key else None)
+    try:
+        return cls.from_config(config, world=world, source=source)
+    except ConfigError as exc:
+        if key is None:
+            raise
+        raise _rekeyed(exc, key) from exc

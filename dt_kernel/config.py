@@ -64,9 +64,10 @@ def validate(model: type[M], data: dict[str, Any], source: str | Path = "<config
     except ValidationError as exc:
         err = exc.errors()[0]
         key = ".".join(str(p) for p in err["loc"]) or "<root>"
-        value = err.get("input")
+        # a missing key's "input" is the mapping around it: say what is wrong instead
+        value = "<missing>" if err["type"] == "missing" else err.get("input")
         if err["type"] == "extra_forbidden":
-            allowed = "known keys: " + ", ".join(sorted(_fields_at(model, err["loc"][:-1])))
+            allowed = "known keys: " + (", ".join(sorted(_fields_at(model, err["loc"][:-1]))) or "none")
         else:
             allowed = err["msg"]
         raise ConfigError(source, key, value, allowed) from exc

@@ -431,7 +431,7 @@ def _runtime_yaml(tmp_path: Path, twin_dir: Path, extra: str = "") -> Path:
 
 
 def test_a_missing_serial_port_exits_non_zero_within_seconds(twin_dir, tmp_path):
-    cfg = _runtime_yaml(tmp_path, twin_dir, "drivers: {robot: serial, robot_config: {url: /dev/dt-no-such-port}}\n")
+    cfg = _runtime_yaml(tmp_path, twin_dir, "drivers: {robot: {kind: serial, url: /dev/dt-no-such-port}}\n")
     t0 = time.monotonic()
     p = subprocess.run(_dt("run", "--config", str(cfg)), capture_output=True, text=True, timeout=60)
     elapsed = time.monotonic() - t0
@@ -459,8 +459,8 @@ def test_sigterm_with_a_silent_device_stops_within_the_bound(twin_dir, tmp_path)
 
     world = SimWorld(SCENARIO, CELL)
     emu = ControllerEmulator(world.cell.plant)
-    serial = f"{{url: {emu.port}, timeout_s: 2.0, move_timeout_s: 30.0, retries: 3}}"
-    cfg = _runtime_yaml(tmp_path, twin_dir, f"drivers: {{robot: serial, robot_config: {serial}}}\npublish: false\n")
+    serial = f"{{kind: serial, url: {emu.port}, timeout_s: 2.0, move_timeout_s: 30.0, retries: 3}}"
+    cfg = _runtime_yaml(tmp_path, twin_dir, f"drivers: {{robot: {serial}}}\npublish: false\n")
     proc = subprocess.Popen(_dt("run", "--config", str(cfg), "--json"), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:

@@ -24,11 +24,11 @@ from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.models import effects as fx
 from tests.humidity_campaign import K_FIXTURE, K_HUMIDITY, campaign
+from tests.plugin_install import installed
 from tests.ur10_generator import noise_floor_mm
 
 UR10 = str(CONFIGS / "robots" / "ur10.yaml")
 HUMIDITY_YAML = str(CONFIGS / "effects" / "humidity.yaml")
-PLUGINS = Path(__file__).parent / "plugins"
 
 
 @pytest.fixture(scope="module")
@@ -139,22 +139,10 @@ def test_a_joint_space_term_is_estimated_in_rad_per_unit(data, tmp_path, capsys)
 
 @pytest.fixture
 def plugin(tmp_path):
-    """The package tests/plugins/dt_effect_plugin made importable without installing it (no
-    network, no pip): its source on sys.path, and a dist-info directory with its entry point,
-    which importlib.metadata finds on sys.path like an installed package's."""
-    info = tmp_path / "dt_effect_plugin-0.1.0.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: dt-effect-plugin\nVersion: 0.1.0\n")
-    (info / "entry_points.txt").write_text("[cobot_dt.effects]\nswelling = dt_effect_plugin:Swelling\n")
-    paths = [str(tmp_path), str(PLUGINS / "dt_effect_plugin")]
-    sys.path[:0] = paths
-    try:
-        yield fx.reload_entry_points()
-    finally:
-        for p in paths:
-            sys.path.remove(p)
-        sys.modules.pop("dt_effect_plugin", None)
-        fx.reload_entry_points()
+    """The package tests/plugins/dt_effect_plugin, installed for the test (tests/plugin_install.py)."""
+    with installed(tmp_path, "dt_effect_plugin", {"cobot_dt.effects": {"swelling": "dt_effect_plugin:Swelling"}},
+                   fx.reload_entry_points) as names:
+        yield names
 
 
 def test_an_entry_point_plugin_is_a_candidate_and_is_fitted(plugin, data, tmp_path, capsys):

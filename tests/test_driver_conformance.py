@@ -1,27 +1,33 @@
 """One conformance suite for every driver implementation (DESIGN.md, house style).
 
-To add an implementation, append `(id, factory)` to `DRIVER_FACTORIES` (robot controllers)
-or `TRACKER_FACTORIES` (laser trackers). A factory takes no arguments and returns a context
-manager yielding `(driver, config)`: a driver that has *not* been configured yet, and the
-config mapping that `driver.configure(config)` accepts. Everything the driver needs (a
-simulated world, an emulator on a pseudo-terminal) is set up and torn down by the factory.
+The suite runs on every driver the registry knows (drivers.registry: the built-in ones and any
+installed plugin), of every kind, cameras included. `FIXTURES` gives each (kind, name) one or
+more fixtures: a factory taking no arguments and returning a context manager that yields
+`(driver, config)`: a driver built by `registry.create` and *not* configured yet, and the options
+that `driver.configure(config)` accepts. Everything the driver needs (a simulated world, an
+emulator on a pseudo-terminal) is set up and torn down by the factory. A registered driver
+without a fixture fails `test_every_registered_driver_has_a_fixture`: add one here.
+`run_suite(kind, factory)` runs every check of a kind on one factory (tests/test_driver_plugin.py
+runs it on a plugin installed during the test).
 """
 from __future__ import annotations
 
 import contextlib
 import math
+import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
-from drivers.base import JointState, LaserTracker, RobotController, TrackerReading
-from drivers.serial.controller import SerialController
-from drivers.serial.tracker import SerialTracker
+from drivers import registry
+from drivers.base import CameraRig, JointState, LaserTracker, RigReading, RobotController, TrackerReading
 from drivers.serial.emulator import ControllerEmulator, TrackerEmulator
 from dt_kernel.errors import DriverError, StateError
 from tests.test_serial import FakePlant
 
 SCENARIO, CELL = "configs/scenarios/paper_default.yaml", "configs/cell.yaml"
+Factory = Callable[[], contextlib.AbstractContextManager]
 
 
 @contextlib.contextmanager
@@ -38,18 +44,23 @@ def _sim_world():
         world.close()
 
 
-@contextlib.contextmanager
-def sim_robot():
-    from drivers.simulated.devices import SimRobot
-
-    with _sim_world() as world:
-        yield SimRobot(world), {}
+def on_world(kind: str, name: str) -> Factory:
+    """A simulated driver on a fresh simulated cell; it takes no options but its own."""
+    @contextlib.contextmanager
+    def factory():
+        with _sim_world() as world:
+            drv = registry.create(kind, name, world=world)
+            try:
+                yield drv, {}
+            finally:
+                drv.close()
+    return factory
 
 
 @contextlib.contextmanager
 def serial_robot_fake_plant():
     with ControllerEmulator(FakePlant()) as emu:
-        drv = SerialController()
+        drv = registry.create("robot", "serial")
         try:
             yield drv, {"url": emu.port, "timeout_s": 0.5, "retries": 2}
         finally:
@@ -60,19 +71,11 @@ def serial_robot_fake_plant():
 def serial_robot_sim_plant_over_socket():
     # The real simulated plant behind the emulator, reached through pyserial's socket:// URL.
     with _sim_world() as world, ControllerEmulator(world.cell.plant, "tcp://127.0.0.1:0") as emu:
-        drv = SerialController()
+        drv = registry.create("robot", "serial")
         try:
             yield drv, {"url": emu.port, "timeout_s": 2.0, "retries": 2}
         finally:
             drv.close()
-
-
-@contextlib.contextmanager
-def sim_tracker():
-    from drivers.simulated.devices import SimTracker
-
-    with _sim_world() as world:
-        yield SimTracker(world), {}
 
 
 @contextlib.contextmanager
@@ -83,25 +86,52 @@ def serial_tracker_fake():
         return 2.0 + 0.01 * rng.standard_normal(), 0.3, -0.1, "ok"
 
     with TrackerEmulator(measure) as emu:
-        drv = SerialTracker()
+        drv = registry.create("tracker", "serial")
         try:
             yield drv, {"url": emu.port, "timeout_s": 0.5, "retries": 2}
         finally:
             drv.close()
 
 
-DRIVER_FACTORIES = [
-    ("sim", sim_robot),
-    ("serial-pty-fakeplant", serial_robot_fake_plant),
-    ("serial-socket-simplant", serial_robot_sim_plant_over_socket),
-]
-TRACKER_FACTORIES = [
-    ("sim", sim_tracker),
-    ("serial-pty", serial_tracker_fake),
-]
+# (kind, name) -> [(fixture id, factory)]: every registered driver needs at least one.
+FIXTURES: dict[tuple[str, str], list[tuple[str, Factory]]] = {
+    ("robot", "sim"): [("sim", on_world("robot", "sim"))],
+    ("robot", "serial"): [("pty-fakeplant", serial_robot_fake_plant),
+                          ("socket-simplant", serial_robot_sim_plant_over_socket)],
+    ("tracker", "sim"): [("sim", on_world("tracker", "sim"))],
+    ("tracker", "serial"): [("pty", serial_tracker_fake)],
+    ("camera", "sim_point"): [("sim", on_world("camera", "sim_point"))],
+    ("camera", "sim_images"): [("sim", on_world("camera", "sim_images"))],
+}
 
-_robot = pytest.mark.parametrize("factory", [f for _, f in DRIVER_FACTORIES], ids=[i for i, _ in DRIVER_FACTORIES])
-_tracker = pytest.mark.parametrize("factory", [f for _, f in TRACKER_FACTORIES], ids=[i for i, _ in TRACKER_FACTORIES])
+REGISTERED = [(k, n) for k in registry.KINDS for n in registry.known(k)]
+
+
+def _cases(kind: str) -> list:
+    return [pytest.param(f, id=f"{name}-{fid}") for k, name in REGISTERED if k == kind
+            for fid, f in FIXTURES.get((k, name), [])]
+
+
+_robot = pytest.mark.parametrize("factory", _cases("robot"))
+_tracker = pytest.mark.parametrize("factory", _cases("tracker"))
+_camera = pytest.mark.parametrize("factory", _cases("camera"))
+
+
+@pytest.mark.parametrize("kind, name", REGISTERED, ids=[f"{k}-{n}" for k, n in REGISTERED])
+def test_every_registered_driver_has_a_fixture(kind, name):
+    assert FIXTURES.get((kind, name)), (f"{kind} driver {name!r} ({registry.entries(kind)[name].target}) has no "
+                                        "conformance fixture: add one to FIXTURES in tests/test_driver_conformance.py")
+
+
+def _timed(read: Callable):
+    """A reading and the host's monotonic clock around the call: its `host_time` (receipt) must
+    fall between them, and its device time must be a finite number (drivers.base: clocks)."""
+    before = time.monotonic()
+    r = read()
+    after = time.monotonic()
+    assert before <= r.host_time <= after, (before, r.host_time, after)
+    assert math.isfinite(r.device_time) and r.device_time == r.t
+    return r
 
 
 def _check_lifecycle_order(drv, config, calls):
@@ -164,7 +194,7 @@ def test_robot_move_then_read(factory):
         target = p0 + np.array([0.02, -0.03, -0.05])
         drv.move_linear(target, 0.2)
         assert np.allclose(drv.read_commanded_tcp(), target, atol=2e-6)  # controller resolution
-        js = drv.read_joint_state()
+        js = _timed(drv.read_joint_state)
         assert isinstance(js, JointState) and js.q.ndim == 1 and js.q.size >= 6
         assert np.all(np.isfinite(js.q)) and math.isfinite(js.t)
         drv.stream_setpoint(p0, 0.2)
@@ -223,7 +253,7 @@ def test_tracker_measure_is_consistent(factory):
         drv.configure(config)
         drv.activate()
         for _ in range(5):
-            r = drv.measure()
+            r = _timed(drv.measure)
             assert isinstance(r, TrackerReading) and isinstance(r.status, str) and math.isfinite(r.t)
             if r.ok:
                 d, az, el = r.spherical
@@ -235,3 +265,49 @@ def test_tracker_measure_is_consistent(factory):
         drv.close()
         drv.close()
         assert drv.state == "closed"
+
+
+# --- camera rigs ------------------------------------------------------------------------
+@_camera
+def test_camera_satisfies_protocol_and_lifecycle_order(factory):
+    with factory() as (drv, config):
+        assert isinstance(drv, CameraRig)
+        _check_lifecycle_order(drv, config, [drv.read])
+
+
+@_camera
+def test_camera_read_is_consistent(factory):
+    with factory() as (drv, config):
+        drv.configure(config)
+        drv.activate()
+        for _ in range(3):
+            r = _timed(drv.read)
+            assert isinstance(r, RigReading) and math.isfinite(r.t)
+            if r.ok:
+                assert r.point.shape == (3,) and np.all(np.isfinite(r.point))
+                if r.cov is not None:
+                    assert r.cov.shape == (3, 3) and np.allclose(r.cov, r.cov.T)
+                    assert np.all(np.linalg.eigvalsh(r.cov) >= 0)
+            else:
+                assert isinstance(r.refused, str) and r.refused
+        drv.close()
+        drv.close()
+        assert drv.state == "closed"
+        with pytest.raises(StateError):
+            drv.read()
+
+
+CHECKS: dict[str, list[Callable]] = {
+    "robot": [test_robot_satisfies_protocol_and_lifecycle_order, test_robot_move_then_read,
+              test_robot_refuses_nan_target, test_robot_abort_refuses_moves_until_cleared,
+              test_robot_close_is_idempotent_from_active],
+    "tracker": [test_tracker_satisfies_protocol_and_lifecycle_order, test_tracker_measure_is_consistent],
+    "camera": [test_camera_satisfies_protocol_and_lifecycle_order, test_camera_read_is_consistent],
+}
+
+
+def run_suite(kind: str, factory: Factory) -> list[str]:
+    """Every check of `kind` on `factory` (a plugin's test calls this); returns the checks' names."""
+    for check in CHECKS[kind]:
+        check(factory)
+    return [c.__name__ for c in CHECKS[kind]]

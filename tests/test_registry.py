@@ -96,6 +96,75 @@ def test_unknown_names_list_the_known_ones_and_bad_keys_name_the_key():
     assert ei.value.file == "runtime.yaml"
 
 
+def test_the_built_in_drivers_are_the_entry_points_pyproject_declares():
+    """drivers.registry.BUILTIN (the fallback of a checkout whose metadata predates them) must
+    say what pyproject.toml says, and the installed metadata carries them (pip install -e .)."""
+    import tomllib
+    from importlib import metadata
+
+    eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]
+    declared = {g.removeprefix(registry.GROUP_PREFIX): dict(v) for g, v in eps.items()
+                if g.startswith(registry.GROUP_PREFIX)}
+    assert declared == registry.BUILTIN
+    for kind, names in registry.BUILTIN.items():
+        installed = {ep.name: ep.value for ep in metadata.entry_points(group=registry.group(kind))
+                     if ep.dist is not None and ep.dist.name == registry.PROJECT}
+        assert installed == names, "entry points not installed: run `pip install -e .` again"
+        ours = {n: e.package for n, e in registry.entries(kind).items() if n in names}
+        assert ours == dict.fromkeys(names, "cobot-dt")
+
+
+@pytest.fixture
+def scratch_registry():
+    """Registry changes made by a test are forgotten after it."""
+    try:
+        yield registry
+    finally:
+        registry.reload()
+
+
+def test_a_broken_plugin_names_itself_and_its_error(scratch_registry):
+    registry.register("tracker", "broken", "dt_no_such_package.tracker:Tracker")
+    registry.register("tracker", "not_a_driver", "math:pi")
+    assert "broken" in registry.known("tracker")  # listed: it is imported only when chosen
+    with pytest.raises(ConfigError) as ei:
+        registry.create("tracker", "broken", {}, source="runtime.yaml", key="drivers.tracker")
+    e = ei.value
+    assert e.file == "runtime.yaml" and e.key == "drivers.tracker.kind" and e.value == "broken"
+    assert "dt_no_such_package" in e.allowed and "ModuleNotFoundError" in e.allowed
+    with pytest.raises(ConfigError, match="Lifecycle subclass"):
+        registry.driver_class("tracker", "not_a_driver")
+    registry.create("tracker", "serial", source="x").close()  # the others are unaffected
+
+
+def test_two_packages_claiming_one_name_is_an_error_naming_both(scratch_registry):
+    registry.register("robot", "sim", "drivers.simulated.devices:SimRobot")  # the same class again: fine
+    registry.register("robot", "twin_claim", "drivers.serial.controller:SerialController")
+    registry.register("robot", "twin_claim", "drivers.simulated.devices:SimRobot")
+    assert registry.needs_world("robot", "sim")
+    with pytest.raises(ConfigError) as ei:
+        registry.driver_class("robot", "twin_claim", "runtime.yaml")
+    assert "SerialController" in ei.value.allowed and "SimRobot" in ei.value.allowed
+    assert "uninstall one" in ei.value.allowed
+
+
+def test_options_are_checked_without_building_the_driver_and_errors_carry_the_key_path():
+    registry.check("tracker", "serial", {"url": "/dev/ttyUSB1"}, source="rt.yaml", key="drivers.tracker")
+    registry.check("camera", "sim_images", {"render": {}, "seed": 3}, source="rt.yaml", key="drivers.camera")
+    with pytest.raises(ConfigError) as ei:
+        registry.check("tracker", "serial", {}, source="rt.yaml", key="drivers.tracker")
+    assert (ei.value.file, ei.value.key, ei.value.value) == ("rt.yaml", "drivers.tracker.url", "<missing>")
+    with pytest.raises(ConfigError) as ei:
+        registry.check("robot", "sim", {"url": "x"}, source="rt.yaml", key="drivers.robot")
+    assert ei.value.key == "drivers.robot.url" and "none" in ei.value.allowed
+    with pytest.raises(ConfigError) as ei:
+        registry.check("robot", "ur_rtde_typo", {}, source="rt.yaml", key="drivers.robot")
+    assert ei.value.key == "drivers.robot.kind" and "serial, sim" in ei.value.allowed
+    with pytest.raises(ConfigError) as ei:  # configure's own errors get the same key path
+        registry.create("tracker", "serial", {"url": "x", "retries": -1}, source="rt.yaml", key="drivers.tracker")
+    assert ei.value.key == "drivers.tracker.retries"
+
+
 def test_simulated_drivers_say_they_need_a_world():
     assert [registry.needs_world("robot", n) for n in ("serial", "sim")] == [False, True]
     assert all(registry.needs_world("camera", n) for n in registry.known("camera"))

@@ -12,6 +12,7 @@ from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.bus import BusConfig, MaintenanceConsumer
 from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
+from dt_runtime.service.runtime_config import DriverChoice
 from dt_runtime.service.store import Store
 from dt_runtime.twin.twin import Twin
 from tests.loopback import free_port, wait_until
@@ -137,7 +138,7 @@ def test_twin_used_with_another_camera_is_refused(twin_dir, tmp_path):
     from dt_kernel.errors import ConfigError
 
     cfg = daemon_cfg(twin_dir, tmp_path, free_port(), publish=False)
-    cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(update={"camera": "sim_point"})})
+    cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(update={"camera": DriverChoice(kind="sim_point")})})
     with pytest.raises(ConfigError, match="calibrated with"):
         Daemon(cfg, CONFIGS)
 
@@ -153,7 +154,7 @@ def test_daemon_drives_the_cell_through_the_serial_emulator_on_a_pty(twin_dir, t
     port = free_port()
     cfg = daemon_cfg(twin_dir, tmp_path, port, [{"at_s": 600.0, "joint_offset_rad": [0, 5e-4, 0, 0, 0, 0]}])
     cfg = cfg.model_copy(update={"drivers": cfg.drivers.model_copy(
-        update={"robot": "serial", "robot_config": {"url": emu.port, "timeout_s": 2.0}})})
+        update={"robot": DriverChoice(kind="serial", options={"url": emu.port, "timeout_s": 2.0})})})
     cons = MaintenanceConsumer(BusConfig(cell="c1", robot="maint", listen=[f"tcp/127.0.0.1:{port}"]))
     try:
         d = Daemon(cfg, CONFIGS, world=world)

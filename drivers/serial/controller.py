@@ -16,6 +16,7 @@ bound for targets and received TCPs), `max_speed_m_s` (2.0), `joint_abs_rad` (2 
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -44,7 +45,7 @@ class SerialController(SerialDevice[ControllerConfig]):
     """RobotController over the line protocol (see module docstring for the config keys)."""
 
     name = "serial controller"
-    config_type = ControllerConfig
+    config_model = ControllerConfig
 
     def _check_move(self, target, speed) -> tuple[np.ndarray, float]:
         lim = self._cfg.limits
@@ -70,11 +71,13 @@ class SerialController(SerialDevice[ControllerConfig]):
     def read_joint_state(self) -> JointState:
         self._require("active")
         lim = self._cfg.limits
-        f = ack_fields(self.name, "GETJ", self._link.request("GETJ"), 1 + lim.n_joints)
+        reply = self._link.request("GETJ")
+        host_time = time.monotonic()  # at receipt, before parsing
+        f = ack_fields(self.name, "GETJ", reply, 1 + lim.n_joints)
         t = lp.parse_float(f[0], "GETJ t")
         q = np.array([lp.parse_float(v, f"GETJ q{i + 1}", -lim.joint_abs_rad, lim.joint_abs_rad)
                       for i, v in enumerate(f[1:])])
-        return JointState(q=q, t=t)
+        return JointState(q=q, t=t, host_time=host_time)
 
     def read_commanded_tcp(self) -> np.ndarray:
         self._require("active")

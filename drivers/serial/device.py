@@ -17,7 +17,7 @@ C = TypeVar("C", bound=LinkConfig)
 
 class SerialDevice(Abortable, Lifecycle, Generic[C]):
     name: ClassVar[str]
-    config_type: ClassVar[type[LinkConfig]]  # the device's config (a LinkConfig with its limits)
+    config_model: ClassVar[type[LinkConfig]]  # the device's config (a LinkConfig with its limits)
 
     def __init__(self, config: Mapping[str, Any] | None = None, source: str | None = None, *,
                  world: Any = None):  # world: unused, the registry passes it to every driver
@@ -42,7 +42,7 @@ class SerialDevice(Abortable, Lifecycle, Generic[C]):
 
     # --- lifecycle hooks ----------------------------------------------------------------
     def _on_configure(self, config: dict[str, Any]) -> None:
-        self.cfg = validate(self.config_type, config, self._source)  # type: ignore[assignment]  # C is config_type
+        self.cfg = validate(self.config_model, config, self._source)  # type: ignore[assignment]  # C is config_model
         self.link = SerialLink(self._cfg, self.name, abort=self.abort_event)
 
     def _on_activate(self) -> None:

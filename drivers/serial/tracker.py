@@ -12,6 +12,7 @@ Config keys: those of `LinkConfig` (`url`, `baudrate`, `timeout_s`, `retries`,
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 from pydantic import Field
@@ -37,19 +38,23 @@ class SerialTracker(SerialDevice[TrackerConfig]):
     """LaserTracker over the line protocol."""
 
     name = "serial laser tracker"
-    config_type = TrackerConfig
+    config_model = TrackerConfig
 
     def measure(self) -> TrackerReading:
         self._require("active")
-        f = ack_fields(self.name, "MEAS", self._link.request("MEAS"), 5)
+        reply = self._link.request("MEAS")
+        host_time = time.monotonic()  # at receipt, before parsing
+        f = ack_fields(self.name, "MEAS", reply, 5)
         t = lp.parse_float(f[0], "MEAS t")
         status = lp.parse_status(f[4])
         if status != "ok":
             # No measurement: numbers are informative only (often nan); the point is NaN.
             d_, az_, el_ = (lp.parse_float(v, "MEAS " + k, allow_nan=True) for k, v in zip(("d", "az", "el"), f[1:4]))
-            return TrackerReading(point=np.full(3, np.nan), spherical=(d_, az_, el_), t=t, status=status)
+            return TrackerReading(point=np.full(3, np.nan), spherical=(d_, az_, el_), t=t, status=status,
+                                  host_time=host_time)
         lim = self._cfg.limits
         d = lp.parse_float(f[1], "MEAS d", lim.min_distance_m, lim.max_distance_m)
         az = lp.parse_float(f[2], "MEAS azimuth", -2 * math.pi, 2 * math.pi)
         el = lp.parse_float(f[3], "MEAS elevation", -math.pi / 2, math.pi / 2)
-        return TrackerReading(point=spherical_to_cartesian(d, az, el), spherical=(d, az, el), t=t, status="ok")
+        return TrackerReading(point=spherical_to_cartesian(d, az, el), spherical=(d, az, el), t=t, status="ok",
+                              host_time=host_time)

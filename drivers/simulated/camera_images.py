@@ -5,11 +5,12 @@ ACTUAL tool pose and runs the real processing pipeline (dt_runtime.mvs) on them,
 TCP/SMR point in the MVS frame (the rig's own frame, with its small scale error) with its
 covariance, quality and, when refused, the reason.
 
-Registration (in drivers/registry.py):
-    "camera": {..., "sim_images": "drivers.simulated.camera_images:SimCameraRig"}
+Registration (pyproject.toml, entry point group `cobot_dt.drivers.camera`):
+    sim_images = "drivers.simulated.camera_images:SimCameraRig"
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -18,8 +19,18 @@ import numpy as np
 
 from drivers.base import Lifecycle, RigReading, reject_keys
 from drivers.mvs import MarkerTracker, RigModel
+from dt_kernel.config import Frozen
 from dt_kernel.errors import DriverError
 from sim.camera_rig import DEFAULT_CONFIG, Occluder, RigConfig, SimCameraImages, load_rig_config, validate_rig
+
+
+class CameraOptions(Frozen):
+    """The runtime YAML's options of the image rig: render settings over configs/cameras.yaml's
+    (checked against sim.camera_rig's model in `configure`) and the rendering's seed."""
+
+    render: dict[str, Any] = {}
+    seed: int = 0
+
 
 PoseFn = Callable[[], tuple[np.ndarray, np.ndarray]]
 
@@ -48,6 +59,7 @@ class SimCameraRig(Lifecycle):
 
     FRAME_RATE_HZ = 360.0
     needs_world = True  # built by the registry, it renders the simulated world's tool
+    config_model = CameraOptions
 
     def __init__(self, tool_pose: PoseFn | None = None, config: str | Path | RigConfig = DEFAULT_CONFIG,
                  seed: int = 0, occluded: Occluder | None = None, predicted_pose: PoseFn | None = None,
@@ -108,6 +120,7 @@ class SimCameraRig(Lifecycle):
         try:
             R, p = self._tool_pose()
             images, _ = self.renderer.render(np.asarray(R, float), np.asarray(p, float))
+            host_time = time.monotonic()  # the frames are in: what follows is our processing
             pred = None
             if self._predicted is not None:
                 pred = self.world_to_mvs_nominal(*self._predicted())
@@ -119,5 +132,5 @@ class SimCameraRig(Lifecycle):
         self._frames += 1
         q = dict(meas.quality)
         if not meas.ok:
-            return RigReading(point=None, t=t, quality=q, refused=meas.refused)
-        return RigReading(point=meas.tcp, t=t, cov=meas.cov, quality=q)
+            return RigReading(point=None, t=t, quality=q, refused=meas.refused, host_time=host_time)
+        return RigReading(point=meas.tcp, t=t, cov=meas.cov, quality=q, host_time=host_time)

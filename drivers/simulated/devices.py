@@ -1,5 +1,8 @@
 """Simulated drivers: real implementations of the driver protocols over the sim/ cell.
 
+Readings carry the simulated clock as the device's time (`t`) and the host's monotonic clock at
+the moment the simulator answered (`host_time`, set when the reading is built).
+
 A `SimWorld` owns one simulated cell (plant + instruments on one clock); the robot, tracker
 and camera drivers built on it see the same arm. `SimWorld.truth_tcp()` is the simulator's
 truth, offered so the twin can be *scored* in simulation; no correction path may use it.
@@ -13,6 +16,7 @@ import numpy as np
 import pybullet as pb
 
 from drivers.base import Abortable, JointState, Lifecycle, RigReading, TrackerReading, reject_keys
+from dt_kernel.config import Frozen
 from dt_kernel.errors import DriverError, UnreachableError
 from dt_kernel.geometry import spherical_to_cartesian
 from sim.cell import SimCell
@@ -109,12 +113,17 @@ class SimWorld:
         self.cell.close()
 
 
+class NoOptions(Frozen):
+    """A simulated driver's options: none (its faults come from the scenario)."""
+
+
 class _OnWorld(Lifecycle):
     """A simulated driver: built on a SimWorld; its faults come from the scenario and the
     daemon's fault list, so `configure` accepts no keys (a stray key, e.g. a serial `url`
     left in place, is an error rather than silently ignored)."""
 
     needs_world = True
+    config_model = NoOptions
 
     what = "driver"  # names the config in errors: "<simulated robot config>"
 

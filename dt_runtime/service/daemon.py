@@ -6,8 +6,14 @@ controller, temperature and payload from the program's columns or the simulated 
 the clock: `twin.conditions`), move the robot, read the MVS, test the measurement against the
 prediction (Eq. 17), feed the escalation state machine, log everything to the durable store
 (typed rows, `service.rows`, on the Store's one lock-free queue: the loop never waits on SQLite)
-and publish over Zenoh. Drivers are built by `drivers.registry.create` from `drivers.<kind>` and
-`drivers.<kind>_config`, the same way whatever their name.
+and publish over Zenoh. Drivers are built by `drivers.registry.create` from `drivers.<kind>`
+(`kind` and the driver's options, checked before anything opens), the same way whatever their name.
+
+Measurements and clocks. Every reading carries the device's time stamp (`t`) and the host's
+monotonic receive time (`host_time`, drivers.base). The MVS reading tested against a command is
+one received after the command arrived (the move returned) or at most `max_measurement_age_s`
+before it; an older one saw the arm elsewhere and is refused, counted (`stale_measurements` in
+the summary and on `.../health`), and not tested.
 
 Escalation and paging. Every transition of the machine (`service.escalation`) is one store
 transaction with the machine's new snapshot and, on entering `maintenance_requested` or
@@ -84,8 +90,8 @@ log = logging.getLogger("dt.run")
 
 
 class Daemon:
-    def __init__(self, cfg: RuntimeConfig, base: Path, world=None):
-        self.cfg, self.base = cfg, base
+    def __init__(self, cfg: RuntimeConfig, base: Path, world=None, source: str = "<runtime config>"):
+        self.cfg, self.base, self.source = cfg, base, source  # source: names the runtime YAML in errors
         self._closers: list[Callable[[], Any]] = []  # what is open, closed in reverse on failure
         try:
             self._start(world)
@@ -95,11 +101,12 @@ class Daemon:
 
     def _start(self, world) -> None:
         cfg = self.cfg
+        cfg.drivers.check(self.source)  # an unknown driver or a bad option: nothing is opened yet
         self.twin = Twin.load(self._p(cfg.twin))
         trained = self.twin.instruments.get("camera")
-        if trained and trained != cfg.drivers.camera:
+        if trained and trained != cfg.drivers.camera.kind:
             raise ConfigError(str(self._p(cfg.twin) / "twin.json"), "instruments.camera", trained,
-                              f"the daemon's camera driver '{cfg.drivers.camera}': a twin is valid only "
+                              f"the daemon's camera driver '{cfg.drivers.camera.kind}': a twin is valid only "
                               "with the instruments (and frames) it was calibrated with")
         # Read before anything is opened: a bad program stops the start with nothing to close.
         self._program = read_program(self._p(cfg.path.program)) if cfg.path.program else None
@@ -142,13 +149,14 @@ class Daemon:
         self._actions_seen: set[int] = set()
         self._actions_lock = threading.Lock()
         self.delivered: list[int] = []
-        self.ticks = self.failures = self.faults_refused = self.driver_faults = 0
+        self.ticks = self.failures = self.faults_refused = self.driver_faults = self.stale_measurements = 0
         self.refused_in_row = self.driver_faults_in_row = 0
         self.last_problem: str | None = None
         self.uncorrected = 0  # commands sent without the correction (it was not trusted)
         self._true_sq: list[float] = []  # squared 3D true error of each command (simulation only)
         self.requests: list[dict] = []
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
+        self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
         self._last_tick_wall: float | None = None
         self._last_tick_mono = float("-inf")  # the watchdog is fed from READY on
         self._health_key: tuple | None = None
@@ -227,8 +235,8 @@ class Daemon:
         drivers = []
         try:
             for kind, name, config in self.cfg.drivers.chosen():
-                drivers.append(registry.create(kind, name, config, world=self.world,
-                                               source=f"<runtime config drivers.{kind}_config>"))
+                drivers.append(registry.create(kind, name, config, world=self.world, source=self.source,
+                                               key=f"drivers.{kind}"))
         except BaseException:
             for drv in drivers:
                 drv.close()
@@ -351,7 +359,8 @@ class Daemon:
         esc = self.escalator
         return {"status": status, "reason": reason, "escalation": esc.state, "episode": esc.episode,
                 "last_tick": self._last_tick_wall, "ticks": self.ticks, "refused_in_row": self.refused_in_row,
-                "driver_faults_in_row": self.driver_faults_in_row, "outbox_pending": self._pending_count(),
+                "driver_faults_in_row": self.driver_faults_in_row, "stale_measurements": self.stale_measurements,
+                "outbox_pending": self._pending_count(),
                 "pid": os.getpid(), "t": time.time()}
 
     def _pending_count(self) -> int | None:
@@ -480,6 +489,7 @@ class Daemon:
             self._publish_health()
             return
         self.inst.robot.move_linear(corr.command, v)
+        arrived = time.monotonic()  # the command has arrived: the arm stands where it was sent
         self.refused_in_row = self.driver_faults_in_row = 0
         if esc.state == "halted":
             esc.resume(t_now)
@@ -500,6 +510,14 @@ class Daemon:
             log.info("MVS refused: %s", reading.refused)
             self._publish_health()
             return
+        age = arrived - reading.host_time
+        if age > self.cfg.max_measurement_age_s:
+            self.stale_measurements += 1
+            self.last_problem = (f"stale measurement: received {age * 1e3:.0f} ms before the command arrived "
+                                 f"(max_measurement_age_s {self.cfg.max_measurement_age_s})")
+            log.warning("MVS reading refused, not tested: %s", self.last_problem)
+            self._publish_health()
+            return
         try:
             chk = self.monitor(corr.command, v, reading.point, cond)
         except CorrectionFault as exc:
@@ -511,6 +529,8 @@ class Daemon:
                                 data={"t": chk.t.tolist()}))
         self.failures += int(not chk.passed)
         esc.observe(chk.passed, float(chk.t[worst]), t)
+        if self.latencies is not None:
+            self.latencies.append(time.monotonic() - reading.host_time)
         # The statistics travel with the next batch of rows: a restart resumes them.
         self.store.stage_state("escalation", esc.snapshot())
         if self.bus:
@@ -581,6 +601,7 @@ class Daemon:
     def summary(self) -> dict:
         out = {"ticks": self.ticks, "t_test_failures": self.failures, "refused_commands": self.faults_refused,
                "driver_faults": self.driver_faults, "uncorrected_commands": self.uncorrected,
+               "stale_measurements": self.stale_measurements,
                "state": self.escalator.state, "halt_reason": self.escalator.halt_reason,
                "maintenance_requests": len(self.requests), "requests_delivered": len(self.delivered),
                "store": str(self.store.path)}
@@ -609,7 +630,7 @@ def run_daemon(config: str | Path, duration_s: float | None = None) -> dict:
     SIGTERM/SIGINT, stop within `stop_timeout_s` whatever a device does."""
     config = Path(config)
     cfg = load_runtime_config(config)
-    d = Daemon(cfg, config.parent)
+    d = Daemon(cfg, config.parent, source=str(config))
     deadline: list[threading.Timer] = []
 
     def on_signal(signum: int, _frame: Any) -> None:

@@ -21,6 +21,7 @@ from dt_runtime.service.correction import Limits
 from dt_runtime.service.escalation import EscalationConfig
 
 Vec3 = tuple[float, float, float]
+KINDS = registry.KINDS
 
 
 def _finite(name: str, *values: float) -> None:
@@ -76,28 +77,67 @@ class SimSection(Frozen):
     faults: list[Fault] = []
 
 
+class DriverChoice(Frozen):
+    """One driver: `kind`, its name among the installed drivers (drivers.registry: entry points),
+    and its own options, checked against the driver's `config_model` (`Drivers.check`)."""
+
+    kind: str = Field(min_length=1)
+    options: dict[str, Any] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _short(cls, value: Any) -> Any:
+        """`robot: sim` is `{kind: sim}`; in `robot: {kind: serial, url: ...}` every key but
+        `kind` is the driver's option."""
+        if isinstance(value, str):
+            return {"kind": value}
+        if isinstance(value, dict) and "options" not in value:
+            options = {k: v for k, v in value.items() if k != "kind"}
+            return {"options": options, **({"kind": value["kind"]} if "kind" in value else {})}
+        return value
+
+
 class Drivers(Frozen):
-    """Which driver of each kind (drivers.registry names) and the config each one is given."""
+    """Which driver of each kind, each with its options, e.g.::
 
-    robot: str = "sim"
-    tracker: str = "sim"
-    camera: str = "sim_images"
-    robot_config: dict[str, Any] = {}  # e.g. {url: /dev/ttyUSB0} for robot: serial
-    tracker_config: dict[str, Any] = {}
-    camera_config: dict[str, Any] = {}  # e.g. {render: {...}} for camera: sim_images
+        drivers:
+          robot: {kind: serial, url: /dev/ttyUSB0, timeout_s: 2.0}
+          tracker: {kind: serial, url: socket://tracker:4000}
+          camera: {kind: sim_images, render: {spurious_blobs: 2}}
 
-    @model_validator(mode="after")
-    def _known(self) -> Drivers:
-        # Checked with the config, so an unknown driver stops the start before anything is opened.
-        for kind in ("robot", "tracker", "camera"):
-            name = getattr(self, kind)
-            if name not in registry.known(kind):
-                raise ValueError(f"{kind} driver {name!r} is not known; known: {', '.join(registry.known(kind))}")
-        return self
+    (`robot: sim` is short for `robot: {kind: sim}`). The earlier form `robot: serial` with
+    `robot_config: {url: ...}` is still read (and means the same)."""
+
+    robot: DriverChoice = DriverChoice(kind="sim")
+    tracker: DriverChoice = DriverChoice(kind="sim")
+    camera: DriverChoice = DriverChoice(kind="sim_images")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _forms(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        for kind in KINDS:
+            legacy = data.pop(f"{kind}_config", None)
+            if legacy is None:
+                continue
+            choice = data.get(kind, cls.model_fields[kind].default.kind)
+            if not isinstance(legacy, dict) or not isinstance(choice, str):
+                raise ValueError(f"{kind}_config (the earlier form) goes with `{kind}: NAME` only; "
+                                 f"write `{kind}: {{kind: NAME, key: value, ...}}`")
+            data[kind] = {"kind": choice, "options": legacy}
+        return data
 
     def chosen(self) -> list[tuple[str, str, dict[str, Any]]]:
-        """(kind, name, config) of the three drivers."""
-        return [(k, getattr(self, k), getattr(self, f"{k}_config")) for k in ("robot", "tracker", "camera")]
+        """(kind, name, options) of the three drivers."""
+        return [(k, c.kind, c.options) for k, c in ((k, getattr(self, k)) for k in KINDS)]
+
+    def check(self, source: str) -> None:
+        """ConfigError naming `source` and the key (`drivers.tracker.url`) unless every driver is
+        installed, loads, and takes its options (drivers.registry.check): before anything opens."""
+        for kind, name, options in self.chosen():
+            registry.check(kind, name, options, source=source, key=f"drivers.{kind}")
 
 
 class HaltConfig(Frozen):
@@ -132,6 +172,10 @@ class RuntimeConfig(Frozen):
     # SIGTERM -> exit within this time even with a silent device (the move is aborted, the
     # store flushed, the bus closed; past it the process exits hard: committed rows are safe).
     stop_timeout_s: float = Field(8.0, gt=0, le=60)
+    # A measurement received (host clock) longer than this before the command arrived (the move
+    # returned) saw the arm elsewhere: refused, not tested (a streaming driver's last frame from
+    # before the move, a stalled stream). A polled driver's reading comes after the arrival.
+    max_measurement_age_s: float = Field(0.25, gt=0, le=10)
     drivers: Drivers = Drivers()
     sim: SimSection = SimSection()
     path: PathConfig = PathConfig()
@@ -164,8 +208,11 @@ class RuntimeConfig(Frozen):
 
 
 def load_runtime_config(path: str | Path) -> RuntimeConfig:
-    return load_yaml(path, RuntimeConfig)
+    """The runtime YAML, every driver's options checked too (`Drivers.check`)."""
+    cfg = load_yaml(path, RuntimeConfig)
+    cfg.drivers.check(str(path))
+    return cfg
 
 
-__all__ = ["Drivers", "Fault", "HaltConfig", "PathConfig", "RetentionConfig", "RuntimeConfig",
+__all__ = ["DriverChoice", "Drivers", "Fault", "HaltConfig", "PathConfig", "RetentionConfig", "RuntimeConfig",
            "SimSection", "load_runtime_config"]
