@@ -22,7 +22,8 @@ from dt_kernel.errors import ConfigError
 
 # name -> "module:Class"; imported lazily so a missing optional part fails only when chosen.
 _REGISTRY: dict[str, dict[str, str]] = {
-    "robot": {"sim": "drivers.simulated.devices:SimRobot", "serial": "drivers.serial.controller:SerialController"},
+    "robot": {"sim": "drivers.simulated.devices:SimRobot", "serial": "drivers.serial.controller:SerialController",
+              "ur_rtde": "drivers.ur.driver:UrRtdeController"},
     "tracker": {"sim": "drivers.simulated.devices:SimTracker", "serial": "drivers.serial.tracker:SerialTracker"},
     "camera": {"sim_point": "drivers.simulated.devices:SimPointCamera",
                "sim_images": "drivers.simulated.camera_images:SimCameraRig"},

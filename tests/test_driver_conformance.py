@@ -68,6 +68,21 @@ def serial_robot_sim_plant_over_socket():
 
 
 @contextlib.contextmanager
+def ur_rtde_sim_plant():
+    # A Universal Robots controller emulated on loopback (RTDE + script port) over the simulated plant.
+    from drivers.ur.driver import UrRtdeController
+    from drivers.ur.emulator import UrEmulator
+
+    with _sim_world() as world, UrEmulator(world.cell.plant, "127.0.0.1", 0, 0, time_scale=0.25) as emu:
+        drv = UrRtdeController()
+        try:
+            yield drv, {"host": "127.0.0.1", "rtde_port": emu.rtde_port, "script_port": emu.script_port,
+                        "timeout_s": 2.0, "move_timeout_s": 10.0}
+        finally:
+            drv.close()
+
+
+@contextlib.contextmanager
 def sim_tracker():
     from drivers.simulated.devices import SimTracker
 
@@ -94,6 +109,7 @@ DRIVER_FACTORIES = [
     ("sim", sim_robot),
     ("serial-pty-fakeplant", serial_robot_fake_plant),
     ("serial-socket-simplant", serial_robot_sim_plant_over_socket),
+    ("ur-rtde-simplant", ur_rtde_sim_plant),
 ]
 TRACKER_FACTORIES = [
     ("sim", sim_tracker),

@@ -105,3 +105,164 @@ def test_anything_else_is_a_script_error(bad):
 def test_non_finite_numbers_are_never_written():
     with pytest.raises(urscript.ScriptError):
         urscript.movel([float("nan"), 0, 0, 0, 0, 0], 1.2, 0.1)
+
+
+# --- the driver against the emulator over the simulated plant ---------------------------
+SCENARIO, CELL = "configs/scenarios/paper_default.yaml", "configs/cell.yaml"
+TIME_SCALE = 0.25  # the emulated arm moves 4x faster than the profile (tests stay short)
+
+
+@pytest.fixture
+def world():
+    from pathlib import Path
+
+    from drivers.simulated.devices import SimWorld
+
+    root = Path(__file__).resolve().parents[1]
+    w = SimWorld(root / SCENARIO, root / CELL, seed=11)
+    yield w
+    w.close()
+
+
+@pytest.fixture
+def emu(world):
+    from drivers.ur.emulator import UrEmulator
+
+    e = UrEmulator(world.cell.plant, "127.0.0.1", 0, 0, time_scale=TIME_SCALE)
+    yield e
+    e.stop()
+
+
+def ur_config(emu, **over):
+    return {"host": "127.0.0.1", "rtde_port": emu.rtde_port, "script_port": emu.script_port,
+            "frequency_hz": 125.0, "timeout_s": 2.0, "move_timeout_s": 10.0, **over}
+
+
+@pytest.fixture
+def drv(emu):
+    from drivers import registry
+
+    d = registry.create("robot", "ur_rtde", ur_config(emu), source="<test>")
+    d.activate()
+    yield d
+    d.close()
+
+
+def test_activate_negotiates_and_reads_the_plant(drv, world):
+    st = drv.status()
+    assert st["controller_version"] == (5, 11, 0, 0) and st["connects"] == 1
+    assert (st["robot_mode"], st["safety_mode"], st["runtime_state"]) == ("RUNNING", "NORMAL", "STOPPED")
+    js = drv.read_joint_state()
+    assert np.array_equal(js.q, world.cell.plant.joint_angles())  # doubles on the wire: bit-exact
+    assert np.array_equal(drv.read_commanded_tcp(), world.cell.plant.controller_tcp())
+    pose = drv.read_sample().values["actual_TCP_pose"]
+    assert np.allclose(pose[3:], [0.0, np.pi / 2, 0.0], atol=1e-9)  # tool-down as a rotation vector
+
+
+def test_every_reading_carries_device_and_host_times_both_increasing(drv):
+    import time
+
+    readings = []
+    for _ in range(5):
+        readings.append(drv.read_joint_state())
+        time.sleep(0.03)
+    t_dev = [r.t for r in readings]
+    t_host = [r.t_host for r in readings]
+    assert all(b > a for a, b in zip(t_dev, t_dev[1:])) and all(b > a for a, b in zip(t_host, t_host[1:]))
+    # the device's clock is not the host's: the controller counts from its own start
+    assert abs(t_dev[0] - t_host[0]) > 1.0
+
+
+def test_movel_arrives_at_the_commanded_position_with_the_plant_s_error(drv, emu, world):
+    p0 = drv.read_commanded_tcp()
+    target = p0 + np.array([0.03, -0.02, -0.05])
+    drv.move_linear(target, 0.2)
+    assert np.allclose(drv.read_commanded_tcp(), target, atol=1e-6)  # controller resolution 1 um
+    assert np.allclose(world.cell.plant.controller_tcp(), target, atol=1e-6)
+    err = np.linalg.norm(world.truth_tcp() - target)  # the plant's real error effects, as an instrument sees them
+    assert 1e-6 < err < 5e-3
+    assert emu.stats["movel"] == 1 and emu.stats["moves_done"] == 1 and drv.stats["moves_arrived"] == 1
+    assert drv.status()["runtime_state"] == "STOPPED"
+
+
+def test_the_stream_shows_the_arm_moving_before_it_arrives(drv, emu):
+    import threading
+
+    seen = []
+    stop = threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            s = drv.read_sample()
+            seen.append((s.values["runtime_state"], np.linalg.norm(s.values["actual_TCP_speed"][:3])))
+            stop.wait(0.01)
+
+    th = threading.Thread(target=watch)
+    th.start()
+    try:
+        drv.move_linear(drv.read_commanded_tcp() + np.array([0.0, 0.1, 0.0]), 0.25)
+    finally:
+        stop.set()
+        th.join()
+    assert any(rs == rp.RUNTIME_PLAYING and v > 0.05 for rs, v in seen)  # moving, program playing
+    assert max(v for _, v in seen) <= 0.25 + 1e-9  # never faster than commanded
+
+
+def test_an_unknown_recipe_field_is_a_config_error_naming_it(emu):
+    from drivers.ur.driver import UrRtdeController
+    from dt_kernel.errors import ConfigError
+
+    d = UrRtdeController.from_config(ur_config(emu, extra_outputs=["actual_q", "actual_TCP_pos"]), source="robot.yaml")
+    with pytest.raises(ConfigError, match="actual_TCP_pos.*NOT_FOUND") as ei:
+        d.activate()
+    assert ei.value.value == "actual_TCP_pos" and ei.value.file == "robot.yaml"
+    assert d.state == "inactive"
+    d.close()
+
+
+def test_known_extra_outputs_are_recorded(emu):
+    from drivers.ur.driver import UrRtdeController
+
+    d = UrRtdeController.from_config(ur_config(emu, extra_outputs=["output_int_register_2", "speed_scaling"]))
+    d.activate()
+    try:
+        v = d.read_sample().values
+        assert v["output_int_register_2"] == 0 and v["speed_scaling"] == 1.0
+    finally:
+        d.close()
+
+
+def test_a_script_the_controller_refuses_is_a_driver_error_naming_its_reason(emu, world):
+    from drivers.ur.driver import UrRtdeController
+    from dt_kernel.errors import DriverError
+
+    d = UrRtdeController.from_config(ur_config(emu, tool_rotvec=[0.0, 0.0, 0.0]))
+    d.activate()
+    try:
+        p0 = world.cell.plant.controller_tcp()
+        with pytest.raises(DriverError, match="refused the move.*orientation"):
+            d.move_linear(p0 + np.array([0.01, 0.0, 0.0]), 0.1)
+        assert np.array_equal(world.cell.plant.controller_tcp(), p0)  # nothing moved
+    finally:
+        d.close()
+
+
+def test_config_errors_name_the_key():
+    from drivers.ur.driver import UrRtdeController
+    from dt_kernel.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="frequency_hz"):
+        UrRtdeController.from_config({"host": "127.0.0.1", "frequency_hz": 1000})
+    with pytest.raises(ConfigError, match="url"):
+        UrRtdeController.from_config({"host": "127.0.0.1", "url": "/dev/ttyUSB0"})
+
+
+def test_no_controller_is_a_driver_error_on_activate():
+    from drivers.ur.driver import UrRtdeController
+    from dt_kernel.errors import DriverError
+    from tests.loopback import free_port
+
+    d = UrRtdeController.from_config({"host": "127.0.0.1", "rtde_port": free_port(), "timeout_s": 0.5})
+    with pytest.raises(DriverError, match="cannot connect"):
+        d.activate()
+    assert d.state == "inactive"
