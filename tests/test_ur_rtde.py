@@ -266,3 +266,79 @@ def test_no_controller_is_a_driver_error_on_activate():
     with pytest.raises(DriverError, match="cannot connect"):
         d.activate()
     assert d.state == "inactive"
+
+
+# --- faults through the real protocols --------------------------------------------------
+def test_rtde_dropped_while_idle_is_detected_and_restored(drv, emu):
+    from tests.loopback import wait_until
+
+    emu.inject_drop(after_packages=0)  # the emulator closes the connection at its next package
+    assert wait_until(lambda: drv.link.stats["drops"] == 1 and drv.link.stats["connects"] == 2, 10.0)
+    assert emu.stats["drops"] == 1 and emu.stats["rtde_connections"] == 2
+    t0 = drv.read_joint_state().t
+    assert wait_until(lambda: drv.read_joint_state().t > t0, 5.0)  # streaming again
+    assert "closed the connection" in drv.link.last_error
+
+
+def test_rtde_dropped_during_a_move_the_move_is_not_repeated(drv, emu, world):
+    p0 = drv.read_commanded_tcp()
+    target = p0 + np.array([0.15, 0.0, 0.0])  # ~0.4 s of wall time at 0.1 m/s and TIME_SCALE
+    emu.inject_drop(after_packages=5)  # ~40 ms into the move
+    drv.move_linear(target, 0.1)
+    assert drv.link.stats["drops"] == 1 and drv.link.stats["connects"] == 2  # detected and restored mid-move
+    assert np.allclose(drv.read_commanded_tcp(), target, atol=1e-6)
+    # sent once, executed once: nothing moved twice
+    assert emu.stats["scripts"] == 1 and emu.stats["movel"] == 1 and emu.stats["moves_done"] == 1
+    assert drv.stats == {"moves_sent": 1, "moves_arrived": 1, "refused": 0}
+
+
+def test_protective_stop_during_a_move_is_reported_and_nothing_moves_again(drv, emu, world):
+    from dt_kernel.errors import DriverError
+
+    p0 = drv.read_commanded_tcp()
+    target = p0 + np.array([0.0, 0.1, 0.0])
+    emu.inject_protective_stop()
+    with pytest.raises(DriverError, match="protective stop during movel") as ei:
+        drv.move_linear(target, 0.2)
+    assert "not re-sent" in str(ei.value)
+    half = p0 + 0.5 * (target - p0)  # the emulator stops the arm half way
+    assert np.allclose(drv.read_commanded_tcp(), half, atol=1e-6)
+    assert np.allclose(world.cell.plant.controller_tcp(), half, atol=1e-6)  # the plant stopped there too
+    assert drv.status()["safety_mode"] == "PROTECTIVE_STOP"
+    truth = world.truth_tcp()
+    # a second move is refused by the driver before anything is sent ...
+    with pytest.raises(DriverError, match="PROTECTIVE_STOP"):
+        drv.move_linear(target, 0.2)
+    assert emu.stats["scripts"] == 1 and emu.stats["movel"] == 1 and drv.stats["refused"] == 1
+    # ... and a program sent anyway is refused by the controller
+    emu.run_program(f"movel(p[{target[0]},{target[1]},{target[2]},0,1.570796327,0], a=1.2, v=0.2)\n")
+    assert emu.stats["script_errors"] == 1
+    assert np.array_equal(world.truth_tcp(), truth)  # the arm did not move again
+    # the operator clears it (the dashboard's "unlock protective stop"); then moves work
+    from tests.loopback import wait_until
+
+    emu.unlock_protective_stop()
+    assert wait_until(lambda: drv.status()["safety_mode"] == "NORMAL", 5.0)
+    drv.move_linear(target, 0.2)
+    assert np.allclose(drv.read_commanded_tcp(), target, atol=1e-6)
+
+
+def test_abort_during_a_move_stops_the_arm_short_of_the_target(drv, emu):
+    import threading
+
+    from dt_kernel.errors import DriverError
+
+    p0 = drv.read_commanded_tcp()
+    target = p0 + np.array([0.0, 0.0, -0.2])  # ~0.55 s of wall time
+    threading.Timer(0.15, drv.abort, args=("operator stop",)).start()
+    with pytest.raises(DriverError, match="abort"):
+        drv.move_linear(target, 0.1)
+    from tests.loopback import wait_until
+
+    assert wait_until(lambda: drv.status()["runtime_state"] == "STOPPED", 5.0)
+    here = drv.read_commanded_tcp()
+    assert emu.stats["scripts"] == 2 and emu.stats["stops"] == 1  # movel, then the driver's stopl halted it
+    assert 1e-3 < np.linalg.norm(here - p0) and np.linalg.norm(here - target) > 1e-3  # stopped part-way
+    drv.clear_abort()
+    drv.move_linear(target, 0.2)
+    assert np.allclose(drv.read_commanded_tcp(), target, atol=1e-6)

@@ -284,13 +284,13 @@ class UrEmulator:
             for c in cmds:
                 if c.kind in self.stats:
                     self.stats[c.kind] += 1
+            now = time.monotonic()
+            if self._motion is not None and self._motion.done(now):
+                self._finish(self._motion)  # first: a motion that ended in a protective stop sets it
             if self._safety == rp.SAFETY_PROTECTIVE_STOP:
                 self.stats["script_errors"] += 1
                 self._error("program not started: the robot is in protective stop")
                 return
-            now = time.monotonic()
-            if self._motion is not None and self._motion.done(now):
-                self._finish(self._motion)
             self._halt(now)  # a new program replaces the running one
             self._program = cmds
 
