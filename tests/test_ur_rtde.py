@@ -342,3 +342,94 @@ def test_abort_during_a_move_stops_the_arm_short_of_the_target(drv, emu):
     drv.clear_abort()
     drv.move_linear(target, 0.2)
     assert np.allclose(drv.read_commanded_tcp(), target, atol=1e-6)
+
+
+# --- a third-party RTDE client against our emulator -------------------------------------
+def _loopback_with_rtde_port_free(port: int = 30004) -> str:
+    """A loopback address whose port 30004 is free: `ur_rtde`'s receive interface always connects
+    to 30004, and other work on this machine may hold 127.0.0.1:30004. Seeded order."""
+    import random
+    import socket
+
+    rng = random.Random(14)
+    for last in rng.sample(range(2, 255), 40):
+        host = f"127.0.0.{last}"
+        try:
+            with socket.create_server((host, port)):
+                return host
+        except OSError:
+            continue
+    pytest.skip(f"no loopback address with port {port} free")
+
+
+@pytest.fixture
+def emulator_process():
+    """The emulator in its own process (`python -m drivers.ur.emulator`, the documented command):
+    ur_rtde's constructor blocks holding the GIL, so an emulator thread in the test process would
+    never answer it."""
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from tests.loopback import free_port, wait_until
+
+    host, script_port = _loopback_with_rtde_port_free(), free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "drivers.ur.emulator", "--host", host, "--port", "30004",
+                             "--script-port", str(script_port), "--seed", "3", "--time-scale", "0.25"],
+                            cwd=Path(__file__).resolve().parents[1], stderr=subprocess.PIPE, text=True)
+
+    def serving() -> bool:
+        import socket
+
+        try:
+            socket.create_connection((host, script_port), timeout=0.5).close()
+            return True
+        except OSError:
+            return False
+
+    try:
+        assert wait_until(lambda: serving() or proc.poll() is not None, 60.0) and proc.poll() is None, \
+            proc.stderr.read() if proc.poll() is not None else "emulator did not start"
+        yield host, script_port
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def test_ur_rtde_receive_client_reads_our_emulator(emulator_process):
+    rtde_receive = pytest.importorskip(
+        "rtde_receive", reason="the third-party RTDE client `ur_rtde` is not installed (pip install ur_rtde)")
+    from drivers.ur.driver import UrRtdeController
+
+    host, script_port = emulator_process
+    ours = UrRtdeController.from_config({"host": host, "rtde_port": 30004, "script_port": script_port,
+                                         "move_timeout_s": 20.0})
+    ours.activate()  # first: ur_rtde's constructor would wait forever on a silent server
+    try:
+        theirs = rtde_receive.RTDEReceiveInterface(
+            host, 125.0, ["timestamp", "actual_q", "actual_TCP_pose", "robot_mode", "safety_mode", "runtime_state"])
+        try:
+            assert theirs.isConnected()
+            # at rest, both clients decode the same joints and pose from the same controller
+            assert np.array_equal(theirs.getActualQ(), ours.read_joint_state().q)
+            assert np.array_equal(theirs.getActualTCPPose(), ours.read_sample().values["actual_TCP_pose"])
+            assert np.allclose(theirs.getActualTCPPose()[:3], [0.9, 0.0, 0.7], atol=1e-6)  # the plant's home
+            assert (theirs.getRobotMode(), theirs.getSafetyMode()) == (rp.ROBOT_MODE_RUNNING, rp.SAFETY_NORMAL)
+            # after a move of ours, they read where the arm went
+            target = np.array([0.85, 0.05, 0.62])
+            ours.move_linear(target, 0.25)
+            from tests.loopback import wait_until
+
+            assert wait_until(lambda: np.allclose(theirs.getActualTCPPose()[:3], target, atol=1e-6), 5.0)
+            assert np.array_equal(theirs.getActualQ(), ours.read_joint_state().q)
+            t0 = theirs.getTimestamp()
+            assert wait_until(lambda: theirs.getTimestamp() > t0, 5.0)  # the device clock runs on
+        finally:
+            theirs.disconnect()
+    finally:
+        ours.close()

@@ -395,7 +395,7 @@ class UrEmulator:
             ses.recipe, ses.freq = rp.Recipe(1, tuple(names), tuple(types)), freq
             return rp.setup_reply(ptype, 1, types)
         if ptype == rp.SETUP_INPUTS:
-            names = payload.decode("ascii", "replace").split(",")
+            names = rp.split_names(payload)
             return rp.setup_reply(ptype, 0, [rp.NOT_FOUND] * len(names))
         if ptype == rp.START:
             ses.started = ses.recipe is not None

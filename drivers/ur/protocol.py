@@ -196,7 +196,14 @@ def parse_setup_outputs_request(payload: bytes) -> tuple[float, list[str]]:
     if len(payload) < 9:
         raise ProtocolError("RTDE SETUP_OUTPUTS: expected a double frequency and at least one name")
     (freq,) = struct.unpack_from(">d", payload)
-    return freq, payload[8:].decode("ascii", "replace").split(",")
+    return freq, split_names(payload[8:])
+
+
+def split_names(raw: bytes) -> list[str]:
+    """Comma-separated variable names; a trailing comma is tolerated, as the controller does
+    (the `ur_rtde` client ends its list with one)."""
+    names = raw.decode("ascii", "replace").split(",")
+    return names[:-1] if len(names) > 1 and names[-1] == "" else names
 
 
 def setup_reply(ptype: int, recipe_id: int, types: Sequence[str]) -> bytes:
