@@ -48,7 +48,8 @@ GROUP_PREFIX = "cobot_dt.drivers."
 PROJECT = "cobot-dt"  # the distribution whose entry points BUILTIN mirrors
 
 BUILTIN: dict[str, dict[str, str]] = {
-    "robot": {"sim": "drivers.simulated.devices:SimRobot", "serial": "drivers.serial.controller:SerialController"},
+    "robot": {"sim": "drivers.simulated.devices:SimRobot", "serial": "drivers.serial.controller:SerialController",
+              "ur_rtde": "drivers.ur.driver:UrRtdeController"},
     "tracker": {"sim": "drivers.simulated.devices:SimTracker", "serial": "drivers.serial.tracker:SerialTracker"},
     "camera": {"sim_point": "drivers.simulated.devices:SimPointCamera",
                "sim_images": "drivers.simulated.camera_images:SimCameraRig"},

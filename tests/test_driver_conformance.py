@@ -79,6 +79,20 @@ def serial_robot_sim_plant_over_socket():
 
 
 @contextlib.contextmanager
+def ur_rtde_sim_plant():
+    # A Universal Robots controller emulated on loopback (RTDE + script port) over the simulated plant.
+    from drivers.ur.driver import UrRtdeController
+    from drivers.ur.emulator import UrEmulator
+
+    with _sim_world() as world, UrEmulator(world.cell.plant, "127.0.0.1", 0, 0, time_scale=0.25) as emu:
+        drv = UrRtdeController()
+        try:
+            yield drv, {"host": "127.0.0.1", "rtde_port": emu.rtde_port, "script_port": emu.script_port,
+                        "timeout_s": 2.0, "move_timeout_s": 10.0}
+        finally:
+            drv.close()
+
+
 def serial_tracker_fake():
     rng = np.random.default_rng(5)
 
@@ -98,6 +112,7 @@ FIXTURES: dict[tuple[str, str], list[tuple[str, Factory]]] = {
     ("robot", "sim"): [("sim", on_world("robot", "sim"))],
     ("robot", "serial"): [("pty-fakeplant", serial_robot_fake_plant),
                           ("socket-simplant", serial_robot_sim_plant_over_socket)],
+    ("robot", "ur_rtde"): [("simplant", ur_rtde_sim_plant)],
     ("tracker", "sim"): [("sim", on_world("tracker", "sim"))],
     ("tracker", "serial"): [("pty", serial_tracker_fake)],
     ("camera", "sim_point"): [("sim", on_world("camera", "sim_point"))],

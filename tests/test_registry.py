@@ -34,7 +34,12 @@ def world():
 @contextlib.contextmanager
 def context(kind: str, name: str):
     """(world or None, the config the driver takes) for one registered driver."""
-    if not registry.needs_world(kind, name):
+    if (kind, name) == ("robot", "ur_rtde"):  # a UR emulated on loopback over the simulated plant
+        from drivers.ur.emulator import UrEmulator
+
+        with world() as w, UrEmulator(w.cell.plant, "127.0.0.1", 0, 0, time_scale=0.25) as ur:
+            yield None, {"host": "127.0.0.1", "rtde_port": ur.rtde_port, "script_port": ur.script_port}
+    elif not registry.needs_world(kind, name):
         emu = ControllerEmulator(FakePlant()) if kind == "robot" else TrackerEmulator(lambda: (2.0, 0.3, -0.1, "ok"))
         with emu:
             yield None, {"url": emu.port, "timeout_s": 0.5, "retries": 2}

@@ -1,0 +1,253 @@
+"""Universal Robots controller: state over RTDE, moves as URScript on the script port.
+
+`UrRtdeController` (registry name `ur_rtde`) implements `drivers.base.RobotController`:
+
+* `activate` connects RTDE (`rtde_port`), negotiates protocol version 2, sets up the output
+  recipe (`OUTPUTS` + `extra_outputs`) at `frequency_hz` and starts the stream; an output the
+  controller does not know (NOT_FOUND) is a ConfigError naming it. A reader thread keeps the
+  newest package and reconnects when the connection drops or goes quiet (`rtde_link`).
+* `move_linear(target, speed)` refuses unless the robot is RUNNING in a NORMAL or REDUCED safety
+  mode, sends one `movel(p[x,y,z,rx,ry,rz], a, v)` to `script_port` (the orientation is the
+  current one, or `tool_rotvec`) and waits on the RTDE stream for arrival: TCP within
+  `arrival_tol_m` of the target, TCP speed below `still_m_s` and the program no longer PLAYING.
+  A protective stop (or any other safety stop) during the move, a script error the controller
+  reports, or no arrival within `move_timeout_s` is a DriverError naming it. A move is sent once
+  and never re-sent: after a dropped RTDE connection the driver waits for the stream to come
+  back and judges arrival from it ("nothing moved twice"). `abort()` ends the wait and sends
+  `stopl`.
+* `read_joint_state` / `read_commanded_tcp` / `read_sample` return the newest package (at most
+  `stale_after_s` old; the call waits up to `timeout_s` for a fresh one): `actual_q`, and
+  `actual_TCP_pose[:3]` (the controller's TCP from its encoders and nominal kinematics, m).
+  `JointState.t` is the controller's `timestamp`; `JointState.host_time` the host's receive time.
+* `stream_setpoint` is `move_linear` (a UR streams set-points with servoj over RTDE inputs:
+  not done yet).
+
+Config keys (validated once into `UrConfig`; errors name key, value and what is allowed):
+`host` (required), `rtde_port` (30004), `script_port` (30002), `frequency_hz` (125, at most 500),
+`timeout_s` (2: connect, each setup reply, waiting for a fresh package), `stale_after_s` (0.5: a
+stream quiet this long is treated as lost), `reconnect_interval_s` (0.2), `move_timeout_s` (60),
+`arrival_tol_m` (1e-4), `still_m_s` (1e-3), `acceleration_m_s2` (1.2, movel's `a`),
+`tool_rotvec` (null: keep the current orientation), `extra_outputs` ([]: more RTDE outputs to
+record), `limits` {`tcp_abs_m` 3.0, `max_speed_m_s` 1.0}.
+"""
+from __future__ import annotations
+
+import math
+import socket
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from drivers.base import Abortable, JointState, Lifecycle
+from drivers.ur import protocol as rp
+from drivers.ur import urscript
+from drivers.ur.rtde_link import RtdeLink, RtdeSample
+from dt_kernel.config import Frozen, validate
+from dt_kernel.errors import DriverError, StateError
+
+# What the driver needs from every package (the guide's names).
+OUTPUTS = ("timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_speed", "target_TCP_pose",
+           "robot_mode", "safety_mode", "runtime_state")
+_MOVABLE_SAFETY = (rp.SAFETY_NORMAL, rp.SAFETY_REDUCED)
+
+
+class UrLimits(Frozen):
+    tcp_abs_m: float = Field(3.0, gt=0)
+    max_speed_m_s: float = Field(1.0, gt=0, le=5.0)
+
+
+class UrConfig(Frozen):
+    host: str = Field(min_length=1)
+    rtde_port: int = Field(30004, ge=1, le=65535)
+    script_port: int = Field(30002, ge=1, le=65535)
+    frequency_hz: float = Field(125.0, gt=0, le=rp.MAX_FREQUENCY_HZ)
+    timeout_s: float = Field(2.0, gt=0, le=60)
+    stale_after_s: float = Field(0.5, gt=0, le=60)
+    reconnect_interval_s: float = Field(0.2, gt=0, le=60)
+    move_timeout_s: float = Field(60.0, gt=0, le=3600)
+    arrival_tol_m: float = Field(1e-4, gt=0, le=0.01)
+    still_m_s: float = Field(1e-3, gt=0, le=0.1)
+    acceleration_m_s2: float = Field(1.2, gt=0, le=20)
+    tool_rotvec: tuple[float, float, float] | None = None
+    extra_outputs: tuple[str, ...] = ()
+    limits: UrLimits = UrLimits()
+
+
+@dataclass(frozen=True)
+class UrRtdeController(Abortable, Lifecycle):
+    """RobotController for a Universal Robots arm (see the module docstring)."""
+
+    name = "UR controller"
+    config_model = UrConfig
+
+    def __init__(self, *, world: Any = None, source: str | None = None):  # world: unused (a real cell)
+        self._source = source or "<ur_rtde robot config>"
+        self.cfg: UrConfig | None = None
+        self.link: RtdeLink | None = None
+        self.stats = {"moves_sent": 0, "moves_arrived": 0, "refused": 0}
+
+    # --- lifecycle hooks ----------------------------------------------------------------
+    def _on_configure(self, config: dict[str, Any]) -> None:
+        self.cfg = validate(UrConfig, config, self._source)
+
+    def _on_activate(self) -> None:
+        cfg = self._cfg
+        names = OUTPUTS + tuple(n for n in cfg.extra_outputs if n not in OUTPUTS)
+        self.link = RtdeLink(cfg.host, cfg.rtde_port, names, cfg.frequency_hz, timeout_s=cfg.timeout_s,
+                             stale_after_s=cfg.stale_after_s, reconnect_interval_s=cfg.reconnect_interval_s,
+                             source=self._source)
+        self.link.open()
+
+    def _on_deactivate(self) -> None:
+        if self.link is not None:
+            self.link.close()
+
+    def _on_close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+
+    @property
+    def _cfg(self) -> UrConfig:
+        if self.cfg is None:
+            raise StateError(f"{self.name}: used before configure()")
+        return self.cfg
+
+    @property
+    def _link(self) -> RtdeLink:
+        if self.link is None:
+            raise StateError(f"{self.name}: used before activate()")
+        return self.link
+
+    # --- reading ------------------------------------------------------------------------
+    def read_sample(self) -> RtdeSample:
+        """The newest data package, at most `stale_after_s` old (waits up to `timeout_s`)."""
+        self._require("active")
+        cfg, link = self._cfg, self._link
+        deadline = time.monotonic() + cfg.timeout_s
+        with link.cond:
+            while True:
+                s = link.latest
+                if s is not None and time.monotonic() - s.t_host <= cfg.stale_after_s:
+                    return s
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    age = "none received" if s is None else f"the last {time.monotonic() - s.t_host:.2f} s ago"
+                    state = "connected" if link.connected else f"reconnecting; last error: {link.last_error}"
+                    raise DriverError(f"{link.where}: no fresh RTDE data package ({age}; {state})")
+                link.cond.wait(min(left, 0.05))
+
+    def read_joint_state(self) -> JointState:
+        s = self.read_sample()
+        return JointState(q=np.array(s.values["actual_q"], dtype=float), t=s.t_device, host_time=s.t_host)
+
+    def read_commanded_tcp(self) -> np.ndarray:
+        return np.array(self.read_sample().values["actual_TCP_pose"][:3], dtype=float)
+
+    def status(self) -> dict[str, Any]:
+        """Robot, safety and program state by name, the link's counters and the last error."""
+        s = self.read_sample()
+        return {"robot_mode": rp.ROBOT_MODES.get(s.values["robot_mode"], str(s.values["robot_mode"])),
+                "safety_mode": rp.SAFETY_MODES.get(s.values["safety_mode"], str(s.values["safety_mode"])),
+                "runtime_state": rp.RUNTIME_STATES.get(s.values["runtime_state"], str(s.values["runtime_state"])),
+                "controller_version": self._link.controller_version, **self._link.stats, **self.stats,
+                "last_error": self._link.last_error}
+
+    # --- moving -------------------------------------------------------------------------
+    def _check_move(self, target: Any, speed: Any) -> tuple[np.ndarray, float]:
+        lim = self._cfg.limits
+        target = np.asarray(target, dtype=float)
+        if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(np.abs(target) > lim.tcp_abs_m):
+            raise DriverError(f"invalid move target {target!r}: need 3 finite coordinates within ±{lim.tcp_abs_m} m")
+        speed = float(speed)
+        if not (math.isfinite(speed) and 0.0 < speed <= lim.max_speed_m_s):
+            raise DriverError(f"invalid speed {speed!r}: need 0 < speed <= {lim.max_speed_m_s} m/s")
+        return target, speed
+
+    def _movable(self, s: RtdeSample) -> None:
+        mode, safety = s.values["robot_mode"], s.values["safety_mode"]
+        if safety not in _MOVABLE_SAFETY:
+            self.stats["refused"] += 1
+            raise DriverError(f"{self.name}: not moving: safety mode {rp.SAFETY_MODES.get(safety, safety)} "
+                              "(a protective stop is cleared on the pendant or the dashboard server)")
+        if mode != rp.ROBOT_MODE_RUNNING:
+            self.stats["refused"] += 1
+            raise DriverError(f"{self.name}: not moving: robot mode {rp.ROBOT_MODES.get(mode, mode)}, needs RUNNING")
+
+    def move_linear(self, target: np.ndarray, speed: float) -> None:
+        self._require("active")
+        self._check_abort()
+        target, speed = self._check_move(target, speed)
+        cfg, link = self._cfg, self._link
+        before = self.read_sample()
+        self._movable(before)
+        rot = cfg.tool_rotvec if cfg.tool_rotvec is not None else before.values["actual_TCP_pose"][3:]
+        script = urscript.movel([*target, *rot], cfg.acceleration_m_s2, speed)
+        with link.cond:
+            n_msg, t_sent = link.stats["messages"], time.monotonic()
+        self._send_script(script, "movel")
+        self.stats["moves_sent"] += 1
+        self._await_arrival(target, n_msg, t_sent)
+        self.stats["moves_arrived"] += 1
+
+    stream_setpoint = move_linear
+
+    def _send_script(self, script: str, what: str) -> None:
+        """One program to the script port on a fresh connection; never retried (it may have arrived)."""
+        cfg = self._cfg
+        try:
+            with socket.create_connection((cfg.host, cfg.script_port), timeout=cfg.timeout_s) as sock:
+                sock.sendall(script.encode("ascii"))
+                sock.shutdown(socket.SHUT_WR)
+        except OSError as exc:
+            raise DriverError(f"{self.name} at {cfg.host}:{cfg.script_port}: {what} not sent ({exc}); "
+                              "not retried, since part of it may have arrived") from exc
+
+    def _await_arrival(self, target: np.ndarray, n_msg: int, t_sent: float) -> None:
+        cfg, link = self._cfg, self._link
+        deadline = t_sent + cfg.move_timeout_s
+        last: RtdeSample | None = None
+        with link.cond:
+            while True:
+                if self.abort_event.is_set():
+                    break
+                new = link.stats["messages"] - n_msg
+                errors = [m for m in link.messages[-new:] if m.is_error] if new > 0 else []
+                if errors:
+                    raise DriverError(f"{self.name}: the controller refused the move to {target.tolist()} m: "
+                                      f"{errors[0].source}: {errors[0].message}")
+                s = link.latest
+                if s is not None and s.t_host > t_sent:
+                    last = s
+                    if self._arrived(s, target):
+                        return
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    where = "no package since the move was sent" if last is None else \
+                        f"TCP at {np.round(last.values['actual_TCP_pose'][:3], 6).tolist()} m"
+                    raise DriverError(f"{self.name}: movel to {target.tolist()} m did not arrive within "
+                                      f"{cfg.move_timeout_s} s ({where}); not re-sent")
+                link.cond.wait(min(left, 0.05))
+        # aborted: stop the arm (best effort) outside the lock, then report
+        try:
+            self._send_script(urscript.stopl(max(cfg.acceleration_m_s2, 1.0)), "stopl")
+        except DriverError:
+            pass
+        self._check_abort()
+
+    def _arrived(self, s: RtdeSample, target: np.ndarray) -> bool:
+        v = s.values
+        safety = v["safety_mode"]
+        if safety not in _MOVABLE_SAFETY:
+            name = rp.SAFETY_MODES.get(safety, str(safety))
+            what = "protective stop" if safety == rp.SAFETY_PROTECTIVE_STOP else f"safety stop ({name})"
+            raise DriverError(f"{self.name}: {what} during movel to {target.tolist()} m: the arm stopped at "
+                              f"{np.round(v['actual_TCP_pose'][:3], 6).tolist()} m (safety mode {name}); "
+                              "the move is not re-sent")
+        cfg = self._cfg
+        close = float(np.linalg.norm(np.asarray(v["actual_TCP_pose"][:3]) - target)) <= cfg.arrival_tol_m
+        still = float(np.linalg.norm(v["actual_TCP_speed"][:3])) <= cfg.still_m_s
+        return close and still and v["runtime_state"] != rp.RUNTIME_PLAYING
+

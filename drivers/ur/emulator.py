@@ -1,0 +1,483 @@
+"""A Universal Robots controller on loopback: RTDE (default 30004) and the script port (default
+30002) served over a plant, so the real driver (`drivers.ur.driver`) and third-party RTDE clients
+talk to it exactly as to a UR.
+
+    python -m drivers.ur.emulator --port 30004 --script-port 30002
+
+runs it over the simulated cell (`configs/scenarios/paper_default.yaml`, `configs/cell.yaml`)
+until Ctrl-C. In tests, `UrEmulator(world.cell.plant, rtde_port=0, script_port=0)` takes free
+ports (`.rtde_port`, `.script_port`).
+
+The plant is any object with `move_linear(target (3,) m, speed m/s)`, `joint_angles() -> (6,)
+rad` and `controller_tcp() -> (3,) m` (`sim.plant.SimulatedCobot`): the physical error effects
+are the plant's, so an instrument measuring the plant sees the arm's real error while the RTDE
+stream reports, like a UR, the controller's own TCP from encoders and nominal kinematics. Plant
+calls are made under `plant_lock` (pass the one the rest of the simulation uses).
+
+What it emulates (the RTDE guide, protocol version 2 only): version negotiation, controller
+version (5.11.0), output recipes of `protocol.OUTPUT_TYPES` (unknown names -> NOT_FOUND, recipe
+id 0), start/pause, data packages at the recipe's frequency (a late package is skipped, not
+queued, as the controller does). Input recipes are answered NOT_FOUND (not emulated). Script port:
+programs of `urscript` (movel, movej, stopl, stopj); a new program replaces the running one;
+anything else, and any program while in protective stop, is refused with an RTDE text message
+(level ERROR, source "URScript") to every RTDE client. The real controller reports those on the
+primary interface instead, which is not emulated.
+
+Faults (`UrFaults`, or `inject_*` at run time): `drop_rtde_after` closes the RTDE connection
+after that many data packages (once); `protective_stop_on_move` makes that motion (1-based count)
+stop part-way (`protective_stop_fraction` of the path) in a protective stop: the plant stays where
+the arm stopped, `safety_mode` reads PROTECTIVE_STOP and programs are refused until
+`unlock_protective_stop()` (the dashboard server's "unlock protective stop").
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import select
+import signal
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from drivers.ur import protocol as rp
+from drivers.ur import urscript
+from drivers.ur.motion import Motion
+from dt_kernel.errors import ConfigError
+from sim.kinematics import TOOL_DOWN
+
+CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller: 500 Hz RTDE
+_TICK_S = 0.004  # the emulated controller's bookkeeping period (moves start and end on it)
+_SRC = "URScript"
+
+
+@dataclass(frozen=True)
+class UrFaults:
+    drop_rtde_after: int | None = None  # data packages, then the RTDE connection is closed (once)
+    protective_stop_on_move: int | None = None  # this motion (1 = the first) ends in a protective stop
+    protective_stop_fraction: float = 0.5  # of its path
+
+    def __post_init__(self) -> None:
+        for key in ("drop_rtde_after", "protective_stop_on_move"):
+            v = getattr(self, key)
+            if v is not None and (not isinstance(v, int) or v < 0):
+                raise ConfigError("<UR emulator faults>", key, v, "a count >= 0, or None")
+        if not 0.0 < self.protective_stop_fraction < 1.0:
+            raise ConfigError("<UR emulator faults>", "protective_stop_fraction", self.protective_stop_fraction,
+                              "a fraction of the path in (0, 1)")
+
+
+class UrEmulator:
+    """RTDE + script port over a plant (see the module docstring)."""
+
+    def __init__(self, plant: Any, host: str = "127.0.0.1", rtde_port: int = 30004, script_port: int = 30002, *,
+                 plant_lock: threading.Lock | None = None, faults: UrFaults | None = None,
+                 time_scale: float = 1.0, max_speed_m_s: float = 2.0, tool_rotvec: Any = None,
+                 autostart: bool = True):
+        if not (math.isfinite(time_scale) and time_scale > 0):
+            raise ConfigError("<UR emulator>", "time_scale", time_scale, "a positive number")
+        self.plant = plant
+        self.plant_lock = plant_lock or threading.Lock()
+        self.faults = faults or UrFaults()
+        self.time_scale, self.max_speed_m_s = float(time_scale), float(max_speed_m_s)
+        # The plant holds the tool pointing down (sim.kinematics.TOOL_DOWN): the orientation reported
+        # and the only one a move may ask for.
+        down = Rotation.from_matrix(TOOL_DOWN).as_rotvec()
+        self.rotvec = np.asarray(tool_rotvec if tool_rotvec is not None else down, dtype=float)
+        self._t0 = time.monotonic()
+        self._lock = threading.RLock()  # the controller state below
+        with self.plant_lock:
+            self._q = np.asarray(plant.joint_angles(), dtype=float)
+            self._p = np.asarray(plant.controller_tcp(), dtype=float)
+        if self._q.shape != (6,):
+            raise ConfigError("<UR emulator>", "plant", f"{self._q.size} joints", "a six-joint arm (VECTOR6D)")
+        self._motion: Motion | None = None
+        self._program: list[urscript.Command] = []
+        self._safety = rp.SAFETY_NORMAL
+        self._drop_after = self.faults.drop_rtde_after
+        self._stop_on_move = self.faults.protective_stop_on_move
+        self._motions = 0
+        self._clients: list[socket.socket] = []
+        self.stats = {"movel": 0, "movej": 0, "stops": 0, "scripts": 0, "script_errors": 0, "moves_done": 0,
+                      "protective_stops": 0, "rtde_connections": 0, "packages": 0, "drops": 0}
+        self._stop = threading.Event()
+        self._rtde_srv = socket.create_server((host, rtde_port), reuse_port=False)
+        self._script_srv = socket.create_server((host, script_port), reuse_port=False)
+        self.host = host
+        self.rtde_port = self._rtde_srv.getsockname()[1]
+        self.script_port = self._script_srv.getsockname()[1]
+        self._threads = [threading.Thread(target=f, name=f"ur-emulator-{n}", daemon=True)
+                         for n, f in (("control", self._control), ("rtde", self._accept_rtde),
+                                      ("script", self._accept_script))]
+        if autostart:
+            self.start()
+
+    # --- public -------------------------------------------------------------------------
+    def start(self) -> None:
+        for t in self._threads:
+            t.start()
+
+    def now(self) -> float:
+        """The controller's clock: s since it started (RTDE `timestamp`)."""
+        return time.monotonic() - self._t0
+
+    def inject_drop(self, after_packages: int = 0) -> None:
+        """Close the RTDE connection after `after_packages` more data packages (once)."""
+        with self._lock:
+            self._drop_after = int(after_packages)
+
+    def inject_protective_stop(self) -> None:
+        """The next motion ends part-way in a protective stop."""
+        with self._lock:
+            self._stop_on_move = self._motions + 1
+
+    def unlock_protective_stop(self) -> None:
+        with self._lock:
+            if self._safety == rp.SAFETY_PROTECTIVE_STOP:
+                self._safety = rp.SAFETY_NORMAL
+
+    @property
+    def safety_mode(self) -> int:
+        return self._safety
+
+    def stop(self) -> None:
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        for s in (self._rtde_srv, self._script_srv, *list(self._clients)):
+            _close(s)
+        for t in self._threads:
+            if t.is_alive():
+                t.join(timeout=2.0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # --- controller state ---------------------------------------------------------------
+    def snapshot(self, now: float | None = None) -> dict[str, Any]:
+        """Every output field's value at wall time `now` (monotonic)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            m, safety, playing = self._motion, self._safety, bool(self._motion or self._program)
+            if m is not None:
+                q, qd, p, pd = m.sample(now)
+                if m.stop_at is not None and m.done(now):
+                    safety = rp.SAFETY_PROTECTIVE_STOP
+                target_p = m.p1 if m.stop_at is not None and m.done(now) else m.p_goal
+                target_q = m.q1
+            else:
+                q, qd, p, pd = self._q, np.zeros(6), self._p, np.zeros(3)
+                target_p, target_q = self._p, self._q
+        pose = [*p, *self.rotvec]
+        speed = [*pd, 0.0, 0.0, 0.0]
+        protective = safety == rp.SAFETY_PROTECTIVE_STOP
+        runtime = rp.RUNTIME_PLAYING if playing and not protective else rp.RUNTIME_STOPPED
+        return {"timestamp": now - self._t0, "actual_q": list(q), "actual_qd": list(qd), "target_q": list(target_q),
+                "target_qd": list(qd), "actual_TCP_pose": pose, "actual_TCP_speed": speed,
+                "target_TCP_pose": [*target_p, *self.rotvec], "target_TCP_speed": speed,
+                "actual_execution_time": 0.1, "robot_mode": rp.ROBOT_MODE_RUNNING, "safety_mode": safety,
+                "runtime_state": runtime, "speed_scaling": 1.0, "target_speed_fraction": 1.0,
+                # guide: robot status bit 0 power on, bit 1 program running; safety bit 0 normal, 2 protective stop
+                "robot_status_bits": 1 | (2 if runtime == rp.RUNTIME_PLAYING else 0),
+                "safety_status_bits": 4 if protective else 1}
+
+    def _control(self) -> None:
+        """Ends finished moves, starts the program's next command."""
+        while not self._stop.wait(_TICK_S):
+            now = time.monotonic()
+            with self._lock:
+                m = self._motion
+                if m is not None and m.done(now):
+                    self._finish(m)
+                if self._motion is None and self._program:
+                    cmd = self._program.pop(0)
+                    try:
+                        self._begin(cmd, now)
+                    except urscript.ScriptError as exc:
+                        self._program.clear()
+                        self._error(str(exc))
+
+    def _finish(self, m: Motion) -> None:
+        self._q, self._p, self._motion = m.q1.copy(), m.p1.copy(), None
+        self.stats["moves_done"] += 1
+        if m.stop_at is not None:
+            self._safety = rp.SAFETY_PROTECTIVE_STOP
+            self.stats["protective_stops"] += 1
+            self._program.clear()
+            self._error(f"C153A1 protective stop during {m.dist * 1e3:.1f} mm move: the arm stopped at "
+                        f"{np.round(m.p1, 6).tolist()} m", rp.WARNING_MESSAGE)
+
+    def _begin(self, cmd: urscript.Command, now: float) -> None:
+        if cmd.kind in ("stopl", "stopj"):
+            return  # nothing moving (a running motion was stopped when the program arrived)
+        if cmd.pose is not None:
+            goal, rot = np.array(cmd.pose[:3]), np.array(cmd.pose[3:])
+            if not np.allclose(_rot_distance(rot, self.rotvec), 0.0, atol=1e-3):
+                raise urscript.ScriptError(f"{cmd.kind}: orientation {rot.tolist()} is not the tool-down "
+                                           f"{np.round(self.rotvec, 6).tolist()} this arm holds")
+        else:
+            fk = getattr(getattr(self.plant, "nominal", None), "fk", None)
+            if fk is None:
+                raise urscript.ScriptError(f"{cmd.kind} to joint positions: the plant has no forward kinematics")
+            with self.plant_lock:
+                goal = np.asarray(fk(np.asarray(cmd.q))[0], dtype=float)
+        # movej speeds are rad/s; the plant only moves the TCP linearly: its speed stands in as m/s.
+        v = min(cmd.v, self.max_speed_m_s)
+        self._motions += 1
+        stop_at = None
+        end = goal
+        dist = float(np.linalg.norm(goal - self._p))
+        if self._stop_on_move is not None and self._motions >= self._stop_on_move:
+            self._stop_on_move = None
+            stop_at = self.faults.protective_stop_fraction * dist
+            end = self._p + (goal - self._p) * self.faults.protective_stop_fraction
+        q0 = self._q.copy()
+        try:
+            with self.plant_lock:
+                self.plant.move_linear(end, v)  # the plant settles where the arm ends: its errors are real
+                q1 = np.asarray(self.plant.joint_angles(), dtype=float)
+                p1 = np.asarray(self.plant.controller_tcp(), dtype=float)
+        except Exception as exc:  # unreachable, IK failure: the controller refuses the move
+            raise urscript.ScriptError(f"{cmd.kind} to {np.round(goal, 6).tolist()}: {exc}") from exc
+        self._motion = Motion(q0=q0, p0=self._p.copy(), q1=q1, p1=p1, p_goal=goal, v=v, a=cmd.a, t_start=now,
+                              time_scale=self.time_scale, stop_at=stop_at)
+
+    def _halt(self, now: float) -> None:
+        """Stop a running motion where it is (a new program, stopl/stopj): the plant follows."""
+        m = self._motion
+        if m is None or m.done(now):
+            return
+        q, _, p, _ = m.sample(now)
+        with self.plant_lock:
+            self.plant.move_linear(p, m.v)
+            self._q = np.asarray(self.plant.joint_angles(), dtype=float)
+            self._p = np.asarray(self.plant.controller_tcp(), dtype=float)
+        self._motion = None
+        self.stats["stops"] += 1
+
+    def _error(self, text: str, level: int = rp.ERROR_MESSAGE) -> None:
+        pkg = rp.text_message(text, _SRC, level)
+        for c in list(self._clients):
+            try:
+                c.sendall(pkg)
+            except OSError:
+                pass  # the streaming thread notices the dead connection
+
+    def run_program(self, text: str) -> None:
+        """A program arrives on the script port (also callable directly)."""
+        self.stats["scripts"] += 1
+        try:
+            cmds = urscript.parse(text)
+        except urscript.ScriptError as exc:
+            self.stats["script_errors"] += 1
+            self._error(f"script refused: {exc}")
+            return
+        with self._lock:
+            for c in cmds:
+                if c.kind in self.stats:
+                    self.stats[c.kind] += 1
+            now = time.monotonic()
+            if self._motion is not None and self._motion.done(now):
+                self._finish(self._motion)  # first: a motion that ended in a protective stop sets it
+            if self._safety == rp.SAFETY_PROTECTIVE_STOP:
+                self.stats["script_errors"] += 1
+                self._error("program not started: the robot is in protective stop")
+                return
+            self._halt(now)  # a new program replaces the running one
+            self._program = cmds
+
+    # --- script port --------------------------------------------------------------------
+    def _accept_script(self) -> None:
+        for conn in _accepted(self._script_srv, self._stop):
+            threading.Thread(target=self._serve_script, args=(conn,), daemon=True).start()
+
+    def _serve_script(self, conn: socket.socket) -> None:
+        buf = b""
+        with conn:
+            conn.settimeout(0.2)
+            while not self._stop.is_set():
+                try:
+                    data = conn.recv(4096)
+                except TimeoutError:
+                    continue
+                except OSError:
+                    return
+                if not data:
+                    break
+                buf += data
+                buf = self._programs(buf)
+        if buf.strip():
+            self.run_program(buf.decode("utf-8", "replace"))  # an unfinished program: refused by the parser
+
+    def _programs(self, buf: bytes) -> bytes:
+        """Runs every complete program in `buf`; returns the unfinished rest."""
+        while b"\n" in buf:
+            text = buf.decode("utf-8", "replace")
+            if text.lstrip().startswith("def "):
+                lines = text.split("\n")
+                ends = [i for i, ln in enumerate(lines) if ln.split("#", 1)[0].strip() == "end"]
+                if not ends:
+                    return buf
+                prog = "\n".join(lines[:ends[0] + 1]) + "\n"
+            else:
+                prog = text[:text.index("\n") + 1]
+            buf = buf[len(prog.encode("utf-8")):]
+            if prog.strip():
+                self.run_program(prog)
+        return buf
+
+    # --- RTDE ---------------------------------------------------------------------------
+    def _accept_rtde(self) -> None:
+        for conn in _accepted(self._rtde_srv, self._stop):
+            self.stats["rtde_connections"] += 1
+            threading.Thread(target=self._serve_rtde, args=(conn,), daemon=True).start()
+
+    def _serve_rtde(self, conn: socket.socket) -> None:
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        reader, ses = rp.PackageReader(), _Session()
+        next_t, sent = 0.0, 0
+        self._clients.append(conn)
+        try:
+            while not self._stop.is_set():
+                wait = max(0.0, next_t - time.monotonic()) if ses.started else 0.1
+                r, _, _ = select.select([conn], [], [], wait)
+                if r:
+                    data = conn.recv(65536)
+                    if not data:
+                        return
+                    for ptype, payload in reader.feed(data):
+                        was = ses.started
+                        reply = self._rtde_request(ptype, payload, ses)
+                        if reply:
+                            conn.sendall(reply)
+                        if ses.started and not was:
+                            next_t = time.monotonic()
+                now = time.monotonic()
+                if ses.started and ses.recipe is not None and now >= next_t:
+                    snap = self.snapshot(now)
+                    conn.sendall(ses.recipe.pack([snap.get(n, 0) for n in ses.recipe.names]))  # registers: 0
+                    sent += 1
+                    self.stats["packages"] += 1
+                    # a late package is skipped, not caught up (the guide: the controller sends the newest)
+                    next_t = max(next_t + 1.0 / ses.freq, now)
+                    with self._lock:
+                        if self._drop_after is not None and sent >= self._drop_after:
+                            self._drop_after = None
+                            self.stats["drops"] += 1
+                            return
+        except (OSError, rp.ProtocolError):
+            return
+        finally:
+            if conn in self._clients:
+                self._clients.remove(conn)
+            _close(conn)
+
+    def _rtde_request(self, ptype: int, payload: bytes, ses: _Session) -> bytes:
+        """The reply to one client package (b"" when none is due); updates the session."""
+        if ptype == rp.REQUEST_PROTOCOL_VERSION:
+            ok = rp.parse_protocol_version_request(payload) == rp.PROTOCOL_VERSION
+            return rp.pack(ptype, rp.u8(ok))
+        if ptype == rp.GET_URCONTROL_VERSION:
+            return rp.urcontrol_version_reply(*CONTROLLER_VERSION)
+        if ptype == rp.SETUP_OUTPUTS:
+            freq, names = rp.parse_setup_outputs_request(payload)
+            types = [rp.OUTPUT_TYPES.get(n, rp.NOT_FOUND) for n in names]
+            if rp.NOT_FOUND in types or not rp.check_frequency(freq) or ses.started:
+                return rp.setup_reply(ptype, 0, types)
+            ses.recipe, ses.freq = rp.Recipe(1, tuple(names), tuple(types)), freq
+            return rp.setup_reply(ptype, 1, types)
+        if ptype == rp.SETUP_INPUTS:
+            names = rp.split_names(payload)
+            return rp.setup_reply(ptype, 0, [rp.NOT_FOUND] * len(names))
+        if ptype == rp.START:
+            ses.started = ses.recipe is not None
+            return rp.pack(ptype, rp.u8(ses.started))
+        if ptype == rp.PAUSE:
+            ses.started = False
+            return rp.pack(ptype, rp.u8(1))
+        return b""  # text messages and input data from the client: nothing to answer
+
+
+@dataclass
+class _Session:
+    """One RTDE client's setup: its output recipe, frequency and whether it is streaming."""
+
+    recipe: rp.Recipe | None = None
+    freq: float = 125.0
+    started: bool = False
+
+
+def _rot_distance(a: np.ndarray, b: np.ndarray) -> float:
+    return float((Rotation.from_rotvec(a).inv() * Rotation.from_rotvec(b)).magnitude())
+
+
+def _accepted(srv: socket.socket, stop: threading.Event):
+    srv.settimeout(0.2)
+    while not stop.is_set():
+        try:
+            conn, _ = srv.accept()
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+        conn.settimeout(None)
+        yield conn
+
+
+def _close(s: socket.socket) -> None:
+    try:
+        s.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass
+    try:
+        s.close()
+    except OSError:
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    from pathlib import Path
+
+    from drivers.simulated.devices import SimWorld
+
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    ap = argparse.ArgumentParser(prog="python -m drivers.ur.emulator",
+                                 description="A UR controller (RTDE + script port) over the simulated cell.")
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--port", type=int, default=30004, help="RTDE port (default 30004)")
+    ap.add_argument("--script-port", type=int, default=30002, help="URScript port (default 30002)")
+    ap.add_argument("--scenario", default=str(configs / "scenarios/paper_default.yaml"))
+    ap.add_argument("--cell", default=str(configs / "cell.yaml"))
+    ap.add_argument("--seed", type=int, default=None, help="the scenario's seed unless given")
+    ap.add_argument("--time-scale", type=float, default=1.0, help="wall time per second of motion (0.1: 10x faster)")
+    ap.add_argument("--drop-rtde-after", type=int, default=None, help="fault: close RTDE after N data packages")
+    ap.add_argument("--protective-stop-on-move", type=int, default=None, help="fault: motion N stops half-way")
+    args = ap.parse_args(argv)
+    world = SimWorld(args.scenario, args.cell, args.seed)
+    faults = UrFaults(drop_rtde_after=args.drop_rtde_after, protective_stop_on_move=args.protective_stop_on_move)
+    emu = UrEmulator(world.cell.plant, args.host, args.port, args.script_port, faults=faults,
+                     time_scale=args.time_scale)
+    print(f"UR emulator ({world.scenario_name}): RTDE on {emu.host}:{emu.rtde_port}, script port "
+          f"{emu.host}:{emu.script_port}; Ctrl-C stops it", file=sys.stderr, flush=True)
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    try:
+        done.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()
+        world.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,285 @@
+"""RTDE (Real-Time Data Exchange, Universal Robots, TCP 30004): package codec, pure functions.
+
+Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`drivers.ur.emulator`).
+References: Universal Robots, "Real-Time Data Exchange (RTDE) Guide"; checked against UR's own
+Python client (RTDE_Python_Client_Library, `rtde/serialize.py`) and the `ur_rtde` package
+(tests/test_ur_rtde.py connects its receive interface to our emulator).
+
+Package (every direction, big-endian, "network byte order")::
+
+    uint16 size (whole package, header included) | uint8 type | payload
+
+Types and payloads of protocol version 2 (the only one spoken here):
+
+==========================================  ======================================  ==========================
+type                                        request payload                         reply payload
+==========================================  ======================================  ==========================
+RTDE_REQUEST_PROTOCOL_VERSION 'V' (86)      uint16 version                          uint8 accepted
+RTDE_GET_URCONTROL_VERSION 'v' (118)        -                                       uint32 major, minor, bugfix, build
+RTDE_TEXT_MESSAGE 'M' (77)                  uint8 n, n chars message, uint8 m, m chars source, uint8 level
+RTDE_CONTROL_PACKAGE_SETUP_OUTPUTS 'O'(79)  double frequency, names "a,b,c"         uint8 recipe id, types "T1,T2,T3"
+RTDE_CONTROL_PACKAGE_SETUP_INPUTS 'I' (73)  names "a,b,c"                           uint8 recipe id, types
+RTDE_CONTROL_PACKAGE_START 'S' (83)         -                                       uint8 accepted
+RTDE_CONTROL_PACKAGE_PAUSE 'P' (80)         -                                       uint8 accepted
+RTDE_DATA_PACKAGE 'U' (85)                  uint8 recipe id, the recipe's fields packed in order
+==========================================  ======================================  ==========================
+
+A name the controller does not know comes back as the type `NOT_FOUND` (an input already
+written by another client as `IN_USE`); a recipe with any of them is not usable.
+"""
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+from dt_kernel.errors import DriverError
+
+PROTOCOL_VERSION = 2
+MAX_FREQUENCY_HZ = 500.0  # e-Series control loop; CB3 is 125 Hz
+
+REQUEST_PROTOCOL_VERSION = ord("V")
+GET_URCONTROL_VERSION = ord("v")
+TEXT_MESSAGE = ord("M")
+DATA_PACKAGE = ord("U")
+SETUP_OUTPUTS = ord("O")
+SETUP_INPUTS = ord("I")
+START = ord("S")
+PAUSE = ord("P")
+PACKAGE_TYPES = {REQUEST_PROTOCOL_VERSION: "REQUEST_PROTOCOL_VERSION", GET_URCONTROL_VERSION: "GET_URCONTROL_VERSION",
+                 TEXT_MESSAGE: "TEXT_MESSAGE", DATA_PACKAGE: "DATA_PACKAGE", SETUP_OUTPUTS: "SETUP_OUTPUTS",
+                 SETUP_INPUTS: "SETUP_INPUTS", START: "START", PAUSE: "PAUSE"}
+
+HEADER = struct.Struct(">HB")
+MAX_PACKAGE = 0xFFFF
+
+# Wire formats of the field types (the guide's "Data types" table).
+TYPE_FORMATS = {"BOOL": "?", "UINT8": "B", "UINT32": "I", "UINT64": "Q", "INT32": "i", "DOUBLE": "d",
+                "VECTOR3D": "3d", "VECTOR6D": "6d", "VECTOR6INT32": "6i", "VECTOR6UINT32": "6I"}
+NOT_FOUND, IN_USE = "NOT_FOUND", "IN_USE"
+
+# Output fields the emulator serves, with the type the guide gives them (a real controller knows
+# many more; the driver takes the types from the controller's reply, not from this table).
+OUTPUT_TYPES: dict[str, str] = {
+    "timestamp": "DOUBLE",  # s since the controller started
+    "target_q": "VECTOR6D", "target_qd": "VECTOR6D",  # rad, rad/s
+    "actual_q": "VECTOR6D", "actual_qd": "VECTOR6D",
+    "actual_TCP_pose": "VECTOR6D",  # x, y, z (m), rotation vector rx, ry, rz (rad), base frame
+    "actual_TCP_speed": "VECTOR6D",  # m/s, rad/s
+    "target_TCP_pose": "VECTOR6D", "target_TCP_speed": "VECTOR6D",
+    "actual_execution_time": "DOUBLE",  # ms of the controller's real-time thread
+    "robot_mode": "INT32", "safety_mode": "INT32", "runtime_state": "UINT32",
+    "speed_scaling": "DOUBLE", "target_speed_fraction": "DOUBLE",
+    "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
+    **{f"output_int_register_{i}": "INT32" for i in range(48)},
+    **{f"output_double_register_{i}": "DOUBLE" for i in range(48)},
+}
+
+# robot_mode (guide: ROBOT_MODE_*)
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
+               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+ROBOT_MODE_RUNNING = 7
+# safety_mode (guide: SAFETY_MODE_*)
+SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
+                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
+                10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
+                13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
+SAFETY_NORMAL, SAFETY_REDUCED, SAFETY_PROTECTIVE_STOP = 1, 2, 3
+# runtime_state (guide: the program's state)
+RUNTIME_STATES = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
+RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+# text message levels
+EXCEPTION_MESSAGE, ERROR_MESSAGE, WARNING_MESSAGE, INFO_MESSAGE = 0, 1, 2, 3
+
+
+class ProtocolError(DriverError):
+    """A package that breaks the RTDE format (size, type, payload length, field types)."""
+
+
+# --- framing ----------------------------------------------------------------------------
+def pack(ptype: int, payload: bytes = b"") -> bytes:
+    size = HEADER.size + len(payload)
+    if size > MAX_PACKAGE:
+        raise ProtocolError(f"RTDE package of {size} bytes exceeds the uint16 size field")
+    return HEADER.pack(size, ptype) + payload
+
+
+class PackageReader:
+    """Splits a byte stream into (type, payload) packages; keeps an incomplete tail."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def clear(self) -> None:
+        self._buf.clear()
+
+    def feed(self, data: bytes) -> Iterator[tuple[int, bytes]]:
+        self._buf += data
+        while len(self._buf) >= HEADER.size:
+            size, ptype = HEADER.unpack_from(self._buf)
+            if size < HEADER.size:
+                self._buf.clear()  # cannot resynchronise inside a binary stream
+                raise ProtocolError(f"RTDE package size {size} is smaller than its header")
+            if len(self._buf) < size:
+                return
+            payload = bytes(self._buf[HEADER.size:size])
+            del self._buf[:size]
+            yield ptype, payload
+
+
+# --- requests and replies ---------------------------------------------------------------
+def u8(value: int) -> bytes:
+    return struct.pack(">B", int(value))
+
+
+def parse_u8(payload: bytes, what: str) -> int:
+    if len(payload) < 1:
+        raise ProtocolError(f"RTDE {what}: empty payload, expected uint8")
+    return payload[0]
+
+
+def protocol_version_request(version: int = PROTOCOL_VERSION) -> bytes:
+    return pack(REQUEST_PROTOCOL_VERSION, struct.pack(">H", version))
+
+
+def parse_protocol_version_request(payload: bytes) -> int:
+    if len(payload) != 2:
+        raise ProtocolError(f"RTDE REQUEST_PROTOCOL_VERSION: payload of {len(payload)} bytes, expected 2")
+    return struct.unpack(">H", payload)[0]
+
+
+def urcontrol_version_reply(major: int, minor: int, bugfix: int, build: int) -> bytes:
+    return pack(GET_URCONTROL_VERSION, struct.pack(">IIII", major, minor, bugfix, build))
+
+
+def parse_urcontrol_version(payload: bytes) -> tuple[int, int, int, int]:
+    if len(payload) != 16:
+        raise ProtocolError(f"RTDE GET_URCONTROL_VERSION: payload of {len(payload)} bytes, expected 16")
+    major, minor, bugfix, build = struct.unpack(">IIII", payload)
+    return major, minor, bugfix, build
+
+
+@dataclass(frozen=True)
+class TextMessage:
+    message: str
+    source: str
+    level: int  # EXCEPTION_MESSAGE .. INFO_MESSAGE
+
+    @property
+    def is_error(self) -> bool:
+        return self.level <= ERROR_MESSAGE
+
+
+def text_message(message: str, source: str, level: int) -> bytes:
+    m, s = message.encode("utf-8")[:255], source.encode("utf-8")[:255]
+    return pack(TEXT_MESSAGE, u8(len(m)) + m + u8(len(s)) + s + u8(level))
+
+
+def parse_text_message(payload: bytes) -> TextMessage:
+    try:
+        n = payload[0]
+        msg = payload[1:1 + n]
+        m = payload[1 + n]
+        src = payload[2 + n:2 + n + m]
+        level = payload[2 + n + m]
+    except IndexError:
+        raise ProtocolError(f"RTDE TEXT_MESSAGE: truncated payload of {len(payload)} bytes") from None
+    return TextMessage(msg.decode("utf-8", "replace"), src.decode("utf-8", "replace"), level)
+
+
+def setup_outputs_request(names: Sequence[str], frequency_hz: float) -> bytes:
+    return pack(SETUP_OUTPUTS, struct.pack(">d", float(frequency_hz)) + ",".join(names).encode("ascii"))
+
+
+def parse_setup_outputs_request(payload: bytes) -> tuple[float, list[str]]:
+    if len(payload) < 9:
+        raise ProtocolError("RTDE SETUP_OUTPUTS: expected a double frequency and at least one name")
+    (freq,) = struct.unpack_from(">d", payload)
+    return freq, split_names(payload[8:])
+
+
+def split_names(raw: bytes) -> list[str]:
+    """Comma-separated variable names; a trailing comma is tolerated, as the controller does
+    (the `ur_rtde` client ends its list with one)."""
+    names = raw.decode("ascii", "replace").split(",")
+    return names[:-1] if len(names) > 1 and names[-1] == "" else names
+
+
+def setup_reply(ptype: int, recipe_id: int, types: Sequence[str]) -> bytes:
+    return pack(ptype, u8(recipe_id) + ",".join(types).encode("ascii"))
+
+
+def parse_setup_reply(payload: bytes) -> tuple[int, list[str]]:
+    if len(payload) < 2:
+        raise ProtocolError("RTDE setup reply: expected a recipe id and the variable types")
+    return payload[0], payload[1:].decode("ascii", "replace").split(",")
+
+
+# --- recipes and data packages ----------------------------------------------------------
+@dataclass(frozen=True)
+class Recipe:
+    """An output (or input) recipe: the fields of every data package with this id, in order."""
+
+    id: int
+    names: tuple[str, ...]
+    types: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        if len(self.names) != len(self.types):
+            raise ProtocolError(f"recipe {self.id}: {len(self.names)} names but {len(self.types)} types")
+        bad = [f"{n}={t}" for n, t in zip(self.names, self.types) if t not in TYPE_FORMATS]
+        if bad:
+            raise ProtocolError(f"recipe {self.id}: fields without a data type: {', '.join(bad)}")
+        object.__setattr__(self, "_struct", struct.Struct(">B" + "".join(TYPE_FORMATS[t] for t in self.types)))
+
+    @property
+    def struct(self) -> struct.Struct:
+        return self.__dict__["_struct"]
+
+    def pack(self, values: Sequence[object]) -> bytes:
+        """A DATA_PACKAGE with `values` in recipe order (vectors as sequences)."""
+        flat: list[object] = [self.id]
+        for name, typ, v in zip(self.names, self.types, values, strict=True):
+            if typ.startswith("VECTOR"):
+                n = int(TYPE_FORMATS[typ][0])
+                seq = list(v)  # type: ignore[call-overload]
+                if len(seq) != n:
+                    raise ProtocolError(f"field {name} ({typ}) needs {n} values, got {len(seq)}")
+                flat.extend(seq)
+            else:
+                flat.append(v)
+        try:
+            return pack(DATA_PACKAGE, self.struct.pack(*flat))
+        except struct.error as exc:
+            raise ProtocolError(f"recipe {self.id}: cannot pack {list(self.names)}: {exc}") from exc
+
+    def unpack(self, payload: bytes) -> dict[str, object]:
+        """Field name -> value (a tuple for vectors) of a DATA_PACKAGE payload of this recipe."""
+        if len(payload) != self.struct.size:
+            raise ProtocolError(f"RTDE DATA_PACKAGE of recipe {self.id}: {len(payload)} bytes, "
+                                f"expected {self.struct.size} for {','.join(self.types)}")
+        flat = self.struct.unpack(payload)
+        if flat[0] != self.id:
+            raise ProtocolError(f"RTDE DATA_PACKAGE for recipe {flat[0]}, expected {self.id}")
+        out: dict[str, object] = {}
+        i = 1
+        for name, typ in zip(self.names, self.types):
+            fmt = TYPE_FORMATS[typ]
+            if fmt[0].isdigit():
+                n = int(fmt[0])
+                out[name] = tuple(flat[i:i + n])
+                i += n
+            else:
+                out[name] = flat[i]
+                i += 1
+        return out
+
+
+def data_recipe_id(payload: bytes) -> int:
+    return parse_u8(payload, "DATA_PACKAGE")
+
+
+def check_frequency(freq: float) -> bool:
+    """The guide: 0 < frequency <= 500 Hz (the controller's loop; it sends at most that often)."""
+    return math.isfinite(freq) and 0.0 < freq <= MAX_FREQUENCY_HZ
