@@ -93,6 +93,7 @@ def ur_rtde_sim_plant():
             drv.close()
 
 
+@contextlib.contextmanager
 def serial_tracker_fake():
     rng = np.random.default_rng(5)
 
@@ -138,13 +139,18 @@ def test_every_registered_driver_has_a_fixture(kind, name):
                                         "conformance fixture: add one to FIXTURES in tests/test_driver_conformance.py")
 
 
+STREAM_AGE_S = 0.5  # the oldest receipt a streamed reading may have (the UR driver's stale_after_s)
+
+
 def _timed(read: Callable):
-    """A reading and the host's monotonic clock around the call: its `host_time` (receipt) must
-    fall between them, and its device time must be a finite number (drivers.base: clocks)."""
+    """A reading and the host's monotonic clock around the call: its `host_time` (receipt) is not
+    after the call returned, and not older than STREAM_AGE_S before it (a streaming device, an
+    RTDE controller, hands out the package received last); its device time is a finite number
+    (drivers.base: clocks)."""
     before = time.monotonic()
     r = read()
     after = time.monotonic()
-    assert before <= r.host_time <= after, (before, r.host_time, after)
+    assert before - STREAM_AGE_S <= r.host_time <= after, (before, r.host_time, after)
     assert math.isfinite(r.device_time) and r.device_time == r.t
     return r
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 import math
 import socket
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -76,7 +75,6 @@ class UrConfig(Frozen):
     limits: UrLimits = UrLimits()
 
 
-@dataclass(frozen=True)
 class UrRtdeController(Abortable, Lifecycle):
     """RobotController for a Universal Robots arm (see the module docstring)."""
 
