@@ -153,6 +153,8 @@ class RigReading:
     cov: np.ndarray | None = None  # (3,3) m^2 propagated from pixel noise, if known
     quality: Mapping[str, Any] = field(default_factory=dict)  # markers_used, cameras_used, reproj_rms_px
     refused: str | None = None  # reason, when no measurement is reported
+    t_device: float | None = None  # s, the device's own clock (e.g. NatNet camera mid-exposure)
+    t_received: float | None = None  # s, host monotonic clock when the data arrived
 
     @property
     def ok(self) -> bool:
