@@ -25,7 +25,8 @@ _REGISTRY: dict[str, dict[str, str]] = {
     "robot": {"sim": "drivers.simulated.devices:SimRobot", "serial": "drivers.serial.controller:SerialController"},
     "tracker": {"sim": "drivers.simulated.devices:SimTracker", "serial": "drivers.serial.tracker:SerialTracker"},
     "camera": {"sim_point": "drivers.simulated.devices:SimPointCamera",
-               "sim_images": "drivers.simulated.camera_images:SimCameraRig"},
+               "sim_images": "drivers.simulated.camera_images:SimCameraRig",
+               "natnet": "drivers.natnet.driver:NatNetRig"},
 }
 
 

@@ -1,9 +1,9 @@
 """One conformance suite for every driver implementation (DESIGN.md, house style).
 
-To add an implementation, append `(id, factory)` to `DRIVER_FACTORIES` (robot controllers)
-or `TRACKER_FACTORIES` (laser trackers). A factory takes no arguments and returns a context
-manager yielding `(driver, config)`: a driver that has *not* been configured yet, and the
-config mapping that `driver.configure(config)` accepts. Everything the driver needs (a
+To add an implementation, append `(id, factory)` to `DRIVER_FACTORIES` (robot controllers),
+`TRACKER_FACTORIES` (laser trackers) or `CAMERA_FACTORIES` (camera rigs). A factory takes no
+arguments and returns a context manager yielding `(driver, config)`: a driver that has *not*
+been configured yet, and the config mapping that `driver.configure(config)` accepts. Everything the driver needs (a
 simulated world, an emulator on a pseudo-terminal) is set up and torn down by the factory.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.base import JointState, LaserTracker, RobotController, TrackerReading
+from drivers.base import CameraRig, JointState, LaserTracker, RigReading, RobotController, TrackerReading
 from drivers.serial.controller import SerialController
 from drivers.serial.tracker import SerialTracker
 from drivers.serial.emulator import ControllerEmulator, TrackerEmulator
@@ -90,6 +90,40 @@ def serial_tracker_fake():
             drv.close()
 
 
+@contextlib.contextmanager
+def sim_point_camera():
+    from drivers.simulated.devices import SimPointCamera
+
+    with _sim_world() as world:
+        yield SimPointCamera(world), {}
+
+
+@contextlib.contextmanager
+def sim_image_camera():
+    from drivers.simulated.camera_images import SimCameraRig
+
+    with _sim_world() as world:
+        yield SimCameraRig(world=world), {}
+
+
+@contextlib.contextmanager
+def natnet_camera():
+    # The NatNet driver against its emulator streaming the simulated rig (static tool) on loopback.
+    from drivers.natnet.driver import NatNetRig
+    from drivers.natnet.emulator import NatNetEmulator
+    from drivers.natnet.rig_source import SimRigMarkers
+    from sim.kinematics import TOOL_DOWN
+
+    src = SimRigMarkers(lambda: (TOOL_DOWN, np.array([0.9, 0.05, 0.5])), seed=3)
+    with NatNetEmulator(src, {"command_port": 0}) as emu:
+        drv = NatNetRig()
+        try:
+            # Generous age limit: the machine is shared; staleness has its own test (test_natnet).
+            yield drv, {"command_port": emu.command_port, "max_age_s": 0.5, "read_timeout_s": 5.0}
+        finally:
+            drv.close()
+
+
 DRIVER_FACTORIES = [
     ("sim", sim_robot),
     ("serial-pty-fakeplant", serial_robot_fake_plant),
@@ -100,8 +134,15 @@ TRACKER_FACTORIES = [
     ("serial-pty", serial_tracker_fake),
 ]
 
+CAMERA_FACTORIES = [
+    ("sim_point", sim_point_camera),
+    ("sim_images", sim_image_camera),
+    ("natnet", natnet_camera),
+]
+
 _robot = pytest.mark.parametrize("factory", [f for _, f in DRIVER_FACTORIES], ids=[i for i, _ in DRIVER_FACTORIES])
 _tracker = pytest.mark.parametrize("factory", [f for _, f in TRACKER_FACTORIES], ids=[i for i, _ in TRACKER_FACTORIES])
+_camera = pytest.mark.parametrize("factory", [f for _, f in CAMERA_FACTORIES], ids=[i for i, _ in CAMERA_FACTORIES])
 
 
 def _check_lifecycle_order(drv, config, calls):
@@ -235,3 +276,37 @@ def test_tracker_measure_is_consistent(factory):
         drv.close()
         drv.close()
         assert drv.state == "closed"
+
+
+# --- camera rigs ------------------------------------------------------------------------
+@_camera
+def test_camera_satisfies_protocol_and_lifecycle_order(factory):
+    with factory() as (drv, config):
+        assert isinstance(drv, CameraRig)
+        _check_lifecycle_order(drv, config, [drv.read])
+
+
+@_camera
+def test_camera_read_is_consistent(factory):
+    """A reading is either a point with a covariance or a refusal with its reason, never both."""
+    with factory() as (drv, config):
+        drv.configure(config)
+        drv.activate()
+        n_ok = 0
+        for _ in range(4):
+            r = drv.read()
+            assert isinstance(r, RigReading) and math.isfinite(r.t) and isinstance(dict(r.quality), dict)
+            if r.ok:
+                n_ok += 1
+                assert r.point.shape == (3,) and np.all(np.isfinite(r.point))
+                if r.cov is not None:
+                    assert r.cov.shape == (3, 3) and np.allclose(r.cov, r.cov.T)
+                    assert np.all(np.linalg.eigvalsh(r.cov) > 0)
+            else:
+                assert r.point is None and isinstance(r.refused, str) and r.refused
+        assert n_ok >= 1  # a healthy rig measures
+        drv.close()
+        drv.close()
+        assert drv.state == "closed"
+        with pytest.raises(StateError):
+            drv.read()

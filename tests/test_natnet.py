@@ -5,12 +5,15 @@ no timing is asserted. Values in the round trips are exactly representable in fl
 """
 from __future__ import annotations
 
+import contextlib
 import struct
 
+import numpy as np
 import pytest
 
 from drivers.natnet import protocol as nn
 from dt_kernel.errors import DriverError
+from tests.loopback import free_port, wait_until
 
 
 def _frame(n_markers: int = 5, number: int = 42) -> nn.FrameOfData:
@@ -87,3 +90,175 @@ def test_model_definition_round_trip():
     extra = struct.pack("<iii", 1, nn.DESC_CAMERA, 8) + b"\1" * 8
     only = nn.unpack_model_def(extra)
     assert only == []
+
+
+# ----------------------------------------------------------------------------- driver against emulator
+def _circle(center=(0.9, 0.0, 0.5), radius=0.05):
+    """Tool poses on a circle, one step per capture: deterministic for a given frame number."""
+    from sim.kinematics import TOOL_DOWN
+
+    k = {"n": 0}
+
+    def pose():
+        k["n"] += 1
+        a = 2 * np.pi * k["n"] / 600
+        return TOOL_DOWN, np.asarray(center) + radius * np.array([np.cos(a), np.sin(a), 0.0])
+
+    return pose
+
+
+@contextlib.contextmanager
+def _stream(emu_cfg=None, drv_cfg=None, seed=0, activate=True):
+    from drivers.natnet.driver import NatNetRig
+    from drivers.natnet.emulator import NatNetEmulator
+    from drivers.natnet.rig_source import SimRigMarkers
+
+    src = SimRigMarkers(_circle(), seed=seed)
+    with NatNetEmulator(src, {"command_port": 0, **(emu_cfg or {})}) as emu:
+        drv = NatNetRig.from_config({"command_port": emu.command_port, "max_age_s": 0.5, "read_timeout_s": 5.0,
+                                     **(drv_cfg or {})})
+        try:
+            if activate:
+                drv.activate()
+            yield emu, drv
+        finally:
+            drv.close()
+
+
+def test_driver_reads_server_info_model_and_the_simulated_tcp_within_the_rig_noise():
+    with _stream(drv_cfg={"marker_sigma_m": 70e-6}, seed=1) as (emu, drv):
+        info = drv.server_info
+        assert info.natnet_version == (4, 1, 0, 0) and info.app_name.startswith("Motive")
+        assert drv.body.name == "tool" and drv.body.id == 1 and len(drv.body.marker_positions) == 5
+        rs = [drv.read() for _ in range(60)]
+        ok = [r for r in rs if r.ok]
+        assert len(ok) == len(rs), [r.refused for r in rs if not r.ok][:3]
+        err = np.array([r.point - emu.last_truth[r.quality["frame_number"]] for r in ok])
+        # The MVS frame's TCP (scale error included) within the rig's noise: the normalised error
+        # has chi^2 statistics (3 dof per reading) and the RMS is tens of micrometres.
+        d2 = np.array([e @ np.linalg.solve(r.cov, e) for e, r in zip(err, ok)])
+        assert d2.mean() < 3 * 2.0
+        assert np.sqrt((err ** 2).sum(1).mean()) < 0.3e-3
+        q = ok[-1].quality
+        assert q["markers_seen"] == q["markers_used"] == 5 and q["tracking_valid"]
+        assert 0 < q["residual_rms_m"] < 0.5e-3 and q["server_tcp_diff_m"] < 1e-5
+
+
+def test_every_reading_carries_device_and_host_timestamps_increasing():
+    with _stream() as (_, drv):
+        rs = [drv.read() for _ in range(20)]
+        frames = [r.quality["frame_number"] for r in rs]
+        assert all(b > a for a, b in zip(frames, frames[1:]))  # each reading a newer frame
+        for key in ("t_device", "t_received", "t"):
+            v = [getattr(r, key) for r in rs]
+            assert all(x is not None and np.isfinite(x) for x in v)
+            assert all(b > a for a, b in zip(v, v[1:])), key
+        ts = [r.quality["timestamp_s"] for r in rs]
+        assert all(b > a for a, b in zip(ts, ts[1:]))
+        for r in rs:  # the measurement time is the mid-exposure mapped to the host clock: before receipt
+            assert r.t <= r.t_received and r.quality["age_s"] >= r.quality["server_latency_s"] >= 0
+
+
+def test_unsupported_natnet_version_is_refused_with_the_version_seen():
+    with _stream(emu_cfg={"natnet_version": (3, 0, 0, 0)}, activate=False) as (_, drv):
+        with pytest.raises(DriverError, match=r"NatNet 3\.0\.0\.0.*4\.1"):
+            drv.activate()
+        assert drv.state == "inactive"
+
+
+def test_unknown_rigid_body_is_refused_naming_the_streamed_ones():
+    with _stream(drv_cfg={"rigid_body": "gripper"}, activate=False) as (_, drv):
+        with pytest.raises(DriverError, match=r"no rigid body 'gripper'.*'tool' \(id 1\)"):
+            drv.activate()
+
+
+def test_registry_builds_natnet_and_config_errors_name_the_key():
+    from drivers import registry
+    from dt_kernel.errors import ConfigError
+
+    assert "natnet" in registry.known("camera") and not registry.needs_world("camera", "natnet")
+    drv = registry.create("camera", "natnet", {"command_port": 1510, "rigid_body": "tool"})
+    assert drv.state == "inactive"
+    with pytest.raises(ConfigError, match="max_age"):
+        registry.create("camera", "natnet", {"max_age": 0.1})
+
+
+def test_multicast_mode_receives_frames_on_the_data_port():
+    port = free_port()
+    with _stream(emu_cfg={"multicast": True, "data_group": "127.0.0.1", "data_port": port},
+                 drv_cfg={"multicast": True, "multicast_group": "127.0.0.1", "data_port": port,
+                          "local_address": "127.0.0.1"}) as (emu, drv):
+        r = drv.read()
+        assert r.ok, r.refused
+        assert drv.server_info.multicast and drv.server_info.data_port == port
+
+
+# ----------------------------------------------------------------------------- faults
+def test_dropped_frames_are_counted_as_lost_and_reported():
+    with _stream(emu_cfg={"faults": {"drop_probability": 0.3, "seed": 4}}) as (emu, drv):
+        rs = [drv.read() for _ in range(40)]
+        assert all(r.ok for r in rs), [r.refused for r in rs if not r.ok][:3]  # losses are reported, not refused
+        last = rs[-1].quality["frame_number"]
+        dropped = [n for n in emu.stats.dropped if drv.first_frame < n < last]
+        assert len(dropped) > 5
+        assert rs[-1].quality["frames_lost"] == len(dropped)
+        assert sum(r.quality["frames_lost_since_last_read"] for r in rs) == len(dropped)
+
+
+def test_late_frames_are_refused_as_stale():
+    # Every frame leaves the server 0.3 s after its mid-exposure: the transmit stamp says so.
+    with _stream(emu_cfg={"faults": {"delay_probability": 1.0, "delay_s": 0.3}},
+                 drv_cfg={"max_age_s": 0.1}) as (_, drv):
+        rs = [drv.read() for _ in range(5)]
+        assert all(not r.ok and "stale" in r.refused and "max_age_s" in r.refused for r in rs)
+        assert all(r.quality["age_s"] >= 0.3 and r.t_device is not None for r in rs)
+
+
+def test_frames_overtaken_by_newer_ones_are_counted_late_not_lost():
+    with _stream(emu_cfg={"faults": {"delay_probability": 0.3, "delay_s": 0.05, "seed": 2}}) as (emu, drv):
+        frames = []
+        for _ in range(40):
+            r = drv.read()
+            frames.append(r.quality["frame_number"])
+        assert all(b > a for a, b in zip(frames, frames[1:]))
+        assert wait_until(lambda: drv.stats["frames_late"] > 3, 10.0)
+        # Every delayed frame arrives eventually: once the delays stop, nothing is counted lost.
+        emu.set_faults(delay_probability=0.0)
+        assert wait_until(lambda: drv.stats["frames_lost"] == 0, 10.0)
+        assert emu.stats.frames_dropped == 0 and drv.stats["frames_late"] <= emu.stats.frames_delayed
+
+
+def test_rigid_body_not_tracked_is_refused_naming_it():
+    with _stream() as (emu, drv):
+        assert drv.read().ok
+        emu.set_faults(untracked_probability=1.0)
+        assert wait_until(lambda: "not tracked" in (drv.read().refused or ""), 10.0)
+        r = drv.read()
+        assert "rigid body 'tool' (id 1) not tracked" in r.refused and r.quality["tracking_valid"] is False
+        emu.set_faults(untracked_probability=0.0)
+        assert wait_until(lambda: drv.read().ok, 10.0)
+
+
+def test_too_few_markers_is_refused_and_occluded_markers_are_not_used():
+    with _stream(emu_cfg={"faults": {"occluded_markers": (0, 3)}}, drv_cfg={"min_markers": 4}) as (_, drv):
+        r = drv.read()
+        assert not r.ok and "only 3 markers of rigid body 'tool' (id 1) seen (needs 4)" in r.refused
+        assert r.quality["markers_seen"] == 3
+    with _stream(emu_cfg={"faults": {"occluded_markers": (0, 3)}}) as (_, drv):
+        r = drv.read()  # three markers still fit the cluster
+        assert r.ok and r.quality["markers_used"] == 3
+
+
+def test_cluster_residual_too_large_is_refused():
+    with _stream(drv_cfg={"max_residual_m": 1e-6, "gate_sigma": 1e6}) as (_, drv):
+        r = drv.read()
+        assert not r.ok and "cluster fit residual" in r.refused and r.quality["residual_rms_m"] > 1e-6
+
+
+def test_a_silent_server_gives_refusals_not_hangs():
+    with _stream(drv_cfg={"read_timeout_s": 0.3}) as (emu, drv):
+        assert drv.read().ok
+        emu.close()
+        r = drv.read()
+        r = drv.read() if r.ok else r  # one frame may still be queued
+        assert not r.ok and "no NatNet frame after" in r.refused
