@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import struct
+import time
 
 import numpy as np
 import pytest
@@ -262,3 +263,70 @@ def test_a_silent_server_gives_refusals_not_hangs():
         r = drv.read()
         r = drv.read() if r.ok else r  # one frame may still be queued
         assert not r.ok and "no NatNet frame after" in r.refused
+
+
+# ----------------------------------------------------------------------------- independent client
+def _stop_sdk_client(client) -> None:
+    """The sample's shutdown() closes its sockets and joins its threads, but closing a socket does
+    not wake a thread blocked in recvfrom on Linux (its unicast data socket has no timeout): wake
+    both with a harmless keep-alive datagram once the stop flag is set."""
+    import socket
+
+    client.stop_threads = True
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for sock in (client.data_socket, client.command_socket):
+            port = sock.getsockname()[1]
+            s.sendto(nn.pack_request(nn.NAT_KEEPALIVE), ("127.0.0.1", port))
+    client.shutdown()
+
+
+def test_optitrack_natnet_sdk_client_reads_our_emulator():
+    """OptiTrack's own Python client (NatNetClient.py of the NatNet SDK, packaged as `natnetsdk`)
+    connects to the emulator in unicast and decodes our frames: server info, rigid body pose,
+    labelled markers, timestamps. Its frame and model decoders are private methods; they are
+    called by their mangled names on our bytes, because its listeners expose only the rigid body."""
+    sdk = pytest.importorskip("natnetsdk.NatNetClient", reason="natnetsdk (the test extra) is not installed")
+    bodies, frames = [], []
+    with _stream(drv_cfg={"marker_sigma_m": 70e-6}, seed=5) as (emu, drv):
+        client = sdk.NatNetClient()
+        client.set_client_address("127.0.0.1")
+        client.set_server_address("127.0.0.1")
+        client.set_use_multicast(False)
+        client.command_port = emu.command_port
+        client.multicast_address = "255.255.255.255"  # unicast: no multicast group to join
+        client.set_print_level(0)
+        client.rigid_body_listener = lambda i, pos, rot: bodies.append((i, pos, rot))
+        client.new_frame_listener = frames.append
+        assert client.run()
+        try:
+            assert wait_until(lambda: len(frames) > 20 and client.connected(), 20.0)
+            assert client.get_application_name() == emu.cfg.app_name
+            assert list(client.get_nat_net_version_server()) == [4, 1, 0, 0]
+            assert list(client.get_server_version()) == [3, 1, 0, 0]
+            numbers = [f["frame_number"] for f in frames[:20]]
+            assert all(b > a for a, b in zip(numbers, numbers[1:]))
+            assert all(f["labeled_marker_count"] == 5 and f["rigid_body_count"] == 1 for f in frames[:20])
+            # Its rigid body position is the one our driver fits from the same markers.
+            r = drv.read()
+            i, pos, rot = bodies[-1]
+            assert i == 1 and np.isclose(np.linalg.norm(rot), 1.0, atol=1e-5)
+            assert np.linalg.norm(np.asarray(pos) - emu.last_truth[frames[len(bodies) - 1]["frame_number"]]) < 1e-3
+            assert r.ok and np.linalg.norm(np.asarray(pos) - r.point) < 2e-3
+        finally:
+            _stop_sdk_client(client)
+        # Its decoders on our bytes: every labelled marker, rigid body and stamp as we sent it.
+        f = emu.make_frame(99, time.monotonic(), emu.cfg.faults)
+        _, payload = nn.unpack_message(nn.pack_frame(f))
+        _, md = client._NatNetClient__unpack_mocap_data(payload, len(payload), 4, 1)
+        theirs = md.labeled_marker_data.labeled_marker_list
+        assert [m.id_num for m in theirs] == [m.id for m in f.labeled_markers]
+        assert np.allclose([m.pos for m in theirs], [m.pos for m in f.labeled_markers], atol=1e-6)
+        rb = md.rigid_body_data.rigid_body_list[0]
+        assert rb.id_num == 1 and rb.tracking_valid and np.allclose(rb.pos, f.rigid_bodies[0].pos, atol=1e-6)
+        assert md.suffix_data.stamp_camera_mid_exposure == f.stamp_mid_exposure
+        assert md.prefix_data.frame_number == 99
+        _, model = nn.unpack_message(nn.pack_model_def(emu.descriptions()))
+        descs = client._NatNetClient__unpack_data_descriptions(model, len(model), 4, 1)[1]
+        rbd = descs.rigid_body_list[0]
+        assert rbd.id_num == 1 and len(rbd.rb_marker_list) == 5
+        assert np.allclose(rbd.rb_marker_list[2].pos, emu.source.markers[2], atol=1e-6)

@@ -295,6 +295,13 @@ _SUFFIX = struct.Struct("<IIdQQQIIh")  # timecode, sub, timestamp, 3 stamps, pre
 
 
 def pack_frame(f: FrameOfData) -> bytes:
+    try:
+        return _pack_frame(f)
+    except struct.error as exc:  # a field out of its wire range (negative stamp, huge id)
+        raise NatNetProtocolError(f"frame {f.frame_number} cannot be packed: {exc}") from exc
+
+
+def _pack_frame(f: FrameOfData) -> bytes:
     out = [struct.pack("<i", f.frame_number)]
     ms = b"".join(_cstr(m.name) + struct.pack("<i", len(m.markers)) + b"".join(_V3.pack(*p) for p in m.markers)
                   for m in f.marker_sets)
