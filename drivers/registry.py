@@ -52,7 +52,8 @@ BUILTIN: dict[str, dict[str, str]] = {
               "ur_rtde": "drivers.ur.driver:UrRtdeController"},
     "tracker": {"sim": "drivers.simulated.devices:SimTracker", "serial": "drivers.serial.tracker:SerialTracker"},
     "camera": {"sim_point": "drivers.simulated.devices:SimPointCamera",
-               "sim_images": "drivers.simulated.camera_images:SimCameraRig"},
+               "sim_images": "drivers.simulated.camera_images:SimCameraRig",
+               "natnet": "drivers.natnet.driver:NatNetRig"},
 }
 
 

@@ -62,6 +62,40 @@ def refine_pose(stack: CameraStack, model: np.ndarray, R: np.ndarray, t: np.ndar
     return R, t, cov, r
 
 
+def fit_points(model: np.ndarray, X: np.ndarray, cov: np.ndarray, idx, gate: float, min_markers: int):
+    """Rigid fit of the cluster to measured 3-D markers with per-marker outlier rejection.
+
+    model (M,3) tool frame; X (M,3) and cov (M,3,3) measured markers; idx the markers to use.
+    Weighted Kabsch, then the marker farthest from the fitted model in Mahalanobis distance is
+    dropped while it exceeds `gate` and more than `min_markers` remain.
+    Returns (R, t, idx kept, refusal or None)."""
+    idx = list(idx)
+    while True:
+        w = 1.0 / np.trace(cov[idx], axis1=1, axis2=2)
+        R, t = kabsch(model[idx], X[idx], w)
+        e = X[idx] - (model[idx] @ R.T + t)
+        d2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov[idx]), e)
+        worst = int(np.argmax(d2))
+        if d2[worst] <= gate ** 2:
+            return R, t, idx, None
+        if len(idx) <= min_markers:
+            return R, t, idx, (f"marker cluster does not fit its geometry"
+                               f" (marker {idx[worst]} off by {1e3 * np.linalg.norm(e[worst]):.2f} mm)")
+        idx.pop(worst)
+
+
+def point_fit_cov(model: np.ndarray, R: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """6x6 covariance [rotation vector, translation] of a rigid fit to 3-D markers.
+
+    Linearised as in `refine_pose` (X = exp([w]x) R m + t): J_i = [-[R m_i]x, I], and the
+    covariance is the inverse of sum J_i^T cov_i^-1 J_i over the markers used (model, cov)."""
+    H = np.zeros((6, 6))
+    for m, c in zip(model @ R.T, cov):
+        J = np.hstack([-skew(m), np.eye(3)])
+        H += J.T @ np.linalg.solve(c, J)
+    return np.linalg.inv(H)
+
+
 def identify(model: np.ndarray, points: np.ndarray, tol: float = 1e-3):
     """Label unlabeled 3-D points with the cluster's markers by their mutual distances.
 

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from drivers.mvs.camera import RigModel
-from drivers.mvs.cluster import identify, kabsch, refine_pose
+from drivers.mvs.cluster import fit_points, identify, refine_pose
 from drivers.mvs.detect import detect_full_frame, detect_in_rois_multi
 from drivers.mvs.triangulate import CameraStack, epipolar_candidates, triangulate
 
@@ -181,19 +181,9 @@ class MarkerTracker:
             return self._refuse(f"only {int(ok.sum())} markers seen by >= {p.min_views} cameras"
                                 f" (needs {p.min_markers})", q)
         # Rigid fit with per-marker outlier rejection (Mahalanobis distance to the fitted model).
-        idx = list(np.flatnonzero(ok))
-        while True:
-            w = 1.0 / np.trace(cov[idx], axis1=1, axis2=2)
-            R, t = kabsch(model[idx], X[idx], w)
-            e = X[idx] - (model[idx] @ R.T + t)
-            d2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov[idx]), e)
-            worst = int(np.argmax(d2))
-            if d2[worst] <= p.gate_sigma ** 2:
-                break
-            if len(idx) <= p.min_markers:
-                return self._refuse(f"marker cluster does not fit its geometry"
-                                    f" (marker {idx[worst]} off by {1e3 * np.linalg.norm(e[worst]):.2f} mm)", q)
-            idx.pop(worst)
+        R, t, idx, refused = fit_points(model, X, cov, np.flatnonzero(ok), p.gate_sigma, p.min_markers)
+        if refused:
+            return self._refuse(refused, q)
         keep = np.zeros(len(model), bool)
         keep[idx] = True
         mk = mask & keep[:, None]

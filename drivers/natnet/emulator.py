@@ -1,0 +1,327 @@
+"""A NatNet 4.1 server streaming the simulated camera rig (what Motive does for a real rig).
+
+Command channel (UDP, `command_port`): NAT_CONNECT -> NAT_SERVERINFO (app name, versions, clock
+frequency, data port); NAT_REQUEST_MODELDEF -> NAT_MODELDEF (the tool's marker set and rigid
+body with its marker offsets, pivot at the TCP); NAT_KEEPALIVE keeps a unicast client
+subscribed; NAT_REQUEST "Bitstream" -> NAT_RESPONSE "Bitstream,4.1.0.0"; anything else ->
+NAT_UNRECOGNIZED_REQUEST. Data: at `rate_hz`, a NAT_FRAMEOFDATA with the cluster's labelled
+markers (id = rigid body id << 16 | member 1..M), the rigid body (pose solved from them,
+tracking-valid flag, mean marker error) and the timestamps: frame timestamp (s), camera
+mid-exposure, data received and transmit stamps (ticks of `clock_hz`, the server's clock, not
+the host's). Unicast (Motive's unicast mode): frames go to every client that connected or sent
+a keep-alive in the last `client_timeout_s`, on the address it used. Multicast mode: frames go
+to (`data_group`, `data_port`) instead.
+
+Faults (config `faults`, seeded; `set_faults(...)` changes them while streaming):
+drop_probability (a frame number is skipped: never sent), delay_probability + delay_s (a frame
+is sent `delay_s` after its capture: its transmit stamp says so), untracked_probability (the
+rigid body's tracking-valid flag off, pose zero), occluded_markers (0-based marker indices
+hidden from every camera: sent with the occluded flag and the model-solved position).
+
+Run one: `python -m drivers.natnet.emulator --command-port 1510 --data-port 1511`.
+"""
+from __future__ import annotations
+
+import argparse
+import heapq
+import select
+import socket
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+from scipy.spatial.transform import Rotation
+
+from drivers.mvs.cluster import kabsch
+from drivers.natnet import protocol as nn
+from drivers.natnet.rig_source import SimRigMarkers
+from dt_kernel.config import Frozen, validate
+from dt_kernel.errors import DriverError
+
+
+class Faults(Frozen):
+    drop_probability: float = Field(0.0, ge=0, le=1)
+    delay_probability: float = Field(0.0, ge=0, le=1)
+    delay_s: float = Field(0.0, ge=0, le=10)
+    untracked_probability: float = Field(0.0, ge=0, le=1)
+    occluded_markers: tuple[int, ...] = ()
+    seed: int = 0
+
+
+class EmulatorConfig(Frozen):
+    host: str = "127.0.0.1"
+    command_port: int = Field(1510, ge=0, le=65535)
+    data_port: int = Field(1511, ge=0, le=65535)
+    multicast: bool = False
+    data_group: str = "239.255.42.99"  # where multicast frames go (a host address works too)
+    rate_hz: float = Field(120.0, gt=0, le=1000)
+    clock_hz: int = Field(10_000_000, gt=0)
+    clock_offset_s: float = 1000.0  # the server clock is not the host's: it starts elsewhere
+    app_name: str = "Motive (dt emulator)"
+    app_version: tuple[int, int, int, int] = (3, 1, 0, 0)
+    natnet_version: tuple[int, int, int, int] = nn.VERSION  # another value tests clients' checks
+    rigid_body_id: int = Field(1, ge=1, le=0xFFFF)
+    rigid_body_name: str = "tool"
+    client_timeout_s: float = Field(10.0, gt=0)
+    faults: Faults = Faults()
+
+
+@dataclass
+class Stats:
+    frames_captured: int = 0
+    frames_sent: int = 0
+    frames_dropped: int = 0
+    frames_delayed: int = 0
+    frames_untracked: int = 0
+    dropped: list[int] = field(default_factory=list)  # frame numbers never sent (last 10000)
+
+
+class NatNetEmulator:
+    """The server; `start()` binds and streams in a thread, `close()` stops it (context manager).
+
+    `source` gives the markers (drivers.natnet.rig_source.SimRigMarkers); `config` a mapping
+    validated into EmulatorConfig (errors name `source_name`, the key and what is allowed)."""
+
+    def __init__(self, source: SimRigMarkers, config: Mapping[str, Any] | None = None,
+                 source_name: str = "<natnet emulator config>"):
+        self.cfg = validate(EmulatorConfig, dict(config or {}), source_name)
+        self.source = source
+        self.stats = Stats()
+        self._faults = self.cfg.faults
+        self._rng = np.random.default_rng([self._faults.seed, 7])
+        self._clients: dict[tuple[str, int], float] = {}
+        self._pending: list[tuple[float, int, nn.FrameOfData]] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self.last_truth: dict[int, np.ndarray] = {}  # frame number -> true TCP (MVS), for scoring
+        self._t0 = 0.0
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> NatNetEmulator:
+        try:
+            self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._cmd.bind((self.cfg.host, self.cfg.command_port))
+            self._data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._data.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+        except OSError as exc:
+            raise DriverError(f"NatNet emulator cannot bind {self.cfg.host}:{self.cfg.command_port}: {exc}") from exc
+        self.command_port = self._cmd.getsockname()[1]
+        self.data_port = self.cfg.data_port
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="natnet-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        for s in (getattr(self, "_cmd", None), getattr(self, "_data", None)):
+            if s is not None:
+                s.close()
+
+    def __enter__(self) -> NatNetEmulator:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def set_faults(self, **changes: Any) -> None:
+        """Change the injected faults while streaming (validated like the config)."""
+        data = {**self._faults.model_dump(), **changes}
+        with self._lock:
+            self._faults = validate(Faults, data, "<NatNetEmulator.set_faults>")
+
+    @property
+    def clients(self) -> list[tuple[str, int]]:
+        with self._lock:
+            return list(self._clients)
+
+    # ------------------------------------------------------------------ clock
+    def ticks(self, t_host: float) -> int:
+        """The server's high-resolution clock (uint64 ticks) at host monotonic time `t_host`."""
+        return int((t_host - self._t0 + self.cfg.clock_offset_s) * self.cfg.clock_hz)
+
+    # ------------------------------------------------------------------ messages
+    def server_info(self) -> nn.ServerInfo:
+        grp = tuple(int(x) for x in socket.inet_aton(self._group()))
+        return nn.ServerInfo(self.cfg.app_name, self.cfg.app_version, self.cfg.natnet_version, self.cfg.clock_hz,
+                             self.cfg.data_port, self.cfg.multicast, grp)  # type: ignore[arg-type]
+
+    def _group(self) -> str:
+        try:
+            return socket.gethostbyname(self.cfg.data_group)
+        except OSError:
+            return "0.0.0.0"
+
+    def descriptions(self) -> list[nn.Description]:
+        m = self.source.markers
+        names = tuple(f"{self.cfg.rigid_body_name}_{i + 1}" for i in range(len(m)))
+        return [nn.MarkerSetDescription(self.cfg.rigid_body_name, names),
+                nn.RigidBodyDescription(self.cfg.rigid_body_name, self.cfg.rigid_body_id, -1, (0.0, 0.0, 0.0),
+                                        tuple(tuple(map(float, p)) for p in m),  # type: ignore[misc]
+                                        (0,) * len(m), names)]
+
+    def _answer(self, data: bytes, addr: tuple[str, int]) -> None:
+        try:
+            msg, payload = nn.unpack_message(data)
+        except nn.NatNetProtocolError:
+            return  # a server ignores what it cannot parse
+        reply: bytes | None = None
+        if msg == nn.NAT_CONNECT:
+            self._subscribe(addr)
+            reply = nn.pack_server_info(self.server_info())
+        elif msg == nn.NAT_KEEPALIVE:
+            self._subscribe(addr)
+        elif msg == nn.NAT_DISCONNECT:
+            with self._lock:
+                self._clients.pop(addr, None)
+        elif msg == nn.NAT_REQUEST_MODELDEF:
+            reply = nn.pack_model_def(self.descriptions())
+        elif msg == nn.NAT_REQUEST and nn.unpack_text(payload).startswith("Bitstream"):
+            reply = nn.pack_text(nn.NAT_RESPONSE, "Bitstream," + ".".join(map(str, self.cfg.natnet_version)))
+        else:
+            reply = nn.pack_message(nn.NAT_UNRECOGNIZED_REQUEST)
+        if reply is not None:
+            self._cmd.sendto(reply, addr)
+
+    def _subscribe(self, addr: tuple[str, int]) -> None:
+        with self._lock:
+            self._clients[addr] = time.monotonic()
+
+    # ------------------------------------------------------------------ frames
+    def make_frame(self, number: int, t_capture: float, faults: Faults) -> nn.FrameOfData:
+        """One frame of data: the cluster captured now, solved as Motive solves a rigid body."""
+        obs = self.source.capture(hidden=faults.occluded_markers)
+        self.last_truth[number] = obs.tcp_truth
+        self.last_truth.pop(number - 1000, None)
+        rb_id, model = self.cfg.rigid_body_id, self.source.markers
+        untracked = self._rng.random() < faults.untracked_probability
+        solved = obs.seen.sum() >= 3
+        err = np.zeros(len(model))
+        if solved:
+            R, t = kabsch(model[obs.seen], obs.X[obs.seen])
+            fit = model @ R.T + t
+            err = np.linalg.norm(obs.X - fit, axis=1)
+            mean_err = float(err[obs.seen].mean())
+        labeled, bodies = [], []
+        for i in range(len(model)):
+            mid = nn.marker_id(rb_id, i + 1)
+            if obs.seen[i]:
+                labeled.append(nn.LabeledMarker(mid, tuple(obs.X[i]), self.source.cfg.markers.diameter_m,
+                                                nn.MARKER_PC_SOLVED | nn.MARKER_MODEL_SOLVED | nn.MARKER_HAS_MODEL,
+                                                float(err[i])))
+            elif solved:  # Motive streams an occluded member at its model-solved position
+                labeled.append(nn.LabeledMarker(mid, tuple(fit[i]), self.source.cfg.markers.diameter_m,
+                                                nn.MARKER_OCCLUDED | nn.MARKER_MODEL_SOLVED | nn.MARKER_HAS_MODEL, 0.0))
+        if solved and not untracked:
+            qx, qy, qz, qw = Rotation.from_matrix(R).as_quat()
+            bodies.append(nn.RigidBody(rb_id, tuple(t), (qx, qy, qz, qw), mean_err, nn.RB_TRACKING_VALID))
+        else:
+            self.stats.frames_untracked += 1
+            bodies.append(nn.RigidBody(rb_id, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0, 0))
+        ms = nn.MarkerSet(self.cfg.rigid_body_name, tuple(m.pos for m in labeled))
+        stamp = self.ticks(t_capture)
+        return nn.FrameOfData(number, (ms,), (), tuple(bodies), tuple(labeled),
+                              timestamp=number / self.cfg.rate_hz, stamp_mid_exposure=stamp,
+                              stamp_data_received=self.ticks(time.monotonic()))
+
+    def _send(self, frame: nn.FrameOfData) -> None:
+        now = time.monotonic()
+        data = nn.pack_frame(replace(frame, stamp_transmit=self.ticks(now)))
+        if self.cfg.multicast:
+            targets = [(self.cfg.data_group, self.cfg.data_port)]
+        else:
+            with self._lock:
+                for a in [a for a, seen in self._clients.items() if now - seen > self.cfg.client_timeout_s]:
+                    del self._clients[a]
+                targets = list(self._clients)
+        for addr in targets:
+            try:
+                (self._data if self.cfg.multicast else self._cmd).sendto(data, addr)
+            except OSError:
+                pass  # UDP: a vanished client is not the server's problem
+        self.stats.frames_sent += 1
+
+    def _run(self) -> None:
+        period, number = 1.0 / self.cfg.rate_hz, 0
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            while self._pending and self._pending[0][0] <= now:
+                self._send(heapq.heappop(self._pending)[2])
+            wake = min(next_t, self._pending[0][0]) if self._pending else next_t
+            r, _, _ = select.select([self._cmd], [], [], max(0.0, wake - now))
+            if r:
+                try:
+                    data, addr = self._cmd.recvfrom(65536)
+                except OSError:
+                    continue
+                self._answer(data, addr)
+                continue
+            if time.monotonic() < next_t:
+                continue
+            number += 1
+            with self._lock:
+                faults = self._faults
+            frame = self.make_frame(number, next_t, faults)
+            self.stats.frames_captured += 1
+            next_t += period
+            if next_t < time.monotonic() - 10 * period:  # fell far behind (a paused machine): resync
+                next_t = time.monotonic() + period
+            if self._rng.random() < faults.drop_probability:
+                self.stats.frames_dropped += 1
+                self.stats.dropped = self.stats.dropped[-9999:] + [number]
+            elif faults.delay_s > 0 and self._rng.random() < faults.delay_probability:
+                self.stats.frames_delayed += 1
+                heapq.heappush(self._pending, (time.monotonic() + faults.delay_s, number, frame))
+            else:
+                self._send(frame)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m drivers.natnet.emulator",
+                                 description="NatNet 4.1 server streaming the simulated camera rig.")
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--command-port", type=int, default=1510)
+    ap.add_argument("--data-port", type=int, default=1511)
+    ap.add_argument("--multicast", action="store_true", help="send frames to --data-group:--data-port")
+    ap.add_argument("--data-group", default="239.255.42.99")
+    ap.add_argument("--rate", type=float, default=120.0, help="frames per second")
+    ap.add_argument("--cameras", default=None, help="rig config (default configs/cameras.yaml)")
+    ap.add_argument("--tcp", type=float, nargs=3, default=(0.9, 0.0, 0.55), help="static TCP, world m")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--drop", type=float, default=0.0, help="probability of a dropped frame")
+    ap.add_argument("--delay", type=float, nargs=2, default=(0.0, 0.0), metavar=("P", "S"),
+                    help="probability of a late frame and its delay (s)")
+    ap.add_argument("--untracked", type=float, default=0.0, help="probability the rigid body is not tracked")
+    ap.add_argument("--occlude", type=int, nargs="*", default=(), help="marker indices hidden from all cameras")
+    a = ap.parse_args(argv)
+    from sim.kinematics import TOOL_DOWN
+
+    tcp = np.array(a.tcp, float)
+    src = SimRigMarkers(lambda: (TOOL_DOWN, tcp), **({"config": a.cameras} if a.cameras else {}), seed=a.seed)
+    faults = {"drop_probability": a.drop, "delay_probability": a.delay[0], "delay_s": a.delay[1],
+              "untracked_probability": a.untracked, "occluded_markers": tuple(a.occlude), "seed": a.seed}
+    cfg = {"host": a.host, "command_port": a.command_port, "data_port": a.data_port, "multicast": a.multicast,
+           "data_group": a.data_group, "rate_hz": a.rate, "faults": faults}
+    with NatNetEmulator(src, cfg, "<command line>") as emu:
+        print(f"NatNet 4.1 emulator: commands on {a.host}:{emu.command_port}, "
+              f"{'multicast to ' + a.data_group + ':' + str(a.data_port) if a.multicast else 'unicast'}; Ctrl-C stops",
+              flush=True)
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
