@@ -39,6 +39,14 @@ def context(kind: str, name: str):
 
         with world() as w, UrEmulator(w.cell.plant, "127.0.0.1", 0, 0, time_scale=0.25) as ur:
             yield None, {"host": "127.0.0.1", "rtde_port": ur.rtde_port, "script_port": ur.script_port}
+    elif (kind, name) == ("camera", "natnet"):  # OptiTrack NatNet emulated on loopback (static tool)
+        from drivers.natnet.emulator import NatNetEmulator
+        from drivers.natnet.rig_source import SimRigMarkers
+        from sim.kinematics import TOOL_DOWN
+
+        src = SimRigMarkers(lambda: (TOOL_DOWN, np.array([0.9, 0.05, 0.5])), seed=3)
+        with NatNetEmulator(src, {"command_port": 0}) as nn:
+            yield None, {"command_port": nn.command_port, "max_age_s": 0.5, "read_timeout_s": 5.0}
     elif not registry.needs_world(kind, name):
         emu = ControllerEmulator(FakePlant()) if kind == "robot" else TrackerEmulator(lambda: (2.0, 0.3, -0.1, "ok"))
         with emu:
@@ -172,7 +180,7 @@ def test_options_are_checked_without_building_the_driver_and_errors_carry_the_ke
 
 def test_simulated_drivers_say_they_need_a_world():
     assert [registry.needs_world("robot", n) for n in ("serial", "sim")] == [False, True]
-    assert all(registry.needs_world("camera", n) for n in registry.known("camera"))
+    assert [registry.needs_world("camera", n) for n in ("natnet", "sim_images", "sim_point")] == [False, True, True]
     for kind, name in ALL:
         if registry.needs_world(kind, name):
             with pytest.raises(DriverError, match="world"):
