@@ -53,6 +53,7 @@ from dt_runtime.analysis import diagnose as dg
 from dt_runtime.analysis.crossval import groups_of
 from dt_runtime.analysis.data import floor_of, load_data
 from dt_runtime.common.paths import DATA
+from dt_runtime.common.threads import limit_blas_threads
 from dt_runtime.frames.kinematics import load_robot
 from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
@@ -305,6 +306,10 @@ def show(res: dict) -> None:
 
 
 def main() -> None:
+    # BLAS on one thread, as every entry point (dt_runtime.common.threads): this benchmark parsed
+    # its own arguments and so ran OpenBLAS on 2 threads, which crawl while other processes
+    # share the cores (one CV on Series D: 48 CPU s, 192 s wall at load 8; 2.4 s on one thread).
+    limit_blas_threads()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--series", default="A,B,C,D", help="comma-separated subset of A,B,C,D")
