@@ -103,14 +103,14 @@ def cv_memo():
     orig = dg.cross_validate
     memo: dict = {}
 
-    def cached(model, X, y, groups, folds, *, thetas=None, return_std=False, hyper_per_fold=False):
+    def cached(model, X, y, groups, folds, *, thetas=None, return_std=False, hyper_per_fold=False, starts=None):
         h = hashlib.sha1(b"".join(np.asarray(f).tobytes() for f in folds)).hexdigest()
         p = model.get_params()
         key = (id(X), tuple(p["effects"]), p["gp_inputs"], h, p["seed"], p["ridge"], id(p["robot"]),
                p["gp_options"], thetas is None, return_std, hyper_per_fold)
         if key not in memo:  # keep X alive: its id is the key
             memo[key] = (X, orig(model, X, y, groups, folds, thetas=thetas, return_std=return_std,
-                                 hyper_per_fold=hyper_per_fold))
+                                 hyper_per_fold=hyper_per_fold, starts=starts))
         return memo[key][1]
 
     def cv(effects, inp, error, groups, chain, gp_inputs, folds):
@@ -138,12 +138,15 @@ def paired_p(before: dg.CvResult, after: dg.CvResult) -> float:
 
 # --- the loop -------------------------------------------------------------------------------
 def diagnose_loop(inp, error, groups, chain, floor, effects, gp_inputs, steps: list) -> tuple:
-    """Add the top significant effect until diagnose finds none; returns (effects, last report)."""
+    """Add the top significant effect until diagnose finds none; returns (effects, last report).
+    As in `dt diagnose --auto`, each candidate's GP hyperparameter fit starts from the step's
+    starting model's (rank_effects), and the next step starts from the chosen candidate's CV
+    (here through the memo)."""
     effects = tuple(effects)
     for _ in range(MAX_STEPS):
         t0 = time.perf_counter()
         r = dg.rank_effects(inp, error, groups, chain, effects, gp_inputs, None, FOLDS, SEED,
-                        noise_floor_m=floor, gp_options=GP_OPTIONS, **DIAGNOSE_KW)
+                            noise_floor_m=floor, gp_options=GP_OPTIONS, **DIAGNOSE_KW)
         top = r.top
         tested = {c.candidate: round(c.p_value, 6) for c in r.ranking}
         log(f"    diagnose [{', '.join(effects) or '-'}] + GP({gp_inputs}): {r.rmse_base_mm:.4f} mm; "
