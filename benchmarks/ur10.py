@@ -27,9 +27,11 @@ the first 5 visits of every point (3,085 rows, time order kept) to bound the run
 baseline and final model are scored on all rows. The loop's own figures on A are those of the
 subset.
 
-Run time on 2 cores (one BLAS thread), all series: about 14 min (A 5, B 3, C 5.5, D 1);
-the cost is mostly one GP hyperparameter fit per cross-validated model (diagnose tries every
-missing effect at every step).
+Run time on one BLAS thread, all series: 565 s of CPU, 1,467 s wall on 2 cores shared with other
+jobs at load 3-5 (A 441 s, B 273 s, C 688 s, D 65 s wall); the cost is mostly one GP
+hyperparameter fit per cross-validated model (diagnose tries every missing effect at every
+step, each warm-started from the model it extends) and, on C, the strict CV and the 70/30 split,
+which refit the hyperparameters cold inside every fold.
 
 Keys: per series `series.X.*`; top level `paper_heldout_mm_C`, `final_heldout_mm_C`,
 `ratio_C` (final / paper), `target_mm`, `target_met`, `seconds`, `cpu_seconds`, `settings`."""
