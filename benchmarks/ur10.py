@@ -27,12 +27,14 @@ the first 5 visits of every point (3,085 rows, time order kept) to bound the run
 baseline and final model are scored on all rows. The loop's own figures on A are those of the
 subset.
 
-Run time on 2 cores (one BLAS thread), all series: about 14 min (A 5, B 3, C 5.5, D 1);
-the cost is mostly one GP hyperparameter fit per cross-validated model (diagnose tries every
-missing effect at every step).
+Run time on one BLAS thread, all series: 565 s of CPU, 1,467 s wall on 2 cores shared with other
+jobs at load 3-5 (A 441 s, B 273 s, C 688 s, D 65 s wall); the cost is mostly one GP
+hyperparameter fit per cross-validated model (diagnose tries every missing effect at every
+step, each warm-started from the model it extends) and, on C, the strict CV and the 70/30 split,
+which refit the hyperparameters cold inside every fold.
 
 Keys: per series `series.X.*`; top level `paper_heldout_mm_C`, `final_heldout_mm_C`,
-`ratio_C` (final / paper), `target_mm`, `target_met`, `seconds`, `settings`."""
+`ratio_C` (final / paper), `target_mm`, `target_met`, `seconds`, `cpu_seconds`, `settings`."""
 from __future__ import annotations
 
 import argparse
@@ -53,6 +55,7 @@ from dt_runtime.analysis import diagnose as dg
 from dt_runtime.analysis.crossval import groups_of
 from dt_runtime.analysis.data import floor_of, load_data
 from dt_runtime.common.paths import DATA
+from dt_runtime.common.threads import limit_blas_threads
 from dt_runtime.frames.kinematics import load_robot
 from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
@@ -102,14 +105,14 @@ def cv_memo():
     orig = dg.cross_validate
     memo: dict = {}
 
-    def cached(model, X, y, groups, folds, *, thetas=None, return_std=False, hyper_per_fold=False):
+    def cached(model, X, y, groups, folds, *, thetas=None, return_std=False, hyper_per_fold=False, starts=None):
         h = hashlib.sha1(b"".join(np.asarray(f).tobytes() for f in folds)).hexdigest()
         p = model.get_params()
         key = (id(X), tuple(p["effects"]), p["gp_inputs"], h, p["seed"], p["ridge"], id(p["robot"]),
                p["gp_options"], thetas is None, return_std, hyper_per_fold)
         if key not in memo:  # keep X alive: its id is the key
             memo[key] = (X, orig(model, X, y, groups, folds, thetas=thetas, return_std=return_std,
-                                 hyper_per_fold=hyper_per_fold))
+                                 hyper_per_fold=hyper_per_fold, starts=starts))
         return memo[key][1]
 
     def cv(effects, inp, error, groups, chain, gp_inputs, folds):
@@ -137,12 +140,15 @@ def paired_p(before: dg.CvResult, after: dg.CvResult) -> float:
 
 # --- the loop -------------------------------------------------------------------------------
 def diagnose_loop(inp, error, groups, chain, floor, effects, gp_inputs, steps: list) -> tuple:
-    """Add the top significant effect until diagnose finds none; returns (effects, last report)."""
+    """Add the top significant effect until diagnose finds none; returns (effects, last report).
+    As in `dt diagnose --auto`, each candidate's GP hyperparameter fit starts from the step's
+    starting model's (rank_effects), and the next step starts from the chosen candidate's CV
+    (here through the memo)."""
     effects = tuple(effects)
     for _ in range(MAX_STEPS):
         t0 = time.perf_counter()
         r = dg.rank_effects(inp, error, groups, chain, effects, gp_inputs, None, FOLDS, SEED,
-                        noise_floor_m=floor, gp_options=GP_OPTIONS, **DIAGNOSE_KW)
+                            noise_floor_m=floor, gp_options=GP_OPTIONS, **DIAGNOSE_KW)
         top = r.top
         tested = {c.candidate: round(c.p_value, 6) for c in r.ranking}
         log(f"    diagnose [{', '.join(effects) or '-'}] + GP({gp_inputs}): {r.rmse_base_mm:.4f} mm; "
@@ -246,7 +252,7 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
 
 
 def run(series=("A", "B", "C", "D"), robot: Path = UR10_ROBOT, harmonics=None, refold: bool = False) -> dict:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     chain = robot_chain(robot, harmonics)
     out = {"series": {}}
     for s in series:
@@ -259,6 +265,9 @@ def run(series=("A", "B", "C", "D"), robot: Path = UR10_ROBOT, harmonics=None, r
         out["target_mm"] = TARGET_C_MM
         out["target_met"] = bool(max(c["final_heldout_mm"], c["strict_final_heldout_mm"]) <= TARGET_C_MM)
     out["seconds"] = time.perf_counter() - t0
+    # CPU seconds of this (single-threaded) process: its wall time on an otherwise idle machine,
+    # which `seconds` is not while others share the cores.
+    out["cpu_seconds"] = time.process_time() - c0
     out["settings"] = {"folds": FOLDS, "seed": SEED, "gp_options": GP_OPTIONS.to_dict(), "alpha": dg.ALPHA,
                        "robot": str(robot), "gear_harmonics": list(chain.gear_harmonics),
                        "max_diagnose_rows": MAX_DIAGNOSE_ROWS, "ridge": "HybridModel default",
@@ -301,10 +310,14 @@ def show(res: dict) -> None:
     if "target_mm" in res:
         print(f"\nSeries C target <= {res['target_mm']} mm held out: "
               f"{'met' if res['target_met'] else 'NOT met'}")
-    print(f"total {res['seconds']:.0f} s; settings {json.dumps(res['settings'])}")
+    print(f"total {res['seconds']:.0f} s ({res['cpu_seconds']:.0f} s CPU); settings {json.dumps(res['settings'])}")
 
 
 def main() -> None:
+    # BLAS on one thread, as every entry point (dt_runtime.common.threads): this benchmark parsed
+    # its own arguments and so ran OpenBLAS on 2 threads, which crawl while other processes
+    # share the cores (one CV on Series D: 48 CPU s, 192 s wall at load 8; 2.4 s on one thread).
+    limit_blas_threads()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--series", default="A,B,C,D", help="comma-separated subset of A,B,C,D")

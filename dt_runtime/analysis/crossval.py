@@ -28,6 +28,9 @@ class CvResult:
     residual: np.ndarray  # (n,3) held-out residuals (NaN for rows in no fold)
     group_mse: np.ndarray  # (g,) per-group mean squared 3D residual, groups in np.unique order
     std: np.ndarray | None  # (n,3) the fold models' stated standard uncertainty (return_std)
+    # The GP hyperparameters fitted on all rows, per axis in input/output units (`log_hypers_`):
+    # the warm start of a model that extends this one (diagnose). None without that fit.
+    log_hypers: list[np.ndarray] | None = None
 
 
 def groups_of(ds) -> np.ndarray:
@@ -78,13 +81,15 @@ def group_mse(residual: np.ndarray, groups: np.ndarray) -> np.ndarray:
 
 
 def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, folds: list[np.ndarray], *,
-                   thetas=None, return_std: bool = False, hyper_per_fold: bool = False) -> CvResult:
+                   thetas=None, return_std: bool = False, hyper_per_fold: bool = False,
+                   starts=None) -> CvResult:
     """Held-out residuals of `model`'s configuration (its parameters; a fitted model's learned
     state is not used), each row predicted by a clone fitted on the other folds (rows in no fold
     stay NaN). `thetas`: GP hyperparameters to keep fixed (e.g. a saved model's); default:
     fitted once on all rows (below), or with hyper_per_fold inside every fold (strict, slower).
     return_std: also the fold models' stated standard uncertainty of each prediction (its
-    variance costs more than the mean)."""
+    variance costs more than the mean). starts: warm starts of the hyperparameter fit on all rows
+    (`CvResult.log_hypers` of a nearby model; ignored when the GP inputs differ)."""
     inp = as_inputs(X)
     y = np.asarray(y, dtype=float)
     # Regressors that look at the previous row (approach direction) are built on the full,
@@ -93,14 +98,15 @@ def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, fol
     # GP hyperparameters are fitted once per candidate model on all rows and kept fixed in
     # the folds (the fold models refit the effect parameters and the GP posterior): a few
     # smoothness/noise numbers leak, no point's error does, and the loop runs 5x faster.
+    log_hypers = None
     if model.gp_inputs != "none" and thetas is None and not hyper_per_fold:
-        full = model.unfitted().fit(inp, y, design=design)
+        full = model.unfitted().fit(inp, y, design=design, starts=starts)
         assert full.gp_ is not None  # gp_inputs != "none"
-        thetas = full.gp_.thetas_
+        thetas, log_hypers = full.gp_.thetas_, full.gp_.log_hypers_
 
     def predict_fold(tr, te):
         m = model.unfitted().fit(inp.subset(tr), y[tr], design=design.rows(tr), thetas=thetas)
         return m.predict(inp.subset(te), return_std=return_std, design=design.rows(te))
 
     resid, std = heldout(y, folds, predict_fold, return_std)
-    return CvResult(resid, group_mse(resid, groups), std)
+    return CvResult(resid, group_mse(resid, groups), std, log_hypers)

@@ -82,6 +82,9 @@ class DiagnoseResult:
     base_group_mse: Any = None  # the starting model's held-out mean square per group (m^2; not in the JSON)
     base_residual: Any = None  # the starting model's held-out residual per row (m; not in the JSON)
     columns: list = field(default_factory=list)  # column_check: what the held-out residual follows
+    # The cross-validations behind the ranking, {(kind, candidate): CvResult} with ("base", "")
+    # the starting model's (not in the JSON): the next step of the loop starts from one of them.
+    cv: dict = field(default_factory=dict)
 
     @property
     def top(self) -> Gain | None:

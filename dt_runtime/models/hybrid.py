@@ -161,11 +161,12 @@ class HybridModel(RegressorMixin, BaseEstimator):
                       tuple((b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)),
                       np.array([b.nonnegative for b in blocks for _ in b.names], dtype=bool), hyper)
 
-    def fit(self, X, y=None, *, design: Design | None = None, thetas=None) -> HybridModel:
+    def fit(self, X, y=None, *, design: Design | None = None, thetas=None, starts=None) -> HybridModel:
         """Fit on X (a Dataset, effects.Inputs or (n, 3) commanded TCP array); y: the error
         e = commanded - measured (n, 3) m, default X.error for a Dataset. design: prebuilt
         regressors (design_matrix) of these rows; thetas: fixed GP hyperparameters per axis
-        (skips their optimisation)."""
+        (skips their optimisation); starts: warm starts of that optimisation per axis (a nearby
+        model's `gp_.log_hypers_`, e.g. the model a diagnose candidate extends)."""
         options = self._check_params()
         inp = as_inputs(X)
         if y is None:
@@ -231,7 +232,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
             self.identifiability_ = idf.analyse(np.zeros((0, 0)))
         resid = (y - A @ self.theta_).reshape(-1, 3)
         Xg = gp_features(inp, self.gp_inputs)
-        self.gp_ = (MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=thetas)
+        self.gp_ = (MultiOutputGP(seed=self.seed, **options.to_dict()).fit(Xg, resid, thetas=thetas, starts=starts)
                     if Xg is not None else None)
         if p and self.gp_ is not None and Xg is not None:
             # Effects and GP jointly: the effect parameters again by generalised least squares
