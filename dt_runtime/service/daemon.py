@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from drivers import registry
+from drivers.base import read_exposed_after
 from dt_kernel.errors import ConfigError, DriverError, TwinError
 from dt_runtime.service import sdnotify
 from dt_runtime.service.bus import Bus, CorrectionServer
@@ -503,7 +504,7 @@ class Daemon:
         self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
         camera = self.inst.camera
         assert camera is not None  # _make_instruments always builds one (drivers.camera names a driver)
-        reading = camera.read()
+        reading = read_exposed_after(camera, arrived)  # a streamed frame exposed mid-move saw the arm elsewhere
         self.ticks += 1
         self._last_tick_wall, self._last_tick_mono = time.time(), time.monotonic()
         if not reading.ok or reading.point is None:
