@@ -69,3 +69,38 @@ def cell_process(*args: str, timeout_s: float = 60.0) -> Iterator[CellProcess]:
             proc.wait()
     if len(lines) > 1:
         cell.final = json.loads(lines[-1])
+
+
+def runtime_yaml(cell: CellProcess, twin: Path | str, tmp: Path, name: str = "runtime.yaml", **over) -> Path:
+    """configs/runtime_ur_natnet.yaml pointed at this cell's ports, the twin, a store in `tmp`
+    and a free bus port; `over` replaces top-level keys."""
+    import yaml
+
+    from tests.loopback import free_port
+
+    doc = yaml.safe_load((ROOT / "configs" / "runtime_ur_natnet.yaml").read_text())
+    doc.update(twin=str(twin), store=str(tmp / "dt.sqlite"))
+    doc["drivers"] = {"robot": cell.robot(move_timeout_s=30.0), "camera": cell.camera(),
+                      "tracker": cell.tracker(timeout_s=1.0)}
+    doc["bus"] = {**doc["bus"], "listen": [f"tcp/127.0.0.1:{free_port()}"]}
+    doc.update(over)
+    path = tmp / name
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def campaign(cell: CellProcess, tmp: Path, doe_rows: int = 60) -> tuple[int, dict, Path]:
+    """`dt campaign` through the cell's drivers: (exit code, its JSON, the runtime YAML whose
+    `twin:` is the twin it made)."""
+    import contextlib
+    import io
+
+    from dt_runtime.cli.main import main
+
+    out = tmp / "campaign_out"
+    cfg = runtime_yaml(cell, out / "model", tmp)
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = main(["campaign", "--config", str(cfg), "--doe-rows", str(doe_rows), "--out", str(out), "--json",
+                   "--no-progress"])
+    return rc, json.loads(buf.getvalue()), cfg
