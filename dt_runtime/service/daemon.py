@@ -159,6 +159,7 @@ class Daemon:
         self.requests: list[dict] = []
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
         self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
+        self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
         self._last_tick_wall: float | None = None
         self._last_tick_mono = float("-inf")  # the watchdog is fed from READY on
         self._health_key: tuple | None = None
@@ -552,8 +553,12 @@ class Daemon:
                                 data={"t": chk.t.tolist()}))
         self.failures += int(not chk.passed)
         esc.observe(chk.passed, float(chk.t[worst]), t)
+        done = time.monotonic()
         if self.latencies is not None:
-            self.latencies.append(time.monotonic() - reading.host_time)
+            self.latencies.append(done - reading.host_time)
+        mid = reading.quality.get("mid_exposure_host_s")
+        if self.exposure_latencies is not None and mid is not None:
+            self.exposure_latencies.append(done - mid)
         # The statistics travel with the next batch of rows: a restart resumes them.
         self.store.stage_state("escalation", esc.snapshot())
         if self.bus:
