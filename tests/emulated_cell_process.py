@@ -80,7 +80,9 @@ def runtime_yaml(cell: CellProcess, twin: Path | str, tmp: Path, name: str = "ru
 
     doc = yaml.safe_load((ROOT / "configs" / "runtime_ur_natnet.yaml").read_text())
     doc.update(twin=str(twin), store=str(tmp / "dt.sqlite"))
-    doc["drivers"] = {"robot": cell.robot(move_timeout_s=30.0), "camera": cell.camera(),
+    # NatNet max_age_s 0.25 (the driver's default is 0.05): on a loaded test machine the reader
+    # may take tens of ms to get to a frame; the stale refusal is tested with 0.5 s late frames
+    doc["drivers"] = {"robot": cell.robot(move_timeout_s=30.0), "camera": cell.camera(max_age_s=0.25),
                       "tracker": cell.tracker(timeout_s=1.0)}
     doc["bus"] = {**doc["bus"], "listen": [f"tcp/127.0.0.1:{free_port()}"]}
     doc.update(over)
@@ -89,7 +91,7 @@ def runtime_yaml(cell: CellProcess, twin: Path | str, tmp: Path, name: str = "ru
     return path
 
 
-def campaign(cell: CellProcess, tmp: Path, doe_rows: int = 60) -> tuple[int, dict, Path]:
+def campaign(cell: CellProcess, tmp: Path, doe_rows: int | None = 60) -> tuple[int, dict, Path]:
     """`dt campaign` through the cell's drivers: (exit code, its JSON, the runtime YAML whose
     `twin:` is the twin it made)."""
     import contextlib
@@ -101,6 +103,6 @@ def campaign(cell: CellProcess, tmp: Path, doe_rows: int = 60) -> tuple[int, dic
     cfg = runtime_yaml(cell, out / "model", tmp)
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        rc = main(["campaign", "--config", str(cfg), "--doe-rows", str(doe_rows), "--out", str(out), "--json",
-                   "--no-progress"])
+        rows = ["--doe-rows", str(doe_rows)] if doe_rows is not None else []  # None: the plan's whole DOE
+        rc = main(["campaign", "--config", str(cfg), *rows, "--out", str(out), "--json", "--no-progress"])
     return rc, json.loads(buf.getvalue()), cfg

@@ -91,7 +91,7 @@ def test_a_protective_stop_during_a_move_halts_on_the_bus_and_resumes_after_unlo
 
 @pytest.mark.parametrize("fault, refused, counter", [
     ("drop_probability=0.5", None, "frames_lost"),
-    ("delay_probability=1.0 delay_s=0.2", "stale", None),
+    ("delay_probability=1.0 delay_s=0.5", "stale", None),
     ("untracked_probability=1.0", "not tracked", None),
 ])
 def test_natnet_faults_are_reported_and_nothing_moves_twice(daemon, fault, refused, counter):

@@ -29,7 +29,6 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
-    import numpy as np
 
     from drivers import registry
     from dt_kernel.errors import DataError
@@ -49,7 +48,7 @@ def run(args: argparse.Namespace) -> Any:
     if args.doe_rows is not None:
         if not 1 <= args.doe_rows <= len(doe):
             raise DataError(f"--doe-rows {args.doe_rows}: the plan has {len(doe)} DOE rows")
-        doe = [doe[int(i)] for i in np.linspace(0, len(doe) - 1, args.doe_rows).round()]
+        doe = spread(doe, args.doe_rows)
     prog = progress(args)
     world = _world(cfg, config.parent)
     out = Path(args.out)
@@ -88,6 +87,14 @@ def run(args: argparse.Namespace) -> Any:
             "e_lt_doe_mm": res.summary.get("table3_as_is", {}).get("e_lt_doe"),
             "precision_before_mm": res.summary.get("precision_before_mm"),
             "precision_after_mm": res.summary.get("precision_after_mm")}
+
+
+def spread(rows: list, n: int) -> list:
+    """`n` of `rows`, evenly spaced through them (first and last included): a short DOE that
+    still spans the plan's volume and speeds."""
+    import numpy as np
+
+    return [rows[int(i)] for i in np.linspace(0, len(rows) - 1, n).round()]
 
 
 def _world(cfg, base: Path):
