@@ -233,3 +233,20 @@ class CameraRig(Protocol):
 
     def read(self) -> RigReading:
         """Measure the TCP/SMR point from the marker cluster (m, MVS frame)."""
+
+
+def read_exposed_after(camera: CameraRig, t_host: float, tries: int = 3) -> RigReading:
+    """The camera's reading exposed after host time `t_host` (e.g. the move's arrival).
+
+    A streaming camera hands out its newest frame, which may have been exposed while the arm was
+    still settling: when the reading states its mid-exposure on the host clock
+    (`quality["mid_exposure_host_s"]`, NatNet) and that precedes `t_host`, the next frame is
+    read, at most `tries` times in all. A reading without that stamp (a polled camera, exposed
+    when asked) is returned as it is, and so is the last one tried."""
+    reading = camera.read()
+    for _ in range(tries - 1):
+        mid = reading.quality.get("mid_exposure_host_s") if reading.ok else None
+        if mid is None or mid >= t_host:
+            break
+        reading = camera.read()
+    return reading

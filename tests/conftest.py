@@ -20,3 +20,22 @@ def quick_demo(tmp_path_factory):
     with contextlib.redirect_stdout(buf):
         rc = main(["demo", "--quick", "--json", "--no-progress", "--out", str(out)])
     return rc, buf.getvalue(), out
+
+
+@pytest.fixture(scope="session")
+def ur_natnet_cell():
+    """`python -m drivers.emulated_cell` (UR, NatNet, serial tracker over one plant), 20x faster
+    than real time, for the session's end-to-end tests."""
+    from tests.emulated_cell_process import cell_process
+
+    with cell_process("--time-scale", "0.05", "--seed", "1") as cell:
+        yield cell
+
+
+@pytest.fixture(scope="session")
+def ur_natnet_campaign(ur_natnet_cell, tmp_path_factory):
+    """`dt campaign` through the emulated cell (registration + 60 DOE rows): (exit code, its
+    JSON, a runtime YAML whose twin it is)."""
+    from tests.emulated_cell_process import campaign
+
+    return campaign(ur_natnet_cell, tmp_path_factory.mktemp("ur_natnet"))

@@ -244,6 +244,10 @@ class NatNetRig(Lifecycle):
             self._cond.notify_all()
 
     # ------------------------------------------------------------------ read
+    def counters(self) -> dict[str, int]:
+        """frames_received, frames_lost, frames_late, frames_malformed: no I/O, for a health report."""
+        return dict(self.stats)
+
     def read(self) -> RigReading:
         self._require("active")
         with self._cond:

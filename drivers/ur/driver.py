@@ -153,6 +153,12 @@ class UrRtdeController(Abortable, Lifecycle):
                 "controller_version": self._link.controller_version, **self._link.stats, **self.stats,
                 "last_error": self._link.last_error}
 
+    def counters(self) -> dict[str, int]:
+        """The link's and the moves' counters (packages, connects, drops, stale, moves_sent, ...):
+        no I/O, for a health report from another thread (`status()` waits for a fresh package)."""
+        link = getattr(self, "_link", None)
+        return {**(dict(link.stats) if link is not None else {}), **self.stats}
+
     # --- moving -------------------------------------------------------------------------
     def _check_move(self, target: Any, speed: Any) -> tuple[np.ndarray, float]:
         lim = self._cfg.limits

@@ -141,6 +141,16 @@ class UrEmulator:
             if self._safety == rp.SAFETY_PROTECTIVE_STOP:
                 self._safety = rp.SAFETY_NORMAL
 
+    def motion_offset(self, now: float | None = None) -> np.ndarray:
+        """The reported TCP at wall time `now` minus where the move in progress ends (zero when
+        still), m. A camera emulator adds it to the plant's pose, committed at the move's start,
+        to follow the arm while it moves; it reads one reference and never takes the controller
+        lock, which the control thread holds while the plant moves in PyBullet."""
+        m = self._motion
+        if m is None:
+            return np.zeros(3)
+        return m.sample(time.monotonic() if now is None else now)[2] - m.p1
+
     @property
     def safety_mode(self) -> int:
         return self._safety

@@ -17,6 +17,7 @@ from dt_kernel.errors import TwinError
 from dt_runtime.cli import (
     ack,
     calibrate,
+    campaign,
     compare,
     consume,
     correct,
@@ -35,6 +36,7 @@ from dt_runtime.common.version import version_string
 COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line help); the module's docstring describes it
     "demo": (demo, "the paper's whole experiment on the simulated cell"),
     "calibrate": (calibrate, "a twin from a campaign's measurement files"),
+    "campaign": (campaign, "run the calibration campaign through a runtime YAML's drivers, then calibrate"),
     "run": (run, "the long-running twin daemon"),
     "simulate": (simulate, "measurement data from the simulated cell"),
     "fit": (fit, "train an error model (effect terms + GP)"),

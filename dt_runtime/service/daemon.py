@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from drivers import registry
+from drivers.base import read_exposed_after
 from dt_kernel.errors import ConfigError, DriverError, TwinError
 from dt_runtime.service import sdnotify
 from dt_runtime.service.bus import Bus, CorrectionServer
@@ -150,13 +151,15 @@ class Daemon:
         self._actions_lock = threading.Lock()
         self.delivered: list[int] = []
         self.ticks = self.failures = self.faults_refused = self.driver_faults = self.stale_measurements = 0
-        self.refused_in_row = self.driver_faults_in_row = 0
+        self.mvs_refused = 0  # MVS readings refused by the camera driver (lost, late, untracked, ...)
+        self.refused_in_row = self.driver_faults_in_row = self.mvs_refused_in_row = 0
         self.last_problem: str | None = None
         self.uncorrected = 0  # commands sent without the correction (it was not trusted)
         self._true_sq: list[float] = []  # squared 3D true error of each command (simulation only)
         self.requests: list[dict] = []
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
         self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
+        self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
         self._last_tick_wall: float | None = None
         self._last_tick_mono = float("-inf")  # the watchdog is fed from READY on
         self._health_key: tuple | None = None
@@ -346,7 +349,7 @@ class Daemon:
             return "halted", esc.halt_reason
         if self.store.write_errors_in_row:
             return "degraded", "store writes failing"
-        if self.refused_in_row or self.driver_faults_in_row:
+        if self.refused_in_row or self.driver_faults_in_row or self.mvs_refused_in_row:
             return "degraded", self.last_problem
         if not self._trusted() and self.cfg.halt.on_untrusted == "uncorrected":
             return "degraded", f"{esc.state}: commands sent uncorrected"
@@ -360,8 +363,24 @@ class Daemon:
         return {"status": status, "reason": reason, "escalation": esc.state, "episode": esc.episode,
                 "last_tick": self._last_tick_wall, "ticks": self.ticks, "refused_in_row": self.refused_in_row,
                 "driver_faults_in_row": self.driver_faults_in_row, "stale_measurements": self.stale_measurements,
-                "outbox_pending": self._pending_count(),
+                "mvs_refused": self.mvs_refused, "mvs_refused_in_row": self.mvs_refused_in_row,
+                "outbox_pending": self._pending_count(), "drivers": self._driver_counters(),
                 "pid": os.getpid(), "t": time.time()}
+
+    def _driver_counters(self) -> dict[str, dict]:
+        """Each driver's own counters, for those that keep them (`counters()`, no I/O: an RTDE
+        link's drops and reconnections, NatNet frames lost and late): a fault the driver
+        recovered from by itself still shows on `.../health`."""
+        inst = getattr(self, "inst", None)
+        out: dict[str, dict] = {}
+        for kind in ("robot", "tracker", "camera"):
+            counters = getattr(getattr(inst, kind, None), "counters", None)
+            if callable(counters):
+                try:
+                    out[kind] = counters()
+                except Exception as exc:  # noqa: BLE001 - a report must not fail on a driver's defect
+                    out[kind] = {"error": str(exc)}
+        return out
 
     def _pending_count(self) -> int | None:
         try:
@@ -503,13 +522,18 @@ class Daemon:
         self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
         camera = self.inst.camera
         assert camera is not None  # _make_instruments always builds one (drivers.camera names a driver)
-        reading = camera.read()
+        reading = read_exposed_after(camera, arrived)  # a streamed frame exposed mid-move saw the arm elsewhere
         self.ticks += 1
         self._last_tick_wall, self._last_tick_mono = time.time(), time.monotonic()
         if not reading.ok or reading.point is None:
+            # nothing to test: counted and reported (degraded while it lasts), the arm is not moved again
+            self.mvs_refused += 1
+            self.mvs_refused_in_row += 1
+            self.last_problem = f"MVS refused: {reading.refused}"
             log.info("MVS refused: %s", reading.refused)
             self._publish_health()
             return
+        self.mvs_refused_in_row = 0
         age = arrived - reading.host_time
         if age > self.cfg.max_measurement_age_s:
             self.stale_measurements += 1
@@ -529,8 +553,12 @@ class Daemon:
                                 data={"t": chk.t.tolist()}))
         self.failures += int(not chk.passed)
         esc.observe(chk.passed, float(chk.t[worst]), t)
+        done = time.monotonic()
         if self.latencies is not None:
-            self.latencies.append(time.monotonic() - reading.host_time)
+            self.latencies.append(done - reading.host_time)
+        mid = reading.quality.get("mid_exposure_host_s")
+        if self.exposure_latencies is not None and mid is not None:
+            self.exposure_latencies.append(done - mid)
         # The statistics travel with the next batch of rows: a restart resumes them.
         self.store.stage_state("escalation", esc.snapshot())
         if self.bus:
@@ -601,7 +629,7 @@ class Daemon:
     def summary(self) -> dict:
         out = {"ticks": self.ticks, "t_test_failures": self.failures, "refused_commands": self.faults_refused,
                "driver_faults": self.driver_faults, "uncorrected_commands": self.uncorrected,
-               "stale_measurements": self.stale_measurements,
+               "stale_measurements": self.stale_measurements, "mvs_refused": self.mvs_refused,
                "state": self.escalator.state, "halt_reason": self.escalator.halt_reason,
                "maintenance_requests": len(self.requests), "requests_delivered": len(self.delivered),
                "store": str(self.store.path)}

@@ -6,13 +6,14 @@ global frame GL (Sect. 2.3); the positioning errors then follow Eqs. 8-10.
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
-from drivers.base import CameraRig, LaserTracker, RobotController
+from drivers.base import CameraRig, LaserTracker, RobotController, read_exposed_after
 from dt_kernel.errors import UnreachableError
 from dt_runtime.common.progress import Progress
 from dt_runtime.measurements.phase import PhaseData
@@ -96,6 +97,7 @@ def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None
         cmd = command(target, v, inst.conditions()) if command else target
         try:
             inst.robot.move_linear(cmd, v)
+            arrived = time.monotonic()  # a streaming camera's frame must be exposed after this
         except UnreachableError as exc:
             if not skip_unreachable:
                 raise
@@ -110,7 +112,7 @@ def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None
             cols["p_lt"][i] = lt.point
         else:
             refusals.append(f"{label} row {i}: laser tracker {lt.status}")
-        mv = inst.camera.read() if inst.camera is not None else None
+        mv = read_exposed_after(inst.camera, arrived) if inst.camera is not None else None
         if mv is not None and mv.ok:
             cols["p_mvs"][i] = mv.point
         elif mv is not None:

@@ -1,0 +1,256 @@
+"""A whole emulated cell in one process: one simulated plant behind the real protocols.
+
+(A package of its own: `drivers` itself is imported by every driver package, so a module of
+`drivers` importing them would close a cycle in the architecture graph.)
+
+    python -m drivers.emulated_cell [--scenario S] [--cell C] [--host 127.0.0.1] [--rtde-port 30004]
+        [--script-port 30002] [--natnet-command-port 1510] [--tracker-port 4000] [--control-port 0]
+        [--time-scale 1.0] [--natnet-rate 120] [--seed N]
+
+serves, over ONE `SimWorld` (scenario and cell as `dt run` reads them):
+
+- the UR controller (`drivers.ur.emulator`: RTDE and the script port) moving the plant;
+- the OptiTrack NatNet server (`drivers.natnet.emulator`) streaming the rig's markers for the
+  arm's actual tool pose, so the camera follows the arm the UR moves;
+- the serial laser tracker (`drivers.serial.emulator.TrackerEmulator`, `socket://` URL)
+  measuring the same plant's true TCP;
+- a control port (one text line in, one JSON line out) for statistics and fault injection:
+  `stats`, `drop_rtde [N]`, `protective_stop`, `unlock`, `natnet KEY=VALUE ...`
+  (`NatNetEmulator.set_faults`, values in JSON: `natnet drop_probability=1.0`).
+
+Port 0 picks a free port. Once every server listens it prints ONE JSON line on stdout (host,
+ports, the tracker's URL) for scripts and tests to read, and runs until SIGTERM or SIGINT.
+
+Threads and the plant: PyBullet is not thread-safe, so only the UR emulator's control thread
+moves the plant and the tracker measures it, both under one lock. The NatNet thread never
+touches PyBullet: after every motion step the plant's true tool pose is published as a snapshot
+(under its own lock), and the NatNet source reads the snapshot, plus the UR motion's progress
+(`UrEmulator.motion_offset`) so the markers move with the arm between moves. The arm's own
+links do not occlude markers here (that needs PyBullet ray tests from the NatNet thread).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import signal
+import socket
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.natnet.emulator import NatNetEmulator
+from drivers.natnet.rig_source import SimRigMarkers
+from drivers.serial.emulator import TrackerEmulator
+from drivers.simulated.devices import SimWorld
+from drivers.ur.emulator import UrEmulator, UrFaults
+from dt_kernel.errors import ConfigError, DriverError
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+class _PublishingPlant:
+    """The plant as the UR emulator sees it: every motion step also publishes the true tool pose
+    and the controller's TCP as one snapshot (called under the plant lock, on the UR thread)."""
+
+    def __init__(self, plant: Any, publish):
+        self._plant, self._publish = plant, publish
+        publish(plant)
+
+    def move_linear(self, target: np.ndarray, speed: float) -> None:
+        try:
+            self._plant.move_linear(target, speed)
+        finally:  # a failed move may still have moved the arm: publish where it is
+            self._publish(self._plant)
+
+    def __getattr__(self, name: str) -> Any:  # joint_angles, controller_tcp, nominal, ...
+        return getattr(self._plant, name)
+
+
+class EmulatedCell:
+    """The emulators over one SimWorld; a context manager. Ports 0 pick free ones."""
+
+    def __init__(self, scenario: str | Path = CONFIGS / "scenarios" / "paper_default.yaml",
+                 cell: str | Path = CONFIGS / "cell.yaml", *, host: str = "127.0.0.1", rtde_port: int = 0,
+                 script_port: int = 0, natnet_command_port: int = 0, tracker_port: int = 0,
+                 seed: int | None = None, time_scale: float = 1.0, natnet_rate_hz: float = 120.0,
+                 natnet_seed: int = 0, ur_faults: UrFaults | None = None):
+        self.host = host
+        self.world = SimWorld(scenario, cell, seed, source=str(scenario))
+        self.plant_lock = threading.Lock()  # PyBullet: the UR thread and the tracker thread
+        self._snap_lock = threading.Lock()  # the pose snapshot: the NatNet thread reads it
+        self._snap: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._opened: list[Any] = []
+        try:
+            plant = _PublishingPlant(self.world.cell.plant, self._publish)
+            self.ur = UrEmulator(plant, host, rtde_port, script_port, plant_lock=self.plant_lock,
+                                 faults=ur_faults, time_scale=time_scale)
+            self._opened.append(self.ur.stop)
+            self.tracker = TrackerEmulator(self.world.cell.tracker.measure_spherical, f"tcp://{host}:{tracker_port}",
+                                           lock=self.plant_lock)
+            self._opened.append(self.tracker.stop)
+            src = SimRigMarkers(self.tool_pose, seed=natnet_seed)
+            self.natnet = NatNetEmulator(src, {"host": host, "command_port": natnet_command_port,
+                                               "rate_hz": natnet_rate_hz}, "<emulated cell natnet>").start()
+            self._opened.append(self.natnet.close)
+        except BaseException:
+            self.close()
+            raise
+        self._control: _ControlServer | None = None
+
+    def _publish(self, plant: Any) -> None:
+        R, p = plant.tool_pose()
+        snap = (np.asarray(R, float), np.asarray(p, float), np.asarray(plant.controller_tcp(), float))
+        with self._snap_lock:
+            self._snap = snap
+
+    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The arm's actual tool pose now (world frame), without PyBullet: the snapshot taken when
+        the plant was committed to the current move, moved along the move's progress."""
+        with self._snap_lock:
+            snap = self._snap
+        assert snap is not None  # published when the plant was wrapped
+        R, p, _ = snap
+        return R, p + self.ur.motion_offset()
+
+    def ports(self) -> dict[str, Any]:
+        """What a client needs: the JSON line the command prints."""
+        out = {"host": self.host, "rtde_port": self.ur.rtde_port, "script_port": self.ur.script_port,
+               "natnet_command_port": self.natnet.command_port, "tracker_url": self.tracker.port}
+        if self._control is not None:
+            out["control_port"] = self._control.port
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        nat = dataclasses.asdict(self.natnet.stats)
+        nat.pop("dropped")
+        return {"ur": dict(self.ur.stats), "safety_mode": self.ur.safety_mode, "natnet": nat,
+                "tracker": dict(self.tracker.stats)}
+
+    def command(self, line: str) -> dict[str, Any]:
+        """One control command (see the module docstring); errors are replies, not exceptions."""
+        word, *args = line.split()
+        if word == "stats":
+            return {"ok": True, **self.stats()}
+        if word == "drop_rtde":
+            self.ur.inject_drop(int(args[0]) if args else 0)
+        elif word == "protective_stop":
+            self.ur.inject_protective_stop()
+        elif word == "unlock":
+            self.ur.unlock_protective_stop()
+        elif word == "natnet":
+            changes = {k: json.loads(v) for k, _, v in (a.partition("=") for a in args)}
+            self.natnet.set_faults(**changes)
+        else:
+            return {"ok": False, "error": f"unknown command {word!r}: stats, drop_rtde [N], protective_stop, "
+                                          "unlock, natnet KEY=VALUE ..."}
+        return {"ok": True}
+
+    def serve_control(self, port: int = 0) -> int:
+        """Start the control port (loopback, the cell's host); returns its port."""
+        self._control = _ControlServer(self, self.host, port)
+        self._opened.append(self._control.stop)
+        return self._control.port
+
+    def close(self) -> None:
+        while self._opened:
+            try:
+                self._opened.pop()()
+            except Exception as exc:  # noqa: BLE001 - keep closing the rest
+                print(f"emulated cell: while closing: {exc}", file=sys.stderr)
+        self.world.close()
+
+    def __enter__(self) -> EmulatedCell:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+class _ControlServer:
+    """Line-based control port: one command per line, one JSON reply per line."""
+
+    def __init__(self, cell: EmulatedCell, host: str, port: int):
+        self._cell = cell
+        self._srv = socket.create_server((host, port))
+        self._srv.settimeout(0.2)
+        self.port = self._srv.getsockname()[1]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._accept, name="emulated-cell-control", daemon=True)
+        self._thread.start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._srv.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        with conn, conn.makefile("rwb") as f:
+            for raw in f:
+                line = raw.decode("utf-8", "replace").strip()
+                if not line:
+                    continue
+                try:
+                    reply = self._cell.command(line)
+                except (ValueError, IndexError, ConfigError, DriverError) as exc:
+                    reply = {"ok": False, "error": f"{line!r}: {exc}"}
+                f.write((json.dumps(reply) + "\n").encode())
+                f.flush()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._srv.close()
+        self._thread.join(timeout=2.0)
+
+
+def control(host: str, port: int, line: str, timeout_s: float = 10.0) -> dict[str, Any]:
+    """Send one control command to a running cell; its JSON reply."""
+    with socket.create_connection((host, port), timeout=timeout_s) as s, s.makefile("rwb") as f:
+        f.write(line.encode() + b"\n")
+        f.flush()
+        reply = f.readline()
+    if not reply:
+        raise DriverError(f"emulated cell control {host}:{port}: no reply to {line!r}")
+    return json.loads(reply)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m drivers.emulated_cell",
+                                 description="UR (RTDE), NatNet and serial laser tracker emulators "
+                                             "over one simulated cell.")
+    ap.add_argument("--scenario", default=str(CONFIGS / "scenarios" / "paper_default.yaml"))
+    ap.add_argument("--cell", default=str(CONFIGS / "cell.yaml"))
+    ap.add_argument("--host", default="127.0.0.1")
+    ap.add_argument("--rtde-port", type=int, default=30004, help="RTDE (0: a free port)")
+    ap.add_argument("--script-port", type=int, default=30002, help="URScript port (0: a free port)")
+    ap.add_argument("--natnet-command-port", type=int, default=1510, help="NatNet command port (0: a free port)")
+    ap.add_argument("--tracker-port", type=int, default=4000, help="laser tracker, socket:// (0: a free port)")
+    ap.add_argument("--control-port", type=int, default=0, help="statistics and faults (0: a free port)")
+    ap.add_argument("--seed", type=int, default=None, help="the scenario's seed unless given")
+    ap.add_argument("--time-scale", type=float, default=1.0, help="wall time per second of motion (0.1: 10x faster)")
+    ap.add_argument("--natnet-rate", type=float, default=120.0, help="NatNet frames per second")
+    a = ap.parse_args(argv)
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    signal.signal(signal.SIGINT, lambda *_: done.set())
+    cell = EmulatedCell(a.scenario, a.cell, host=a.host, rtde_port=a.rtde_port, script_port=a.script_port,
+                        natnet_command_port=a.natnet_command_port, tracker_port=a.tracker_port, seed=a.seed,
+                        time_scale=a.time_scale, natnet_rate_hz=a.natnet_rate)
+    try:
+        cell.serve_control(a.control_port)
+        print(json.dumps(cell.ports()), flush=True)
+        while not done.wait(0.5):
+            pass
+        print(json.dumps({"stopped": True, **cell.stats()}), flush=True)
+    finally:
+        cell.close()
+    return 0
+

@@ -1,0 +1,117 @@
+"""`dt campaign`: run the calibration campaign on the cell of a runtime YAML, then calibrate.
+
+The drivers are the runtime YAML's (`drivers:`, exactly as `dt run` builds them: a real cell,
+the emulated cell of `python -m drivers.emulated_cell`, or the simulated drivers), so the twin
+is calibrated with the instruments the daemon will use. Phase 1 (registration) and phase 2 (the
+DOE) of the plan are measured through them and written as a campaign directory (OUT/campaign,
+docs/campaign-files.md, its manifest naming the drivers); `dt calibrate` then makes the twin in
+OUT/model, the directory a runtime YAML's `twin:` names. `--doe-rows N` measures N DOE rows
+spread evenly through the plan (a short campaign: a smoke test of a cell, not a calibration).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from dt_runtime.cli.common import add_output_args, folds, progress
+
+
+def add_arguments(c: argparse.ArgumentParser) -> None:
+    c.add_argument("--config", required=True, metavar="YAML", help="runtime YAML: its drivers and sim sections")
+    c.add_argument("--plan", default="plan_quick.yaml", metavar="YAML",
+                   help="experiment plan (default configs/plan_quick.yaml)")
+    c.add_argument("--doe-rows", type=int, default=None, metavar="N",
+                   help="measure only N DOE rows, spread evenly through the plan")
+    c.add_argument("--folds", type=folds, default=5, metavar="K", help="grouped cross-validation folds (default 5)")
+    c.add_argument("--out", required=True, metavar="DIR", help="writes DIR/campaign and the twin DIR/model")
+    add_output_args(c)
+
+
+def run(args: argparse.Namespace) -> Any:
+
+    from drivers import registry
+    from dt_kernel.errors import DataError
+    from dt_runtime.common.paths import CONFIGS
+    from dt_runtime.measurements.plans import build_plan, load_plan
+    from dt_runtime.service.runtime_config import load_runtime_config
+    from dt_runtime.twin.calibrate import CalibrationOptions, Campaign
+    from dt_runtime.twin.campaign import Instruments, run_rows
+    from dt_runtime.twin.campaign_dir import calibrate_campaign, write_campaign
+
+    config = Path(args.config)
+    cfg = load_runtime_config(config)  # every driver's options checked before anything opens
+    plan_file = Path(args.plan) if Path(args.plan).is_file() else CONFIGS / args.plan
+    plan_cfg = load_plan(plan_file)
+    plan = build_plan(plan_cfg)
+    doe = plan.doe
+    if args.doe_rows is not None:
+        if not 1 <= args.doe_rows <= len(doe):
+            raise DataError(f"--doe-rows {args.doe_rows}: the plan has {len(doe)} DOE rows")
+        doe = spread(doe, args.doe_rows)
+    prog = progress(args)
+    world = _world(cfg, config.parent)
+    out = Path(args.out)
+    names = {k: n for k, n, _ in cfg.drivers.chosen()}
+    try:
+        drivers = []
+        try:
+            for kind, name, opts in cfg.drivers.chosen():
+                drivers.append(registry.create(kind, name, opts, world=world, source=str(config),
+                                               key=f"drivers.{kind}"))
+        except BaseException:
+            for d in drivers:
+                d.close()
+            raise
+        robot, tracker, camera = drivers
+        inst = Instruments(robot, tracker, camera, world=world,
+                           max_speed=world.max_speed() if world else cfg.limits.max_speed_m_s)
+        try:
+            inst.activate()
+            reg = run_rows(inst, plan.registration, prog, "phase 1 registration")
+            doe_data = run_rows(inst, doe, prog, "phase 2 DOE")
+        finally:
+            inst.close()
+    finally:
+        if world is not None:
+            world.close()
+    files = write_campaign(out / "campaign", Campaign(reg, doe_data), None, plan_cfg.seed, (), names,
+                           f"dt campaign, {config.name}, drivers {names}")
+    options = CalibrationOptions(cv_folds=args.folds, seed=plan_cfg.seed)
+    res = calibrate_campaign(files, options, out / "model", progress=prog)
+    refusals = reg.refusals + doe_data.refusals
+    return {"campaign": str(files.manifest), "twin": str(out / "model"), "drivers": names,
+            "registration_rows": reg.n, "doe_rows": doe_data.n, "refusals": len(refusals),
+            "refusal_examples": refusals[:5],
+            "registration_residuals_mm": res.summary.get("table2_registration_residuals"),
+            "e_lt_doe_mm": res.summary.get("table3_as_is", {}).get("e_lt_doe"),
+            "precision_before_mm": res.summary.get("precision_before_mm"),
+            "precision_after_mm": res.summary.get("precision_after_mm")}
+
+
+def spread(rows: list, n: int) -> list:
+    """`n` of `rows`, evenly spaced through them (first and last included): a short DOE that
+    still spans the plan's volume and speeds."""
+    import numpy as np
+
+    return [rows[int(i)] for i in np.linspace(0, len(rows) - 1, n).round()]
+
+
+def _world(cfg, base: Path):
+    """The simulated cell when a chosen driver runs on one (as `dt run` builds it), else None."""
+    from drivers import registry
+
+    if not any(registry.needs_world(k, n) for k, n, _ in cfg.drivers.chosen()):
+        return None
+    from drivers.simulated.devices import SimWorld
+    from dt_runtime.twin.simulate import load_scenario_file
+
+    p = lambda rel: Path(rel) if Path(rel).is_absolute() else base / rel  # noqa: E731
+    scenario, _ = load_scenario_file(p(cfg.sim.scenario))
+    return SimWorld(scenario, p(cfg.sim.cell), source=str(p(cfg.sim.scenario)))
+
+
+def human(s: dict) -> str:
+    return (f"campaign {s['campaign']} ({s['registration_rows']} registration, {s['doe_rows']} DOE rows, "
+            f"{s['refusals']} refusals; drivers {s['drivers']}); twin {s['twin']}: precision "
+            f"{s['precision_before_mm']:.3f} mm -> {s['precision_after_mm']:.3f} mm")
