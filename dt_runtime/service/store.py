@@ -426,8 +426,9 @@ class Store:
             (str(name), compact(dict(data)), time.time()))
 
     def save_state(self, name: str, data: Mapping[str, Any]) -> None:
-        """Replace the single resume row (e.g. the escalation snapshot); committed at once."""
-        self._staged_state = None  # this one is newer than anything staged
+        """Replace the single resume row (e.g. the escalation snapshot); committed at once. What
+        was staged goes into the same transaction first and is overwritten by this newer one; it is
+        taken under the lock (`_tx`), so a failed save leaves it staged for the next commit."""
         self._tx(lambda: self._write_state(name, data))
 
     def stage_state(self, name: str, data: Mapping[str, Any]) -> None:
@@ -444,7 +445,9 @@ class Store:
         operator action `applied` (id, result) it carries out. Returns (transition id, outbox
         ids); StoreError and nothing written if it cannot commit."""
         reqs = [(str(k), compact(dict(p))) for k, p in requests]
-        self._staged_state = None
+        # The staged resume row is taken by _tx under the lock and overwritten by `state` below;
+        # clearing it here, outside the lock, let a concurrent batch commit rows without any
+        # state, and lost it when this transaction then failed (a full disk).
 
         def body() -> tuple[int, list[int]]:
             now = time.time()
