@@ -464,7 +464,10 @@ def test_sigterm_with_a_silent_device_stops_within_the_bound(twin_dir, tmp_path)
     proc = subprocess.Popen(_dt("run", "--config", str(cfg), "--json"), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
-        assert wait_until(lambda: _count(tmp_path / "dt.sqlite", "commands") >= 3, 120), "the daemon never moved"
+        moved = wait_until(lambda: proc.poll() is not None or _count(tmp_path / "dt.sqlite", "commands") >= 3, 120)
+        # a daemon that stopped on its own says why (rather than a 120 s wait in vain)
+        assert moved and proc.poll() is None, ("the daemon never moved" if not moved else
+                                               f"the daemon exited {proc.returncode}: {proc.communicate()[1][-3000:]}")
         emu.pause(600)  # deaf and mute: the next MOVL gets no reply for 10 minutes
         time.sleep(1.0)  # a move is in flight (20 Hz ticks)
         t0 = time.monotonic()
