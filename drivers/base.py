@@ -11,6 +11,7 @@ registry (drivers.registry.create) uses only that, so no caller branches on a dr
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Mapping
@@ -233,6 +234,18 @@ class CameraRig(Protocol):
 
     def read(self) -> RigReading:
         """Measure the TCP/SMR point from the marker cluster (m, MVS frame)."""
+
+
+def check_move(target: Any, speed: Any, tcp_abs_m: float, max_speed_m_s: float) -> tuple[np.ndarray, float]:
+    """A controller's move arguments as (3,) m and m/s, or DriverError saying what is allowed
+    (a real controller's drivers check them before anything is sent)."""
+    target = np.asarray(target, dtype=float)
+    if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(np.abs(target) > tcp_abs_m):
+        raise DriverError(f"invalid move target {target!r}: need 3 finite coordinates within ±{tcp_abs_m} m")
+    speed = float(speed)
+    if not (math.isfinite(speed) and 0.0 < speed <= max_speed_m_s):
+        raise DriverError(f"invalid speed {speed!r}: need 0 < speed <= {max_speed_m_s} m/s")
+    return target, speed
 
 
 def read_exposed_after(camera: CameraRig, t_host: float, tries: int = 3) -> RigReading:

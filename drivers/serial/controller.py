@@ -22,12 +22,11 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from drivers.base import JointState
+from drivers.base import JointState, check_move
 from drivers.serial import protocol as lp
 from drivers.serial.device import SerialDevice
 from drivers.serial.link import LinkConfig, SerialLink, ack_fields, refused  # noqa: F401 (re-exported)
 from dt_kernel.config import Frozen
-from dt_kernel.errors import DriverError
 
 
 class ControllerLimits(Frozen):
@@ -47,15 +46,9 @@ class SerialController(SerialDevice[ControllerConfig]):
     name = "serial controller"
     config_model = ControllerConfig
 
-    def _check_move(self, target, speed) -> tuple[np.ndarray, float]:
+    def _check_move(self, target: Any, speed: Any) -> tuple[np.ndarray, float]:
         lim = self._cfg.limits
-        target = np.asarray(target, dtype=float)
-        if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(np.abs(target) > lim.tcp_abs_m):
-            raise DriverError(f"invalid move target {target!r}: need 3 finite coordinates within ±{lim.tcp_abs_m} m")
-        speed = float(speed)
-        if not (math.isfinite(speed) and 0.0 < speed <= lim.max_speed_m_s):
-            raise DriverError(f"invalid speed {speed!r}: need 0 < speed <= {lim.max_speed_m_s} m/s")
-        return target, speed
+        return check_move(target, speed, lim.tcp_abs_m, lim.max_speed_m_s)
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         self._require("active")

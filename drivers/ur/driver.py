@@ -32,7 +32,6 @@ record), `limits` {`tcp_abs_m` 3.0, `max_speed_m_s` 1.0}.
 """
 from __future__ import annotations
 
-import math
 import socket
 import time
 from typing import Any
@@ -40,7 +39,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from drivers.base import Abortable, JointState, Lifecycle
+from drivers.base import Abortable, JointState, Lifecycle, check_move
 from drivers.ur import protocol as rp
 from drivers.ur import urscript
 from drivers.ur.rtde_link import RtdeLink, RtdeSample
@@ -162,13 +161,7 @@ class UrRtdeController(Abortable, Lifecycle):
     # --- moving -------------------------------------------------------------------------
     def _check_move(self, target: Any, speed: Any) -> tuple[np.ndarray, float]:
         lim = self._cfg.limits
-        target = np.asarray(target, dtype=float)
-        if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(np.abs(target) > lim.tcp_abs_m):
-            raise DriverError(f"invalid move target {target!r}: need 3 finite coordinates within ±{lim.tcp_abs_m} m")
-        speed = float(speed)
-        if not (math.isfinite(speed) and 0.0 < speed <= lim.max_speed_m_s):
-            raise DriverError(f"invalid speed {speed!r}: need 0 < speed <= {lim.max_speed_m_s} m/s")
-        return target, speed
+        return check_move(target, speed, lim.tcp_abs_m, lim.max_speed_m_s)
 
     def _movable(self, s: RtdeSample) -> None:
         mode, safety = s.values["robot_mode"], s.values["safety_mode"]

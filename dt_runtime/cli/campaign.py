@@ -30,7 +30,6 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> Any:
 
-    from drivers import registry
     from dt_kernel.errors import DataError
     from dt_runtime.common.paths import CONFIGS
     from dt_runtime.measurements.plans import build_plan, load_plan
@@ -54,16 +53,7 @@ def run(args: argparse.Namespace) -> Any:
     out = Path(args.out)
     names = {k: n for k, n, _ in cfg.drivers.chosen()}
     try:
-        drivers = []
-        try:
-            for kind, name, opts in cfg.drivers.chosen():
-                drivers.append(registry.create(kind, name, opts, world=world, source=str(config),
-                                               key=f"drivers.{kind}"))
-        except BaseException:
-            for d in drivers:
-                d.close()
-            raise
-        robot, tracker, camera = drivers
+        robot, tracker, camera = cfg.drivers.create(world, str(config))
         inst = Instruments(robot, tracker, camera, world=world,
                            max_speed=world.max_speed() if world else cfg.limits.max_speed_m_s)
         try:

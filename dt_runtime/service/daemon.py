@@ -235,16 +235,7 @@ class Daemon:
         return SimWorld(scenario, self._p(self.cfg.sim.cell), source=str(self._p(self.cfg.sim.scenario)))
 
     def _make_instruments(self) -> Instruments:
-        drivers = []
-        try:
-            for kind, name, config in self.cfg.drivers.chosen():
-                drivers.append(registry.create(kind, name, config, world=self.world, source=self.source,
-                                               key=f"drivers.{kind}"))
-        except BaseException:
-            for drv in drivers:
-                drv.close()
-            raise
-        robot, tracker, camera = drivers
+        robot, tracker, camera = self.cfg.drivers.create(self.world, self.source)
         inst = Instruments(robot, tracker, camera, world=self.world,
                            max_speed=self.world.max_speed() if self.world else self.cfg.limits.max_speed_m_s)
         self._closers.append(inst.close)

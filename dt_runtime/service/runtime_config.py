@@ -133,6 +133,19 @@ class Drivers(Frozen):
         """(kind, name, options) of the three drivers."""
         return [(k, c.kind, c.options) for k, c in ((k, getattr(self, k)) for k in KINDS)]
 
+    def create(self, world: Any, source: str) -> list:
+        """The three drivers [robot, tracker, camera], built and configured (not yet active);
+        those already built are closed if a later one fails, so nothing is left open."""
+        built: list = []
+        try:
+            for kind, name, options in self.chosen():
+                built.append(registry.create(kind, name, options, world=world, source=source, key=f"drivers.{kind}"))
+        except BaseException:
+            for drv in built:
+                drv.close()
+            raise
+        return built
+
     def check(self, source: str) -> None:
         """ConfigError naming `source` and the key (`drivers.tracker.url`) unless every driver is
         installed, loads, and takes its options (drivers.registry.check): before anything opens."""
