@@ -32,9 +32,7 @@ import contextlib
 import io
 import json
 import logging
-import signal
 import socket
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -45,6 +43,7 @@ from benchmarks._common import cli
 from dt_runtime.cli.main import main as dt_main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
+from tests.emulated_cell_process import cell_process
 
 
 def _port() -> int:
@@ -99,27 +98,6 @@ def _run(twin: Path, tmp: Path, rate: float, realtime: bool, camera: str, robot:
     return np.array(d.tick_times), np.array(d.latencies)
 
 
-@contextlib.contextmanager
-def _cell(time_scale: float, natnet_rate: float):
-    """`python -m drivers.emulated_cell` on free ports: its ports line; SIGTERM at the end."""
-    proc = subprocess.Popen([sys.executable, "-m", "drivers.emulated_cell", "--rtde-port", "0", "--script-port", "0",
-                             "--natnet-command-port", "0", "--tracker-port", "0", "--time-scale", str(time_scale),
-                             "--natnet-rate", str(natnet_rate)],
-                            cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
-        if not line:
-            raise SystemExit("the emulated cell did not start")
-        yield json.loads(line)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-
-
 def _percentiles(x: np.ndarray, prefix: str) -> dict:
     ms = (x[50:] if len(x) > 100 else x) * 1e3
     if not len(ms):
@@ -134,12 +112,12 @@ def measure_cell(seconds: float, rate: float, time_scale: float = 1.0, natnet_ra
     baseline = measure(seconds, rate)
     logging.disable(logging.WARNING)
     freq = 125.0 if rate <= 125 else 500.0  # a CB3 streams RTDE at 125 Hz, an e-Series at 500 Hz
-    with tempfile.TemporaryDirectory() as tmp, _cell(time_scale, natnet_rate) as ports:
+    cell_args = ("--time-scale", str(time_scale), "--natnet-rate", str(natnet_rate))
+    with tempfile.TemporaryDirectory() as tmp, cell_process(*cell_args) as cell:
         tmp = Path(tmp)
-        robot = {"kind": "ur_rtde", "host": ports["host"], "rtde_port": ports["rtde_port"],
-                 "script_port": ports["script_port"], "frequency_hz": freq, "move_timeout_s": 30.0}
-        camera = {"kind": "natnet", "server": ports["host"], "command_port": ports["natnet_command_port"]}
-        tracker = {"kind": "serial", "url": ports["tracker_url"], "timeout_s": 1.0}
+        robot = cell.robot(frequency_hz=freq, move_timeout_s=30.0)
+        camera = cell.camera()
+        tracker = cell.tracker(timeout_s=1.0)
         cfg = _config(tmp / "twin" / "model", tmp, rate, True, camera, robot, tracker)
         runtime = tmp / "runtime.yaml"
         runtime.write_text(json.dumps(cfg.model_dump(mode="json")))  # YAML reads JSON

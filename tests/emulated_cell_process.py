@@ -7,6 +7,7 @@ import json
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -42,7 +43,9 @@ def cell_process(*args: str, timeout_s: float = 60.0) -> Iterator[CellProcess]:
     """Start the cell on free ports (plus `args`), wait for its ports line, SIGTERM it at the end."""
     cmd = [sys.executable, "-m", "drivers.emulated_cell", "--rtde-port", "0", "--script-port", "0",
            "--natnet-command-port", "0", "--tracker-port", "0", *args]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # stderr to a file, not a pipe nobody reads while the cell runs (a full pipe would block it)
+    err = tempfile.TemporaryFile(mode="w+")
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=err, text=True)
     lines: list[str] = []
     ready = threading.Event()
 
@@ -56,7 +59,8 @@ def cell_process(*args: str, timeout_s: float = 60.0) -> Iterator[CellProcess]:
     threading.Thread(target=read, daemon=True).start()
     try:
         if not ready.wait(timeout_s) or not lines:
-            raise RuntimeError(f"emulated cell not ready within {timeout_s} s: {proc.stderr and proc.stderr.read()}")
+            err.seek(0)
+            raise RuntimeError(f"emulated cell not ready within {timeout_s} s: {err.read()[-3000:]}")
         cell = CellProcess(proc, json.loads(lines[0]))
         yield cell
     finally:
@@ -67,6 +71,7 @@ def cell_process(*args: str, timeout_s: float = 60.0) -> Iterator[CellProcess]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        err.close()
     if len(lines) > 1:
         cell.final = json.loads(lines[-1])
 
