@@ -79,6 +79,14 @@ class Chain:
         p = T[:, None, :3, 3]
         return np.cross(self.world_axes(rot), p - pos).transpose(0, 2, 1)
 
+    def jacobian6(self, q: np.ndarray) -> np.ndarray:
+        """Geometric Jacobian (n, 6, dof): TCP linear velocity (rows 0-2) and angular velocity
+        (rows 3-5) per joint rate."""
+        pos, rot, T = self.frames(q)
+        ax = self.world_axes(rot)
+        lin = np.cross(ax, T[:, None, :3, 3] - pos)
+        return np.concatenate([lin, ax], axis=2).transpose(0, 2, 1)
+
     def pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """TCP position (3,) and orientation (3, 3) for one joint vector."""
         T = self.frames(np.asarray(q, dtype=float)[None, :])[2][0]

@@ -91,8 +91,9 @@ class FixedPart:
 
 def profile(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, chain: Chain | None,
             ridge: float) -> dict[str, dict[str, Estimate]]:
-    """The nonlinear parameters of `effects` (each at its profile-likelihood estimate, the others
-    at their defaults while one is profiled), {effect: {parameter: Estimate}}. Effects whose
+    """The nonlinear parameters of `effects` (each at its profile-likelihood estimate: an effect's
+    parameters one after the other, each with the ones before it at their estimates and the others'
+    at their defaults), {effect: {parameter: Estimate}}. Effects whose
     parameters the inputs cannot inform (the thermal lag without a time column) are left out
     (their defaults apply)."""
     out: dict[str, dict[str, Estimate]] = {}
@@ -108,12 +109,28 @@ def profile(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, chain: 
         # Only the profiled effect's block changes between grid values: the rest once (FixedPart).
         part = FixedPart(base.reshape(len(y), -1), y, ridge)
         out[name] = {}
+        chosen: dict[str, float] = {}  # the effect's parameters estimated so far (in the grid's order)
         for param, grid in eff.hyper.items():
-            def rss(v: float, param: str = param, eff: fx.Effect = eff, part: FixedPart = part) -> float:
-                return part.rss(eff.build(inp, chain, {param: v}).A.reshape(len(y), -1))
+            def rss(v: float, param: str = param, eff: fx.Effect = eff, part: FixedPart = part,
+                    before: tuple = tuple(chosen.items())) -> float:
+                return part.rss(eff.build(inp, chain, dict(before) | {param: v}).A.reshape(len(y), -1))
 
-            out[name][param] = _estimate(rss, np.asarray(grid, float), len(y), eff.hyper_units.get(param, ""))
+            choices = eff.hyper_choices.get(param)
+            out[name][param] = (_choice(rss, np.asarray(grid, float), len(y)) if choices else
+                                _estimate(rss, np.asarray(grid, float), len(y), eff.hyper_units.get(param, "")))
+            chosen[param] = out[name][param].value
     return out
+
+
+def _choice(rss: Callable[[float], float], grid: np.ndarray, n: int) -> Estimate:
+    """A choice between alternatives (grid values): the one of least RSS. Identified when every
+    other alternative is worse by more than 1/2 in -log L (the profile interval holds it alone)."""
+    values = np.array([rss(v) for v in grid])
+    k = int(np.argmin(values))
+    nll = 0.5 * n * np.log(np.maximum(values, 1e-300) / max(float(values[k]), 1e-300))
+    others = np.delete(nll, k)
+    best = float(grid[k])
+    return Estimate(best, None, best, best, bool(len(others) == 0 or others.min() > 0.5), "")
 
 
 def _estimate(rss: Callable[[float], float], grid: np.ndarray, n: int, unit: str) -> Estimate:

@@ -71,6 +71,8 @@ class Inputs:
 
 
 _FIELDS = frozenset(f.name for f in fields(Inputs))
+# A factor an effect varies with, by the Inputs column that carries it.
+_FACTOR_OF = {"time": "t", "temperature": "temperature", "speed": "speed", "payload": "payload"}
 
 
 def as_inputs(X) -> Inputs:
@@ -99,12 +101,32 @@ class Block:
     nonnegative: bool = False
 
 
-def approach(x: np.ndarray) -> np.ndarray:
-    """Direction of approach of each row from the previous row (first row: from the second)."""
+def approach(x: np.ndarray, per_column: bool = False) -> np.ndarray:
+    """Direction of approach of each row from the previous row (first row: from the second). A
+    row that did not move (a repeated reading of the same pose) keeps the direction of the last
+    move: the arm still rests where that move left it. per_column: each column on its own (a joint
+    that did not move while others did keeps its own last direction, as the plant's play does)."""
+    x = np.asarray(x, dtype=float)
     d = np.zeros_like(x)
+    if len(x) < 2:
+        return d
     d[1:] = x[1:] - x[:-1]
-    d[0] = d[1] if len(x) > 1 else 0.0
-    return d
+    d[0] = d[1]
+    return carry_forward(d, np.abs(d) <= 1e-12 * np.maximum(1.0, np.abs(x)), per_column)
+
+
+def carry_forward(d: np.ndarray, still: np.ndarray, per_column: bool = False) -> np.ndarray:
+    """`d` with every `still` entry replaced by the last entry before it that was not still (its
+    column's first such entry before any); per_column False: a row is still only when all of it is."""
+    if not per_column:
+        still = np.broadcast_to(np.all(still, axis=1, keepdims=True), d.shape)
+    if not still.any():
+        return d
+    rows = np.arange(len(d))[:, None]
+    last = np.maximum.accumulate(np.where(still, -1, rows), axis=0)  # the last row that moved
+    first = np.where(still.all(axis=0), 0, np.argmax(~still, axis=0))  # before any move: the first move
+    idx = np.where(last < 0, first[None, :], last)
+    return np.take_along_axis(d, idx, axis=0)
 
 
 class Effect:
@@ -116,7 +138,8 @@ class Effect:
     factor: what the residual follows when the effect is missing (the diagnose verdict).
     hyper: the grid of each nonlinear parameter (keyword of `regressors`), which the fit
     chooses by profile likelihood (`models.hyper`), e.g. the thermal lag; hyper_units their
-    units, hyper_columns the columns their estimate needs (the lag: the time t).
+    units, hyper_columns the columns their estimate needs (the lag: the time t); hyper_choices
+    the labels of a parameter whose grid values are alternatives (the backlash's move model).
     and implements `regressors(inp, chain, **hyper) -> Block`."""
 
     name: ClassVar[str]
@@ -129,6 +152,21 @@ class Effect:
     hyper: ClassVar[dict[str, np.ndarray]] = {}
     hyper_units: ClassVar[dict[str, str]] = {}
     hyper_columns: ClassVar[tuple[str, ...]] = ()  # the columns without which they cannot be estimated
+    # Nonlinear parameters that are a choice between alternatives (grid value i -> label i), e.g.
+    # how the backlash reads the approach: chosen by profile likelihood, no interval.
+    hyper_choices: ClassVar[dict[str, tuple[str, ...]]] = {}
+    # What the effect varies with beyond the pose (`drives`); None: from its columns.
+    varies_with: ClassVar[tuple[str, ...] | None] = None
+
+    def drives(self) -> tuple[str, ...]:
+        """What, beyond the pose, the effect varies with (the diagnosis checks that the campaign
+        varies it independently of the pose before testing the effect): 'time', 'temperature',
+        'speed', 'payload', 'direction' (of approach) or a column of the data. Default: from the
+        columns it reads (the joints are the pose)."""
+        if self.varies_with is not None:
+            return self.varies_with
+        named = {v: k for k, v in _FACTOR_OF.items()}
+        return tuple(named.get(c, c) for c in self.columns if c not in ("joints", "commanded"))
 
     def reads(self, chain: Chain | None) -> tuple[str, ...]:
         """The columns its regressors read with this chain (default: `columns`)."""

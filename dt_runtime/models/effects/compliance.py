@@ -18,6 +18,7 @@ class Compliance(Effect):
     name = "compliance"
     columns = ("joints", "payload")
     factor = "the payload torque on the joints"
+    varies_with = ("payload",)
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
         J = chain.jacobian(inp.column("joints"))

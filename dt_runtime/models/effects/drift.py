@@ -13,6 +13,7 @@ class Drift(Effect):
     name = "drift"
     columns = ("joints", "t")
     factor = "the time since the start of the data"
+    varies_with = ("time",)
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
         J = chain.jacobian(inp.column("joints"))

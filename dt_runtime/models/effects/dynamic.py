@@ -15,6 +15,7 @@ class Dynamic(Effect):
     columns = ("speed",)
     needs_chain = False
     factor = "the commanded speed and direction of travel"
+    varies_with = ("speed", "direction")
 
     def regressors(self, inp: Inputs, chain: Chain | None = None) -> Block:
         d = approach(inp.commanded)

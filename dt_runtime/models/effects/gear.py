@@ -14,6 +14,7 @@ class Gear(Effect):
     name = "gear"
     columns = ("joints",)
     factor = "a periodic pattern in the joint angles"
+    varies_with = ()
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
         J = chain.jacobian(inp.column("joints"))

@@ -24,6 +24,7 @@ class Geometric(Effect):
     name = "geometric"
     columns = ("joints",)
     factor = "the joint configuration (joint zero offsets and link errors)"
+    varies_with = ()
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
         pos, rot, T = chain.frames(inp.column("joints"))

@@ -52,6 +52,7 @@ class Thermal(Effect):
     columns = ("temperature",)
     needs_chain = False
     factor = "the temperature, growing with distance from the base"
+    varies_with = ("temperature",)
     uses_chain = True  # per link when the robot config lists thermal_links
     hyper = {"lag_s": LAG_GRID_S}
     hyper_units = {"lag_s": "s"}
