@@ -66,15 +66,74 @@ def floor_of(d: Data) -> float | None:
     """The measurement noise floor (m): the simulator's, else the stated uncertainty's (ux..uz),
     else the instrument's maximum permissible error (`info['mpe_mm']`, `--mpe-mm`): an MPE that
     bounds each coordinate's error is a rectangular distribution of standard uncertainty MPE/sqrt(3)
-    per axis, whose 3D RMS over three axes is the MPE itself."""
+    per axis, whose 3D RMS over three axes is the MPE itself; else the scatter of replicates
+    (`replicate_floor`). Where it came from is recorded in `info['noise_floor']`."""
     sim = d.info.get("simulation")
+    rep = replicate_floor(d.dataset)
+    found: tuple[float, str] | None = None
     if sim and sim.get("noise_floor_mm") is not None:
-        return sim["noise_floor_mm"] * M_PER_MM
-    stated = noise_floor(d.dataset.u)
-    if stated is not None:
-        return stated
-    mpe = d.info.get("mpe_mm")
-    return None if mpe is None else float(mpe) * M_PER_MM
+        found = sim["noise_floor_mm"] * M_PER_MM, "the simulation's measurement noise"
+    elif (stated := noise_floor(d.dataset.u)) is not None:
+        found = stated, "the stated measurement uncertainty ux..uz"
+    elif d.info.get("mpe_mm") is not None:
+        found = float(d.info["mpe_mm"]) * M_PER_MM, "the instrument's MPE (--mpe-mm)"
+    elif rep is not None:
+        found = rep.value_m, "the scatter of replicates"
+    d.info["noise_floor"] = {"mm": None if found is None else found[0] / M_PER_MM,
+                             "source": None if found is None else found[1],
+                             "replicates": None if rep is None else rep.to_dict()}
+    return None if found is None else found[0]
+
+
+@dataclass(frozen=True)
+class ReplicateFloor:
+    """The noise floor from replicates: 3D RMS (m) of the pooled within-cell scatter, its degrees of
+    freedom and the number of cells that repeat."""
+
+    value_m: float
+    dof: int
+    cells: int
+
+    def to_dict(self) -> dict:
+        return {"mm": self.value_m / M_PER_MM, "dof": self.dof, "cells": self.cells,
+                "definition": "rows repeating one target reached from the same previous target at the same speed "
+                              "and payload (repeated readings of a visit, or visits along the same path): pooled "
+                              "within-cell variance per axis, 3D RMS = sqrt of their sum"}
+
+
+def replicate_floor(ds: Dataset, min_dof: int = 10) -> ReplicateFloor | None:
+    """The measurement noise floor from the data's own replicates: rows that repeat one target point
+    reached from the same previous point at the same speed and payload (the arm's history the same,
+    so no effect term can tell them apart). Per axis the pooled within-cell variance; the floor is the
+    3D RMS sqrt(sum of the three). None below `min_dof` degrees of freedom (rows in repeating cells
+    minus cells). Slow changes within a cell (drift, temperature) count as noise here."""
+    from dt_runtime.analysis.crossval import groups_of
+
+    if ds.n < 2:
+        return None
+    g = np.asarray(groups_of(ds))
+    # The previous *distinct* point of every row: repeated readings keep the visit's own approach.
+    change = np.r_[True, g[1:] != g[:-1]]
+    start = np.maximum.accumulate(np.where(change, np.arange(ds.n), 0))
+    prev = np.where(start > 0, g[np.maximum(start - 1, 0)], -1)
+    keys = [g, prev]
+    for col in (ds.speed, ds.payload):
+        if col is not None:
+            keys.append(np.round(np.asarray(col, float), 9))
+    _, cell = np.unique(np.column_stack(keys), axis=0, return_inverse=True)
+    cell = cell.ravel()
+    counts = np.bincount(cell)
+    rep = counts[cell] > 1
+    n_cells = int(np.sum(counts > 1))
+    dof = int(rep.sum()) - n_cells
+    if dof < min_dof:
+        return None
+    e = ds.error[rep]
+    c = cell[rep]
+    means = np.stack([np.bincount(c, weights=e[:, a], minlength=len(counts)) for a in range(3)], 1) / np.maximum(
+        counts, 1)[:, None]
+    ss = np.sum((e - means[c]) ** 2, axis=0)
+    return ReplicateFloor(float(np.sqrt(np.sum(ss / dof))), dof, n_cells)
 
 
 def refit_sessions(d: Data) -> np.ndarray | None:
