@@ -38,6 +38,7 @@ from dt_runtime.models import effects as fx
 from dt_runtime.models import hyper as hp
 from dt_runtime.models import identifiability as idf
 from dt_runtime.models.effects import as_inputs
+from dt_runtime.models.effects import session as session_terms
 from dt_runtime.models.effects.thermal import lagged
 from dt_runtime.models.gp import GPOptions, MultiOutputGP
 from dt_runtime.models.modelio import read_meta
@@ -101,9 +102,11 @@ class Design:
     # The effects' nonlinear parameters the regressors were built with ({effect: {name: Estimate}},
     # models.hyper), e.g. the thermal lag.
     hyper: dict | None = None
+    # The sessions the nuisance terms have parameters for (models.effects.session).
+    sessions: tuple[int, ...] = ()
 
     def rows(self, mask) -> Design:
-        return Design(self.A[mask], self.params, self.nonnegative, self.hyper)
+        return Design(self.A[mask], self.params, self.nonnegative, self.hyper, self.sessions)
 
 
 class HybridModel(RegressorMixin, BaseEstimator):
@@ -112,17 +115,23 @@ class HybridModel(RegressorMixin, BaseEstimator):
     effects: effect names (`effects.names()`); gp_inputs: one of GP_INPUTS; ridge: penalty on
     the standardised effect parameters; seed: the GP's optimiser starts; robot: path of a robot
     config (configs/robots/*.yaml) or a `Chain`, the kinematic model the joint-space effects
-    need; gp_options: `GPOptions` (default: MultiOutputGP's defaults).
+    need; gp_options: `GPOptions` (default: MultiOutputGP's defaults); nuisance: session terms
+    (models.effects.session: 'tool', 'base', 'joints') fitted per session of the training data
+    (the `session` column) and never deployed: rows without a session, or of the
+    `reference_session`, get none, so the map predicts the reference session's robot.
     """
 
     def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", ridge: float = DEFAULT_RIDGE,
-                 seed: int = 0, robot: str | Path | Chain | None = None, gp_options: GPOptions | None = None):
+                 seed: int = 0, robot: str | Path | Chain | None = None, gp_options: GPOptions | None = None,
+                 nuisance: tuple[str, ...] = (), reference_session: int = 0):
         self.effects = effects
         self.gp_inputs = gp_inputs
         self.ridge = ridge
         self.seed = seed
         self.robot = robot
         self.gp_options = gp_options
+        self.nuisance = nuisance
+        self.reference_session = reference_session
 
     def unfitted(self, **changes) -> HybridModel:
         """An unfitted model with this one's parameters, `changes` applied (sklearn.base.clone
@@ -133,6 +142,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
         fx.check_names(self.effects)
         if self.gp_inputs not in GP_INPUTS:
             raise DataError(f"unknown GP inputs '{self.gp_inputs}'; allowed: {', '.join(GP_INPUTS)}")
+        bad = [t for t in self.nuisance if t not in session_terms.TERMS]
+        if bad:
+            raise DataError(f"unknown session term(s) {', '.join(bad)}; allowed: {', '.join(session_terms.TERMS)}")
         if self.gp_options is None:
             return GPOptions()
         if not isinstance(self.gp_options, GPOptions):
@@ -155,11 +167,37 @@ class HybridModel(RegressorMixin, BaseEstimator):
         if hyper is None:
             hyper = hp.profile(self.effects, inp, y, chain, self.ridge) if y is not None else {}
         blocks = [fx.build(e, inp, chain, {k: v.value for k, v in hyper.get(e, {}).items()}) for e in self.effects]
+        sessions: tuple[int, ...] = ()
+        if self.nuisance:
+            sessions = getattr(self, "nuisance_sessions_", None) or self._sessions_of(inp)
+            blocks += [session_terms.block(t, inp, resolve_chain(self.robot), sessions) for t in self.nuisance]
         if not blocks:
             return Design(np.zeros((inp.n, 3, 0)), (), hyper=hyper)
         return Design(np.concatenate([b.A for b in blocks], axis=2),
                       tuple((b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)),
-                      np.array([b.nonnegative for b in blocks for _ in b.names], dtype=bool), hyper)
+                      np.array([b.nonnegative for b in blocks for _ in b.names], dtype=bool), hyper, sessions)
+
+    def _stand_in_reference(self, D: Design, inp: fx.Inputs) -> Design:
+        """Without rows of the reference session (it is held out), the first training session
+        stands in for it: its session terms are zeroed, else they would be aliased with the effect
+        terms' own (a tool offset per session beside the model's tool offset)."""
+        s = session_terms.session_column(inp) if self.nuisance else None
+        if s is None or not len(s) or self.reference_session in set(s.tolist()):
+            return D
+        stand_in = f"s{int(s.min())}_"
+        cols = [i for i, (e, n, _, _) in enumerate(D.params) if e.startswith("session_") and n.startswith(stand_in)]
+        if not cols:
+            return D
+        A = D.A.copy()
+        A[:, :, cols] = 0.0
+        return replace(D, A=A)
+
+    def _sessions_of(self, inp: fx.Inputs) -> tuple[int, ...]:
+        """The sessions of `inp` that get nuisance parameters: all but the reference."""
+        s = session_terms.session_column(inp)
+        if s is None:
+            raise DataError("session terms (nuisance) need several sessions: a 'session' column (several --data files)")
+        return tuple(int(v) for v in np.unique(s) if int(v) != self.reference_session)
 
     def fit(self, X, y=None, *, design: Design | None = None, thetas=None, starts=None) -> HybridModel:
         """Fit on X (a Dataset, effects.Inputs or (n, 3) commanded TCP array); y: the error
@@ -183,7 +221,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
         D = design if design is not None else self.design_matrix(inp, error)
         if D.A.shape[0] != inp.n:
             raise DataError(f"design has {D.A.shape[0]} rows, X has {inp.n}")
+        D = self._stand_in_reference(D, inp)
         self.hyper_ = D.hyper or {}
+        self.nuisance_sessions_ = D.sessions
         self.robot_ = None if isinstance(self.robot, Chain) else robot_ref(self.robot)
         self.gp_options_ = options
         self.param_names_ = list(D.params)
@@ -414,6 +454,12 @@ class HybridModel(RegressorMixin, BaseEstimator):
             rows.append(row)
         for effect, params in getattr(self, "hyper_", {}).items():
             for name, est in params.items():
+                choices = fx.get(effect).hyper_choices.get(name)
+                if choices:  # an alternative the model uses, chosen by profile likelihood
+                    rows.append({"effect": effect, "name": name, "value": est.value, "u": None, "unit": "",
+                                 "choice": choices[int(round(est.value))], "identified": est.identified,
+                                 "method": "profile likelihood (choice)"})
+                    continue
                 # A nonlinear parameter, by profile likelihood (models.hyper): no value when the
                 # data do not bound it (the model then uses its default, est.value).
                 rows.append({"effect": effect, "name": name, "value": est.value if est.identified else None,
@@ -441,7 +487,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         """Write hybrid.json (with the traceability record `provenance`, default
         `self.provenance()`), hybrid.npz and the GP."""
         self._check_fitted()
-        if isinstance(self.robot, Chain) and any(fx.get(e).needs_chain or fx.get(e).uses_chain for e in self.effects):
+        if isinstance(self.robot, Chain) and (self.nuisance or any(fx.get(e).needs_chain or fx.get(e).uses_chain
+                                                                   for e in self.effects)):
             raise ModelError("a model given its kinematic chain as an object cannot be saved; "
                              "give robot as the path of a robot config")
         bad = [k for k, v in (("theta", self.theta_), ("theta_u", self.theta_u_), ("theta_cov", self.theta_cov_))
@@ -458,6 +505,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "declared_effects": [eff.spec.model_dump(mode="json") for eff in map(fx.get, self.effects)
                                      if isinstance(eff, fx.declared.DeclaredEffect)],
                 "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
+                "nuisance": list(self.nuisance), "reference_session": self.reference_session,
+                "nuisance_sessions": list(getattr(self, "nuisance_sessions_", ())),
                 "param_names": self.param_names_, "parameters": self.parameters(),
                 "identifiability": None if getattr(self, "identifiability_", None) is None else
                 self.identifiability_.state(),
@@ -501,7 +550,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
         # Models saved before GPOptions carry only the overridden options as "gp_kw".
         options = GPOptions.from_dict(meta["gp_options"] if "gp_options" in meta else meta.get("gp_kw"))
         m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"],
-                robot=None if ref is None else str(CONFIGS / ref), gp_options=options)
+                robot=None if ref is None else str(CONFIGS / ref), gp_options=options,
+                nuisance=tuple(meta.get("nuisance") or ()), reference_session=int(meta.get("reference_session", 0)))
+        m.nuisance_sessions_ = tuple(int(v) for v in meta.get("nuisance_sessions") or ())
         arr = load_npz(d / "hybrid.npz", ("theta", "theta_u", "theta_cov"))  # checked before reading
         m.robot_, m.gp_options_ = ref, options
         m.theta_, m.theta_u_ = arr["theta"], arr["theta_u"]
@@ -583,7 +634,7 @@ class MapPredictor:
         m = self.model
         if self._lag > 0:
             inp = self._structure_temperature(inp)
-        A = m.design_matrix(inp).A[-1] if m.effects else np.zeros((3, 0))
+        A = m.design_matrix(inp).A[-1] if m.theta_.size else np.zeros((3, 0))
         mean = A @ m.theta_ if A.shape[1] else np.zeros(3)
         var = np.einsum("ap,pq,aq->a", A, m.theta_cov_, A) if A.shape[1] else np.zeros(3)
         if self._gp is not None:
