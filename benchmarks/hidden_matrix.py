@@ -5,7 +5,7 @@ its published DH table with its own forward kinematics, geometric errors, random
 structure lagging the air temperature by 20-40 min, payload compliance through the real gravity
 torque, gear, backlash, drift, and a clean control.
 
-Per hidden effect and starting model: `diagnose_auto` on a training file (seed N), then the
+Per hidden effect and starting model: `diagnose(..., auto=True)` on a training file (seed N), then the
 configuration it ends with and the paper's model (GP on TCP and speed, the baseline, in the same
 run) are fitted on the whole training file and scored on a separate test file of the same arm
 (seed N + 50: other points, another path, other temperatures). Pass: the hidden effect is named
@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from benchmarks._common import cli
-from dt_runtime.analysis.diagnose import diagnose_auto
+from dt_runtime.analysis.diagnose import diagnose
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.models.hybrid import HybridModel
 from tests import ur10_generator as gen
@@ -46,7 +46,7 @@ def case(effect: str, start: str, seed: int, points: int = 60, passes: int = 4) 
     test = gen.generate(effect, seed + 50, n_points=points, passes=passes, arm_seed=seed)
     effects, gp_inputs = STARTS[start]
     t0 = time.perf_counter()
-    r = diagnose_auto(train, effects=effects, gp_inputs=gp_inputs, robot=UR10, seed=seed)
+    r = diagnose(train, effects=effects, gp_inputs=gp_inputs, robot=UR10, seed=seed, auto=True)
     seconds = time.perf_counter() - t0
 
     def test_rms(effects: tuple[str, ...], gp_inputs: str) -> float:

@@ -45,12 +45,13 @@ def test_one_mapping_reads_the_campaign_and_scores_each_session_held_out(campaig
     sessions = out["sessions"]
     assert [s["rows"] for s in sessions] == [60, 60, 60]
     for s in sessions:
-        assert s["reregistered"] and s["dof_absorbed"] == 6
+        assert s["reregistered"] and s["dof_absorbed"] == 6 and s["absorbed"] == ["registration"]
         # re-registration only removes what a rigid fit can absorb: never more error, and the
         # geometric model's held-out residual falls to near the tracker noise (0.017 mm 3D)
-        assert s["final_rmse_reregistered_mm"] <= s["final_rmse_mm"]
-        assert s["start_rmse_reregistered_mm"] <= s["start_rmse_mm"]
-        assert s["final_rmse_reregistered_mm"] < 0.06 < 0.2 < s["start_rmse_reregistered_mm"]
+        assert s["rmse_mm"] <= s["rmse_raw_mm"]
+        assert s["start_rmse_mm"] <= s["start_rmse_raw_mm"]
+        assert s["rmse_mm"] < 0.06 < 0.2 < s["start_rmse_mm"]
+        assert s["rmse_mm"] < s["as_is_rmse_mm"]
     # the wrist up to 259 deg while the others stay within +-170: the domain warning
     assert np.rad2deg(campaign["sessions"][2]["q"][:, 5].max()) == pytest.approx(259.0)
     n_out = _q6_outside(campaign)

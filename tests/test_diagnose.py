@@ -2,9 +2,12 @@
 import numpy as np
 import pytest
 
-from dt_runtime.analysis.diagnose import rank_effects
+from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.reports.verdicts import with_verdict
+from dt_runtime.analysis.ranking import gp_alternatives
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.frames.kinematics import load_robot
+from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.measurements.plans import PlanConfig, doe_points
 from dt_runtime.models import effects as fx
 from dt_runtime.models.hybrid import HybridModel
@@ -30,7 +33,7 @@ def collect(effects: dict, reps=2, seed=3):
             e = plant.controller_tcp() - plant.actual_tcp() + rng.normal(0, 10e-6, 3)  # LT noise
             rows.append((plant.controller_tcp(), plant.joint_angles(), v, plant.payload(), plant.clock.t, i, e))
     C, Q, V, P, T, G, E = (np.array(x) for x in zip(*rows))
-    return fx.Inputs(commanded=C, joints=Q, speed=V, payload=P, t=T), E, G
+    return Dataset(commanded=C, error=E, joints=Q, speed=V, payload=P, t=T, point_id=G)
 
 
 @pytest.fixture(scope="module")
@@ -39,9 +42,9 @@ def chain():
 
 
 def test_hidden_compliance_is_named_first_and_adding_it_cuts_the_error(chain):
-    inp, E, G = collect({"compliance": {"enabled": True, "stiffness_nm_per_rad": STIFFNESS}})
-    r = rank_effects(inp, E, G, chain, base_effects=("geometric",), gp_inputs="tcp_speed",
-                 candidates=("compliance", "drift", "dynamic"), n_folds=4).to_dict()
+    ds = collect({"compliance": {"enabled": True, "stiffness_nm_per_rad": STIFFNESS}})
+    r = with_verdict(diagnose(ds, effects=("geometric",), gp_inputs="tcp_speed", robot=chain,
+                 candidates=("compliance", "drift", "dynamic"), folds=4))
     top = r["ranking"][0]
     assert top["effect"] == "compliance" and top["p_value"] < 0.01
     assert top["rmse_after_mm"] < 0.7 * top["rmse_before_mm"]
@@ -49,24 +52,22 @@ def test_hidden_compliance_is_named_first_and_adding_it_cuts_the_error(chain):
 
 
 def test_hybrid_model_reports_the_physical_stiffness(chain):
-    inp, E, _ = collect({"compliance": {"enabled": True, "stiffness_nm_per_rad": STIFFNESS}})
-    m = HybridModel(("geometric", "compliance"), gp_inputs="none", robot=chain).fit(inp, E)
+    ds = collect({"compliance": {"enabled": True, "stiffness_nm_per_rad": STIFFNESS}})
+    m = HybridModel(("geometric", "compliance"), gp_inputs="none", robot=chain).fit(ds)
     k2 = next(p for p in m.parameters() if p["name"] == "stiffness_q2")
     assert k2["unit"] == "N m/rad" and k2["u"] > 0
     assert k2["value"] == pytest.approx(STIFFNESS[1], rel=0.3)
 
 
 def test_without_a_hidden_effect_nothing_is_named(chain):
-    inp, E, G = collect({})
-    r = rank_effects(inp, E, G, chain, base_effects=("geometric",), gp_inputs="tcp_speed",
-                 candidates=("compliance", "drift", "dynamic"), n_folds=4).to_dict()
+    ds = collect({})
+    r = with_verdict(diagnose(ds, effects=("geometric",), gp_inputs="tcp_speed", robot=chain,
+                 candidates=("compliance", "drift", "dynamic"), folds=4))
     assert all(x["p_value"] >= 0.01 or not x["significant"] for x in r["ranking"])
     assert r["verdict"].startswith("No candidate effect")
 
 
 def test_gp_alternatives_are_the_other_inputs_the_data_has():
-    from dt_runtime.analysis.diagnose import gp_alternatives
-
     n = 4
     full = fx.Inputs(commanded=np.zeros((n, 3)), joints=np.zeros((n, 6)), speed=np.ones(n))
     no_speed = fx.Inputs(commanded=np.zeros((n, 3)), joints=np.zeros((n, 6)))
@@ -85,8 +86,9 @@ def test_an_error_that_follows_the_joints_not_the_tcp_asks_for_the_gp_on_joints(
     q = rng.uniform(-1, 1, (n, 6))
     E = 1e-3 * np.column_stack([np.sin(2 * q[:, 1]), np.cos(2 * q[:, 2]), q[:, 0] * q[:, 3]])
     E += rng.normal(0, 10e-6, (n, 3))
-    inp = fx.Inputs(commanded=rng.uniform(0.2, 0.8, (n, 3)), joints=q, speed=rng.choice([0.3, 0.6], n))
-    r = rank_effects(inp, E, np.arange(n), None, gp_inputs="tcp", candidates=("dynamic",), n_folds=4).to_dict()
+    ds = Dataset(commanded=rng.uniform(0.2, 0.8, (n, 3)), error=E, joints=q, speed=rng.choice([0.3, 0.6], n),
+                 point_id=np.arange(n))
+    r = with_verdict(diagnose(ds, gp_inputs="tcp", candidates=("dynamic",), folds=4))
     g = {x["gp_inputs"]: x for x in r["gp_inputs_ranking"]}
     assert set(g) == {"joints", "tcp_speed"}
     assert g["joints"]["significant"] and g["joints"]["p_value"] < 0.01

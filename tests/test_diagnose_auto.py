@@ -8,7 +8,8 @@ import json
 
 import pytest
 
-from dt_runtime.analysis.diagnose import diagnose_auto
+from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.reports.verdicts import verdict
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
 
@@ -31,14 +32,14 @@ def test_auto_names_the_hidden_backlash_from_every_start_and_reaches_the_floor(h
     """The same named effects from the paper's model, from geometric and from a GP on the joints
     (the effect terms are estimated jointly with the GP: from the paper's model the ordinary
     fit made backlash look harmful, "explains -117.7 %")."""
-    r = diagnose_auto(hidden["backlash"], effects=effects, gp_inputs=gp_inputs,
-                      robot=CONFIGS / "robots" / "cobot_hc20_like.yaml")
+    r = diagnose(hidden["backlash"], effects=effects, gp_inputs=gp_inputs,
+                 robot=CONFIGS / "robots" / "cobot_hc20_like.yaml", auto=True)
     assert "+backlash" in r.added and set(r.effects) == {"geometric", "backlash"}
     assert r.added[0] == "+backlash"  # the biggest step first
     assert r.floor_ratio is not None and r.floor_ratio < 1.3
     assert r.steps[0].rmse_mm > 2 * r.final_rmse_mm  # the backlash was most of the held-out error
     assert r.steps[0].p_value < r.steps[0].alpha and r.steps[0].explained_fraction > 0.5
-    assert "at the noise floor" in r.verdict
+    assert "at the noise floor" in verdict(r)
 
 
 def test_auto_on_a_clean_arm_adds_nothing_but_geometric(hidden, capsys):
@@ -74,18 +75,18 @@ def _with_humidity(src, dst, effect_mm: float, seed: int = 3):
 
 
 def test_an_error_driven_by_an_unknown_column_is_flagged(hidden, tmp_path):
-    r = diagnose_auto(_with_humidity(hidden["none"], tmp_path / "h.csv", 0.03))
+    r = diagnose(_with_humidity(hidden["none"], tmp_path / "h.csv", 0.03), auto=True)
     top = r.columns[0]
     assert top["column"] == "humidity" and top["significant"] and top["explained_fraction"] > 0.3
-    assert "follows the column 'humidity'" in r.verdict and "declare an effect of your own" in r.verdict
+    assert "follows the column 'humidity'" in verdict(r) and "declare an effect of your own" in verdict(r)
     assert "operator" not in {c["column"] for c in r.columns}  # a text column is not a factor
 
 
 def test_a_column_without_effect_is_not_flagged(hidden, tmp_path):
-    r = diagnose_auto(_with_humidity(hidden["none"], tmp_path / "h0.csv", 0.0))
+    r = diagnose(_with_humidity(hidden["none"], tmp_path / "h0.csv", 0.0), auto=True)
     hum = next(c for c in r.columns if c["column"] == "humidity")
     assert not hum["significant"]
-    assert "humidity" not in r.verdict
+    assert "humidity" not in verdict(r)
 
 
 def test_the_instruments_mpe_is_the_noise_floor_when_the_data_state_none(hidden, tmp_path, capsys):
@@ -102,9 +103,11 @@ def test_the_instruments_mpe_is_the_noise_floor_when_the_data_state_none(hidden,
     assert out["noise_floor_mm"] == pytest.approx(0.02) and "at the noise floor" in out["verdict"]
 
 
-def test_several_files_are_one_campaign_with_leave_one_session_out_figures(hidden, tmp_path, capsys):
-    """Two sessions of the same arm (two seeds): one command reads both, time continues, point ids
-    do not collide, and the verdict reports each session predicted from the other."""
+def test_several_files_are_one_campaign_and_sessions_that_disagree_are_a_finding(hidden, tmp_path, capsys):
+    """Two files of the simulated cell with two seeds, which draw two arms (the plant's geometric
+    errors come from the seed): one command reads both as one campaign (time continues, point ids do
+    not collide), holds each session out, finds how they differ (the set-up and the joint zeros) and
+    says not to deploy: each arm is predicted worse than no correction by a model of the other."""
     from dt_runtime.measurements.dataset import read_table
 
     second = tmp_path / "second.csv"
@@ -115,7 +118,11 @@ def test_several_files_are_one_campaign_with_leave_one_session_out_figures(hidde
     out = json.loads(capsys.readouterr().out)
     assert rc == 0
     a, b = read_table(hidden["none"]), read_table(second)
-    assert [s["rows"] for s in out["sessions"]] == [a.n, b.n]
-    assert all(s["final_rmse_mm"] > 0 for s in out["sessions"])
-    assert "Held out by session" in out["verdict"]
     assert out["n"] == a.n + b.n
+    assert [s["rows"] for s in out["sessions"]] == [a.n, b.n]
+    assert out["validation"]["deployment"]["kind"] == "sessions"
+    assert {"+session base", "+session joints"} <= set(out["added"])
+    assert [v["session"] for v in out["session_term_values"]] == [1, 1]
+    assert any(s["rmse_mm"] > s["as_is_rmse_mm"] for s in out["sessions"]) and out["deploy"]["ok"] is False
+    v = out["verdict"]
+    assert "Held out by session" in v and v.rfind(" Do not deploy: held out") > v.rfind(" Stopped")

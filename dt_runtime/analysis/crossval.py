@@ -31,6 +31,9 @@ class CvResult:
     # The GP hyperparameters fitted on all rows, per axis in input/output units (`log_hypers_`):
     # the warm start of a model that extends this one (diagnose). None without that fit.
     log_hypers: list[np.ndarray] | None = None
+    # The GP hyperparameters the folds used (fitted on all rows, or given), per axis: the same
+    # configuration cross-validated on another scheme reuses them.
+    thetas: list[np.ndarray] | None = None
 
 
 def groups_of(ds) -> np.ndarray:
@@ -109,4 +112,4 @@ def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, fol
         return m.predict(inp.subset(te), return_std=return_std, design=design.rows(te))
 
     resid, std = heldout(y, folds, predict_fold, return_std)
-    return CvResult(resid, group_mse(resid, groups), std, log_hypers)
+    return CvResult(resid, group_mse(resid, groups), std, log_hypers, thetas)

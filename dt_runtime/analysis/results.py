@@ -55,16 +55,33 @@ class Gain:
     rmse_before_mm: float
     rmse_after_mm: float
     significant: bool
+    # The same change on the scheme deployment brings (analysis.validation: 'regions', 'time' or
+    # 'sessions'), when computed: the held-out 3D RMS before and after.
+    deploy_kind: str | None = None
+    deploy_rmse_before_mm: float | None = None
+    deploy_rmse_after_mm: float | None = None
+
+    @property
+    def deploys(self) -> bool | None:
+        """Whether the change also lowers the deployment figure (None: not computed)."""
+        if self.deploy_rmse_after_mm is None or self.deploy_rmse_before_mm is None:
+            return None
+        return self.deploy_rmse_after_mm < self.deploy_rmse_before_mm
 
     def to_dict(self) -> dict:
-        return jsonable({self.kind: self.candidate, "explained_fraction": self.explained_fraction,
-                         "p_value": self.p_value, "rmse_before_mm": self.rmse_before_mm,
-                         "rmse_after_mm": self.rmse_after_mm, "significant": self.significant})
+        d = {self.kind: self.candidate, "explained_fraction": self.explained_fraction,
+             "p_value": self.p_value, "rmse_before_mm": self.rmse_before_mm,
+             "rmse_after_mm": self.rmse_after_mm, "significant": self.significant}
+        if self.deploy_kind is not None:
+            d |= {"deploy_kind": self.deploy_kind, "deploy_rmse_before_mm": self.deploy_rmse_before_mm,
+                  "deploy_rmse_after_mm": self.deploy_rmse_after_mm}
+        return jsonable(d)
 
 
 @dataclass
 class DiagnoseResult:
-    """Candidate effects (and GP inputs) ranked, best first, and the one-sentence verdict."""
+    """Candidate effects (and GP inputs) ranked, best first; the verdict's words are the reports'
+    (dt_runtime.reports.verdicts.verdict)."""
 
     base_effects: list[str]
     gp_inputs: str
@@ -75,16 +92,15 @@ class DiagnoseResult:
     noise_floor_mm: float | None
     ranking: list[Gain]
     gp_inputs_ranking: list[Gain]
-    not_testable: list[str]  # candidates the data's columns (or the kinematic model) do not allow
-    verdict: str
+    # Candidates not tested: {'candidate', 'reason': 'columns' (the data lack what it reads) or
+    # 'confounded' (analysis.confounding: its factor follows the pose, or does not vary), ...}.
+    not_testable: list[dict]
     source: dict = field(default_factory=dict)  # the data's facts (load_data's info, without n)
     provenance: Provenance | None = None  # software, data file hashes, robot, instruments
     base_group_mse: Any = None  # the starting model's held-out mean square per group (m^2; not in the JSON)
     base_residual: Any = None  # the starting model's held-out residual per row (m; not in the JSON)
     columns: list = field(default_factory=list)  # column_check: what the held-out residual follows
-    # The cross-validations behind the ranking, {(kind, candidate): CvResult} with ("base", "")
-    # the starting model's (not in the JSON): the next step of the loop starts from one of them.
-    cv: dict = field(default_factory=dict)
+    validation: dict = field(default_factory=dict)  # the schemes: significance (points), deployment, time
 
     @property
     def top(self) -> Gain | None:
@@ -95,8 +111,50 @@ class DiagnoseResult:
                          "n_groups": self.n_groups, "folds": self.folds, "rmse_base_mm": self.rmse_base_mm,
                          "noise_floor_mm": self.noise_floor_mm, "ranking": self.ranking,
                          "gp_inputs_ranking": self.gp_inputs_ranking, "not_testable": self.not_testable,
-                         "columns": self.columns, "verdict": self.verdict, **self.source,
+                         "columns": self.columns, "validation": self.validation, **self.source,
                          "provenance": self.provenance})
+
+
+@dataclass
+class AutoResult:
+    """`dt diagnose --auto`: the steps (each with its held-out figures by point and on the
+    deployment scheme), what was added and why, what could not be tested, the sessions, whether
+    the final model may be deployed, and where it was saved."""
+
+    start: str
+    start_config: dict
+    steps: list  # analysis.selection.Step
+    added: list[str]
+    final_config: dict
+    effects: list[str]
+    gp_inputs: str
+    session_terms: list[str]
+    final_rmse_mm: float  # held out by point
+    final_deploy_rmse_mm: float  # held out on the deployment scheme
+    deploy_kind: str  # 'regions' or 'sessions'
+    as_is_rmse_mm: float
+    noise_floor_mm: float | None
+    floor_ratio: float | None
+    stop_reason: str
+    not_testable: list[dict]
+    alpha: float
+    min_explained: float
+    n: int
+    folds: int
+    validation: dict = field(default_factory=dict)
+    source: dict = field(default_factory=dict)
+    provenance: Provenance | None = None
+    columns: list = field(default_factory=list)  # column_check on the final model's held-out residual
+    sessions: list = field(default_factory=list)  # each session held out: final (and start) vs as is
+    session_terms_tested: list = field(default_factory=list)
+    session_term_values: list = field(default_factory=list)
+    deploy: dict = field(default_factory=dict)  # {'ok': bool, 'by': scheme}
+    reference_session: str | None = None  # the session the nuisance terms are measured against
+    model_out: str | None = None
+
+    def to_dict(self) -> dict:
+        d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source")}
+        return jsonable(d | {"steps": [s.to_dict() for s in self.steps]} | self.source)
 
 
 # --------------------------------------------------------------------------- compare

@@ -86,6 +86,17 @@ def check_declared(names_: list[str], inp, where: str, path: str) -> None:
                             f"which the data do not have; their columns: {', '.join(columns_of(inp)) or 'none'}")
 
 
+def add_session_args(q: argparse.ArgumentParser) -> None:
+    """The options for a campaign of several sessions (several --data files)."""
+    q.add_argument("--exclude-session", default="", metavar="NAME,...",
+                   help="leave these sessions out (by name, file name or index)")
+    q.add_argument("--reference-session", default=None, metavar="NAME",
+                   help="the session the session terms are measured against (default the first)")
+    q.add_argument("--session-term", default="", metavar="TERM,...",
+                   help="fit session terms as nuisance, never deployed: tool (a re-mounted SMR/tool), base (the "
+                        "set-up's rigid part), joints (changed joint zeros)")
+
+
 def add_mpe_arg(q: argparse.ArgumentParser) -> None:
     q.add_argument("--mpe-mm", type=_positive, default=None, metavar="MM",
                    help="the instrument's maximum permissible error (mm): the noise floor when the data state "
@@ -153,6 +164,9 @@ def parameter_line(p: dict) -> str:
     """One effect parameter for the human summary: value +/- u unit, or why it has no value."""
     from dt_runtime.models.hybrid import unidentified
 
+    if "choice" in p:
+        return f"  {p['effect']}.{p['name']}: {p['choice']}" + ("" if p["identified"] else
+                                                                 " (the data prefer neither)")
     if p["value"] is None:
         return f"  {p['effect']}.{p['name']}: {unidentified(p)}"
     return f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}" + (

@@ -1,14 +1,17 @@
 """`dt diagnose`: rank the physical effects the model lacks.
 
-Grouped cross-validation (by target point) of the model with and without each candidate effect;
-one-sided Wilcoxon test per held-out group.
+Cross-validation grouped by target point of the model with and without each candidate effect,
+one-sided Wilcoxon test per held-out point; each significant candidate also held out the way
+deployment brings new data (regions of the workspace, sessions, time blocks), side by side.
 
-`--auto`: the whole compare/diagnose/add loop in one command. Forward selection over the
-candidate effects and the GP's inputs from the starting model: each step adds the change that
-explains most held-out variance if it is significant at alpha / (candidates tested at that step)
-and explains at least --min-explained; it stops at the first step where nothing qualifies. It
-prints the steps (model, held-out 3D RMS with its uncertainty, p, explained fraction) and the
-verdict: what was added and why, what is left, and how far the residual is from the noise floor.
+`--auto`: the whole compare/diagnose/add loop in one command (analysis.selection): each step adds
+the change that explains most held-out variance if it is significant at alpha / (changes tested at
+that step), explains at least --min-explained and also lowers the RMS on the deployment scheme;
+candidates the campaign cannot separate from the pose are not tested; effects that read the same
+factor are tested head to head; sessions that disagree are tested against the session terms. It
+prints the steps (model, both held-out figures, p, explained fraction) and the verdict, whose last
+sentence says whether to deploy. `--out MODEL` fits the final model on all rows and saves it (with
+diagnose.json) for dt compare, dt calibrate --model and dt export.
 """
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ from dt_runtime.cli.common import (
     add_effects_file_arg,
     add_mpe_arg,
     add_output_args,
+    add_session_args,
     folds,
     input_files,
     load,
@@ -36,10 +40,13 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     add_effects_file_arg(dg)
     dg.add_argument("--folds", type=folds, default=5, help="cross-validation folds (default 5)")
     dg.add_argument("--auto", action="store_true", help="the whole loop: add effects / switch GP inputs while "
-                    "significant (forward selection), then the verdict")
+                    "significant and better on new data (forward selection), then the verdict")
     dg.add_argument("--alpha", type=_fraction, default=0.01, help="--auto: family-wise level of each step (0.01)")
     dg.add_argument("--min-explained", type=_fraction, default=0.02,
                     help="--auto: smallest explained fraction of held-out variance worth adding (0.02)")
+    dg.add_argument("--out", default=None, metavar="MODEL",
+                    help="--auto: fit the final model on all rows and save it here (with diagnose.json)")
+    add_session_args(dg)
     dg.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
                          "recorded in the provenance")
@@ -58,34 +65,51 @@ def _fraction(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> Any:
-    from dt_runtime.analysis.diagnose import diagnose, diagnose_auto
+    import json
+    from pathlib import Path
+
+    from dt_kernel.errors import DataError
+    from dt_runtime.analysis.diagnose import diagnose
     from dt_runtime.cli.common import robot_of
+    from dt_runtime.common.jsonsafe import jsonable
+    from dt_runtime.reports.verdicts import with_verdict
 
+    if args.out is not None and not args.auto:
+        raise DataError("--out saves the final model of --auto; without --auto, fit a model with dt fit")
     d = load(args)
-    if args.auto:
-        return diagnose_auto(d, args.model, names(args.effects), args.gp_inputs, robot_of(args, d),
-                             names(args.candidates) or None, args.folds, args.seed, alpha=args.alpha,
-                             min_explained=args.min_explained, progress=progress(args))
-
-    return diagnose(d, args.model, names(args.effects), args.gp_inputs,
-                        robot_of(args, d), names(args.candidates) or None, args.folds,
-                        args.seed, progress=progress(args), instruments=args.instruments,
-                        inputs=input_files(args))
+    r = diagnose(d, args.model, names(args.effects), args.gp_inputs, robot_of(args, d),
+                 names(args.candidates) or None, args.folds, args.seed, progress=progress(args),
+                 instruments=args.instruments, inputs=input_files(args), auto=args.auto, alpha=args.alpha,
+                 min_explained=args.min_explained, out=args.out, exclude_sessions=names(args.exclude_session),
+                 reference_session=args.reference_session, session_terms=names(args.session_term))
+    out = with_verdict(jsonable(r))
+    if args.out is not None:  # the verdict beside the model it chose
+        (Path(args.out) / "diagnose.json").write_text(json.dumps(out, indent=2, allow_nan=False), encoding="utf-8")
+    return out
 
 
 def human(result: dict) -> str:
     if "steps" in result:  # --auto
-        lines = [f"from {result['start']} ({result['n']} rows, {result['folds']}-fold CV grouped by point):"]
+        v = result["validation"]
+        kind = v["deployment"]["kind"]
+        lines = [f"from {result['start']} ({result['n']} rows): held out by point ({v['significance']['folds']} folds, "
+                 f"the significance test) | on {kind} ({v['deployment']['folds']} folds, the decision)"]
         for s in result["steps"]:
-            lines.append(f"  {s['model']:<40} held-out {s['rmse_mm']:.4f} +/- {s['u_rmse_mm'] or 0:.4f} mm"
+            lines.append(f"  {s['model']:<44} {s['rmse_mm']:.4f} +/- {s['u_rmse_mm'] or 0:.4f} | "
+                         f"{s['deploy_rmse_mm']:.4f} mm"
                          + (f"  -> {s['change']} (p = {s['p_value']:.2g}, explains "
                             f"{100 * s['explained_fraction']:.0f} %)" if s["change"] else ""))
         return "\n".join(lines + [result["verdict"]])
     lines = [f"held-out 3D RMS of the starting model: {result['rmse_base_mm']:.4f} mm"
              + (f" (noise floor {result['noise_floor_mm']:.4f} mm)" if result.get("noise_floor_mm") else "")]
-    lines += [f"  {r['effect']:<10} explains {100 * r['explained_fraction']:6.1f} %  p = {r['p_value']:.2g}  "
-              f"RMS {r['rmse_before_mm']:.4f} -> {r['rmse_after_mm']:.4f} mm" for r in result["ranking"]]
-    lines += [f"  GP on {r['gp_inputs']:<9} explains {100 * r['explained_fraction']:6.1f} %  p = {r['p_value']:.2g}  "
-              f"RMS {r['rmse_before_mm']:.4f} -> {r['rmse_after_mm']:.4f} mm"
+
+    def fig(r: dict) -> str:
+        dep = (f" | {r['deploy_kind']} {r['deploy_rmse_before_mm']:.4f} -> {r['deploy_rmse_after_mm']:.4f}"
+               if r.get("deploy_kind") else "")
+        return f"p = {r['p_value']:.2g}  RMS {r['rmse_before_mm']:.4f} -> {r['rmse_after_mm']:.4f} mm{dep}"
+
+    lines += [f"  {r['effect']:<10} explains {100 * r['explained_fraction']:6.1f} %  {fig(r)}"
+              for r in result["ranking"]]
+    lines += [f"  GP on {r['gp_inputs']:<9} explains {100 * r['explained_fraction']:6.1f} %  {fig(r)}"
               for r in result.get("gp_inputs_ranking", [])]
     return "\n".join(lines + [result["verdict"]])

@@ -1,0 +1,76 @@
+"""What the held-out residual follows beyond the catalogue: every numeric column of the data
+tested against it (the check that names a factor nobody declared an effect for)."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import stats
+
+from dt_runtime.measurements.dataset import Dataset
+from dt_runtime.models import effects as fx
+
+ALPHA = 0.01
+
+
+def factor_columns(ds: Dataset) -> dict[str, np.ndarray]:
+    """Every numeric column of the data a residual could follow: the contract's (speed,
+    temperature, payload, t, q1..qk) and the file's own (`Dataset.extra`), by name (speed m/s)."""
+    cols: dict[str, np.ndarray] = {}
+    for name in ("speed", "temperature", "payload", "t"):
+        v = getattr(ds, name)
+        if v is not None:
+            cols[name] = np.asarray(v, dtype=float)
+    if ds.joints is not None:
+        cols.update({f"q{j + 1}": ds.joints[:, j] for j in range(ds.joints.shape[1])})
+    cols.update(ds.extra)
+    return cols
+
+
+def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np.ndarray],
+                 alpha: float = ALPHA) -> list[dict]:
+    """Does the held-out residual follow a column? For each column: the per-point means of the
+    residual (3 axes) regressed on the per-point mean of the column (a slope per axis; points,
+    not rows, are the independent units), the fraction of the residual's variance it explains
+    and the F-test p-value; significant below alpha / number of columns (Bonferroni). Best first."""
+    ok = np.all(np.isfinite(residual), axis=1)
+    out: list[dict] = []
+    ids = np.unique(groups[ok])
+    if len(ids) < 6:
+        return out
+    inv = np.searchsorted(ids, groups[ok])
+    cnt = np.bincount(inv, minlength=len(ids)).astype(float)
+    R = np.stack([np.bincount(inv, weights=residual[ok, a], minlength=len(ids)) for a in range(3)], 1) / cnt[:, None]
+    R0 = R - R.mean(0)
+    rss0 = float(np.sum(R0 ** 2))
+    m = max(len(columns), 1)
+    for name, col in columns.items():
+        x = np.asarray(col, dtype=float)[ok]
+        if not np.all(np.isfinite(x)):
+            continue
+        xg = np.bincount(inv, weights=x, minlength=len(ids)) / cnt
+        xc = xg - xg.mean()
+        sxx = float(xc @ xc)
+        if sxx <= 1e-30 * max(1.0, float(np.abs(xg).max()) ** 2) or rss0 <= 0:
+            continue
+        slope = xc @ R0 / sxx
+        rss1 = float(np.sum((R0 - np.outer(xc, slope)) ** 2))
+        g = len(ids)
+        dof = 3 * g - 6
+        if dof <= 0:
+            continue
+        F = ((rss0 - rss1) / 3) / max(rss1 / dof, 1e-300)
+        pval = float(stats.f.sf(F, 3, dof))
+        out.append({"column": name, "explained_fraction": 1 - rss1 / rss0, "p_value": pval,
+                    "significant": pval < alpha / m})
+    out.sort(key=lambda r: (not r["significant"], -float(r["explained_fraction"])))
+    return out
+
+
+def read_columns(effects: Sequence[str], gp_inputs: str, n_joints: int) -> set[str]:
+    """The columns a model with these effects and GP inputs reads (joints as q1..qk)."""
+    cols = {c for e in effects for c in fx.get(e).columns}
+    cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(gp_inputs, set())
+    if "joints" in cols:
+        cols = (cols - {"joints"}) | {f"q{j + 1}" for j in range(n_joints)}
+    return cols

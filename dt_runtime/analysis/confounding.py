@@ -1,0 +1,138 @@
+"""Can the campaign separate a candidate effect at all? Checked before the effect is tested.
+
+An effect is testable only where its driving factor (time, temperature, speed, the direction of
+approach, the payload, a column of the data) varies *independently of the pose*: a GP on the pose
+takes up whatever the factor does when the factor is itself a function of the pose, and a term
+fitted to it then wins on held-out points of the same campaign and fails on the next one. The
+classic case is a scan: every pose measured once, in order, so time *is* position, and a drift
+term (linear in time) is a second, stiffer map of the position.
+
+A factor is *confounded with the pose* when the poses measured near a row (in other points,
+k nearest in joint space, else TCP) predict its value there: R^2 of that leave-the-point-out
+nearest-neighbour prediction above R2_MAX. A factor that does not vary (one speed, one payload)
+cannot be tested either. Two factors are confounded with each other (temperature and time) when
+one is a linear function of the other (R^2 above R2_MAX): their effects then compete for the same
+residual (the diagnosis tests them head to head). Each finding carries a code the report turns
+into words and the measurement that would make the effect testable.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dt_runtime.frames.kinematics import Chain
+from dt_runtime.models import effects as fx
+from dt_runtime.models.effects.base import approach
+
+R2_MAX = 0.9  # above this share of a factor's variance predicted by the pose (or another factor): confounded
+NEIGHBOURS = 5
+CONTRACT = {"time": "t", "temperature": "temperature", "speed": "speed", "payload": "payload"}
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A candidate's factor against what it is confounded with: `against` is 'pose' (R^2 of the
+    nearest-neighbour prediction), 'constant' (it does not vary) or another factor ('time')."""
+
+    candidate: str
+    factor: str
+    against: str
+    r2: float | None
+    testable: bool
+
+    def to_dict(self) -> dict:
+        return {"candidate": self.candidate, "factor": self.factor, "against": self.against,
+                "r2": None if self.r2 is None else float(self.r2), "testable": self.testable}
+
+
+def factor_values(factor: str, inp: fx.Inputs) -> np.ndarray | None:
+    """The values of a factor on every row, (n, k): the direction of approach as the sign of each
+    joint's last move (the Cartesian unit direction without joints)."""
+    if factor == "direction":
+        if inp.joints is not None:
+            return np.sign(approach(inp.joints, per_column=True))
+        d = approach(inp.commanded)
+        return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    v = inp.get(CONTRACT.get(factor, factor))
+    return None if v is None else np.asarray(v, float).reshape(len(inp.commanded), -1)
+
+
+def varies(v: np.ndarray) -> bool:
+    """More than one value in some column (beyond round-off)."""
+    span = np.ptp(v, axis=0)
+    return bool(np.any(span > 1e-9 * np.maximum(1.0, np.abs(v).max(axis=0))))
+
+
+def pose_r2(values: np.ndarray, pose: np.ndarray, groups: np.ndarray, k: int = NEIGHBOURS) -> float:
+    """Share of the variance of `values` (n, c) that the mean over the k nearest rows of *other*
+    points (standardised `pose` coordinates) predicts: 1 when the factor is a function of the pose,
+    ~0 when the same poses were measured at other values of it."""
+    v = np.asarray(values, float)
+    ss_tot = float(np.sum((v - v.mean(axis=0)) ** 2))
+    if ss_tot <= 0 or len(v) < k + 2:
+        return 0.0
+    scale = pose.std(axis=0)
+    z = pose / np.where(scale > 0, scale, 1.0)
+    _, counts = np.unique(groups, return_counts=True)
+    extra = int(min(counts.max(), 200))
+    m = min(len(v), k + extra)
+    _, idx = cKDTree(z).query(z, k=m)
+    idx = idx.reshape(len(v), -1)
+    other = groups[idx] != groups[:, None]
+    # the first k neighbours from other points (fewer where the query returned fewer)
+    rank = np.cumsum(other, axis=1)
+    use = other & (rank <= k)
+    n_use = np.maximum(use.sum(axis=1), 1)
+    pred = np.einsum("nm,nmc->nc", use.astype(float), v[idx]) / n_use[:, None]
+    ss_res = float(np.sum((v - pred) ** 2))
+    return float(max(0.0, 1.0 - ss_res / ss_tot))
+
+
+def linear_r2(a: np.ndarray, b: np.ndarray) -> float:
+    """R^2 of a (n, c) regressed linearly on b (n, d) with an intercept."""
+    X = np.column_stack([np.ones(len(b)), b])
+    coef, *_ = np.linalg.lstsq(X, a, rcond=None)
+    ss_tot = float(np.sum((a - a.mean(axis=0)) ** 2))
+    return 0.0 if ss_tot <= 0 else float(max(0.0, 1.0 - np.sum((a - X @ coef) ** 2) / ss_tot))
+
+
+def check(candidates: list[str], inp: fx.Inputs, groups: np.ndarray, chain: Chain | None) -> list[Finding]:
+    """The confounding findings of every candidate factor (not the pose itself); a candidate with a
+    finding whose `testable` is False is not tested."""
+    pose = inp.joints if inp.joints is not None else inp.commanded
+    cache: dict[str, Finding] = {}
+    out: list[Finding] = []
+    for name in candidates:
+        for factor in fx.get(name).drives():
+            if factor not in cache:
+                cache[factor] = _factor(factor, inp, pose, groups)
+            f = cache[factor]
+            out.append(Finding(name, f.factor, f.against, f.r2, f.testable))
+    return out
+
+
+def _factor(factor: str, inp: fx.Inputs, pose: np.ndarray, groups: np.ndarray) -> Finding:
+    v = factor_values(factor, inp)
+    if v is None:
+        return Finding("", factor, "missing", None, False)
+    if not varies(v):
+        return Finding("", factor, "constant", None, False)
+    r2 = pose_r2(v, pose, groups)
+    return Finding("", factor, "pose", r2, r2 <= R2_MAX)
+
+
+def competing(a: str, b: str, inp: fx.Inputs) -> str | None:
+    """The factor two candidates share, or the pair of factors that follow each other (temperature
+    and time, R^2 above R2_MAX): they explain the same residual and are tested head to head."""
+    fa, fb = set(fx.get(a).drives()), set(fx.get(b).drives())
+    shared = sorted(fa & fb)
+    if shared:
+        return shared[0]
+    pair = {"temperature", "time"}
+    if pair <= (fa | fb) and not pair <= fa and not pair <= fb:
+        T, t = factor_values("temperature", inp), factor_values("time", inp)
+        if T is not None and t is not None and varies(T) and varies(t) and linear_r2(T, t) > R2_MAX:
+            return "temperature and time"
+    return None

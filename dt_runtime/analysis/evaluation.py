@@ -1,0 +1,121 @@
+"""One diagnosis's cross-validations: each model configuration held out once per scheme, reused
+by every step that needs it (the loop's next step starts from the chosen candidate's figures).
+
+    ev = Evaluator(problem, folds=5, seed=0)
+    cv = ev.cv(Config(("geometric",), "joints"), ev.points)      # a CvResult, memoised
+    ev.rms_mm(cfg, ev.deploy)                                        # its held-out 3D RMS
+
+The GP hyperparameters of a configuration are fitted once on all rows (its first cross-validation,
+warm-started from the configuration it extends) and kept fixed in every fold of every scheme: a
+few smoothness and noise numbers see the held-out rows, no row's error does.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from dt_runtime.analysis import validation
+from dt_runtime.analysis.crossval import CvResult, cross_validate
+from dt_runtime.frames.kinematics import Chain
+from dt_runtime.metrology.stats import rms3
+from dt_runtime.models import effects as fx
+from dt_runtime.models.gp import GPOptions
+from dt_runtime.models.hybrid import DEFAULT_RIDGE, HybridModel
+
+GP_LABEL = {"tcp_speed": "GP(TCP, v)", "tcp": "GP(TCP)", "joints": "GP(joints)", "none": "no GP"}
+
+
+@dataclass(frozen=True)
+class Config:
+    """A model configuration: effect terms, the GP's inputs and session nuisance terms."""
+
+    effects: tuple[str, ...] = ()
+    gp_inputs: str = "tcp_speed"
+    nuisance: tuple[str, ...] = ()
+
+    def label(self) -> str:
+        parts = [*self.effects, GP_LABEL[self.gp_inputs]]
+        text = " + ".join(parts)
+        return text + (f" [session {', '.join(self.nuisance)}]" if self.nuisance else "")
+
+    def plus(self, effect: str) -> Config:
+        return replace(self, effects=(*self.effects, effect))
+
+    def to_dict(self) -> dict:
+        return {"effects": list(self.effects), "gp_inputs": self.gp_inputs, "session_terms": list(self.nuisance)}
+
+
+@dataclass
+class Problem:
+    """What a diagnosis works on: rows in time order, SI units."""
+
+    inp: fx.Inputs
+    error: np.ndarray  # (n, 3) m
+    groups: np.ndarray  # target point of each row
+    chain: Chain | None
+    session: np.ndarray | None = None  # session index per row (None: one session)
+    measured: np.ndarray | None = None  # robot-frame measured points (re-registration)
+    refit_sessions: set[int] = field(default_factory=set)  # sessions whose registration was fitted on their rows
+    gp_options: GPOptions | None = None
+    ridge: float = DEFAULT_RIDGE
+    reference_session: int = 0
+
+    @property
+    def n(self) -> int:
+        return int(self.inp.n)
+
+
+class Evaluator:
+    """Cross-validations of configurations on the problem's schemes, memoised."""
+
+    def __init__(self, problem: Problem, folds: int = 5, seed: int = 0):
+        self.problem = problem
+        self.seed = seed
+        p = problem
+        self.points = validation.points(p.groups, folds, seed)
+        self.deploy = validation.deployment(p.inp.commanded, p.groups, p.session, folds, seed)
+        self.time = (validation.time_blocks(p.inp.t, p.n, folds) if p.session is None and p.inp.t is not None
+                     else self.deploy)
+        self._cv: dict[tuple[Config, str], CvResult] = {}
+        self._thetas: dict[Config, list] = {}
+        self._log_hypers: dict[Config, list | None] = {}
+
+    def model(self, cfg: Config) -> HybridModel:
+        p = self.problem
+        return HybridModel(cfg.effects, cfg.gp_inputs, ridge=p.ridge, seed=self.seed, robot=p.chain,
+                           gp_options=p.gp_options, nuisance=cfg.nuisance, reference_session=p.reference_session)
+
+    def scheme_for(self, change: str | None) -> validation.Scheme:
+        """The deployment scheme a change is judged on: time blocks for a time-dependent effect."""
+        if change and change in fx.names() and ({"time", "temperature"} & set(fx.get(change).drives())):
+            return self.time
+        return self.deploy
+
+    def cv(self, cfg: Config, scheme: validation.Scheme, starts=None) -> CvResult:
+        """`cfg` held out on `scheme` (memoised). `starts`: warm starts of its GP hyperparameter fit
+        (the log hyperparameters of the configuration it extends), used by its first cross-validation."""
+        key = (cfg, scheme.kind)
+        if key not in self._cv:
+            p = self.problem
+            fixed = self._thetas.get(cfg)
+            res = cross_validate(self.model(cfg), p.inp, p.error, p.groups, list(scheme.folds), thetas=fixed,
+                                 starts=None if fixed is not None else starts)
+            if fixed is None and res.thetas is not None:
+                self._thetas[cfg], self._log_hypers[cfg] = res.thetas, res.log_hypers
+            res.log_hypers = self._log_hypers.get(cfg)
+            self._cv[key] = res
+        return self._cv[key]
+
+    def residual(self, cfg: Config, scheme: validation.Scheme) -> np.ndarray:
+        """`cfg`'s held-out residual on `scheme`; held-out sessions scored the way a new session
+        is (re-registered where fitted, its session terms measured again: analysis.sessions)."""
+        res = self.cv(cfg, scheme).residual
+        if scheme.kind == "sessions" and (self.problem.refit_sessions or cfg.nuisance):
+            from dt_runtime.analysis.sessions import absorbed
+
+            return absorbed(self, cfg, res)[0]
+        return res
+
+    def rms_mm(self, cfg: Config, scheme: validation.Scheme) -> float:
+        return rms3(self.residual(cfg, scheme)) * 1e3

@@ -1,0 +1,204 @@
+"""`dt diagnose --auto`: forward selection over the effects and the GP's inputs, judged the way the
+twin will be used.
+
+Each step:
+1. Candidates the campaign cannot separate from the pose are not tested (analysis.confounding:
+   a time-dependent effect in a scan, one speed for a speed effect, ...); they are reported with
+   what would make them testable.
+2. Every other candidate change is held out by point (analysis.ranking): it qualifies when its
+   one-sided p is below alpha / m (m changes tested at the step, Bonferroni), it explains at least
+   `min_explained` of the held-out variance and lowers the held-out RMS.
+3. Qualifying effects that read the same factor (backlash and dynamic both read the direction of
+   travel; thermal and drift when the temperature followed time) are tested head to head: the
+   model with both against each with one (does B explain what A leaves? does A explain what B
+   leaves?); the one the data prefer goes first.
+4. The best qualifying change is taken only if it also lowers the held-out RMS on the deployment
+   scheme (held-out regions of the workspace, held-out sessions, or held-out time blocks for a
+   time-dependent term: analysis.validation); otherwise the next qualifying one is tried. So the
+   final model is never worse than its predecessor on the deployment figures.
+The loop stops when the held-out residual is at the noise floor, or when no change passes.
+
+Several sessions: before the loop, the session terms are tested on the starting model
+(analysis.sessions); the best significant one stays in every model as a nuisance (never deployed).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dt_runtime.analysis import confounding
+from dt_runtime.analysis.evaluation import Config, Evaluator
+from dt_runtime.analysis.ranking import ALPHA, changed, deployment_figures, gp_alternatives, paired_gain, rank
+from dt_runtime.analysis.results import Gain
+from dt_runtime.common.jsonsafe import jsonable
+from dt_runtime.common.progress import Progress
+from dt_runtime.metrology.stats import rms3
+from dt_runtime.models import effects as fx
+
+FLOOR_STOP = 1.05  # a held-out RMS within this factor of the noise floor: nothing left to find
+MAX_RIVALS = 2  # qualifying effects tested head to head against the best one, at most
+
+
+@dataclass
+class Step:
+    """One step: the model before it, its held-out figures (by point and on the deployment scheme),
+    what was added and its evidence, what qualified but was not taken, and head-to-head tests."""
+
+    model: str
+    config: dict
+    rmse_mm: float  # held out by point
+    u_rmse_mm: float  # standard uncertainty of that RMS (from the spread over held-out points)
+    deploy_rmse_mm: float  # held out on the deployment scheme (deploy_kind)
+    deploy_kind: str
+    change: str | None  # "+backlash", "GP -> joints", "+session tool"; None on the last step
+    p_value: float | None
+    explained_fraction: float | None
+    alpha: float  # the step's significance level (alpha / number of changes tested)
+    change_deploy_kind: str | None = None  # the scheme the change was judged on (time blocks for a time term)
+    change_deploy_rmse_mm: tuple[float, float] | None = None  # that figure before and after the change
+    rejected: list[dict] = field(default_factory=list)
+    head_to_head: list[dict] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return jsonable(self.__dict__)
+
+
+@dataclass
+class Selection:
+    steps: list[Step]
+    final: Config
+    stop_reason: str  # "floor", "nothing passes", "max steps"
+    not_testable: list[dict]
+    session_terms: list[Gain] = field(default_factory=list)
+
+
+def _rms_u(res_mse: np.ndarray) -> float:
+    """Standard uncertainty of the held-out RMS from the per-group mean squares (delta method)."""
+    m = float(np.mean(res_mse))
+    if len(res_mse) < 2 or m <= 0:
+        return float("nan")
+    return float(np.std(res_mse, ddof=1) / np.sqrt(len(res_mse)) / (2 * np.sqrt(m)))
+
+
+def _change(g: Gain) -> str:
+    return {"effect": f"+{g.candidate}", "session": f"+session {g.candidate}"}.get(g.kind, f"GP -> {g.candidate}")
+
+
+def testable(ev: Evaluator, candidates: list[str]) -> tuple[list[str], list[dict]]:
+    """The candidates the data allow and can separate from the pose, and the others with why."""
+    p = ev.problem
+    allowed = fx.available(p.inp, p.chain)
+    out, skipped = [], []
+    for c in candidates:
+        if c not in allowed:
+            skipped.append({"candidate": c, "reason": "columns", "needs": list(fx.get(c).reads(p.chain)),
+                            "needs_chain": fx.get(c).needs_chain and p.chain is None})
+    ok = [c for c in candidates if c in allowed]
+    findings = confounding.check(ok, p.inp, p.groups, p.chain)
+    bad = {f.candidate for f in findings if not f.testable}
+    for c in ok:
+        if c in bad:
+            skipped.append({"candidate": c, "reason": "confounded",
+                            "findings": [f.to_dict() for f in findings if f.candidate == c and not f.testable]})
+        else:
+            out.append(c)
+    return out, skipped
+
+
+def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float) -> tuple[list[Gain], list[dict]]:
+    """Qualifying effects that compete for the same residual, tested against each other: the
+    model with both against each alone. Returns the qualifying list with the preferred one first."""
+    if len(ok) < 2 or ok[0].kind != "effect":
+        return ok, []
+    top = ok[0]
+    records = []
+    for rival in [g for g in ok[1:] if g.kind == "effect"][:MAX_RIVALS]:
+        shared = confounding.competing(top.candidate, rival.candidate, ev.problem.inp)
+        if shared is None:
+            continue
+        a, b = cfg.plus(top.candidate), cfg.plus(rival.candidate)
+        cva, cvb = ev.cv(a, ev.points), ev.cv(b, ev.points)
+        both = ev.cv(a.plus(rival.candidate), ev.points, starts=cva.log_hypers)
+        p_b_beyond_a = paired_gain(cva, both)[0]
+        p_a_beyond_b = paired_gain(cvb, both)[0]
+        if p_b_beyond_a < level <= p_a_beyond_b:
+            preferred = rival.candidate
+        elif p_a_beyond_b < level <= p_b_beyond_a:
+            preferred = top.candidate
+        elif p_a_beyond_b < level and p_b_beyond_a < level:
+            preferred = "both"
+        else:
+            preferred = "neither"
+        records.append({"a": top.candidate, "b": rival.candidate, "factor": shared,
+                        "p_b_beyond_a": p_b_beyond_a, "p_a_beyond_b": p_a_beyond_b, "preferred": preferred})
+        if preferred == rival.candidate:
+            ok = [rival] + [g for g in ok if g is not rival]
+            break
+    return ok, records
+
+
+def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alpha: float = ALPHA,
+           min_explained: float = 0.02, max_steps: int = 10, floor_m: float | None = None,
+           progress: Progress | None = None) -> Selection:
+    p = ev.problem
+    cfg = start
+    steps: list[Step] = []
+    names = [c for c in (candidates or fx.names())]
+    cands, not_testable = testable(ev, names)
+    session_gains: list[Gain] = []
+    terms: list[str] = []
+    if p.session is not None:
+        from dt_runtime.analysis.sessions import available_terms
+
+        if p.refit_sessions and "base" not in cfg.nuisance:
+            # Each session's registration was fitted on its own points: its rigid part is the
+            # registration's by construction (a set-up term, not a finding), tested no further.
+            cfg = Config(cfg.effects, cfg.gp_inputs, (*cfg.nuisance, "base"))
+        terms = [t for t in available_terms(ev) if t not in cfg.nuisance]
+    stop = "max steps"
+    for k in range(max_steps + 1):
+        if progress:
+            progress.note(f"diagnose --auto: step {len(steps) + 1}: {cfg.label()}")
+        base = ev.cv(cfg, ev.points)
+        before_mm = rms3(base.residual) * 1e3
+        step = Step(cfg.label(), cfg.to_dict(), before_mm, _rms_u(base.group_mse) * 1e3, ev.rms_mm(cfg, ev.deploy),
+                    ev.deploy.kind, None, None, None, alpha)
+        steps.append(step)
+        if floor_m is not None and before_mm <= FLOOR_STOP * floor_m * 1e3:
+            stop = "floor"
+            break
+        if k == max_steps:
+            break
+        todo = [c for c in cands if c not in cfg.effects]
+        eff, gps, sess = rank(ev, cfg, todo, gp_alternatives(p.inp, cfg.gp_inputs), progress,
+                              session_terms=[t for t in terms if t not in cfg.nuisance])
+        session_gains = sess or session_gains
+        tested = eff + gps + sess
+        level = alpha / max(len(tested), 1)
+        step.alpha = level
+        ok = sorted([g for g in tested if g.p_value < level and g.explained_fraction >= min_explained
+                     and g.rmse_after_mm < g.rmse_before_mm], key=lambda g: -g.explained_fraction)
+        ok, step.head_to_head = head_to_head(ev, cfg, ok, level)
+        chosen = None
+        for g in ok:
+            if g.kind == "session":  # a nuisance is never deployed: its evidence is the held-out points
+                chosen = g
+                break
+            deployment_figures(ev, cfg, g)
+            if g.deploys:
+                chosen = g
+                break
+            step.rejected.append({"change": _change(g), "reason": "deployment", "p_value": g.p_value,
+                                  "explained_fraction": g.explained_fraction, "deploy_kind": g.deploy_kind,
+                                  "deploy_rmse_before_mm": g.deploy_rmse_before_mm,
+                                  "deploy_rmse_after_mm": g.deploy_rmse_after_mm})
+        if chosen is None:
+            stop = "nothing passes"
+            break
+        step.change, step.p_value, step.explained_fraction = _change(chosen), chosen.p_value, chosen.explained_fraction
+        if chosen.deploy_rmse_before_mm is not None and chosen.deploy_rmse_after_mm is not None:
+            step.change_deploy_kind = chosen.deploy_kind
+            step.change_deploy_rmse_mm = (chosen.deploy_rmse_before_mm, chosen.deploy_rmse_after_mm)
+        cfg = changed(cfg, chosen.kind, chosen.candidate)
+    return Selection(steps, cfg, stop, not_testable, session_gains)

@@ -1,0 +1,98 @@
+"""How a model is held out: the fold schemes of the diagnosis, each the form in which deployment
+brings new measurements.
+
+- `points`: whole target points held out (analysis.crossval.folds_of): the sensitive figure the
+  significance tests use (many independent groups), but a held-out point has measured neighbours.
+- `regions`: regions of the workspace held out in turn (k-means on the points' commanded TCP):
+  new poses in a part of the workspace the model has not seen, as a new program brings them.
+- `time`: contiguous blocks of the campaign in time order: later (or earlier) times, the form a
+  time-dependent term is used in (a drift or a warm-up continues after the campaign).
+- `sessions`: one session (a file of the campaign, its own set-up) held out at a time: the next
+  campaign or task.
+
+`deployment(...)` picks the scheme a step of the diagnosis is judged on: sessions when the campaign
+has several, else regions; time blocks for a time-dependent term on a single session.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.cluster.vq import kmeans2
+
+from dt_runtime.analysis.crossval import folds_of
+
+KINDS = ("points", "regions", "time", "sessions")
+MIN_GROUPS_PER_REGION = 3  # fewer distinct points than this per region: hold out points instead
+
+
+@dataclass(frozen=True)
+class Scheme:
+    """One way of holding data out: `kind` (KINDS), its test masks, and how many folds."""
+
+    kind: str
+    folds: tuple[np.ndarray, ...]
+
+    @property
+    def k(self) -> int:
+        return len(self.folds)
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "folds": self.k, "rows_per_fold": [int(f.sum()) for f in self.folds]}
+
+
+def points(groups: np.ndarray, k: int, seed: int) -> Scheme:
+    return Scheme("points", tuple(folds_of(groups, k, seed)))
+
+
+def regions(commanded: np.ndarray, groups: np.ndarray, k: int, seed: int) -> Scheme:
+    """k regions of the workspace (k-means++ on each point's mean commanded TCP, seeded); every row
+    of a point in its point's region. Falls back to points when there are too few points."""
+    ids, inv = np.unique(groups, return_inverse=True)
+    inv = inv.ravel()
+    if len(ids) < MIN_GROUPS_PER_REGION * k:
+        return points(groups, k, seed)
+    cnt = np.bincount(inv).astype(float)
+    centres = np.stack([np.bincount(inv, weights=commanded[:, a]) for a in range(3)], 1) / cnt[:, None]
+    scale = centres.std(axis=0)
+    z = centres / np.where(scale > 0, scale, 1.0)
+    _, label = kmeans2(z, k, seed=np.random.default_rng(seed), minit="++")
+    # An empty cluster (k-means++ can leave one) is dropped rather than given an empty fold.
+    folds = tuple(label[inv] == c for c in range(k) if np.any(label == c))
+    return Scheme("regions", folds)
+
+
+def time_blocks(t: np.ndarray | None, n: int, k: int) -> Scheme:
+    """k contiguous blocks of the rows in time order (equal row counts; rows are in time order)."""
+    order = np.argsort(np.asarray(t, float), kind="stable") if t is not None else np.arange(n)
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    folds = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        m = np.zeros(n, bool)
+        m[order[a:b]] = True
+        folds.append(m)
+    return Scheme("time", tuple(folds))
+
+
+def sessions(session: np.ndarray) -> Scheme:
+    return Scheme("sessions", tuple(session == s for s in np.unique(session)))
+
+
+def session_of(extra: dict | None) -> np.ndarray | None:
+    """The session index of every row (`Dataset.extra['session']`), or None for one session."""
+    s = None if extra is None else extra.get("session")
+    if s is None:
+        return None
+    s = np.asarray(s).astype(int)
+    return s if len(np.unique(s)) > 1 else None
+
+
+def deployment(commanded: np.ndarray, groups: np.ndarray, session: np.ndarray | None, k: int, seed: int,
+               t: np.ndarray | None = None, time_dependent: bool = False) -> Scheme:
+    """The scheme a step is judged on: held-out sessions when there are several; else held-out time
+    blocks for a time-dependent term, held-out regions for any other."""
+    if session is not None:
+        return sessions(session)
+    if time_dependent:
+        return time_blocks(t, len(groups), k)
+    return regions(commanded, groups, k, seed)
