@@ -1,9 +1,10 @@
 """Which effect parameters can the data determine? Rank, base parameters, aliased groups.
 
 A linear effect model e = A theta is identifiable in the directions the data excite. On
-standardised columns (each regressor scaled to unit RMS, so units do not matter) the singular
-value decomposition As = U S V^T tells: singular values below `RCOND` x the largest are
-directions the data do not see (the complete geometric set is rank deficient on purpose: a base
+standardised columns (each regressor scaled to unit RMS, so units do not matter) the rank r of
+the design As comes from the QR decomposition of the base parameters below, and the singular
+value decomposition As = U S V^T tells which directions the data do not see: those beyond the r
+largest singular values (the complete geometric set is rank deficient on purpose: a base
 rotation and a first-joint offset move the arm alike). A parameter is *identified* when the
 unseen directions leave it alone (its squared loading on them is below `LOADING`); the others
 are grouped by the unseen directions they share (offset_q1 with frame1_rz, say), and for such a
