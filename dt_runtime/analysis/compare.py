@@ -357,7 +357,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             log.warning("model '%s': %d of %d rows of %s lie outside its training domain (%s): it extrapolates there",
                         name, dom["rows"], ds.n, ds.source, ", ".join(f"{c} {n}" for c, n in dom["columns"].items()))
         about = {"outside_training": dom, "effects": list(m.effects), "gp_inputs": m.gp_inputs,
-                 "effect_residual_rms_mm": float(m.residual_rms_) * MM_PER_M, "parameters": m.parameters()}
+                 "effect_residual_rms_mm": float(m.residual_rms_) * MM_PER_M, "parameters": m.parameters(),
+                 "base_parameters": m.base_parameters()}
         if refit_sessions is not None:
             about["after_reregistration"] = _after_reregistration(ds, pred, refit_sessions)
         b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about)

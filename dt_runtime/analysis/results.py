@@ -17,7 +17,8 @@ from dt_runtime.common.provenance import Provenance
 # --------------------------------------------------------------------------- fit
 @dataclass
 class FitResult:
-    """A trained and saved model: where, on what, its parameters and (with CV) held-out RMS."""
+    """A trained and saved model: where, on what, its parameters, its base parameters (the
+    identifiable combinations) and (with CV) held-out RMS."""
 
     out: str
     n: int
@@ -31,11 +32,13 @@ class FitResult:
     heldout_rmse_mm: float | None = None  # with cv_folds > 1
     as_is_rmse_mm: float | None = None
     provenance: Provenance | None = None  # the traceability record saved with the model
+    base_parameters: dict | None = None  # what the data determine (HybridModel.base_parameters)
 
     def to_dict(self) -> dict:
         d: dict[str, Any] = {"out": self.out, "n": self.n, "effects": self.effects, "gp_inputs": self.gp_inputs,
                              "robot": self.robot, "fit_seconds": self.fit_seconds,
-                             "train_rmse_mm": self.train_rmse_mm, "parameters": self.parameters, **self.source}
+                             "train_rmse_mm": self.train_rmse_mm, "parameters": self.parameters,
+                             "base_parameters": self.base_parameters, **self.source}
         if self.heldout_rmse_mm is not None:
             d |= {"heldout_rmse_mm": self.heldout_rmse_mm, "as_is_rmse_mm": self.as_is_rmse_mm}
         d["provenance"] = self.provenance

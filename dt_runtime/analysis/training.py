@@ -44,7 +44,8 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
     model.save(out, provenance=prov)
     res = FitResult(str(out), ds.n, list(effects), gp_inputs, model.robot_, seconds,
                     rms3(ds.error - model.predict(ds)) * MM_PER_M, model.parameters(),
-                    {k: v for k, v in d.info.items() if k != "n"}, provenance=prov)
+                    {k: v for k, v in d.info.items() if k != "n"}, provenance=prov,
+                    base_parameters=model.base_parameters())
     if cv_folds > 1:
         progress.note(f"held-out error: {cv_folds}-fold cross-validation grouped by target point")
         g = groups_of(ds)

@@ -172,3 +172,11 @@ def parameter_line(p: dict) -> str:
     return f"  {p['effect']}.{p['name']} = {p['value']:.6g} +/- {p['u']:.2g} {p['unit']}" + (
         f" (profile likelihood, interval {p['interval'][0]:.4g}..{p['interval'][1]:.4g})" if "interval" in p else "")
 
+
+def parameter_lines(parameters: list[dict], base: dict | None) -> list[str]:
+    """A model's effect parameters for the human summary: the short base-parameter table
+    (reports.parameter_table; for a model saved before base parameters were kept (`base` None),
+    its identified parameters)."""
+    from dt_runtime.reports.parameter_table import parameter_table, text
+
+    return text(parameter_table(parameters, base)) if parameters else []

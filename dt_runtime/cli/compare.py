@@ -2,7 +2,7 @@
 
 RMS, mean and max 3D error, per axis, Eq. 17 t-test failures and the residual broken down by
 region, speed, payload, temperature, time and joint configuration, for 'as is' and every --model
-in the order given.
+in the order given; the last model's effect parameters as the short base-parameter table.
 """
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from dt_runtime.cli.common import (
     input_files,
     load,
     names,
+    parameter_lines,
     progress,
 )
 
@@ -72,6 +73,10 @@ def human(result: dict) -> str:
                          f"{rr['rmse_mm']:.4f} mm")
     for c in result.get("worst_cells") or []:
         lines.append(f"  worst: {c['factor']} {c['cell']}: {c['rmse_mm']:.4f} mm ({c['n']} rows)")
+    primary = result["models"][-1] if result.get("models") else {}
+    if primary.get("parameters"):  # the primary model's effect parameters, as `dt fit` prints them
+        lines.append(f"effect parameters of {primary['name']} (as trained):")
+        lines += ["  " + ln for ln in parameter_lines(primary["parameters"], primary.get("base_parameters"))]
     if result.get("report"):
         lines.append(f"report: {result['report']}")
     return "\n".join(lines)

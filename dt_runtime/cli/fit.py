@@ -16,7 +16,7 @@ from dt_runtime.cli.common import (
     input_files,
     load,
     names,
-    parameter_line,
+    parameter_lines,
     progress,
 )
 
@@ -49,6 +49,4 @@ def human(result: dict) -> str:
            f"training 3D RMS {result['train_rmse_mm']:.4f} mm"]
     if "heldout_rmse_mm" in result:
         out.append(f"held-out 3D RMS {result['heldout_rmse_mm']:.4f} mm (as is {result['as_is_rmse_mm']:.4f} mm)")
-    out += [parameter_line(p)
-            for p in result["parameters"]]
-    return "\n".join(out)
+    return "\n".join(out + parameter_lines(result["parameters"], result.get("base_parameters")))

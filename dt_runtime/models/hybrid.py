@@ -6,7 +6,8 @@ with their standard uncertainties from the residual scatter. A GP (dt_runtime.mo
 models the residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed),
 'tcp', 'joints', or 'none'; with a GP, the effect parameters are estimated again by generalised
 least squares under its covariance (universal kriging, `_gls`) and the GP refitted on what they
-leave, its hyperparameters kept. What the data cannot determine is reported
+leave, its hyperparameters kept. What the data determine is reported as base parameters (the
+identifiable combinations, `base_parameters`), what they cannot per parameter
 (`models.identifiability`); widths and compliances are kept >= 0.
 
 Follows scikit-learn's estimator contract (it is a scikit-learn regressor: sklearn.base.clone
@@ -263,7 +264,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
             cov_s = s2 * Hinv @ (As.T @ As) @ Hinv  # sandwich: covariance of the ridge estimate
             self.theta_cov_ = cov_s / np.outer(scale, scale)
             self.theta_u_ = np.sqrt(np.clip(np.diag(self.theta_cov_), 0, None))
-            self.identifiability_ = idf.analyse(As, zero)
+            self.identifiability_ = idf.analyse(As, zero, scale)
         else:
             self.theta_ = np.zeros(0)
             self.theta_u_ = np.zeros(0)
@@ -467,6 +468,43 @@ class HybridModel(RegressorMixin, BaseEstimator):
                              "interval": [est.lo, est.hi], "method": "profile likelihood"})
         return rows
 
+    def base_parameters(self) -> dict | None:
+        """What the training data determine of the effect parameters: the rank r of the design and
+        its r base parameters (models.identifiability: QR with column pivoting), each named by its
+        leading parameter, with its value +/- standard uncertainty (from theta_cov_, through the
+        combination) and the `combination` of the full set it stands for ({parameter: coefficient},
+        beta = sum coefficient * theta, the leading one 1; a coefficient is in the base parameter's
+        unit per that parameter's unit), `absorbs` the others in it. `no_effect`: parameters whose
+        column is zero over the data. The nonlinear parameters (profile likelihood) are in
+        `parameters`. None for a model saved before base parameters were kept."""
+        ident: idf.Identifiability | None = getattr(self, "identifiability_", None)
+        if ident is None or ident.base is None:
+            return None
+        base = ident.base
+        full = [f"{e}.{n}" for e, n, _, _ in self.param_names_]
+        beta = base.C @ self.theta_
+        u = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", base.C, self.theta_cov_, base.C), 0.0, None))
+        at_bound = getattr(self, "at_bound_", None)
+        rows = []
+        for k, i in enumerate(base.lead):
+            effect, name, unit, report = self.param_names_[i]
+            absorbs = base.absorbed(k)
+            row = {"effect": effect, "name": name, "value": float(beta[k]), "u": float(u[k]), "unit": unit,
+                   "combination": {full[j]: float(base.C[k, j]) for j in [i, *absorbs]},
+                   "absorbs": [full[j] for j in absorbs]}
+            if not absorbs and at_bound is not None and i < len(at_bound) and at_bound[i]:
+                row["at_bound"] = True  # physics' sign held it at 0
+            if report == "inverse" and not absorbs and beta[k] > 0:
+                # Stiffness k = 1/c, u(k) = u(c)/c^2 (first order), as `parameters`.
+                row.update(name=name.replace("compliance", "stiffness"), value=float(1 / beta[k]),
+                           u=float(u[k] / beta[k] ** 2), unit="N m/rad")
+            rows.append(row)
+        return {"rank": base.rank, "n_params": len(full), "not_separable": len(full) - base.rank,
+                "no_effect": [full[j] for j in ident.no_effect], "rcond": idf.RCOND,
+                "method": "QR with column pivoting of the standardised regressor (Khalil & Dombre's base "
+                          "parameters, as FIGAROH); beta = C theta",
+                "parameters": rows}
+
     # --- persistence (JSON + NPZ) -----------------------------------------------------------
     def provenance(self) -> Provenance:
         """The traceability record `save` writes when given none: this software, now, the
@@ -508,6 +546,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "nuisance": list(self.nuisance), "reference_session": self.reference_session,
                 "nuisance_sessions": list(getattr(self, "nuisance_sessions_", ())),
                 "param_names": self.param_names_, "parameters": self.parameters(),
+                "base_parameters": self.base_parameters(),  # for readers: load rebuilds it from identifiability
                 "identifiability": None if getattr(self, "identifiability_", None) is None else
                 self.identifiability_.state(),
                 "at_bound": [bool(v) for v in getattr(self, "at_bound_", [])],

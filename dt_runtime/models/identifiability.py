@@ -1,9 +1,10 @@
-"""Which effect parameters can the data determine? Rank, condition and aliased groups.
+"""Which effect parameters can the data determine? Rank, base parameters, aliased groups.
 
 A linear effect model e = A theta is identifiable in the directions the data excite. On
-standardised columns (each regressor scaled to unit RMS, so units do not matter) the singular
-value decomposition As = U S V^T tells: singular values below `RCOND` x the largest are
-directions the data do not see (the complete geometric set is rank deficient on purpose: a base
+standardised columns (each regressor scaled to unit RMS, so units do not matter) the rank r of
+the design As comes from the QR decomposition of the base parameters below, and the singular
+value decomposition As = U S V^T tells which directions the data do not see: those beyond the r
+largest singular values (the complete geometric set is rank deficient on purpose: a base
 rotation and a first-joint offset move the arm alike). A parameter is *identified* when the
 unseen directions leave it alone (its squared loading on them is below `LOADING`); the others
 are grouped by the unseen directions they share (offset_q1 with frame1_rz, say), and for such a
@@ -14,6 +15,22 @@ whole: its parameter is not identified and never divides by its round-off scale.
 The ridge estimate puts the unseen directions at zero, so a value of a non-identified parameter
 is an artefact of the penalty, not a measurement: reports and `dt fit --json` mark it
 (`identified: false`, value withheld) and list its group.
+
+**Base parameters** (Khalil & Dombre's, as FIGAROH computes them: tools/qrdecomposition.py,
+`QR_pivoting`) are what the data do determine, r of them for rank r: a QR decomposition with
+column pivoting of the standardised design, As P = Q R, picks the r most independent columns
+(the pivots; the rank is the number of |R_ii| above `RCOND` x |R_11|, FIGAROH's tolerance on
+the diagonal of R made relative to the standardised columns), and every other column is a
+combination of them, As_d = As_b K with K = R_11^-1 R_12 (FIGAROH's regrouping coefficients
+`beta`). So A theta = A_b beta with beta_b = theta_b + K theta_d: each base parameter is named by
+its leading (pivot) parameter and stands for that combination, here in physical units
+(coefficient of theta_j: unit of the base parameter per unit of theta_j); coefficients below
+`COEF_TOL` are round-off and dropped (FIGAROH's tol_beta). beta is the same for every theta that
+predicts the same errors on these rows, so its value is a measurement, and its uncertainty
+follows from the parameters' covariance, u(beta) = sqrt(diag(C Sigma_theta C^T)). Columns equal
+to round-off decide the pivot by round-off: aliased columns (offset_q1 and frame1_rz on a
+vertical first axis) would lead by chance, so the pivoting sees column k weighted by
+1 - `TIE` k and a tie goes to the parameter listed first (joint offsets before frame errors).
 """
 from __future__ import annotations
 
@@ -21,10 +38,43 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 
 RCOND = 1e-6  # singular values below this fraction of the largest are directions the data do not see
 LOADING = 0.01  # squared loading on unseen directions above which a parameter is not identified
 ZERO_COLUMN = 1e-9  # a column whose RMS is below this fraction of the largest one is round-off
+COEF_TOL = 1e-6  # a regrouping coefficient (standardised columns) below this is round-off (FIGAROH's tol_beta)
+TIE = 1e-6  # pivoting weight step: a tie between aliased columns goes to the parameter listed first
+
+
+@dataclass
+class Base:
+    """The base parameters of a design with p parameters: `lead[k]` (ascending) is the leading
+    parameter of the k-th, and beta = C theta with C (r, p) in physical units (C[k, lead[k]] = 1,
+    the absorbed parameters' coefficients, zeros elsewhere)."""
+
+    lead: list[int]
+    C: np.ndarray
+
+    @property
+    def rank(self) -> int:
+        return len(self.lead)
+
+    def absorbed(self, k: int) -> list[int]:
+        """The parameters the k-th base parameter stands for beside its leading one."""
+        return [int(j) for j in np.flatnonzero(self.C[k]) if j != self.lead[k]]
+
+    def state(self) -> list[dict]:
+        return [{"lead": int(i), "absorbs": (js := self.absorbed(k)), "coefficients": [float(self.C[k, j]) for j in js]}
+                for k, i in enumerate(self.lead)]
+
+    @classmethod
+    def from_state(cls, rows: list[dict], p: int) -> Base:
+        C = np.zeros((len(rows), p))
+        for k, r in enumerate(rows):
+            C[k, int(r["lead"])] = 1.0
+            C[k, [int(j) for j in r["absorbs"]]] = r["coefficients"]
+        return cls([int(r["lead"]) for r in rows], C)
 
 
 @dataclass
@@ -34,18 +84,24 @@ class Identifiability:
     condition: float  # largest / smallest singular value among the seen directions
     identified: np.ndarray  # (p,) bool
     groups: list[list[int]] = field(default_factory=list)  # aliased parameters, by index
+    base: Base | None = None  # None for a model saved before base parameters were kept
+    no_effect: list[int] = field(default_factory=list)  # columns zero to round-off
 
     def state(self) -> dict:
         """JSON-ready, by index (what a saved model keeps)."""
         return {"n_params": self.n_params, "rank": self.rank,
                 "condition": float(self.condition) if np.isfinite(self.condition) else None,
-                "identified": [bool(v) for v in self.identified], "groups": [list(map(int, g)) for g in self.groups]}
+                "identified": [bool(v) for v in self.identified], "groups": [list(map(int, g)) for g in self.groups],
+                "no_effect": list(map(int, self.no_effect)),
+                **({"base": self.base.state()} if self.base is not None else {})}
 
     @classmethod
     def from_state(cls, d: dict) -> Identifiability:
         cond = d.get("condition")
-        return cls(int(d["n_params"]), int(d["rank"]), float("inf") if cond is None else float(cond),
-                   np.asarray(d["identified"], bool), [list(map(int, g)) for g in d["groups"]])
+        p = int(d["n_params"])
+        return cls(p, int(d["rank"]), float("inf") if cond is None else float(cond),
+                   np.asarray(d["identified"], bool), [list(map(int, g)) for g in d["groups"]],
+                   Base.from_state(d["base"], p) if "base" in d else None, [int(i) for i in d.get("no_effect", [])])
 
     def to_dict(self, names: list[str] | None = None) -> dict:
         name = (lambda i: names[i]) if names else (lambda i: i)
@@ -63,22 +119,54 @@ def zero_columns(scale: np.ndarray) -> np.ndarray:
     return scale <= ZERO_COLUMN * max(float(scale.max()), np.finfo(float).tiny)
 
 
-def analyse(As: np.ndarray, zero: np.ndarray | None = None) -> Identifiability:
-    """Identifiability of the parameters of the standardised design `As` (rows x p); `zero`:
-    columns known to be round-off (not identified, each its own group)."""
+def base_of(As: np.ndarray, scale: np.ndarray | None = None, zero: np.ndarray | None = None) -> Base:
+    """The base parameters of the standardised design `As` (rows x p; module docstring);
+    `scale`: each column's standardisation (As = A / scale; default 1), which puts the
+    coefficients in physical units; `zero`: columns known to be round-off (never a pivot)."""
+    p = As.shape[1]
+    scale = np.ones(p) if scale is None else np.asarray(scale, float)
+    zero = np.zeros(p, bool) if zero is None else np.asarray(zero, bool)
+    if p == 0 or As.shape[0] == 0:
+        return Base([], np.zeros((0, p)))
+    w = 1.0 - TIE * np.arange(p)
+    W = As * w  # our copy: the decomposition may overwrite it
+    W[:, zero] = 0.0
+    R, piv = scipy.linalg.qr(W, mode="r", pivoting=True, overwrite_a=True, check_finite=False)
+    d = np.abs(np.diag(R))
+    r = int(np.sum(d > RCOND * d[0])) if d.size and d[0] > 0 else 0
+    lead, dep = piv[:r], piv[r:]
+    K = scipy.linalg.solve_triangular(R[:r, :r], R[:r, r:p]) if r else np.zeros((0, p))
+    K[np.abs(K) < COEF_TOL] = 0.0
+    # W theta_w = A theta with theta_w = theta * scale / w: back to physical units.
+    f = scale / w
+    C = np.zeros((r, p))
+    C[np.arange(r), lead] = 1.0
+    C[:, dep] = K * f[dep][None, :] / f[lead][:, None]
+    order = np.argsort(lead)
+    return Base([int(i) for i in lead[order]], C[order])
+
+
+def analyse(As: np.ndarray, zero: np.ndarray | None = None, scale: np.ndarray | None = None) -> Identifiability:
+    """Identifiability of the parameters of the standardised design `As` (rows x p): rank and
+    base parameters (`base_of`), and which single parameters are identified; `zero`: columns
+    known to be round-off (not identified, each its own group); `scale`: as for `base_of`."""
     p = As.shape[1]
     zero = np.zeros(p, bool) if zero is None else np.asarray(zero, bool)
     live = np.flatnonzero(~zero)
     identified = np.zeros(p, bool)
     groups: list[list[int]] = [[int(i)] for i in np.flatnonzero(zero)]
-    if live.size == 0:
-        return Identifiability(p, 0, float("inf"), identified, groups)
-    # The SVD of the p x p normal matrix: rows may be millions, p is tens.
+    no_effect = [int(i) for i in np.flatnonzero(zero)]
+    base = base_of(As, scale, zero)
+    if live.size == 0 or base.rank == 0:
+        return Identifiability(p, 0, float("inf"), identified, groups, base, no_effect)
+    # The SVD of the p x p normal matrix (rows may be millions, p is tens), for the directions
+    # the data do not see: as many as the QR's rank leaves, so both tell one story.
     G = As[:, live].T @ As[:, live]
     w, V = np.linalg.eigh(G)
     s = np.sqrt(np.clip(w, 0.0, None))
-    seen = s > RCOND * s.max()
-    rank = int(seen.sum())
+    seen = np.zeros(live.size, bool)
+    seen[np.argsort(s)[::-1][: base.rank]] = True
+    rank = base.rank
     cond = float(s[seen].max() / s[seen].min()) if rank else float("inf")
     Vn = V[:, ~seen]  # unseen directions, in the live parameters
     load = np.sum(Vn ** 2, axis=1)
@@ -89,7 +177,7 @@ def analyse(As: np.ndarray, zero: np.ndarray | None = None) -> Identifiability:
         couple = np.abs(Vn[bad] @ Vn[bad].T) >= LOADING
         links = [(i, j) for i in range(bad.size) for j in range(i + 1, bad.size) if couple[i, j]]
         groups.extend(sorted([int(live[bad[i]]) for i in g] for g in connected(bad.size, links)))
-    return Identifiability(p, rank, cond, identified, groups)
+    return Identifiability(p, rank, cond, identified, groups, base, no_effect)
 
 
 def connected(n: int, links: Iterable[tuple[int, int]]) -> list[list[int]]:

@@ -3,7 +3,8 @@
 `write_compare_report(result, arrays, out_dir)` renders what `dt_runtime.compare.compare`
 returns: the models side by side, the "watch the error fall" plot, where the primary model
 (the last one) fails (residual maps, residual against each factor, the worst cells), whether
-its residuals look normal, and its effect parameters. The HTML helpers and the per-block
+its residuals look normal, and each model's effect parameters (the short base-parameter table,
+reports.parameter_table). The HTML helpers and the per-block
 fallback (a block that cannot be drawn becomes a note) are those of the demo report.
 """
 from __future__ import annotations
@@ -15,7 +16,6 @@ import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.analysis.compare import MIN_CELL
-from dt_runtime.models.hybrid import unidentified
 from dt_runtime.reports.blocks import COLORS, Missing, fixed, levels, run_block
 from dt_runtime.reports.html import (
     Section,
@@ -28,6 +28,7 @@ from dt_runtime.reports.html import (
     paragraph,
     plt,
 )
+from dt_runtime.reports.parameter_table import parameter_table
 from dt_runtime.reports.traceability import traceability
 
 
@@ -181,15 +182,16 @@ def _table_parameters(s: dict, a: dict) -> str:
         if not ps:
             out.append(note(f"{m['name']} ({m.get('description', '')}): no physical effect terms."))
             continue
-        rows = []
-        for p in ps:
-            f, unit = (MM_PER_M, "mm") if p["unit"] == "m" else (1.0, p["unit"])  # lengths in mm
-            rows.append({"effect": p["effect"], "parameter": p["name"],
-                         "value ± u": (f"{p['value'] * f:.4g} ± {p['u'] * f:.2g}" if p["value"] is not None else
-                                       unidentified(p)),
-                         "unit": unit})
-        out.append(html_table(rows, caption=f"{m['name']} ({m['description']}): effect parameters, value ± "
-                                            "standard uncertainty"))
+        t = parameter_table(ps, m.get("base_parameters"), plus_minus=True)
+        for g in t.grids:
+            out.append(html_table([dict(zip(g.header, r)) for r in g.rows], g.header, row_header="",
+                                  caption=f"{m['name']} ({m.get('description', '')}): {g.title}, {t.legend}"))
+        if t.lines:
+            out.append(html_table([{"effect": ln.effect, "parameters": ", ".join(f"{k} {v}" for k, v in ln.entries)}
+                                   for ln in t.lines], ["effect", "parameters"], row_header="effect",
+                                  caption=f"{m['name']}: " + ("other effects' " if t.grids else "")
+                                          + f"base parameters, {t.legend}"))
+        out += [paragraph(n) for n in t.notes]
     return "".join(out)
 
 
