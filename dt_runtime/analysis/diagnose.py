@@ -338,7 +338,7 @@ def diagnose_auto(data: Data | Dataset | str | Path, model: HybridModel | str | 
                                            (tuple(effects), gp_inputs), (tuple(r.effects), r.gp_inputs), seed,
                                            gp_options, ridge, measured=ds.actual, refit=refit)
         for x, f in zip(r.sessions, d.info.get("session_files", [])):
-            x["file"] = f["file"]
+            x["file"], x["name"] = f["file"], f.get("name")
         r.verdict += _session_verdict(r.sessions)
     r.source = {k: v for k, v in d.info.items() if k != "n"}
     return r
