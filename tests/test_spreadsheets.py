@@ -133,6 +133,28 @@ def test_a_joint_table_in_a_spreadsheet_is_joined_by_key(tmp_path):
     np.testing.assert_allclose(ds.error, err, atol=1e-9)
 
 
+def test_an_ods_measurement_file_joins_an_xlsx_joint_table_by_row_order(tmp_path):
+    rng = np.random.default_rng(6)
+    q_deg = np.round(rng.uniform(-120, 120, (9, 6)), 4)
+    err = rng.normal(0, 2e-4, (9, 3))
+    meas = (fk(np.deg2rad(q_deg)) - err) * 1e3
+    blank = [None] * 4
+    # a blank row inside each table: it carries no row, in either file, so row i still pairs with row i
+    write_ods(tmp_path / "p.ods", {"Punkte": [["mx", "my", "mz", "Luftfeuchte"]] + [[*m, 40.0 + i] for i, m in
+                                                                                   enumerate(meas[:4])]
+                                   + [blank] + [[*m, 44.0 + i] for i, m in enumerate(meas[4:])]})
+    write_xlsx(tmp_path / "p_joints.xlsx", {"Achsen": [[f"A{j}" for j in range(1, 7)], [None] * 6]
+                                            + [list(map(float, q)) for q in q_deg]})
+    m = ImportMapping.model_validate({"columns": {"mx": "mx", "my": "my", "mz": "mz"},
+                                      "joints": {"path": "{stem}_joints.xlsx", "columns": [f"A{j}" for j in range(1, 7)],
+                                                 "unit": "deg", "join": "row"}})
+    ds, _ = import_file(tmp_path / "p.ods", m, robot=UR10)
+    np.testing.assert_allclose(ds.joints, np.deg2rad(q_deg), atol=1e-12)
+    np.testing.assert_allclose(ds.error, err, atol=1e-9)
+    np.testing.assert_array_equal(ds.extra["Luftfeuchte"], 40.0 + np.arange(9))
+    assert ds.lines.tolist() == [2, 3, 4, 5, 7, 8, 9, 10, 11]
+
+
 def _binary_files(tmp_path):
     text = "x,y,z,ex,ey,ez\n1,2,3,0.1,0.2,0.3\n"
     files = {

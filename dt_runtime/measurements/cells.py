@@ -192,7 +192,8 @@ def _csv_records(path: Path, separator: str, encoding: str) -> Iterator[Record]:
 
 
 def _blank(row) -> bool:
-    return not row or all(not cell_text(c) for c in row)
+    # a typed (non-text) cell holds a value; a text cell may be spaces
+    return not row or all(isinstance(c, str) and not c.strip() for c in row)
 
 
 @dataclass

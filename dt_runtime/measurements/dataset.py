@@ -314,7 +314,8 @@ def sessions(datasets: Sequence[Dataset]) -> Dataset:
     point ids offset so no two sessions share one (a point re-measured in another session, with
     its own tracker set-up, is another group), the session's index in the `session` column
     (`Dataset.extra`; `dt diagnose --group-by session` holds one out at a time). Columns survive
-    only if every session has them."""
+    only if every session has them. The command line names each session by its file
+    (`session_paths.session_names`, in `Data.info['session_files']`)."""
     ds = list(datasets)
     if not ds:
         raise DataError("sessions: no datasets")
