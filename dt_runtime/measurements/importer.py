@@ -21,7 +21,7 @@ t = seconds from the earliest row), or `row_order` (t = row index 0, 1, 2 ...: o
 is known; e.g. a spreadsheet mangled the timestamps). A timestamp column that does not parse
 can fall back to row order (`fallback: row_order`), which the report's notes record.
 
-The file is CSV text or a spreadsheet (.xlsx, .xls, .ods; `sheet:` picks the sheet, `cells`):
+The file is CSV text or a spreadsheet (.xlsx, .xls, .ods; `sheet:` picks the sheet; `cells`, `sheets`):
 a spreadsheet's number cells are numbers (the `decimal:` key applies to its text cells only), its
 date-time cells are timestamps as they are (no `format` needed), a number in a timestamp column
 reads as its digits (20210312101530 with the default format). Uncertainty columns may hold

@@ -91,7 +91,7 @@ def sniff(path: str | Path, encoding: str = "utf-8-sig") -> Kind:
     if head.startswith(_OLE2):
         return "xls"
     for magic, what in _MAGIC:
-        if head.startswith(magic):
+        if head.startswith(magic) and not (what.startswith("UTF-32") and codec.startswith("utf-32")):
             raise _refuse(path, what)
     if head.startswith((b"\xff\xfe", b"\xfe\xff")):
         if codec.startswith("utf-16"):
