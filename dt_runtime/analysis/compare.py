@@ -13,6 +13,11 @@ configuration), so a user sees where a model fails and which factor the failure 
 (mm), where the primary model (the last one given) is also at the top level, so `n`, `rmse_mm`,
 `mae_mm`, `max_mm`, `per_axis`, `failures` are top-level keys (DESIGN.md). `arrays` holds the
 SI arrays the report plots.
+
+Data of several sessions (several files of one campaign: a `session` column, `sessions()`) are
+also scored session by session: every column gets a `sessions` list with each session's figures,
+and, for a session whose registration was fitted on its own points, the same figures after that
+registration is fitted again to the corrected commanded points (`reregister`).
 """
 from __future__ import annotations
 
@@ -52,9 +57,10 @@ SIGN = ("-", "0", "+")
 
 # --------------------------------------------------------------------------- inputs
 
-def trained_on(fitted: Sequence[tuple[str, HybridModel]], ds: Dataset) -> list[str]:
-    """The models whose training data was this dataset's file (same SHA-256 in their provenance)."""
-    src = Path(ds.source)
+def trained_on(fitted: Sequence[tuple[str, HybridModel]], ds: Dataset | str | Path) -> list[str]:
+    """The models whose training data was this dataset's file, or this file (same SHA-256 in their
+    provenance)."""
+    src = Path(ds.source if isinstance(ds, Dataset) else ds)
     if not src.is_file():
         return []
     digest = FileRecord.of(src).sha256
@@ -271,8 +277,8 @@ def worst_cells(bd: dict, overall_mm: float, k: int = N_WORST, min_n: int = MIN_
 
 # --------------------------------------------------------------------------- the comparison
 
-def _score(name, kind, description, pred, std, ds, cells, um, dm, dof_model, model=None):
-    """One column: its ModelScore and the SI arrays the report plots."""
+def _score(name, kind, description, pred, std, ds, cells, um, dm, dof_model, model=None, split=None):
+    """One column: its ModelScore and the SI arrays the report plots (`split`: the sessions, `_split`)."""
     r = ds.error - pred
     m = metrics(r)
     arr = {"name": name, "predicted": pred, "std": std, "residual": r, "t": None, "fail": None, "t_crit": None}
@@ -281,7 +287,69 @@ def _score(name, kind, description, pred, std, ds, cells, um, dm, dof_model, mod
         fails, tt, fail = failures(ds.error, pred, std, dof_model, um, dm, ds.lines)
         arr.update(t=tt.t, fail=fail, t_crit=tt.t_crit)
     bd = breakdown(r, cells)
-    return ModelScore(name, kind, ds.n, m, fails, bd, worst_cells(bd, m["rmse_mm"]), description, model), arr
+    per_session = None if split is None else _by_session(ds, pred, std, dof_model, um, dm, *split,
+                                                         column=name if kind == "model" else None)
+    return ModelScore(name, kind, ds.n, m, fails, bd, worst_cells(bd, m["rmse_mm"]), description, model,
+                      per_session), arr
+
+
+def _split(ds: Dataset, sessions: Sequence[dict] | None, refit_sessions: np.ndarray | None,
+           fitted: Sequence[tuple[str, HybridModel]]):
+    """(session label per row, {session: its file and name}, sessions to re-register, {session:
+    the models trained on its file}) for data of two or more sessions, else None."""
+    if "session" not in ds.extra:
+        return None
+    label = ds.extra["session"].astype(int)
+    ids = [int(i) for i in np.unique(label)]
+    if len(ids) < 2:
+        return None
+    about = {i: {k: f[k] for k in ("name", "file") if f.get(k) is not None}
+             for i, f in enumerate(sessions or []) if i in ids}
+    refit = set() if refit_sessions is None else {int(v) for v in np.unique(refit_sessions) if v >= 0}
+    trained = {i: trained_on(fitted, a["file"]) for i, a in about.items() if "file" in a}
+    for i, names_ in trained.items():
+        if names_:
+            log.warning("session %d (%s) was used to train %s: its figures are in-sample, not a test", i,
+                        about[i].get("name", about[i]["file"]), ", ".join(names_))
+    return label, about, refit, trained
+
+
+def _session_figures(e, pred, std, dof_model, um, dm, lines, index) -> dict:
+    """n, the figures of merit and the Eq. 17 failures of the rows `index` (failing rows named by
+    their index in the whole data, as the top-level figures do, and their file lines)."""
+    out = {"n": int(len(index)), **metrics(e - pred)}
+    out["max_row"] = int(index[out["max_row"]])
+    out["failures"] = None
+    if um is not None:
+        f, _, _ = failures(e, pred, std, dof_model, um, dm, lines)
+        f["rows"] = index[f["rows"]].tolist()
+        out["failures"] = f
+    return out
+
+
+def _rows(a, rows: np.ndarray):
+    return None if a is None else np.asarray(a)[rows]
+
+
+def _by_session(ds, pred, std, dof_model, um, dm, label, about, refit, trained, column=None) -> list[dict]:
+    """Each session's figures, and after re-registration for the sessions in `refit` (their
+    registration fitted on their own points: 6 dof absorbed again, as `after_reregistration`);
+    for a model's `column`, whether the model was trained on the session's file (`in_sample`)."""
+    out = []
+    for s in np.unique(label):
+        rows = np.flatnonzero(label == s)
+        args = (std[rows], dof_model, _rows(um, rows), _rows(dm, rows), _rows(ds.lines, rows), rows)
+        row = {"session": int(s), **about.get(int(s), {}),
+               **_session_figures(ds.error[rows], pred[rows], *args), "reregistered": int(s) in refit}
+        if column is not None:
+            row["in_sample"] = column in trained.get(int(s), [])
+        if int(s) in refit:
+            rr, _ = reregister.reregistered(ds.actual[rows], ds.error[rows] - pred[rows])
+            # the re-registered residual as the error a prediction left: e' - e_hat = rr
+            row["after_reregistration"] = {**_session_figures(pred[rows] + rr, pred[rows], *args),
+                                           "dof_absorbed": reregister.DOF}
+        out.append(row)
+    return out
 
 
 def _after_reregistration(ds: Dataset, pred: np.ndarray, session: np.ndarray) -> dict | None:
@@ -308,7 +376,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             noise_floor_m: float | None = None, cv_folds: int = 0, seed: int = 0,
             progress: Progress | None = None, instruments: str | Path | None = None,
             inputs: Sequence[str | Path] = (), refit_sessions: np.ndarray | None = None,
-            ) -> tuple[CompareResult, dict]:
+            sessions: Sequence[dict] | None = None) -> tuple[CompareResult, dict]:
     """Compare models (HybridModel instances or model directories, oldest first) with the
     measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
 
@@ -323,6 +391,9 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     refit_sessions: per row, the session whose registration was fitted on its own points (-1:
     given or none); each model then also gets its figure after re-registration
     (`after_reregistration`, dt_runtime.analysis.reregister).
+    sessions: for data of several sessions (`dataset.extra['session']`), what each one is
+    ({'file', 'name'} by session index: `Data.info['session_files']`); every column then has its
+    figures per session (`ModelScore.sessions`), after re-registration where `refit_sessions` says.
     Returns (result, arrays: SI arrays for the report); `result.to_dict()` is the JSON (mm)."""
     ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
     if ds.n == 0:
@@ -335,7 +406,9 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     cells = factor_cells(ds)
     zeros = np.zeros((ds.n, 3))
     scores, arrs = [], []
-    b, a = _score(AS_IS, "as is", "no correction: e_hat = 0", zeros, zeros, ds, cells, um, dm, np.full(3, INF))
+    split = _split(ds, sessions, refit_sessions, fitted)
+    b, a = _score(AS_IS, "as is", "no correction: e_hat = 0", zeros, zeros, ds, cells, um, dm, np.full(3, INF),
+                  split=split)
     scores.append(b)
     arrs.append(a)
     if cv_folds > 1:
@@ -361,7 +434,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                  "base_parameters": m.base_parameters()}
         if refit_sessions is not None:
             about["after_reregistration"] = _after_reregistration(ds, pred, refit_sessions)
-        b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about)
+        b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about, split)
         scores.append(b)
     arrs.append(a)
     floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)

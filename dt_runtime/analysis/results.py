@@ -175,6 +175,7 @@ class ModelScore:
     worst_cells: list[dict]
     description: str
     model: dict | None = None  # effects, gp_inputs, effect_residual_rms_mm, parameters (models only)
+    sessions: list[dict] | None = None  # data of several sessions: each one's figures (compare._by_session)
 
     @property
     def rmse_mm(self) -> float:
@@ -183,7 +184,8 @@ class ModelScore:
     def to_dict(self) -> dict:
         return jsonable({"name": self.name, "kind": self.kind, "n": self.n, **self.metrics,
                          "failures": self.failures, "breakdown": self.breakdown,
-                         "worst_cells": self.worst_cells, "description": self.description, **(self.model or {})})
+                         "worst_cells": self.worst_cells, "description": self.description, **(self.model or {}),
+                         **({"sessions": self.sessions} if self.sessions is not None else {})})
 
 
 @dataclass

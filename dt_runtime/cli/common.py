@@ -137,13 +137,15 @@ def load(args: argparse.Namespace):
     else:
         from dt_runtime.analysis.data import Data
         from dt_runtime.measurements.dataset import sessions
+        from dt_runtime.measurements.session_paths import session_names
 
         each = [load_data(f, args.mapping, args.skip_bad, robot) for f in files]
         ds = sessions([e.dataset for e in each])
+        # session i of the 'session' column is session_files[i]; its name tells files of one name apart
         d = Data(ds, {"data": list(files), "n": ds.n,
-                      "session_files": [{"file": str(f), "rows": e.dataset.n} | {k: v for k, v in e.info.items()
-                                                                           if k in ("registration", "skipped_rows")}
-                                   for f, e in zip(files, each)]}
+                      "session_files": [{"file": str(f), "name": name, "rows": e.dataset.n}
+                                        | {k: v for k, v in e.info.items() if k in ("registration", "skipped_rows")}
+                                        for f, name, e in zip(files, session_names(files), each)]}
                  | ({"robot": each[0].info["robot"]} if "robot" in each[0].info else {}))
     if getattr(args, "mpe_mm", None) is not None:
         d.info["mpe_mm"] = args.mpe_mm

@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> Any:
     result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
                              cv_folds=args.cv, seed=args.seed, progress=progress(args),
                              instruments=args.instruments, inputs=input_files(args),
-                             refit_sessions=refit_sessions(d))
+                             refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"))
     result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
     if args.report:
         from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
@@ -71,6 +71,7 @@ def human(result: dict) -> str:
             rr = m["after_reregistration"]
             lines.append(f"  {'':<24} after re-registration ({rr['dof_absorbed']} dof absorbed): 3D RMS "
                          f"{rr['rmse_mm']:.4f} mm")
+    lines += _session_lines(result["models"])
     for c in result.get("worst_cells") or []:
         lines.append(f"  worst: {c['factor']} {c['cell']}: {c['rmse_mm']:.4f} mm ({c['n']} rows)")
     primary = result["models"][-1] if result.get("models") else {}
@@ -80,3 +81,33 @@ def human(result: dict) -> str:
     if result.get("report"):
         lines.append(f"report: {result['report']}")
     return "\n".join(lines)
+
+
+def _session_cell(x: dict) -> str:
+    rr = x.get("after_reregistration")
+    f = (rr or x).get("failures")
+    return (f"{x['rmse_mm']:.4f}" + (f" [{rr['rmse_mm']:.4f}]" if rr else "")
+            + (f" {100 * f['fraction']:.1f} %" if f else "") + (" *" if x.get("in_sample") else ""))
+
+
+def _session_lines(models: list[dict]) -> list[str]:
+    """Data of several sessions: one line per session, one cell per model (as is first)."""
+    if not models or not models[0].get("sessions"):
+        return []
+    rr = any(x.get("after_reregistration") for m in models for x in m["sessions"])
+    names = [x.get("name") or f"session {x['session']}" for x in models[0]["sessions"]]
+    cells = [[_session_cell(x) for x in m["sessions"]] for m in models]
+    w = max(len(n) for n in [*names, "session"])
+    cw = [max(len(m["name"]), *(len(c) for c in col)) for m, col in zip(models, cells)]
+
+    def line(first: str, rows: str, texts: list[str]) -> str:
+        return (f"    {first:<{w}}  {rows:>5}  " + "  ".join(f"{t:<{c}}" for t, c in zip(texts, cw))).rstrip()
+
+    out = ["  per session: 3D RMS / mm" + (", [after re-registration]" if rr else "")
+           + ", fraction failing Eq. 17" + (" (after re-registration)" if rr else ""),
+           line("session", "rows", [m["name"] for m in models])]
+    out += [line(name, str(x["n"]), [col[i] for col in cells])
+            for i, (name, x) in enumerate(zip(names, models[0]["sessions"]))]
+    if any(x.get("in_sample") for m in models for x in m["sessions"]):
+        out.append("    * in-sample: the model was trained on this session's file")
+    return out

@@ -2,17 +2,24 @@
 (`dataset.read_table`) and the import mappings (`importer`). Each column spec turns one cell into
 a number; a failure names file, line, column and value (`DataError`), or with skip_bad becomes a
 `SkippedRow`.
+
+A file is CSV text, or, where the caller names a sheet (an import mapping's `sheet:`), a
+spreadsheet (`sheets`: .xlsx, .xls, .ods), whose typed cells go through the same specs: a number
+cell is taken as it is, a text cell is parsed like a CSV cell, and the "line" of a message is the
+spreadsheet's row number. The header is the first row (of a sheet: its first non-empty row).
 """
 from __future__ import annotations
 
 import csv
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 
 from dt_kernel.errors import DataError
+from dt_runtime.measurements.sheets import SPREADSHEETS, Cell, cell_text, describe, read_sheet, sheet_note, sniff
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +56,7 @@ class ColumnSpec:
 
     key: str
     column: str
-    kind: str = "float"
+    kind: str = "float"  # or "cell": the cell as it is (text stripped; a spreadsheet's date-time typed)
     required: bool = True
     scale: float = 1.0
 
@@ -68,9 +75,11 @@ def parse_number(text: str, decimal: str = ".") -> float:
         raise CellError("not a number") from None
 
 
-def _parse_cell(cell: str, spec: ColumnSpec, decimal: str):
+def _parse_cell(cell: Cell, spec: ColumnSpec, decimal: str):
+    if not isinstance(cell, str):
+        return _parse_typed(cell, spec)
     text = cell.strip()
-    if spec.kind == "str":
+    if spec.kind in ("str", "cell"):
         if spec.required and not text:
             raise CellError("empty cell")
         return text
@@ -79,6 +88,34 @@ def _parse_cell(cell: str, spec: ColumnSpec, decimal: str):
             raise CellError("empty cell")
         return math.nan
     v = parse_number(text, decimal)
+    if spec.kind == "int":
+        if not math.isfinite(v) or v != int(v):
+            raise CellError("not an integer")
+        return int(v)
+    if not math.isfinite(v):
+        if spec.required:
+            raise CellError("not a finite number")
+        return math.nan
+    return v * spec.scale
+
+
+def _parse_typed(cell: Cell, spec: ColumnSpec):
+    """A spreadsheet's non-text cell: a number is taken as it is (no decimal mark to guess), a
+    duration (e.g. an elapsed-time column formatted [h]:mm:ss) is seconds; a date-time is a number
+    of nothing (it belongs in a `time: {source: timestamp}` column, read with kind 'cell')."""
+    if spec.kind == "cell":
+        return cell
+    if spec.kind == "str":
+        return cell_text(cell)
+    if isinstance(cell, bool):
+        raise CellError("a TRUE/FALSE cell, not a number")
+    if isinstance(cell, timedelta):
+        v = cell.total_seconds()
+    elif isinstance(cell, (int, float)):
+        v = float(cell)
+    else:
+        raise CellError("a date/time cell, not a number (a time stamp column goes in the mapping's "
+                        "`time: {source: timestamp, column: ...}`)")
     if spec.kind == "int":
         if not math.isfinite(v) or v != int(v):
             raise CellError("not an integer")
@@ -101,93 +138,165 @@ def text_encoding(name: str) -> str:
     return name
 
 
-def read_header(path: str | Path, separator: str, encoding: str = "utf-8-sig") -> list[str]:
-    path = Path(path)
+@dataclass(frozen=True)
+class _Unreadable:
+    """A CSV record the csv module could not split (e.g. a quote never closed)."""
+
+    reason: str
+
+
+Record = tuple[int, "Sequence[Cell] | _Unreadable"]
+
+
+def _decode_error(path: Path, encoding: str, exc: UnicodeDecodeError) -> DataError:
+    """A text file with bytes that are not `encoding`: 8-bit text from an instrument (sniff has
+    already refused binary files and UTF-16, so the advice about latin-1 fits what is left)."""
+    bad = exc.object[exc.start:exc.start + 1] if isinstance(exc.object, bytes) else b""
+    where = f"byte {bad!r} at offset {exc.start}" if bad else str(exc)
+    return DataError(f"{path}: not {encoding} text ({where}); an instrument's export is often latin-1 or cp1252: "
+                     "set `encoding: latin-1` (or cp1252) in the import mapping")
+
+
+def _records(path: Path, separator: str, encoding: str, sheet: str | int | None) -> tuple[bool, Iterator[Record]]:
+    """Whether `path` is a spreadsheet, and every record of it, header first: (line, cells). CSV
+    text, or with `sheet` given a spreadsheet's rows (line = the spreadsheet's row number);
+    `_Unreadable` for a CSV record the csv module refuses. `sheet` None: the caller takes CSV
+    only, and a spreadsheet is refused."""
+    kind = sniff(path, encoding)
+    if kind in SPREADSHEETS:
+        if sheet is None:
+            raise DataError(f"{path}: {describe(kind)}, and this input is read as CSV text: save the sheet as CSV "
+                            "(a measurement file or a joint-angle table can be read as it is through an import "
+                            "mapping, whose `sheet:` key picks the sheet)")
+        return True, iter(read_sheet(path, sheet)[2])
+    return False, _csv_records(path, separator, encoding)
+
+
+def _csv_records(path: Path, separator: str, encoding: str) -> Iterator[Record]:
     try:
         with path.open(newline="", encoding=encoding) as f:
-            first = next(csv.reader(f, delimiter=separator), None)
+            reader = csv.reader(f, delimiter=separator)
+            while True:
+                try:
+                    row = next(reader)
+                except StopIteration:
+                    return
+                except csv.Error as exc:
+                    yield reader.line_num, _Unreadable(f"unreadable CSV ({exc})")
+                    continue
+                yield reader.line_num, row
     except OSError as exc:
         raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
     except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not {encoding} text ({exc}); an instrument's export may be latin-1: "
-                        "set `encoding: latin-1` in the import mapping") from exc
-    if not first:
-        raise DataError(f"{path}: line 1: empty file, expected a header row")
-    header = [c.strip() for c in first]
-    dup = sorted({c for c in header if header.count(c) > 1})
+        raise _decode_error(path, encoding, exc) from exc
+
+
+def _blank(row) -> bool:
+    # a typed (non-text) cell holds a value; a text cell may be spaces
+    return not row or all(isinstance(c, str) and not c.strip() for c in row)
+
+
+@dataclass
+class _Table:
+    header: list[str]
+    line: int  # the header's line (a sheet's row number)
+    spreadsheet: bool
+    records: Iterator[Record]  # the records after the header
+
+
+def _open(path: Path, separator: str, encoding: str, sheet: str | int | None) -> _Table:
+    spreadsheet, records = _records(path, separator, encoding, sheet)
+    first = next(records, None)
+    if spreadsheet:  # a sheet's leading empty rows are layout, not an empty header
+        while first is not None and not isinstance(first[1], _Unreadable) and _blank(first[1]):
+            first = next(records, None)
+    if first is None or isinstance(first[1], _Unreadable) or _blank(first[1]):
+        where = f"line {first[0]}" if first is not None else "line 1"
+        raise DataError(f"{path}: {where}: empty file, expected a header row")
+    header = [cell_text(c) for c in first[1]]
+    named = [c for c in header if c] if spreadsheet else header  # a sheet's unnamed columns are its margin
+    dup = sorted({c for c in named if named.count(c) > 1})
     if dup:
-        raise DataError(f"{path}: line 1: duplicate column(s) {dup}")
-    return header
+        raise DataError(f"{path}: line {first[0]}: duplicate column(s) {dup}")
+    return _Table(header, first[0], spreadsheet, records)
+
+
+def sheet_hint(path: str | Path, encoding: str = "utf-8-sig", sheet: str | int | None = None) -> str:
+    """'' for a text file, ' (sheet NAME of [...])' for a spreadsheet: for messages about columns."""
+    if sheet is None or not _is_sheet(Path(path), encoding, sheet):
+        return ""
+    return sheet_note(path, sheet)
+
+
+def _is_sheet(path: Path, encoding: str, sheet: str | int | None) -> bool:
+    return sheet is not None and sniff(path, encoding) in SPREADSHEETS
+
+
+def read_header(path: str | Path, separator: str, encoding: str = "utf-8-sig",
+                sheet: str | int | None = None) -> list[str]:
+    """The column names of `path` (CSV; with `sheet` also a spreadsheet, by sheet name or index)."""
+    return _open(Path(path), separator, encoding, sheet).header
 
 
 def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[ColumnSpec],
                skip_bad: bool = False,
                row_check: Callable[[dict], None] | None = None,
                encoding: str = "utf-8-sig",
+               sheet: str | int | None = None,
                ) -> tuple[dict[str, list], list[int], list[SkippedRow], list[str]]:
-    """Parse every data row of `path` by `specs`.
+    """Parse every data row of `path` by `specs` (CSV; with `sheet` also a spreadsheet).
 
     Returns (values per key, source line per kept row, skipped rows, header). A bad row
     raises DataError '<file>: line N: column C: value V: reason' unless skip_bad. `row_check`
     sees each parsed row (a dict key -> value) and may raise CellError with `.column` set.
     """
     path = Path(path)
-    header = read_header(path, separator, encoding)
+    table = _open(path, separator, encoding, sheet)
+    header, spreadsheet = table.header, table.spreadsheet
     missing = [s.column for s in specs if s.column not in header]
     if missing:
-        raise DataError(f"{path}: line 1: missing column(s) {missing}; header has {header}")
+        raise DataError(f"{path}: line {table.line}: missing column(s) {missing}; header has {header}"
+                        + sheet_hint(path, encoding, sheet))
     pos = [header.index(s.column) for s in specs]
     out: dict[str, list] = {s.key: [] for s in specs}
     lines: list[int] = []
     skipped: list[SkippedRow] = []
-    try:
-        with path.open(newline="", encoding=encoding) as f:
-            reader = csv.reader(f, delimiter=separator)
-            next(reader)
-            while True:
+    for line, row in table.records:
+        if isinstance(row, _Unreadable):
+            bad = SkippedRow(line, "<row>", "", row.reason)
+            if not skip_bad:
+                raise DataError(f"{path}: {bad}")
+            skipped.append(bad)
+            continue
+        if _blank(row):
+            continue  # blank lines carry no row
+        try:
+            # a sheet is rectangular: its rows are as wide as its used area, header or not
+            if not spreadsheet and len(row) != len(header):
+                raise _BadRow("<row>", separator.join(map(str, row))[:80],
+                              f"{len(row)} cells, header has {len(header)}")
+            parsed = {}
+            for spec, p in zip(specs, pos):
                 try:
-                    row = next(reader)
-                except StopIteration:
-                    break
-                except csv.Error as exc:
-                    bad = SkippedRow(reader.line_num, "<row>", "", f"unreadable CSV ({exc})")
-                    if not skip_bad:
-                        raise DataError(f"{path}: {bad}") from exc
-                    skipped.append(bad)
-                    continue
-                line = reader.line_num
-                if not row or all(not c.strip() for c in row):
-                    continue  # blank lines carry no row
+                    parsed[spec.key] = _parse_cell(row[p], spec, decimal)
+                except CellError as exc:
+                    raise _BadRow(spec.column, cell_text(row[p]), exc.reason) from None
+            if row_check is not None:
                 try:
-                    if len(row) != len(header):
-                        raise _BadRow("<row>", separator.join(row)[:80],
-                                      f"{len(row)} cells, header has {len(header)}")
-                    parsed = {}
-                    for spec, p in zip(specs, pos):
-                        try:
-                            parsed[spec.key] = _parse_cell(row[p], spec, decimal)
-                        except CellError as exc:
-                            raise _BadRow(spec.column, row[p], exc.reason) from None
-                    if row_check is not None:
-                        try:
-                            row_check(parsed)
-                        except CellError as exc:
-                            col = getattr(exc, "column", "<row>")
-                            raise _BadRow(col, row[header.index(col)] if col in header else "",
-                                          exc.reason) from None
-                except _BadRow as bad:
-                    sk = SkippedRow(line, bad.column, bad.value, bad.reason)
-                    if not skip_bad:
-                        raise DataError(f"{path}: {sk}") from None
-                    skipped.append(sk)
-                    continue
-                for k, v in parsed.items():
-                    out[k].append(v)
-                lines.append(line)
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not UTF-8 text ({exc})") from exc
+                    row_check(parsed)
+                except CellError as exc:
+                    col = getattr(exc, "column", "<row>")
+                    raise _BadRow(col, cell_text(row[header.index(col)]) if col in header else "",
+                                  exc.reason) from None
+        except _BadRow as bad:
+            sk = SkippedRow(line, bad.column, bad.value, bad.reason)
+            if not skip_bad:
+                raise DataError(f"{path}: {sk}") from None
+            skipped.append(sk)
+            continue
+        for k, v in parsed.items():
+            out[k].append(v)
+        lines.append(line)
     if skipped:
         log.warning("%s: skipped %d bad row(s), first: %s", path, len(skipped), skipped[0])
     return out, lines, skipped, header
@@ -205,20 +314,43 @@ def cell_error(column: str, reason: str) -> CellError:
     return exc
 
 
-
-
-def data_row_lines(path: str | Path, separator: str, encoding: str = "utf-8-sig") -> list[int]:
+def data_row_lines(path: str | Path, separator: str, encoding: str = "utf-8-sig",
+                   sheet: str | int | None = None) -> list[int]:
     """The file line of every data row (blank lines skipped, as `parse_rows` does): a row's index
     in this list is its position in the file, which a join by row order pairs across two files."""
-    path = Path(path)
     out: list[int] = []
-    try:
-        with path.open(newline="", encoding=encoding) as f:
-            reader = csv.reader(f, delimiter=separator)
-            next(reader, None)
-            for row in reader:
-                if row and any(c.strip() for c in row):
-                    out.append(reader.line_num)
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DataError(f"{path}: cannot read its rows ({exc})") from exc
+    for line, row in _open(Path(path), separator, encoding, sheet).records:
+        if isinstance(row, _Unreadable):
+            raise DataError(f"{path}: line {line}: cannot read its rows ({row.reason})")
+        if not _blank(row):
+            out.append(line)
     return out
+
+
+def numeric_columns(path: str | Path, names: Sequence[str], lines: Sequence[int], separator: str = ",",
+                    decimal: str = ".", encoding: str = "utf-8-sig", sheet: str | int | None = None,
+                    ) -> tuple[dict[str, list[float]], list[str]]:
+    """The columns `names` of `path` on the data rows at `lines` (in that order), as numbers (NaN
+    where a cell is empty): the file's own columns beside the ones a reader parsed. A column with
+    any cell that is not a number is left out. Returns (values per kept column, the columns left out)."""
+    path = Path(path)
+    if not names:
+        return {}, []
+    table = _open(path, separator, encoding, sheet)
+    specs = [(ColumnSpec(c, c, required=False), table.header.index(c)) for c in names]
+    at = {int(line): i for i, line in enumerate(lines)}
+    cols: dict[str, list[float]] = {c: [math.nan] * len(at) for c in names}
+    bad: set[str] = set()
+    for line, row in table.records:
+        i = at.get(line)
+        if i is None or isinstance(row, _Unreadable):
+            continue
+        for spec, j in specs:
+            if spec.column in bad:
+                continue
+            try:
+                cols[spec.column][i] = _parse_cell(row[j] if j < len(row) else "", spec, decimal)
+            except CellError:
+                bad.add(spec.column)
+    left_out = [c for c in names if c in bad]
+    return {c: v for c, v in cols.items() if c not in bad}, left_out

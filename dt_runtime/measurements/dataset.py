@@ -27,7 +27,7 @@ import numpy as np
 
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM
-from dt_runtime.measurements.cells import ColumnSpec, SkippedRow, cell_error, parse_rows, read_header
+from dt_runtime.measurements.cells import ColumnSpec, SkippedRow, cell_error, numeric_columns, parse_rows, read_header
 
 log = logging.getLogger(__name__)
 
@@ -236,34 +236,17 @@ def read_table(path: str | Path, skip_bad: bool = False) -> Dataset:
         rep=np.asarray(vals["rep"], dtype=np.int64) if "rep" in vals else None,
         u=col3(U_COLS) if "ux" in vals else None,
         source=str(path), lines=np.asarray(lines, dtype=np.int64), skipped=skipped,
-        extra=_extra_columns(path, header, unknown, lines),
+        extra=_extra_columns(path, unknown, lines),
     )
 
 
-def _extra_columns(path: Path, header: list[str], names: list[str], lines) -> dict[str, np.ndarray]:
+def _extra_columns(path: Path, names: list[str], lines) -> dict[str, np.ndarray]:
     """The numeric columns outside the contract, on the kept rows (NaN where a cell is empty);
     a column with any text cell is ignored with a warning naming it."""
-    if not names:
-        return {}
-    import csv
-
-    want = {int(line) for line in lines}
-    idx = {c: header.index(c) for c in names}
-    cols: dict[str, list[float]] = {c: [] for c in names}
-    bad: set[str] = set()
-    with path.open(newline="", encoding="utf-8-sig") as f:
-        for lineno, row in enumerate(csv.reader(f), start=1):
-            if lineno == 1 or lineno not in want:
-                continue
-            for c, i in idx.items():
-                cell = row[i].strip() if i < len(row) else ""
-                try:
-                    cols[c].append(float(cell) if cell else float("nan"))
-                except ValueError:
-                    bad.add(c)
+    cols, bad = numeric_columns(path, names, lines)
     if bad:
-        log.warning("%s: ignoring non-numeric column(s) outside the measurement table contract: %s", path, sorted(bad))
-    return {c: np.asarray(v, dtype=float) for c, v in cols.items() if c not in bad and len(v) == len(want)}
+        log.warning("%s: ignoring non-numeric column(s) outside the measurement table contract: %s", path, bad)
+    return {c: np.asarray(v, dtype=float) for c, v in cols.items()}
 
 
 def _fmt(v: float) -> str:
@@ -331,7 +314,8 @@ def sessions(datasets: Sequence[Dataset]) -> Dataset:
     point ids offset so no two sessions share one (a point re-measured in another session, with
     its own tracker set-up, is another group), the session's index in the `session` column
     (`Dataset.extra`; `dt diagnose --group-by session` holds one out at a time). Columns survive
-    only if every session has them."""
+    only if every session has them. The command line names each session by its file
+    (`session_paths.session_names`, in `Data.info['session_files']`)."""
     ds = list(datasets)
     if not ds:
         raise DataError("sessions: no datasets")

@@ -20,13 +20,22 @@ Time: `seconds` (a numeric column), `timestamp` (a date-time text column, e.g. Y
 t = seconds from the earliest row), or `row_order` (t = row index 0, 1, 2 ...: only the order
 is known; e.g. a spreadsheet mangled the timestamps). A timestamp column that does not parse
 can fall back to row order (`fallback: row_order`), which the report's notes record.
+
+The file is CSV text or a spreadsheet (.xlsx, .xls, .ods; `sheet:` picks the sheet; `cells`, `sheets`):
+a spreadsheet's number cells are numbers (the `decimal:` key applies to its text cells only), its
+date-time cells are timestamps as they are (no `format` needed), a number in a timestamp column
+reads as its digits (20210312101530 with the default format). Uncertainty columns may hold
+expanded uncertainties (`uncertainty: {kind: expanded, k: 2}`), imported as u = U / k. The file's
+numeric columns that the mapping does not name are kept beside the rows (`Dataset.extra`, by
+their names in the file), as `read_table` keeps a contract file's.
 """
 from __future__ import annotations
 
 import calendar
+import logging
 import math
 import time as _time
-from datetime import datetime
+from datetime import date, datetime
 from pathlib import Path
 from typing import Literal
 
@@ -39,12 +48,23 @@ from dt_kernel.errors import ConfigError, DataError
 from dt_kernel.units import M_PER_MM
 from dt_runtime.common.paths import ROOT
 from dt_runtime.frames.kinematics import Chain, load_robot
-from dt_runtime.measurements.cells import ColumnSpec, parse_rows, read_header, text_encoding
+from dt_runtime.measurements.cells import (
+    ColumnSpec,
+    numeric_columns,
+    parse_rows,
+    read_header,
+    sheet_hint,
+    text_encoding,
+)
 from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.measurements.joint_table import JointsSpec, KeyJoin, join_joints
 from dt_runtime.measurements.registration_fit import RegistrationReport, fit_rigid_offset, read_transform
 from dt_runtime.measurements.session_paths import companion
+from dt_runtime.measurements.sheets import Cell, cell_text, check_sheet
 from dt_runtime.metrology.stats import rms3
+from dt_runtime.metrology.uncertainty import INF, coverage_factor
+
+log = logging.getLogger(__name__)
 
 LengthUnit = Literal["m", "mm"]
 AngleUnit = Literal["rad", "deg"]
@@ -107,6 +127,50 @@ class TimeSpec(Frozen):
         return self
 
 
+class UncertaintySpec(Frozen):
+    """What the ux, uy, uz columns state. `standard` (the contract's): standard uncertainties.
+    `expanded`: U = k u, with the coverage factor `k` stated (e.g. U95 with k = 2), or with the
+    coverage probability `coverage` (e.g. 0.95) and the statement's effective degrees of freedom
+    `dof` (k from Student's t; without dof, infinite: the normal distribution, k = 1.96 at 95 %).
+    Imported as standard uncertainties u = U / k (GUM 6.2.1)."""
+
+    kind: Literal["standard", "expanded"] = "standard"
+    k: float | None = Field(None, ge=1)
+    coverage: float | None = Field(None, gt=0, lt=1)
+    dof: float | None = Field(None, gt=0)
+
+    @model_validator(mode="after")
+    def _one_way(self):
+        if self.kind == "standard":
+            if any(v is not None for v in (self.k, self.coverage, self.dof)):
+                raise ValueError("k, coverage and dof describe an expanded uncertainty: set kind: expanded "
+                                 "(or leave them out for standard uncertainties)")
+        elif (self.k is None) == (self.coverage is None):
+            raise ValueError("kind: expanded needs one of k (the coverage factor, e.g. 2) or coverage (the "
+                             "coverage probability, e.g. 0.95, with dof for Student's t), not both")
+        elif self.dof is not None and self.coverage is None:
+            raise ValueError("dof goes with coverage (k from Student's t); a stated k needs no dof")
+        return self
+
+    def factor(self) -> float:
+        """The coverage factor k that divides the file's values into standard uncertainties (1 for standard)."""
+        if self.kind == "standard":
+            return 1.0
+        if self.k is not None:
+            return float(self.k)
+        assert self.coverage is not None  # _one_way: expanded has k or coverage
+        return float(coverage_factor(INF if self.dof is None else self.dof, self.coverage))
+
+    def record(self) -> dict:
+        """The import report's account of the conversion."""
+        out: dict = {"stated": self.kind, "k": self.factor()}
+        if self.kind == "expanded":
+            out |= {"coverage": self.coverage, "dof": self.dof,
+                    "k_from": "stated" if self.k is not None else
+                    ("Student's t" if self.dof is not None else "normal distribution")}
+        return out
+
+
 class RegistrationSpec(Frozen):
     fit_offset: bool = True          # fit the probe/tool offset o on the flange (needs orientation)
     offset_init_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # start, or fixed if not fitted
@@ -128,8 +192,12 @@ class ImportMapping(Frozen):
     # The file's text encoding (a tracker's export is often latin-1 / cp1252); utf-8-sig reads
     # UTF-8 with or without a byte-order mark.
     encoding: str = "utf-8-sig"
+    # a spreadsheet's sheet: its name, or its index (0 = the first); CSV files have none
+    sheet: str | int = 0
     columns: Columns
     units: Units = Units()
+    # what ux, uy, uz state: standard uncertainties, or expanded ones with their k (UncertaintySpec)
+    uncertainty: UncertaintySpec = UncertaintySpec()
     # scipy Euler sequence: lowercase = extrinsic (fixed axes), uppercase = intrinsic
     orientation_convention: str = "xyz"
     error_sign: Literal["commanded_minus_measured", "measured_minus_commanded"] = "commanded_minus_measured"
@@ -152,6 +220,11 @@ class ImportMapping(Frozen):
     @classmethod
     def _encoding(cls, v: str) -> str:
         return text_encoding(v)
+
+    @field_validator("sheet")
+    @classmethod
+    def _sheet(cls, v: str | int) -> str | int:
+        return check_sheet(v)
 
     @field_validator("orientation_convention")
     @classmethod
@@ -187,6 +260,9 @@ class ImportMapping(Frozen):
                              "so the robot config's forward kinematics gives the commanded TCP")
         if self.registration.transform is not None and self.measured_frame != "instrument":
             raise ValueError("registration.transform (a given registration) needs measured_frame: instrument")
+        if self.uncertainty.kind == "expanded" and not c.ux:
+            raise ValueError("uncertainty: kind expanded describes the columns ux, uy, uz, which the mapping "
+                             "does not name")
         return self
 
 
@@ -233,13 +309,28 @@ def mapping_robot(m: ImportMapping, mapping_path: Path | None) -> Path | None:
 
 # --------------------------------------------------------------------------- import
 
-def _parse_timestamps(texts: list[str], fmt: str) -> np.ndarray | None:
-    out = np.empty(len(texts))
-    for i, s in enumerate(texts):
+def _timestamp(cell: Cell, fmt: str) -> float | None:
+    """Zone-free seconds of a timestamp cell: a spreadsheet's date-time as it is, text (or a
+    number's digits: 20210312101530) by the strptime format; None when it is no timestamp."""
+    if isinstance(cell, date) and not isinstance(cell, datetime):
+        return float(calendar.timegm(cell.timetuple()))
+    if not isinstance(cell, datetime):
+        if isinstance(cell, bool) or not isinstance(cell, (str, int, float)):
+            return None  # a time of day or a duration alone is no point in time
         try:
-            out[i] = calendar.timegm(datetime.strptime(s, fmt).timetuple())  # zone-free seconds
+            cell = datetime.strptime(cell_text(cell), fmt)
         except ValueError:
             return None
+    return calendar.timegm(cell.timetuple()) + cell.microsecond * 1e-6
+
+
+def _parse_timestamps(cells: list[Cell], fmt: str) -> np.ndarray | None:
+    out = np.empty(len(cells))
+    for i, s in enumerate(cells):
+        v = _timestamp(s, fmt)
+        if v is None:
+            return None
+        out[i] = v
     return out
 
 
@@ -256,6 +347,20 @@ def _chain(robot: Chain | str | Path | None, m: ImportMapping, mapping_path: Pat
                         "kinematics of the joint angles, which needs the robot config: give --robot FILE "
                         "(or `robot:` in the mapping)")
     return load_robot(p)
+
+
+def _extra_columns(path: Path, m: ImportMapping, header: list[str], used: set[str], lines: list[int],
+                   notes: list[str]) -> dict[str, np.ndarray]:
+    """The file's numeric columns the mapping does not name (humidity, pressure, ...), on the kept
+    rows, by their names in the file; the non-numeric ones are said once (a warning and a note)."""
+    names = [h for h in header if h and h not in used]
+    cols, dropped = numeric_columns(path, names, lines, m.separator, m.decimal, m.encoding, m.sheet)
+    if cols:
+        notes.append(f"the file's own numeric column(s) kept beside the rows: {', '.join(cols)}")
+    if dropped:
+        log.warning("%s: non-numeric column(s) left out (not named by the mapping): %s", path, ", ".join(dropped))
+        notes.append(f"non-numeric column(s) left out (not named by the mapping): {', '.join(dropped)}")
+    return {k: np.asarray(v, dtype=float) for k, v in cols.items()}
 
 
 def import_file(path: str | Path, mapping: ImportMapping | str | Path,
@@ -277,7 +382,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     mfile = "<mapping>" if mapping_path is None else str(mapping_path)
     c, u = m.columns, m.units
     has_xyz = c.x is not None
-    header = read_header(path, m.separator, m.encoding)
+    header = read_header(path, m.separator, m.encoding, m.sheet)
     notes: list[str] = []
 
     def present(field_name: str, names) -> bool:
@@ -288,7 +393,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         if field_name in m.optional_columns:
             return False
         raise DataError(f"{path}: line 1: mapping field '{field_name}' wants column(s) {miss}, "
-                        f"not in the header {header}")
+                        f"not in the header {header}" + sheet_hint(path, m.encoding, m.sheet))
 
     specs = [ColumnSpec(a, getattr(c, a), scale=_LENGTH[u.position]) for a in "xyz"] if has_xyz else []
     meas_keys = ("mx", "my", "mz") if c.mx else ("ex", "ey", "ez")
@@ -311,16 +416,17 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
             specs.append(ColumnSpec(k, getattr(c, k), kind="int"))
     tspec = m.time
     if isinstance(tspec, TimeSpec) and tspec.source != "row_order":
-        kind = "str" if tspec.source == "timestamp" else "float"
+        kind = "cell" if tspec.source == "timestamp" else "float"  # a sheet's date-time cell stays one
         assert tspec.column is not None  # TimeSpec._column_needed requires it for these sources
         specs.append(ColumnSpec("t", tspec.column, kind=kind))
     if m.joints is not None and isinstance(m.joints.join, KeyJoin):
         specs.append(ColumnSpec("join_key", m.joints.join.key, kind="str"))
 
-    vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad, encoding=m.encoding)
+    vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad, encoding=m.encoding,
+                                         sheet=m.sheet)
     if m.joints is not None and lines:
         jj = join_joints(m.joints, path, lines, vals.get("join_key"), m.separator, m.encoding, mapping_dir,
-                         skip_bad, mfile)
+                         skip_bad, mfile, data_sheet=m.sheet)
         if not jj.keep.all():  # rows whose joints were skipped (skip_bad) leave with them
             vals = {k: [v for v, ok in zip(vs, jj.keep) if ok] for k, vs in vals.items()}
             lines = [ln for ln, ok in zip(lines, jj.keep) if ok]
@@ -421,10 +527,10 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
                 bad = next(i for i, s in enumerate(vals["t"]) if _parse_timestamps([s], tspec.format) is None)
                 if tspec.fallback == "error":
                     raise DataError(f"{path}: line {lines[bad]}: column '{tspec.column}': value "
-                                    f"{vals['t'][bad]!r}: not a timestamp of format {tspec.format!r}")
+                                    f"{cell_text(vals['t'][bad])!r}: not a timestamp of format {tspec.format!r}")
                 t = np.arange(n, dtype=float)
                 notes.append(f"column '{tspec.column}' does not parse as {tspec.format!r} (line {lines[bad]}: "
-                             f"{vals['t'][bad]!r}): t is the row index (row order only)")
+                             f"{cell_text(vals['t'][bad])!r}): t is the row index (row order only)")
         back = np.flatnonzero(np.diff(t) < 0)
         if back.size:
             where = f"{back.size} place(s), first at line {lines[back[0] + 1]}"
@@ -453,11 +559,20 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
             rep[i] = seen.get(int(p), 0)
             seen[int(p)] = rep[i] + 1
 
+    u_stated = None
+    if u_meas is not None:
+        u_stated = m.uncertainty.record() | {"columns": [c.ux, c.uy, c.uz]}
+        if m.uncertainty.kind == "expanded":
+            u_meas = u_meas / m.uncertainty.factor()  # u = U / k (GUM 6.2.1); linear, so after the rotation too
+            notes.append(f"ux, uy, uz ({', '.join(u_stated['columns'])}) are expanded uncertainties: divided by "
+                         f"k = {u_stated['k']:.4g} ({u_stated['k_from']}) into standard uncertainties")
+    extra = _extra_columns(path, m, header, {s.column for s in specs}, lines, notes)
+
     ds = Dataset(commanded=commanded, error=error, measured=measured, speed=arr("speed"),
                  joints=col3(joint_keys) if "q1" in vals else None,
                  temperature=arr("temperature"), payload=arr("payload"), t=t,
                  point_id=point_id, rep=rep, u=u_meas, flange_rotation=R_f,
-                 source=str(path), lines=lines_a, skipped=skipped)
+                 source=str(path), lines=lines_a, skipped=skipped, extra=extra)
     if order is not None:
         ds = ds.select(order)
     res_mm = ds.error / M_PER_MM
@@ -466,6 +581,6 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         rms_3d_mm=rms3(res_mm),
         rotation=R, translation=t_vec, offset=np.asarray(offset, float),
         rotation_std_rad=stds[0], translation_std_mm=stds[1], offset_std_mm=stds[2],
-        n_skipped=len(skipped), notes=notes)
+        n_skipped=len(skipped), notes=notes, uncertainty=u_stated)
     report.seconds = _time.perf_counter() - started
     return ds, report

@@ -5,7 +5,8 @@ spreadsheet-exported CSV (`;`, decimal comma, degrees). The two are paired eithe
 (`join: row`: row i of one is row i of the other, so both must have the same number of data rows)
 or by a key column present in both (`join: {key: Punkt}`): a point measured twice takes the same
 joint row, but a key the joint table lists twice is ambiguous and a key it lacks has no joints,
-both refused with the keys named. CSV only (no .xlsx): a spreadsheet's "save as CSV" is the path.
+both refused with the keys named. The table is CSV (`separator`, `decimal`, `encoding`) or a
+spreadsheet as the controller's software saved it (.xlsx, .xls, .ods; `sheet` picks the sheet).
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from dt_kernel.config import Frozen
 from dt_kernel.errors import DataError
 from dt_runtime.measurements.cells import ColumnSpec, SkippedRow, data_row_lines, parse_rows, text_encoding
 from dt_runtime.measurements.session_paths import companion
+from dt_runtime.measurements.sheets import check_sheet
 
 _ANGLE = {"rad": 1.0, "deg": math.pi / 180.0}
 
@@ -39,6 +41,7 @@ class JointsSpec(Frozen):
     separator: str = Field(",", min_length=1, max_length=1)
     decimal: Literal[",", "."] = "."
     encoding: str = "utf-8-sig"
+    sheet: str | int = 0  # a spreadsheet's sheet: name, or index (0 = the first)
     columns: tuple[str, ...] = Field(min_length=1)
     unit: Literal["rad", "deg"] = "rad"
     join: Literal["row"] | KeyJoin = "row"
@@ -47,6 +50,11 @@ class JointsSpec(Frozen):
     @classmethod
     def _encoding(cls, v: str) -> str:
         return text_encoding(v)
+
+    @field_validator("sheet")
+    @classmethod
+    def _sheet(cls, v: str | int) -> str | int:
+        return check_sheet(v)
 
 
 @dataclass
@@ -69,22 +77,24 @@ def _norm_key(text: str) -> str:
 
 def join_joints(spec: JointsSpec, data: Path, data_lines: Sequence[int], data_keys: Sequence[str] | None,
                 data_separator: str, data_encoding: str, mapping_dir: Path | None, skip_bad: bool = False,
-                mapping_file: str = "<mapping>") -> JoinedJoints:
+                mapping_file: str = "<mapping>", data_sheet: str | int = 0) -> JoinedJoints:
     """The joint angles (rad) of each kept measurement row (`data_lines`: their file lines;
-    `data_keys`: their key cells for a key join)."""
+    `data_keys`: their key cells for a key join; `data_sheet`: the measurement file's sheet, if
+    it is a spreadsheet)."""
     path = companion(spec.path, data, mapping_dir, "joints.path", mapping_file)
     specs = [ColumnSpec(f"q{i + 1}", c, scale=_ANGLE[spec.unit]) for i, c in enumerate(spec.columns)]
     if isinstance(spec.join, KeyJoin):
         specs.append(ColumnSpec("key", spec.join.joints_key or spec.join.key, kind="str"))
-    vals, jlines, _, _ = parse_rows(path, spec.separator, spec.decimal, specs, skip_bad, encoding=spec.encoding)
+    vals, jlines, _, _ = parse_rows(path, spec.separator, spec.decimal, specs, skip_bad, encoding=spec.encoding,
+                                    sheet=spec.sheet)
     q_all = np.column_stack([vals[s.key] for s in specs if s.key != "key"]).astype(float).reshape(len(jlines), -1)
     n = len(data_lines)
     keep = np.ones(n, bool)
     pick = np.zeros(n, np.int64)
     dropped: list[SkippedRow] = []
     if spec.join == "row":
-        all_m = data_row_lines(data, data_separator, data_encoding)
-        all_j = data_row_lines(path, spec.separator, spec.encoding)
+        all_m = data_row_lines(data, data_separator, data_encoding, data_sheet)
+        all_j = data_row_lines(path, spec.separator, spec.encoding, spec.sheet)
         if len(all_m) != len(all_j):
             raise DataError(f"{data}: {len(all_m)} data rows, but its joint table {path} has {len(all_j)}: "
                             "`join: row` pairs row i of one with row i of the other, so the counts must match "

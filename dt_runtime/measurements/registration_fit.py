@@ -45,6 +45,7 @@ class RegistrationReport:
     n_skipped: int = 0
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
+    uncertainty: dict | None = None  # what ux..uz stated and the k that made them standard (importer)
 
     @property
     def transform(self):
@@ -62,7 +63,7 @@ class RegistrationReport:
             "offset_mm": f(np.asarray(self.offset) / M_PER_MM),
             "rotation_std_rad": f(self.rotation_std_rad), "translation_std_mm": f(self.translation_std_mm),
             "offset_std_mm": f(self.offset_std_mm), "seconds": self.seconds, "notes": list(self.notes),
-        }
+        } | ({"uncertainty": self.uncertainty} if self.uncertainty is not None else {})
 
 
 @dataclass

@@ -6,10 +6,15 @@ one mapping serves `s1.csv`, `s2.csv`, ... with `s1_joints.csv`, `s2_joints.csv`
 mapping gives a table `{data file name: companion}` (for names that follow no pattern). A relative
 name is looked up beside the data file first (a campaign folder holds its sessions' files), then
 beside the mapping (a mapping shipped with fixed companions).
+
+A campaign's sessions are reported by name (`session_names`): the file's stem, or, where several
+files share one (`day1/points.csv`, `day2/points.csv`), the shortest path suffix that tells them
+apart.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from dt_kernel.errors import ConfigError, DataError
@@ -38,3 +43,29 @@ def companion(spec: str | Mapping[str, str], data: Path, mapping_dir: Path | Non
             return c
     raise DataError(f"{data}: mapping key '{key}' names {name!r}; no such file (looked for "
                     + ", ".join(str(c) for c in tried) + ")")
+
+
+def session_names(files: Sequence[str | Path]) -> list[str]:
+    """A name for each file of a campaign, to report its session by: the file's stem where no other
+    file has it, else the shortest path suffix that tells it apart (`day1/points`, `day2/points`),
+    else its name with the extension (`s1.csv`, `s1.xlsx`), else its whole path; the same file
+    given twice gets its position too (`points (2)`)."""
+    paths = [Path(os.path.abspath(f)) for f in files]
+    unique = list(dict.fromkeys(paths))
+
+    def candidates(p: Path) -> list[str]:
+        parts = p.parent.parts[1:]  # without the root: a name is relative
+        out = ["/".join([*parts[len(parts) - k:], p.stem]) for k in range(len(parts) + 1)]
+        return out + ["/".join([*parts[len(parts) - k:], p.name]) for k in range(len(parts) + 1)]
+
+    cands = {p: candidates(p) for p in unique}
+    name = {}
+    for p, mine in cands.items():
+        others = {c for q, theirs in cands.items() if q != p for c in theirs}
+        name[p] = next((c for c in mine if c not in others), mine[-1])
+    seen: dict[Path, int] = {}
+    out = []
+    for p in paths:  # the very same file given twice: its position in the list tells them apart
+        seen[p] = seen.get(p, 0) + 1
+        out.append(name[p] if seen[p] == 1 else f"{name[p]} ({seen[p]})")
+    return out

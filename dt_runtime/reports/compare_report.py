@@ -143,6 +143,35 @@ def _fig_steps(s: dict, a: dict) -> str:
                            if fl is not None else "."))
 
 
+def _table_sessions(s: dict, a: dict) -> str:
+    """Data of several sessions: each session's figures, one group of columns per model."""
+    ms = s["models"]
+    first = ms[0].get("sessions") or []
+    if not first:
+        raise Missing("the data are one session")
+    rr = any(x.get("after_reregistration") for m in ms for x in m.get("sessions") or [])
+    rows = []
+    for i, x in enumerate(first):
+        r = {"session": x.get("name") or x["session"], "file": x.get("file", "–"), "n": x["n"]}
+        for m in ms:
+            y = m["sessions"][i]
+            r[f"{m['name']}: RMS / mm"] = _rms_txt(y) + (" (in-sample)" if y.get("in_sample") else "")
+            if rr:
+                z = y.get("after_reregistration")
+                r[f"{m['name']}: re-registered / mm"] = _rms_txt(z) if z else "–"
+                y = z or y
+            r[f"{m['name']}: fails Eq. 17"] = _fail_txt(y)
+        rows.append(r)
+    return (html_table(rows, row_header="session",
+                       caption="3D RMS of r = e − ê per session (± U95 of the RMS estimate)"
+                               + ("; re-registered: after the session's registration, fitted on its own points, "
+                                  "is fitted again to the corrected commanded points (6 dof absorbed per session); "
+                                  "the Eq. 17 failures are then those of the re-registered residual" if rr else ""))
+            + paragraph("A session is one data file of the campaign, named by its file (its shortest distinct "
+                        "path when file names repeat). In-sample: the model was trained on that session's file, so "
+                        "its figures there say how well it fits, not how well it predicts."))
+
+
 def _tables_worst(s: dict, a: dict) -> str:
     w = s.get("worst_cells") or []
     if not w:
@@ -326,6 +355,7 @@ def _fig_normal(s: dict, a: dict) -> str:
 def compare_sections(result: dict, arrays: dict) -> list[Section]:
     plan = [("Key figures", "key", [_banner, _headline]),
             ("Models side by side", "summary", [_table_summary, _fig_steps]),
+            *([("Session by session", "sessions", [_table_sessions])] if result.get("sessions") else []),
             ("Where the model fails", "where", [_fig_maps, _tables_worst]),
             ("Residual against each factor", "factors", [_fig_factors]),
             ("Normality of the residuals", "normal", [_fig_normal]),
