@@ -134,6 +134,18 @@ def reference(ref: str | Path | RobotRef | None, bases: Sequence[Path] | None = 
     return None if ref is None else resolve(ref, [Path.cwd()] if bases is None else bases).text
 
 
+def record(ref: str | Path | None) -> tuple[Path | None, str | None]:
+    """What a traceability record keeps of a robot reference: the file it reads (to hash) and the
+    reference's text (None, None without a robot; the text alone if it no longer resolves)."""
+    if ref is None:
+        return None, None
+    try:
+        r = resolve(ref)
+    except (ConfigError, DataError):
+        return None, str(ref)
+    return r.file, r.text
+
+
 def load(ref: str | Path | RobotRef, bases: Sequence[Path] = ()) -> Chain:
     """The kinematic chain of a robot reference (see the module docstring)."""
     r = resolve(ref, bases)
