@@ -51,12 +51,13 @@ import numpy as np
 import scipy.linalg
 from scipy.spatial.transform import Rotation
 
-from dt_kernel.errors import ConfigError, DataError, ModelError
+from dt_kernel.errors import ConfigError, DataError, ModelError, TwinError
 from dt_kernel.units import MM_PER_M
 from dt_runtime.analysis.data import Data, load_data
 from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.paths import ROOT
 from dt_runtime.common.provenance import FileRecord, Provenance, build, files_under, sha256_file
+from dt_runtime.frames import robots
 from dt_runtime.frames.kinematics import Chain, chain_from_urdf, load_robot
 from dt_runtime.frames.robot_export import dh_table, urdf_text
 from dt_runtime.models.effects import Inputs
@@ -325,15 +326,16 @@ def _load_model(model_dir: Path) -> tuple[HybridModel, Chain, Path]:
     model = HybridModel.load(model_dir)
     if "geometric" not in model.effects:
         raise ModelError(f"{model_dir}: the model holds no geometric effect; {NO_GEOMETRIC}")
-    if not isinstance(model.robot, (str, Path)):  # a loaded model names its config (or none)
+    if not isinstance(model.robot, (str, Path)):  # a loaded model names its robot reference (or none)
         raise ModelError(f"{model_dir}: the model names no robot config (its kinematic model)")
-    robot = Path(model.robot)
-    if not robot.is_file():
-        raise ModelError(f"{model_dir}: the model's robot config {robot} is missing; the export needs "
-                         "the kinematic model it was fitted with")
-    chain = resolve_chain(robot)
+    try:
+        robot = robots.resolve(model.robot)
+    except TwinError as exc:
+        raise ModelError(f"{model_dir}: the model's robot config {model.robot} is missing; the export needs "
+                         f"the kinematic model it was fitted with ({exc})") from exc
+    chain = resolve_chain(robot.text)
     assert chain is not None
-    return model, chain, robot
+    return model, chain, robot.file
 
 
 # --------------------------------------------------------------------------- export

@@ -12,6 +12,7 @@ from dt_runtime.analysis.data import Data
 from dt_runtime.analysis.results import FitResult
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Provenance, build, files_under, load_instruments
+from dt_runtime.frames import robots
 from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, meta_path
 from dt_runtime.metrology.stats import rms3
@@ -70,7 +71,7 @@ def data_provenance(ds: Dataset, data_file: str | Path | Sequence[str | Path] | 
     for m in models:
         files += files_under(m) if isinstance(m, (str, Path)) and Path(m).is_dir() else []
     files += [*inputs, *([instruments] if instruments is not None else [])]
-    return build(files, robot=robot if isinstance(robot, (str, Path)) else None,
-                 robot_name=getattr(robot, "name", None),
+    robot_file, robot_text = robots.record(robot) if isinstance(robot, (str, Path)) else (None, None)
+    return build(files, robot=robot_file, robot_name=getattr(robot, "name", robot_text),
                  instruments=load_instruments(instruments) if instruments is not None else (),
                  temperature=ds.temperature)

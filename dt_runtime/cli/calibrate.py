@@ -31,8 +31,9 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
     c.add_argument("--doe", default=None, metavar="FILE.csv", help="DOE phase file")
     c.add_argument("--validation", default=None, metavar="FILE.csv",
                    help="validation phase file, measured without correction (optional)")
-    c.add_argument("--robot", default=None, metavar="YAML",
-                   help="robot config (e.g. configs/robots/ur10.yaml); needed for joint-space effects")
+    c.add_argument("--robot", default=None, metavar="ROBOT",
+                   help="the robot: a catalogue arm (e.g. ur10e; `dt robots`), a robot config (e.g. "
+                        "configs/robots/ur10.yaml) or a URDF; needed for joint-space effects")
     c.add_argument("--instruments", default=None, metavar="YAML",
                    help="instruments and certificates (e.g. configs/instruments_example.yaml), in the provenance")
     c.add_argument("--effects", default="", metavar="a,b,...",
@@ -105,7 +106,7 @@ def run(args: argparse.Namespace) -> Any:
     if args.model:
         lt_model = load_map(args.model).unfitted(seed=seed)
         if files.robot is None and lt_model.robot is not None:
-            files = dataclasses.replace(files, robot=Path(str(lt_model.robot)))
+            files = dataclasses.replace(files, robot=str(lt_model.robot))
     prog = progress(args)
     res = calibrate_campaign(files, options, args.out, lt_model, args.model, prog)
     res.summary["report"] = str(write_demo_report(res, Path(args.out) / "report.html",

@@ -35,6 +35,12 @@ def add_output_args(q: argparse.ArgumentParser) -> None:
     q.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
 
 
+ROBOT_HELP = ("the robot's nominal kinematics: a catalogue arm (ur5e, panda, iiwa14, ...: `dt robots` lists them), "
+              "a robot config YAML (e.g. configs/robots/ur10.yaml) or a URDF (arm.urdf, arm.urdf#tool0 to end "
+              "at link tool0); without a tool offset it is fitted from the data (docs/robots.md). Default: the "
+              "import mapping's robot, else configs/robots/cobot_hc20_like.yaml")
+
+
 def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
     q.add_argument("--data", required=True, nargs="+", metavar="FILE",
                    help="measurement table CSV (or a foreign file with --mapping); several files are one campaign, "
@@ -45,8 +51,7 @@ def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
     q.add_argument("--seed", type=int, default=0, help="seed of folds and GP restarts (default 0)")
     if not kinematics:
         return
-    q.add_argument("--robot", default=None, metavar="YAML",
-                   help="robot kinematic model config (default configs/robots/cobot_hc20_like.yaml)")
+    q.add_argument("--robot", default=None, metavar="ROBOT", help=ROBOT_HELP)
     q.add_argument("--gp-inputs", default="tcp_speed", choices=("tcp_speed", "tcp", "joints", "none"),
                    help="what the GP on the remaining error sees (default tcp_speed, the paper's)")
 
@@ -155,11 +160,41 @@ def load(args: argparse.Namespace):
     return d
 
 
-def robot_of(args: argparse.Namespace, d) -> str | Path:
-    """The robot config of the analysis: --robot, else the import mapping's `robot:`, else the default."""
-    from dt_runtime.analysis.data import DEFAULT_ROBOT
+def robot_of(args: argparse.Namespace, d) -> str:
+    """The robot of the analysis as a reference (`frames.robots`): --robot, else the import
+    mapping's `robot:`, else the default. A robot without a tool offset (a catalogue arm, a bare
+    URDF) gets the one the data give (`frames.tool_fit`): the import's fit from the measured
+    positions, else a fit from the commanded TCP; it is stated on stderr and in the result's
+    `tool_offset` and travels in the reference ('?tool_mm=')."""
+    import logging
 
-    return args.robot or d.info.get("robot") or DEFAULT_ROBOT
+    from dt_runtime.analysis.data import DEFAULT_ROBOT
+    from dt_runtime.frames import robots
+    from dt_runtime.frames.tool_fit import fit_tool
+
+    ref = robots.resolve(args.robot or d.info.get("robot") or DEFAULT_ROBOT, [Path.cwd()])
+    chain = robots.load(ref)
+    q = d.dataset.joints
+    if chain.tool_given or q is None or q.shape[1] != chain.dof:
+        return _used(d, ref.text)
+    fit = fit_tool(chain, q, d.dataset.commanded, "commanded")
+    imported = (d.info.get("registration") or {}).get("tool_offset")
+    d.info["tool_offset"] = imported or fit.to_dict()
+    log = logging.getLogger("dt.robot")
+    log.info("%s gives no tool offset: %s", ref.text, fit.line() if imported is None else
+             f"the import's: {imported['xyz_mm']} mm +/- {imported['u_mm']} mm, residual 3D RMS "
+             f"{imported['residual_rms_mm']:.3f} mm ({imported['n']} rows)")
+    if fit.residual_rms > 1e-3:
+        log.warning("the commanded TCP departs from %s's nominal kinematics plus one tool offset by %.3f mm RMS: "
+                    "another robot, or joints in another order or zero?", ref.text, fit.residual_rms * 1e3)
+    return _used(d, ref.with_tool(fit.offset).text)
+
+
+def _used(d, ref: str) -> str:
+    """The data's facts name the robot the analysis uses (the mapping's `robot:` was a default)."""
+    if "robot" in d.info:
+        d.info["robot"] = ref
+    return ref
 
 
 def parameter_line(p: dict) -> str:

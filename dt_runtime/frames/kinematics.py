@@ -1,14 +1,17 @@
 """The robot's nominal kinematic model on the twin side: forward kinematics, Jacobians and the
 inverse kinematics of a position (the joint angles a deployed twin's joint-space effects read).
 
-Read from a URDF (our simulated cobot ships one) or a DH table in config (the UR10's ships
-in configs/robots/ur10.yaml). Vectorised numpy: the effect regressors of the hybrid model need
-the TCP and its sensitivity to every joint for thousands of rows at once.
+Read from a robot config YAML (`load_robot`): a URDF (parsed by yourdfpy; our simulated cobot
+ships one), a standard DH table (configs/robots/ur10.yaml), a modified (Craig) DH table (Franka's
+published one), a URDF-style joint table, or a catalogue arm (configs/robots/catalogue/, by name:
+`frames.robots`). Any number of revolute joints (6- and 7-axis arms). Vectorised numpy: the
+effect regressors of the hybrid model need the TCP and its sensitivity to every joint for
+thousands of rows at once.
 """
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated
 
@@ -37,10 +40,20 @@ class Chain:
     # Links that expand with one coefficient each (the thermal effect, per link): groups of link
     # numbers (`segments`); empty: the arm expands uniformly about its base.
     thermal_links: tuple[tuple[int, ...], ...] = ()
+    # Whether `tool` holds the TCP the data measure (a tool offset given or fitted), or only the
+    # flange (a catalogue arm, a bare URDF): then the offset is fitted from the data (tool_fit).
+    tool_given: bool = True
 
     @property
     def dof(self) -> int:
         return len(self.axes)
+
+    def with_tool(self, offset) -> Chain:
+        """This chain with the TCP moved by `offset` (m, in the current tool frame): the tool offset
+        that `frames.tool_fit` fitted on a chain whose tool is its flange."""
+        T = np.eye(4)
+        T[:3, 3] = np.asarray(offset, dtype=float)
+        return replace(self, tool=self.tool @ T, tool_given=True)
 
     def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Joint frames for a batch q (n, dof): origins (n, dof, 3) and orientations
@@ -139,6 +152,20 @@ def _transform(xyz, rpy) -> np.ndarray:
     return T
 
 
+def _unit_axis(axis, where: str, path: str | Path) -> np.ndarray:
+    a = np.asarray(axis, dtype=float)
+    n = float(np.linalg.norm(a))
+    if a.shape != (3,) or not np.isfinite(n) or n < 1e-9:
+        raise ConfigError(path, where, list(np.ravel(a)), "a non-zero 3-vector (the joint's rotation axis)")
+    return a / n
+
+
+# --------------------------------------------------------------------------- URDF
+# Joint types a chain to the tool link may hold: the twin's chains are revolute (continuous is a
+# revolute joint without limits); fixed joints fold into the next transform.
+URDF_ROTATING = ("revolute", "continuous")
+
+
 def _urdf_attr(path: Path, elem: ET.Element, child: str | None, attr: str) -> str:
     """Attribute `attr` of `elem` (or of its `child` element), which the URDF requires;
     a missing one is a ConfigError naming the element."""
@@ -154,56 +181,129 @@ def _urdf_attr(path: Path, elem: ET.Element, child: str | None, attr: str) -> st
     return value
 
 
-def chain_from_urdf(path: str | Path, tool_link: str | None = None) -> Chain:
-    """Chain from the base to `tool_link` (default: the last link) of a URDF."""
-    path = Path(path)
+def _read_urdf(path: Path):
+    """The URDF's model as yourdfpy parses it (kinematics only: no meshes, no scene graph).
+
+    yourdfpy recovers from broken XML and crashes on a joint without <child>; a user's file
+    deserves the element at fault instead, so the elements and attributes the chain needs are
+    checked first (ConfigError naming the file, the element and what URDF requires)."""
     try:
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError) as exc:
         raise ConfigError(path, "<file>", str(path), f"a readable URDF ({exc})") from exc
-    joints = {_urdf_attr(path, j, "child", "link"): j for j in root.iter("joint")}
-    links = [_urdf_attr(path, lk, None, "name") for lk in root.iter("link")]
+    if root.tag != "robot":
+        raise ConfigError(path, "<root>", root.tag, "a <robot> element (URDF)")
+    for lk in root.iter("link"):
+        _urdf_attr(path, lk, None, "name")
+    for j in root.iter("joint"):
+        _urdf_attr(path, j, None, "name")
+        _urdf_attr(path, j, None, "type")
+        _urdf_attr(path, j, "parent", "link")
+        _urdf_attr(path, j, "child", "link")
+        if j.find("axis") is not None:
+            _urdf_attr(path, j, "axis", "xyz")
+    import yourdfpy  # here: 0.6 s of imports (trimesh) that a DH robot does not need
+
+    try:
+        return yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False,
+                                  load_collision_meshes=False).robot
+    except Exception as exc:  # yourdfpy raises what its parsing meets (ValueError, KeyError, ...)
+        raise ConfigError(path, "<file>", str(path), f"a URDF yourdfpy can read ({type(exc).__name__}: {exc})") \
+            from exc
+
+
+def chain_from_urdf(path: str | Path, tool_link: str | None = None) -> Chain:
+    """Chain from the root link to `tool_link` (default: the last link) of a URDF, parsed by
+    yourdfpy. Revolute and continuous joints turn; fixed joints fold into the next transform;
+    any other joint type on the way (prismatic, floating, mimic) is a ConfigError."""
+    path = Path(path)
+    robot = _read_urdf(path)
+    links = [lk.name for lk in robot.links]
+    if not links:
+        raise ConfigError(path, "link", None, "at least one <link>")
     tip = tool_link or links[-1]
     if tip not in links:
         raise ConfigError(path, "tool_link", tip, "one of " + ", ".join(links))
+    by_child = {j.child: j for j in robot.joints}
     seq = []
     link = tip
-    while link in joints:
-        seq.append(joints[link])
-        link = _urdf_attr(path, joints[link], "parent", "link")
+    while link in by_child:
+        seq.append(by_child[link])
+        link = by_child[link].parent
+        if len(seq) > len(robot.joints):
+            raise ConfigError(path, "joint", seq[-1].name, "a tree (the joints form a loop)")
     seq.reverse()
     origins, axes = [], []
     pending = np.eye(4)
     for j in seq:
-        o = j.find("origin")
-        xyz = [float(v) for v in (o.get("xyz", "0 0 0") if o is not None else "0 0 0").split()]
-        rpy = [float(v) for v in (o.get("rpy", "0 0 0") if o is not None else "0 0 0").split()]
-        T = pending @ _transform(xyz, rpy)
-        if j.get("type") in ("revolute", "continuous"):
-            a = j.find("axis")
+        T = pending @ (np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=float))
+        if j.type in URDF_ROTATING and j.mimic is None:
             origins.append(T)
-            axis_xyz = _urdf_attr(path, j, "axis", "xyz") if a is not None else "1 0 0"
-            axes.append(np.array([float(v) for v in axis_xyz.split()]))
+            axes.append(_unit_axis([1.0, 0.0, 0.0] if j.axis is None else j.axis, f"joint '{j.name}'/axis@xyz", path))
             pending = np.eye(4)
-        else:
+        elif j.type == "fixed":
             pending = T
-    return Chain(tuple(origins), tuple(axes), pending, name=root.get("name", "robot"))
+        else:
+            kind = f"{j.type} (mimic of {j.mimic.joint})" if j.mimic is not None else j.type
+            raise ConfigError(path, f"joint '{j.name}'@type", kind,
+                              f"revolute, continuous or fixed joints from the root to '{tip}' (the twin's chains "
+                              "are revolute)")
+    return Chain(tuple(origins), tuple(axes), pending, name=robot.name or "robot", tool_given=False)
 
 
+# --------------------------------------------------------------------------- tables
 class DHRow(Frozen):
+    """One row of a DH table. Standard DH (`dh:`): T_i = Rz(q_i + theta_offset) Tz(d) Tx(a) Rx(alpha).
+    Modified DH after Craig (`mdh:`): T_i = Rx(alpha) Tx(a) Rz(q_i + theta_offset) Tz(d), where a and
+    alpha are Craig's a_{i-1}, alpha_{i-1} (the row of joint i in a vendor's Craig table)."""
+
     a_m: float
     d_m: float
     alpha_rad: float
     theta_offset_rad: float = 0.0
 
 
+class JointOrigin(Frozen):
+    """One revolute joint as a URDF gives it: the fixed transform from the previous joint's frame
+    (xyz, fixed-axis roll-pitch-yaw) and the rotation axis in the joint's frame."""
+
+    xyz_m: tuple[float, float, float]
+    rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+
+class Source(Frozen):
+    """Where a catalogue arm's numbers come from: a vendor document or the vendor's own
+    description file, at a version or commit."""
+
+    title: str
+    url: str
+    version: str
+    licence: str | None = None
+    notes: str = ""
+
+
 class RobotModel(Frozen):
-    """configs/robots/*.yaml: a URDF path or a standard DH table, plus a tool offset."""
+    """configs/robots/*.yaml: the nominal kinematics (exactly one of a URDF path, a standard or
+    modified DH table, a URDF-style joint table, or a catalogue arm), the flange after the last
+    joint, the tool offset and the base pose."""
 
     name: str
+    vendor: str = ""
+    description: str = ""
+    sources: tuple[Source, ...] = ()
     urdf: str | None = None
+    tool_link: str | None = None  # with urdf: the chain's last link (default: the URDF's last link)
     dh: list[DHRow] | None = None
-    tool_xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mdh: list[DHRow] | None = None
+    joint_origins: list[JointOrigin] | None = None
+    arm: str | None = None  # a catalogue arm (configs/robots/catalogue/<arm>.yaml) this config adds to
+    # The flange (the tool's mounting frame) in the last joint's frame, after its rotation.
+    flange_xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    flange_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # The TCP (e.g. the SMR centre) in the flange frame. Not given: fitted from the data where the
+    # data allow it (frames.tool_fit), else the TCP is the flange.
+    tool_xyz_m: tuple[float, float, float] | None = None
     # Pose of the kinematic base in the robot frame the data uses (e.g. ROS 'base' vs 'base_link').
     base_xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     base_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -214,6 +314,9 @@ class RobotModel(Frozen):
     # link numbers, Chain.segments: 0 base to joint 1, ..., dof last joint to TCP), e.g.
     # [[1], [2], [3], [4, 5, 6]]; links in no group are taken not to expand. Empty: uniform.
     thermal_links: tuple[tuple[Annotated[int, Field(ge=0)], ...], ...] = ()
+
+
+KINEMATICS = ("urdf", "dh", "mdh", "joint_origins", "arm")
 
 
 def chain_from_dh(rows: list[DHRow], tool_xyz=(0.0, 0.0, 0.0), name="robot") -> Chain:
@@ -235,21 +338,62 @@ def chain_from_dh(rows: list[DHRow], tool_xyz=(0.0, 0.0, 0.0), name="robot") -> 
     return Chain(tuple(origins), tuple(axes), tool, name=name)
 
 
+def chain_from_mdh(rows: list[DHRow], name="robot") -> Chain:
+    """Modified DH (Craig): T_i = Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(theta_i + offset) Tz(d_i); joint i
+    rotates about z of frame i. The chain's tool is frame n (the flange follows, `RobotModel`)."""
+    origins, axes = [], []
+    prev = np.eye(4)
+    for r in rows:
+        # Rx(alpha) Tx(a) commute (a translation along the rotation's own axis).
+        fixed = _transform([r.a_m, 0.0, 0.0], [r.alpha_rad, 0.0, 0.0])
+        origins.append(prev @ fixed @ _transform([0, 0, 0], [0, 0, r.theta_offset_rad]))
+        axes.append(np.array([0.0, 0.0, 1.0]))
+        prev = _transform([0.0, 0.0, r.d_m], [0, 0, 0])  # Tz(d_i) after the joint's rotation
+    return Chain(tuple(origins), tuple(axes), prev, name=name)
+
+
+def chain_from_joint_origins(rows: list[JointOrigin], name="robot", path: str | Path = "<robot>") -> Chain:
+    """A URDF-style table: joint i's frame is its origin (xyz, rpy) in joint i-1's frame after i-1's
+    rotation; it turns about its axis. The chain's tool is the last joint's frame."""
+    origins = tuple(_transform(r.xyz_m, r.rpy_rad) for r in rows)
+    axes = tuple(_unit_axis(r.axis, f"joint_origins.{i}.axis", path) for i, r in enumerate(rows))
+    return Chain(origins, axes, np.eye(4), name=name)
+
+
 def load_robot(path: str | Path) -> Chain:
+    """The chain of a robot config YAML (configs/robots/*.yaml, the catalogue's entries among them)."""
     path = Path(path)
     m = load_yaml(path, RobotModel)
-    if (m.urdf is None) == (m.dh is None):
-        raise ConfigError(path, "urdf/dh", None, "exactly one of 'urdf' (a path) or 'dh' (a table)")
+    given = [k for k in KINEMATICS if getattr(m, k) is not None]
+    if len(given) != 1:
+        raise ConfigError(path, "/".join(KINEMATICS), given or None,
+                          "exactly one of 'urdf' (a path), 'dh' (standard DH table), 'mdh' (modified DH, Craig), "
+                          "'joint_origins' (URDF-style joint table) or 'arm' (a catalogue name)")
+    if m.tool_link is not None and m.urdf is None:
+        raise ConfigError(path, "tool_link", m.tool_link, "only with 'urdf' (the URDF link the chain ends at)")
     if m.urdf is not None:
-        chain = chain_from_urdf((path.parent / m.urdf).resolve())
-        chain = Chain(chain.origins, chain.axes, chain.tool @ _transform(m.tool_xyz_m, [0, 0, 0]), m.name)
+        chain = chain_from_urdf((path.parent / m.urdf).resolve(), m.tool_link)
+    elif m.dh is not None:
+        chain = chain_from_dh(m.dh, name=m.name)
+    elif m.mdh is not None:
+        chain = chain_from_mdh(m.mdh, name=m.name)
+    elif m.joint_origins is not None:
+        chain = chain_from_joint_origins(m.joint_origins, m.name, path)
     else:
-        assert m.dh is not None  # exactly one of urdf/dh is set, checked above
-        chain = chain_from_dh(m.dh, m.tool_xyz_m, m.name)
+        assert m.arm is not None  # exactly one kinematics is set, checked above
+        from dt_runtime.frames.robots import catalogue_file  # the catalogue is configs: robots.py finds it
+
+        chain = load_robot(catalogue_file(m.arm, path))
+    if chain.dof == 0:
+        raise ConfigError(path, "/".join(KINEMATICS), None, "at least one revolute joint")
     links = [j for g in m.thermal_links for j in g]
     if any(not g for g in m.thermal_links) or len(set(links)) != len(links) or any(j > chain.dof for j in links):
         raise ConfigError(path, "thermal_links", [list(g) for g in m.thermal_links],
                           f"non-empty groups of link numbers 0..{chain.dof}, each link in one group at most")
+    tool = chain.tool @ _transform(m.flange_xyz_m, m.flange_rpy_rad)
+    if m.tool_xyz_m is not None:
+        tool = tool @ _transform(m.tool_xyz_m, [0, 0, 0])
     base = _transform(m.base_xyz_m, m.base_rpy_rad)
-    return Chain((base @ chain.origins[0],) + chain.origins[1:], chain.axes, chain.tool, chain.name,
-                 tuple(m.gear_harmonics), tuple(tuple(g) for g in m.thermal_links))
+    return Chain((base @ chain.origins[0],) + chain.origins[1:], chain.axes, tool, m.name,
+                 tuple(m.gear_harmonics), tuple(tuple(g) for g in m.thermal_links),
+                 tool_given=m.tool_xyz_m is not None or (m.arm is not None and chain.tool_given))

@@ -47,7 +47,9 @@ from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import ConfigError, DataError
 from dt_kernel.units import M_PER_MM
 from dt_runtime.common.paths import ROOT
-from dt_runtime.frames.kinematics import Chain, load_robot
+from dt_runtime.frames import robots
+from dt_runtime.frames.kinematics import Chain
+from dt_runtime.frames.tool_fit import ToolFit, fit_tool
 from dt_runtime.measurements.cells import (
     ColumnSpec,
     numeric_columns,
@@ -292,19 +294,18 @@ def load_mapping(path: str | Path) -> ImportMapping:
     return load_yaml(path, ImportMapping)
 
 
-def mapping_robot(m: ImportMapping, mapping_path: Path | None) -> Path | None:
-    """The mapping's `robot:` config as an existing path (beside the mapping, the working
-    directory, the project), or None when the mapping names none."""
+def mapping_robot(m: ImportMapping, mapping_path: Path | None) -> str | None:
+    """The mapping's `robot:` as a robot reference (`frames.robots`: a catalogue name, or a config
+    or URDF file beside the mapping, in the working directory or in the project), or None when
+    the mapping names none."""
     if m.robot is None:
         return None
-    p = Path(m.robot)
-    tried = [p] if p.is_absolute() else (
-        ([mapping_path.parent / p] if mapping_path is not None else []) + [Path.cwd() / p, ROOT / p])
-    for c in tried:
-        if c.is_file():
-            return c
-    raise ConfigError(mapping_path or "<mapping>", "robot", m.robot,
-                      "a robot config file (looked for " + ", ".join(str(c) for c in tried) + ")")
+    bases = ([mapping_path.parent] if mapping_path is not None else []) + [Path.cwd(), ROOT]
+    try:
+        return robots.resolve(m.robot, bases).text
+    except DataError as exc:
+        raise ConfigError(mapping_path or "<mapping>", "robot", m.robot,
+                          f"a catalogue arm, a robot config or a URDF file ({exc})") from exc
 
 
 # --------------------------------------------------------------------------- import
@@ -340,13 +341,13 @@ def _chain(robot: Chain | str | Path | None, m: ImportMapping, mapping_path: Pat
     if isinstance(robot, Chain):
         return robot
     if robot is not None:
-        return load_robot(robot)
+        return robots.load(robot, [Path.cwd()])
     p = mapping_robot(m, mapping_path)
     if p is None:
         raise DataError(f"{path}: the mapping names no commanded x, y, z, so the commanded TCP is the forward "
-                        "kinematics of the joint angles, which needs the robot config: give --robot FILE "
-                        "(or `robot:` in the mapping)")
-    return load_robot(p)
+                        "kinematics of the joint angles, which needs the robot: give --robot FILE (a robot config "
+                        "or a URDF) or NAME (a catalogue arm such as ur5e), or `robot:` in the mapping")
+    return robots.load(p)
 
 
 def _extra_columns(path: Path, m: ImportMapping, header: list[str], used: set[str], lines: list[int],
@@ -444,6 +445,8 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     joint_keys = [f"q{i + 1}" for i in range(n_joints)]
 
     R_fk = None
+    tool: ToolFit | None = None
+    chain = None
     if has_xyz:
         p_cmd = col3("xyz")
     else:
@@ -473,6 +476,12 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     stds: tuple = (None, None, None)
     if "mx" in vals:
         p_meas = col3(["mx", "my", "mz"])
+        if (chain is not None and not chain.tool_given and R_fk is not None and m.measured_frame == "robot"
+                and not np.any(o_init)):
+            # the robot gives no tool offset: the TCP the tracker measured, on the flange (frames.tool_fit)
+            tool = fit_tool(chain, col3(joint_keys), p_meas, "measured")
+            offset, stds = tool.offset, (None, None, tool.u / M_PER_MM)
+            notes.append(tool.line())
         if m.measured_frame == "instrument" and reg.transform is not None:
             # the session's registration as measured by the user: applied, not fitted
             tpath = companion(reg.transform, path, mapping_dir, "registration.transform", mfile)
@@ -582,5 +591,12 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         rotation=R, translation=t_vec, offset=np.asarray(offset, float),
         rotation_std_rad=stds[0], translation_std_mm=stds[1], offset_std_mm=stds[2],
         n_skipped=len(skipped), notes=notes, uncertainty=u_stated)
+    if chain is not None and not chain.tool_given and R_fk is not None and method in ("none", "rigid+offset") \
+            and "mx" in vals and (tool is not None or method == "rigid+offset"):
+        # the offset stands for the robot's missing tool: the analysis appends it to the chain
+        report.tool_offset = (tool.to_dict() if tool is not None else
+                              {"xyz_mm": [float(v) / M_PER_MM for v in offset],
+                               "u_mm": [float(v) for v in np.ravel(stds[2])], "residual_rms_mm": rms3(res_mm),
+                               "n": n, "from": "measured (fitted with the registration)", "frame": "flange"})
     report.seconds = _time.perf_counter() - started
     return ds, report

@@ -46,6 +46,9 @@ class RegistrationReport:
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
     uncertainty: dict | None = None  # what ux..uz stated and the k that made them standard (importer)
+    # The offset fitted for a robot whose config gives no tool (frames.tool_fit.ToolFit.to_dict):
+    # the analysis appends it to the chain (cli.common.robot_of).
+    tool_offset: dict | None = None
 
     @property
     def transform(self):
@@ -63,7 +66,8 @@ class RegistrationReport:
             "offset_mm": f(np.asarray(self.offset) / M_PER_MM),
             "rotation_std_rad": f(self.rotation_std_rad), "translation_std_mm": f(self.translation_std_mm),
             "offset_std_mm": f(self.offset_std_mm), "seconds": self.seconds, "notes": list(self.notes),
-        } | ({"uncertainty": self.uncertainty} if self.uncertainty is not None else {})
+        } | ({"uncertainty": self.uncertainty} if self.uncertainty is not None else {}) \
+          | ({"tool_offset": self.tool_offset} if self.tool_offset is not None else {})
 
 
 @dataclass

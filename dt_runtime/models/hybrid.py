@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, replace
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +29,11 @@ from scipy import optimize
 from sklearn.base import BaseEstimator, RegressorMixin
 
 from dt_kernel.errors import ConfigError, DataError, ModelError
-from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.provenance import Environment, Provenance
 from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.common.safe_npz import load_npz
-from dt_runtime.frames.kinematics import Chain, load_robot
+from dt_runtime.frames import robots
+from dt_runtime.frames.kinematics import Chain
 from dt_runtime.models import effects as fx
 from dt_runtime.models import hyper as hp
 from dt_runtime.models import identifiability as idf
@@ -63,33 +62,25 @@ def gp_features(inp: fx.Inputs, kind: str) -> np.ndarray | None:
     raise DataError(f"unknown GP inputs '{kind}'; allowed: {', '.join(GP_INPUTS)}")
 
 
-def robot_ref(path: str | Path | None) -> str | None:
-    """How a saved model names its robot config: relative to configs/ when shipped there."""
-    if path is None:
-        return None
-    p = Path(path).resolve()
-    try:
-        return str(p.relative_to(CONFIGS))
-    except ValueError:
-        return str(p)
+def robot_ref(robot: str | Path | None) -> str | None:
+    """How a saved model names its robot (`frames.robots`): a catalogue name, a config or URDF
+    path (relative to configs/ when shipped there), with its '#link' and '?tool_mm=' if any."""
+    return robots.reference(robot)
 
 
-@lru_cache(maxsize=8)
 def load_chain(ref: str) -> Chain:
-    """The kinematic chain of a robot config reference (robot_ref), parsed once per process."""
-    p = Path(ref)
-    return load_robot(p if p.is_absolute() else CONFIGS / p)
+    """The kinematic chain of a robot reference (robot_ref), parsed once per process."""
+    return robots.load(ref)
 
 
 def resolve_chain(robot: str | Path | Chain | None) -> Chain | None:
-    """The kinematic chain a model's `robot` parameter gives: a config path or a Chain."""
+    """The kinematic chain a model's `robot` parameter gives: a robot reference or a Chain."""
     if robot is None or isinstance(robot, Chain):
         return robot
-    ref = robot_ref(robot)
-    assert ref is not None  # robot is a path here
-    if not (Path(ref) if Path(ref).is_absolute() else CONFIGS / ref).is_file():  # the cache must not hide it
-        raise ModelError(f"robot config {robot}: no such file")
-    return load_chain(ref)
+    try:
+        return load_chain(str(robot))
+    except DataError as exc:  # a saved model's robot that is gone: the model cannot be evaluated
+        raise ModelError(f"robot config {robot}: {exc}") from exc
 
 
 @dataclass(frozen=True)
@@ -114,12 +105,13 @@ class HybridModel(RegressorMixin, BaseEstimator):
     """error = sum of effect terms (dt_runtime.models.effects) + GP on what is left.
 
     effects: effect names (`effects.names()`); gp_inputs: one of GP_INPUTS; ridge: penalty on
-    the standardised effect parameters; seed: the GP's optimiser starts; robot: path of a robot
-    config (configs/robots/*.yaml) or a `Chain`, the kinematic model the joint-space effects
-    need; gp_options: `GPOptions` (default: MultiOutputGP's defaults); nuisance: session terms
-    (models.effects.session: 'tool', 'base', 'joints') fitted per session of the training data
-    (the `session` column) and never deployed: rows without a session, or of the
-    `reference_session`, get none, so the map predicts the reference session's robot.
+    the standardised effect parameters; seed: the GP's optimiser starts; robot: a robot reference
+    (a catalogue name such as 'ur5e', a robot config YAML or a URDF: `frames.robots`) or a `Chain`,
+    the kinematic model the joint-space effects need; gp_options: `GPOptions` (default:
+    MultiOutputGP's defaults); nuisance: session terms (models.effects.session: 'tool', 'base',
+    'joints') fitted per session of the training data (the `session` column) and never deployed:
+    rows without a session, or of the `reference_session`, get none, so the map predicts the
+    reference session's robot.
     """
 
     def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", ridge: float = DEFAULT_RIDGE,
@@ -515,10 +507,11 @@ class HybridModel(RegressorMixin, BaseEstimator):
         if not hasattr(self, "data_source_") and old is not None:
             return old.renewed()
         src = getattr(self, "data_source_", None)
+        robot_file, robot_text = robots.record(self.robot_)
         return build_provenance(
             inputs=[src] if src and Path(src).is_file() else [],
-            robot=None if self.robot_ is None else CONFIGS / self.robot_,
-            robot_name=self.robot.name if isinstance(self.robot, Chain) else None,
+            robot=robot_file,
+            robot_name=self.robot.name if isinstance(self.robot, Chain) else robot_text,
             environment=getattr(self, "environment_", None))
 
     def save(self, directory: str | Path, provenance: Provenance | None = None) -> Path:
@@ -589,7 +582,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         # Models saved before GPOptions carry only the overridden options as "gp_kw".
         options = GPOptions.from_dict(meta["gp_options"] if "gp_options" in meta else meta.get("gp_kw"))
         m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"],
-                robot=None if ref is None else str(CONFIGS / ref), gp_options=options,
+                robot=ref, gp_options=options,
                 nuisance=tuple(meta.get("nuisance") or ()), reference_session=int(meta.get("reference_session", 0)))
         m.nuisance_sessions_ = tuple(int(v) for v in meta.get("nuisance_sessions") or ())
         arr = load_npz(d / "hybrid.npz", ("theta", "theta_u", "theta_cov"))  # checked before reading

@@ -23,11 +23,11 @@ import yaml
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import DataError
 from dt_runtime.common.jsonsafe import jsonable
-from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, files_under, load_instruments
 from dt_runtime.common.provenance import build as build_provenance
-from dt_runtime.frames.kinematics import Chain, load_robot
+from dt_runtime.frames import robots
+from dt_runtime.frames.kinematics import Chain
 from dt_runtime.measurements.campaign_files import check_robot, read_phase, write_phase
 from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.models.hybrid import HybridModel
@@ -53,7 +53,7 @@ class CampaignFiles:
     registration: Path
     doe: Path
     validation: Path | None = None
-    robot: Path | None = None
+    robot: str | None = None  # a robot reference (frames.robots)
     instruments: Path | None = None
     drivers: dict[str, str] | None = None
     manifest: Path | None = None
@@ -81,17 +81,14 @@ class CampaignFiles:
         return Campaign(reg, doe, val)
 
     def chain(self) -> Chain | None:
-        return load_robot(self.robot) if self.robot is not None else None
+        return robots.load(self.robot) if self.robot is not None else None
 
 
-def resolve_robot(ref: str | Path, base: Path) -> Path:
-    """A robot config named in a manifest or on the command line: as given (relative to `base`),
-    else under configs/ (the shipped robots: robots/ur10.yaml)."""
-    p = Path(ref)
-    for cand in ((p,) if p.is_absolute() else (base / p, CONFIGS / p)):
-        if cand.is_file():
-            return cand.resolve()
-    raise DataError(f"robot config {ref}: no such file (looked in {base} and {CONFIGS})")
+def resolve_robot(ref: str | Path, base: Path) -> str:
+    """A robot named in a manifest or on the command line, as its reference (`frames.robots`): a
+    catalogue arm, or a robot config or URDF relative to `base`, else under configs/ (the shipped
+    robots: robots/ur10.yaml)."""
+    return robots.resolve(ref, [base]).text
 
 
 def read_manifest(path: str | Path) -> CampaignFiles:
@@ -172,7 +169,7 @@ def calibrate_campaign(files: CampaignFiles, options: CalibrationOptions, out: s
                             for p in (campaign.registration, campaign.doe, campaign.validation) if p is not None])
     extra = files_under(lt_model_dir) if lt_model_dir is not None else []
     chain = files.chain()
-    prov = build_provenance([*files.inputs(), *extra], robot=files.robot,
+    prov = build_provenance([*files.inputs(), *extra], robot=robots.record(files.robot)[0],
                             robot_name=chain.name if chain is not None else None,
                             instruments=instruments, temperature=temps[np.isfinite(temps)])
     c.twin.provenance = prov

@@ -26,6 +26,7 @@ from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, Provenance
 from dt_runtime.common.provenance import build as build_provenance
+from dt_runtime.frames import robots
 from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology.stats import rms3
@@ -195,7 +196,7 @@ def demo_provenance(cfg: DemoConfig, config: Path, plan_file: Path, inst: Instru
     if getattr(inst.camera, "cfg", None) is not None:
         files.append(CONFIGS / "cameras.yaml")  # the image rig's default config (sim.camera_rig)
     temps = np.concatenate([np.asarray(p.temperature, dtype=float).ravel() for p in phases])
-    return build_provenance(files, robot=resolve_robot(cfg.robot, base),
+    return build_provenance(files, robot=robots.record(resolve_robot(cfg.robot, base))[0],
                             robot_name=f"simulated arm (scenario {world.scenario_name})",
                             instruments=sim_instruments(cfg, inst, world), temperature=temps)
 
