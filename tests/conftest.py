@@ -1,7 +1,12 @@
-"""Suite-wide setup: BLAS on one thread, as the `dt` command line runs (dt_runtime.common.threads)."""
+"""Suite-wide setup: BLAS on one thread, as the `dt` command line runs (dt_runtime.common.threads),
+and the diagnosis in this process (DT_WORKERS=1: `dt diagnose` called in process would otherwise
+start a worker per core; tests/test_diagnose_parallel.py checks the workers on their own)."""
+import os
+
 from dt_runtime.common.threads import limit_blas_threads
 
 limit_blas_threads()
+os.environ.setdefault("DT_WORKERS", "1")
 
 
 import contextlib  # noqa: E402

@@ -131,15 +131,16 @@ def _hysteresis(path: np.ndarray, width: np.ndarray, start: np.ndarray) -> np.nd
 
 
 def approach_backlash(seed: int = 1, n_points: int = 40, passes: int = 4, readings: int = 2,
-                      play_mrad=(0.30, 0.25, 0.25, 0.0, 0.0, 0.0), n_test_points: int = 40,
+                      play_mrad=(0.30, 0.25, 0.25, 0.0, 0.0, 0.0), speeds=(0.1, 0.25, 0.5), n_test_points: int = 40,
                       u: bool = False) -> tuple[Dataset, Dataset]:
     """Backlash by approach direction, the arm's motion integrated: every move to the next pose is
-    a straight line of the TCP (a linear move, 100 steps of inverse kinematics on the nominal arm),
-    and each joint's play is a deadband driven along that joint path, so a joint that reverses
-    during the move rests against the side of its last motion (not of the net change). Each visit
-    is measured `readings` times (the tracker's repeated readings: replicates of one approach).
-    Speed changes from move to move (100, 250, 500 mm/s) but nothing depends on it. No uncertainty
-    columns unless `u`. The test file: new poses of the same arm, other path."""
+    a linear move (the TCP on a straight line, the orientation slerped: 100 steps of the nominal
+    arm's inverse kinematics), and each joint's play is a deadband driven along that joint path,
+    so a joint that reverses during the move rests against the side of its last motion (not of its
+    net change), partly engaged when the reversal came late. Each visit is measured `readings` times
+    (the tracker's repeated readings: replicates of one approach). The speed of each move is drawn
+    from `speeds` (nothing depends on it). No uncertainty columns unless `u`. The test file: new
+    poses of the same arm, another path."""
     geo = _arm(seed)
     width = np.asarray(play_mrad) * 1e-3
 
@@ -148,27 +149,21 @@ def approach_backlash(seed: int = 1, n_points: int = 40, passes: int = 4, readin
         targets = base + rng.uniform(-1, 1, (n, 6)) * np.array([0.6, 0.3, 0.35, 0.3, 0.3, 0.6])
         order = np.concatenate([rng.permutation(n) for _ in range(passes)])
         qs = targets[order]
+        paths = _linear_paths(np.vstack([qs[:1], qs[:-1]]), qs, 100)
+        v = rng.choice(np.asarray(speeds, float), len(qs))
         side = qs[0].copy()
-        prev = qs[0]
-        rows_q, rows_act, rows_t, pid, rep, speed = [], [], [], [], [], []
-        t = t0
-        for k, q in enumerate(qs):
-            path = _linear_path(prev, q, 100)
+        sides = []
+        for path in paths:
             side = _hysteresis(path, width, side)
-            v = rng.choice([0.1, 0.25, 0.5])
-            t += max(np.linalg.norm(gen.fk(q[None])[0] - gen.fk(prev[None])[0]) / v, 0.5) + 2.0
-            for r in range(readings):
-                rows_q.append(q)
-                rows_act.append(side - q)  # the output's lag behind the commanded joint
-                rows_t.append(t + r)
-                pid.append(order[k])
-                rep.append(k // n)
-                speed.append(v)
-            prev = q
-        q = np.array(rows_q)
-        dq = np.array(rows_act)
-        return _dataset(q, np.array(rows_t), gen.fk(q), gen.fk(q + dq, **geo), rng, speed=np.array(speed), u=u,
-                        point_id=np.array(pid), rep=np.array(rep))
+            sides.append(side.copy())
+        dist = np.linalg.norm(gen.fk(qs) - gen.fk(np.vstack([qs[:1], qs[:-1]])), axis=1)
+        t_visit = t0 + np.cumsum(np.maximum(dist / v, 0.5) + 2.0)
+        k = np.repeat(np.arange(len(qs)), readings)
+        q = qs[k]
+        dq = (np.array(sides) - qs)[k]  # the output's lag behind the commanded joint
+        t = t_visit[k] + np.tile(np.arange(readings), len(qs))
+        return _dataset(q, t, gen.fk(q), gen.fk(q + dq, **geo), rng, speed=v[k], u=u, point_id=order[k],
+                        rep=(k // n))
 
     train = campaign(np.random.default_rng(seed), n_points, 0.0)
     test = campaign(np.random.default_rng(seed + 50), n_test_points, 1e5)
@@ -182,28 +177,33 @@ def _pose(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return p, R
 
 
-def _linear_path(q0: np.ndarray, q1: np.ndarray, steps: int) -> np.ndarray:
-    """Joint path of a linear move from q0 to q1: the TCP on a straight line, the orientation
-    turning about one axis at a constant rate (slerp), as a controller's movel. Newton steps on
-    the nominal arm's 6-D pose, for all steps at once, from the path interpolated in joints."""
+def _linear_paths(q0: np.ndarray, q1: np.ndarray, steps: int) -> np.ndarray:
+    """Joint paths (m, steps, 6) of linear moves from q0 to q1 (m, 6): the TCP on a straight line,
+    the orientation turning about one axis at a constant rate (slerp), as a controller's movel.
+    Newton steps on the nominal arm's 6-D pose, for every step of every move at once, from the
+    paths interpolated in joints (the branch of q0 and q1)."""
     from scipy.spatial.transform import Rotation, Slerp
 
-    (p0, p1), (R0, R1) = _pose(np.stack([q0, q1]))
+    m = len(q0)
     s = (np.arange(steps) + 1.0) / steps
-    q = q0 + s[:, None] * (q1 - q0)
-    target = p0 + s[:, None] * (p1 - p0)
-    Rt = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([R0, R1])))(s)
+    (p0, R0), (p1, R1) = _pose(q0), _pose(q1)
+    q = (q0[:, None, :] + s[None, :, None] * (q1 - q0)[:, None, :]).reshape(-1, 6)
+    target = (p0[:, None, :] + s[None, :, None] * (p1 - p0)[:, None, :]).reshape(-1, 3)
+    Rt = Rotation.concatenate([Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([a, b])))(s)
+                               for a, b in zip(R0, R1)])
     h = 1e-6
     for _ in range(6):
         p, R = _pose(q)
-        err = np.concatenate([target - p, (Rt * Rotation.from_matrix(R).inv()).as_rotvec()], axis=1)
-        J = np.empty((steps, 6, 6))
+        Rinv = Rotation.from_matrix(R).inv()
+        err = np.concatenate([target - p, (Rt * Rinv).as_rotvec()], axis=1)
+        J = np.empty((len(q), 6, 6))
         for j in range(6):
             dq = np.zeros(6)
             dq[j] = h
             pj, Rj = _pose(q + dq)
             J[:, :3, j] = (pj - p) / h
-            J[:, 3:, j] = (Rotation.from_matrix(Rj) * Rotation.from_matrix(R).inv()).as_rotvec() / h
+            J[:, 3:, j] = (Rotation.from_matrix(Rj) * Rinv).as_rotvec() / h
         q += np.linalg.solve(J, err[:, :, None])[:, :, 0]
-    q[-1] = q1  # the move ends at the commanded joints
+    q = q.reshape(m, steps, 6)
+    q[:, -1] = q1  # each move ends at its commanded joints
     return q

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from dt_kernel.errors import DataError
+from dt_runtime.analysis import parallel
 from dt_runtime.analysis.columns import column_check, factor_columns
 from dt_runtime.analysis.crossval import groups_of
 from dt_runtime.analysis.data import Data, floor_of, load_data, refit_sessions
@@ -139,12 +140,18 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
     YAML (hashed), the robot and the instruments."""
     prep = prepare(data, model, effects, gp_inputs, robot, gp_options, instruments, inputs, exclude_sessions,
                    reference_session, session_terms)
-    ev = Evaluator(prep.problem, folds, seed)
-    if auto:
-        return _auto(prep, ev, candidates, alpha, min_explained, max_steps, progress, out)
-    if out is not None:
+    if out is not None and not auto:
         raise DataError("--out writes the final model of --auto; fit a model with dt fit")
-    return _plain(prep, ev, candidates, alpha, progress)
+    n = parallel.workers()
+    pool = parallel.Pool(prep.problem, folds, seed, n) if n > 1 else None
+    try:
+        ev = Evaluator(prep.problem, folds, seed, pool)
+        if auto:
+            return _auto(prep, ev, candidates, alpha, min_explained, max_steps, progress, out)
+        return _plain(prep, ev, candidates, alpha, progress)
+    finally:
+        if pool is not None:
+            pool.close()
 
 
 def _source(prep: Prepared) -> dict:

@@ -67,11 +67,13 @@ class Problem:
 
 
 class Evaluator:
-    """Cross-validations of configurations on the problem's schemes, memoised."""
+    """Cross-validations of configurations on the problem's schemes, memoised; with a `pool`
+    (analysis.parallel), `cv_many` runs the missing ones in its worker processes."""
 
-    def __init__(self, problem: Problem, folds: int = 5, seed: int = 0):
+    def __init__(self, problem: Problem, folds: int = 5, seed: int = 0, pool=None):
         self.problem = problem
         self.seed = seed
+        self.pool = pool
         p = problem
         self.points = validation.points(p.groups, folds, seed)
         self.deploy = validation.deployment(p.inp.commanded, p.groups, p.session, folds, seed)
@@ -80,6 +82,9 @@ class Evaluator:
         self._cv: dict[tuple[Config, str], CvResult] = {}
         self._thetas: dict[Config, list] = {}
         self._log_hypers: dict[Config, list | None] = {}
+
+    def scheme(self, kind: str) -> validation.Scheme:
+        return {s.kind: s for s in (self.time, self.deploy, self.points)}[kind]
 
     def model(self, cfg: Config) -> HybridModel:
         p = self.problem
@@ -92,20 +97,39 @@ class Evaluator:
             return self.time
         return self.deploy
 
+    def compute(self, cfg: Config, scheme: validation.Scheme, starts=None, thetas=None) -> CvResult:
+        """One cross-validation, not memoised: `thetas` fixed GP hyperparameters, else fitted on all
+        rows from `starts`."""
+        p = self.problem
+        return cross_validate(self.model(cfg), p.inp, p.error, p.groups, list(scheme.folds), thetas=thetas,
+                              starts=None if thetas is not None else starts)
+
+    def _store(self, cfg: Config, scheme: validation.Scheme, res: CvResult, fixed) -> CvResult:
+        if fixed is None and res.thetas is not None:
+            self._thetas[cfg], self._log_hypers[cfg] = res.thetas, res.log_hypers
+        res.log_hypers = self._log_hypers.get(cfg)
+        self._cv[(cfg, scheme.kind)] = res
+        return res
+
     def cv(self, cfg: Config, scheme: validation.Scheme, starts=None) -> CvResult:
         """`cfg` held out on `scheme` (memoised). `starts`: warm starts of its GP hyperparameter fit
         (the log hyperparameters of the configuration it extends), used by its first cross-validation."""
         key = (cfg, scheme.kind)
         if key not in self._cv:
-            p = self.problem
             fixed = self._thetas.get(cfg)
-            res = cross_validate(self.model(cfg), p.inp, p.error, p.groups, list(scheme.folds), thetas=fixed,
-                                 starts=None if fixed is not None else starts)
-            if fixed is None and res.thetas is not None:
-                self._thetas[cfg], self._log_hypers[cfg] = res.thetas, res.log_hypers
-            res.log_hypers = self._log_hypers.get(cfg)
-            self._cv[key] = res
+            self._store(cfg, scheme, self.compute(cfg, scheme, starts, fixed), fixed)
         return self._cv[key]
+
+    def cv_many(self, jobs: list[tuple[Config, validation.Scheme, list | None]]) -> list[CvResult]:
+        """Several cross-validations (cfg, scheme, starts), the missing ones at once in the pool's
+        workers when there is a pool."""
+        todo = list(dict.fromkeys((cfg, scheme.kind) for cfg, scheme, _ in jobs if (cfg, scheme.kind) not in self._cv))
+        if self.pool is not None and len(todo) > 1:
+            starts = {(cfg, scheme.kind): st for cfg, scheme, st in jobs}
+            sent = [(cfg, kind, starts[(cfg, kind)], self._thetas.get(cfg)) for cfg, kind in todo]
+            for (cfg, kind, _, fixed), res in zip(sent, self.pool.map(sent)):
+                self._store(cfg, self.scheme(kind), res, fixed)
+        return [self.cv(cfg, scheme, st) for cfg, scheme, st in jobs]
 
     def residual(self, cfg: Config, scheme: validation.Scheme) -> np.ndarray:
         """`cfg`'s held-out residual on `scheme`; held-out sessions scored the way a new session

@@ -70,10 +70,11 @@ def rank(ev: Evaluator, cfg: Config, candidates: list[str], gp_inputs: list[str]
     steps = ([("effect", c) for c in candidates] + [("gp_inputs", g) for g in gp_inputs]
              + [("session", t) for t in session_terms])
     out: dict[str, list[Gain]] = {"effect": [], "gp_inputs": [], "session": []}
-    for i, (kind, c) in enumerate(steps):
-        if progress:
-            progress.step("diagnose: candidates", i, len(steps))
-        res = ev.cv(changed(cfg, kind, c), ev.points, starts=base.log_hypers if kind != "gp_inputs" else None)
+    if progress and steps:
+        progress.note(f"diagnose: {len(steps)} candidate(s) against {cfg.label()}")
+    results = ev.cv_many([(changed(cfg, kind, c), ev.points, base.log_hypers if kind != "gp_inputs" else None)
+                          for kind, c in steps])
+    for (kind, c), res in zip(steps, results):
         out[kind].append(gain(kind, c, base, res, alpha))
     for ranking in out.values():
         ranking.sort(key=lambda r: (not r.significant, -r.explained_fraction))

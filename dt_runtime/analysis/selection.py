@@ -180,6 +180,9 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
         ok = sorted([g for g in tested if g.p_value < level and g.explained_fraction >= min_explained
                      and g.rmse_after_mm < g.rmse_before_mm], key=lambda g: -g.explained_fraction)
         ok, step.head_to_head = head_to_head(ev, cfg, ok, level)
+        # the deployment figures the veto below will most likely need, at once
+        ev.cv_many([(changed(cfg, g.kind, g.candidate), ev.scheme_for(g.candidate if g.kind == "effect" else None),
+                     base.log_hypers) for g in ok[:2] if g.kind != "session"])
         chosen = None
         for g in ok:
             if g.kind == "session":  # a nuisance is never deployed: its evidence is the held-out points

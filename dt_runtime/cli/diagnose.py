@@ -70,12 +70,14 @@ def run(args: argparse.Namespace) -> Any:
 
     from dt_kernel.errors import DataError
     from dt_runtime.analysis.diagnose import diagnose
+    from dt_runtime.analysis.parallel import default_to_cores
     from dt_runtime.cli.common import robot_of
     from dt_runtime.common.jsonsafe import jsonable
     from dt_runtime.reports.verdicts import with_verdict
 
     if args.out is not None and not args.auto:
         raise DataError("--out saves the final model of --auto; without --auto, fit a model with dt fit")
+    default_to_cores()  # the candidates of a step in parallel, one process per core (DT_WORKERS)
     d = load(args)
     r = diagnose(d, args.model, names(args.effects), args.gp_inputs, robot_of(args, d),
                  names(args.candidates) or None, args.folds, args.seed, progress=progress(args),

@@ -103,7 +103,7 @@ def _split(text: str) -> tuple[str, str | None, tuple[float, float, float] | Non
 def resolve(ref: str | Path | RobotRef, bases: Sequence[Path] = ()) -> RobotRef:
     """What a user wrote (--robot, a mapping's or a manifest's `robot:`, a saved model's reference)
     as a RobotRef: a catalogue name, else a YAML or URDF file relative to each of `bases` in turn,
-    else to configs/ (absolute paths as they are). DataError if no file is found."""
+    else to the working directory, else to configs/ (absolute paths as they are). DataError if no file is found."""
     if isinstance(ref, RobotRef):
         return ref
     base, link, tool = _split(str(ref))
@@ -112,7 +112,7 @@ def resolve(ref: str | Path | RobotRef, bases: Sequence[Path] = ()) -> RobotRef:
             raise ConfigError("--robot", "robot", str(ref), "'#link' only after a URDF file")
         return RobotRef(catalogue_file(base).resolve(), base, None, tool)
     p = Path(base)
-    tried = [p] if p.is_absolute() else [b / p for b in bases] + [CONFIGS / p]
+    tried = [p] if p.is_absolute() else [b / p for b in bases] + [Path.cwd() / p, CONFIGS / p]
     for cand in tried:
         if cand.is_file():
             found = cand.resolve()

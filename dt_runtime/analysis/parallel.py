@@ -1,0 +1,70 @@
+"""The cross-validations of one diagnosis step in worker processes: the candidates of a step are
+independent (each is its own model held out on the same folds), so on 2 cores two run at once.
+
+A pool lives for one diagnosis. Its workers are started fresh (spawn: no state of the parent's
+threads, bus sessions or locks is inherited), each builds the diagnosis's `Evaluator` once from the
+problem (its schemes are seeded, so the folds are the parent's), runs BLAS on one thread, and
+cross-validates what it is sent: a configuration, a scheme and the hyperparameter start or fixed
+hyperparameters the parent knows. Results are the same as in one process.
+
+How many workers: `DT_WORKERS` (the command line and the benchmarks default it to the machine's
+cores); the library defaults to 1 (no pool) so that a caller's process stays as it is.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from concurrent.futures import ProcessPoolExecutor
+
+from dt_kernel.errors import ConfigError
+
+ENV = "DT_WORKERS"
+_EV = None  # the worker's Evaluator
+
+
+def workers() -> int:
+    """Worker processes for a diagnosis: $DT_WORKERS, default 1."""
+    raw = os.environ.get(ENV, "1")
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ConfigError("environment", ENV, raw, "a whole number >= 1")
+    return n
+
+
+def default_to_cores() -> None:
+    """Entry points (the command line, the benchmarks): one worker per core unless DT_WORKERS says."""
+    os.environ.setdefault(ENV, str(max(1, min(os.cpu_count() or 1, 8))))
+
+
+def _init(problem, folds: int, seed: int) -> None:
+    from dt_runtime.analysis.evaluation import Evaluator
+    from dt_runtime.common.threads import limit_blas_threads
+
+    global _EV
+    limit_blas_threads(1)
+    _EV = Evaluator(problem, folds, seed)
+
+
+def _task(cfg, kind: str, starts, thetas):
+    assert _EV is not None
+    return _EV.compute(cfg, _EV.scheme(kind), starts, thetas)
+
+
+class Pool:
+    """Worker processes holding one diagnosis's problem."""
+
+    def __init__(self, problem, folds: int, seed: int, n: int):
+        self.n = n
+        self._ex = ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"), initializer=_init,
+                                       initargs=(problem, folds, seed))
+
+    def map(self, jobs: list[tuple]) -> list:
+        """Cross-validate each (cfg, scheme kind, starts, thetas); results in order."""
+        futures = [self._ex.submit(_task, *job) for job in jobs]
+        return [f.result() for f in futures]
+
+    def close(self) -> None:
+        self._ex.shutdown(wait=True, cancel_futures=True)
