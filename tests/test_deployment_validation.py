@@ -74,16 +74,20 @@ def test_a_remounted_smr_is_named_with_its_offset_and_the_deployed_model_beats_n
         out["added"]
     # The deployed model on new task sessions (the first mounting): better than no correction, where
     # the same model fitted without the session term is worse than no correction.
-    rc = main(["fit", "--data", *map(str, remounted["files"]), "--robot", str(UR10), "--effects", "geometric",
-               "--out", str(remounted["out"] / "plain"), "--json", "--no-progress"])
-    assert rc == 0
+    fits = {"plain": [], "nuisance": ["--session-term", "tool"], "excluded": ["--exclude-session", "remounted"]}
+    for name, extra in fits.items():
+        rc = main(["fit", "--data", *map(str, remounted["files"]), "--robot", str(UR10), "--effects", "geometric",
+                   "--out", str(remounted["out"] / name), "--json", "--no-progress", *extra])
+        assert rc == 0
     capsys.readouterr()
     for task in remounted["tasks"]:
-        rc = main(["compare", "--model", str(model), "--model", str(remounted["out"] / "plain"), "--data", str(task),
-                   "--json", "--no-progress"])
+        rc = main(["compare", *(a for m in (model, *(remounted["out"] / n for n in fits)) for a in ("--model", str(m))),
+                   "--data", str(task), "--json", "--no-progress"])
         c = json.loads(capsys.readouterr().out)
-        as_is, deployed, plain = (m["rmse_mm"] for m in c["models"])
+        as_is, deployed, plain, nuisance, excluded = (m["rmse_mm"] for m in c["models"])
         assert deployed < 0.1 * as_is < as_is < plain, (as_is, deployed, plain)
+        # dt fit with the term as nuisance, or without the odd session, is the deployed model's equal
+        assert nuisance == pytest.approx(deployed, rel=0.05) and excluded < 0.1 * as_is
 
 
 def test_backlash_on_linear_moves_is_named_not_dynamic_and_reaches_the_floor_of_the_replicates():

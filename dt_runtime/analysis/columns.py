@@ -28,7 +28,8 @@ def factor_columns(ds: Dataset) -> dict[str, np.ndarray]:
 
 
 def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np.ndarray],
-                 alpha: float = ALPHA) -> list[dict]:
+                 alpha: float = ALPHA, catalogue: fx.Catalogue = fx.PROCESS,
+                 pose: np.ndarray | None = None) -> list[dict]:
     """Does the held-out residual follow a column? For each column: the per-point means of the
     residual (3 axes) regressed on the per-point mean of the column (a slope per axis; points,
     not rows, are the independent units), the fraction of the residual's variance it explains
@@ -62,14 +63,25 @@ def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np
         F = ((rss0 - rss1) / 3) / max(rss1 / dof, 1e-300)
         pval = float(stats.f.sf(F, 3, dof))
         out.append({"column": name, "explained_fraction": 1 - rss1 / rss0, "p_value": pval,
-                    "significant": pval < alpha / m})
+                    "significant": pval < alpha / m,
+                    # the user's own effects that read it (they were candidates: their form did not fit)
+                    "read_by": sorted(n for n, e in catalogue.user_effects().items() if name in e.columns)})
     out.sort(key=lambda r: (not r["significant"], -float(r["explained_fraction"])))
+    if pose is not None:
+        # A significant column that is itself a function of the pose (it rose as a scan went on)
+        # cannot be told from the position the residual may follow instead (analysis.confounding).
+        from dt_runtime.analysis.confounding import pose_r2
+
+        for r in out:
+            if r["significant"]:
+                r["pose_r2"] = pose_r2(np.asarray(columns[r["column"]], float)[:, None], pose, groups)
     return out
 
 
-def read_columns(effects: Sequence[str], gp_inputs: str, n_joints: int) -> set[str]:
+def read_columns(effects: Sequence[str], gp_inputs: str, n_joints: int,
+                 catalogue: fx.Catalogue = fx.PROCESS) -> set[str]:
     """The columns a model with these effects and GP inputs reads (joints as q1..qk)."""
-    cols = {c for e in effects for c in fx.get(e).columns}
+    cols = {c for e in effects for c in catalogue.get(e).columns}
     cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(gp_inputs, set())
     if "joints" in cols:
         cols = (cols - {"joints"}) | {f"q{j + 1}" for j in range(n_joints)}

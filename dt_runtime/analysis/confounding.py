@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dt_runtime.frames.kinematics import Chain
 from dt_runtime.models import effects as fx
 from dt_runtime.models.effects.base import approach
 
@@ -98,14 +97,15 @@ def linear_r2(a: np.ndarray, b: np.ndarray) -> float:
     return 0.0 if ss_tot <= 0 else float(max(0.0, 1.0 - np.sum((a - X @ coef) ** 2) / ss_tot))
 
 
-def check(candidates: list[str], inp: fx.Inputs, groups: np.ndarray, chain: Chain | None) -> list[Finding]:
+def check(candidates: list[str], inp: fx.Inputs, groups: np.ndarray,
+          catalogue: fx.Catalogue = fx.PROCESS) -> list[Finding]:
     """The confounding findings of every candidate factor (not the pose itself); a candidate with a
     finding whose `testable` is False is not tested."""
     pose = inp.joints if inp.joints is not None else inp.commanded
     cache: dict[str, Finding] = {}
     out: list[Finding] = []
     for name in candidates:
-        for factor in fx.get(name).drives():
+        for factor in catalogue.get(name).drives():
             if factor not in cache:
                 cache[factor] = _factor(factor, inp, pose, groups)
             f = cache[factor]
@@ -123,10 +123,10 @@ def _factor(factor: str, inp: fx.Inputs, pose: np.ndarray, groups: np.ndarray) -
     return Finding("", factor, "pose", r2, r2 <= R2_MAX)
 
 
-def competing(a: str, b: str, inp: fx.Inputs) -> str | None:
+def competing(a: str, b: str, inp: fx.Inputs, catalogue: fx.Catalogue = fx.PROCESS) -> str | None:
     """The factor two candidates share, or the pair of factors that follow each other (temperature
     and time, R^2 above R2_MAX): they explain the same residual and are tested head to head."""
-    fa, fb = set(fx.get(a).drives()), set(fx.get(b).drives())
+    fa, fb = set(catalogue.get(a).drives()), set(catalogue.get(b).drives())
     shared = sorted(fa & fb)
     if shared:
         return shared[0]

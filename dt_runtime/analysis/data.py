@@ -7,6 +7,7 @@ read the direction of approach from the previous row.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -149,3 +150,42 @@ def refit_sessions(d: Data) -> np.ndarray | None:
         return None
     s = d.dataset.extra["session"].astype(int)
     return np.where(np.asarray(ok)[s], s, -1)
+
+
+def session_names(d: Data) -> dict[int, str]:
+    """Each session's name by index: the import's (`info['session_files'][i]['name']`), else its file's."""
+    files = d.info.get("session_files") or []
+    return {i: str(f.get("name") or Path(f["file"]).name) for i, f in enumerate(files)}
+
+
+def session_index(value: str | int, names: dict[int, str], what: str) -> int:
+    """A session named on the command line (its index, or its name / file name) as its index."""
+    for sid, name in names.items():
+        if str(value) in (str(sid), name, Path(name).name, Path(name).stem):
+            return sid
+    raise DataError(f"{what} {value!r}: no such session; the sessions: "
+                    + ", ".join(f"{sid} ({name})" for sid, name in names.items()))
+
+
+def select_sessions(d: Data, exclude: Sequence[str | int] = (),
+                    reference: str | int | None = None) -> tuple[Data, dict[int, str], int]:
+    """The data without the `exclude`d sessions (`--exclude-session`), the remaining sessions'
+    names by index, and the reference session's index (`--reference-session`; default the first):
+    what the session terms are measured against."""
+    names = session_names(d)
+    if exclude:
+        if not names:
+            raise DataError("--exclude-session: the data are one session (give several --data files)")
+        drop = {session_index(v, names, "--exclude-session") for v in exclude}
+        ds = d.dataset
+        keep = ~np.isin(ds.extra["session"].astype(int), list(drop))
+        if not keep.any():
+            raise DataError("--exclude-session: no session left")
+        d = Data(ds.select(np.flatnonzero(keep)), d.info | {"excluded_sessions": [names[s] for s in sorted(drop)]})
+        names = {s: n for s, n in names.items() if s not in drop}
+    ref = min(names) if names else 0
+    if reference is not None:
+        if not names:
+            raise DataError("--reference-session: the data are one session (give several --data files)")
+        ref = session_index(reference, names, "--reference-session")
+    return d, names, ref

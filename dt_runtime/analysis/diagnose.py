@@ -30,9 +30,9 @@ import numpy as np
 
 from dt_kernel.errors import DataError
 from dt_runtime.analysis import parallel
-from dt_runtime.analysis.columns import column_check, factor_columns
+from dt_runtime.analysis.columns import column_check, factor_columns, read_columns
 from dt_runtime.analysis.crossval import groups_of
-from dt_runtime.analysis.data import Data, floor_of, load_data, refit_sessions
+from dt_runtime.analysis.data import Data, floor_of, load_data, refit_sessions, select_sessions
 from dt_runtime.analysis.evaluation import Config, Evaluator, Problem
 from dt_runtime.analysis.ranking import ALPHA, deployment_figures, gp_alternatives, rank
 from dt_runtime.analysis.results import AutoResult, DiagnoseResult
@@ -44,6 +44,7 @@ from dt_runtime.frames.kinematics import Chain
 from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.metrology.stats import rms3
+from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
 from dt_runtime.models.hybrid import DEFAULT_RIDGE, HybridModel, load_map, resolve_chain
 
@@ -64,15 +65,6 @@ class Prepared:
     provenance: Provenance
 
 
-def _session_index(value: str | int, names: dict[int, str], what: str) -> int:
-    """A session named on the command line (its index, or its name / file name) as its index."""
-    for sid, name in names.items():
-        if str(value) in (str(sid), name, Path(name).name, Path(name).stem):
-            return sid
-    raise DataError(f"{what} {value!r}: no such session; the sessions: "
-                    + ", ".join(f"{sid} ({name})" for sid, name in names.items()))
-
-
 def prepare(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
             effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", robot: str | Path | Chain | None = None,
             gp_options: GPOptions | None = None, instruments: str | Path | None = None,
@@ -86,43 +78,34 @@ def prepare(data: Data | Dataset | str | Path, model: HybridModel | str | Path |
         data = load_data(data)
     d = data if isinstance(data, Data) else Data(data, {"n": data.n})
     ridge = DEFAULT_RIDGE
+    catalogue = fx.PROCESS
     if model is not None:
         m = model if isinstance(model, HybridModel) else load_map(model)
         effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
         session_terms = session_terms or tuple(getattr(m, "nuisance", ()))
-    names = session_names(d)
+        catalogue = m.catalogue or fx.PROCESS
+    d, names, ref = select_sessions(d, exclude_sessions, reference_session)
     ds = d.dataset
-    if exclude_sessions:
-        drop = {_session_index(v, names, "--exclude-session") for v in exclude_sessions}
-        keep = ~np.isin(ds.extra["session"].astype(int), list(drop))
-        if not keep.any():
-            raise DataError("--exclude-session: no session left")
-        d = Data(ds.select(np.flatnonzero(keep)), d.info | {"excluded_sessions": [names[s] for s in sorted(drop)]})
-        names = {s: n for s, n in names.items() if s not in drop}
-        ds = d.dataset
     chain = resolve_chain(robot)
     d.info.update(check_dataset(ds, chain, d.info.get("data")))
     prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs,
                            [model] if isinstance(model, (str, Path)) else [])
     session = ds.extra.get("session")
     session = session.astype(int) if session is not None and len(np.unique(session)) > 1 else None
-    ref = min(names) if names else 0
-    if reference_session is not None:
-        ref = _session_index(reference_session, names, "--reference-session")
     labels = refit_sessions(d)
     refit = set() if labels is None or session is None else {int(v) for v in np.unique(labels) if v >= 0}
     floor = floor_of(d)
-    from dt_runtime.models import effects as fx
-
     problem = Problem(fx.Inputs.of(ds), ds.error, groups_of(ds), chain, session, ds.actual, refit, gp_options,
-                      ridge, ref)
+                      ridge, ref, catalogue)
     return Prepared(d, problem, Config(tuple(effects), gp_inputs, tuple(session_terms)), robot, floor, names, prov)
 
 
-def session_names(d: Data) -> dict[int, str]:
-    """Each session's name: the import's (`info['session_files'][i]['name']`), else its file's."""
-    files = d.info.get("session_files") or []
-    return {i: str(f.get("name") or Path(f["file"]).name) for i, f in enumerate(files)}
+def _pose(p: Problem) -> np.ndarray:
+    return p.inp.joints if p.inp.joints is not None else p.inp.commanded
+
+
+def _n_joints(p: Problem) -> int:
+    return 0 if p.inp.joints is None else int(p.inp.joints.shape[1])
 
 
 def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
@@ -161,10 +144,9 @@ def _source(prep: Prepared) -> dict:
 def _plain(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alpha: float,
            progress: Progress | None) -> DiagnoseResult:
     p, cfg = prep.problem, prep.start
-    from dt_runtime.models import effects as fx
-
-    names = [c for c in (candidates or fx.names()) if c not in cfg.effects]
-    fx.check_names((*names, *cfg.effects))
+    cat = p.catalogue
+    names = [c for c in (candidates or cat.names()) if c not in cfg.effects]
+    cat.check_names((*names, *cfg.effects))
     cands, not_testable = testable(ev, names)
     eff, gps, _ = rank(ev, cfg, cands, gp_alternatives(p.inp, cfg.gp_inputs) if cfg.gp_inputs != "none" else [],
                        progress, alpha)
@@ -178,16 +160,16 @@ def _plain(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, al
                        base_group_mse=base.group_mse, base_residual=base.residual,
                        validation={"significance": ev.points.to_dict(), "deployment": ev.deploy.to_dict(),
                                    "time": ev.time.to_dict()})
-    r.columns = column_check(base.residual, p.groups, factor_columns(prep.data.dataset))
+    r.columns = column_check(base.residual, p.groups, factor_columns(prep.data.dataset), catalogue=cat,
+                             pose=_pose(p))
+    r.model_columns = sorted(read_columns(cfg.effects, cfg.gp_inputs, _n_joints(p), cat))
     return r
 
 
 def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alpha: float, min_explained: float,
           max_steps: int, progress: Progress | None, out: str | Path | None) -> AutoResult:
-    from dt_runtime.models import effects as fx
-
     p = prep.problem
-    fx.check_names((*(candidates or ()), *prep.start.effects))
+    p.catalogue.check_names((*(candidates or ()), *prep.start.effects))
     sel = select(ev, prep.start, candidates, alpha, min_explained, max_steps, prep.floor_m, progress)
     final = sel.final
     last = ev.cv(final, ev.points)
@@ -205,7 +187,9 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
                    validation={"significance": ev.points.to_dict(), "deployment": ev.deploy.to_dict(),
                                "time": ev.time.to_dict()},
                    source=_source(prep), provenance=prep.provenance)
-    r.columns = column_check(last.residual, p.groups, factor_columns(prep.data.dataset))
+    r.columns = column_check(last.residual, p.groups, factor_columns(prep.data.dataset), catalogue=p.catalogue,
+                             pose=_pose(p))
+    r.model_columns = sorted(read_columns(final.effects, final.gp_inputs, _n_joints(p), p.catalogue))
     if p.session is not None:
         from dt_runtime.analysis import sessions
 

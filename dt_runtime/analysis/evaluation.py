@@ -60,6 +60,7 @@ class Problem:
     gp_options: GPOptions | None = None
     ridge: float = DEFAULT_RIDGE
     reference_session: int = 0
+    catalogue: fx.Catalogue = fx.PROCESS  # the effects the names refer to (a loaded model's own included)
 
     @property
     def n(self) -> int:
@@ -89,11 +90,13 @@ class Evaluator:
     def model(self, cfg: Config) -> HybridModel:
         p = self.problem
         return HybridModel(cfg.effects, cfg.gp_inputs, ridge=p.ridge, seed=self.seed, robot=p.chain,
-                           gp_options=p.gp_options, nuisance=cfg.nuisance, reference_session=p.reference_session)
+                           gp_options=p.gp_options, nuisance=cfg.nuisance, reference_session=p.reference_session,
+                           catalogue=p.catalogue)
 
     def scheme_for(self, change: str | None) -> validation.Scheme:
         """The deployment scheme a change is judged on: time blocks for a time-dependent effect."""
-        if change and change in fx.names() and ({"time", "temperature"} & set(fx.get(change).drives())):
+        cat = self.problem.catalogue
+        if change and change in cat.names() and ({"time", "temperature"} & set(cat.get(change).drives())):
             return self.time
         return self.deploy
 

@@ -75,7 +75,10 @@ def rank(ev: Evaluator, cfg: Config, candidates: list[str], gp_inputs: list[str]
     results = ev.cv_many([(changed(cfg, kind, c), ev.points, base.log_hypers if kind != "gp_inputs" else None)
                           for kind, c in steps])
     for (kind, c), res in zip(steps, results):
-        out[kind].append(gain(kind, c, base, res, alpha))
+        g = gain(kind, c, base, res, alpha)
+        if kind == "effect":
+            g.factor = ev.problem.catalogue.get(c).factor
+        out[kind].append(g)
     for ranking in out.values():
         ranking.sort(key=lambda r: (not r.significant, -r.explained_fraction))
     return out["effect"], out["gp_inputs"], out["session"]

@@ -63,6 +63,7 @@ class Gain:
     deploy_kind: str | None = None
     deploy_rmse_before_mm: float | None = None
     deploy_rmse_after_mm: float | None = None
+    factor: str | None = None  # what the residual follows when this effect is missing (Effect.factor)
 
     @property
     def deploys(self) -> bool | None:
@@ -75,6 +76,8 @@ class Gain:
         d = {self.kind: self.candidate, "explained_fraction": self.explained_fraction,
              "p_value": self.p_value, "rmse_before_mm": self.rmse_before_mm,
              "rmse_after_mm": self.rmse_after_mm, "significant": self.significant}
+        if self.factor is not None:
+            d["factor"] = self.factor
         if self.deploy_kind is not None:
             d |= {"deploy_kind": self.deploy_kind, "deploy_rmse_before_mm": self.deploy_rmse_before_mm,
                   "deploy_rmse_after_mm": self.deploy_rmse_after_mm}
@@ -104,6 +107,7 @@ class DiagnoseResult:
     base_residual: Any = None  # the starting model's held-out residual per row (m; not in the JSON)
     columns: list = field(default_factory=list)  # column_check: what the held-out residual follows
     validation: dict = field(default_factory=dict)  # the schemes: significance (points), deployment, time
+    model_columns: list = field(default_factory=list)  # the columns the starting model reads
 
     @property
     def top(self) -> Gain | None:
@@ -114,7 +118,8 @@ class DiagnoseResult:
                          "n_groups": self.n_groups, "folds": self.folds, "rmse_base_mm": self.rmse_base_mm,
                          "noise_floor_mm": self.noise_floor_mm, "ranking": self.ranking,
                          "gp_inputs_ranking": self.gp_inputs_ranking, "not_testable": self.not_testable,
-                         "columns": self.columns, "validation": self.validation, **self.source,
+                         "columns": self.columns, "model_columns": self.model_columns,
+                         "validation": self.validation, **self.source,
                          "provenance": self.provenance})
 
 
@@ -148,6 +153,7 @@ class AutoResult:
     source: dict = field(default_factory=dict)
     provenance: Provenance | None = None
     columns: list = field(default_factory=list)  # column_check on the final model's held-out residual
+    model_columns: list = field(default_factory=list)  # the columns the final model reads
     sessions: list = field(default_factory=list)  # each session held out: final (and start) vs as is
     session_terms_tested: list = field(default_factory=list)
     session_term_values: list = field(default_factory=list)

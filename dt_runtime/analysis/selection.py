@@ -34,7 +34,6 @@ from dt_runtime.analysis.results import Gain
 from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.progress import Progress
 from dt_runtime.metrology.stats import rms3
-from dt_runtime.models import effects as fx
 
 FLOOR_STOP = 1.05  # a held-out RMS within this factor of the noise floor: nothing left to find
 MAX_RIVALS = 2  # qualifying effects tested head to head against the best one, at most
@@ -57,6 +56,7 @@ class Step:
     alpha: float  # the step's significance level (alpha / number of changes tested)
     change_deploy_kind: str | None = None  # the scheme the change was judged on (time blocks for a time term)
     change_deploy_rmse_mm: tuple[float, float] | None = None  # that figure before and after the change
+    follows: str | None = None  # what the residual followed, for an added effect (Effect.factor)
     rejected: list[dict] = field(default_factory=list)
     head_to_head: list[dict] = field(default_factory=list)
 
@@ -88,14 +88,15 @@ def _change(g: Gain) -> str:
 def testable(ev: Evaluator, candidates: list[str]) -> tuple[list[str], list[dict]]:
     """The candidates the data allow and can separate from the pose, and the others with why."""
     p = ev.problem
-    allowed = fx.available(p.inp, p.chain)
+    cat = p.catalogue
+    allowed = cat.available(p.inp, p.chain)
     out, skipped = [], []
     for c in candidates:
         if c not in allowed:
-            skipped.append({"candidate": c, "reason": "columns", "needs": list(fx.get(c).reads(p.chain)),
-                            "needs_chain": fx.get(c).needs_chain and p.chain is None})
+            skipped.append({"candidate": c, "reason": "columns", "needs": list(cat.get(c).reads(p.chain)),
+                            "needs_chain": cat.get(c).needs_chain and p.chain is None})
     ok = [c for c in candidates if c in allowed]
-    findings = confounding.check(ok, p.inp, p.groups, p.chain)
+    findings = confounding.check(ok, p.inp, p.groups, cat)
     bad = {f.candidate for f in findings if not f.testable}
     for c in ok:
         if c in bad:
@@ -114,7 +115,7 @@ def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float) -> tu
     top = ok[0]
     records = []
     for rival in [g for g in ok[1:] if g.kind == "effect"][:MAX_RIVALS]:
-        shared = confounding.competing(top.candidate, rival.candidate, ev.problem.inp)
+        shared = confounding.competing(top.candidate, rival.candidate, ev.problem.inp, ev.problem.catalogue)
         if shared is None:
             continue
         a, b = cfg.plus(top.candidate), cfg.plus(rival.candidate)
@@ -144,7 +145,7 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
     p = ev.problem
     cfg = start
     steps: list[Step] = []
-    names = [c for c in (candidates or fx.names())]
+    names = list(candidates or p.catalogue.names())
     cands, not_testable = testable(ev, names)
     session_gains: list[Gain] = []
     terms: list[str] = []
@@ -200,6 +201,7 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
             stop = "nothing passes"
             break
         step.change, step.p_value, step.explained_fraction = _change(chosen), chosen.p_value, chosen.explained_fraction
+        step.follows = chosen.factor
         if chosen.deploy_rmse_before_mm is not None and chosen.deploy_rmse_after_mm is not None:
             step.change_deploy_kind = chosen.deploy_kind
             step.change_deploy_rmse_mm = (chosen.deploy_rmse_before_mm, chosen.deploy_rmse_after_mm)

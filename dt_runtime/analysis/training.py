@@ -8,7 +8,7 @@ from pathlib import Path
 
 from dt_kernel.units import MM_PER_M
 from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
-from dt_runtime.analysis.data import Data
+from dt_runtime.analysis.data import Data, select_sessions
 from dt_runtime.analysis.results import FitResult
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Provenance, build, files_under, load_instruments
@@ -24,12 +24,16 @@ from dt_runtime.models.hybrid import HybridModel, resolve_chain
 def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | None, out: str | Path,
         seed: int = 0, cv_folds: int = 0, gp_options: GPOptions | None = None,
         progress: Progress | None = None, instruments: str | Path | None = None,
-        inputs: Sequence[str | Path] = ()) -> FitResult:
+        inputs: Sequence[str | Path] = (), session_terms: tuple[str, ...] = (),
+        exclude_sessions: Sequence[str | int] = (), reference_session: str | int | None = None) -> FitResult:
     """Train and save the hybrid model; with cv_folds > 1 also its held-out RMS (grouped CV).
     The model and the result carry the traceability record (`provenance`): the data file, its
     simulation sidecar and `inputs` (e.g. the import mapping) hashed, the robot config, the
-    instruments of the `instruments` YAML and the temperature range of the data."""
+    instruments of the `instruments` YAML and the temperature range of the data. Several sessions:
+    `session_terms` fitted as nuisance (never deployed; against `reference_session`), and
+    `exclude_sessions` left out."""
     progress = progress or Progress(enabled=False)
+    d, _, ref = select_sessions(d, exclude_sessions, reference_session)
     ds = d.dataset
     # The joints are checked against the robot config when the model reads them.
     chain = resolve_chain(robot) if any(fx.get(e).needs_chain or fx.get(e).uses_chain for e in effects) else None
@@ -38,7 +42,8 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
                                 d.info.get("data")))
     prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs)
     t0 = time.perf_counter()
-    model = HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options)
+    model = HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options,
+                        nuisance=tuple(session_terms), reference_session=ref)
     progress.note(f"fitting effects [{', '.join(effects) or 'none'}] + GP on {gp_inputs} to {ds.n} rows")
     model.fit(ds)
     seconds = time.perf_counter() - t0

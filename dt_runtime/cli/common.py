@@ -98,8 +98,9 @@ def add_session_args(q: argparse.ArgumentParser) -> None:
     q.add_argument("--reference-session", default=None, metavar="NAME",
                    help="the session the session terms are measured against (default the first)")
     q.add_argument("--session-term", default="", metavar="TERM,...",
-                   help="fit session terms as nuisance, never deployed: tool (a re-mounted SMR/tool), base (the "
-                        "set-up's rigid part), joints (changed joint zeros)")
+                   help="fit session terms as nuisance, never deployed (the model predicts the reference session's "
+                        "robot): tool (a re-mounted SMR/tool), base (the set-up's rigid part), joints (changed joint "
+                        "zeros)")
 
 
 def add_mpe_arg(q: argparse.ArgumentParser) -> None:

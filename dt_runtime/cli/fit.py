@@ -12,6 +12,7 @@ from dt_runtime.cli.common import (
     add_data_args,
     add_effects_file_arg,
     add_output_args,
+    add_session_args,
     cv_folds,
     input_files,
     load,
@@ -28,6 +29,7 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
     ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")
     ft.add_argument("--cv", type=cv_folds, default=0, metavar="K",
                     help="also report the held-out RMS by K-fold CV grouped by target point")
+    add_session_args(ft)
     ft.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
                          "recorded in the provenance")
@@ -41,7 +43,8 @@ def run(args: argparse.Namespace) -> Any:
     d = load(args)
     return fit(d, names(args.effects), args.gp_inputs, robot_of(args, d), args.out,
                seed=args.seed, cv_folds=args.cv, progress=progress(args), instruments=args.instruments,
-               inputs=input_files(args))
+               inputs=input_files(args), session_terms=names(args.session_term),
+               exclude_sessions=names(args.exclude_session), reference_session=args.reference_session)
 
 
 def human(result: dict) -> str:

@@ -111,12 +111,13 @@ class HybridModel(RegressorMixin, BaseEstimator):
     MultiOutputGP's defaults); nuisance: session terms (models.effects.session: 'tool', 'base',
     'joints') fitted per session of the training data (the `session` column) and never deployed:
     rows without a session, or of the `reference_session`, get none, so the map predicts the
-    reference session's robot.
+    reference session's robot; catalogue: the effects the names refer to (`effects.Catalogue`,
+    default the process's; a loaded model's carries its declared effects).
     """
 
     def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", ridge: float = DEFAULT_RIDGE,
                  seed: int = 0, robot: str | Path | Chain | None = None, gp_options: GPOptions | None = None,
-                 nuisance: tuple[str, ...] = (), reference_session: int = 0):
+                 nuisance: tuple[str, ...] = (), reference_session: int = 0, catalogue: fx.Catalogue | None = None):
         self.effects = effects
         self.gp_inputs = gp_inputs
         self.ridge = ridge
@@ -125,6 +126,12 @@ class HybridModel(RegressorMixin, BaseEstimator):
         self.gp_options = gp_options
         self.nuisance = nuisance
         self.reference_session = reference_session
+        self.catalogue = catalogue
+
+    def effect(self, name: str) -> fx.Effect:
+        """An effect by name from the model's catalogue (a loaded model's own declared effects,
+        else the process's: models.effects.Catalogue)."""
+        return (self.catalogue or fx.PROCESS).get(name)
 
     def unfitted(self, **changes) -> HybridModel:
         """An unfitted model with this one's parameters, `changes` applied (sklearn.base.clone
@@ -132,7 +139,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         return type(self)(**(self.get_params(deep=False) | changes))
 
     def _check_params(self) -> GPOptions:
-        fx.check_names(self.effects)
+        (self.catalogue or fx.PROCESS).check_names(self.effects)
         if self.gp_inputs not in GP_INPUTS:
             raise DataError(f"unknown GP inputs '{self.gp_inputs}'; allowed: {', '.join(GP_INPUTS)}")
         bad = [t for t in self.nuisance if t not in session_terms.TERMS]
@@ -152,14 +159,15 @@ class HybridModel(RegressorMixin, BaseEstimator):
         (the thermal lag): a fitted model's; else estimated on (X, y) by profile likelihood
         (models.hyper) when the error y is given; else their defaults."""
         inp = as_inputs(X)
-        fx.check_names(self.effects)
+        cat = self.catalogue or fx.PROCESS
+        cat.check_names(self.effects)
         if inp.t_origin is None and getattr(self, "t_origin_", None) is not None:
             inp = replace(inp, t_origin=self.t_origin_)
         chain = self._effects_chain()
         hyper = getattr(self, "hyper_", None)
         if hyper is None:
-            hyper = hp.profile(self.effects, inp, y, chain, self.ridge) if y is not None else {}
-        blocks = [fx.build(e, inp, chain, {k: v.value for k, v in hyper.get(e, {}).items()}) for e in self.effects]
+            hyper = hp.profile(self.effects, inp, y, chain, self.ridge, cat) if y is not None else {}
+        blocks = [cat.build(e, inp, chain, {k: v.value for k, v in hyper.get(e, {}).items()}) for e in self.effects]
         sessions: tuple[int, ...] = ()
         if self.nuisance:
             sessions = getattr(self, "nuisance_sessions_", None) or self._sessions_of(inp)
@@ -387,13 +395,13 @@ class HybridModel(RegressorMixin, BaseEstimator):
     def _effects_chain(self) -> Chain | None:
         """The chain the effect terms read: only joint-space effects, or those that use it when
         given (per-link thermal), read the robot config (a GP-only map works without it)."""
-        used = any(fx.get(e).needs_chain or fx.get(e).uses_chain for e in self.effects)
+        used = any(self.effect(e).needs_chain or self.effect(e).uses_chain for e in self.effects)
         return resolve_chain(self.robot) if used else None
 
     def needs(self) -> tuple[str, ...]:
         """The input columns (effects.Inputs fields) a prediction reads beside the commanded TCP."""
         chain = self._effects_chain()
-        cols = {c for e in self.effects for c in fx.get(e).reads(chain)}
+        cols = {c for e in self.effects for c in self.effect(e).reads(chain)}
         cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(self.gp_inputs, set())
         if self.lag_s() > 0:
             cols |= {"t"}  # the structure's temperature follows the logged one with time
@@ -447,7 +455,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
             rows.append(row)
         for effect, params in getattr(self, "hyper_", {}).items():
             for name, est in params.items():
-                choices = fx.get(effect).hyper_choices.get(name)
+                choices = self.effect(effect).hyper_choices.get(name)
                 if choices:  # an alternative the model uses, chosen by profile likelihood
                     rows.append({"effect": effect, "name": name, "value": est.value, "u": None, "unit": "",
                                  "choice": choices[int(round(est.value))], "identified": est.identified,
@@ -518,8 +526,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         """Write hybrid.json (with the traceability record `provenance`, default
         `self.provenance()`), hybrid.npz and the GP."""
         self._check_fitted()
-        if isinstance(self.robot, Chain) and (self.nuisance or any(fx.get(e).needs_chain or fx.get(e).uses_chain
-                                                                   for e in self.effects)):
+        chained = any(self.effect(e).needs_chain or self.effect(e).uses_chain for e in self.effects)
+        if isinstance(self.robot, Chain) and (self.nuisance or chained):
             raise ModelError("a model given its kinematic chain as an object cannot be saved; "
                              "give robot as the path of a robot config")
         bad = [k for k, v in (("theta", self.theta_), ("theta_u", self.theta_u_), ("theta_cov", self.theta_cov_))
@@ -533,8 +541,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         meta = {"format_version": FORMAT_VERSION, "kind": "cobot-dt hybrid error model",
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
                 # The user's declared effects travel with the model (it loads without their file).
-                "declared_effects": [eff.spec.model_dump(mode="json") for eff in map(fx.get, self.effects)
-                                     if isinstance(eff, fx.declared.DeclaredEffect)],
+                "declared_effects": [eff.spec.model_dump(mode="json")
+                                     for eff in (self.catalogue or fx.PROCESS).declared(self.effects)],
                 "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
                 "nuisance": list(self.nuisance), "reference_session": self.reference_session,
                 "nuisance_sessions": list(getattr(self, "nuisance_sessions_", ())),
@@ -574,16 +582,21 @@ class HybridModel(RegressorMixin, BaseEstimator):
         meta = read_meta(d / "hybrid.json", FORMAT_VERSION, "model")
         ref = meta.get("robot")
         try:
-            for spec in meta.get("declared_effects") or []:
-                fx.register(fx.declared.from_dict(spec), source=f"model {d}")
-            fx.check_names(meta["effects"])  # a plugin effect whose package is not installed
+            # The model's declared effects stay its own (not registered in the process).
+            own = {e.name: e for e in map(fx.declared.from_dict, meta.get("declared_effects") or [])}
+            clash = [n for n in own if n in fx.REGISTRY]
+            if clash:
+                raise DataError(f"declared effect(s) {', '.join(clash)} have a catalogue effect's name")
+            catalogue = fx.Catalogue(own) if own else None
+            (catalogue or fx.PROCESS).check_names(meta["effects"])  # a plugin effect whose package is not installed
         except (DataError, ConfigError) as exc:
             raise ModelError(f"{d / 'hybrid.json'}: {exc}") from exc
         # Models saved before GPOptions carry only the overridden options as "gp_kw".
         options = GPOptions.from_dict(meta["gp_options"] if "gp_options" in meta else meta.get("gp_kw"))
         m = cls(tuple(meta["effects"]), meta["gp_inputs"], meta["ridge"], meta["seed"],
                 robot=ref, gp_options=options,
-                nuisance=tuple(meta.get("nuisance") or ()), reference_session=int(meta.get("reference_session", 0)))
+                nuisance=tuple(meta.get("nuisance") or ()), reference_session=int(meta.get("reference_session", 0)),
+                catalogue=catalogue)
         m.nuisance_sessions_ = tuple(int(v) for v in meta.get("nuisance_sessions") or ())
         arr = load_npz(d / "hybrid.npz", ("theta", "theta_u", "theta_cov"))  # checked before reading
         m.robot_, m.gp_options_ = ref, options

@@ -90,21 +90,22 @@ class FixedPart:
 
 
 def profile(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, chain: Chain | None,
-            ridge: float) -> dict[str, dict[str, Estimate]]:
+            ridge: float, catalogue: fx.Catalogue | None = None) -> dict[str, dict[str, Estimate]]:
     """The nonlinear parameters of `effects` (each at its profile-likelihood estimate: an effect's
     parameters one after the other, each with the ones before it at their estimates and the others'
     at their defaults), {effect: {parameter: Estimate}}. Effects whose
     parameters the inputs cannot inform (the thermal lag without a time column) are left out
     (their defaults apply)."""
     out: dict[str, dict[str, Estimate]] = {}
-    wanted = [e for e in effects if fx.get(e).hyper and inp.has(*fx.get(e).hyper_columns)]
+    cat = catalogue or fx.PROCESS
+    wanted = [e for e in effects if cat.get(e).hyper and inp.has(*cat.get(e).hyper_columns)]
     if not wanted:
         return out
     y = np.asarray(error, dtype=float).ravel()
-    fixed = [fx.build(e, inp, chain).A for e in effects if e not in wanted]
+    fixed = [cat.build(e, inp, chain).A for e in effects if e not in wanted]
     for name in wanted:
-        eff = fx.get(name)
-        others = [fx.build(e, inp, chain).A for e in wanted if e != name]
+        eff = cat.get(name)
+        others = [cat.build(e, inp, chain).A for e in wanted if e != name]
         base = np.concatenate(fixed + others, axis=2) if fixed or others else np.zeros((inp.n, 3, 0))
         # Only the profiled effect's block changes between grid values: the rest once (FixedPart).
         part = FixedPart(base.reshape(len(y), -1), y, ridge)

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from dt_runtime.models import effects as fx
-
 
 def verdict(result: Any) -> str:
     """The verdict of a diagnosis result (analysis.results.DiagnoseResult or AutoResult, or its
@@ -82,24 +80,19 @@ def column_sentence(checks: list[dict], model_columns: set[str]) -> str:
         return ""
     text = (f" The held-out residual follows the column '{top['column']}' (p = {top['p_value']:.2g}, "
             f"{100 * top['explained_fraction']:.0f} % of its variance over the points)")
+    r2 = top.get("pose_r2")
+    if r2 is not None and r2 > 0.9:
+        return text + (f", but the column itself followed the pose (R^2 {r2:.2f}): the residual may follow the "
+                       "position instead, which this campaign cannot tell apart; measure the same poses at other "
+                       f"values of '{top['column']}'.")
     if top["column"] in ("speed", "temperature", "payload", "t") or top["column"].startswith("q"):
         return text + "."
     # The user's own effects that read it were candidates and did not make it: their form is wrong.
-    own = sorted(name for name, e in fx.user_effects().items() if top["column"] in e.columns)
+    own = top.get("read_by") or []
     if own:
         return text + (f": your effect(s) {', '.join(own)} read it but did not explain a significant part; the "
                        "error follows it in another form (another axis, joint-space, a lag?).")
     return text + ": no effect of the catalogue reads it; declare an effect of your own."
-
-
-def _model_columns(effects: list[str], gp_inputs: str, n_joints: int) -> set[str]:
-    from dt_runtime.analysis.columns import read_columns
-
-    return read_columns(effects, gp_inputs, n_joints)
-
-
-def _n_joints(d: dict) -> int:
-    return sum(1 for c in d.get("columns", []) if c["column"].startswith("q") and c["column"][1:].isdigit())
 
 
 def ranking_verdict(d: dict) -> str:
@@ -110,7 +103,7 @@ def ranking_verdict(d: dict) -> str:
     if top and top["significant"]:
         text = (f"The model lacks '{top['effect']}': adding it explains {100 * top['explained_fraction']:.0f} % of "
                 f"the held-out residual variance (p = {top['p_value']:.2g}), because the residual follows "
-                f"{fx.get(top['effect']).factor}{_deploy_clause(top)}.")
+                f"{top.get('factor') or 'its factor'}{_deploy_clause(top)}.")
     else:
         text = "No candidate effect explains a significant part of the held-out residual (all p >= 0.01)"
         text += (f"; the residual ({before:.3f} mm RMS) is at the measurement noise floor ({floor:.3f} mm)."
@@ -123,15 +116,16 @@ def ranking_verdict(d: dict) -> str:
                  f"{100 * g['explained_fraction']:.0f} % (p = {g['p_value']:.2g}){_deploy_clause(g)}: "
                  f"fit with gp_inputs='{g['gp_inputs']}' (dt fit --gp-inputs {g['gp_inputs']}).")
     text += not_testable_sentences(d.get("not_testable", []))
-    text += column_sentence(d.get("columns", []), _model_columns(d["base_effects"], d["gp_inputs"], _n_joints(d)))
+    text += column_sentence(d.get("columns", []), set(d.get("model_columns", [])))
     return text
 
 
-def _follows(change: str) -> str:
+def _follows(step: dict) -> str:
+    change = step["change"]
     if change.startswith("+session "):
         return ": the sessions differ by " + SESSION_TERM[change.split()[-1]]
-    if change.startswith("+"):
-        return f": the residual followed {fx.get(change[1:]).factor}"
+    if step.get("follows"):
+        return f": the residual followed {step['follows']}"
     return ""
 
 
@@ -206,7 +200,7 @@ def auto_verdict(d: dict) -> str:
     kind = d["deploy_kind"]
     if steps:
         why = "; ".join(f"{s['change']} (explains {100 * (s['explained_fraction'] or 0):.0f} %, p = {s['p_value']:.2g}"
-                        + _follows(s["change"]) + ")" for s in steps)
+                        + _follows(s) + ")" for s in steps)
         text = (f"Added {', '.join(d['added'])}: the 3D RMS held out by point fell from {first:.4f} to {final:.4f} mm, "
                 f"on {SCHEME[kind]} from {d['steps'][0]['deploy_rmse_mm']:.4f} to {d['final_deploy_rmse_mm']:.4f} mm "
                 f"({why}). Each step was significant by point and lowered the RMS on {SCHEME[kind]}"
@@ -228,7 +222,7 @@ def auto_verdict(d: dict) -> str:
                  f"{r['deploy_rmse_before_mm']:.4f} -> {r['deploy_rmse_after_mm']:.4f} mm): not added (it fits the "
                  "campaign, not the next measurements).")
     text += not_testable_sentences(d.get("not_testable", []))
-    text += column_sentence(d.get("columns", []), _model_columns(d["effects"], d["gp_inputs"], _n_joints(d)))
+    text += column_sentence(d.get("columns", []), set(d.get("model_columns", [])))
     text += session_sentences(d)
     text += _floor_sentence(d)
     text += _deploy_sentence(d)
@@ -249,8 +243,8 @@ def _floor_sentence(d: dict) -> str:
     return (f" Stopped: nothing more passes; the residual is still {ratio:.1f}x the noise floor ({floor:.4f} mm{src}) "
             "and no candidate of the catalogue explains a significant part of it that holds on new measurements: "
             "something the catalogue does not know is missing"
-            + (" (see the column above)." if column_sentence(d.get("columns", []), _model_columns(
-                d["effects"], d["gp_inputs"], _n_joints(d))) else
+            + (" (see the column above)." if column_sentence(d.get("columns", []), set(d.get("model_columns", [])))
+               else
                " (no column of the data explains it either: a factor that was not logged?)."))
 
 

@@ -120,10 +120,8 @@ def correct_program(twin: Twin, program: Program) -> list[Correction]:
 
 def declared_readers(twin: Twin, columns: list[str]) -> list[str]:
     """The effects of the twin's maps that read any of `columns` (for the error message)."""
-    from dt_runtime.models import effects as fx
-
-    effects = dict.fromkeys((*twin.e_lt.effects, *twin.e_mvs_lt.effects))
-    return [e for e in effects if set(fx.get(e).columns) & set(columns)]
+    models = {e: m for m in (twin.e_lt, twin.e_mvs_lt) for e in m.effects}
+    return [e for e, m in models.items() if set(m.effect(e).columns) & set(columns)]
 
 
 def write_corrected(path: str | Path, program: Program, corrections: list[Correction]) -> Path:

@@ -16,6 +16,7 @@ package's entry point, `models.effects.declared`) are registered beside the cata
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from types import MappingProxyType
 
 from dt_kernel.errors import ConfigError, DataError
@@ -39,8 +40,9 @@ _USER: dict[str, Effect] = {}
 _SOURCE: dict[str, str] = {}  # name -> where it came from ("entry point x", a YAML file, a saved model)
 _entry_points_loaded = False
 
-__all__ = ["REGISTRY", "Block", "Effect", "Inputs", "as_inputs", "available", "build", "check_names", "get", "names",
-           "register", "register_file", "reload_entry_points", "unregister", "user_effects"]
+__all__ = ["PROCESS", "REGISTRY", "Block", "Catalogue", "Effect", "Inputs", "as_inputs", "available", "build",
+           "check_names", "get", "names", "register", "register_file", "reload_entry_points", "unregister",
+           "user_effects"]
 
 
 def _load_entry_points() -> None:
@@ -148,3 +150,45 @@ def build(name: str, inp: Inputs, chain: Chain | None, hyper: dict[str, float] |
 def available(inp: Inputs, chain: Chain | None) -> list[str]:
     """Effects whose regressors the data's columns (and the kinematic model) allow."""
     return [name for name in names() if get(name).allowed(inp, chain)]
+
+
+class Catalogue:
+    """The effects one model or one diagnosis knows: the process's (the catalogue, installed
+    plugins, the --effects-file declarations) and its own (a saved model's declared effects). A
+    loaded model carries its own in its catalogue instead of registering them in the process, so
+    loading a model does not change what another diagnosis tests."""
+
+    def __init__(self, own: Mapping[str, Effect] | None = None):
+        self.own: dict[str, Effect] = dict(own or {})
+
+    def names(self) -> tuple[str, ...]:
+        base = names()
+        return (*base, *(n for n in self.own if n not in base))
+
+    def get(self, name: str) -> Effect:
+        if name in self.own:
+            return self.own[name]
+        return get(name)
+
+    def check_names(self, effects) -> None:
+        unknown = [e for e in effects if e not in self.own and e not in names()]
+        if unknown:
+            known = self.names()
+            raise DataError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(known)} (declare your own "
+                            "with --effects-file, docs/effects.md)")
+
+    def build(self, name: str, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
+        return self.get(name).build(inp, chain, hyper)
+
+    def available(self, inp: Inputs, chain: Chain | None) -> list[str]:
+        return [n for n in self.names() if self.get(n).allowed(inp, chain)]
+
+    def user_effects(self) -> dict[str, Effect]:
+        return user_effects() | self.own
+
+    def declared(self, effects) -> list[declared.DeclaredEffect]:
+        """The declared (YAML) effects among `effects`: what a saved model carries."""
+        return [e for e in map(self.get, effects) if isinstance(e, declared.DeclaredEffect)]
+
+
+PROCESS = Catalogue()  # the process's effects, no model's own
