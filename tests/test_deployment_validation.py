@@ -72,6 +72,11 @@ def test_a_remounted_smr_is_named_with_its_offset_and_the_deployed_model_beats_n
     assert out["deploy"]["ok"] and out["verdict"].rfind(" Deploy:") > out["verdict"].rfind(" Stopped")
     assert (model / "hybrid.json").is_file() and json.loads((model / "diagnose.json").read_text())["added"] == \
         out["added"]
+    # the saved model goes on to the kinematic export (its session terms stay behind)
+    rc = main(["export", "--model", str(model), "--format", "urdf", "--out", str(remounted["out"] / "arm.urdf"),
+               "--json", "--no-progress"])
+    exported = json.loads(capsys.readouterr().out)
+    assert rc == 0 and exported["fk_check"]["max_mm"] < 0.01, exported["fk_check"]
     # The deployed model on new task sessions (the first mounting): better than no correction, where
     # the same model fitted without the session term is worse than no correction.
     fits = {"plain": [], "nuisance": ["--session-term", "tool"], "excluded": ["--exclude-session", "remounted"]}

@@ -104,7 +104,8 @@ def run(args: argparse.Namespace) -> Any:
         raise DataError(f"dt calibrate: {'.'.join(map(str, err['loc']))}: {err['msg']}") from exc
     lt_model = None
     if args.model:
-        lt_model = load_map(args.model).unfitted(seed=seed)
+        # the model's configuration as deployed: session terms are nuisance (one campaign here)
+        lt_model = load_map(args.model).unfitted(seed=seed, nuisance=())
         if files.robot is None and lt_model.robot is not None:
             files = dataclasses.replace(files, robot=str(lt_model.robot))
     prog = progress(args)
