@@ -42,6 +42,7 @@ from scipy import linalg, optimize
 
 from dt_kernel.errors import DataError, ModelError
 from dt_runtime.common.safe_npz import load_npz
+from dt_runtime.common.threads import blas_limited
 from dt_runtime.models.estimator import Params
 from dt_runtime.models.gp_math import collapse, collapsed_nll, farthest_points, inv_from_chol, se_kernel, sq_dists
 from dt_runtime.models.gp_predictor import FastPredictor
@@ -110,6 +111,7 @@ class GPRegressor(Params):
         self.n_hyper = n_hyper
 
     # --- fit ----------------------------------------------------------------------------
+    @blas_limited  # BLAS on one thread inside (common.threads), the caller's setting restored
     def fit(self, X, y, theta=None, start=None) -> GPRegressor:
         """Learn hyperparameters and the posterior. With `theta` (the standardised log-
         parameters, see `theta_`) the hyperparameters are kept and only the posterior is built.
@@ -267,6 +269,7 @@ class GPRegressor(Params):
         if not hasattr(self, "theta_"):
             raise ModelError(f"{type(self).__name__} is not fitted; call fit(X, y) first")
 
+    @blas_limited
     def predict(self, X, return_std: bool = False):
         """Mean (n,) and, with return_std, the standard deviation (n,) of the latent error map."""
         self._check_fitted()
@@ -368,6 +371,7 @@ class MultiOutputGP(Params):
 
     _GP_PARAMS = tuple(GPOptions.__dataclass_fields__)  # the options GPRegressor takes
 
+    @blas_limited
     def fit(self, X, Y, *, input_names=None, output_names=None, thetas=None, starts=None) -> MultiOutputGP:
         """One GP per column of Y. thetas: fixed standardised hyperparameters per output (only
         the posterior is built); starts: warm starts per output (`log_hyper_`, GPRegressor.fit)."""
@@ -409,6 +413,7 @@ class MultiOutputGP(Params):
         if not hasattr(self, "models_"):
             raise ModelError("MultiOutputGP is not fitted; call fit(X, Y) or load(stem) first")
 
+    @blas_limited
     def predict(self, X, return_std: bool = False):
         """(n, k) means and, with return_std, (n, k) latent standard deviations."""
         self._check_fitted()

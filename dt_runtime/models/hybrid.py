@@ -33,6 +33,7 @@ from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.provenance import Environment, Provenance
 from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.common.safe_npz import load_npz
+from dt_runtime.common.threads import blas_limited
 from dt_runtime.frames.kinematics import Chain, load_robot
 from dt_runtime.models import effects as fx
 from dt_runtime.models import hyper as hp
@@ -161,6 +162,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
                       tuple((b.effect, nm, u, b.report) for b in blocks for nm, u in zip(b.names, b.units)),
                       np.array([b.nonnegative for b in blocks for _ in b.names], dtype=bool), hyper)
 
+    @blas_limited  # BLAS on one thread inside (common.threads), the caller's setting restored
     def fit(self, X, y=None, *, design: Design | None = None, thetas=None, starts=None) -> HybridModel:
         """Fit on X (a Dataset, effects.Inputs or (n, 3) commanded TCP array); y: the error
         e = commanded - measured (n, 3) m, default X.error for a Dataset. design: prebuilt
@@ -306,6 +308,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
             self.at_bound_ = np.zeros(p, bool)
         return theta, Hinv @ N @ Hinv
 
+    @blas_limited
     def predict(self, X, return_std: bool = False, *, design: Design | None = None):
         """Predicted error (n, 3) m and, with return_std, its standard uncertainty per axis: the
         GP's latent standard deviation and the effect parameters' covariance propagated through
