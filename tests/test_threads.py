@@ -30,13 +30,13 @@ def two_threads(monkeypatch):
 
 def test_fits_and_cross_validation_run_on_one_thread_and_restore_the_callers(two_threads, monkeypatch):
     seen = []
-    orig = gpmod.collapse
+    orig = gpmod.collapsed_factor
 
     def spy(*a, **k):  # inside every GP fit
         seen.append(tuple(counts()))
         return orig(*a, **k)
 
-    monkeypatch.setattr(gpmod, "collapse", spy)
+    monkeypatch.setattr(gpmod, "collapsed_factor", spy)
     rng = np.random.default_rng(0)
     X = rng.uniform(-1, 1, (60, 3))
     Y = np.column_stack([np.sin(2 * X[:, 0]), X[:, 1] * X[:, 2], np.cos(X[:, 2])]) * 1e-3

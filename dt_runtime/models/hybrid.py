@@ -269,7 +269,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
 
         With rows grouped by distinct GP input (Z), Sigma = Z K_f Z' + s_n^2 I, and
         a' Sigma^-1 b = (a - abar)'(b - bbar) / s_n^2 + abar' (K_f + s_n^2 W^-1)^-1 bbar, where
-        the last inverse is the GP's own `_Q` (W: replicate counts); all in the GP's standardised
+        the last inverse is the GP's own (`_precision_dot`; W: replicate counts); all in the GP's standardised
         units, so divided by its y scale squared."""
         gps = self.gp_.models_ if self.gp_ is not None else []
         if not gps or any(g.sparse_ for g in gps):
@@ -288,8 +288,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 / cnt[:, None]
             ybar = np.bincount(inv, weights=ya, minlength=len(cnt)) / cnt
             Aw, yw = Aa - Abar[inv], ya - ybar[inv]
-            N += (Aw.T @ Aw / sn2 + Abar.T @ g._Q @ Abar) / ys2
-            r += (Aw.T @ yw / sn2 + Abar.T @ g._Q @ ybar) / ys2
+            QA = g._precision_dot(np.column_stack([Abar, ybar]))  # K^-1 [Abar, ybar]
+            N += (Aw.T @ Aw / sn2 + Abar.T @ QA[:, :p]) / ys2
+            r += (Aw.T @ yw / sn2 + Abar.T @ QA[:, p]) / ys2
         # The same relative ridge as the ordinary fit (its penalty against As' As).
         lam_g = lam * np.trace(N) / max(float(np.sum(As3 ** 2)), 1e-300)
         Hg = N + lam_g * np.eye(p)
