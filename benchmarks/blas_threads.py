@@ -16,7 +16,7 @@ CPU time per call, the thread count changed and restored each time).
 
 Keys: cores, load_processes, ours_s, ours_cpu_s, baseline_s, baseline_cpu_s, baseline_timed_out,
 speedup (baseline / ours, wall), reference_one_thread_s, enter_exit_us, nested_enter_exit_us,
-doctest_failed (per session)."""
+doctest_failed and load_avg_end (the 1-minute load average as each session ended)."""
 from __future__ import annotations
 
 import json
@@ -51,17 +51,19 @@ def user_env(**extra: str) -> dict:
 
 
 def session(env: dict, timeout: float) -> dict:
-    """The library session in a fresh process: its wall and CPU seconds, or the timeout."""
+    """The library session in a fresh process: its wall and CPU seconds, or the timeout, and the
+    1-minute load average when it ended (the busy loops count 2 of it on 2 cores)."""
     t0 = time.perf_counter()
     try:
         p = subprocess.run([sys.executable, "-c", SESSION], cwd=ROOT, env=env, capture_output=True,
                            text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
-        return {"s": time.perf_counter() - t0, "cpu_s": None, "timed_out": True, "failed": None}
+        return {"s": time.perf_counter() - t0, "cpu_s": None, "timed_out": True, "failed": None,
+                "load_avg_end": os.getloadavg()[0]}
     if p.returncode != 0:
         raise RuntimeError(f"the library session failed ({p.returncode}): {p.stderr[-2000:]}")
     out = json.loads(p.stdout.strip().splitlines()[-1])
-    return out | {"timed_out": False}
+    return out | {"timed_out": False, "load_avg_end": os.getloadavg()[0]}
 
 
 def enter_cost(n: int = 20000) -> tuple[float, float]:
@@ -104,6 +106,8 @@ def run(baseline_timeout: float = 1800.0) -> dict:
             "ours_s": ours["s"], "ours_cpu_s": ours["cpu_s"],
             "baseline_s": base["s"], "baseline_cpu_s": base["cpu_s"], "baseline_timed_out": base["timed_out"],
             "speedup": base["s"] / ours["s"], "reference_one_thread_s": ref["s"],
+            "load_avg_end": {"ours": ours["load_avg_end"], "baseline": base["load_avg_end"],
+                             "reference": ref["load_avg_end"]},
             "enter_exit_us": outer, "nested_enter_exit_us": nested,
             "doctest_failed": {"ours": ours["failed"], "baseline": base["failed"], "reference": ref["failed"]}}
 

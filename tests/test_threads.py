@@ -103,3 +103,15 @@ def test_dt_blas_threads_sets_the_limit_which_never_raises_the_callers(monkeypat
         with blas_limited:
             pass
     assert blas_limited._depth == 0
+
+
+def test_the_benchmark_runs_the_session_as_a_users_process_would(monkeypatch):
+    from benchmarks import blas_threads as bench
+
+    for v in ("DT_BLAS_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+        monkeypatch.setenv(v, "1")
+    env = bench.user_env()
+    assert not set(bench.THREAD_VARS) & set(env)  # nothing limits the threads
+    assert bench.user_env(DT_BLAS_THREADS="2")["DT_BLAS_THREADS"] == "2"  # the baseline lifts the limit
+    outer, nested = bench.enter_cost(200)  # CPU us per call (the benchmark reports them; no timing test here)
+    assert outer > 0 and nested > 0
