@@ -53,7 +53,6 @@ from dt_runtime.models.gp_math import (
     farthest_points,
     group_stats,
     inv_from_chol,
-    se_gram,
     se_kernel,
 )
 from dt_runtime.models.gp_predictor import FastPredictor
@@ -83,15 +82,16 @@ def _as_2d(X, what: str) -> np.ndarray:
 
 
 # L-BFGS-B stops when no log-hyperparameter moves the log likelihood by more than 1e-3 per unit
-# (1e-5 nats for a 1 % change): statistically nothing. It matters at a warm start that is
-# already the optimum (a diagnose candidate's refit, a repeated fit): scipy's 1e-5 is not met
-# there and the decrease the line search asks for is below the likelihood's round-off (~3e-10
-# nats on 400 inputs), so it wandered in the noise for up to 20 evaluations (16 instead of 1 in
-# tests/test_speed's warm start); a cold fit still ends on the relative
-# reduction of the likelihood (factr 1e7, scipy's default), as before. Looser reductions were
-# measured on six UR10 Series C/D cross-validations: ftol 1e-7 saves 2-14 % of the evaluations
-# and moves log length scales the data hardly bound by up to 2 (held-out RMS by < 1e-5 mm);
-# 1e-6 saves 5-43 %, moves them by up to 5.4 and the held-out RMS by up to 4e-4 mm. Not taken.
+# (1e-5 nats for a 1 % change): statistically nothing. Near the optimum the decrease the line
+# search asks for falls below the likelihood's round-off (~3e-10 nats on 400 inputs), where
+# scipy's 1e-5 lets it wander in the noise (once seen: 16 evaluations instead of 1 on
+# tests/test_speed's warm start); a warm start at the optimum (a diagnose candidate's refit)
+# now ends at once. Cold fits still end on the relative reduction of the likelihood (factr 1e7,
+# scipy's default): on six UR10 Series C/D cross-validations 1e-3 moved no fitted log
+# hyperparameter by more than 7e-5. Looser reductions were measured too: ftol 1e-7 saves 2-14 %
+# of the evaluations and moves log length scales the data hardly bound by up to 2 (held-out RMS
+# by < 1e-5 mm); 1e-6 saves 5-43 %, moves them by up to 5.4 and the held-out RMS by up to 4e-4
+# mm. Not taken.
 _GTOL = 1e-3
 
 _CHUNK_ELEMENTS = 2 ** 22  # 32 MB of float64: the largest (rows, basis) kernel block built at once
@@ -289,10 +289,9 @@ class GPRegressor(Params):
         sf2, sn2 = float(np.exp(self.theta_[d])), float(np.exp(self.theta_[d + 1]))
         U, counts, r = self._U, self._counts, self._ybar - self._beta
         if not self.sparse_:
-            K = se_gram(self.theta_, U)
-            K *= sf2
+            K = se_kernel(U, U, ell, sf2)
             K[np.diag_indices(len(U))] += sn2 / counts
-            L = linalg.cholesky(K.T, lower=True, overwrite_a=True, check_finite=False)
+            L = linalg.cholesky(K.T, lower=True, overwrite_a=True, check_finite=False)  # K.T: no copy
             self._Xb = U
             self._alpha = linalg.cho_solve((L, True), r, check_finite=False)
             self._factor = ("exact", L)  # var = s_f^2 - k^T K^-1 k

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import linalg
-from scipy.linalg import blas, lapack
+from scipy.linalg import lapack
 from scipy.spatial.distance import cdist
 
 LOG2PI = float(np.log(2 * np.pi))
@@ -60,57 +60,47 @@ def se_kernel(A: np.ndarray, B: np.ndarray, ell: np.ndarray, sf2: float) -> np.n
 
 
 # --- likelihood ------------------------------------------------------------------------------
+def sq_dists(U: np.ndarray) -> np.ndarray:
+    """(d, n, n) per-dimension squared distances of the rows of U."""
+    return np.stack([(U[:, k, None] - U[None, :, k]) ** 2 for k in range(U.shape[1])])
+
+
 @dataclass(frozen=True)
 class Collapsed:
     """What the collapsed likelihood of one set of distinct inputs reads, fixed for a whole fit:
-    U (n, d) the standardised distinct inputs (centred: distances do not move and the gradient's
-    contraction below loses less to round-off), counts, ybar and the summed within-replicate
-    squares ss, N the number of rows, and [U, 1] for the gradient's contraction."""
+    D2 (d, n, n) the per-dimension squared distances of the standardised distinct inputs
+    (computed once per fit, read by every evaluation), counts, ybar, the summed
+    within-replicate squares ss and N, the number of rows."""
 
-    U: np.ndarray
+    D2: np.ndarray
     counts: np.ndarray
     ybar: np.ndarray
     ss: float
     N: int
-    U1: np.ndarray
     const: float  # the terms of nll that do not depend on theta
 
     @classmethod
     def of(cls, U: np.ndarray, counts: np.ndarray, ybar: np.ndarray, ss: float, N: int) -> Collapsed:
-        U = np.ascontiguousarray(U - U.mean(0))
         n = len(ybar)
         const = 0.5 * n * LOG2PI + 0.5 * (N - n) * LOG2PI + 0.5 * np.log(counts).sum()
-        return cls(U, counts, ybar, float(ss), int(N), np.column_stack([U, np.ones(n)]), float(const))
-
-
-def se_gram(theta: np.ndarray, U: np.ndarray) -> np.ndarray:
-    """E (n, n), C order: exp(-1/2 sum_k (u_ik - u_jk)^2 / l_k^2) at theta's length scales, from
-    one matrix product: -1/2 |z_i - z_j|^2 = [z_i, -h_i, 1] . [z_j, 1, -h_j], z = u / l,
-    h = |z|^2 / 2 (no per-dimension distance matrices to keep or read). The diagonal is exactly 1."""
-    n, d = U.shape
-    Z = U * np.exp(-theta[:d])
-    h = 0.5 * np.einsum("ij,ij->i", Z, Z)
-    one = np.ones(n)
-    R = np.column_stack([Z, -h, one]) @ np.column_stack([Z, one, -h]).T
-    np.minimum(R, 0.0, out=R)  # round-off of near points
-    R.flat[:: n + 1] = 0.0
-    return np.exp(R, out=R)
+        return cls(sq_dists(U), counts, ybar, float(ss), int(N), float(const))
 
 
 def collapsed_factor(theta: np.ndarray, st: Collapsed):
     """The kernel of the distinct inputs and its Cholesky factor at theta: (nll, beta, alpha, L,
-    K), or None where K is not positive definite. K = s_f^2 E + s_n^2 diag(1/n_i) is returned in
-    Fortran order (the transpose view of a symmetric C array: LAPACK reads it without a copy); L
-    is its lower factor, zero above the diagonal; alpha = K^-1 (ybar - beta)."""
-    d = st.U.shape[1]
+    K), or None where K is not positive definite. K = s_f^2 E + s_n^2 diag(1/n_i) (C order,
+    exactly symmetric: LAPACK reads its transpose view, Fortran order, without a copy); L is its
+    lower factor, zero above the diagonal; alpha = K^-1 (ybar - beta)."""
+    d = st.D2.shape[0]
     sf2, sn2 = np.exp(theta[d]), np.exp(theta[d + 1])
     if not (np.all(np.isfinite(theta)) and sf2 > 0 and sn2 > 0):
         return None
-    R = se_gram(theta, st.U)
-    R *= sf2
-    R.flat[:: len(st.ybar) + 1] += sn2 / st.counts
-    K = R.T
-    L, info = lapack.dpotrf(K, lower=1, clean=1)
+    K = np.tensordot(np.exp(-2 * theta[:d]), st.D2, axes=1)
+    K *= -0.5
+    np.exp(K, out=K)
+    K *= sf2
+    K[np.diag_indices(len(st.ybar))] += sn2 / st.counts
+    L, info = lapack.dpotrf(K.T, lower=1, clean=1)
     if info != 0:
         return None
     # The GLS constant mean and alpha from one solve with two right-hand sides (K^-1 is linear).
@@ -134,39 +124,37 @@ def collapsed_nll(theta: np.ndarray, st: Collapsed, want_grad: bool = True):
     Returns (nll, grad or None, beta); (1e25, zeros, 0.0) where the kernel is not positive
     definite.
 
-    Gradient (Rasmussen & Williams Eq. 5.9): d nll / d theta_j = -1/2 sum_ij (W o dK/dtheta_j)
-    with W = alpha alpha' - K^-1, S = s_f^2 E, A = W o S (symmetric):
-      d/d log l_k = -1/2 sum_ij A_ij (u_ik - u_jk)^2 / l_k^2
-                  = -1/2 (2 sum_i u_ik^2 (A 1)_i - 2 u_k' A u_k) / l_k^2,
-      d/d log s_f^2 = -1/2 1' A 1,  d/d log s_n^2 = -1/2 s_n^2 sum_i W_ii / n_i + (within part),
-    so every length scale's sum comes out of one product A [U, 1] (n x (d+1)). A [U, 1] is
-    alpha o (S (alpha o [U, 1])) minus (K^-1 o S)[U, 1], the latter by a symmetric product from
-    the lower triangle of K^-1 that potri leaves: no full K^-1, no n x n x d array."""
+    Gradient (Rasmussen & Williams Eq. 5.9) with W = alpha alpha' - K^-1 and S = s_f^2 E:
+      d/d log l_k = -1/2 sum_ij W_ij S_ij D2_kij / l_k^2,  d/d log s_f^2 = -1/2 sum_ij W_ij S_ij,
+      d/d log s_n^2 = -1/2 s_n^2 sum_i W_ii / n_i + (the within-replicate part).
+    The sums read W o S through one (n, n) array B built from the triangle of K^-1 that potri
+    leaves (no symmetric copy): B = (alpha alpha' - 2 triu K^-1) o S off the diagonal, whose
+    (i, j) + (j, i) is 2 W_ij S_ij, and W_ii S_ii on it; D2 is symmetric with a zero diagonal.
+    The contraction with D2 sums exact squared distances: a direction the kernel no longer
+    sees (a length scale at its bound over an input with a few levels) gets its true, tiny
+    gradient, not the round-off of a difference of large sums (which sent L-BFGS-B elsewhere)."""
     f = collapsed_factor(theta, st)
     if f is None:
         return 1e25, np.zeros_like(theta), 0.0
     nll, beta, alpha, L, K = f
     if not want_grad:
         return nll, None, beta
-    d = st.U.shape[1]
+    d = st.D2.shape[0]
+    inv_ell2 = np.exp(-2 * theta[:d])
     sf2, sn2 = np.exp(theta[d]), np.exp(theta[d + 1])
-    noise = sn2 / st.counts  # K's diagonal is s_f^2 + noise
-    T, info = lapack.dpotri(L, lower=1, overwrite_c=1)  # lower triangle of K^-1 (above: L's zeros)
+    T, info = lapack.dpotri(L, lower=1, overwrite_c=1)  # K^-1 on and below the diagonal, zeros above
     if info != 0:
         return 1e25, np.zeros_like(theta), 0.0
-    tdiag = np.diagonal(T).copy()
-    T *= K  # (K^-1 o K) lower; on the diagonal K's noise is not S's:
-    T[np.diag_indices(len(tdiag))] = tdiag * sf2
-    X = st.U1
-    aX = alpha[:, None] * X
-    # symm: a symmetric matrix from its lower triangle (T's upper is zero, not K^-1's)
-    P = alpha[:, None] * (blas.dsymm(1.0, K, aX, lower=1) - noise[:, None] * aX)  # (alpha alpha' o S) X
-    P -= blas.dsymm(1.0, T, X, lower=1)  # - (K^-1 o S) X
-    rows = P[:, d]  # A 1
+    Tt = T.T  # C order: K^-1 on and above the diagonal, zeros below
+    tdiag = np.diagonal(Tt).copy()
+    Tt *= -2.0
+    B = np.outer(alpha, alpha)
+    B += Tt
+    B *= K
+    B[np.diag_indices(len(tdiag))] = (alpha ** 2 - tdiag) * sf2  # W_ii S_ii (K's diagonal has the noise)
     g = np.empty_like(theta)
-    g[:d] = -(np.einsum("ik,i->k", X[:, :d] ** 2, rows) - np.einsum("ik,ik->k", X[:, :d], P[:, :d])) \
-        * np.exp(-2 * theta[:d])
-    g[d] = -0.5 * rows.sum()
+    g[:d] = -0.5 * np.tensordot(st.D2, B, axes=([1, 2], [0, 1])) * inv_ell2
+    g[d] = -0.5 * B.sum()
     g[d + 1] = -0.5 * sn2 * np.sum((alpha ** 2 - tdiag) / st.counts) + 0.5 * (st.N - len(st.ybar)) \
         - st.ss / (2 * sn2)
     return nll, g, beta
