@@ -158,3 +158,110 @@ def test_weak_smooth_signal_with_replicates_is_not_fitted_as_noise():
     Xt = np.column_stack([rng.uniform(-0.45, 0.45, (200, 3)), rng.choice([0.3, 0.6, 0.9], 200)])
     rmse = np.sqrt(np.mean((m.predict(Xt)[:, 0] - f(Xt)) ** 2))
     assert rmse < 0.5 * np.std(f(Xt))
+
+
+def textbook_posterior(g, X, y, Xq):
+    """Latent mean and std at Xq of the exact GP on all rows (no collapse, no shared factor) at
+    g's hyperparameters and constant mean, in output units."""
+    d = X.shape[1]
+    ell, sf2, sn2 = np.exp(g.theta_[:d]), np.exp(g.theta_[d]), np.exp(g.theta_[d + 1])
+    Xs, Xqs = (X - g.x_mean_) / g.x_scale_, (Xq - g.x_mean_) / g.x_scale_
+
+    def k(A, B):
+        return sf2 * np.exp(-0.5 * (((A[:, None] - B[None]) / ell) ** 2).sum(2))
+
+    L = linalg.cholesky(k(Xs, Xs) + sn2 * np.eye(len(X)), lower=True)
+    ks = k(Xqs, Xs)
+    mean = g.mean_ + g.y_scale_ * (ks @ linalg.cho_solve((L, True), (y - g.y_mean_) / g.y_scale_ - g._beta))
+    v = linalg.solve_triangular(L, ks.T, lower=True)
+    return mean, g.y_scale_ * np.sqrt(sf2 - (v ** 2).sum(0))
+
+
+@pytest.mark.parametrize("n_hyper", [1000, 40])
+def test_exact_posterior_equals_the_textbook_one(n_hyper):
+    # n_hyper 1000: the likelihood's Cholesky factor at the learned theta is the posterior's;
+    # 40 (< 90 distinct inputs): hyperparameters on a subset, the posterior factorised anew.
+    rng = np.random.default_rng(6)
+    X, y, _ = doe_like(rng, 30, 3, noise=1e-4)
+    g = GPRegressor(n_restarts=0, n_hyper=n_hyper).fit(X, y)
+    assert g.n_unique_ == 90 and not g.sparse_
+    Xq = np.vstack([X[::7], np.column_stack([rng.uniform(-0.5, 0.5, (20, 3)), rng.uniform(0.3, 0.9, 20)])])
+    mu, sd = g.predict(Xq, return_std=True)
+    m_ref, s_ref = textbook_posterior(g, X, y, Xq)
+    np.testing.assert_allclose(mu, m_ref, rtol=0, atol=1e-9 * np.std(y))
+    np.testing.assert_allclose(sd, s_ref, rtol=1e-6, atol=1e-6 * np.sqrt(g.signal_var_))
+    # K^-1 B by the factor (the effects' GLS) equals the variance's K^-1 times B
+    B = rng.normal(size=(g.n_unique_, 4))
+    np.testing.assert_allclose(g._precision_dot(B), g._Q @ B, rtol=1e-7, atol=1e-7 * np.abs(g._Q @ B).max())
+
+
+def test_sparse_posterior_equals_the_vfe_formula():
+    # Titsias' VFE/DTC posterior written out with plain inverses on a small problem:
+    # Sigma = (Kzz + Kzu Lam Kuz)^-1, Lam = n_i / s_n^2; mean = k' Sigma Kzu Lam r;
+    # var = s_f^2 - k' (Kzz^-1 - Sigma) k.
+    rng = np.random.default_rng(7)
+    X = np.repeat(rng.uniform(-1, 1, (300, 2)), rng.integers(1, 4, 300), axis=0)
+    y = np.sin(2 * X[:, 0]) * np.cos(1.5 * X[:, 1]) + rng.normal(0, 0.05, len(X))
+    g = GPRegressor(n_restarts=0, sparse_threshold=100, n_inducing=40).fit(X, y)
+    assert g.sparse_ and len(g._Xb) == 40
+    d = 2
+    ell, sf2, sn2 = np.exp(g.theta_[:d]), np.exp(g.theta_[d]), np.exp(g.theta_[d + 1])
+
+    def k(A, B):
+        return sf2 * np.exp(-0.5 * (((A[:, None] - B[None]) / ell) ** 2).sum(2))
+
+    Z, U = g._Xb, g._U
+    Kzz = k(Z, Z) + 1e-8 * sf2 * np.eye(len(Z))
+    Kzu, lam = k(Z, U), g._counts / sn2
+    A = Kzz + (Kzu * lam) @ Kzu.T  # Sigma^-1; condition ~1e14 here: solves, not inverses
+    Xq = rng.uniform(-0.9, 0.9, (50, 2))
+    kq = k((Xq - g.x_mean_) / g.x_scale_, Z)
+    mean = g.mean_ + g.y_scale_ * (kq @ np.linalg.solve(A, Kzu @ (lam * (g._ybar - g._beta))))
+    var = sf2 - np.einsum("ij,ji->i", kq, np.linalg.solve(Kzz, kq.T) - np.linalg.solve(A, kq.T))
+    mu, sd = g.predict(Xq, return_std=True)
+    np.testing.assert_allclose(mu, mean, rtol=0, atol=1e-6 * np.std(y))
+    np.testing.assert_allclose(sd, g.y_scale_ * np.sqrt(np.clip(var, 0, None)), rtol=0,
+                               atol=1e-4 * np.sqrt(g.signal_var_))
+
+
+def test_outputs_share_the_inputs_and_equal_single_output_fits():
+    rng = np.random.default_rng(8)
+    X = rng.uniform(-1, 1, (400, 3))
+    Y = np.column_stack([np.sin(2 * X[:, 0]), X[:, 1] * X[:, 2]]) + rng.normal(0, 0.05, (400, 2))
+    opts = dict(n_restarts=0, sparse_threshold=200, n_inducing=50, n_hyper=150)
+    m = MultiOutputGP(seed=3, **opts).fit(X, Y)
+    for j, g in enumerate(m.models_):
+        alone = GPRegressor(seed=3 + j, **opts).fit(X, Y[:, j])
+        assert np.array_equal(g.theta_, alone.theta_) and np.array_equal(g._Xb, alone._Xb)
+        np.testing.assert_allclose(g.predict(X[:20]), alone.predict(X[:20]), rtol=0, atol=1e-12)
+
+
+def test_gradient_at_short_and_long_length_scales_matches_finite_differences():
+    # The length scales' gradient contracts through the inputs (sum_ij A_ij (u_i - u_j)^2 =
+    # 2 u^2' A1 - 2 u'Au): checked where it cancels most (l = 0.1 spread) and where the kernel
+    # ignores a dimension (l = e^6), on inputs far from their origin.
+    X, y, _ = doe_like(np.random.default_rng(9), 25, 2)
+    X[:, :3] += 1e3
+    g = GPRegressor(n_restarts=0).fit(X, y)
+    th = np.r_[np.log(0.1), 6.0, 0.0, np.log(0.3), 0.5, np.log(1e-3)]
+    grad = g.log_marginal_likelihood(th, eval_gradient=True)[1]
+    h = 1e-4  # the likelihood carries ~1e-10 of round-off (the kernel from one product): h >> 1e-10
+    for k in range(len(th)):
+        e = np.zeros_like(th)
+        e[k] = h
+        num = (g.log_marginal_likelihood(th + e) - g.log_marginal_likelihood(th - e)) / (2 * h)
+        assert grad[k] == pytest.approx(num, rel=1e-5, abs=1e-5)
+
+
+def test_a_direction_the_kernel_no_longer_sees_gets_its_true_tiny_gradient():
+    # Speed has 3 levels 1.2 standard deviations apart: at a length scale of 0.1 the kernel
+    # between levels is exp(-75), so the likelihood's slope along it is ~1e-30. A gradient
+    # written as a difference of large sums (2 u^2'A1 - 2 u'Au) returned its round-off (~1e-10)
+    # instead, whose sign decided whether L-BFGS-B left the bound: on the demo's e_MVS-LT map it
+    # then converged to a worse optimum (nll 336 instead of 316).
+    X, y, _ = doe_like(np.random.default_rng(10), 30, 3)
+    g = GPRegressor(n_restarts=0).fit(X, y)
+    th = np.r_[0.5, 0.3, 0.2, np.log(0.1), 1.0, np.log(1e-2)]
+    grad = g.log_marginal_likelihood(th, eval_gradient=True)[1]
+    assert abs(grad[3]) < 1e-20
+    assert np.all(np.abs(grad[[0, 1, 2, 4, 5]]) > 1e-6)  # the others are ordinary numbers

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from dt_runtime.common.threads import blas_limited
 from dt_runtime.models.effects import as_inputs
 
 if TYPE_CHECKING:  # only a type here: the twin's calibration imports this module without the hybrid model
@@ -83,6 +84,7 @@ def group_mse(residual: np.ndarray, groups: np.ndarray) -> np.ndarray:
     return np.array([sq[groups == g].mean() for g in np.unique(groups)])
 
 
+@blas_limited  # one BLAS thread for the whole loop (common.threads), the caller's setting restored
 def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, folds: list[np.ndarray], *,
                    thetas=None, return_std: bool = False, hyper_per_fold: bool = False,
                    starts=None) -> CvResult:

@@ -4,13 +4,21 @@ The twin's matrices are small (a DOE has ~200 distinct inputs; the effect regres
 thousand rows by tens of columns) or factorised block by block (the sparse GP). OpenBLAS's
 threaded kernels synchronise at every block: on 2 cores they are slower than one thread even on
 an idle machine, and while another process holds a core they crawl (`dt diagnose` on 372 rows:
-25 s with two threads, 6 s with one; a 186-input GP fit: 149 s instead of 0.5 s). So every entry
-point (the `dt` command line, the benchmarks, the test suite) runs BLAS on one thread unless
-DT_BLAS_THREADS says otherwise.
+25 s with two threads, 6 s with one; a 186-input GP fit: 149 s instead of 0.5 s). So:
+
+- every entry point (the `dt` command line, the benchmarks, the test suite) runs BLAS on one
+  thread for the whole process (`limit_blas_threads`), unless DT_BLAS_THREADS says otherwise;
+- the library limits itself: its fits, cross-validations and predictions run inside
+  `blas_limited` (the same number), which restores the caller's setting when they return, so a
+  user's script or notebook gets the fast path without touching its environment.
 """
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
+import threading
+from collections.abc import Callable
 
 from dt_kernel.errors import ConfigError
 
@@ -28,12 +36,71 @@ def blas_threads() -> int:
     return n
 
 
-def limit_blas_threads(n: int | None = None):
-    """Limit BLAS to n threads (default: $DT_BLAS_THREADS, else 1) for the rest of the process."""
-    # threadpoolctl limits only the libraries already loaded: load numpy's and scipy's BLAS
-    # (scipy may bundle its own OpenBLAS) before setting the limit.
+def _load_blas() -> None:
+    # threadpoolctl sees only the libraries already loaded: load numpy's and scipy's BLAS (scipy
+    # bundles its own OpenBLAS) before looking.
     import numpy  # noqa: F401
     import scipy.linalg  # noqa: F401
+
+
+def limit_blas_threads(n: int | None = None):
+    """Limit BLAS to n threads (default: $DT_BLAS_THREADS, else 1) for the rest of the process."""
+    _load_blas()
     from threadpoolctl import threadpool_limits  # installed with scikit-learn
 
     return threadpool_limits(n or blas_threads(), user_api="blas")
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_libraries() -> tuple[tuple[Callable[[], int | None], Callable[[int], object]], ...]:
+    """(get, set) of the thread count of every loaded BLAS library, found once per process by
+    threadpoolctl (finding them walks every loaded shared object: ~1 ms, too much per fit)."""
+    _load_blas()
+    from threadpoolctl import ThreadpoolController  # installed with scikit-learn
+
+    # threadpoolctl >= 3.6 lets only the first thread that set a pthreads-OpenBLAS limit set it
+    # again (silently ignoring the others): a fit in a worker thread would then run unlimited.
+    # blas_limited serialises its own changes (depth count under a lock), so it uses the plain
+    # setter where there is one.
+    return tuple((lib.get_num_threads, getattr(lib, "_real_set_num_threads", lib.set_num_threads))
+                 for lib in ThreadpoolController().select(user_api="blas").lib_controllers)
+
+
+class _BlasLimited(contextlib.ContextDecorator):
+    """`with blas_limited:` or `@blas_limited`: BLAS on at most $DT_BLAS_THREADS (default 1)
+    threads inside, the caller's setting back on the way out.
+
+    Re-entrant and shared by threads: the outermost entry sets the limit and the last exit
+    restores it (the BLAS thread count is one setting per process), so a fit inside a
+    cross-validation inside a diagnosis pays one lookup, not one per level. The limit never
+    raises the caller's thread count."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._depth = 0
+        self._restore: list[tuple[Callable[[int], object], int]] = []
+
+    def __enter__(self) -> _BlasLimited:
+        with self._lock:
+            if self._depth == 0:
+                n = blas_threads()
+                restore = []
+                for get, set_ in _blas_libraries():
+                    current = get()
+                    if current is not None and current > n:
+                        set_(n)
+                        restore.append((set_, current))
+                self._restore = restore
+            self._depth += 1
+        return self
+
+    def __exit__(self, *exc) -> None:
+        with self._lock:
+            self._depth -= 1
+            if self._depth == 0:
+                for set_, n in self._restore:
+                    set_(n)
+                self._restore = []
+
+
+blas_limited = _BlasLimited()

@@ -39,11 +39,22 @@ from pathlib import Path
 
 import numpy as np
 from scipy import linalg, optimize
+from scipy.linalg import blas, lapack
 
 from dt_kernel.errors import DataError, ModelError
 from dt_runtime.common.safe_npz import load_npz
+from dt_runtime.common.threads import blas_limited
 from dt_runtime.models.estimator import Params
-from dt_runtime.models.gp_math import collapse, collapsed_nll, farthest_points, inv_from_chol, se_kernel, sq_dists
+from dt_runtime.models.gp_math import (
+    Collapsed,
+    collapsed_factor,
+    collapsed_nll,
+    distinct,
+    farthest_points,
+    group_stats,
+    inv_from_chol,
+    se_kernel,
+)
 from dt_runtime.models.gp_predictor import FastPredictor
 
 __all__ = ["FORMAT_VERSION", "FastPredictor", "GPOptions", "GPRegressor", "MultiOutputGP", "collapsed_nll"]
@@ -70,6 +81,19 @@ def _as_2d(X, what: str) -> np.ndarray:
     return X
 
 
+# L-BFGS-B stops when no log-hyperparameter moves the log likelihood by more than 1e-3 per unit
+# (1e-5 nats for a 1 % change): statistically nothing. Near the optimum the decrease the line
+# search asks for falls below the likelihood's round-off (~3e-10 nats on 400 inputs), where
+# scipy's 1e-5 lets it wander in the noise (once seen: 16 evaluations instead of 1 on
+# tests/test_speed's warm start); a warm start at the optimum (a diagnose candidate's refit)
+# now ends at once. Cold fits still end on the relative reduction of the likelihood (factr 1e7,
+# scipy's default): on six UR10 Series C/D cross-validations 1e-3 moved no fitted log
+# hyperparameter by more than 7e-5. Looser reductions were measured too: ftol 1e-7 saves 2-14 %
+# of the evaluations and moves log length scales the data hardly bound by up to 2 (held-out RMS
+# by < 1e-5 mm); 1e-6 saves 5-43 %, moves them by up to 5.4 and the held-out RMS by up to 4e-4
+# mm. Not taken.
+_GTOL = 1e-3
+
 _CHUNK_ELEMENTS = 2 ** 22  # 32 MB of float64: the largest (rows, basis) kernel block built at once
 
 
@@ -82,6 +106,27 @@ def _chunks(n: int, width: int) -> list[slice]:
 def _names(obj) -> list[str] | None:
     cols = getattr(obj, "columns", None)
     return [str(c) for c in cols] if cols is not None else None
+
+
+class Distinct:
+    """The part of a fit that depends on X alone: its standardisation, distinct rows (standardised)
+    with the row -> distinct index and replicate counts, and the inducing inputs of a sparse
+    posterior. A MultiOutputGP's outputs share one (one np.unique, one farthest-point pass)."""
+
+    def __init__(self, X: np.ndarray):
+        self.x_mean = X.mean(0)
+        self.x_scale = X.std(0)
+        self.x_scale[self.x_scale == 0] = 1.0
+        Uraw, self.inv, self.counts = distinct(X)
+        self.U = (Uraw - self.x_mean) / self.x_scale
+        self.n_rows = len(X)
+        self._inducing: dict[int, np.ndarray] = {}
+
+    def inducing(self, m: int) -> np.ndarray:
+        """Indices of m inducing inputs in U (farthest-point sampling: deterministic)."""
+        if m not in self._inducing:
+            self._inducing[m] = farthest_points(self.U, m)
+        return self._inducing[m]
 
 
 # --- single output ---------------------------------------------------------------------------
@@ -110,11 +155,13 @@ class GPRegressor(Params):
         self.n_hyper = n_hyper
 
     # --- fit ----------------------------------------------------------------------------
-    def fit(self, X, y, theta=None, start=None) -> GPRegressor:
+    @blas_limited  # BLAS on one thread inside (common.threads), the caller's setting restored
+    def fit(self, X, y, theta=None, start=None, *, inputs: Distinct | None = None) -> GPRegressor:
         """Learn hyperparameters and the posterior. With `theta` (the standardised log-
         parameters, see `theta_`) the hyperparameters are kept and only the posterior is built.
         `start`: a warm start of the optimisation, the log hyperparameters in input/output
-        units (`log_hyper_` of a GP fitted on a nearby problem); then it is the only start."""
+        units (`log_hyper_` of a GP fitted on a nearby problem); then it is the only start.
+        `inputs`: `Distinct(X)` when the caller already has it (MultiOutputGP, for all outputs)."""
         X = _as_2d(X, "GPRegressor.fit X")
         y = np.asarray(y, dtype=float)
         if y.ndim == 2 and y.shape[1] == 1:
@@ -127,28 +174,33 @@ class GPRegressor(Params):
         if len(y) < 2:
             raise DataError(f"GPRegressor.fit: need at least 2 rows, got {len(y)}")
         n, d = X.shape
+        D = inputs if inputs is not None else Distinct(X)
+        if D.n_rows != n:
+            raise DataError(f"GPRegressor.fit: inputs describe {D.n_rows} rows, X has {n}")
         self.n_features_in_ = d
         self.n_train_ = n
-        self.x_mean_ = X.mean(0)
-        self.x_scale_ = X.std(0)
-        self.x_scale_[self.x_scale_ == 0] = 1.0
+        self.x_mean_ = D.x_mean.copy()
+        self.x_scale_ = D.x_scale.copy()
         self.y_mean_ = float(y.mean())
         self.y_scale_ = float(y.std()) or 1.0
-        Uraw, counts, ybar, ss = collapse(X, (y - self.y_mean_) / self.y_scale_)
-        U = (Uraw - self.x_mean_) / self.x_scale_
+        U, counts = D.U, D.counts
+        ybar, ss = group_stats(D.inv, counts, (y - self.y_mean_) / self.y_scale_)
         self.n_unique_ = len(U)
         # Hyperparameters: exact collapsed likelihood, on a seeded subset if there are many inputs.
         sub = np.arange(len(U))
         if len(U) > self.n_hyper:
             sub = np.sort(np.random.default_rng(self.seed).choice(len(U), self.n_hyper, replace=False))
-        Ns = int(counts[sub].sum())
-        stats = (sq_dists(U[sub]), counts[sub], ybar[sub], float(ss[sub].sum()), Ns)
+        stats = Collapsed.of(U[sub], counts[sub], ybar[sub], float(ss[sub].sum()), int(counts[sub].sum()))
         if theta is None:
             theta = self._optimise(stats, d, self._standardised(start, d))
         theta = np.asarray(theta, dtype=float)
         if theta.shape != (d + 2,):
             raise ModelError(f"GPRegressor.fit: theta must have {d + 2} entries, got {theta.shape}")
-        nll, _, beta = collapsed_nll(theta, *stats, want_grad=False)
+        factor = collapsed_factor(theta, stats)
+        if factor is None:
+            raise ModelError("GPRegressor.fit: kernel matrix not positive definite at the learned "
+                             "hyperparameters; raise noise_floor")
+        nll, beta, alpha, L, _ = factor
         self.theta_ = theta
         self.log_marginal_likelihood_ = -nll  # of the (sub)set used for learning
         self._beta = beta
@@ -158,8 +210,14 @@ class GPRegressor(Params):
         self.mean_ = self.y_mean_ + self.y_scale_ * beta
         self.sparse_ = len(U) > self.sparse_threshold
         self._U, self._counts, self._ybar, self._ss = U, counts, ybar, ss
+        self._q, self._factor = None, None
+        if not self.sparse_ and len(sub) == len(U):
+            # The likelihood's kernel is the posterior's (same inputs, same theta): its factor and
+            # alpha are the exact posterior's; K^-1 (`_Q`) follows from L when first asked for.
+            self._Xb, self._alpha, self._factor = U, alpha, ("exact", L)
+            return self
         try:
-            self._posterior()
+            self._posterior(D)
         except linalg.LinAlgError as exc:
             raise ModelError(f"GPRegressor.fit: kernel matrix not positive definite at the learned "
                              f"hyperparameters ({exc}); raise noise_floor") from exc
@@ -183,7 +241,7 @@ class GPRegressor(Params):
         self._check_fitted()
         return np.r_[np.log(self.length_scales_), np.log(self.signal_var_), np.log(self.noise_var_)]
 
-    def _optimise(self, stats, d: int, warm: np.ndarray | None = None) -> np.ndarray:
+    def _optimise(self, stats: Collapsed, d: int, warm: np.ndarray | None = None) -> np.ndarray:
         rng = np.random.default_rng(self.seed)
         if warm is not None:
             # Warm start (a forward-selection candidate differs from the model it extends by one
@@ -204,8 +262,8 @@ class GPRegressor(Params):
         starts = [np.clip(s, [b[0] for b in bounds], [b[1] for b in bounds]) for s in starts]
         best = None
         for s in starts:
-            r = optimize.minimize(lambda t: collapsed_nll(t, *stats)[:2], s, jac=True, method="L-BFGS-B",
-                                  bounds=bounds, options={"maxiter": self.max_iter})
+            r = optimize.minimize(lambda t: collapsed_nll(t, stats)[:2], s, jac=True, method="L-BFGS-B",
+                                  bounds=bounds, options={"maxiter": self.max_iter, "gtol": _GTOL})
             if best is None or r.fun < best.fun:
                 best = r
         if warm is not None and (best is None or best.fun >= 1e24):
@@ -219,11 +277,13 @@ class GPRegressor(Params):
         (standardised log-parameters; default the learned ones), optionally with its gradient."""
         self._check_fitted()
         theta = self.theta_ if theta is None else np.asarray(theta, dtype=float)
-        nll, g, _ = collapsed_nll(theta, sq_dists(self._U), self._counts, self._ybar, float(self._ss.sum()),
-                                  self.n_train_, want_grad=eval_gradient)
+        st = Collapsed.of(self._U, self._counts, self._ybar, float(self._ss.sum()), self.n_train_)
+        nll, g, _ = collapsed_nll(theta, st, want_grad=eval_gradient)
         return (-nll, -g) if eval_gradient else -nll
 
-    def _posterior(self) -> None:
+    def _posterior(self, D: Distinct) -> None:
+        """alpha (the mean's weights) and the factors `_Q` is made from when first asked for
+        (the variance; a cross-validation fold predicts means only)."""
         d = self.n_features_in_
         ell = np.exp(self.theta_[:d])
         sf2, sn2 = float(np.exp(self.theta_[d])), float(np.exp(self.theta_[d + 1]))
@@ -231,42 +291,79 @@ class GPRegressor(Params):
         if not self.sparse_:
             K = se_kernel(U, U, ell, sf2)
             K[np.diag_indices(len(U))] += sn2 / counts
-            L = linalg.cholesky(K, lower=True)
+            L = linalg.cholesky(K.T, lower=True, overwrite_a=True, check_finite=False)  # K.T: no copy
             self._Xb = U
-            self._alpha = linalg.cho_solve((L, True), r)
-            self._Q = inv_from_chol(L)  # var = s_f^2 - k^T K^-1 k
+            self._alpha = linalg.cho_solve((L, True), r, check_finite=False)
+            self._factor = ("exact", L)  # var = s_f^2 - k^T K^-1 k
             return
         # VFE/DTC posterior: Sigma = (Kzz + Kzu Lam Kuz)^-1, Lam = n_i / s_n^2;
         # mean = k_z^T Sigma Kzu Lam r;  var = s_f^2 - k_z^T (Kzz^-1 - Sigma) k_z.
-        Z = U[farthest_points(U, self.n_inducing)]
+        Z = U[D.inducing(self.n_inducing)]
         M = len(Z)
         Kzz = se_kernel(Z, Z, ell, sf2)
         Kzz[np.diag_indices(M)] += 1e-8 * sf2
-        Lz = linalg.cholesky(Kzz, lower=True)
+        Lz = linalg.cholesky(Kzz, lower=True, check_finite=False)
         sl = np.sqrt(counts / sn2)
         # V = Lz^-1 Kzu Lam^1/2 is (M, n): 4.8 GB at 10^6 inputs and 600 inducing, and the kernel
         # it is solved from as much again. Only B = I + V V' and V (Lam^1/2 r) are needed: sums
-        # over the inputs, accumulated in column chunks of bounded size (same numbers).
-        B = np.eye(M)
+        # over the inputs, accumulated in column chunks of bounded size (same numbers). V V' by
+        # syrk: its lower triangle only, half a product's work.
+        B = np.eye(M, order="F")
         Vr = np.zeros(M)
         for c in _chunks(len(U), M):
-            V = linalg.solve_triangular(Lz, se_kernel(Z, U[c], ell, sf2), lower=True) * sl[c]
-            B += V @ V.T
+            V = linalg.solve_triangular(Lz, se_kernel(Z, U[c], ell, sf2), lower=True, check_finite=False) * sl[c]
+            B = blas.dsyrk(1.0, V.T, beta=1.0, c=B, trans=1, lower=1, overwrite_c=1)  # V.T: no copy
             Vr += V @ (sl[c] * r[c])
-        LB = linalg.cholesky(B, lower=True)
-        c = linalg.cho_solve((LB, True), Vr)
+        LB, info = lapack.dpotrf(B, lower=1, clean=1, overwrite_a=1)  # reads the lower triangle
+        if info != 0:
+            raise linalg.LinAlgError(f"sparse posterior: B not positive definite ({info})")
+        c = linalg.cho_solve((LB, True), Vr, check_finite=False)
         self._Xb = Z
-        self._alpha = linalg.solve_triangular(Lz, c, lower=True, trans="T")
-        Lzi = linalg.solve_triangular(Lz, np.eye(M), lower=True)
-        Mid = np.eye(M) - inv_from_chol(LB)
-        self._Q = Lzi.T @ Mid @ Lzi
-        self._Q = 0.5 * (self._Q + self._Q.T)
+        self._alpha = linalg.solve_triangular(Lz, c, lower=True, trans="T", check_finite=False)
+        self._factor = ("sparse", Lz, LB)
+
+    @property
+    def _Q(self) -> np.ndarray:
+        """The variance's matrix, var = s_f^2 - k^T Q k: K^-1 (exact) or Kzz^-1 - Sigma (sparse),
+        made from the posterior's factors on first use (predict with return_std, predictor,
+        save); a model read from a file carries it."""
+        if self._q is None:
+            if self._factor is None:
+                raise ModelError(f"{type(self).__name__} is not fitted; call fit(X, y) first")
+            if self._factor[0] == "exact":
+                self._q = inv_from_chol(self._factor[1])
+            else:
+                _, Lz, LB = self._factor
+                M = len(Lz)
+                Lzi = linalg.solve_triangular(Lz, np.eye(M), lower=True)
+                Q = Lzi.T @ (np.eye(M) - inv_from_chol(LB)) @ Lzi
+                self._q = 0.5 * (Q + Q.T)
+            self._factor = None  # Q replaces the factors (as much memory again)
+        return self._q
+
+    @_Q.setter
+    def _Q(self, value: np.ndarray) -> None:
+        self._q, self._factor = value, None
+
+    _q: np.ndarray | None = None
+    _factor: tuple | None = None
+
+    def _precision_dot(self, B: np.ndarray) -> np.ndarray:
+        """K^-1 B for the exact posterior's collapsed covariance K = K_f + s_n^2 diag(1/n_i) (the
+        effects' GLS in models.hybrid): two triangular solves per column (2 n^2) from the
+        factor, rather than K^-1 itself (n^3), unless K^-1 is already there."""
+        if self.sparse_:
+            raise ModelError("GPRegressor: a sparse posterior has no exact K^-1")
+        if self._q is not None or self._factor is None:
+            return self._Q @ B
+        return linalg.cho_solve((self._factor[1], True), B, check_finite=False)
 
     # --- predict ------------------------------------------------------------------------
     def _check_fitted(self):
         if not hasattr(self, "theta_"):
             raise ModelError(f"{type(self).__name__} is not fitted; call fit(X, y) first")
 
+    @blas_limited
     def predict(self, X, return_std: bool = False):
         """Mean (n,) and, with return_std, the standard deviation (n,) of the latent error map."""
         self._check_fitted()
@@ -368,6 +465,7 @@ class MultiOutputGP(Params):
 
     _GP_PARAMS = tuple(GPOptions.__dataclass_fields__)  # the options GPRegressor takes
 
+    @blas_limited
     def fit(self, X, Y, *, input_names=None, output_names=None, thetas=None, starts=None) -> MultiOutputGP:
         """One GP per column of Y. thetas: fixed standardised hyperparameters per output (only
         the posterior is built); starts: warm starts per output (`log_hyper_`, GPRegressor.fit)."""
@@ -390,8 +488,9 @@ class MultiOutputGP(Params):
         self.input_names_ = list(in_names) if in_names is not None else [f"x{i}" for i in range(X.shape[1])]
         self.output_names_ = list(out_names) if out_names is not None else [f"y{j}" for j in range(Y.shape[1])]
         kw = {p: getattr(self, p) for p in self._GP_PARAMS}
+        D = Distinct(X)  # the outputs share the inputs: one collapse and one inducing set for all
         self.models_ = [GPRegressor(seed=self.seed + j, **kw).fit(X, Y[:, j], None if thetas is None else thetas[j],
-                                                                  None if starts is None else starts[j])
+                                                                  None if starts is None else starts[j], inputs=D)
                         for j in range(Y.shape[1])]
         self.n_features_in_ = X.shape[1]
         return self
@@ -409,6 +508,7 @@ class MultiOutputGP(Params):
         if not hasattr(self, "models_"):
             raise ModelError("MultiOutputGP is not fitted; call fit(X, Y) or load(stem) first")
 
+    @blas_limited
     def predict(self, X, return_std: bool = False):
         """(n, k) means and, with return_std, (n, k) latent standard deviations."""
         self._check_fitted()

@@ -32,6 +32,7 @@ from dt_kernel.errors import ConfigError, DataError, ModelError
 from dt_runtime.common.provenance import Environment, Provenance
 from dt_runtime.common.provenance import build as build_provenance
 from dt_runtime.common.safe_npz import load_npz
+from dt_runtime.common.threads import blas_limited
 from dt_runtime.frames import robots
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.models import effects as fx
@@ -200,6 +201,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
             raise DataError("session terms (nuisance) need several sessions: a 'session' column (several --data files)")
         return tuple(int(v) for v in np.unique(s) if int(v) != self.reference_session)
 
+    @blas_limited  # BLAS on one thread inside (common.threads), the caller's setting restored
     def fit(self, X, y=None, *, design: Design | None = None, thetas=None, starts=None) -> HybridModel:
         """Fit on X (a Dataset, effects.Inputs or (n, 3) commanded TCP array); y: the error
         e = commanded - measured (n, 3) m, default X.error for a Dataset. design: prebuilt
@@ -308,7 +310,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
 
         With rows grouped by distinct GP input (Z), Sigma = Z K_f Z' + s_n^2 I, and
         a' Sigma^-1 b = (a - abar)'(b - bbar) / s_n^2 + abar' (K_f + s_n^2 W^-1)^-1 bbar, where
-        the last inverse is the GP's own `_Q` (W: replicate counts); all in the GP's standardised
+        the last inverse is the GP's own (`_precision_dot`; W: replicate counts); all in the GP's standardised
         units, so divided by its y scale squared."""
         gps = self.gp_.models_ if self.gp_ is not None else []
         if not gps or any(g.sparse_ for g in gps):
@@ -327,8 +329,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 / cnt[:, None]
             ybar = np.bincount(inv, weights=ya, minlength=len(cnt)) / cnt
             Aw, yw = Aa - Abar[inv], ya - ybar[inv]
-            N += (Aw.T @ Aw / sn2 + Abar.T @ g._Q @ Abar) / ys2
-            r += (Aw.T @ yw / sn2 + Abar.T @ g._Q @ ybar) / ys2
+            QA = g._precision_dot(np.column_stack([Abar, ybar]))  # K^-1 [Abar, ybar]
+            N += (Aw.T @ Aw / sn2 + Abar.T @ QA[:, :p]) / ys2
+            r += (Aw.T @ yw / sn2 + Abar.T @ QA[:, p]) / ys2
         # The same relative ridge as the ordinary fit (its penalty against As' As).
         lam_g = lam * np.trace(N) / max(float(np.sum(As3 ** 2)), 1e-300)
         Hg = N + lam_g * np.eye(p)
@@ -347,6 +350,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
             self.at_bound_ = np.zeros(p, bool)
         return theta, Hinv @ N @ Hinv
 
+    @blas_limited
     def predict(self, X, return_std: bool = False, *, design: Design | None = None):
         """Predicted error (n, 3) m and, with return_std, its standard uncertainty per axis: the
         GP's latent standard deviation and the effect parameters' covariance propagated through
