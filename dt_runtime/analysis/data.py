@@ -88,8 +88,8 @@ def floor_of(d: Data) -> float | None:
 
 @dataclass(frozen=True)
 class ReplicateFloor:
-    """The noise floor from replicates: 3D RMS (m) of the pooled within-cell scatter, its degrees of
-    freedom and the number of cells that repeat."""
+    """The noise floor from replicates: 3D RMS (m) of the pooled within-visit scatter, its degrees
+    of freedom and the number of visits read more than once."""
 
     value_m: float
     dof: int
@@ -97,32 +97,30 @@ class ReplicateFloor:
 
     def to_dict(self) -> dict:
         return {"mm": self.value_m / M_PER_MM, "dof": self.dof, "cells": self.cells,
-                "definition": "rows repeating one target reached from the same previous target at the same speed "
-                              "and payload (repeated readings of a visit, or visits along the same path): pooled "
-                              "within-cell variance per axis, 3D RMS = sqrt of their sum"}
+                "definition": "consecutive rows of one target at the same speed, payload and joint angles (repeated "
+                              "readings of one visit): pooled within-visit variance per axis, 3D RMS = sqrt of their sum"}
 
 
 def replicate_floor(ds: Dataset, min_dof: int = 10) -> ReplicateFloor | None:
-    """The measurement noise floor from the data's own replicates: rows that repeat one target point
-    reached from the same previous point at the same speed and payload (the arm's history the same,
-    so no effect term can tell them apart). Per axis the pooled within-cell variance; the floor is the
-    3D RMS sqrt(sum of the three). None below `min_dof` degrees of freedom (rows in repeating cells
-    minus cells). Slow changes within a cell (drift, temperature) count as noise here."""
+    """The measurement noise floor from the data's own replicates: consecutive rows of one target
+    point at the same speed, payload and joint angles, i.e. repeated readings of one visit (the arm has not moved,
+    so no effect term can tell them apart). Per axis the pooled within-visit variance; the floor is
+    the 3D RMS sqrt(sum of the three). Revisits of a point later in the campaign are not replicates:
+    their scatter holds whatever changed in between (a drift, the temperature), and a floor that
+    high would stop a diagnosis early. It leaves out the arm's repeatability from one approach to
+    the next, so it is a lower bound of what a model can reach. None below `min_dof` degrees of
+    freedom (rows in repeated visits minus visits)."""
     from dt_runtime.analysis.crossval import groups_of
 
     if ds.n < 2:
         return None
-    g = np.asarray(groups_of(ds))
-    # The previous *distinct* point of every row: repeated readings keep the visit's own approach.
-    change = np.r_[True, g[1:] != g[:-1]]
-    start = np.maximum.accumulate(np.where(change, np.arange(ds.n), 0))
-    prev = np.where(start > 0, g[np.maximum(start - 1, 0)], -1)
-    keys = [g, prev]
-    for col in (ds.speed, ds.payload):
+    keys = [np.asarray(groups_of(ds), float)[:, None]]
+    for col in (ds.speed, ds.payload, ds.joints):  # the same pose in another configuration is not a replicate
         if col is not None:
-            keys.append(np.round(np.asarray(col, float), 9))
-    _, cell = np.unique(np.column_stack(keys), axis=0, return_inverse=True)
-    cell = cell.ravel()
+            keys.append(np.round(np.asarray(col, float), 9).reshape(ds.n, -1))
+    K = np.hstack(keys)
+    new_visit = np.r_[True, np.any(K[1:] != K[:-1], axis=1)]
+    cell = np.cumsum(new_visit) - 1
     counts = np.bincount(cell)
     rep = counts[cell] > 1
     n_cells = int(np.sum(counts > 1))

@@ -222,5 +222,6 @@ def save_final(prep: Prepared, ev: Evaluator, cfg: Config, out: str | Path, resu
     robot = prep.robot if not isinstance(prep.robot, Chain) else p.chain
     m = HybridModel(cfg.effects, cfg.gp_inputs, ridge=p.ridge, seed=ev.seed, robot=robot,
                     gp_options=p.gp_options, nuisance=cfg.nuisance, reference_session=p.reference_session)
-    m.fit(prep.data.dataset)
+    # its GP hyperparameters start from those the loop fitted on all rows (the same configuration)
+    m.fit(prep.data.dataset, starts=ev.cv(cfg, ev.points).log_hypers)
     return m.save(out, provenance=prep.provenance)
