@@ -21,7 +21,8 @@ Each step:
 5. Only when no effect or session term passes are the GP's other inputs tested (the same rules):
    physics first, the GP, which takes up anything, last (UR10 Series D: switching first left
    backlash out, 0.280 instead of 0.276 mm).
-The loop stops when the held-out residual is at the noise floor, or when no change passes.
+The loop stops when the held-out residual is at the noise floor, or when no change passes; a
+backward pass (`prune`) then removes an added effect the final model no longer needs.
 """
 from __future__ import annotations
 
@@ -222,4 +223,37 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
             step.change_deploy_kind = chosen.deploy_kind
             step.change_deploy_rmse_mm = (chosen.deploy_rmse_before_mm, chosen.deploy_rmse_after_mm)
         cfg = changed(cfg, chosen.kind, chosen.candidate)
+    cfg = prune(ev, start, cfg, steps, alpha)
     return Selection(steps, cfg, stop, not_testable, session_gains)
+
+
+def prune(ev: Evaluator, start: Config, cfg: Config, steps: list[Step], alpha: float) -> Config:
+    """The backward pass: an effect the loop added early can be redundant once later changes are
+    in (a thermal term taken before the GP moved to the joint angles, which then carry the same
+    error). Each added effect is tested again against the final model without it; it is removed
+    when it no longer lowers the error significantly by point and the model without it is no worse
+    on the deployment scheme. Removals are steps too ("-thermal"), one at a time, weakest first."""
+    while True:
+        added = [e for e in cfg.effects if e not in start.effects]
+        if not added:
+            return cfg
+        level = alpha / len(added)
+        cur = ev.cv(cfg, ev.points)
+        fewer = [Config(tuple(x for x in cfg.effects if x != e), cfg.gp_inputs, cfg.nuisance) for e in added]
+        results = ev.cv_many([(f, ev.points, cur.log_hypers) for f in fewer])
+        weakest = max(zip(added, fewer, results), key=lambda t: paired_gain(t[2], cur)[0])
+        effect, without, res = weakest
+        p = paired_gain(res, cur)[0]  # does the effect still lower the error of the final model?
+        scheme = ev.scheme_for(effect)
+        if p < level or ev.rms_mm(without, scheme) > ev.rms_mm(cfg, scheme):
+            return cfg
+        last = steps[-1]
+        last.change, last.p_value = f"-{effect}", p
+        last.explained_fraction = float(1 - (last.rmse_mm / (rms3(res.residual) * 1e3)) ** 2)
+        last.change_deploy_kind = scheme.kind
+        last.change_deploy_rmse_mm = (ev.rms_mm(cfg, scheme), ev.rms_mm(without, scheme))
+        last.follows = None
+        cfg = without
+        base = ev.cv(cfg, ev.points)
+        steps.append(Step(cfg.label(), cfg.to_dict(), rms3(base.residual) * 1e3, _rms_u(base.group_mse) * 1e3,
+                          ev.rms_mm(cfg, ev.deploy), ev.deploy.kind, None, None, None, level))

@@ -129,6 +129,14 @@ def _follows(step: dict) -> str:
     return ""
 
 
+def _why(step: dict) -> str:
+    if step["change"].startswith("-"):  # the backward pass (analysis.selection.prune)
+        return (f"{step['change']} (in the final model it explained {100 * (step['explained_fraction'] or 0):.1f} % "
+                f"more, p = {step['p_value']:.2g}: no longer needed once the later changes were in)")
+    return (f"{step['change']} (explains {100 * (step['explained_fraction'] or 0):.0f} %, p = {step['p_value']:.2g}"
+            + _follows(step) + ")")
+
+
 def _head_to_head(h: dict) -> str:
     a, b, f = h["a"], h["b"], h["factor"]
     both = f"'{a}' and '{b}' both read {_factor(f) if f in FACTOR else f}; tested head to head"
@@ -199,12 +207,14 @@ def auto_verdict(d: dict) -> str:
     first, final = d["steps"][0]["rmse_mm"], d["final_rmse_mm"]
     kind = d["deploy_kind"]
     if steps:
-        why = "; ".join(f"{s['change']} (explains {100 * (s['explained_fraction'] or 0):.0f} %, p = {s['p_value']:.2g}"
-                        + _follows(s) + ")" for s in steps)
-        text = (f"Added {', '.join(d['added'])}: the 3D RMS held out by point fell from {first:.4f} to {final:.4f} mm, "
+        why = "; ".join(_why(s) for s in steps)
+        text = (f"{'Changed' if any(a.startswith('-') for a in d['added']) else 'Added'} {', '.join(d['added'])}: "
+                f"the 3D RMS held out by point fell from {first:.4f} to {final:.4f} mm, "
                 f"on {SCHEME[kind]} from {d['steps'][0]['deploy_rmse_mm']:.4f} to {d['final_deploy_rmse_mm']:.4f} mm "
-                f"({why}). Each step was significant by point and lowered the RMS on {SCHEME[kind]}"
-                + (" (held-out time blocks for a time-dependent term)" if kind == "regions" else "") + ".")
+                f"({why}). Each addition was significant by point and lowered the RMS on {SCHEME[kind]}"
+                + (" (held-out time blocks for a time-dependent term)" if kind == "regions" else "")
+                + ("; each removal no longer lowered the error significantly and left that RMS no higher"
+                   if any(a.startswith("-") for a in d["added"]) else "") + ".")
     else:
         text = (f"Nothing to add: the 3D RMS stays {final:.4f} mm held out by point, "
                 f"{d['final_deploy_rmse_mm']:.4f} mm on {SCHEME[kind]}.")
