@@ -83,11 +83,19 @@ def robot_chain(path: Path, harmonics: tuple[int, ...] | None):
     return replace(chain, gear_harmonics=tuple(harmonics)) if harmonics else chain
 
 
-def strict_residual(ev: Evaluator, cfg: Config, folds) -> np.ndarray:
-    """Held-out residuals with *everything* (effect parameters, GP hyperparameters and
-    posterior) fitted on the training side of each fold; rows outside every fold are NaN."""
+def strict_residual(ev: Evaluator, cfg: Config, fold: np.ndarray) -> np.ndarray:
+    """Held-out residuals of one test mask with *everything* (effect parameters, GP
+    hyperparameters and posterior) fitted on the rest; rows outside it are NaN. A worker task
+    (analysis.parallel.Pool.call): the folds run side by side."""
     p = ev.problem
-    return cross_validate(ev.model(cfg), p.inp, p.error, p.groups, folds, hyper_per_fold=True).residual
+    return cross_validate(ev.model(cfg), p.inp, p.error, p.groups, [fold], hyper_per_fold=True).residual
+
+
+def strict(ev: Evaluator, jobs: list[tuple[Config, np.ndarray]]) -> list[np.ndarray]:
+    """strict_residual of each (cfg, mask), in the pool's workers when the evaluator has a pool."""
+    if ev.pool is not None:
+        return ev.pool.call(strict_residual, jobs)
+    return [strict_residual(ev, c, m) for c, m in jobs]
 
 
 def subset_of(data, n_points: int):
@@ -101,13 +109,19 @@ def subset_of(data, n_points: int):
         groups_of(sub)))), "n_rows": sub.n}
 
 
+def cpu_now() -> float:
+    """CPU seconds of this process and of its finished worker processes."""
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
+
+
 def run_series(name: str, chain, refold: bool = False) -> dict:
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), cpu_now()
     path = DATA / "ipa_ur10" / FILES[name]
     data = load_data(path, UR10_MAPPING)
     ds = data.dataset
     reg = data.info["registration"]
-    prep = prepare(data, effects=(), gp_inputs="tcp", robot=chain, gp_options=GP_OPTIONS)
+    prep = prepare(data, effects=(), gp_inputs="tcp", robot=chain, gp_options=GP_OPTIONS)  # the facts; all rows
     res: dict = {"file": str(Path(FILES[name])), "n_rows": ds.n, "n_points": int(len(np.unique(prep.problem.groups))),
                  "registration_rms_mm": reg["rms_3d_mm"], "registration_method": reg["method"],
                  "probe_offset_mm": reg["offset_mm"], "as_is_rms_mm": rms3(ds.error) * 1e3,
@@ -129,15 +143,13 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
         log(f"    {st.model}: {st.rmse_mm:.4f} mm by point, {st.deploy_rmse_mm:.4f} on regions"
             + (f" -> {st.change} (p = {st.p_value:.2g})" if st.change else ""))
 
+    # Score on all rows: the loop's own cross-validations when it ran on them all, else anew.
+    ev = r.evaluator if info is None else Evaluator(prep.problem, FOLDS, SEED)
     n = parallel.workers()
-    pool = parallel.Pool(prep.problem, FOLDS, SEED, n) if n > 1 else None
+    ev.pool = parallel.Pool(ev.problem, FOLDS, SEED, n) if n > 1 else None
     try:
-        ev = Evaluator(prep.problem, FOLDS, SEED, pool)
         paper, joints, final = Config((), "tcp"), Config((), "joints"), Config(tuple(r.effects), r.gp_inputs)
-        jobs = [(c, sch, None) for c in (paper, joints, final) for sch in (ev.points, ev.deploy)]
-        if refold:
-            ev2 = validation.points(prep.problem.groups, FOLDS, SEED + 1)
-        ev.cv_many(jobs)
+        ev.cv_many([(c, sch, None) for c in (paper, joints, final) for sch in (ev.points, ev.deploy)])
         res["paper_heldout_mm"] = ev.rms_mm(paper, ev.points)
         res["gp_joints_only_heldout_mm"] = ev.rms_mm(joints, ev.points)
         res["final_heldout_mm"] = ev.rms_mm(final, ev.points)
@@ -149,40 +161,47 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
             f"regions; GP(joints) alone {res['gp_joints_only_heldout_mm']:.4f}")
         log(f"  final {final.label()}: {res['final_heldout_mm']:.4f} mm by point, {res['final_regions_mm']:.4f} on "
             "regions")
+        p = ev.problem
         if refold:  # the loop chose the model on these folds: re-score it (and the baseline) on fresh ones
-            p = prep.problem
+            folds2 = list(validation.points(p.groups, FOLDS, SEED + 1).folds)
             res["final_heldout_mm_refold"] = rms3(cross_validate(ev.model(final), p.inp, p.error, p.groups,
-                                                                 list(ev2.folds)).residual) * 1e3
+                                                                 folds2).residual) * 1e3
             res["paper_heldout_mm_refold"] = rms3(cross_validate(ev.model(paper), p.inp, p.error, p.groups,
-                                                                 list(ev2.folds)).residual) * 1e3
+                                                                 folds2).residual) * 1e3
         if name == "C":
-            # strict grouped CV of the final model: GP hyperparameters refitted inside every fold
-            res["strict_final_heldout_mm"] = rms3(strict_residual(ev, final, list(ev.points.folds))) * 1e3
-            log(f"  strict CV: final {res['strict_final_heldout_mm']:.4f} mm")
-            # seeded random 70/30 split (one row per point in C: a row split), everything fitted on the 70 %
-            tr, te = point_split(prep.problem.groups, 0.3, SEED)
+            # strict grouped CV of the final model (GP hyperparameters refitted inside every fold) and a
+            # seeded random 70/30 split (one row per point in C: a row split), everything fitted on the
+            # 70 %: cold fits, one worker task each
+            tr, te = point_split(p.groups, 0.3, SEED)
             mask = np.zeros(ds.n, bool)
             mask[te] = True
+            split_cfgs = {"paper_tcp_mm": paper, "gp_joints_mm": joints, "final_mm": final}
+            out = strict(ev, [(final, f) for f in ev.points.folds] + [(c, mask) for c in split_cfgs.values()])
+            strict_r = np.full_like(p.error, np.nan)
+            for f, rr in zip(ev.points.folds, out):
+                strict_r[f] = rr[f]
+            res["strict_final_heldout_mm"] = rms3(strict_r) * 1e3
+            log(f"  strict CV: final {res['strict_final_heldout_mm']:.4f} mm")
             split = {"n_train": int(len(tr)), "n_test": int(len(te)), "seed": SEED, "raw_mm": rms3(ds.error[te]) * 1e3}
-            for key, cfg in {"paper_tcp_mm": paper, "gp_joints_mm": joints, "final_mm": final}.items():
-                split[key] = rms3(strict_residual(ev, cfg, [mask])[te]) * 1e3
+            for key, rr in zip(split_cfgs, out[ev.points.k:]):
+                split[key] = rms3(rr[te]) * 1e3
             split["ratio_final_vs_paper"] = split["final_mm"] / split["paper_tcp_mm"]
             split["reference"] = REFERENCE_C
             res["split_70_30"] = split
             log(f"  70/30 split: raw {split['raw_mm']:.4f}, paper {split['paper_tcp_mm']:.4f}, "
                 f"GP(joints) {split['gp_joints_mm']:.4f}, final {split['final_mm']:.4f} mm")
     finally:
-        if pool is not None:
-            pool.close()
+        if ev.pool is not None:
+            ev.pool.close()
+            ev.pool = None
+    res["cpu_seconds"] = cpu_now() - c_start
     res["seconds"] = time.perf_counter() - t_start
     log(f"  Series {name} took {res['seconds']:.0f} s")
     return res
 
 
 def run(series=("A", "B", "C", "D"), robot: Path = UR10_ROBOT, harmonics=None, refold: bool = False) -> dict:
-    t0, c0 = time.perf_counter(), time.process_time()
-    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
-    c_children = ch.ru_utime + ch.ru_stime
+    t0, c0 = time.perf_counter(), cpu_now()
     chain = robot_chain(robot, harmonics)
     out = {"series": {}}
     for s in series:
@@ -197,8 +216,7 @@ def run(series=("A", "B", "C", "D"), robot: Path = UR10_ROBOT, harmonics=None, r
     out["seconds"] = time.perf_counter() - t0
     # CPU seconds of this process and of the diagnosis's worker processes (each on one BLAS thread):
     # the run's wall time on an otherwise idle single core, which `seconds` is not.
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    out["cpu_seconds"] = time.process_time() - c0 + children.ru_utime + children.ru_stime - c_children
+    out["cpu_seconds"] = cpu_now() - c0
     out["workers"] = parallel.workers()
     out["settings"] = {"folds": FOLDS, "seed": SEED, "gp_options": GP_OPTIONS.to_dict(), "alpha": ALPHA,
                        "robot": str(robot), "gear_harmonics": list(chain.gear_harmonics),
@@ -212,7 +230,8 @@ def show(res: dict) -> None:
     print("UR10 laser-tracker data (IPA): paper's model GP(TCP) vs the diagnose loop; "
           "held-out 3D RMS in mm, 5-fold CV grouped by target point")
     for s, r in res["series"].items():
-        print(f"\nSeries {s} ({r['file']}): {r['n_rows']} rows, {r['n_points']} points, {r['seconds']:.0f} s")
+        print(f"\nSeries {s} ({r['file']}): {r['n_rows']} rows, {r['n_points']} points, {r['seconds']:.0f} s "
+              f"({r['cpu_seconds']:.0f} s CPU)")
         print(f"  registration residual (rigid + probe offset) {f(r['registration_rms_mm'])}  "
               f"= as-is error RMS {f(r['as_is_rms_mm'])}   noise floor {f(r['noise_floor_mm'])}")
         print(f"  paper model GP(tcp)              {f(r['paper_heldout_mm'])}")

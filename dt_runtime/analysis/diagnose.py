@@ -212,6 +212,7 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
         r.deploy = {"ok": r.final_deploy_rmse_mm < as_is_mm, "by": ev.deploy.kind}
     if out is not None:
         r.model_out = str(save_final(prep, ev, final, out, r))
+    r.evaluator = ev
     return r
 
 

@@ -53,6 +53,11 @@ def _task(cfg, kind: str, starts, thetas):
     return _EV.compute(cfg, _EV.scheme(kind), starts, thetas)
 
 
+def _call(fn, args: tuple):
+    assert _EV is not None
+    return fn(_EV, *args)
+
+
 class Pool:
     """Worker processes holding one diagnosis's problem."""
 
@@ -64,6 +69,12 @@ class Pool:
     def map(self, jobs: list[tuple]) -> list:
         """Cross-validate each (cfg, scheme kind, starts, thetas); results in order."""
         futures = [self._ex.submit(_task, *job) for job in jobs]
+        return [f.result() for f in futures]
+
+    def call(self, fn, jobs: list[tuple]) -> list:
+        """`fn(evaluator, *args)` for each args tuple of `jobs` in the workers (fn a module-level
+        function, sent by name); results in order."""
+        futures = [self._ex.submit(_call, fn, args) for args in jobs]
         return [f.result() for f in futures]
 
     def close(self) -> None:

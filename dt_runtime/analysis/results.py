@@ -160,9 +160,12 @@ class AutoResult:
     deploy: dict = field(default_factory=dict)  # {'ok': bool, 'by': scheme}
     reference_session: str | None = None  # the session the nuisance terms are measured against
     model_out: str | None = None
+    # The diagnosis's cross-validations (analysis.evaluation.Evaluator; not in the JSON): a caller
+    # scoring the same configurations on the same data reuses them.
+    evaluator: Any = None
 
     def to_dict(self) -> dict:
-        d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source")}
+        d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source", "evaluator")}
         return jsonable(d | {"steps": [s.to_dict() for s in self.steps]} | self.source)
 
 
