@@ -1,0 +1,146 @@
+"""Bounded parsing (issue 22, item 8): every file and request the project parses is refused with a
+named cause when it is too large, too deep, binary, non-finite or an alias bomb; bounded in time
+and memory; never a traceback (exit 1) or a hang. Model files: tests/test_bounded_inputs.py."""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import time
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from dt_kernel.config import MAX_YAML_DEPTH, MAX_YAML_NODES, read_yaml
+from dt_kernel.errors import MAX_MESSAGE_CHARS, ConfigError, DataError
+from dt_runtime.cli.main import main
+from dt_runtime.measurements.dataset import Dataset, write_table
+from dt_runtime.models.hybrid import HybridModel
+
+# Nine aliases of nine aliases ... eight times: 380 bytes that expand to 9^8 = 43 million strings.
+BOMB = "[" + ", ".join(["&l0 [a, a, a, a, a, a, a, a, a]"] + [
+    f"&l{i} [{', '.join([f'*l{i - 1}'] * 9)}]" for i in range(1, 9)]) + "]"
+BINARY = bytes(range(256)) * 16
+DEEP = "a: " + "[" * 100_000 + "]" * 100_000 + "\n"
+
+
+def run_dt(*argv: str) -> tuple[int, dict]:
+    """`dt ... --json` in process: (exit code, the JSON object it printed)."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = main([*argv, "--json"])
+    return rc, json.loads(buf.getvalue())
+
+
+def bounded(fn):
+    """(result or the exception raised, CPU seconds, peak MB allocated) of fn()."""
+    tracemalloc.start()
+    t0 = time.process_time()
+    try:
+        out = fn()
+    except Exception as exc:  # noqa: BLE001 - returned for the caller to check
+        out = exc
+    cpu = time.process_time() - t0
+    peak = tracemalloc.get_traced_memory()[1] / 2 ** 20
+    tracemalloc.stop()
+    return out, cpu, peak
+
+
+# --- YAML: one bounded loader (dt_kernel.config.read_yaml) -----------------------------------------
+def test_an_alias_bomb_is_refused_while_it_is_read(tmp_path):
+    f = tmp_path / "bus.yaml"
+    f.write_text(f"cell: c1\nconsumer_groups: {BOMB}\n")
+    err, cpu, peak = bounded(lambda: read_yaml(f))
+    assert isinstance(err, ConfigError) and "alias bomb" in str(err) and str(f) in str(err)
+    # before: 1.05 GB, 13-44 s and a 312 MB message; the budget stops it after 10^5 values
+    assert cpu < 2.0 and peak < 50 and len(str(err)) < 400
+
+
+def test_aliases_within_the_budget_still_work(tmp_path):
+    f = tmp_path / "a.yaml"
+    f.write_text("base: &b {x: 1, y: [2, 3]}\none: *b\ntwo: {<<: *b, z: 4}\n")
+    assert read_yaml(f) == {"base": {"x": 1, "y": [2, 3]}, "one": {"x": 1, "y": [2, 3]},
+                            "two": {"x": 1, "y": [2, 3], "z": 4}}
+    f.write_text("a: [" + ", ".join(["1"] * 10_000) + "]\n")  # 100 times a large config
+    assert len(read_yaml(f)["a"]) == 10_000 < MAX_YAML_NODES
+
+
+@pytest.mark.parametrize("text, cause", [
+    (DEEP, "nested deeper than 32 levels"),
+    ("a: " + "{b: " * 40 + "1" + "}" * 40 + "\n", "nested deeper than 32 levels"),
+    # 8 levels, repeated 5 times through aliases: 40 levels once expanded
+    ("".join(f"l{i}: &l{i} [[[[[[[[{f'*l{i - 1}' if i else 1}]]]]]]]]\n" for i in range(5)), "aliases expanded"),
+    ("a: &a [1, *a]\n", "recursive alias"),
+])
+def test_deep_or_recursive_yaml_is_refused_with_its_line(tmp_path, text, cause):
+    f = tmp_path / "deep.yaml"
+    f.write_text(text)
+    with pytest.raises(ConfigError, match=cause) as ei:
+        read_yaml(f)
+    assert "at line" in str(ei.value) and MAX_YAML_DEPTH == 32
+
+
+@pytest.mark.parametrize("content, cause", [
+    (BINARY, "a binary file \\(a NUL byte at offset 0\\)"),
+    ("speed: caf\xe9\n".encode("latin-1"), "not UTF-8 text \\(byte 0xe9 at offset 10\\)"),
+    (b"a: [" + b"1, " * 400_000 + b"1]\n", "more than 1048576 bytes"),
+])
+def test_binary_or_oversized_yaml_is_refused_by_name(tmp_path, content, cause):
+    f = tmp_path / "c.yaml"
+    f.write_bytes(content)
+    with pytest.raises(ConfigError, match=cause):
+        read_yaml(f)
+
+
+def test_a_device_is_read_no_further_than_the_cap():
+    err, cpu, peak = bounded(lambda: read_yaml("/dev/zero"))
+    assert isinstance(err, ConfigError) and "more than 1048576 bytes" in str(err)
+    assert cpu < 2.0 and peak < 10
+
+
+@pytest.fixture(scope="module")
+def data_and_model(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bp")
+    rng = np.random.default_rng(0)
+    P = rng.uniform([0.6, -0.3, 0.3], [1.2, 0.3, 0.8], (60, 3))
+    ds = Dataset(commanded=P, error=1e-4 * np.sin(P * 5) + rng.normal(0, 1e-5, (60, 3)), speed=np.full(60, 0.2))
+    csv = write_table(ds, d / "d.csv")
+    model = HybridModel((), "tcp").fit(ds, thetas=[np.zeros(5)] * 3).save(d / "m")
+    return csv, model
+
+
+@pytest.mark.parametrize("kind", ["bomb", "binary", "deep"])
+@pytest.mark.parametrize("option", ["--instruments", "--mapping", "--effects-file"])
+def test_bad_yaml_for_the_command_line_options_exits_2_naming_it(data_and_model, tmp_path, option, kind):
+    csv, model = data_and_model
+    f = tmp_path / f"{kind}.yaml"
+    if kind == "bomb":  # under a key each file has
+        key = {"--instruments": "instruments", "--mapping": "columns", "--effects-file": "effects"}[option]
+        f.write_text(f"{key}: {BOMB}\n")
+    else:
+        f.write_bytes(BINARY if kind == "binary" else DEEP.encode())
+    argv = (["compare", "--model", str(model)] if option == "--instruments" else
+            ["fit", "--gp-inputs", "tcp", "--out", str(tmp_path / "m"), "--no-progress"])
+    rc, out = run_dt(*argv, "--data", str(csv), option, str(f))
+    assert rc == 2 and out["type"] == "ConfigError" and str(f) in out["error"]
+    assert {"bomb": "alias bomb", "binary": "binary file", "deep": "nested deeper"}[kind] in out["error"]
+    assert not (tmp_path / "m").exists()
+
+
+@pytest.mark.parametrize("content", [BINARY, f"bus: {{cell: c1, consumer_groups: {BOMB}}}\n".encode()])
+def test_dt_run_refuses_a_binary_or_bombed_runtime_yaml(tmp_path, content):
+    f = tmp_path / "runtime.yaml"
+    f.write_bytes(content)
+    rc, out = run_dt("run", "--config", str(f))
+    assert rc == 2 and out["type"] == "ConfigError" and str(f) in out["error"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_message_quoting_a_huge_value_is_cut():
+    value = [["a"] * 9] * 10 ** 6  # what an expanded bomb would hand to the message
+    err = ConfigError("f.yaml", "bus.consumer_groups", value, "a list of group names")
+    assert len(str(err)) < 500 and "a list of group names" in str(err)
+    assert "<an integer of 5001 digits>" in str(ConfigError("f.yaml", "k", 10 ** 5000, "a number"))
+    long = DataError("x" * 10 ** 6)
+    assert len(str(long)) < MAX_MESSAGE_CHARS + 100 and str(long).endswith("[998000 more characters not shown]")
