@@ -1,22 +1,30 @@
 """Bounded parsing (issue 22, item 8): every file and request the project parses is refused with a
 named cause when it is too large, too deep, binary, non-finite or an alias bomb; bounded in time
-and memory; never a traceback (exit 1) or a hang. Model files: tests/test_bounded_inputs.py."""
+and memory; never a traceback (exit 1) or a hang. Sizes of model members: tests/test_bounded_inputs.py."""
 from __future__ import annotations
 
 import contextlib
 import io
 import json
+import os
+import shutil
+import subprocess
+import sys
 import time
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dt_kernel.config import MAX_YAML_DEPTH, MAX_YAML_NODES, read_yaml
-from dt_kernel.errors import MAX_MESSAGE_CHARS, ConfigError, DataError
+from dt_kernel.errors import MAX_MESSAGE_CHARS, ConfigError, DataError, ModelError, TwinError
 from dt_runtime.cli.main import main
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.common.safe_json import loads
 from dt_runtime.measurements.dataset import Dataset, write_table
 from dt_runtime.models.hybrid import HybridModel
+from dt_runtime.twin.twin import Twin
 
 # Nine aliases of nine aliases ... eight times: 380 bytes that expand to 9^8 = 43 million strings.
 BOMB = "[" + ", ".join(["&l0 [a, a, a, a, a, a, a, a, a]"] + [
@@ -106,7 +114,7 @@ def data_and_model(tmp_path_factory):
     P = rng.uniform([0.6, -0.3, 0.3], [1.2, 0.3, 0.8], (60, 3))
     ds = Dataset(commanded=P, error=1e-4 * np.sin(P * 5) + rng.normal(0, 1e-5, (60, 3)), speed=np.full(60, 0.2))
     csv = write_table(ds, d / "d.csv")
-    model = HybridModel((), "tcp").fit(ds, thetas=[np.zeros(5)] * 3).save(d / "m")
+    model = HybridModel(("dynamic",), "tcp").fit(ds, thetas=[np.zeros(5)] * 3).save(d / "m")  # 2 parameters
     return csv, model
 
 
@@ -144,3 +152,106 @@ def test_a_message_quoting_a_huge_value_is_cut():
     assert "<an integer of 5001 digits>" in str(ConfigError("f.yaml", "k", 10 ** 5000, "a number"))
     long = DataError("x" * 10 ** 6)
     assert len(str(long)) < MAX_MESSAGE_CHARS + 100 and str(long).endswith("[998000 more characters not shown]")
+
+
+# --- model and twin files: JSON + NPZ, bounded and finite ------------------------------------------
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _edit_npz(path: Path, **change) -> None:
+    with np.load(path) as z:
+        arrays = {k: z[k].copy() for k in z.files}
+    for k, fn in change.items():
+        arrays[k] = fn(arrays[k])
+    np.savez(path, **arrays)
+
+
+def _edit_json(path: Path, fn) -> None:
+    meta = json.loads(path.read_text())
+    fn(meta)
+    # allow_nan: NaN and Infinity written as a careless tool would; "SEED" becomes 10^5000
+    path.write_text(json.dumps(meta).replace('"SEED"', "1" + "0" * 5000))
+
+
+def _poison(a: np.ndarray, value: float = np.inf) -> np.ndarray:
+    a.flat[0] = value
+    return a
+
+
+@pytest.mark.parametrize("edit, named", [
+    (lambda d: _edit_npz(d / "gp.npz", Q_1=_poison), "gp.npz: member 'Q_1.npy' holds 1 NaN or infinite"),
+    (lambda d: _edit_npz(d / "hybrid.npz", theta_u=lambda a: np.full(2, np.nan)), "member 'theta_u.npy' holds 2"),
+    (lambda d: _edit_json(d / "gp.json", lambda m: m["models"][0].update(noise_var_=float("nan"))),
+     "gp.json: models.0.noise_var_ is nan"),
+    (lambda d: _edit_json(d / "gp.json", lambda m: m["models"][2]["theta"].__setitem__(1, float("nan"))),
+     "gp.json: models.2.theta.1 is nan"),
+    (lambda d: _edit_json(d / "hybrid.json", lambda m: m.update(residual_rms_m=float("inf"))),
+     "hybrid.json: residual_rms_m is inf"),
+    (lambda d: _edit_npz(d / "gp.npz", alpha_0=lambda a: a[: len(a) // 2]), "output 0: arrays of disagreeing shapes"),
+    (lambda d: (d / "gp.npz").write_bytes((d / "gp.npz").read_bytes()[:3000]), "gp.npz: not a readable NPZ file"),
+    (lambda d: _edit_npz(d / "hybrid.npz", theta=lambda a: np.zeros(7)), "do not fit the 2 parameters"),
+    (lambda d: (d / "hybrid.json").write_text('{"a": ' + "[" * 200_000 + "]" * 200_000 + "}"),
+     "hybrid.json: nested deeper than 32 levels"),
+    (lambda d: (d / "hybrid.json").write_bytes(BINARY), "hybrid.json: not UTF-8 text"),
+    (lambda d: _edit_json(d / "hybrid.json", lambda m: m.update(seed="SEED")), "an integer of 5001 digits"),
+    (lambda d: _edit_json(d / "hybrid.json", lambda m: m.pop("param_names")), "a missing or malformed entry"),
+])
+def test_a_non_finite_cut_or_malformed_model_is_refused_at_load_naming_file_and_member(data_and_model, tmp_path,
+                                                                                      edit, named):
+    d = _copy(data_and_model[1], tmp_path / "m")
+    edit(d)
+    with pytest.raises((ModelError, DataError), match=named):
+        HybridModel.load(d)
+
+
+@pytest.fixture(scope="module")
+def twin_dir(quick_demo):
+    rc, _, out = quick_demo
+    assert rc == 0
+    return out / "model"
+
+
+def _runtime_yaml(tmp_path: Path, twin: Path) -> Path:
+    f = tmp_path / "runtime.yaml"
+    f.write_text(json.dumps({  # JSON is YAML
+        "twin": str(twin), "store": str(tmp_path / "store" / "dt.sqlite"), "realtime": False, "publish": False,
+        "sim": {"scenario": str(CONFIGS / "scenarios" / "paper_default.yaml"), "cell": str(CONFIGS / "cell.yaml")}}))
+    return f
+
+
+def test_a_stated_uncertainty_of_inf_is_refused_and_an_infinite_dof_is_not(twin_dir, tmp_path):
+    d = _copy(twin_dir, tmp_path / "t")
+    _edit_json(d / "twin.json", lambda m: m["u"]["eq13_e_lt_hat"]["dof"].__setitem__(2, float("inf")))
+    assert np.isinf(Twin.load(d).uncertainty.e_lt_hat.dof[2])  # GUM: infinite degrees of freedom
+    _edit_json(d / "twin.json", lambda m: m["u"]["eq11_tcp_c"]["U"].__setitem__(0, float("inf")))
+    with pytest.raises(ModelError, match=r"twin.json: u.eq11_tcp_c.U.0 is inf"):
+        Twin.load(d)
+    _edit_json(d / "twin.json", lambda m: m["u"]["eq11_tcp_c"].update(U=[1e-4, 1e-4, 1e-4], dof=[float("nan")] * 3))
+    with pytest.raises(ModelError, match=r"u.eq11_tcp_c.dof.\d is nan"):
+        Twin.load(d)
+
+
+def test_dt_run_with_a_nan_model_exits_2_and_opens_nothing(twin_dir, tmp_path):
+    d = _copy(twin_dir, tmp_path / "t")
+    _edit_json(d / "e_lt" / "gp.json", lambda m: m["models"][1].update(noise_var_=float("nan")))
+    rc, out = run_dt("run", "--config", str(_runtime_yaml(tmp_path, d)), "--duration", "1")
+    assert rc == 2 and "e_lt/gp.json: models.1.noise_var_ is nan" in out["error"]
+    assert not (tmp_path / "store").exists()
+
+
+@pytest.mark.parametrize("member", ["/dev/zero", "fifo"])
+def test_a_model_member_that_never_ends_is_refused_within_seconds(twin_dir, tmp_path, member):
+    """Before: `dt run` read e_lt/gp.npz -> /dev/zero for ever (10 GB RSS in 20 s). A subprocess
+    with a timeout: a hang fails the test instead of the suite."""
+    d = _copy(twin_dir, tmp_path / "t")
+    npz = d / "e_lt" / "gp.npz"
+    npz.unlink()
+    os.symlink("/dev/zero", npz) if member == "/dev/zero" else os.mkfifo(npz)
+    p = subprocess.run([sys.executable, "-m", "dt_runtime.cli.main", "run", "--config",
+                        str(_runtime_yaml(tmp_path, d)), "--duration", "1"],
+                       capture_output=True, text=True, timeout=120)
+    kind = "a character device" if member == "/dev/zero" else "a FIFO (named pipe)"
+    assert p.returncode == 2 and f"{npz}: {kind}, not a regular file" in p.stderr, p.stderr[-2000:]
+    assert "Traceback" not in p.stderr and not (tmp_path / "store").exists()
