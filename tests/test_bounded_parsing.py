@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from dt_kernel.config import MAX_YAML_DEPTH, MAX_YAML_NODES, read_yaml
-from dt_kernel.errors import MAX_MESSAGE_CHARS, ConfigError, DataError, ModelError, TwinError
+from dt_kernel.errors import MAX_MESSAGE_CHARS, ConfigError, DataError, ModelError
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.safe_json import loads
@@ -155,6 +155,24 @@ def test_a_message_quoting_a_huge_value_is_cut():
 
 
 # --- model and twin files: JSON + NPZ, bounded and finite ------------------------------------------
+@pytest.mark.parametrize("raw, cause", [
+    (b'{"a": ' + b"7" * 5000 + b"}", "an integer of 5000 digits"),
+    (b"[" * 200_000 + b"]" * 200_000, "nested deeper than 32 levels"),
+    (b"[" * 40 + b"]" * 40, "nested deeper than 32 levels \\(at 0.0.0"),
+    (b'{"u": [1, Infinity]}', "u.1 is inf"),
+    (b'{"dof": [1, -Infinity]}', "dof.1 is -inf"),
+    (b'{"dof": NaN}', "dof is nan"),
+    (b'{"a": 1e999}', "a is inf"),
+    (b"\xff\xfe{}", "not UTF-8 text \\(byte 0xff at offset 0\\)"),
+    (b"{'a': 1}", "not JSON"),
+    (b" " * 1001, "1001 bytes, more than the 1000 allowed"),
+])
+def test_the_json_reader_refuses_with_the_cause_and_the_key(raw, cause):
+    with pytest.raises(DataError, match=f"^src: {cause}"):
+        loads(raw, "src", max_bytes=1000 if len(raw) < 2000 else 10 ** 6, infinite_ok=("dof",))
+    assert loads(b'{"u": {"dof": [Infinity, 3]}, "n": -12345678901234567890}', "src", max_bytes=100,
+                 infinite_ok=("dof",)) == {"u": {"dof": [float("inf"), 3]}, "n": -12345678901234567890}
+
 def _copy(src: Path, dst: Path) -> Path:
     shutil.copytree(src, dst)
     return dst
