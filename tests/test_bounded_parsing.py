@@ -7,6 +7,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -273,3 +274,84 @@ def test_a_model_member_that_never_ends_is_refused_within_seconds(twin_dir, tmp_
     kind = "a character device" if member == "/dev/zero" else "a FIFO (named pipe)"
     assert p.returncode == 2 and f"{npz}: {kind}, not a regular file" in p.stderr, p.stderr[-2000:]
     assert "Traceback" not in p.stderr and not (tmp_path / "store").exists()
+
+
+# --- the bus `correct` service: every request answered, bounded --------------------------------------
+@pytest.fixture(scope="module")
+def correct_service(twin_dir):
+    """A CorrectionServer and a client on Zenoh over loopback (as tests/test_bus_correct.py)."""
+    from dt_runtime.service.bus import BusConfig
+    from dt_runtime.service.bus.correct import CorrectionServer
+    from dt_runtime.service.bus.session import close_session, open_session
+    from dt_runtime.service.correction import Corrector, Limits
+    from tests.loopback import free_port
+
+    port = free_port()
+    cfg = BusConfig(cell="c9", robot="r9", listen=[f"tcp/127.0.0.1:{port}"])
+    server = CorrectionServer(Corrector(Twin.load(twin_dir), Limits()), cfg)
+    client = open_session(BusConfig(cell="c9", robot="prog", listen=[f"tcp/127.0.0.1:{free_port()}"],
+                                    connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        for _ in range(40):  # the first query may go out before the peers have met
+            if list(client.get(cfg.key("correct"), payload=GOOD, timeout=1.0)):
+                break
+        else:
+            raise AssertionError("no reply from the correction server")
+        yield server, client, cfg.key("correct")
+    finally:
+        close_session(client, 3.0)
+        assert server.close(3.0)
+
+
+GOOD = b'{"id": "p1", "target_mm": [900.0, 0.0, 550.0], "speed_mm_s": 500.0}'
+
+
+def _ask(client, key: str, raw: bytes) -> tuple[dict | None, dict | None, int]:
+    """(ok reply, error reply, bytes of the reply) to one raw payload; a generous timeout: no
+    reply at all is the failure looked for (the service used to stay silent)."""
+    replies = list(client.get(key, payload=raw, timeout=10.0))
+    assert len(replies) == 1, f"{len(replies)} replies to {raw[:80]!r}"
+    r = replies[0]
+    body = (r.ok or r.err).payload.to_bytes()
+    return (json.loads(body), None, len(body)) if r.ok is not None else (None, json.loads(body), len(body))
+
+
+@pytest.mark.parametrize("raw, cause", [
+    # the inputs that went unanswered, and the 10 MB that was echoed: refused by their size
+    (b'{"target_mm": [900, 0, 550], "speed_mm_s": ' + b"9" * 5000 + b"}", "5044 bytes, more than the 4096 allowed"),
+    (b'{"id": ' + b"[" * 100_000 + b"]" * 100_000 + b', "target_mm": [900, 0, 550], "speed_mm_s": 500}',
+     "200055 bytes, more than the 4096 allowed"),
+    (b'{"id": "' + b"x" * 10 * 2 ** 20 + b'", "target_mm": [900, 0, 550], "speed_mm_s": 500}',
+     "10485817 bytes, more than the 4096 allowed"),
+    # within the size: by what they hold
+    (b'{"target_mm": [900, 0, 550], "speed_mm_s": ' + b"9" * 50 + b"}", "an integer of 50 digits"),
+    (b'{"id": ' + b"[" * 1500 + b"]" * 1500 + b', "target_mm": [900, 0, 550], "speed_mm_s": 500}',
+     "nested deeper than 8 levels"),
+    (b'{"target_mm": [900, 0, 550], "speed_mm_s": 500, "temperature_c": 1e6}',
+     r"temperature_c must be a number in \[-50, 150\] deg C, got 1000000.0"),
+    (b'{"target_mm": [900, 0, 550], "speed_mm_s": 500, "payload_kg": true}', "payload_kg must be a number"),
+    (b'{"target_mm": [true, 0, 550], "speed_mm_s": 500}', r"target_mm \[True, 0, 550\] is not a finite 3-vector"),
+    (b'{"target_mm": [900, 0, 550], "speed_mm_s": true}', "speed_mm_s must be a number"),
+    (b'{"target_mm": [900, 0, 550], "speed_mm_s": 500, "temperature": 25}', "unknown key.*'temperature'"),
+    (b'{"target_mm": [900, NaN, 550], "speed_mm_s": 500}', "target_mm.1 is nan"),
+    (b"\xff\xfe", "not UTF-8 text"),
+])
+def test_every_bad_request_gets_an_error_reply_naming_the_cause(correct_service, raw, cause):
+    server, client, key = correct_service
+    refused = server.refused
+    ok, err, size = _ask(client, key, raw)
+    assert ok is None and err["type"] == "DataError" and re.search(cause, err["error"]), err
+    assert size < 1000 and server.refused == refused + 1  # nothing of a large request echoed
+    ok, err, _ = _ask(client, key, GOOD)
+    assert err is None and ok["id"] == "p1" and ok["inside"]  # still serving
+
+
+def test_a_defect_behind_the_service_still_gets_a_reply(correct_service, monkeypatch):
+    server, client, key = correct_service
+
+    def broken(*a):
+        raise RuntimeError("a defect")
+
+    monkeypatch.setattr(server, "corrector", broken)
+    ok, err, _ = _ask(client, key, GOOD)
+    assert ok is None and err == {"id": "p1", "error": "internal error: a defect", "type": "RuntimeError"}
