@@ -355,3 +355,34 @@ def test_a_defect_behind_the_service_still_gets_a_reply(correct_service, monkeyp
     monkeypatch.setattr(server, "corrector", broken)
     ok, err, _ = _ask(client, key, GOOD)
     assert ok is None and err == {"id": "p1", "error": "internal error: a defect", "type": "RuntimeError"}
+
+
+# --- CSV: blank leading lines ignored, lines bounded -----------------------------------------------
+def test_blank_leading_lines_are_ignored_as_documented_and_lines_keep_their_numbers(data_and_model, tmp_path):
+    from dt_runtime.measurements.dataset import read_table
+
+    csv, _ = data_and_model
+    text = csv.read_text()
+    f = tmp_path / "blank.csv"
+    f.write_text("\n  \n\n" + text)
+    assert len(read_table(f)) == len(read_table(csv)) == 60
+    lines = text.splitlines()
+    lines[4] = lines[4].rsplit(",", 1)[0] + ",abc"  # data row 4, the last column
+    f.write_text("\n  \n\n" + "\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=f"{f}: line 8: column 'ez': value 'abc'"):  # 3 blank + header + 4
+        read_table(f)
+
+
+@pytest.mark.parametrize("content, cause", [
+    ("\n\n" + "x," * 500_000 + "z\n1,2\n", "line 3: a header line of more than 65536 characters"),
+    ("x,y,z,speed,ex,ey,ez\n" + "1," * 3_000_000, "line 2: a line of more than 1048576 characters"),
+])
+def test_an_overlong_header_or_line_is_refused_without_reading_it_whole(tmp_path, content, cause):
+    f = tmp_path / "long.csv"
+    f.write_text(content)
+    rc, out = run_dt("fit", "--data", str(f), "--out", str(tmp_path / "m"), "--no-progress")
+    assert rc == 2 and cause in out["error"] and not (tmp_path / "m").exists()
+    from dt_runtime.measurements.dataset import read_table
+
+    err, cpu, peak = bounded(lambda: read_table(f))
+    assert isinstance(err, DataError) and cause in str(err) and peak < 4  # MB, of a 1-6 MB file: ~2 MB
