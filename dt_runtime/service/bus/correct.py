@@ -156,7 +156,9 @@ class CorrectionServer:
         finally:
             # The requester sees the end of the replies now, not at its timeout: a logged
             # traceback (answer's defect) keeps this frame, and so the query, alive.
-            query.drop()
+            drop = getattr(query, "drop", None)  # zenoh-python >= 1.0 has it; without, garbage collection
+            if drop is not None:
+                drop()
 
     def close(self, timeout: float | None = None) -> bool:
         timeout = self.config.close_timeout_s if timeout is None else timeout
