@@ -7,11 +7,52 @@ with `raise ... from exc`.
 from __future__ import annotations
 
 import os
+import reprlib
 from typing import Any
+
+#: The longest message a user is shown (about a screen): a message quoting what it refuses (a
+#: config value, a request, a header) must not become the 312 MB that an alias bomb's value was.
+MAX_MESSAGE_CHARS = 2000
+
+class _Brief(reprlib.Repr):
+    """The quoted value of a message: nested containers and long strings abbreviated with "...",
+    built without ever making the whole repr (reprlib stops at its limits), and an integer too
+    long to print (Python refuses over 4300 digits) by its size."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.maxlevel, self.maxlist, self.maxtuple, self.maxdict = 2, 6, 6, 6
+        self.maxset = self.maxfrozenset = self.maxdeque = self.maxarray = 6
+        self.maxstring, self.maxlong, self.maxother = 200, 40, 200
+
+    def repr_int(self, x: int, level: int) -> str:
+        if x.bit_length() > 128:
+            return f"<an integer of {int(x.bit_length() * 0.30103) + 1} digits>"
+        return super().repr_int(x, level)
+
+
+_brief = _Brief()
+
+
+def brief(value: Any) -> str:
+    """repr(value) for a message, bounded in length whatever the value holds."""
+    return _brief.repr(value)
+
+
+def cut(message: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """`message` at most `limit` characters: the head, and how much was left out."""
+    if len(message) <= limit:
+        return message
+    return f"{message[:limit]} ... [{len(message) - limit} more characters not shown]"
 
 
 class TwinError(Exception):
-    """Root of every error this project raises on purpose."""
+    """Root of every error this project raises on purpose. Its text (what `dt` prints, an
+    error reply on the bus, a log line) is cut to MAX_MESSAGE_CHARS: this is the one place
+    where the length of an error message shown to a user is bounded."""
+
+    def __str__(self) -> str:
+        return cut(super().__str__())
 
 
 class ConfigError(TwinError):
@@ -19,7 +60,7 @@ class ConfigError(TwinError):
 
     def __init__(self, file: str | os.PathLike[str], key: str, value: Any, allowed: str):
         self.file, self.key, self.value, self.allowed = str(file), key, value, allowed
-        super().__init__(f"{file}: key '{key}': value {value!r} is not allowed; {allowed}")
+        super().__init__(f"{file}: key '{key}': value {brief(value)} is not allowed; {allowed}")
 
 
 class DataError(TwinError):

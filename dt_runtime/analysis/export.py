@@ -41,7 +41,6 @@ along directions the export leaves out (`non_identifiable_part_max_mm`).
 """
 from __future__ import annotations
 
-import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -57,6 +56,7 @@ from dt_runtime.analysis.data import Data, load_data
 from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.paths import ROOT
 from dt_runtime.common.provenance import FileRecord, Provenance, build, files_under, sha256_file
+from dt_runtime.common.safe_json import read_json
 from dt_runtime.frames import robots
 from dt_runtime.frames.kinematics import Chain, chain_from_urdf, load_robot
 from dt_runtime.frames.robot_export import dh_table, urdf_text
@@ -277,8 +277,8 @@ def model_of_twin(twin: str | Path) -> Path:
         raise DataError(f"{d}: no such twin directory")
     for meta in sorted(d.rglob("hybrid.json")):
         try:
-            effects = json.loads(meta.read_text()).get("effects", [])
-        except (OSError, ValueError):
+            effects = read_json(meta, "a model file").get("effects", [])
+        except (DataError, AttributeError):  # unreadable or not an object: not this twin's map
             continue
         if "geometric" in effects:
             return meta.parent

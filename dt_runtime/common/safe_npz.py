@@ -5,34 +5,41 @@
 with `zipfile`, refuses members that are not expected, reads each member's .npy header (shape,
 dtype) from the stream and refuses before allocating anything when the total would exceed
 `max_bytes` or a dtype is not a plain number; only then does it read the arrays. No pickle.
+The archive itself must be a regular file no larger than `max_bytes` plus its headers (a member
+symlinked to /dev/zero was read for ever), and every float array must be finite (a model holding
+inf in `Q_1` started with exit 0): a refusal names the file and the member.
 """
 from __future__ import annotations
 
 import zipfile
+import zlib
 from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from dt_kernel.errors import DataError
+from dt_runtime.common.safe_files import open_regular
 
 #: Generous for a twin's models (a GP on 20,000 training rows holds ~4 MB of arrays per axis) and
 #: far below what would exhaust a cell PC's memory.
 DEFAULT_MAX_BYTES = 512 * 2 ** 20
 _NUMERIC = "biuf"  # bool, signed, unsigned, float
+_ZIP_SLACK = 2 ** 20  # zip and .npy headers around the arrays
 
 
 def load_npz(path: str | Path, expected: Iterable[str] | None = None,
              max_bytes: int = DEFAULT_MAX_BYTES) -> dict[str, np.ndarray]:
     """The arrays of `path` by name. DataError naming file and member for an unexpected member
     (when `expected` is given: the allowed names, a subset may be present), a non-numeric dtype,
-    or a total size over `max_bytes`."""
+    a total size over `max_bytes`, a member that is truncated or unreadable, or a NaN or infinite
+    value; DataError naming the file when it is not a regular file or larger than `max_bytes`."""
     path = Path(path)
     allowed = None if expected is None else set(expected)
     out: dict[str, np.ndarray] = {}
     total = 0
     try:
-        with zipfile.ZipFile(path) as zf:
+        with open_regular(path, max_bytes + _ZIP_SLACK, "an NPZ archive of arrays") as f, zipfile.ZipFile(f) as zf:
             infos = zf.infolist()
             for info in infos:
                 name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
@@ -60,7 +67,11 @@ def load_npz(path: str | Path, expected: Iterable[str] | None = None,
                         raise DataError(f"{path}: member {info.filename!r} is truncated or longer than its header "
                                         f"({len(data)} bytes for {nbytes})")
                     arr = np.frombuffer(data, dtype=dtype)
+                    if dtype.kind == "f" and not np.all(np.isfinite(arr)):
+                        bad = int(np.count_nonzero(~np.isfinite(arr)))
+                        raise DataError(f"{path}: member {info.filename!r} holds {bad} NaN or infinite value(s) "
+                                        "(a model's numbers must be finite: refit it)")
                     out[name] = arr.reshape(shape, order="F" if fortran else "C").copy()
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, zlib.error) as exc:  # EOF, zlib: a cut member
         raise DataError(f"{path}: not a readable NPZ file ({exc})") from exc
     return out

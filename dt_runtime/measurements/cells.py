@@ -6,7 +6,11 @@ a number; a failure names file, line, column and value (`DataError`), or with sk
 A file is CSV text, or, where the caller names a sheet (an import mapping's `sheet:`), a
 spreadsheet (`sheets`: .xlsx, .xls, .ods), whose typed cells go through the same specs: a number
 cell is taken as it is, a text cell is parsed like a CSV cell, and the "line" of a message is the
-spreadsheet's row number. The header is the first row (of a sheet: its first non-empty row).
+spreadsheet's row number. The header is the first non-blank row: blank lines (and a sheet's
+empty rows) are ignored wherever they are, leading ones too.
+
+Lines are read bounded: a header line over MAX_HEADER_CHARS or any line over MAX_LINE_CHARS is a
+DataError naming the line (a file without line breaks is not read whole).
 """
 from __future__ import annotations
 
@@ -17,11 +21,17 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
+from typing import TextIO
 
 from dt_kernel.errors import DataError
 from dt_runtime.measurements.sheets import SPREADSHEETS, Cell, cell_text, describe, read_sheet, sheet_note, sniff
 
 log = logging.getLogger(__name__)
+
+#: A header names columns: 64 k characters are a thousand columns of long names.
+MAX_HEADER_CHARS = 2 ** 16
+#: A row of numbers; csv's own limit for one field is 128 k characters.
+MAX_LINE_CHARS = 2 ** 20
 
 
 @dataclass(frozen=True)
@@ -172,10 +182,25 @@ def _records(path: Path, separator: str, encoding: str, sheet: str | int | None)
     return False, _csv_records(path, separator, encoding)
 
 
+def _bounded_lines(f: TextIO, path: Path) -> Iterator[str]:
+    """The lines of text file `f`, each read with a bound: DataError for the header (the first
+    non-blank line) over MAX_HEADER_CHARS or any line over MAX_LINE_CHARS."""
+    header, n = True, 0
+    while line := f.readline(MAX_LINE_CHARS + 1):
+        n += 1
+        cap = MAX_HEADER_CHARS if header else MAX_LINE_CHARS
+        if len(line.rstrip("\r\n")) > cap:
+            what = "header line" if header else "line"
+            raise DataError(f"{path}: line {n}: a {what} of more than {cap} characters; a measurement table's "
+                            f"{what}s are shorter (is this the right file, with line breaks?)")
+        header = header and not line.strip()
+        yield line
+
+
 def _csv_records(path: Path, separator: str, encoding: str) -> Iterator[Record]:
     try:
         with path.open(newline="", encoding=encoding) as f:
-            reader = csv.reader(f, delimiter=separator)
+            reader = csv.reader(_bounded_lines(f, path), delimiter=separator)
             while True:
                 try:
                     row = next(reader)
@@ -207,12 +232,13 @@ class _Table:
 def _open(path: Path, separator: str, encoding: str, sheet: str | int | None) -> _Table:
     spreadsheet, records = _records(path, separator, encoding, sheet)
     first = next(records, None)
-    if spreadsheet:  # a sheet's leading empty rows are layout, not an empty header
-        while first is not None and not isinstance(first[1], _Unreadable) and _blank(first[1]):
-            first = next(records, None)
-    if first is None or isinstance(first[1], _Unreadable) or _blank(first[1]):
-        where = f"line {first[0]}" if first is not None else "line 1"
-        raise DataError(f"{path}: {where}: empty file, expected a header row")
+    # leading blank lines (a sheet's empty rows: layout) carry no header (docs/measurement-table.md)
+    while first is not None and not isinstance(first[1], _Unreadable) and _blank(first[1]):
+        first = next(records, None)
+    if first is None:
+        raise DataError(f"{path}: line 1: empty file, expected a header row")
+    if isinstance(first[1], _Unreadable):
+        raise DataError(f"{path}: line {first[0]}: unreadable header ({first[1].reason})")
     header = [cell_text(c) for c in first[1]]
     named = [c for c in header if c] if spreadsheet else header  # a sheet's unnamed columns are its margin
     dup = sorted({c for c in named if named.count(c) > 1})

@@ -42,6 +42,7 @@ from scipy import linalg, optimize
 from scipy.linalg import blas, lapack
 
 from dt_kernel.errors import DataError, ModelError
+from dt_runtime.common.safe_json import read_json
 from dt_runtime.common.safe_npz import load_npz
 from dt_runtime.common.threads import blas_limited
 from dt_runtime.models.estimator import Params
@@ -410,6 +411,15 @@ class GPRegressor(Params):
             setattr(g, k, meta[k.lstrip("_")])
         for k in cls._ARR:
             setattr(g, k, np.asarray(arrays[k.strip("_")], dtype=float))
+        # Shapes that agree, or predict fails later (a member cut short: a traceback at the
+        # first command): d inputs, m basis points.
+        d, m = int(g.n_features_in_), len(g._Xb)
+        want = {"x_mean": (d,), "x_scale": (d,), "length_scales": (d,), "theta": (d + 2,), "Xb": (m, d),
+                "alpha": (m,), "Q": (m, m)}
+        bad = [f"{k} {arrays[k].shape}" for k, shape in want.items() if arrays[k].shape != shape]
+        if bad:
+            raise ValueError(f"arrays of disagreeing shapes: {', '.join(bad)}; with {d} inputs and {m} basis "
+                             f"points expected {', '.join(f'{k} {s}' for k, s in want.items())}")
         return g
 
 
@@ -551,9 +561,9 @@ class MultiOutputGP(Params):
         stem = Path(stem)
         jpath, npath = stem.with_suffix(".json"), stem.with_suffix(".npz")
         try:
-            meta = json.loads(jpath.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ModelError(f"{jpath}: cannot read GP model metadata ({exc})") from exc
+            meta = read_json(jpath, "a GP model's metadata")  # bounded; every number finite
+        except DataError as exc:
+            raise ModelError(f"cannot read GP model metadata ({exc})") from exc
         if not isinstance(meta, dict) or meta.get("kind") != _KIND:
             kind = meta.get("kind") if isinstance(meta, dict) else None
             raise ModelError(f"{jpath}: not a {_KIND} file (kind {kind!r})")
@@ -563,16 +573,24 @@ class MultiOutputGP(Params):
                 else "written by an older version; re-fit the model"
             raise ModelError(f"{jpath}: format_version {v!r} is not supported; this version reads "
                              f"{FORMAT_VERSION} ({hint})")
+        where = "parameters"
         try:
             # Names, sizes and dtypes checked before anything is read (common.safe_npz).
             arrays = load_npz(npath, {f"{k.strip('_')}_{j}" for j in range(len(meta["models"]))
                                       for k in GPRegressor._ARR})
             m = cls(**meta["params"])
             m.input_names_, m.output_names_ = meta["input_names"], meta["output_names"]
-            m.models_ = [GPRegressor._from_state(mm, {k.strip("_"): arrays[f"{k.strip('_')}_{j}"]
-                                                      for k in GPRegressor._ARR})
-                         for j, mm in enumerate(meta["models"])]
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+            m.models_ = []
+            for j, mm in enumerate(meta["models"]):
+                where = f"output {j}"  # which model a shape error is about
+                m.models_.append(GPRegressor._from_state(mm, {k.strip("_"): arrays[f"{k.strip('_')}_{j}"]
+                                                              for k in GPRegressor._ARR}))
+        except ValueError as exc:
+            raise ModelError(f"{stem}: GP model files are corrupt ({where}: {exc})") from exc
+        except (OSError, KeyError, TypeError) as exc:
             raise ModelError(f"{stem}: GP model files are incomplete or corrupt ({exc!r})") from exc
+        if not m.models_ or len({g.n_features_in_ for g in m.models_}) != 1:
+            raise ModelError(f"{stem}: GP model files are corrupt ({len(m.models_)} output models with "
+                             f"{sorted({g.n_features_in_ for g in m.models_})} inputs)")
         m.n_features_in_ = m.models_[0].n_features_in_
         return m

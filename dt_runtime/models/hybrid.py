@@ -582,8 +582,17 @@ class HybridModel(RegressorMixin, BaseEstimator):
 
     @classmethod
     def load(cls, directory: str | Path) -> HybridModel:
+        """The model saved in `directory`; ModelError (or DataError for its arrays) naming the
+        file for anything unreadable, non-finite, missing or of the wrong shape."""
         d = Path(directory)
         meta = read_meta(d / "hybrid.json", FORMAT_VERSION, "model")
+        try:
+            return cls._load(d, meta)
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+            raise ModelError(f"{d / 'hybrid.json'}: a missing or malformed entry ({exc!r})") from exc
+
+    @classmethod
+    def _load(cls, d: Path, meta: dict) -> HybridModel:
         ref = meta.get("robot")
         try:
             # The model's declared effects stay its own (not registered in the process).
@@ -609,6 +618,10 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.theta_cov_ = arr["theta_cov"] if "theta_cov" in arr else np.diag(m.theta_u_ ** 2)
         m.t_origin_ = meta.get("t_origin_s")
         m.param_names_ = [tuple(p) for p in meta["param_names"]]
+        n = len(m.param_names_)
+        if m.theta_.shape != (n,) or m.theta_u_.shape != (n,) or m.theta_cov_.shape != (n, n):
+            raise ModelError(f"{d / 'hybrid.npz'}: theta {m.theta_.shape}, theta_u {m.theta_u_.shape}, theta_cov "
+                             f"{m.theta_cov_.shape} do not fit the {n} parameters of hybrid.json")
         m.at_bound_ = np.asarray(meta.get("at_bound", [False] * len(m.param_names_)), dtype=bool)
         m.domain_ = meta.get("domain") or {}  # empty for a model saved before it was kept
         m.hyper_ = {e: {k: hp.Estimate.from_dict(v) for k, v in ps.items()}

@@ -1,19 +1,21 @@
 """Reading the JSON half of a saved model (JSON + NPZ, never pickle) with its format version."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-from dt_kernel.errors import ModelError
+from dt_kernel.errors import DataError, ModelError
+from dt_runtime.common.safe_json import read_json
 
 
-def read_meta(path: Path, version: int | tuple[int, ...], what: str) -> dict:
-    """The JSON metadata at `path`; ModelError if unreadable or of a format version not in
-    `version` (one, or those this version reads)."""
+def read_meta(path: Path, version: int | tuple[int, ...], what: str, infinite_ok: tuple[str, ...] = ()) -> dict:
+    """The JSON metadata at `path` (`common.safe_json.read_json`: a regular file, size, depth and
+    integers bounded, every number finite but +infinity under a key ending in one of
+    `infinite_ok`); ModelError if unreadable, refused or of a format version not in `version`
+    (one, or those this version reads)."""
     try:
-        meta = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ModelError(f"{Path(path).parent}: not a {what} directory ({Path(path).name} unreadable: {exc})") from exc
+        meta = read_json(path, f"a {what} file", infinite_ok=infinite_ok)
+    except DataError as exc:
+        raise ModelError(f"{Path(path).parent}: not a {what} directory ({exc})") from exc
     if not isinstance(meta, dict):
         raise ModelError(f"{path}: not a {what} file (a JSON object expected)")
     versions = version if isinstance(version, tuple) else (version,)

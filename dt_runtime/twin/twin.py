@@ -58,6 +58,13 @@ class StatedUncertainty:
         bad = [k for k, v in vals.items() if v.shape != (3,)]
         if bad:
             raise ModelError(f"{where}: {bad[0]} has shape {vals[bad[0]].shape}, expected one value per axis (3,)")
+        # A stated uncertainty of inf or NaN would make every command "inside" its U: refused.
+        # Only the degrees of freedom may be infinite (GUM G.6.6).
+        bad = [k for k, v in vals.items() if not (np.all(v >= 0) if k == "dof" else np.all(np.isfinite(v) & (v >= 0)))]
+        if bad or not np.all(vals["dof"] > 0):
+            k = bad[0] if bad else "dof"
+            raise ModelError(f"{where}: {k} is {vals[k].tolist()}, expected finite values >= 0 per axis "
+                             "(dof > 0, infinity allowed)")
         return cls(**vals)
 
 
@@ -264,7 +271,16 @@ class Twin:
     @classmethod
     def load(cls, directory: str | Path) -> Twin:
         d = Path(directory)
-        meta = read_meta(d / "twin.json", READS, "twin")
+        # Infinite degrees of freedom are written as Infinity (jsonable(u, finite_only=False));
+        # any other non-finite number is refused by the reader.
+        meta = read_meta(d / "twin.json", READS, "twin", infinite_ok=("dof",))
+        try:
+            return cls._load(d, meta)
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+            raise ModelError(f"{d / 'twin.json'}: a missing or malformed entry ({exc!r})") from exc
+
+    @classmethod
+    def _load(cls, d: Path, meta: dict) -> Twin:
         if not isinstance(meta.get("u"), dict):
             raise ModelError(f"{d / 'twin.json'}: no 'u' object (the stated uncertainties)")
         u = {k: (np.array(v) if isinstance(v, list) else v) for k, v in meta["u"].items()}

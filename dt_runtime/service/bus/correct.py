@@ -8,7 +8,13 @@ effects reads; default: the daemon's sensors); the reply is
 corrected command, the expanded uncertainty (95 %) of the position it reaches, whether it lies in
 the calibrated volume and its signed distance to it. The bounded-correction rules of
 `service.correction.Corrector` apply unchanged; a refused or malformed request gets an error
-reply `{"id", "error", "type"}` and the server goes on serving. Corrections are computed in the
+reply `{"id", "error", "type"}` and the server goes on serving. Every query gets a reply, an
+error reply for a defect too. A request is parsed bounded (`common.safe_json`): at most
+MAX_REQUEST_BYTES (checked before the payload is copied), nested at most MAX_REQUEST_DEPTH deep,
+integers of at most 20 digits, numbers finite; only the keys above; target_mm 3 numbers and
+speed_mm_s a number (a boolean is not a number); temperature_c and payload_kg within the data
+checks' plausible ranges (`measurements.checks.RANGES`: -50..150 deg C, 0..1000 kg); speed and
+workspace by the Corrector. Corrections are computed in the
 zenoh callback (about a tenth of a millisecond) under a lock: the step bound of the Corrector
 follows the sequence of requests.
 """
@@ -24,8 +30,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from dt_kernel.errors import DataError, TwinError
+from dt_kernel.errors import DataError, TwinError, brief, cut
 from dt_kernel.units import M_PER_MM, MM_PER_M
+from dt_runtime.common.safe_json import loads
+from dt_runtime.measurements.checks import RANGES
 from dt_runtime.service.bus.config import BusConfig
 from dt_runtime.service.bus.session import BusError, close_session, encode, open_session, zenoh_errors
 from dt_runtime.service.correction import CorrectionFault, Corrector
@@ -34,35 +42,45 @@ from dt_runtime.twin.conditions import Conditions
 log = logging.getLogger(__name__)
 
 
+#: A request is about 100 bytes; 4 kB leave room for a long id (it is echoed in the reply).
+MAX_REQUEST_BYTES = 4096
+#: {"id": {...}, "target_mm": [...]}: three levels; a few more for an id of the caller's own.
+MAX_REQUEST_DEPTH = 8
+KEYS = ("id", "target_mm", "speed_mm_s", "temperature_c", "payload_kg")
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)  # JSON true is not 1
+
+
 def _request(raw: bytes) -> tuple[Any, np.ndarray, float, dict[str, float]]:
     """(id, target m, speed m/s, condition overrides) of a request payload; DataError naming
     what is wrong."""
-    try:
-        req = json.loads(raw)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"request is not JSON ({exc})") from exc
+    req = loads(raw, "request", max_bytes=MAX_REQUEST_BYTES, max_depth=MAX_REQUEST_DEPTH)
     if not isinstance(req, dict):
         raise DataError("request must be a JSON object with target_mm and speed_mm_s")
+    unknown = sorted(set(req) - set(KEYS))
+    if unknown:
+        raise DataError(f"request: unknown key(s) {brief(unknown)}; allowed: {', '.join(KEYS)}")
     rid = req.get("id")
-    try:
-        target = np.asarray(req["target_mm"], dtype=float) * M_PER_MM
-        speed = float(req["speed_mm_s"]) * M_PER_MM
-    except KeyError as exc:
-        raise DataError(f"request has no {exc.args[0]!r} (needs target_mm [x, y, z] and speed_mm_s)") from exc
-    except (TypeError, ValueError) as exc:
-        raise DataError(f"request: target_mm must be 3 numbers and speed_mm_s a number ({exc})") from exc
-    if target.shape != (3,):
-        raise DataError(f"request: target_mm must be 3 numbers, got {req['target_mm']!r}")
+    missing = [k for k in ("target_mm", "speed_mm_s") if k not in req]
+    if missing:
+        raise DataError(f"request has no {missing[0]!r} (needs target_mm [x, y, z] and speed_mm_s)")
+    t, v = req["target_mm"], req["speed_mm_s"]
+    if not (isinstance(t, list) and len(t) == 3 and all(_number(x) for x in t)):
+        raise DataError(f"request: target_mm {brief(t)} is not a finite 3-vector: it must be 3 numbers (x, y, z in mm)")
+    if not _number(v):
+        raise DataError(f"request: speed_mm_s must be a number (mm/s), got {brief(v)}")
     over: dict[str, float] = {}
     for key, field in (("temperature_c", "temperature"), ("payload_kg", "payload")):
-        if req.get(key) is not None:
-            v = req[key]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-                raise DataError(f"request: {key} must be a finite number, got {v!r}")
-            if field == "payload" and v < 0:
-                raise DataError(f"request: payload_kg must be >= 0, got {v!r}")
-            over[field] = float(v)
-    return rid, target, speed, over
+        x = req.get(key)
+        if x is None:
+            continue
+        lo, hi, unit, _ = RANGES[field]
+        if not (_number(x) and lo <= x <= hi):
+            raise DataError(f"request: {key} must be a number in [{lo:g}, {hi:g}] {unit}, got {brief(x)}")
+        over[field] = float(x)
+    return rid, np.array(t, dtype=float) * M_PER_MM, float(v) * M_PER_MM, over
 
 
 class CorrectionServer:
@@ -89,7 +107,8 @@ class CorrectionServer:
             raise
 
     def answer(self, raw: bytes) -> dict[str, Any]:
-        """The reply to one request payload (an error reply for a refused or malformed one)."""
+        """The reply to one request payload (an error reply for a refused or malformed one, and
+        for a defect: a request is never left without a reply)."""
         rid = None
         try:
             rid, target, speed, over = _request(raw)
@@ -100,19 +119,31 @@ class CorrectionServer:
                                            payload=over.get("payload", base.payload))
             with self._lock:
                 c = self.corrector(target, speed, cond)
-        except (DataError, CorrectionFault) as exc:
-            self.refused += 1
-            return {"id": rid, "error": str(exc), "type": type(exc).__name__}
+        except TwinError as exc:  # DataError, CorrectionFault, a ModelError of the twin
+            return self._refuse(rid, exc)
+        except Exception as exc:  # noqa: BLE001 - a defect: logged, and still a reply
+            log.exception("correct request failed")
+            return self._refuse(rid, exc, internal=True)
         self.served += 1
         return {"id": rid, "target_mm": (c.target * MM_PER_M).tolist(), "command_mm": (c.command * MM_PER_M).tolist(),
                 "correction_mm": (c.correction * MM_PER_M).tolist(), "U_mm": (c.U_tcp * MM_PER_M).tolist(),
                 "inside": c.inside, "distance_mm": c.distance_m * MM_PER_M}
 
+    def _refuse(self, rid: Any, exc: BaseException, internal: bool = False) -> dict[str, Any]:
+        self.refused += 1
+        return {"id": rid, "error": cut(f"internal error: {exc}") if internal else str(exc),
+                "type": type(exc).__name__}
+
     def _on_query(self, query: zenoh.Query) -> None:
         # Never let an exception into zenoh's thread: a reply that cannot be sent is logged.
         try:
             payload = query.payload
-            reply = self.answer(payload.to_bytes() if payload is not None else b"")
+            size = len(payload) if payload is not None else 0
+            if size > MAX_REQUEST_BYTES:  # refused before the payload is copied out of zenoh
+                reply = self._refuse(None, DataError(f"request: {size} bytes, more than the {MAX_REQUEST_BYTES} "
+                                                     "allowed"))
+            else:
+                reply = self.answer(payload.to_bytes() if payload is not None else b"")
             with zenoh_errors(f"reply on {self.key}"):
                 if "error" in reply:
                     query.reply_err(encode(reply))
@@ -122,6 +153,12 @@ class CorrectionServer:
             log.warning("correct request not answered: %s", exc)
         except Exception:  # noqa: BLE001 - a defect must not kill the queryable
             log.exception("correct request failed")
+        finally:
+            # The requester sees the end of the replies now, not at its timeout: a logged
+            # traceback (answer's defect) keeps this frame, and so the query, alive.
+            drop = getattr(query, "drop", None)  # zenoh-python >= 1.0 has it; without, garbage collection
+            if drop is not None:
+                drop()
 
     def close(self, timeout: float | None = None) -> bool:
         timeout = self.config.close_timeout_s if timeout is None else timeout
