@@ -17,7 +17,8 @@ from dt_runtime.models.gp import GPOptions, MultiOutputGP
 from dt_runtime.models.hybrid import HybridModel
 
 ROBOT = CONFIGS / "robots" / "cobot_hc20_like.yaml"
-PARAMS = {"effects", "gp_inputs", "ridge", "seed", "robot", "gp_options", "nuisance", "reference_session"}
+PARAMS = {"effects", "gp_inputs", "ridge", "seed", "robot", "gp_options", "nuisance", "reference_session",
+          "catalogue"}
 FAST = GPOptions(n_restarts=0, max_iter=50)
 
 

@@ -14,7 +14,6 @@ reported the same way: a `DataError` naming file, line, column and value, or, wi
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 import re
@@ -27,6 +26,7 @@ import numpy as np
 
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM
+from dt_runtime.common.safe_json import read_json
 from dt_runtime.measurements.cells import ColumnSpec, SkippedRow, cell_error, numeric_columns, parse_rows, read_header
 
 log = logging.getLogger(__name__)
@@ -347,6 +347,9 @@ def read_meta_sidecar(data: str | Path) -> dict | None:
     if not p.is_file():
         return None
     try:
-        return json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
+        meta = read_json(p, "simulation sidecar")  # bounded: size, depth, finite numbers
+    except DataError as exc:
         raise DataError(f"{p}: unreadable sidecar of {data} ({exc}); remove it or write it again") from exc
+    if not isinstance(meta, dict):
+        raise DataError(f"{p}: the sidecar of {data} is not a JSON object; remove it or write it again")
+    return meta
