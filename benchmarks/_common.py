@@ -3,7 +3,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -58,3 +61,29 @@ def emit(res: dict, as_json: bool, title: str) -> None:
     print(title)
     for k, v in res.items():
         print(f"  {k:<22} {v:.4g}" if isinstance(v, float) else f"  {k:<22} {v}")
+
+
+# Runs argv[1:] with stdout/stderr to the files argv[0] names (".out"/".err" appended) and prints
+# the child's wait4 rusage. Why a launcher: on Linux a child started by vfork/fork + exec keeps its
+# parent's RSS high-water mark in ru_maxrss (exec_mmap folds the old mm's peak into it), so a
+# `dt fit` started straight from a 1 GB pytest process reports >= 1 GB. The launcher is a fresh,
+# small process: its children's peak is their own.
+_LAUNCHER = """import json, os, subprocess, sys, time
+with open(sys.argv[1] + ".out", "wb") as fo, open(sys.argv[1] + ".err", "wb") as fe:
+    t0 = time.perf_counter()
+    p = subprocess.Popen(sys.argv[2:], stdout=fo, stderr=fe, stdin=subprocess.DEVNULL)
+    _, status, ru = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t0
+print(json.dumps({"returncode": os.waitstatus_to_exitcode(status), "seconds": wall,
+                  "cpu_seconds": ru.ru_utime + ru.ru_stime, "peak_rss_kib": ru.ru_maxrss}))
+"""
+
+
+def measured_run(cmd: list[str], stem: Path) -> dict:
+    """Run `cmd` in a fresh process, its stdout/stderr to `stem`.out/.err; returns returncode,
+    wall seconds, CPU seconds and peak_rss_gb of that process alone (see _LAUNCHER)."""
+    out = subprocess.run([sys.executable, "-c", _LAUNCHER, str(stem), *cmd], capture_output=True, text=True,
+                         check=True).stdout
+    res = json.loads(out)
+    res["peak_rss_gb"] = res.pop("peak_rss_kib") / 1024 ** 2  # ru_maxrss is in KiB on Linux
+    return res

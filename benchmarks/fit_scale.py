@@ -32,7 +32,6 @@ from __future__ import annotations
 import json
 import os
 import resource
-import subprocess
 import sys
 import tempfile
 import time
@@ -42,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import cli, emit
+from benchmarks._common import cli, emit, measured_run
 from benchmarks._data import (
     ORIGIN,
     UR10_MAPPING,
@@ -84,17 +83,12 @@ def dt_fit(data: Path, model: str, out_dir: Path, robot: Path = UR10_ROBOT) -> d
            "--gp-inputs", "tcp", "--out", str(out_dir / model), "--json", "--no-progress"]
     if effects:
         cmd += ["--effects", ",".join(effects), "--robot", str(robot)]
-    so, se = out_dir / f"{model}.out", out_dir / f"{model}.err"
-    with open(so, "wb") as fo, open(se, "wb") as fe:
-        t0 = time.perf_counter()
-        p = subprocess.Popen(cmd, stdout=fo, stderr=fe, stdin=subprocess.DEVNULL)
-        _, status, ru = os.wait4(p.pid, 0)
-        wall = time.perf_counter() - t0
-    p.returncode = os.waitstatus_to_exitcode(status)
-    if p.returncode != 0:
-        raise RuntimeError(f"dt fit ({model}) failed ({p.returncode}): {se.read_text()[-2000:]}")
-    res = json.loads(so.read_text())
-    return {"seconds": wall, "cpu_seconds": ru.ru_utime + ru.ru_stime, "peak_rss_gb": _gb(ru.ru_maxrss),
+    run_ = measured_run(cmd, out_dir / model)
+    if run_["returncode"] != 0:
+        err = (out_dir / f"{model}.err").read_text()[-2000:]
+        raise RuntimeError(f"dt fit ({model}) failed ({run_['returncode']}): {err}")
+    res = json.loads((out_dir / f"{model}.out").read_text())
+    return {"seconds": run_["seconds"], "cpu_seconds": run_["cpu_seconds"], "peak_rss_gb": run_["peak_rss_gb"],
             "fit_seconds": res["fit_seconds"], "n": res["n"], "train_rms_mm": res["train_rmse_mm"]}
 
 
@@ -246,19 +240,14 @@ def write_rows(path: Path, n: int, seed: int) -> Path:
 
 def dt_fit_rows(data: Path, out_dir: Path, name: str) -> dict:
     """`dt fit` (paper model: GP on TCP and speed) on a contract CSV, in a fresh process: wall s,
-    CPU s and peak RSS of that process (wait4: the child's own rusage)."""
+    CPU s and peak RSS of that process (wait4 in a small launcher: the child's own peak)."""
     cmd = [sys.executable, "-m", "dt_runtime.cli.main", "fit", "--data", str(data), "--out", str(out_dir / name),
            "--json", "--no-progress"]
-    so, se = out_dir / f"{name}.out", out_dir / f"{name}.err"
-    with open(so, "wb") as fo, open(se, "wb") as fe:
-        t0 = time.perf_counter()
-        p = subprocess.Popen(cmd, stdout=fo, stderr=fe, stdin=subprocess.DEVNULL)
-        _, status, ru = os.wait4(p.pid, 0)
-        wall = time.perf_counter() - t0
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"dt fit ({name}) failed: {se.read_text()[-2000:]}")
-    res = json.loads(so.read_text())
-    return {"seconds": wall, "cpu_seconds": ru.ru_utime + ru.ru_stime, "peak_rss_gb": _gb(ru.ru_maxrss),
+    run_ = measured_run(cmd, out_dir / name)
+    if run_["returncode"] != 0:
+        raise RuntimeError(f"dt fit ({name}) failed: {(out_dir / f'{name}.err').read_text()[-2000:]}")
+    res = json.loads((out_dir / f"{name}.out").read_text())
+    return {"seconds": run_["seconds"], "cpu_seconds": run_["cpu_seconds"], "peak_rss_gb": run_["peak_rss_gb"],
             "fit_seconds": res["fit_seconds"], "n": res["n"], "train_rms_mm": res["train_rmse_mm"]}
 
 
