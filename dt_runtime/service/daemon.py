@@ -33,8 +33,9 @@ move unmonitored), reads the camera once a tick and resumes at the first accepte
 `out_of_control` and `maintenance_requested` the correction is not trusted: by default the
 daemon commands the targets uncorrected.
 
-Operator. `dt ack` (or a maintenance system's `.../maintenance/done/<id>` on the bus) stores an
-operator action (who, why); the daemon's housekeeping thread picks it up and the loop applies it:
+Operator. `dt ack` (or a maintenance system's `.../maintenance/done/<id>` on the bus, signed with
+the service's key: bus.auth) stores an operator action (who, why); the daemon's housekeeping
+thread picks it up and the loop applies it:
 `maintenance_requested` or `halted` -> `nominal`, statistics reset, in the transition's
 transaction. A 'done' that names a request of an earlier episode is stored as ignored.
 
@@ -363,6 +364,9 @@ class Daemon:
                 "camera_untested_s": (None if self._camera_refused_since is None
                                       else round(self._now() - self._camera_refused_since, 3)),
                 "outbox_pending": self._pending_count(), "drivers": self._driver_counters(),
+                # acks and 'done's on the bus without the service's signature: refused, not recorded
+                "bus_refused": self.bus.refused if self.bus else 0,
+                "bus_last_refused": self.bus.last_refused if self.bus else None,
                 "pid": os.getpid(), "t": time.time()}
 
     def _driver_counters(self) -> dict[str, dict]:
