@@ -80,9 +80,14 @@ def _load_key(path: Path, create: bool) -> bytes:
     where = "bus.auth.key_file"
     allowed = ("a key file only this user can read (mode 0600): run as the service's user, or give "
                "bus.auth.key_file")
-    try:
-        if create and not path.exists():
+    if create and not path.exists():
+        try:
             _create_key(path)
+        except OSError as exc:
+            raise ConfigError(path, where, f"cannot be created ({exc.strerror}: {exc.filename})",
+                              "a key file in a directory this user may write (a system user without a home: "
+                              "give bus.auth.key_file, e.g. in systemd's StateDirectory)") from exc
+    try:
         loose = private_files.looser_than_private(path)
         if loose is not None:
             raise ConfigError(path, where, f"mode {loose:04o}",
