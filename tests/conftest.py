@@ -8,6 +8,17 @@ from dt_runtime.common.threads import limit_blas_threads
 limit_blas_threads()
 os.environ.setdefault("DT_WORKERS", "1")
 
+# The bus key (dt_runtime.service.bus.auth) lives in the user's config directory: the suite gets
+# its own (daemons, consumers and `dt` subprocesses share it, as the service's user would), and
+# never reads or writes the developer's ~/.config/cobot-dt.
+import atexit  # noqa: E402
+import shutil  # noqa: E402
+import tempfile  # noqa: E402
+
+_config_home = tempfile.mkdtemp(prefix="dt-tests-config-")
+os.environ["XDG_CONFIG_HOME"] = _config_home
+atexit.register(shutil.rmtree, _config_home, True)
+
 
 import contextlib  # noqa: E402
 import io  # noqa: E402

@@ -166,10 +166,14 @@ def test_bad_ack_is_ignored(tmp_path):
     cport = free_port()
     with Store(tmp_path / "r1.db") as s, Bus(robot_cfg("r1", cport), s) as bus:
         oid = bus.request_maintenance({"x": 1})
-        bus._tasks.put(("ack", json.dumps({"id": oid, "uid": "forged"}).encode()))
-        bus._tasks.put(("ack", b"not json"))
+        key = f"dt/c1/r1/maintenance/ack/{oid}"
+        uid = s.outbox_get(oid).payload["uid"]
+        bus._tasks.put(("ack", key, bus.signer.sign(key, {"id": oid, "uid": "forged", "t": time.time()})))
+        bus._tasks.put(("ack", key, b"not json"))
+        bus._tasks.put(("ack", key, json.dumps({"id": oid, "uid": uid, "t": time.time()}).encode()))  # unsigned
         time.sleep(2 * PERIOD)
         assert [o.id for o in s.outbox_pending()] == [oid]
+        assert bus.refused == 1 and "not signed" in bus.last_refused
 
 
 def test_configs_validate_and_map_onto_zenoh():

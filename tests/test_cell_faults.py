@@ -114,3 +114,31 @@ def test_natnet_faults_are_reported_and_nothing_moves_twice(daemon, fault, refus
         assert wait_until(lambda: any(h["status"] == "degraded" and refused in (h["reason"] or "")
                                       for h in seen), 20), seen[-3:]
         assert wait_until(lambda: seen[-1]["mvs_refused"] >= refused0 + 8, 20)
+
+
+def test_natnet_refused_longer_than_the_limit_halts_pages_stops_the_arm_and_resumes(daemon):
+    """The rigid body out of view for longer than `halt.after_camera_refused_s` (1 s here, wall
+    clock): halted with the driver's reason, paged (the halt's request in the outbox), on the bus;
+    no move is sent while halted; tracked again, the first reading resumes."""
+    d, cell, seen = daemon
+    d.cfg = d.cfg.model_copy(update={"halt": d.cfg.halt.model_copy(update={"after_camera_refused_s": 1.0})})
+    d.run(max_ticks=2)
+    assert cell.control("natnet untracked_probability=1.0")["ok"]
+    for _ in range(200):  # ticks until the limit passes (each one moves the arm and is refused)
+        d.run(max_ticks=1)
+        if d.escalator.state == "halted":
+            break
+    s = d.summary()
+    assert s["state"] == "halted" and "no MVS reading tested for" in s["halt_reason"], s
+    assert "not tracked" in s["halt_reason"]
+    reqs = d.store.outbox_of_episode(d.escalator.episode)
+    assert len(reqs) == 1 and reqs[0].payload["kind"] == "halt"
+    assert wait_until(lambda: any(h["status"] == "halted" and "no MVS reading" in (h["reason"] or "")
+                                  for h in seen), 20), seen[-3:]
+    sent0, _ = _moves(cell)
+    d.run(max_ticks=3)
+    assert _moves(cell)[0] == sent0 and d.escalator.state == "halted"  # the arm stands
+    assert cell.control("natnet untracked_probability=0")["ok"]
+    assert wait_until(lambda: (d.run(max_ticks=1), d.escalator.state)[1] != "halted", 30)
+    d.run(max_ticks=3)
+    assert _moves(cell)[0] > sent0 and d.escalator.state == "nominal"

@@ -354,6 +354,56 @@ class _Refusing:
         return self.real(*a)
 
 
+class _BlindCamera:
+    """The daemon's camera, refusing every reading while `blind` (the rigid body out of view)."""
+
+    def __init__(self, real):
+        self.real, self.blind, self.reads = real, True, 0
+
+    def read(self):
+        from drivers.base import RigReading
+
+        self.reads += 1
+        if self.blind:
+            return RigReading(None, 0.0, refused="rigid body 'tool' (id 1) not tracked (tracking-valid flag off)")
+        return self.real.read()
+
+    def __getattr__(self, name):
+        return getattr(self.real, name)
+
+
+def test_a_camera_refused_for_longer_than_the_limit_halts_pages_and_resumes(twin_dir, tmp_path):
+    """The probe's finding: a blind camera left the daemon `degraded` for good, escalation
+    nominal, no page. Now: refused readings for `halt.after_camera_refused_s` (simulated
+    seconds here) halt and page; the arm does not move while halted (it would move unmonitored);
+    the first accepted reading resumes."""
+    d = Daemon(cfg_of(twin_dir, tmp_path, halt={"after_camera_refused_s": 20.0}), CONFIGS)
+    try:
+        cam = d.inst.camera = _BlindCamera(d.inst.camera)
+        d.run(max_ticks=2)  # a short blindness (a person in the view; a move is a few seconds) is not a halt
+        h = d.health()
+        assert d.escalator.state == "nominal" and h["status"] == "degraded" and 0 < h["camera_untested_s"] < 20
+        d.run(max_ticks=200)
+        s = d.summary()
+        assert s["state"] == "halted" and "no MVS reading tested for" in s["halt_reason"]
+        assert "after_camera_refused_s 20 s" in s["halt_reason"] and "not tracked" in s["halt_reason"]
+        halted_for = float(s["halt_reason"].split("tested for ")[1].split(" s")[0])
+        assert 20.0 <= halted_for < 30.0  # the limit plus at most one move
+        stored = d.store.load_state()["data"]
+        reqs = d.store.outbox_of_episode(stored["episode"])  # paged: the halt's request is in the outbox
+        assert stored["state"] == "halted" and len(reqs) == 1 and reqs[0].payload["kind"] == "halt"
+        assert d.health()["status"] == "halted"
+        ticks, reads = d.ticks, cam.reads
+        d.run(max_ticks=20)  # halted: the camera is read once a tick, the arm is not moved
+        assert d.ticks == ticks and cam.reads == reads + 20 and d.escalator.state == "halted"
+        cam.blind = False
+        d.run(max_ticks=5)
+        assert d.escalator.state == "nominal" and d.ticks > ticks and d.health()["camera_untested_s"] is None
+        assert [t["dst"] for t in d.store.transitions()] == ["halted", "nominal"]
+    finally:
+        d.close()
+
+
 def _nan_twin(twin_dir: Path, dst: Path) -> Path:
     import shutil
 

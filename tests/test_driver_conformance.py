@@ -117,7 +117,7 @@ def natnet_camera():
     from sim.kinematics import TOOL_DOWN
 
     src = SimRigMarkers(lambda: (TOOL_DOWN, np.array([0.9, 0.05, 0.5])), seed=3)
-    with NatNetEmulator(src, {"command_port": 0}) as emu:
+    with NatNetEmulator(src, {"command_port": 0, "data_port": 0}) as emu:
         drv = NatNetRig()
         try:
             # Generous age limit: the machine is shared; staleness has its own test (test_natnet).

@@ -115,7 +115,7 @@ def _stream(emu_cfg=None, drv_cfg=None, seed=0, activate=True):
     from drivers.natnet.rig_source import SimRigMarkers
 
     src = SimRigMarkers(_circle(), seed=seed)
-    with NatNetEmulator(src, {"command_port": 0, **(emu_cfg or {})}) as emu:
+    with NatNetEmulator(src, {"command_port": 0, "data_port": 0, **(emu_cfg or {})}) as emu:
         drv = NatNetRig.from_config({"command_port": emu.command_port, "max_age_s": 0.5, "read_timeout_s": 5.0,
                                      **(drv_cfg or {})})
         try:
@@ -331,3 +331,102 @@ def test_optitrack_natnet_sdk_client_reads_our_emulator():
         rbd = descs.rigid_body_list[0]
         assert rbd.id_num == 1 and len(rbd.rb_marker_list) == 5
         assert np.allclose(rbd.rb_marker_list[2].pos, emu.source.markers[2], atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- who is listened to
+def test_a_forged_frame_from_another_port_is_ignored_and_counted():
+    """The black-box probe's datagram: frame 2,000,000,000 sent to the driver's socket from
+    another port of the same address. It is not decoded, counted in `frames_foreign`, and the
+    real stream goes on (before the fix every real frame was "late" from then on)."""
+    import socket
+
+    with _stream() as (emu, drv):
+        assert drv.read().ok
+        target = drv._cmd.getsockname()
+        forged = nn.pack_frame(emu.make_frame(2_000_000_000, time.monotonic(), emu.cfg.faults))
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as mallory:
+            mallory.bind(("127.0.0.1", 0))
+            for _ in range(5):
+                mallory.sendto(forged, target)
+            who = f"127.0.0.1:{mallory.getsockname()[1]}"
+        assert wait_until(lambda: drv.counters()["frames_foreign"] == 5, 10.0)
+        rs = [drv.read() for _ in range(10)]
+        assert all(r.ok for r in rs), [r.refused for r in rs if not r.ok][:3]
+        assert all(r.quality["frame_number"] < 1_000_000 for r in rs)
+        c = drv.counters()
+        assert c["frame_resets"] == 0 and c["frames_late"] == 0 and drv.last_foreign == who
+
+
+def test_a_silent_server_refusal_names_the_foreign_sender():
+    import socket
+
+    with _stream(drv_cfg={"read_timeout_s": 0.3}) as (emu, drv):
+        assert drv.read().ok
+        emu.close()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as mallory:
+            mallory.sendto(nn.pack_request(nn.NAT_KEEPALIVE), drv._cmd.getsockname())
+            assert wait_until(lambda: drv.counters()["frames_foreign"] == 1, 10.0)
+        r = drv.read()
+        r = drv.read() if r.ok else r
+        assert not r.ok and "1 datagrams from other senders ignored" in r.refused
+        ports = "/".join(map(str, sorted((emu.command_port, emu.data_port))))
+        assert f"frames are taken from 127.0.0.1:{ports} only" in r.refused
+
+
+def test_the_emulator_holds_its_data_port():
+    """A client trusts the server's data port: no other process may bind it and send from it."""
+    import socket
+
+    with _stream() as (emu, drv):
+        assert drv.server_info.data_port == emu.data_port != 0
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s, pytest.raises(OSError):
+            s.bind(("127.0.0.1", emu.data_port))
+
+
+@pytest.mark.parametrize("start, number", [(1, 2_000_000_000), (600, 1)])
+def test_a_frame_counter_that_jumps_or_restarts_is_a_new_reference(start, number):
+    """The server itself renumbers its stream: far ahead (a take switched, or the forged number
+    coming from the server's own address) or back to 1 from about 600 (a restart: within
+    max_frame_jump, recognised because no newer frame came for max_age_s). The driver takes it
+    as a new reference: readings keep flowing with the new numbers, nothing is counted lost or
+    late for good."""
+    with _stream(activate=False) as (emu, drv):
+        emu.set_frame_number(start)
+        drv.activate()
+        before = [drv.read() for _ in range(5)]
+        assert all(r.ok for r in before) and before[0].quality["frame_number"] >= start
+        emu.set_frame_number(number)
+        assert wait_until(lambda: drv.counters()["frame_resets"] >= 1, 10.0)
+        after = [drv.read()]
+        while not (after[-1].ok and after[-1].quality["frame_number"] < number + 1000) and len(after) < 40:
+            after.append(drv.read())
+        assert after[-1].ok, after[-1].refused
+        more = [drv.read() for _ in range(10)]
+        assert all(m.ok for m in more), [m.refused for m in more if not m.ok][:3]
+        assert all(number <= m.quality["frame_number"] < number + 1000 for m in more)
+        c = drv.counters()
+        assert c["frame_resets"] == 1 and c["frames_lost"] == 0, c
+        if number == 1:
+            assert "the frame counter restarted" in drv.last_reset and 0 < c["frames_late"] < 600
+        else:
+            assert "the frame counter jumped ahead by" in drv.last_reset and c["frames_late"] == 0
+
+
+def test_a_restarted_server_on_the_same_ports_is_read_again():
+    """A real restart: the server process goes, a new one binds the same ports, counts from 1 on
+    a clock that starts afresh. The keep-alive subscribes the client again and readings resume
+    (the transit minimum is learnt again: the new clock is not the old one)."""
+    from drivers.natnet.emulator import NatNetEmulator
+    from drivers.natnet.rig_source import SimRigMarkers
+
+    with _stream(drv_cfg={"keepalive_s": 0.1}) as (emu, drv):
+        rs = [drv.read() for _ in range(30)]
+        assert all(r.ok for r in rs)
+        ports = {"command_port": emu.command_port, "data_port": emu.data_port}
+        emu.close()
+        time.sleep(0.2)
+        with NatNetEmulator(SimRigMarkers(_circle()), {**ports, "clock_offset_s": 5.0}):
+            assert wait_until(lambda: drv.read().ok and drv.counters()["frame_resets"] >= 1, 15.0)
+            more = [drv.read() for _ in range(10)]
+            assert all(m.ok for m in more), [m.refused for m in more if not m.ok][:3]
+            assert more[-1].quality["frame_number"] < 1000 and more[-1].quality["age_s"] < 0.5

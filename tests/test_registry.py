@@ -45,7 +45,7 @@ def context(kind: str, name: str):
         from sim.kinematics import TOOL_DOWN
 
         src = SimRigMarkers(lambda: (TOOL_DOWN, np.array([0.9, 0.05, 0.5])), seed=3)
-        with NatNetEmulator(src, {"command_port": 0}) as nn:
+        with NatNetEmulator(src, {"command_port": 0, "data_port": 0}) as nn:
             yield None, {"command_port": nn.command_port, "max_age_s": 0.5, "read_timeout_s": 5.0}
     elif not registry.needs_world(kind, name):
         emu = ControllerEmulator(FakePlant()) if kind == "robot" else TrackerEmulator(lambda: (2.0, 0.3, -0.1, "ok"))

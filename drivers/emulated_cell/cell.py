@@ -4,7 +4,8 @@
 `drivers` importing them would close a cycle in the architecture graph.)
 
     python -m drivers.emulated_cell [--scenario S] [--cell C] [--host 127.0.0.1] [--rtde-port 30004]
-        [--script-port 30002] [--natnet-command-port 1510] [--tracker-port 4000] [--control-port 0]
+        [--script-port 30002] [--natnet-command-port 1510] [--natnet-data-port 1511] [--tracker-port 4000]
+        [--control-port 0]
         [--time-scale 1.0] [--natnet-rate 120] [--seed N]
 
 serves, over ONE `SimWorld` (scenario and cell as `dt run` reads them):
@@ -77,7 +78,7 @@ class EmulatedCell:
                  cell: str | Path = CONFIGS / "cell.yaml", *, host: str = "127.0.0.1", rtde_port: int = 0,
                  script_port: int = 0, natnet_command_port: int = 0, tracker_port: int = 0,
                  seed: int | None = None, time_scale: float = 1.0, natnet_rate_hz: float = 120.0,
-                 natnet_seed: int = 0, ur_faults: UrFaults | None = None):
+                 natnet_seed: int = 0, ur_faults: UrFaults | None = None, natnet_data_port: int = 0):
         self.host = host
         self.world = SimWorld(scenario, cell, seed, source=str(scenario))
         self.plant_lock = threading.Lock()  # PyBullet: the UR thread and the tracker thread
@@ -93,8 +94,10 @@ class EmulatedCell:
                                            lock=self.plant_lock)
             self._opened.append(self.tracker.stop)
             src = SimRigMarkers(self.tool_pose, seed=natnet_seed)
+            # The NatNet server holds its data port too (drivers.natnet.emulator): a client trusts it
             self.natnet = NatNetEmulator(src, {"host": host, "command_port": natnet_command_port,
-                                               "rate_hz": natnet_rate_hz}, "<emulated cell natnet>").start()
+                                               "data_port": natnet_data_port, "rate_hz": natnet_rate_hz},
+                                         "<emulated cell natnet>").start()
             self._opened.append(self.natnet.close)
         except BaseException:
             self.close()
@@ -119,7 +122,8 @@ class EmulatedCell:
     def ports(self) -> dict[str, Any]:
         """What a client needs: the JSON line the command prints."""
         out = {"host": self.host, "rtde_port": self.ur.rtde_port, "script_port": self.ur.script_port,
-               "natnet_command_port": self.natnet.command_port, "tracker_url": self.tracker.port}
+               "natnet_command_port": self.natnet.command_port, "natnet_data_port": self.natnet.data_port,
+               "tracker_url": self.tracker.port}
         if self._control is not None:
             out["control_port"] = self._control.port
         return out
@@ -232,6 +236,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rtde-port", type=int, default=30004, help="RTDE (0: a free port)")
     ap.add_argument("--script-port", type=int, default=30002, help="URScript port (0: a free port)")
     ap.add_argument("--natnet-command-port", type=int, default=1510, help="NatNet command port (0: a free port)")
+    ap.add_argument("--natnet-data-port", type=int, default=None,
+                    help="NatNet data port, held by the server (default: the command port + 1, as Motive's"
+                         " 1510/1511; a free port when the command port is 0)")
     ap.add_argument("--tracker-port", type=int, default=4000, help="laser tracker, socket:// (0: a free port)")
     ap.add_argument("--control-port", type=int, default=0, help="statistics and faults (0: a free port)")
     ap.add_argument("--seed", type=int, default=None, help="the scenario's seed unless given")
@@ -243,7 +250,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: done.set())
     cell = EmulatedCell(a.scenario, a.cell, host=a.host, rtde_port=a.rtde_port, script_port=a.script_port,
                         natnet_command_port=a.natnet_command_port, tracker_port=a.tracker_port, seed=a.seed,
-                        time_scale=a.time_scale, natnet_rate_hz=a.natnet_rate)
+                        time_scale=a.time_scale, natnet_rate_hz=a.natnet_rate,
+                        natnet_data_port=(a.natnet_data_port if a.natnet_data_port is not None else
+                                          a.natnet_command_port + 1 if a.natnet_command_port else 0))
     try:
         cell.serve_control(a.control_port)
         print(json.dumps(cell.ports()), flush=True)

@@ -8,6 +8,24 @@ command socket, kept alive with NAT_KEEPALIVE; multicast: on the data port) and 
 newest, counting frame numbers skipped (lost), frames arriving after a newer one (late) and
 undecodable datagrams (malformed).
 
+Who is listened to. The command socket is bound to one interface (`local_address`, or the one
+the route to the server leaves by: never every interface); in multicast the data socket is bound
+to the group's address and joins the group on that interface. UDP has no sender authentication,
+so every datagram's source is checked before it is decoded: replies only from the server's
+address and command port, frames only from the server's address and one of its two ports (the
+command port, or the data port it announced in NAT_SERVERINFO; Motive streams multicast from its
+data port). Anything else is ignored and counted (`frames_foreign`; the last sender is named in
+a refusal). On a host shared with other users the server must hold both ports (Motive does; the
+emulator binds its data port too) or a local process could bind the free one and send from it.
+
+Frame numbers are a reference, not a promise. A frame whose number is more than `max_frame_jump`
+away from the newest one (ahead or back: a restarted server, a take switched, a corrupt or
+forged number), or any frame after no newer one arrived for `max_age_s` (the counter restarted
+nearby), becomes the new reference: counted in `frame_resets`, gaps across it are not counted
+lost, and the transit minimum is learnt afresh (a restarted server's clock starts elsewhere).
+So no single datagram can make the real stream "late" for good; a reading is always judged by
+its own time stamps.
+
 read: waits for a frame newer than the last one read, then turns its labelled markers of the
 rigid body into the MVS measurement of the TCP with the image pipeline's cluster fit
 (drivers.mvs.cluster.fit_points: weighted Kabsch, per-marker outlier gate) and the TCP
@@ -47,7 +65,7 @@ class NatNetConfig(Frozen):
     data_port: int = Field(1511, ge=1, le=65535)
     multicast: bool = False  # False: Motive's unicast mode (frames on the command socket)
     multicast_group: str = "239.255.42.99"
-    local_address: str = ""  # interface to bind ("" = any)
+    local_address: str = ""  # interface to bind ("": the one the route to `server` leaves by)
     rigid_body: int | str = 1  # id or name of the tool's rigid body in Motive
     markers: tuple[tuple[float, float, float], ...] | None = None  # m, rigid-body frame; None: from Motive
     max_age_s: float = Field(0.05, gt=0)
@@ -58,6 +76,10 @@ class NatNetConfig(Frozen):
     timeout_s: float = Field(2.0, gt=0)  # connect / model definition reply
     read_timeout_s: float = Field(1.0, gt=0)  # wait for a new frame in read()
     keepalive_s: float = Field(1.0, gt=0)
+    # A frame number further than this from the newest frame's (ahead or back) starts a new
+    # reference (module docstring): 1000 frames is 8 s at Motive's 120 Hz, far beyond any
+    # reordering of a healthy stream.
+    max_frame_jump: int = Field(1000, ge=1, le=2**31)
 
 
 class NatNetRig(Lifecycle):
@@ -75,8 +97,13 @@ class NatNetRig(Lifecycle):
         self._reset_counters()
 
     def _reset_counters(self) -> None:
-        self.stats = {"frames_received": 0, "frames_lost": 0, "frames_late": 0, "frames_malformed": 0}
+        self.stats = {"frames_received": 0, "frames_lost": 0, "frames_late": 0, "frames_malformed": 0,
+                      "frames_foreign": 0, "frame_resets": 0}
         self._latest: tuple[nn.FrameOfData, float, float] | None = None  # frame, t_recv, transit
+        self._seq = 0  # counts frames that became the newest (frame numbers may restart)
+        self._last_read_seq = 0
+        self.last_foreign = ""  # the last sender whose datagram was ignored ("address:port")
+        self.last_reset = ""  # why the frame reference was last reset
         self._missing: set[int] = set()
         self._min_transit = np.inf
         self._last_read = -1
@@ -93,18 +120,26 @@ class NatNetRig(Lifecycle):
         self._reset_counters()
         self._stop.clear()
         try:
+            self._server_ip = socket.gethostbyname(c.server)
+            iface = c.local_address or self._route_interface()
             self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self._cmd.bind((c.local_address, 0))
+            self._cmd.bind((iface, 0))
             self._sockets = [self._cmd]
             if c.multicast:
+                group = socket.gethostbyname(c.multicast_group)
                 self._data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                self._data.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                self._data.bind((c.local_address, c.data_port))
-                if 224 <= int(socket.inet_aton(socket.gethostbyname(c.multicast_group))[0]) <= 239:
-                    mreq = socket.inet_aton(c.multicast_group) + socket.inet_aton(c.local_address or "0.0.0.0")
-                    self._data.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
+                self._data.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # other clients on this host
                 self._sockets.append(self._data)
+                # Bound to the group's address, the socket takes only datagrams sent to the group
+                # (not every datagram to the port); joined on the one interface.
+                self._data.bind((group, c.data_port))
+                if 224 <= int(socket.inet_aton(group)[0]) <= 239:
+                    mreq = socket.inet_aton(group) + socket.inet_aton(iface)
+                    self._data.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
             self.server_info = self._connect()
+            if c.multicast and self.server_info.data_port != c.data_port:
+                raise DriverError(f"NatNet server {c.server} streams to data port {self.server_info.data_port},"
+                                  f" the config's data_port is {c.data_port}")
             self.body = self._find_body(self._request_model_def())
         except OSError as exc:
             self._close_sockets()
@@ -140,7 +175,27 @@ class NatNetRig(Lifecycle):
     # ------------------------------------------------------------------ command channel
     @property
     def _server(self) -> tuple[str, int]:
-        return (self.cfg.server, self.cfg.command_port)
+        return (self._server_ip, self.cfg.command_port)
+
+    def _route_interface(self) -> str:
+        """The local address the route to the server leaves by (a UDP connect sends nothing)."""
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect((self._server_ip, self.cfg.command_port))
+            return str(s.getsockname()[0])
+
+    def _frame_ports(self) -> set[int]:
+        """The server's ports frames may come from: its command port, and the data port it
+        announced (Motive streams multicast from it: 1511 -> group:1511 in captures)."""
+        ports = {self.cfg.command_port, self.cfg.data_port}
+        if self.server_info is not None and self.server_info.data_port:
+            ports = {self.cfg.command_port, self.server_info.data_port}
+        return ports
+
+    def _foreign(self, addr: tuple[str, int]) -> None:
+        """A datagram from someone who is not the server: ignored and counted (caller holds no lock)."""
+        with self._cond:
+            self.stats["frames_foreign"] += 1
+            self.last_foreign = f"{addr[0]}:{addr[1]}"
 
     def _exchange(self, request: bytes, want: int, what: str) -> bytes:
         """Send `request` and wait for a reply with message id `want` (frames are skipped)."""
@@ -153,7 +208,10 @@ class NatNetRig(Lifecycle):
             r, _, _ = select.select([self._cmd], [], [], min(0.3, max(0.0, deadline - time.monotonic())))
             if not r:
                 continue
-            data = self._cmd.recv(65536)
+            data, addr = self._cmd.recvfrom(65536)
+            if (addr[0], addr[1]) != self._server:  # a reply comes from the port it was sent to
+                self._foreign(addr)
+                continue
             try:
                 msg, payload = nn.unpack_message(data)
             except nn.NatNetProtocolError:
@@ -191,6 +249,7 @@ class NatNetRig(Lifecycle):
     # ------------------------------------------------------------------ receive thread
     def _receive(self) -> None:
         next_keepalive = 0.0
+        ports = self._frame_ports()
         while not self._stop.is_set():
             if not self.cfg.multicast and time.monotonic() >= next_keepalive:
                 try:
@@ -201,7 +260,10 @@ class NatNetRig(Lifecycle):
             try:
                 ready, _, _ = select.select(self._sockets, [], [], 0.1)
                 for s in ready:
-                    data = s.recv(65536)
+                    data, addr = s.recvfrom(65536)
+                    if addr[0] != self._server_ip or addr[1] not in ports:
+                        self._foreign(addr)
+                        continue
                     self._on_datagram(data, time.monotonic())
             except (OSError, ValueError):
                 if self._stop.is_set():
@@ -223,15 +285,20 @@ class NatNetRig(Lifecycle):
         transit = t_recv - frame.stamp_transmit / self.server_info.clock_hz
         with self._cond:
             self.stats["frames_received"] += 1
-            self._min_transit = min(self._min_transit, transit)
             last = self._latest[0].frame_number if self._latest else None
             n = frame.frame_number
+            if last is not None:
+                why = self._reset_reason(n, last, t_recv - self._latest[1])  # type: ignore[index]
+                if why:
+                    self._reset_reference(why)
+                    last = None
             if last is not None and n <= last:
                 self.stats["frames_late"] += 1  # overtaken by a newer frame: never used
                 if n in self._missing:
                     self._missing.discard(n)
                     self.stats["frames_lost"] -= 1  # it came after all: late, not lost
                 return
+            self._min_transit = min(self._min_transit, transit)
             if last is not None and n > last + 1:
                 gap = range(last + 1, n)
                 self.stats["frames_lost"] += len(gap)
@@ -241,26 +308,52 @@ class NatNetRig(Lifecycle):
             if self.first_frame is None:
                 self.first_frame = n
             self._latest = (frame, t_recv, transit)
+            self._seq += 1
             self._cond.notify_all()
+
+    def _reset_reason(self, n: int, last: int, newest_for: float) -> str:
+        """Why frame `n` starts a new reference after the newest `last`, received `newest_for`
+        seconds ago ("" if it does not): see the module docstring."""
+        jump = n - last
+        if abs(jump) > self.cfg.max_frame_jump:
+            way = "jumped ahead" if jump > 0 else "went back"
+            return (f"frame {n} after {last}: the frame counter {way} by {abs(jump)}"
+                    f" (> max_frame_jump {self.cfg.max_frame_jump})")
+        if jump <= 0 and newest_for > self.cfg.max_age_s:
+            return (f"frame {n} after {last}, and no newer frame for {1e3 * newest_for:.0f} ms"
+                    f" (> max_age_s): the frame counter restarted")
+        return ""
+
+    def _reset_reference(self, why: str) -> None:
+        """Forget the frame numbers seen so far (the caller holds the lock)."""
+        self.stats["frame_resets"] += 1
+        self.last_reset = why
+        self._missing.clear()
+        self._min_transit = np.inf  # the clock offset is learnt again from the new stream
 
     # ------------------------------------------------------------------ read
     def counters(self) -> dict[str, int]:
-        """frames_received, frames_lost, frames_late, frames_malformed: no I/O, for a health report."""
+        """frames_received, frames_lost, frames_late, frames_malformed, frames_foreign,
+        frame_resets: no I/O, for a health report."""
         return dict(self.stats)
 
     def read(self) -> RigReading:
         self._require("active")
         with self._cond:
-            self._cond.wait_for(lambda: self._latest is not None and self._latest[0].frame_number > self._last_read,
-                                timeout=self.cfg.read_timeout_s)
-            latest, stats, min_transit = self._latest, dict(self.stats), self._min_transit
+            self._cond.wait_for(lambda: self._seq > self._last_read_seq, timeout=self.cfg.read_timeout_s)
+            latest, stats, min_transit, seq = self._latest, dict(self.stats), self._min_transit, self._seq
+            foreign = self.last_foreign
         now = time.monotonic()
-        if latest is None or latest[0].frame_number <= self._last_read:
+        if latest is None or seq <= self._last_read_seq:
             what = "no NatNet frame received" if latest is None else f"no NatNet frame after {self._last_read}"
+            if stats["frames_foreign"]:
+                ports = "/".join(map(str, sorted(self._frame_ports())))
+                what += (f" ({stats['frames_foreign']} datagrams from other senders ignored, the last from"
+                         f" {foreign}; frames are taken from {self._server_ip}:{ports} only)")
             return RigReading(None, now, quality={**stats, "host_time_s": now},  # no device time: the host's
                               refused=f"{what} within {self.cfg.read_timeout_s} s", host_time=now)
         frame, t_recv, transit = latest
-        self._last_read = frame.frame_number
+        self._last_read, self._last_read_seq = frame.frame_number, seq
         assert self.server_info is not None
         hz = self.server_info.clock_hz
         server_latency = (frame.stamp_transmit - frame.stamp_mid_exposure) / hz

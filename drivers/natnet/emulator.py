@@ -9,10 +9,18 @@ markers (id = rigid body id << 16 | member 1..M), the rigid body (pose solved fr
 tracking-valid flag, mean marker error) and the timestamps: frame timestamp (s), camera
 mid-exposure, data received and transmit stamps (ticks of `clock_hz`, the server's clock, not
 the host's). Unicast (Motive's unicast mode): frames go to every client that connected or sent
-a keep-alive in the last `client_timeout_s`, on the address it used. Multicast mode: frames go
-to (`data_group`, `data_port`) instead.
+a keep-alive in the last `client_timeout_s`, on the address it used, from the command port.
+Multicast mode: frames go to (`data_group`, `data_port`) instead, from the data port.
 
-Faults (config `faults`, seeded; `set_faults(...)` changes them while streaming):
+Like Motive, the server holds both its ports: the data socket is bound to (`host`, `data_port`)
+(0 picks a free one, announced in NAT_SERVERINFO), so no other local process can bind it and
+send from a port the client trusts (drivers.natnet.driver accepts frames only from the server's
+address and ports). Only when the multicast "group" is the host's own address (a loopback test
+stand-in for a group) is that address the client's to bind: then frames leave from the command
+port.
+
+Faults (config `faults`, seeded; `set_faults(...)` changes them while streaming;
+`set_frame_number(n)` renumbers the stream as a restarted server does):
 drop_probability (a frame number is skipped: never sent), delay_probability + delay_s (a frame
 is sent `delay_s` after its capture: its transmit stamp says so), untracked_probability (the
 rigid body's tracking-valid flag off, pose zero), occluded_markers (0-based marker indices
@@ -95,6 +103,7 @@ class NatNetEmulator:
         self._rng = np.random.default_rng([self._faults.seed, 7])
         self._clients: dict[tuple[str, int], float] = {}
         self._pending: list[tuple[float, int, nn.FrameOfData]] = []
+        self._renumber: int | None = None  # set_frame_number: the next frame's number - 1
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -103,15 +112,27 @@ class NatNetEmulator:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> NatNetEmulator:
+        c = self.cfg
         try:
             self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self._cmd.bind((self.cfg.host, self.cfg.command_port))
+            self._cmd.bind((c.host, c.command_port))
+            self.command_port = self._cmd.getsockname()[1]
+            self.data_port = c.data_port
             self._data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self._data.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+            self._data_sends = not (c.multicast and self._group() == socket.gethostbyname(c.host))
+            if self._data_sends:
+                self._data.bind((c.host, c.data_port))
+                self.data_port = self._data.getsockname()[1]
+            iface = socket.inet_aton(socket.gethostbyname(c.host))  # multicast leaves by the host's interface
+            for sock in (self._cmd, self._data):
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, iface)
         except OSError as exc:
-            raise DriverError(f"NatNet emulator cannot bind {self.cfg.host}:{self.cfg.command_port}: {exc}") from exc
-        self.command_port = self._cmd.getsockname()[1]
-        self.data_port = self.cfg.data_port
+            for opened in (getattr(self, "_cmd", None), getattr(self, "_data", None)):
+                if opened is not None:
+                    opened.close()
+            raise DriverError(f"NatNet emulator cannot bind {c.host}:{c.command_port} (commands) and"
+                              f" {c.host}:{c.data_port} (data): {exc}") from exc
         self._t0 = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="natnet-emulator", daemon=True)
         self._thread.start()
@@ -152,7 +173,7 @@ class NatNetEmulator:
     def server_info(self) -> nn.ServerInfo:
         grp = tuple(int(x) for x in socket.inet_aton(self._group()))
         return nn.ServerInfo(self.cfg.app_name, self.cfg.app_version, self.cfg.natnet_version, self.cfg.clock_hz,
-                             self.cfg.data_port, self.cfg.multicast, grp)  # type: ignore[arg-type]
+                             self.data_port, self.cfg.multicast, grp)  # type: ignore[arg-type]
 
     def _group(self) -> str:
         try:
@@ -236,18 +257,25 @@ class NatNetEmulator:
         now = time.monotonic()
         data = nn.pack_frame(replace(frame, stamp_transmit=self.ticks(now)))
         if self.cfg.multicast:
-            targets = [(self.cfg.data_group, self.cfg.data_port)]
+            targets = [(self.cfg.data_group, self.data_port)]
         else:
             with self._lock:
                 for a in [a for a, seen in self._clients.items() if now - seen > self.cfg.client_timeout_s]:
                     del self._clients[a]
                 targets = list(self._clients)
+        sock = self._data if (self.cfg.multicast and self._data_sends) else self._cmd
         for addr in targets:
             try:
-                (self._data if self.cfg.multicast else self._cmd).sendto(data, addr)
+                sock.sendto(data, addr)
             except OSError:
                 pass  # UDP: a vanished client is not the server's problem
         self.stats.frames_sent += 1
+
+    def set_frame_number(self, number: int) -> None:
+        """The next frame carries `number`, and the count goes on from it: what a restarted
+        server (back to 1) or a switched take (anywhere) does to a client."""
+        with self._lock:
+            self._renumber = int(number) - 1
 
     def _run(self) -> None:
         period, number = 1.0 / self.cfg.rate_hz, 0
@@ -270,6 +298,8 @@ class NatNetEmulator:
             number += 1
             with self._lock:
                 faults = self._faults
+                if self._renumber is not None:
+                    number, self._renumber = self._renumber + 1, None
             frame = self.make_frame(number, next_t, faults)
             self.stats.frames_captured += 1
             next_t += period

@@ -11,9 +11,14 @@ Two ways to reach the daemon:
   it is applied and prints the result.
 - `--bus FILE --uid UID` (a maintenance system elsewhere): the action is published on
   `dt/<cell>/<robot>/maintenance/done/<id>` with the request's uid (as `dt consume` printed
-  it); the daemon checks id and uid against its outbox. Run beyond loopback only with TLS client
-  certificates and the access-control rules of configs/bus_tls_acl_example.yaml, which let only
-  the maintenance system put there.
+  it), signed with the service's key (`bus.auth.key_file`: run as the service's user, or with a
+  copy of its key, 0600); the daemon refuses an unsigned or wrongly signed one and checks id and
+  uid against its outbox. Run beyond loopback only with TLS client certificates and the
+  access-control rules of configs/bus_tls_acl_example.yaml as well, which let only the
+  maintenance system put there.
+
+Who can act: with --store, whoever can write the store (0600: the service's user); with --bus,
+whoever holds the key. docs/bus.md has the table.
 
 `--request ID` names the request the action answers (default, with --store: the newest one); a
 'done' for a request of an earlier episode is recorded and ignored.
@@ -91,6 +96,7 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
     import threading
 
     from dt_runtime.service.bus import load_bus_config
+    from dt_runtime.service.bus.auth import Signer
     from dt_runtime.service.bus.session import close_session, open_session, put_json, zenoh_errors
 
     if args.request is None or not args.uid:
@@ -98,13 +104,20 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
     if args.delivered_only:
         raise TwinError("--delivered-only over the bus is what a consumer's ack does: `dt consume` sends it")
     cfg = load_bus_config(args.bus)
+    signer = Signer(cfg.auth, create=False)  # only the service makes a key: a new one here could not be right
     prefix = f"dt/{args.cell or cfg.cell}/{args.robot or cfg.robot}"
-    body = {"id": args.request, "uid": args.uid, "by": args.by, "note": args.note, "t": time.time()}
+    key = f"{prefix}/maintenance/done/{args.request}"
     applied = threading.Event()
+
+    def done() -> bytes:  # signed afresh for every copy: its time must stay within bus.auth.max_age_s
+        return signer.sign(key, {"id": args.request, "uid": args.uid, "by": args.by, "note": args.note,
+                                 "t": time.time()})
 
     def on_state(sample: Any) -> None:
         try:
             msg = json.loads(sample.payload.to_bytes())
+            if signer.check(str(sample.key_expr), msg, fresh=False):
+                return  # not the daemon's: anyone can publish a 'state'
             ev = msg.get("evidence", {})
             if msg.get("dst") == "nominal" and ev.get("by") == args.by and ev.get("note") == args.note:
                 applied.set()
@@ -118,13 +131,13 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
         # Re-sent until the twin's state shows it applied (or --wait ends): a put made before
         # the peers have met is lost, and the twin ignores copies once it is back to nominal.
         deadline = time.monotonic() + max(0.0, args.wait)
-        put_json(session, f"{prefix}/maintenance/done/{args.request}", body)
+        put_json(session, key, done())
         while not applied.wait(1.0) and time.monotonic() < deadline:
-            put_json(session, f"{prefix}/maintenance/done/{args.request}", body)
+            put_json(session, key, done())
         sub.undeclare()
     finally:
         close_session(session, cfg.close_timeout_s)
-    return {"kind": "done", "request": args.request, "published": f"{prefix}/maintenance/done/{args.request}",
+    return {"kind": "done", "request": args.request, "published": key,
             "applied": applied.is_set() if args.wait else None}
 
 

@@ -25,13 +25,17 @@ requests of a paging state that has none (`_reconcile`), and the escalation stat
 from the store (staged with every batch of rows).
 
 Halts. Every command refused for `halt.after_refused` ticks, `halt.after_driver_faults` driver
-faults in a row, or `out_of_control` under `halt.on_untrusted: halt`, put the machine in
-`halted` with the reason: stored, paged and published on `.../health`; the first two resume by
-themselves when a command goes through again. In `out_of_control` and `maintenance_requested`
-the correction is not trusted: by default the daemon commands the targets uncorrected.
+faults in a row, no MVS reading tested for `halt.after_camera_refused_s` (refused by the camera
+driver, too old, or rejected), or `out_of_control` under `halt.on_untrusted: halt`, put the
+machine in `halted` with the reason: stored, paged and published on `.../health`; the first two
+resume by themselves when a command goes through again; a camera halt stops the arm (it would
+move unmonitored), reads the camera once a tick and resumes at the first accepted reading. In
+`out_of_control` and `maintenance_requested` the correction is not trusted: by default the
+daemon commands the targets uncorrected.
 
-Operator. `dt ack` (or a maintenance system's `.../maintenance/done/<id>` on the bus) stores an
-operator action (who, why); the daemon's housekeeping thread picks it up and the loop applies it:
+Operator. `dt ack` (or a maintenance system's `.../maintenance/done/<id>` on the bus, signed with
+the service's key: bus.auth) stores an operator action (who, why); the daemon's housekeeping
+thread picks it up and the loop applies it:
 `maintenance_requested` or `halted` -> `nominal`, statistics reset, in the transition's
 transaction. A 'done' that names a request of an earlier episode is stored as ignored.
 
@@ -153,6 +157,8 @@ class Daemon:
         self.ticks = self.failures = self.faults_refused = self.driver_faults = self.stale_measurements = 0
         self.mvs_refused = 0  # MVS readings refused by the camera driver (lost, late, untracked, ...)
         self.refused_in_row = self.driver_faults_in_row = self.mvs_refused_in_row = 0
+        self._camera_refused_since: float | None = None  # daemon time of the first untested reading in a row
+        self._camera_halt = False  # halted because the camera gave no usable reading (resumes on one)
         self.last_problem: str | None = None
         self.uncorrected = 0  # commands sent without the correction (it was not trusted)
         self._true_sq: list[float] = []  # squared 3D true error of each command (simulation only)
@@ -357,7 +363,12 @@ class Daemon:
                 "last_tick": self._last_tick_wall, "ticks": self.ticks, "refused_in_row": self.refused_in_row,
                 "driver_faults_in_row": self.driver_faults_in_row, "stale_measurements": self.stale_measurements,
                 "mvs_refused": self.mvs_refused, "mvs_refused_in_row": self.mvs_refused_in_row,
+                "camera_untested_s": (None if self._camera_refused_since is None
+                                      else round(self._now() - self._camera_refused_since, 3)),
                 "outbox_pending": self._pending_count(), "drivers": self._driver_counters(),
+                # acks and 'done's on the bus without the service's signature: refused, not recorded
+                "bus_refused": self.bus.refused if self.bus else 0,
+                "bus_last_refused": self.bus.last_refused if self.bus else None,
                 "pid": os.getpid(), "t": time.time()}
 
     def _driver_counters(self) -> dict[str, dict]:
@@ -485,6 +496,11 @@ class Daemon:
             self._idle()
             self._publish_health()
             return
+        if self._camera_halt and esc.state != "halted":  # left by the operator's 'done': time afresh
+            self._camera_halt, self._camera_refused_since = False, None
+        if self._camera_halt:
+            self._probe_camera(t_now)
+            return
         cond = self._cond = self._conditions(step)
         try:
             if self._trusted() or policy == "correct":
@@ -526,6 +542,7 @@ class Daemon:
             self.mvs_refused_in_row += 1
             self.last_problem = f"MVS refused: {reading.refused}"
             log.info("MVS refused: %s", reading.refused)
+            self._camera_untested(self.last_problem)
             self._publish_health()
             return
         self.mvs_refused_in_row = 0
@@ -535,13 +552,16 @@ class Daemon:
             self.last_problem = (f"stale measurement: received {age * 1e3:.0f} ms before the command arrived "
                                  f"(max_measurement_age_s {self.cfg.max_measurement_age_s})")
             log.warning("MVS reading refused, not tested: %s", self.last_problem)
+            self._camera_untested(self.last_problem)
             self._publish_health()
             return
         try:
             chk = self.monitor(corr.command, v, reading.point, cond)
         except CorrectionFault as exc:
             log.error("MVS value rejected: %s", exc)
+            self._camera_untested(f"MVS value rejected: {exc}")
             return
+        self._camera_refused_since = None
         self.store.put(MeasurementRow(t, *reading.point, *chk.diff))
         worst = int(np.argmax(np.abs(chk.t)))
         self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
@@ -560,6 +580,32 @@ class Daemon:
             self.bus.publish_telemetry({"t": t, "target": corr.target.tolist(), "command": corr.command.tolist(),
                                         "t_stat": chk.t.tolist(), "passed": chk.passed,
                                         "state": esc.state})
+        self._publish_health()
+
+    def _camera_untested(self, why: str) -> None:
+        """A reading that could not be tested: after `halt.after_camera_refused_s` of nothing
+        but these, halt (paged; the loop then stops the arm and probes the camera)."""
+        t = self._now()
+        if self._camera_refused_since is None:
+            self._camera_refused_since = t
+        limit = self.cfg.halt.after_camera_refused_s
+        blind = t - self._camera_refused_since
+        if blind >= limit and self.escalator.state != "halted":
+            self._camera_halt = self.escalator.halt(
+                f"no MVS reading tested for {blind:.1f} s (halt.after_camera_refused_s {limit:g} s); last: {why}", t)
+
+    def _probe_camera(self, t_now: float) -> None:
+        """Halted for the camera: the arm stands; one reading a tick, the first accepted resumes."""
+        camera = self.inst.camera
+        assert camera is not None
+        reading = camera.read()
+        if reading.ok:
+            self._camera_halt, self._camera_refused_since, self.mvs_refused_in_row = False, None, 0
+            self.escalator.resume(t_now)
+            log.warning("the camera gives readings again: resumed")
+        else:
+            self.last_problem = f"MVS refused: {reading.refused}"
+            self._idle()
         self._publish_health()
 
     def _driver_fault(self, exc: DriverError) -> None:

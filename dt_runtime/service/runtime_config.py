@@ -159,6 +159,11 @@ class HaltConfig(Frozen):
 
     after_refused: int = Field(10, ge=1, le=100_000)  # consecutive commands refused -> halted
     after_driver_faults: int = Field(3, ge=1, le=1_000)  # consecutive driver faults -> halted
+    # No MVS reading tested (refused by the camera driver: stale, untracked, too few markers; or
+    # too old for the move; or rejected) for this long, on the daemon's clock (simulated or wall)
+    # -> halted: the arm stops moving unmonitored and it pages; the first accepted reading
+    # resumes. Long enough that a person walking through the cameras' view does not page.
+    after_camera_refused_s: float = Field(30.0, gt=0, le=86_400)
     # In out_of_control and maintenance_requested the twin's correction is not trusted:
     # 'uncorrected' commands the target as is (the arm's native accuracy, still tested),
     # 'halt' stops moving until maintenance is confirmed done, 'correct' goes on correcting.

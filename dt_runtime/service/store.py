@@ -22,6 +22,11 @@ One daemon per store: `exclusive=True` takes an advisory lock (`flock`) on `<sto
 for the Store's lifetime, released by the kernel when the process dies (kill -9 included);
 readers (`dt status`, `dt ack`) do not take it.
 
+Only the service's user reads or writes it: the file and its lock are created 0600 (SQLite gives
+its -wal and -shm files the database's mode), and an existing one that others could read or write
+is made 0600 with a warning on open (`service.private_files`): writing an operator action into the
+store is how `dt ack --store` clears a request, so write access is the credential.
+
 Durability choices (why):
 - `journal_mode=WAL`: readers (`dt status`) never block the writer, and a crash (SIGKILL,
   power loss) leaves the file consistent: an uncommitted transaction is simply not there.
@@ -67,6 +72,7 @@ from typing import Any
 
 from dt_kernel.errors import TwinError
 from dt_runtime.common.jsonsafe import compact
+from dt_runtime.service import private_files
 from dt_runtime.service.rows import ROW_TYPES, Row
 
 log = logging.getLogger("dt.store")
@@ -194,7 +200,8 @@ class Store:
         lock_path = self.path.with_name(self.path.name + ".lock")
         with _sqlite_errors(f"{lock_path}: cannot create the store's lock file"):
             lock_path.parent.mkdir(parents=True, exist_ok=True)
-            f = open(lock_path, "a+")  # noqa: SIM115 - held open for the Store's lifetime
+            # held open for the Store's lifetime
+            f = os.fdopen(private_files.open_private(lock_path, "store lock"), "r+")
         try:
             fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
@@ -217,6 +224,9 @@ class Store:
     def _open(self, synchronous: str, timeout_s: float) -> None:
         with _sqlite_errors(f"{self.path}: cannot open store"):
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            private_files.create_private(self.path)  # SQLite would create it 0644; an empty file is a new database
+            for f in (self.path, *(self.path.with_name(self.path.name + x) for x in ("-wal", "-shm"))):
+                private_files.tighten(f, "store file")
             # isolation_level=None: we issue BEGIN/COMMIT ourselves (one transaction per batch).
             self._db = sqlite3.connect(str(self.path), timeout=timeout_s,
                                        isolation_level=None, check_same_thread=False)

@@ -15,7 +15,8 @@ Delivery of maintenance requests (at least once, end to end):
    `republish_period_s` until an ack arrives; a new Bus on the same Store (daemon restart)
    republishes whatever is still pending.
 3. The consumer acks every copy it receives by publishing on `.../maintenance/ack/<id>` with
-   `{"id", "uid"}`; the Bus marks the outbox row acked only if the uid matches (ids restart if
+   `{"id", "uid", "t"}`, signed (`auth`); the Bus marks the outbox row acked only if the
+   signature is the service's and the uid matches (ids restart if
    a store file is replaced; the uuid makes the pair unambiguous). Consumers de-duplicate on
    (cell, robot, uid).
 Why a pub/sub ack and not a queryable/get: the request must survive the consumer being absent
@@ -31,8 +32,9 @@ counted in `dropped` (maintenance requests are never lost: they live in the outb
 
 Modules: `config` (BusConfig: endpoints, TLS and access control, validated once, and their
 zenoh mapping), `session` (the one place where zenoh errors become BusError, session open and
-bounded close, JSON payloads), `publisher` (Bus: the daemon side), `consumer`
-(MaintenanceConsumer). TLS and access control: configs/bus_tls_acl_example.yaml.
+bounded close, JSON payloads), `auth` (the service's key: requests, acks and dones are signed,
+unsigned ones refused), `publisher` (Bus: the daemon side), `consumer` (MaintenanceConsumer).
+TLS and access control: configs/bus_tls_acl_example.yaml. Who can do what: docs/bus.md.
 """
 from __future__ import annotations
 

@@ -14,6 +14,8 @@ Config (`BusConfig`, configs/bus.yaml) maps onto the zenoh JSON5 config as:
                              interfaces / cert_common_names / usernames / zids; policies
                              reference rule and subject ids, checked here)
     extra                 -> any further zenoh key path -> JSON value (escape hatch)
+    auth.key_file, auth.max_age_s
+                          -> not zenoh's: the key that signs maintenance messages (bus.auth)
 configs/bus_tls_acl_example.yaml shows TLS + ACL.
 Invalid values raise ConfigError through dt_kernel.config (naming the key); a value zenoh
 itself rejects raises BusError.
@@ -28,6 +30,7 @@ import zenoh
 from pydantic import Field, field_validator, model_validator
 
 from dt_kernel.config import Frozen, load_yaml
+from dt_runtime.service.bus.auth import AuthConfig
 from dt_runtime.service.bus.session import BusError, zenoh_errors
 
 ACL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -138,6 +141,8 @@ class BusConfig(Frozen):
     send_queue: int = Field(1000, ge=1)
     tls: TlsConfig | None = None
     access_control: AccessControlConfig | None = None
+    # The key that signs maintenance requests, acks and dones (bus.auth; docs/bus.md): always on.
+    auth: AuthConfig = AuthConfig()
     extra: dict[str, Any] = {}
 
     @field_validator("cell", "robot")

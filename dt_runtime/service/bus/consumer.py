@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from dt_runtime.service.bus.auth import Signer
 from dt_runtime.service.bus.config import BusConfig
 from dt_runtime.service.bus.session import BusError, close_session, open_session, put_json, shut_down, zenoh_errors
 
@@ -25,6 +26,10 @@ class MaintenanceConsumer:
     older twin, is everybody's). `on_request(request)` is called once per new request from the
     worker thread. `done(...)` tells the twin that maintenance was done. Used by tests and by
     `dt consume`.
+
+    Signed both ways (bus.auth): a request without the service's signature is not taken (a
+    forged one: logged, counted in `refused`, `last_refused`, not acked); acks and dones leave
+    signed with the same key (`config.auth.key_file`, created 0600 if missing).
     """
 
     def __init__(self, config: BusConfig, *, key_expr: str = "dt/**/maintenance/request",
@@ -36,6 +41,9 @@ class MaintenanceConsumer:
         self.auto_ack = auto_ack
         self.requests: list[dict[str, Any]] = []
         self.copies = 0
+        self.refused = 0  # requests without the service's signature (forged, or another key)
+        self.last_refused: str | None = None
+        self.signer = Signer(config.auth, create=True)
         self._seen: set[tuple[str, str]] = set()  # (dt/<cell>/<robot>, uid)
         self._cond = threading.Condition()
         self._tasks: queue.Queue = queue.Queue()
@@ -71,6 +79,13 @@ class MaintenanceConsumer:
             return
         if req.get("group", self.group) != self.group:
             return  # another group's copy: its consumers ack it
+        why = self.signer.check(key, req, fresh=False)
+        if why:
+            with self._cond:
+                self.refused += 1
+                self.last_refused = f"request on {key} refused: {why}"
+            log.warning("maintenance request id=%s uid=%s on %s not taken: %s", oid, uid, key, why)
+            return
         prefix = key[: -len("/maintenance/request")]  # dt/<cell>/<robot>
         with self._cond:
             self.copies += 1
@@ -89,16 +104,18 @@ class MaintenanceConsumer:
         """Publish the ack for request `oid` of `prefix` (= 'dt/<cell>/<robot>')."""
         if self._closed:
             return
-        put_json(self._session, f"{prefix}/maintenance/ack/{oid}",
-                 {"id": oid, "uid": uid, "group": self.group, "t": time.time()})
+        key = f"{prefix}/maintenance/ack/{oid}"
+        put_json(self._session, key, self.signer.sign(key, {"id": oid, "uid": uid, "group": self.group,
+                                                            "t": time.time()}))
 
     def done(self, prefix: str, oid: int, uid: str, by: str, note: str) -> None:
         """Tell the twin of `prefix` (= 'dt/<cell>/<robot>') that the maintenance asked for by
         request `oid` was done: who and why are stored with the transition back to nominal."""
         if self._closed:
             raise BusError("consumer is closed")
-        put_json(self._session, f"{prefix}/maintenance/done/{oid}",
-                 {"id": oid, "uid": uid, "by": by, "note": note, "t": time.time()})
+        key = f"{prefix}/maintenance/done/{oid}"
+        put_json(self._session, key, self.signer.sign(key, {"id": oid, "uid": uid, "by": by, "note": note,
+                                                            "t": time.time()}))
 
     def wait_for(self, n: int, timeout: float) -> bool:
         """Wait until at least n distinct requests arrived; False on time-out."""

@@ -1,5 +1,7 @@
 """`Bus`: the daemon's side of the Zenoh bus for one robot (see the package docstring for the
-keys, QoS, delivery of maintenance requests and threads)."""
+keys, QoS, delivery of maintenance requests and threads). Requests and reliable messages leave
+signed; an ack or 'done' without a valid signature of the service's key is refused, logged and
+counted (`refused`, `last_refused`), and nothing is recorded (bus.auth)."""
 from __future__ import annotations
 
 import json
@@ -14,6 +16,7 @@ from typing import Any
 import zenoh
 
 from dt_kernel.errors import StateError
+from dt_runtime.service.bus.auth import Signer
 from dt_runtime.service.bus.config import BusConfig
 from dt_runtime.service.bus.session import (
     BusError,
@@ -63,6 +66,9 @@ class Bus:
         self.dropped = 0
         self.published = 0
         self.acked = 0
+        self.refused = 0  # acks and dones without a valid signature (bus.auth)
+        self.last_refused: str | None = None
+        self.signer = Signer(config.auth, create=True)  # the service makes its key on first start
         self._tasks: queue.Queue = queue.Queue()  # unbounded; sends are bounded by hand
         self._sends = 0
         self._count_lock = threading.Lock()
@@ -75,10 +81,10 @@ class Bus:
                 self._pub = self._declare(s, config)
                 self._ack_sub = s.declare_subscriber(
                     config.key("maintenance/ack/*"),
-                    lambda sample: self._tasks.put(("ack", sample.payload.to_bytes())))
+                    lambda sample: self._tasks.put(("ack", str(sample.key_expr), sample.payload.to_bytes())))
                 self._done_sub = s.declare_subscriber(
                     config.key("maintenance/done/*"),
-                    lambda sample: self._tasks.put(("done", sample.payload.to_bytes())))
+                    lambda sample: self._tasks.put(("done", str(sample.key_expr), sample.payload.to_bytes())))
         except BusError:
             close_session(s, config.close_timeout_s)
             raise
@@ -125,9 +131,9 @@ class Bus:
             self._tasks.put(("wake",))
 
     def _enqueue_send(self, kind: str, payload: Mapping[str, Any]) -> bool:
-        """Hand a reliable message to the worker; False (and counted) if the queue is full."""
+        """Hand a reliable message to the worker, signed; False (and counted) if the queue is full."""
         self._check()
-        data = encode(payload)
+        data = self.signer.sign(self.config.key(kind), payload)
         with self._count_lock:
             if self._sends >= self.config.send_queue:
                 self.dropped += 1
@@ -181,18 +187,33 @@ class Bus:
                 self._pub[task[1]].put(task[2])
             self.published += 1
         elif kind == "ack":
-            self._on_ack_bytes(task[1])
+            self._on_ack_bytes(task[1], task[2])
         elif kind == "done":
-            self._on_done_bytes(task[1])
+            self._on_done_bytes(task[1], task[2])
         elif kind == "stop":
             self._stop.set()
 
-    def _on_ack_bytes(self, raw: bytes) -> None:
+    def _refuse(self, what: str, key: str, reason: str, msg: Mapping[str, Any]) -> None:
+        """An ack or 'done' that does not carry the service's signature: nothing is recorded."""
+        with self._count_lock:
+            self.refused += 1
+            self.last_refused = f"{what} on {key} refused: {reason}"
+            n = self.refused
+        if n <= 10 or n % 100 == 0:  # a flood of forgeries must not flood the log: the count is on .../health
+            by = f" (by {str(msg.get('by'))[:80]!r})" if "by" in msg else ""
+            log.warning("maintenance %s on %s%s refused, nothing recorded: %s (%d refused so far)", what, key, by,
+                        reason, n)
+
+    def _on_ack_bytes(self, key: str, raw: bytes) -> None:
         try:
             msg = json.loads(raw)
             oid, uid = int(msg["id"]), str(msg["uid"])
         except (ValueError, KeyError, TypeError):
             log.warning("malformed maintenance ack ignored: %r", raw[:200])
+            return
+        why = self.signer.check(key, msg, fresh=True)
+        if why:
+            self._refuse("ack", key, why, msg)
             return
         if self.store is None:
             return
@@ -205,15 +226,20 @@ class Bus:
             if self.on_ack is not None:
                 self.on_ack(oid, msg)
 
-    def _on_done_bytes(self, raw: bytes) -> None:
+    def _on_done_bytes(self, key: str, raw: bytes) -> None:
         """Maintenance done, from a maintenance system: stored as an operator action (who, why)
-        for the daemon to apply; only for a request this store sent (id and uid match)."""
+        for the daemon to apply; only signed with the service's key and for a request this store
+        sent (id and uid match)."""
         try:
             msg = json.loads(raw)
             oid, uid = int(msg["id"]), str(msg["uid"])
             by, note = str(msg["by"]), str(msg["note"])
         except (ValueError, KeyError, TypeError):
             log.warning("malformed maintenance done ignored (needs id, uid, by, note): %r", raw[:200])
+            return
+        why = self.signer.check(key, msg, fresh=True)
+        if why:
+            self._refuse("done", key, why, msg)
             return
         item = None if self.store is None else self.store.outbox_get(oid)
         if item is None or item.payload.get("uid") != uid:
@@ -237,12 +263,13 @@ class Bus:
             if self._stop.is_set():
                 return
             body = dict(item.payload) | {"id": item.id, "attempt": item.attempts + 1}
+            data = self.signer.sign(item.key, body)
             try:
                 if item.key == self.config.key("maintenance/request"):
                     with zenoh_errors("maintenance request put"):
-                        self._pub["maintenance/request"].put(encode(body))
+                        self._pub["maintenance/request"].put(data)
                 else:  # written under another cell/robot name: still deliver it there
-                    put_json(self._session, item.key, body)
+                    put_json(self._session, item.key, data)
                 self.published += 1
                 store.outbox_attempted(item.id)
             except StoreError as exc:
