@@ -170,10 +170,15 @@ def test_bad_ack_is_ignored(tmp_path):
         uid = s.outbox_get(oid).payload["uid"]
         bus._tasks.put(("ack", key, bus.signer.sign(key, {"id": oid, "uid": "forged", "t": time.time()})))
         bus._tasks.put(("ack", key, b"not json"))
+        bus._tasks.put(("ack", key, b'{"id": ' + b"9" * 5000 + b', "uid": "u"}'))  # a huge integer
+        bus._tasks.put(("ack", key, b"[" * 100_000 + b"]" * 100_000))  # deep nesting, and over the size cap
+        bus._tasks.put(("ack", key, b'{"id": 1, "uid": "' + b"u" * 10 ** 6 + b'"}'))  # 1 MB
         bus._tasks.put(("ack", key, json.dumps({"id": oid, "uid": uid, "t": time.time()}).encode()))  # unsigned
         time.sleep(2 * PERIOD)
         assert [o.id for o in s.outbox_pending()] == [oid]
         assert bus.refused == 1 and "not signed" in bus.last_refused
+        bus._tasks.put(("ack", key, bus.signer.sign(key, {"id": oid, "uid": uid, "t": time.time()})))
+        assert wait_until(lambda: not s.outbox_pending(), timeout=5)  # the worker survived all of them
 
 
 def test_configs_validate_and_map_onto_zenoh():

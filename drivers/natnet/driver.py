@@ -21,7 +21,9 @@ emulator binds its data port too) or a local process could bind the free one and
 Frame numbers are a reference, not a promise. A frame whose number is more than `max_frame_jump`
 away from the newest one (ahead or back: a restarted server, a take switched, a corrupt or
 forged number), or any frame after no newer one arrived for `max_age_s` (the counter restarted
-nearby), becomes the new reference: counted in `frame_resets`, gaps across it are not counted
+nearby), or a frame numbered back whose transmit stamp stepped by more than `max_age_s` against
+the host clock (a server restarted quickly: a late frame of the same stream keeps its clock),
+becomes the new reference: counted in `frame_resets`, gaps across it are not counted
 lost, and the transit minimum is learnt afresh (a restarted server's clock starts elsewhere).
 So no single datagram can make the real stream "late" for good; a reading is always judged by
 its own time stamps.
@@ -288,7 +290,12 @@ class NatNetRig(Lifecycle):
             last = self._latest[0].frame_number if self._latest else None
             n = frame.frame_number
             if last is not None:
-                why = self._reset_reason(n, last, t_recv - self._latest[1])  # type: ignore[index]
+                prev, prev_recv, _ = self._latest  # type: ignore[misc]
+                # how far the server's clock moved against the host's since the newest frame: ~0
+                # for a frame of the same stream (in order or not), seconds for a new server
+                clock_step = ((frame.stamp_transmit - prev.stamp_transmit) / self.server_info.clock_hz
+                              - (t_recv - prev_recv))
+                why = self._reset_reason(n, last, t_recv - prev_recv, clock_step)
                 if why:
                     self._reset_reference(why)
                     last = None
@@ -311,9 +318,10 @@ class NatNetRig(Lifecycle):
             self._seq += 1
             self._cond.notify_all()
 
-    def _reset_reason(self, n: int, last: int, newest_for: float) -> str:
+    def _reset_reason(self, n: int, last: int, newest_for: float, clock_step: float) -> str:
         """Why frame `n` starts a new reference after the newest `last`, received `newest_for`
-        seconds ago ("" if it does not): see the module docstring."""
+        seconds ago, the server's clock having moved `clock_step` s against the host's between
+        them ("" if it does not): see the module docstring."""
         jump = n - last
         if abs(jump) > self.cfg.max_frame_jump:
             way = "jumped ahead" if jump > 0 else "went back"
@@ -322,6 +330,11 @@ class NatNetRig(Lifecycle):
         if jump <= 0 and newest_for > self.cfg.max_age_s:
             return (f"frame {n} after {last}, and no newer frame for {1e3 * newest_for:.0f} ms"
                     f" (> max_age_s): the frame counter restarted")
+        if jump <= 0 and abs(clock_step) > self.cfg.max_age_s:
+            # a late frame of the same stream keeps its clock; a server restarted within max_age_s
+            # counts again from 1 on a clock that starts elsewhere
+            return (f"frame {n} after {last}, the server's clock stepped by {clock_step:+.3f} s"
+                    f" (> max_age_s): the server restarted")
         return ""
 
     def _reset_reference(self, why: str) -> None:

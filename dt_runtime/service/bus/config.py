@@ -33,6 +33,10 @@ from dt_kernel.config import Frozen, load_yaml
 from dt_runtime.service.bus.auth import AuthConfig
 from dt_runtime.service.bus.session import BusError, zenoh_errors
 
+#: The largest maintenance request, ack or done taken off the bus (they are a few hundred bytes):
+#: a bigger one is refused as malformed before it is parsed.
+MAX_MESSAGE_BYTES = 64 * 1024
+
 ACL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
                 "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
 

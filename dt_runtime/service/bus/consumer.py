@@ -2,7 +2,6 @@
 records, de-duplicates and acknowledges them (tests and the `dt` CLI use it)."""
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -10,8 +9,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from dt_kernel.errors import DataError
+from dt_runtime.common.safe_json import loads
 from dt_runtime.service.bus.auth import Signer
-from dt_runtime.service.bus.config import BusConfig
+from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, BusConfig
 from dt_runtime.service.bus.session import BusError, close_session, open_session, put_json, shut_down, zenoh_errors
 
 log = logging.getLogger("dt_runtime.service.bus")
@@ -72,9 +73,9 @@ class MaintenanceConsumer:
 
     def _handle(self, key: str, raw: bytes) -> None:
         try:
-            req = json.loads(raw)
+            req = loads(raw, "maintenance request", max_bytes=MAX_MESSAGE_BYTES)
             oid, uid = int(req["id"]), str(req["uid"])
-        except (ValueError, KeyError, TypeError):
+        except (DataError, ValueError, KeyError, TypeError):
             log.warning("malformed maintenance request on %s ignored", key)
             return
         if req.get("group", self.group) != self.group:

@@ -4,7 +4,6 @@ signed; an ack or 'done' without a valid signature of the service's key is refus
 counted (`refused`, `last_refused`), and nothing is recorded (bus.auth)."""
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -15,9 +14,10 @@ from typing import Any
 
 import zenoh
 
-from dt_kernel.errors import StateError
+from dt_kernel.errors import DataError, StateError
+from dt_runtime.common.safe_json import loads
 from dt_runtime.service.bus.auth import Signer
-from dt_runtime.service.bus.config import BusConfig
+from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, BusConfig
 from dt_runtime.service.bus.session import (
     BusError,
     close_session,
@@ -206,9 +206,9 @@ class Bus:
 
     def _on_ack_bytes(self, key: str, raw: bytes) -> None:
         try:
-            msg = json.loads(raw)
+            msg = loads(raw, "maintenance message", max_bytes=MAX_MESSAGE_BYTES)
             oid, uid = int(msg["id"]), str(msg["uid"])
-        except (ValueError, KeyError, TypeError):
+        except (DataError, ValueError, KeyError, TypeError):
             log.warning("malformed maintenance ack ignored: %r", raw[:200])
             return
         why = self.signer.check(key, msg, fresh=True)
@@ -231,10 +231,10 @@ class Bus:
         for the daemon to apply; only signed with the service's key and for a request this store
         sent (id and uid match)."""
         try:
-            msg = json.loads(raw)
+            msg = loads(raw, "maintenance message", max_bytes=MAX_MESSAGE_BYTES)
             oid, uid = int(msg["id"]), str(msg["uid"])
             by, note = str(msg["by"]), str(msg["note"])
-        except (ValueError, KeyError, TypeError):
+        except (DataError, ValueError, KeyError, TypeError):
             log.warning("malformed maintenance done ignored (needs id, uid, by, note): %r", raw[:200])
             return
         why = self.signer.check(key, msg, fresh=True)
