@@ -224,12 +224,16 @@ def _region(P: np.ndarray):
     return lab, order
 
 
-def _configuration(q: np.ndarray):
-    """Sign of the elbow (q3: up/down) and the wrist (q5: flip) joints."""
+def configuration(q: np.ndarray) -> np.ndarray:
+    """The joint configuration of each row: the sign of the elbow (q3: up/down) and the wrist (q5:
+    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints)."""
     cols = [j for j in (2, 4) if j < q.shape[1]]
-    if not cols:
-        return None
-    lab = np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
+    return np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
+
+
+def _configuration(q: np.ndarray):
+    """The configuration factor's cells, None when the rows are all in one."""
+    lab = configuration(q)
     names = sorted(set(lab))
     return (lab, names) if len(names) > 1 else None
 
