@@ -440,7 +440,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             about["after_reregistration"] = _after_reregistration(ds, pred, refit_sessions)
         b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about, split)
         scores.append(b)
-    arrs.append(a)
+        arrs.append(a)
     floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)
     result = CompareResult(
         scores, ds.source, floor * MM_PER_M if floor is not None else None,

@@ -108,7 +108,7 @@ def coverage_check(s: Sample, ref: Inputs | None, campaign: str | None) -> dict:
                          for ax in axs)
 
     tell = (f"; 95 % interval over {n_eff} distinct targets: "
-            + ", ".join(f"{ax} {100 * axes[ax]['interval_95'][0]:.0f}-{100 * axes[ax]['interval_95'][1]:.0f} %"
+            + ", ".join(f"{ax} {100 * axes[ax]['interval_95'][0]:.1f}-{100 * axes[ax]['interval_95'][1]:.1f} %"
                         for ax in shown))
     band = f"the band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %"
     if status == "fail":
