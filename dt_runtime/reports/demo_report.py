@@ -444,7 +444,7 @@ def _model_sentence(s: dict) -> str:
     t = parameter_table(m["parameters"], m.get("base_parameters"), plus_minus=True)
     parts = [f"{ln.effect}: " + ", ".join(f"{k} {v}" for k, v in ln.entries) for ln in t.lines]
     parts += [g.title for g in t.grids]
-    return "Fitted: " + "; ".join(parts) + " (see 'Error model of the twin')."
+    return "Fitted: " + "; ".join(parts) + " (section 'Error model')."
 
 
 def _coverage_cards(s: dict) -> list[str]:

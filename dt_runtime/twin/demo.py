@@ -125,10 +125,15 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
                                      effects=cfg.effects, seed=seed)
         c = calibrate(files.load(), options, robot, cfg.drivers.model_dump(), progress)
         twin = c.twin
-        val_plain = run_rows(inst, plan.validation, progress, "phase 3 validation, uncorrected")
+        # The validation's targets are reachable from a fresh start (check_reachable), but the arm's
+        # IK branch depends on its path: a command it cannot reach from where it stands is skipped and
+        # listed in the refusals (its row stays NaN), and the validation states what was reached.
+        val_plain = run_rows(inst, plan.validation, progress, "phase 3 validation, uncorrected",
+                             skip_unreachable=True)
         # The uncorrected validation is the campaign's validation phase: `dt calibrate` on these
         # files then checks the twin's stated uncertainty against the tracker, as on a real cell.
-        files = write_campaign(out / "campaign", Campaign(reg_data, doe_data, val_plain), robot_ref(robot), seed,
+        reached = val_plain.rows(np.all(np.isfinite(val_plain.p_rdk), axis=1))
+        files = write_campaign(out / "campaign", Campaign(reg_data, doe_data, reached), robot_ref(robot), seed,
                                sim_instruments(cfg, inst, world), cfg.drivers.model_dump(),
                                f"dt demo, scenario {world.scenario_name}, seed {seed}")
         corrections: list[Correction] = []
@@ -137,7 +142,8 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
             corrections.append(twin.correct(target, v, cond))
             return corrections[-1].command
 
-        val_corr = run_rows(inst, plan.validation, progress, "phase 3 validation, corrected", command=command)
+        val_corr = run_rows(inst, plan.validation, progress, "phase 3 validation, corrected", command=command,
+                            skip_unreachable=True)
         checks = _coverage_checks(inst, twin, c.doe, plan_cfg.doe_speeds, cfg.coverage_targets, seed, world, progress)
         prov = demo_provenance(cfg, config, plan_file, inst, world, (reg_data, doe_data, val_plain, val_corr),
                                files.inputs())
@@ -258,7 +264,7 @@ def _validity(c: Calibrated, checks: dict[str, CoverageCheck], val_corr: PhaseDa
     cond = Inputs(commanded=val_corr.target[ok], joints=val_corr.q[ok], t=val_corr.t[ok],
                   temperature=val_corr.temperature[ok])
     samples.append(validity.Sample("validation", f"the {int(ok.sum())} corrected validation positionings", truth,
-                                   e_corr, U_tcp, cond))
+                                   e_corr, U_tcp, cond, requested=len(ok) if not ok.all() else None))
     rates = validity.Eq17Rates(t17.test.passed, c.budgets["eq14_e_lt_hat_minus_e_mvs"].expanded())
     return validity.assess(samples, c.doe.inputs, ("validation", rates), campaign)
 

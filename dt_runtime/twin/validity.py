@@ -125,20 +125,20 @@ def coverage_check(s: Sample, ref: Inputs | None, campaign: str | None) -> dict:
         if over:
             finding += (f" ({', '.join(over)} above it, but within what {n_eff} targets can tell: the 95 % interval "
                         "reaches the band)")
-    if s.requested is not None and n < s.requested:
-        finding += (f" ({n} of the {s.requested} targets asked for were reached: the arm could not reach the others "
-                    "from where it stood)")
-    out: dict[str, Any] = {"check": f"coverage_{s.key}", "what": f"coverage of U(TCP_c) at {s.what}", "truth": s.truth,
-           "band": list(BAND), "n": n, "n_distinct": n_eff, "axes": axes, "status": status, "finding": finding,
-           "short": f"U(TCP_c) covers {figs(shown, counts=False)} of {where} (band {100 * BAND[0]:.0f}-"
-                    f"{100 * BAND[1]:.0f} %)"}
+    short = f"U(TCP_c) covers {figs(shown, counts=False)} of {where} (band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %)"
+    out: dict[str, Any] = {"check": f"coverage_{s.key}", "what": f"coverage of U(TCP_c) at {s.what}",
+                           "truth": s.truth, "band": list(BAND), "n": n, "n_distinct": n_eff, "axes": axes,
+                           "status": status, "finding": finding, "short": short}
     if s.requested is not None and n < s.requested:
         out["n_requested"] = s.requested
+        out["finding"] += (f" ({n} of the {s.requested} positions asked for were reached: the arm could not reach "
+                           "the others from where it stood)")
     if low:
         out["cause"], out["evidence"], out["advice"] = _cause_low(s, ref, low, inside, campaign)
         if status == "warn" and out["cause"] == GENERIC_CAUSE:  # not established, and the data point nowhere
             out["cause"] = f"none found in the data: possibly chance with {n_eff} targets"
-            out["evidence"] = "no joint configuration the DOE lacks, no condition changed since the DOE"
+            out["evidence"] = ("no position in a joint configuration the DOE lacks, no offset shared by the misses "
+                               "after the temperature or the time moved on")
             out["advice"] = "validate on more targets before trusting or doubting this U"
     elif high:
         out["cause"] = "the budget states more than the errors need"
