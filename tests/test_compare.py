@@ -262,3 +262,29 @@ def test_rows_outside_the_training_domain_are_counted(capsys, tmp_path):
     out = res["models"][-1]["outside_training"]
 
     assert code == 0 and out["rows"] == 60 and out["columns"] == {"x": 50, "q4": 10}
+
+
+def test_residual_against_each_factor_draws_every_model_and_categories_as_categories(gp_dir, flat_dir,
+                                                                                      monkeypatch):
+    """Every model's curve on every factor (the arrays once held only 'as is' and the last model);
+    the direction of approach (-1/+1) and the joint configuration are categories: one marker per
+    model and category, no line through 0."""
+    from dt_runtime.reports import compare_report
+
+    res, arr = compare_json([flat_dir, gp_dir], make(2), names=["nothing", "gp"])
+    assert [m["name"] for m in arr["models"]] == [AS_IS, "nothing", "gp"]
+    figs = []
+    monkeypatch.setattr(compare_report, "fig_to_img_tag", lambda fig, **kw: figs.append(fig) or "<img>")
+    compare_report._fig_factors(res, arr)
+    axes = [ax for ax in figs[0].axes if ax.get_visible()]
+    names = {ax.get_xlabel(): ax for ax in axes}
+    assert {"speed / (mm/s)", "payload / kg", "temperature / °C", "time from start / s", "q3 / deg",
+            "approach of q1", "joint configuration"} <= set(names)
+    for ax in axes:
+        assert [ln.get_label() for ln in ax.lines] == [AS_IS, "nothing", "gp"], ax.get_xlabel()
+    approach = names["approach of q1"]
+    assert [t.get_text() for t in approach.get_xticklabels()] == ["−", "+"]
+    assert all(ln.get_linestyle() == "None" and len(ln.get_xdata()) == 2 for ln in approach.lines)
+    config = names["joint configuration"]
+    assert [t.get_text() for t in config.get_xticklabels()] == ["q3+,q5+", "q3+,q5-", "q3-,q5+", "q3-,q5-"]
+    assert names["speed / (mm/s)"].lines[1].get_linestyle() == "-"  # a numeric factor keeps its line

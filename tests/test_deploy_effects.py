@@ -1,7 +1,8 @@
 """Deployment of a map with physical effects, end to end through the command line: a campaign
 on a cell whose arm expands with a warming, cycling shop temperature, written to files;
-`dt calibrate` without and with the thermal effect; `dt run` of each twin on the same simulated
-cell for the same program. The true 3D error of the commands falls when the effect is deployed
+`dt calibrate` without and with the thermal effect (the validation phase flags the twins that miss
+it, and passes the one that has it); `dt run` of each twin on the same simulated cell for the same
+program. The true 3D error of the commands falls when the effect is deployed
 (the daemon reads the cell's temperature and the controller's joints before every command)."""
 import json
 
@@ -14,19 +15,35 @@ def _json(capsys) -> dict:
 
 
 def test_the_thermal_effect_deployed_lowers_the_true_error(tmp_path, capsys):
+    # The demo's GPR twin misses the expansion: its stated U covers a fraction of the true errors,
+    # which the summary, the report's first screen and the last line say; --strict exits 3.
     rc = main(["demo", "--config", str(CONFIGS / "demo_thermal.yaml"), "--quick", "--out", str(tmp_path / "demo"),
-               "--json", "--no-progress"])
-    assert rc == 0, capsys.readouterr()
-    capsys.readouterr()
+               "--json", "--no-progress", "--strict"])
+    s = _json(capsys)
+    assert rc == 3, s
+    check = s["validity"]["checks"][0]
+    assert s["validity"]["status"] == "fail" and check["check"] == "coverage_validation"
+    assert check["axes"]["x"]["coverage"] < 0.5 and check["axes"]["x"]["status"] == "fail"
+    assert check["cause"] == "the model misses a time-dependent effect" and "temperature changed" in check["evidence"]
+    assert s["validity"]["checks"][1]["check"] == "eq17_vs_coverage" and s["validity"]["checks"][1]["status"] == "fail"
+    first_screen = (tmp_path / "demo" / "report.html").read_text(encoding="utf-8").split("<img", 1)[0]
+    assert "NOT VALID" in first_screen and "the model misses a time-dependent effect" in first_screen
     true_rms = {}
     for name, effects in (("gpr", ""), ("geometric", "geometric"), ("thermal", "geometric,thermal")):
         rc = main(["calibrate", "--campaign", str(tmp_path / "demo" / "campaign"), "--effects", effects,
-                   "--out", str(tmp_path / name), "--json", "--no-progress"])
+                   "--out", str(tmp_path / name), "--json", "--no-progress", "--strict"])
         s = _json(capsys)
-        assert rc == 0, s
+        # the campaign's validation phase (uncorrected, tracker-measured) checks each twin's U
+        assert s["validation"]["n"] == 28
         if name == "thermal":  # the expansion coefficient found is the simulated arm's (2.3e-5 /K)
+            assert rc == 0 and s["validity"]["status"] == "ok", s["validity"]["line"]
             alpha = next(p for p in s["maps"]["e_lt"]["parameters"] if p["name"] == "alpha")
             assert abs(alpha["value"] - 2.3e-5) < 0.1 * 2.3e-5, alpha
+            report = (tmp_path / name / "report.html").read_text(encoding="utf-8")
+            assert "geometric + thermal + GP" in report and "alpha 22.9" in report and "Not shown" not in report
+        else:  # the expansion missed: the tracker's errors at the validation points leave the stated U
+            assert rc == 3 and s["validity"]["status"] == "fail", s["validity"]["line"]
+            assert "--effects geometric,thermal" in s["validity"]["checks"][0]["advice"]
         cfg = tmp_path / f"run_{name}.yaml"
         cfg.write_text(f"""
 twin: {tmp_path / name}

@@ -91,7 +91,7 @@ def make_result(n_doe=558, n_val=28, seed=0) -> FakeResult:
         "t_test_eq17": {"n": len(val_target), "pass_fraction_all_axes": 0.75,
                         "pass_fraction_per_axis": {"x": 1.0, "y": 0.96, "z": 0.79}},
         "refusals": [], "n_refusals": 0, "elapsed_s": 12.3,
-        "units": "mm; errors e = commanded - measured, in the global frame GL",
+        "units": "mm; errors e = commanded - measured, in the global frame GL", "twin": "out/demo/model",
     }
     arrays = {
         "reg_residuals": {"rdk": np.full((36, 3), 1e-16), "lt": rng.normal(0, 46e-6, (36, 3)),
@@ -167,3 +167,68 @@ def test_generic_helpers_escape_and_render_lists_of_dicts():
     assert tag.startswith('<img src="data:image/png;base64,') and "&quot;quoted&quot;" in tag
     page = html_page("T <1>", [("S", tag)])
     assert "<title>T &lt;1&gt;</title>" in page and page.count("<img") == 1
+
+
+def _calibration(validation: bool) -> FakeResult:
+    """The fake demo as `dt calibrate` shapes it: no simulator (no scenario, no truth), a thermal
+    map's parameters, and optionally a validation phase against the tracker."""
+    res = make_result()
+    s = {k: v for k, v in res.summary.items() if k not in (
+        "scenario", "quick", "seed", "true_rms_uncorrected_mm", "true_rms_corrected_mm", "true_error_reduction_pct",
+        "coverage_95", "n_validation", "t_test_eq17", "refusals", "n_refusals", "elapsed_s")}
+    s |= {"campaign": "out/thermal/campaign/campaign.yaml", "twin": "out/twin_thermal",
+          "maps": {"e_lt": {"effects": ["thermal"], "gp_inputs": "tcp_speed", "base_parameters": None,
+                            "parameters": [{"effect": "thermal", "name": "alpha", "value": 2.297e-5, "u": 2.0e-7,
+                                            "unit": "1/K"}]}}}
+    if validation:
+        s["validation"] = {"n": 28, "rms_e_lt_mm": 0.2565, "rms_after_map_mm": 0.0201, "reduction_pct": 92.14,
+                           "coverage_95": {"x": 1.0, "y": 1.0, "z": 0.964}, "mean_U_mm": [0.046, 0.029, 0.038],
+                           "t_test_eq17": {"n": 28, "pass_fraction_all_axes": 1.0,
+                                           "pass_fraction_per_axis": {"x": 1.0, "y": 1.0, "z": 1.0}}}
+    arrays = {k: v for k, v in res.arrays.items() if k in ("reg_residuals", "doe_X", "e_lt", "e_mvs", "e_mvs_lt",
+                                                           "r_lt", "r_mvs_lt", "U_e_mvs_lt_hat")}
+    return FakeResult(s, arrays)
+
+
+@pytest.mark.parametrize("validation", [True, False])
+def test_a_calibration_report_names_its_effects_and_shows_no_placeholder(tmp_path, validation):
+    html = report.write_demo_report(_calibration(validation), tmp_path / "c.html").read_text(encoding="utf-8")
+    assert not [n for n in _notes(html) if "Not shown" in n or "not available" in n or "summary has no" in n]
+    assert "Error model: thermal + GP on the TCP and speed" in html and "alpha 22.97 ± 0.20 ppm/K" in html
+    if validation:
+        assert "Phase 3: validation against the laser tracker" in html and "the 28 validation positionings" in html
+    else:
+        assert "The campaign has no validation phase, so nothing here tests the stated uncertainty" in html
+    # the last section: where the twin is and what to do next
+    assert html.rindex("<h2>") == html.index("<h2>Where the twin is and what to do next</h2>")
+    assert "dt correct --twin out/twin_thermal" in html and "out/twin_thermal/report.html" in html
+
+
+def test_numbers_have_sensible_digits_and_one_u_per_place(tmp_path):
+    res = make_result()
+    html = report.write_demo_report(res, tmp_path / "r.html").read_text(encoding="utf-8")
+    cells = re.findall(r"<td[^>]*>([^<]*)</td>", html)
+    assert not [c for c in cells if re.search(r"\d[eE][-+]?\d", c)], "no exponent in a table"  # was 1.734e-13
+    # the paper-literal variant states its coverage in %, not as '1'
+    assert "coverage of that U by the true errors of the corrected validation positionings / % (x, y, z)" in html
+    assert "100.0, 100.0, 100.0" in html
+    # the global Eq. 18 U and the per-position U are named apart, each defined once
+    assert "Eq. 18  U(TCP_c), global over the DOE" in html and html.count("U(TCP_c) is the 95 % expanded") == 1
+    # the encoders' flat residuals are said in one line, not drawn as three empty panels
+    assert "numerically zero (&lt; 1 nm" in html and "are not drawn" in html
+
+
+def test_the_first_screen_says_whether_the_figures_may_be_trusted(tmp_path):
+    from dt_runtime.models.effects import Inputs
+    from dt_runtime.twin.validity import Sample, assess
+
+    res = make_result()
+    a = res.arrays
+    U = np.tile(a["U_tcp_c"], (len(a["val_target"]), 1))
+    res.summary["validity"] = assess([Sample("validation", "the 28 corrected validation positionings",
+                                             "true errors (simulator)", 3 * U, U, Inputs(commanded=a["val_target"]))])
+    html = report.write_demo_report(res, tmp_path / "r.html").read_text(encoding="utf-8")
+    first = html.index("Validity: NOT VALID")
+    assert first < html.index('<div class="cards">') < html.index("<img") and first < html.index("<h2>Phase 1")
+    assert '<div class="card fail"><div class="label">Coverage of U(TCP_c) at the 28 corrected validation' in html
+    assert "Likely cause: an effect the model does not learn" in html

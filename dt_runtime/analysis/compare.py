@@ -224,12 +224,16 @@ def _region(P: np.ndarray):
     return lab, order
 
 
-def _configuration(q: np.ndarray):
-    """Sign of the elbow (q3: up/down) and the wrist (q5: flip) joints."""
+def configuration(q: np.ndarray) -> np.ndarray:
+    """The joint configuration of each row: the sign of the elbow (q3: up/down) and the wrist (q5:
+    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints)."""
     cols = [j for j in (2, 4) if j < q.shape[1]]
-    if not cols:
-        return None
-    lab = np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
+    return np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
+
+
+def _configuration(q: np.ndarray):
+    """The configuration factor's cells, None when the rows are all in one."""
+    lab = configuration(q)
     names = sorted(set(lab))
     return (lab, names) if len(names) > 1 else None
 
@@ -436,7 +440,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             about["after_reregistration"] = _after_reregistration(ds, pred, refit_sessions)
         b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about, split)
         scores.append(b)
-    arrs.append(a)
+        arrs.append(a)
     floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)
     result = CompareResult(
         scores, ds.source, floor * MM_PER_M if floor is not None else None,

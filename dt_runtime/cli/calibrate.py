@@ -16,11 +16,14 @@ from typing import Any
 from dt_runtime.cli.common import (
     add_effects_file_arg,
     add_output_args,
+    add_strict_arg,
     declare_effects,
     folds,
     names,
-    parameter_line,
+    parameter_lines,
     progress,
+    seed_number,
+    validity_exit,
 )
 
 
@@ -47,9 +50,10 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
     c.add_argument("--folds", type=folds, default=5, metavar="K", help="grouped cross-validation folds (default 5)")
     c.add_argument("--margin-mm", type=float, default=25.0, metavar="MM",
                    help="calibrated volume: the DOE hull widened by this margin (default 25 mm)")
-    c.add_argument("--seed", type=int, default=None,
+    c.add_argument("--seed", type=seed_number, default=None,
                    help="seed of folds and GP restarts (default: the campaign manifest's, else 0)")
     c.add_argument("--out", required=True, metavar="TWIN", help="twin directory to write")
+    add_strict_arg(c)
     add_output_args(c)
 
 
@@ -120,7 +124,9 @@ def human(s: dict) -> str:
     lines = [f"twin written to {s['twin']} (e_LT map: {', '.join(e['effects']) + ' + GP' if e['effects'] else 'GPR'})",
              f"precision (Sect. 3.3): {s['precision_before_mm']:.3f} mm -> {s['precision_after_mm']:.3f} mm "
              f"({s['improvement_pct']:.1f} % better)"]
-    lines += [parameter_line(p) for p in e["parameters"]]
+    if e["parameters"]:
+        lines.append("effect parameters of the e_LT map (the short base-parameter table):")
+        lines += ["  " + ln for ln in parameter_lines(e["parameters"], e.get("base_parameters"))]
     v = s.get("validation")
     if v and v["n"]:
         cov = v["coverage_95"]
@@ -128,4 +134,9 @@ def human(s: dict) -> str:
                      f"{v['rms_after_map_mm']:.4f} mm after the map ({v['reduction_pct']:.1f} % lower); coverage "
                      f"of U(TCP_c): x {cov['x']:.1%}, y {cov['y']:.1%}, z {cov['z']:.1%}")
     lines.append(f"report: {s['report']}")
+    lines.append(s["validity"]["line"])
     return "\n".join(lines)
+
+
+def exit_code(args: argparse.Namespace, summary: dict) -> int:
+    return validity_exit(args, summary)

@@ -19,6 +19,17 @@ def folds(text: str) -> int:
     return k
 
 
+def seed_number(text: str) -> int:
+    """--seed N: a non-negative integer (numpy's generators take no negative seed)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"{n}: a seed is a non-negative integer (0, 1, 2, ...)")
+    return n
+
+
 def cv_folds(text: str) -> int:
     """--cv K: 0 (no cross-validation) or an integer >= 2."""
     try:
@@ -28,6 +39,27 @@ def cv_folds(text: str) -> int:
     if k != 0 and k < 2:
         raise argparse.ArgumentTypeError(f"{k}: 0 (none) or at least 2 folds")
     return k
+
+
+STRICT_EXIT = 3  # `--strict` and a validity check that failed (docs/cli.md)
+
+
+def add_strict_arg(q: argparse.ArgumentParser) -> None:
+    q.add_argument("--strict", action="store_true",
+                   help=f"exit {STRICT_EXIT} (after writing everything) when a validity check fails: the stated "
+                        "uncertainty does not cover the errors, or Eq. 17 disagrees with it")
+
+
+def validity_exit(args: argparse.Namespace, summary: dict) -> int:
+    """The exit code of a command whose summary carries a `validity` block (twin.validity): 0,
+    or STRICT_EXIT with --strict when its status is 'fail'. With --json the block's line also goes
+    to stderr (stdout holds only the JSON object)."""
+    import logging
+
+    v = summary.get("validity") or {}
+    if getattr(args, "json", False) and v.get("status") not in (None, "ok"):
+        logging.getLogger("dt.validity").warning("%s", v["line"])
+    return STRICT_EXIT if getattr(args, "strict", False) and v.get("status") == "fail" else 0
 
 
 def add_output_args(q: argparse.ArgumentParser) -> None:
@@ -48,7 +80,7 @@ def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
     q.add_argument("--mapping", default=None, metavar="YAML",
                    help="import mapping for a foreign file (e.g. configs/import/ur10.yaml)")
     q.add_argument("--skip-bad", action="store_true", help="skip bad rows (each is listed) instead of stopping")
-    q.add_argument("--seed", type=int, default=0, help="seed of folds and GP restarts (default 0)")
+    q.add_argument("--seed", type=seed_number, default=0, help="seed of folds and GP restarts (default 0)")
     if not kinematics:
         return
     q.add_argument("--robot", default=None, metavar="ROBOT", help=ROBOT_HELP)

@@ -9,16 +9,17 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dt_runtime.cli.common import progress
+from dt_runtime.cli.common import add_strict_arg, progress, seed_number, validity_exit
 
 
 def add_arguments(d: argparse.ArgumentParser) -> None:
     d.add_argument("--out", default="out/demo", metavar="DIR", help="output directory (default out/demo)")
     d.add_argument("--quick", action="store_true", help="reduced plan, well under a minute")
-    d.add_argument("--seed", type=int, default=None, help="plan seed (default: the plan config's)")
+    d.add_argument("--seed", type=seed_number, default=None, help="plan seed (default: the plan config's)")
     d.add_argument("--config", default=None, help="demo config YAML (default: configs/demo.yaml)")
     d.add_argument("--camera", default=None, metavar="DRIVER",
                    help="camera driver, overriding the config (sim_images or sim_point)")
+    add_strict_arg(d)
     d.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     d.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
 
@@ -35,6 +36,15 @@ def run(args: argparse.Namespace) -> Any:
     return res.summary
 
 
+def _where(s: dict) -> str:
+    """What `coverage_95` was measured at: the random targets inside the DOE hull, or (without
+    that check) the corrected validation positionings."""
+    chk = s.get("coverage_check") or {}
+    if "inside" in chk:
+        return f"{chk['inside']['n']} random targets inside the DOE hull"
+    return f"the {s.get('n_validation', '?')} corrected validation positionings"
+
+
 def human(s: dict) -> str:
     cov = s["coverage_95"]
     lines = [
@@ -42,7 +52,7 @@ def human(s: dict) -> str:
         f"({s['improvement_pct']:.1f} % better; paper: 0.970 -> 0.216 mm, 77.8 %)",
         f"true 3D RMS error at validation targets: {s['true_rms_uncorrected_mm']:.3f} mm uncorrected -> "
         f"{s['true_rms_corrected_mm']:.3f} mm corrected ({s['true_error_reduction_pct']:.1f} % lower)",
-        f"coverage of the per-position U(TCP_c) (95 %) inside the DOE volume: "
+        f"coverage of the per-position U(TCP_c) (95 %) at {_where(s)}: "
         f"x {cov['x']:.1%}, y {cov['y']:.1%}, z {cov['z']:.1%}",
     ]
     out = s.get("coverage_95_outside")
@@ -50,4 +60,12 @@ def human(s: dict) -> str:
         lines.append(f"... and 50-150 mm outside it: x {out['x']:.1%}, y {out['y']:.1%}, z {out['z']:.1%}; "
                      f"mean U outside / inside {s['u_ratio_outside_inside']:.2f}")
     lines.append(f"Eq. 17 t-test pass fraction: {s['t_test_eq17']['pass_fraction_all_axes']:.1%}")
-    return "\n".join(lines)
+    if s.get("twin"):
+        out_dir = Path(s["twin"]).parent
+        lines.append(f"wrote {out_dir / 'report.html'}, {out_dir / 'summary.json'} and the twin {s['twin']}")
+    lines.append(s["validity"]["line"])
+    return "\n".join(x for x in lines if x)
+
+
+def exit_code(args: argparse.Namespace, summary: dict) -> int:
+    return validity_exit(args, summary)

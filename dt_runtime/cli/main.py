@@ -101,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps({"error": f"internal error: {exc}", "type": type(exc).__name__}))
         return 1
     print(dumps(result) if as_json else mod.human(result))
-    return 0
+    # a command may end with another status on a result it did write (dt demo/calibrate --strict)
+    return mod.exit_code(args, result) if hasattr(mod, "exit_code") else 0
 
 
 if __name__ == "__main__":

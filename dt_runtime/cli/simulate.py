@@ -10,14 +10,14 @@ import argparse
 import json
 from typing import Any
 
-from dt_runtime.cli.common import add_output_args, progress
+from dt_runtime.cli.common import add_output_args, progress, seed_number
 
 
 def add_arguments(sm: argparse.ArgumentParser) -> None:
     sm.add_argument("--scenario", required=True, metavar="FILE",
                     help="scenario YAML (configs/scenarios/), optional 'data:' block: plan, phases, doe_reps, cell")
     sm.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV")
-    sm.add_argument("--seed", type=int, default=None, help="overrides the scenario's and the plan's seed")
+    sm.add_argument("--seed", type=seed_number, default=None, help="overrides the scenario's and the plan's seed")
     add_output_args(sm)
 
 

@@ -32,3 +32,13 @@ class PhaseData:
     @property
     def n(self) -> int:
         return len(self.point_id)
+
+    def rows(self, mask: np.ndarray) -> PhaseData:
+        """The phase's rows where `mask` is true (its refusals kept whole)."""
+        def cut(a):
+            return None if a is None else np.asarray(a)[mask]
+
+        return PhaseData(self.phase, cut(self.point_id), cut(self.rep), cut(self.target), cut(self.speed),
+                         cut(self.p_rdk), cut(self.p_lt), cut(self.p_mvs), cut(self.t), cut(self.q),
+                         cut(self.temperature), cut(self.payload), cut(self.truth_lt), cut(self.axis),
+                         cut(self.distance), list(self.refusals))

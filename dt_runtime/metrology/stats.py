@@ -52,8 +52,9 @@ def mean_std_mm(e: np.ndarray) -> dict:
             for k, ax in enumerate(AXES)} | {"n": int(len(e))}
 
 
-def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson score interval of a proportion k/n (coverage of stated uncertainties)."""
+def wilson_interval(k: float, n: float, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a proportion k/n (coverage of stated uncertainties; k and n may be
+    effective counts, e.g. over distinct targets)."""
     if n == 0:
         return float("nan"), float("nan")
     p = k / n

@@ -15,6 +15,8 @@ from dt_runtime.reports.html import note, plt
 log = logging.getLogger(__name__)
 
 COLORS = {"x": "#1f77b4", "y": "#2ca02c", "z": "#d62728"}  # one colour per axis in every figure
+# Font sizes (pt) of every figure: at the reports' 80 dpi, shown unscaled, 10 pt is 11 px on screen.
+TICK, LEGEND, LABEL, TITLE = 10, 9, 11, 11
 
 
 class Missing(Exception):

@@ -2,7 +2,8 @@
 
 `write_compare_report(result, arrays, out_dir)` renders what `dt_runtime.compare.compare`
 returns: the models side by side, the "watch the error fall" plot, where the primary model
-(the last one) fails (residual maps, residual against each factor, the worst cells), whether
+(the last one) fails (residual maps, the worst cells), every model's residual against each factor
+(numeric factors by level, the direction of approach and the joint configuration as categories), whether
 its residuals look normal, and each model's effect parameters (the short base-parameter table,
 reports.parameter_table). The HTML helpers and the per-block
 fallback (a block that cannot be drawn becomes a note) are those of the demo report.
@@ -16,7 +17,7 @@ import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.analysis.compare import MIN_CELL
-from dt_runtime.reports.blocks import COLORS, Missing, fixed, levels, run_block
+from dt_runtime.reports.blocks import COLORS, LABEL, LEGEND, TICK, TITLE, Missing, fixed, levels, run_block
 from dt_runtime.reports.html import (
     Section,
     fig_to_img_tag,
@@ -28,6 +29,7 @@ from dt_runtime.reports.html import (
     paragraph,
     plt,
 )
+from dt_runtime.reports.parameter_table import html as parameters_html
 from dt_runtime.reports.parameter_table import parameter_table
 from dt_runtime.reports.traceability import traceability
 
@@ -122,12 +124,12 @@ def _fig_steps(s: dict, a: dict) -> str:
     ax.bar(x, y, yerr=u, capsize=4, color=["0.6"] + ["tab:blue"] * (len(ms) - 1), alpha=0.85)
     ax.plot(x, y, "k.-", lw=0.8)
     for xi, yi in zip(x, y):
-        ax.annotate(f"{yi:.3f}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
+        ax.annotate(f"{yi:.3f}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=LABEL)
     fl = s.get("noise_floor_mm")
     if fl is not None:
         ax.axhline(fl, color="tab:red", ls="--", lw=1, label=f"noise floor {fl:.3f} mm")
-        ax.legend(fontsize=8)
-    ax.set_xticks(x, [m["name"] for m in ms], rotation=15, fontsize=8)
+        ax.legend(fontsize=LABEL)
+    ax.set_xticks(x, [m["name"] for m in ms], rotation=15, fontsize=LABEL)
     ax.set_ylabel(("held-out " if ho else "") + "3D RMS of r / mm")
     if y.min() > 0 and y.max() / y.min() > 4:  # the as-is bar must not squash the steps that matter
         ax.set_yscale("log")
@@ -209,18 +211,10 @@ def _table_parameters(s: dict, a: dict) -> str:
     for m in s["models"][1:]:
         ps = m.get("parameters") or []
         if not ps:
-            out.append(note(f"{m['name']} ({m.get('description', '')}): no physical effect terms."))
+            out.append(paragraph(f"{m['name']} ({m.get('description', '')}): no physical effect terms."))
             continue
-        t = parameter_table(ps, m.get("base_parameters"), plus_minus=True)
-        for g in t.grids:
-            out.append(html_table([dict(zip(g.header, r)) for r in g.rows], g.header, row_header="",
-                                  caption=f"{m['name']} ({m.get('description', '')}): {g.title}, {t.legend}"))
-        if t.lines:
-            out.append(html_table([{"effect": ln.effect, "parameters": ", ".join(f"{k} {v}" for k, v in ln.entries)}
-                                   for ln in t.lines], ["effect", "parameters"], row_header="effect",
-                                  caption=f"{m['name']}: " + ("other effects' " if t.grids else "")
-                                          + f"base parameters, {t.legend}"))
-        out += [paragraph(n) for n in t.notes]
+        out.append(parameters_html(parameter_table(ps, m.get("base_parameters"), plus_minus=True),
+                                   f"{m['name']} ({m.get('description', '')})"))
     return "".join(out)
 
 
@@ -262,9 +256,9 @@ def _fig_maps(s: dict, a: dict) -> str:
         if fail.any():
             axp.scatter(P[fail, i], P[fail, j], marker="x", s=40, color="tab:red", lw=1.2,
                         label=f"fails Eq. 17 in >= half its rows ({int(fail.sum())} of {len(r)} points)")
-            axp.legend(fontsize=8, loc="best")
+            axp.legend(fontsize=LABEL, loc="best")
         axp.set_xlabel(f"{AXES[i]} / mm"), axp.set_ylabel(f"{AXES[j]} / mm")
-        axp.set_title(f"{AXES[i]}-{AXES[j]} view", fontsize=10)
+        axp.set_title(f"{AXES[i]}-{AXES[j]} view", fontsize=TITLE)
         axp.grid(alpha=0.3)
         fig.colorbar(sc, ax=axp, extend="max").set_label("|mean r| per point / mm")
     fig.tight_layout()
@@ -276,56 +270,107 @@ def _fig_maps(s: dict, a: dict) -> str:
                         f"({100 * float(fail_rows.mean()):.1f} % of all rows fail in at least one axis).")
 
 
-def _factor_values(a: dict) -> list[tuple[str, np.ndarray]]:
-    out = []
+Factor = tuple[str, np.ndarray, list[str] | None]  # label, values, category names (None: a numeric factor)
+
+
+def _factor_values(a: dict) -> list[Factor]:
+    out: list[Factor] = []
     for key, label, f in (("speed", "speed / (mm/s)", MM_PER_M), ("payload", "payload / kg", 1.0),
                           ("temperature", "temperature / °C", 1.0), ("t", "time from start / s", 1.0)):
         v = a.get(key)
         if v is not None and np.nanstd(v) > 0:
             v = np.asarray(v, float) * f
-            out.append((label, v - np.nanmin(v) if key == "t" else v))
+            out.append((label, v - np.nanmin(v) if key == "t" else v, None))
     q = a.get("joints")
     if q is not None:
         j = 2 if q.shape[1] > 2 else 0  # the elbow: the joint whose angle most changes the reach
-        out.append((f"q{j + 1} / deg", np.degrees(q[:, j])))
+        out.append((f"q{j + 1} / deg", np.degrees(q[:, j]), None))
     return out
 
 
-def _approach(a: dict) -> list[tuple[str, np.ndarray]]:
+APPROACH = {-1.0: "−", 0.0: "still", 1.0: "+"}
+
+
+def _approach(a: dict) -> list[Factor]:
     """The direction from which each joint approached (sign of its change from the previous row;
-    rows in time order), for the joints that move: what backlash and lag follow."""
+    rows in time order), for the joints that move: what backlash and lag follow. Categorical."""
     q = a.get("joints")
     if q is None or len(q) < 3:
         return []
     d = np.sign(np.diff(q, axis=0, prepend=q[:1]))
     d[0] = d[1]
-    return [(f"approach of q{j + 1} (-1 / +1)", d[:, j]) for j in range(q.shape[1]) if np.any(d[:, j] != 0)][:3]
+    out: list[Factor] = []
+    for j in range(q.shape[1]):
+        if not np.any(d[:, j] != 0):
+            continue
+        levels_ = sorted(set(d[:, j].tolist()))
+        idx = np.searchsorted(np.array(levels_), d[:, j]).astype(float)
+        out.append((f"approach of q{j + 1}", idx, [APPROACH[v] for v in levels_]))
+    return out[:3]
+
+
+def _configuration(a: dict) -> list[Factor]:
+    """The joint configuration (signs of the elbow and wrist joints), when the rows span several."""
+    lab = (a.get("cells") or {}).get("configuration")
+    if lab is None:
+        return []
+    names = sorted(set(lab.tolist() if hasattr(lab, "tolist") else lab))
+    if len(names) < 2:
+        return []
+    index = {n: i for i, n in enumerate(names)}
+    return [("joint configuration", np.array([index[x] for x in lab], float), names)]
+
+
+PER_ROW = 4  # factor panels per row: the figure stays at the page's width, its fonts readable
 
 
 def _fig_factors(s: dict, a: dict) -> str:
-    models = (a.get("models") or [])[1:] or [_primary(a)]  # every model (as is has its own table)
-    fv = _factor_values(a) + _approach(a)
+    models = a.get("models") or []
+    if not models:
+        raise Missing("no model results")
+    fv = _factor_values(a) + _approach(a) + _configuration(a)
     if not fv:
         raise Missing("the data have no speed, payload, temperature, time or joint columns")
-    fig, axs = plt.subplots(1, len(fv), figsize=(3.3 * len(fv) + 1, 3.6), squeeze=False, sharey=True)
+    ncol = min(len(fv), PER_ROW)
+    nrow = -(-len(fv) // ncol)
+    fig, axs = plt.subplots(nrow, ncol, figsize=(3.2 * ncol + 0.8, 3.3 * nrow + 0.5), squeeze=False, sharey=True)
+    for axp in axs.ravel()[len(fv):]:
+        axp.set_visible(False)
     cmap = plt.get_cmap("tab10")
-    for axp, (label, v) in zip(axs[0], fv):
+    style = [("0.45", "--")] + [(cmap(i % 10), "-") for i in range(len(models) - 1)]  # 'as is' first, grey
+    for axp, (label, v, cats) in zip(axs.ravel(), fv):
         ok = np.isfinite(v)
-        idx, centres = levels(v[ok])
-        for mi, m in enumerate(models):
+        if cats is None:
+            idx, centres = levels(v[ok])
+        else:  # categories: one position each, the models side by side, no line between them
+            idx, centres = v[ok].astype(int), np.arange(len(cats), dtype=float)
+        width = 0.5 / max(len(models), 1)
+        for mi, (m, (color, ls)) in enumerate(zip(models, style)):
             r = np.linalg.norm(m["residual"], axis=1)[ok] * MM_PER_M
-            means = [np.sqrt(np.mean(r[idx == i] ** 2)) if np.any(idx == i) else np.nan for i in range(len(centres))]
-            axp.plot(centres, means, "o-", ms=3, lw=1.2, color=cmap(mi % 10), label=m["name"])
-        axp.set_xlabel(label, fontsize=9)
+            rms = np.array([np.sqrt(np.mean(r[idx == i] ** 2)) if np.any(idx == i) else np.nan
+                            for i in range(len(centres))])
+            if cats is None:
+                axp.plot(centres, rms, "o", ls=ls, ms=3, lw=1.2, color=color, label=m["name"])
+            else:
+                axp.plot(centres + (mi - (len(models) - 1) / 2) * width, rms, "o", ms=6, color=color,
+                         label=m["name"])
+        if cats is not None:
+            axp.set_xticks(centres, cats, fontsize=TICK)
+            axp.set_xlim(-0.6, len(cats) - 0.4)
+        axp.set_xlabel(label, fontsize=LABEL)
         axp.grid(alpha=0.3)
-        axp.tick_params(labelsize=7)
-    axs[0, 0].set_ylabel("3D RMS of r per level / mm")
-    axs[0, 0].legend(fontsize=7)
-    fig.tight_layout()
+        axp.tick_params(labelsize=TICK)
+    for row in axs:
+        row[0].set_ylabel("3D RMS of r / mm", fontsize=LABEL)
+    handles, names = axs[0, 0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="upper center", ncol=len(models), fontsize=LEGEND + 1, frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / (3.3 * nrow + 0.5)))
     return figure_block(fig_to_img_tag(fig, alt="residual against each factor"),
-                        "3D RMS of the residual (mm) of every model per level or quantile bin of each factor, "
-                        "the direction of approach of the moving joints included: a model whose curve rises or "
-                        "steps where the others stay flat misses the effect that follows that factor.")
+                        "3D RMS of the residual (mm) of every model ('as is', dashed grey: no correction) per level "
+                        "or quantile bin of each numeric factor, and per category of the direction of approach of "
+                        "the moving joints (−: the angle fell, +: it rose) and of the joint configuration (signs of "
+                        "the elbow and wrist joints): a model whose curve rises or steps where the others stay flat "
+                        "misses the effect that follows that factor.")
 
 
 def _fig_normal(s: dict, a: dict) -> str:
@@ -340,9 +385,9 @@ def _fig_normal(s: dict, a: dict) -> str:
         (osm, osr), (slope, icpt, rr) = stats.probplot(r[:, k], dist="norm")
         axs[k].plot(osm, osr, ".", ms=3, color=COLORS[ax])
         axs[k].plot(osm, slope * osm + icpt, "k-", lw=0.8)
-        axs[k].set_title(f"r_{ax}: R = {rr:.3f}, slope {slope:.3f} mm", fontsize=9)
-        axs[k].set_xlabel("theoretical normal quantile", fontsize=8)
-        axs[k].set_ylabel(f"r_{ax} / mm", fontsize=8)
+        axs[k].set_title(f"r_{ax}: R = {rr:.3f}, slope {slope:.3f} mm", fontsize=TITLE)
+        axs[k].set_xlabel("theoretical normal quantile", fontsize=LABEL)
+        axs[k].set_ylabel(f"r_{ax} / mm", fontsize=LABEL)
         axs[k].grid(alpha=0.3)
     fig.tight_layout()
     return figure_block(fig_to_img_tag(fig, alt="normal probability plot"),

@@ -9,13 +9,25 @@ import numpy as np
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.metrology.stats import finite_rows, rms_with_U, t95
 from dt_runtime.metrology.uncertainty import welch_satterthwaite
-from dt_runtime.reports.blocks import COLORS, Missing, array, fixed, levels, summary_value, unique_in_order
+from dt_runtime.reports.blocks import (
+    COLORS,
+    LABEL,
+    LEGEND,
+    TICK,
+    TITLE,
+    Missing,
+    array,
+    fixed,
+    levels,
+    summary_value,
+    unique_in_order,
+)
 from dt_runtime.reports.html import fig_to_img_tag, figure_block, plt
 
 MAGNIFY = 200  # Fig. 15: uncertainty boxes magnified x200 for visibility
 
 
-def _figure(fig, alt: str, caption: str, title: str | None = None, title_size: int = 11, **margins: float) -> str:
+def _figure(fig, alt: str, caption: str, title: str | None = None, title_size: float = TITLE, **margins: float) -> str:
     """A finished figure as an HTML block: optional title, margins, embedded PNG and caption."""
     if title:
         fig.suptitle(title, fontsize=title_size)
@@ -26,11 +38,18 @@ def _figure(fig, alt: str, caption: str, title: str | None = None, title_size: i
 def _finish_grid(fig, axs, xlabel: str, **margins: float) -> None:
     """The grid of per-axis series plots: small ticks, a light grid, the x label on the bottom row."""
     for axp in axs.ravel():
-        axp.tick_params(labelsize=7)
+        axp.tick_params(labelsize=TICK)
         axp.grid(alpha=0.3)
     for axp in axs[-1]:
-        axp.set_xlabel(xlabel, fontsize=8)
+        axp.set_xlabel(xlabel, fontsize=LABEL)
     fig.subplots_adjust(right=0.99, **margins)
+
+
+def _xyz_labels(axp) -> None:
+    """The labels of a 3D plot in the robot frame."""
+    axp.set_xlabel("X / mm", fontsize=LABEL)
+    axp.set_ylabel("Y / mm", fontsize=LABEL)
+    axp.set_zlabel("Z / mm", fontsize=LABEL)
 
 
 def t_crit_and_flags(s: dict, a: dict):
@@ -53,34 +72,44 @@ def t_crit_and_flags(s: dict, a: dict):
     return tcrit, u
 
 
+NAME = {"rdk": "robot encoders", "lt": "laser tracker", "mvs": "camera system"}
+
+
 def fig_registration(s: dict, a: dict) -> str:
     res = a.get("reg_residuals")
     if not isinstance(res, dict) or not res:
         raise Missing("array 'reg_residuals' not available")
-    names = [n for n in ("rdk", "lt", "mvs") if res.get(n) is not None] + \
+    given = [n for n in ("rdk", "lt", "mvs") if res.get(n) is not None] + \
             [n for n in res if n not in ("rdk", "lt", "mvs") and res.get(n) is not None]
-    fig, axs = plt.subplots(len(names), 3, figsize=(11, 2.3 * len(names)), squeeze=False, sharex="row")
+
+    def flat(name: str) -> bool:  # exact data (e.g. the encoders' nominal TCP): rounding noise only
+        e = np.asarray(res[name], float)
+        return bool(np.all(np.abs(e[np.isfinite(e)]) < 1e-9))
+
+    zero = [n for n in given if flat(n)]
+    names = [n for n in given if n not in zero]
+    if not names:
+        raise Missing("every registration residual is numerically zero")
+    fig, axs = plt.subplots(len(names), 3, figsize=(11, 2.6 * len(names)), squeeze=False, sharex="row")
     for r, name in enumerate(names):
         e = np.asarray(res[name], float) * MM_PER_M
         for c, ax in enumerate(AXES):
             axp = axs[r, c]
             v = e[:, c] if e.ndim == 2 else np.array([])
             i = np.flatnonzero(np.isfinite(v))
-            if len(i) and np.max(np.abs(v[i])) < 1e-6:  # exact data (e.g. encoder nominal): rounding noise only
-                axp.plot(i, np.zeros(len(i)), "o", ms=3, color=COLORS[ax])
-                axp.set_ylim(-0.01, 0.01)
-                axp.set_title(f"{name.upper()}, {ax}: numerically zero (< 1 nm)", fontsize=9)
-            elif len(i) > 1:
+            if len(i) > 1:
                 axp.plot(i, v[i], "o", ms=3, color=COLORS[ax])
                 m, sd = v[i].mean(), v[i].std(ddof=1)
                 axp.axhline(m, color="k", lw=0.8)
                 axp.axhspan(m - 2 * sd, m + 2 * sd, color=COLORS[ax], alpha=0.12, label="ē ± 2 s")
-                axp.set_title(f"{name.upper()}, {ax}: ē = {fixed(m)} mm, s = {sd:.3f} mm", fontsize=9)
-            axp.set_ylabel(f"residual {ax} / mm", fontsize=8)
-    _finish_grid(fig, axs, "registration positioning #", left=0.07, bottom=0.08, top=0.95, wspace=0.28, hspace=0.42)
+                axp.set_title(f"{NAME.get(name, name)}, {ax}: s = {sd:.3f} mm", fontsize=TITLE)
+            axp.set_ylabel(f"residual {ax} / mm", fontsize=LABEL)
+    _finish_grid(fig, axs, "registration positioning #", left=0.08, bottom=0.1, top=0.93, wspace=0.32, hspace=0.45)
+    left_out = (" The robot encoders' residuals e_RDK,GL are numerically zero (< 1 nm: the controller's commanded "
+                "TCP is exact by construction) and are not drawn." if zero else "")
     return figure_block(fig_to_img_tag(fig, alt="registration residuals"),
-                        "Figs. 8a/9a/10a: registration residuals per instrument and GL axis (mm), "
-                        "with mean ē and the band ē ± 2 s(e).")
+                        "Figs. 8a/9a/10a: registration residuals per instrument and GL axis (mm), with their mean ē "
+                        "(zero by construction of the least-squares fit) and the band ē ± 2 s(e)." + left_out)
 
 
 def fig_error_map(s: dict, a: dict) -> str:
@@ -99,12 +128,12 @@ def fig_error_map(s: dict, a: dict) -> str:
         axp = fig.add_subplot(1, 3, k + 1, projection="3d")
         sc = axp.scatter(uniq[:, 0], uniq[:, 1], uniq[:, 2], c=Em[:, k], cmap="coolwarm", vmin=-lim, vmax=lim,
                          s=28, depthshade=False, edgecolors="k", linewidths=0.3)
-        axp.set_title(f"e_LT,{ax} (mean per position)", fontsize=10)
-        axp.set_xlabel("X / mm", fontsize=8), axp.set_ylabel("Y / mm", fontsize=8), axp.set_zlabel("Z / mm", fontsize=8)
-        axp.tick_params(labelsize=6)
+        axp.set_title(f"e_LT,{ax} (mean per position)", fontsize=TITLE)
+        _xyz_labels(axp)
+        axp.tick_params(labelsize=TICK)
         cb = fig.colorbar(sc, ax=axp, shrink=0.6, pad=0.16)
-        cb.set_label(f"e_LT,{ax} / mm", fontsize=8)
-        cb.ax.tick_params(labelsize=7)
+        cb.set_label(f"e_LT,{ax} / mm", fontsize=LABEL)
+        cb.ax.tick_params(labelsize=TICK)
     fig.subplots_adjust(left=0.0, right=0.97, bottom=0.05, top=0.93, wspace=0.2)
     return figure_block(fig_to_img_tag(fig, alt="as-is error map"),
                         f"As-is error map: laser-tracker error e_LT per GL axis (mm, colour) at the {len(uniq)} DOE "
@@ -130,8 +159,8 @@ def fig_asis_series(s: dict, a: dict) -> str:
                 m, sd = v[i].mean(), v[i].std(ddof=1)
                 axp.axhline(m, color="k", lw=0.8)
                 axp.axhspan(m - 2 * sd, m + 2 * sd, color=COLORS[ax], alpha=0.1)
-                axp.set_title(f"{lab[n]},{ax}: ē = {fixed(m)} mm, s = {sd:.3f} mm", fontsize=9)
-            axp.set_ylabel("mm", fontsize=8)
+                axp.set_title(f"{lab[n]},{ax}: ē = {fixed(m)} mm, s = {sd:.3f} mm", fontsize=TITLE)
+            axp.set_ylabel("mm", fontsize=LABEL)
     _finish_grid(fig, axs, "DOE positioning # (recorded order)", left=0.06, bottom=0.09, top=0.94, wspace=0.22,
                  hspace=0.38)
     return figure_block(fig_to_img_tag(fig, alt="as-is errors per positioning"),
@@ -158,11 +187,11 @@ def fig_main_effects(s: dict, a: dict) -> str:
             axp.errorbar(centres, means, yerr=hw, fmt="o-", ms=4, capsize=2, color=COLORS[ax], lw=1)
             axp.axhline(E[:, r].mean(), color="k", ls="--", lw=0.7)
             axp.grid(alpha=0.3)
-            axp.tick_params(labelsize=7)
+            axp.tick_params(labelsize=TICK)
             if c == 0:
-                axp.set_ylabel(f"mean e_LT,{ax} / mm", fontsize=9)
+                axp.set_ylabel(f"mean e_LT,{ax} / mm", fontsize=TITLE)
             if r == 2:
-                axp.set_xlabel(fname, fontsize=9)
+                axp.set_xlabel(fname, fontsize=TITLE)
     return _figure(fig, "main effects",
                    "Fig. 11 style main-effects plot: mean laser-tracker error per level of each factor (levels "
                    "of the DOE, or quantile bins where a factor has many values), with the 95 % interval of the "
@@ -199,21 +228,21 @@ def fig_gpr(s: dict, a: dict, ekey: str = "e_lt", rkey: str = "r_lt", label: str
             if U is not None and np.isfinite(U[c]):
                 axp.fill_between(xs, xs - U[c], xs + U[c], color="0.5", alpha=0.15, label=f"± U = {U[c]:.3f} mm")
             sr = res.std(ddof=1) if len(res) > 1 else float("nan")
-            axp.set_title(f"{label},{ax}: s(r) = {sr:.3f} mm, n = {len(t)}", fontsize=9)
-            axp.legend(fontsize=7, loc="upper left")
-        axp.set_xlabel(f"true {label},{ax} / mm", fontsize=8)
-        axp.set_ylabel("predicted (held-out) / mm", fontsize=8)
-        axp.tick_params(labelsize=7)
+            axp.set_title(f"{label},{ax}: s(r) = {sr:.3f} mm, n = {len(t)}", fontsize=TITLE)
+            axp.legend(fontsize=LEGEND, loc="upper left")
+        axp.set_xlabel(f"true {label},{ax} / mm", fontsize=LABEL)
+        axp.set_ylabel("predicted (held-out) / mm", fontsize=LABEL)
+        axp.tick_params(labelsize=TICK)
         axp.grid(alpha=0.3)
         axn = axs[1, c]
         if len(res) >= 3:
             (osm, osr), (slope, icpt, rr) = stats.probplot(res, dist="norm")
             axn.plot(osm, osr, ".", ms=3, color=COLORS[ax])
             axn.plot(osm, slope * osm + icpt, "k-", lw=0.8)
-            axn.set_title(f"normal probability plot of r_{ax} (R = {rr:.3f})", fontsize=9)
-        axn.set_xlabel("theoretical normal quantile", fontsize=8)
-        axn.set_ylabel(f"r_{ax} / mm", fontsize=8)
-        axn.tick_params(labelsize=7)
+            axn.set_title(f"normal probability plot of r_{ax} (R = {rr:.3f})", fontsize=TITLE)
+        axn.set_xlabel("theoretical normal quantile", fontsize=LABEL)
+        axn.set_ylabel(f"r_{ax} / mm", fontsize=LABEL)
+        axn.tick_params(labelsize=TICK)
         axn.grid(alpha=0.3)
     fig.subplots_adjust(left=0.07, right=0.99, bottom=0.07, top=0.96, wspace=0.25, hspace=0.3)
     return figure_block(fig_to_img_tag(fig, alt=f"GPR {label} true vs predicted"),
@@ -258,16 +287,16 @@ def fig_validation(s: dict, a: dict) -> str:
                          label="corrected, outside ± U")
             axp.axhline(0, color="k", lw=0.6)
             axp.grid(alpha=0.3)
-            axp.tick_params(labelsize=7)
+            axp.tick_params(labelsize=TICK)
         fin = np.isfinite(ec[:, c])
         lim = max(2 * float(np.max(Uc)), 1.1 * float(np.max(np.abs(ec[fin, c]))) if fin.any() else 0.0) * MM_PER_M
         if np.isfinite(lim) and lim > 0:
             axs[c, 1].set_ylim(-lim, lim)
-        axs[c, 0].set_ylabel(f"true error {ax} / mm", fontsize=9)
-        axs[c, 1].set_title(f"corrected only, {ax}: {int(inside.sum())} of {len(ec)} inside ± U", fontsize=9)
-    axs[0, 0].legend(fontsize=7, ncol=2, loc="upper right")
+        axs[c, 0].set_ylabel(f"true error {ax} / mm", fontsize=TITLE)
+        axs[c, 1].set_title(f"corrected only, {ax}: {int(inside.sum())} of {len(ec)} inside ± U", fontsize=TITLE)
+    axs[0, 0].legend(fontsize=LEGEND, ncol=2, loc="upper right")
     for col in range(2):
-        axs[-1, col].set_xlabel("validation positioning # (recorded order)", fontsize=9)
+        axs[-1, col].set_xlabel("validation positioning # (recorded order)", fontsize=TITLE)
     t = f"3D RMS: corrected {rms_c[0] * MM_PER_M:.3f} ± {rms_c[1] * MM_PER_M:.3f} mm"
     if rms_p:
         t = f"3D RMS: uncorrected {rms_p[0] * MM_PER_M:.3f} ± {rms_p[1] * MM_PER_M:.3f} mm, " + t.split(": ")[1]
@@ -276,7 +305,7 @@ def fig_validation(s: dict, a: dict) -> str:
                    "went, GL, mm) of each validation positioning, commanded without (grey) and with (blue) the "
                    "twin's correction; the band is the 95 % expanded uncertainty U(TCP_c) of Eq. 11 at each "
                    "corrected position. Right: the corrected errors alone, zoomed; red rings lie outside ± U.",
-                   title=t + " (± U95 of the RMS estimate)", title_size=10,
+                   title=t + " (± U95 of the RMS estimate)", title_size=TITLE,
                    left=0.06, bottom=0.07, top=0.92, hspace=0.25, wspace=0.15)
 
 
@@ -318,12 +347,12 @@ def fig_eq17(s: dict, a: dict) -> str:
             axp.errorbar(i[fail], diff[fail, c] * MM_PER_M, yerr=ud[fail], fmt="o", ms=4, color="tab:red",
                          ecolor="tab:red", elinewidth=0.8, capsize=1.5,
                          label=f"|t| > {tcrit[c]:.2f} (fails Eq. 17)")
-        axp.set_ylabel(f"{ax} / mm", fontsize=9)
-        axp.set_title(f"{ax}-axis: {int(np.sum(~fail))} of {n} pass", fontsize=9)
+        axp.set_ylabel(f"{ax} / mm", fontsize=TITLE)
+        axp.set_title(f"{ax}-axis: {int(np.sum(~fail))} of {n} pass", fontsize=TITLE)
         axp.grid(alpha=0.3)
-        axp.tick_params(labelsize=7)
-        axp.legend(fontsize=7, ncol=4, loc="upper right")
-    axs[-1, 0].set_xlabel("corrected validation measurement # (recorded order)", fontsize=9)
+        axp.tick_params(labelsize=TICK)
+        axp.legend(fontsize=LEGEND, ncol=4, loc="upper right")
+    axs[-1, 0].set_xlabel("corrected validation measurement # (recorded order)", fontsize=TITLE)
     fig.subplots_adjust(left=0.07, right=0.99, bottom=0.07, top=0.96, hspace=0.2)
     return figure_block(fig_to_img_tag(fig, alt="Eq. 17 comparison"),
                         "Figs. 16-18 style, Eq. 17: the camera-tracked difference ê_LT − e_MVS (actual, with its "
@@ -383,13 +412,15 @@ def fig_envelope(s: dict, a: dict) -> str:
     for axp, t in ((ax1, "a) 3D uncertainty at the validation targets"), (ax2, "b) envelope along the path")):
         axp.set_xlim(lo[0], hi[0]), axp.set_ylim(lo[1], hi[1]), axp.set_zlim(lo[2], hi[2])
         axp.set_box_aspect(np.maximum(hi - lo, 1e-9))
-        axp.set_xlabel("X / mm", fontsize=8), axp.set_ylabel("Y / mm", fontsize=8), axp.set_zlabel("Z / mm", fontsize=8)
-        axp.tick_params(labelsize=6)
-        axp.set_title(t, fontsize=10)
+        _xyz_labels(axp)
+        axp.tick_params(labelsize=TICK)
+        axp.set_title(t, fontsize=TITLE)
     fig.subplots_adjust(left=0.0, right=0.96, bottom=0.02, top=0.95, wspace=0.05)
     Um = np.asarray(Up, float).mean(0) * MM_PER_M
     return figure_block(fig_to_img_tag(fig, alt="3D uncertainty envelope"),
                         f"Fig. 15 style: the {len(P)} validation targets joined in plan order as a path (robot "
-                        f"frame, mm), each with a box of half-sides U(TCP_c) = {Um[0]:.3f}, {Um[1]:.3f}, "
-                        f"{Um[2]:.3f} mm (x, y, z; 95 %) along the GL axes, magnified x{MAGNIFY} for visibility; "
-                        "right, the uncertainty interpolated linearly along the path.")
+                        f"frame, mm), each with a box of half-sides its own U(TCP_c) (the per-position U of the key "
+                        f"figures, Eq. 11 at that target; mean {Um[0]:.3f}, {Um[1]:.3f}, {Um[2]:.3f} mm in x, y, z, "
+                        f"95 %) along the GL axes, magnified x{MAGNIFY} for visibility; right, the uncertainty "
+                        "interpolated linearly along the path. The Eq. 18 table's U(TCP_c) is the paper's one "
+                        "global value over the DOE.")

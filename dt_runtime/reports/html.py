@@ -16,6 +16,7 @@ import html
 import io
 import math
 import numbers
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -26,9 +27,10 @@ matplotlib.use("Agg")  # headless, before pyplot is imported anywhere through th
 import matplotlib.pyplot as plt  # noqa: E402
 
 __all__ = ["Section", "esc", "fmt_value", "fig_to_img_tag", "html_table", "html_page", "paragraph",
-           "note", "headline", "figure_block", "plt"]
+           "note", "headline", "banner", "figure_block", "plt"]
 
 NONE_MARK = "–"
+_NUMERIC = re.compile(r"[-−+]?(\d+(\.\d*)?|∞)(, [-−+]?(\d+(\.\d*)?|∞))*")
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,9 @@ def html_table(rows: Iterable[dict], columns: Sequence[str] | None = None, *,
         for c in columns:
             v = r.get(c)
             tag = "th" if c == row_header else "td"
-            num = isinstance(v, numbers.Real) and not isinstance(v, bool)
+            # a number, or a number already formatted (e.g. '0.0145' or a per-axis '1.972, 1.967, 1.977')
+            num = (isinstance(v, numbers.Real) and not isinstance(v, bool)) or bool(
+                isinstance(v, str) and v and _NUMERIC.fullmatch(v))
             cls = ' class="num"' if num else ""
             cells.append(f"<{tag}{cls}>{esc(fmt_value(v, digits, none) if c in r else missing)}</{tag}>")
         out.append("<tr>" + "".join(cells) + "</tr>")
@@ -133,10 +137,26 @@ def note(text: str) -> str:
     return f'<p class="note">{esc(text)}</p>'
 
 
-def headline(label: str, value: str, sentence: str = "") -> str:
-    """A key figure card: a label, a value (with its unit and uncertainty) and one plain sentence."""
-    return (f'<div class="card"><div class="label">{esc(label)}</div><div class="value">{esc(value)}</div>'
+def headline(label: str, value: str, sentence: str = "", status: str = "") -> str:
+    """A key figure card: a label, a value (with its unit and uncertainty) and one plain sentence;
+    `status` ('fail', 'warn', 'ok') colours it when the figure's validity was checked."""
+    cls = f"card {status}" if status in STATUSES else "card"
+    return (f'<div class="{cls}"><div class="label">{esc(label)}</div><div class="value">{esc(value)}</div>'
             f'<div class="say">{esc(sentence)}</div></div>')
+
+
+STATUSES = ("ok", "warn", "fail", "unchecked")
+
+
+def banner(status: str, title: str, items: Sequence[tuple[str, str]] = ()) -> str:
+    """A box in the colour of `status` (ok, warn, fail, unchecked): a title, then one entry per
+    (label, text) item, the label in bold, each line of the text ('\\n') on its own. Plain text,
+    escaped."""
+    cls = status if status in STATUSES else "unchecked"
+    lines = "".join(f"<li><strong>{esc(k)}</strong> " + "<br>".join(esc(x) for x in v.split("\n")) + "</li>"
+                    for k, v in items)
+    return (f'<div class="validity {cls}"><div class="vtitle">{esc(title)}</div>'
+            + (f"<ul>{lines}</ul>" if lines else "") + "</div>")
 
 
 _CSS = """
@@ -148,7 +168,7 @@ table{border-collapse:collapse;margin:.6em 0 1.2em;font-size:.88em}
 caption{caption-side:top;text-align:left;font-weight:600;padding:.3em 0}
 th,td{border:1px solid #c9d2dc;padding:.25em .55em;vertical-align:top}
 thead th{background:#e8eef5}tbody tr:nth-child(even){background:#f7f9fb}
-td.num{text-align:right;font-variant-numeric:tabular-nums}
+td.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
 figure{margin:1em 0 1.6em}figure img{max-width:100%;height:auto;border:1px solid #e2e6ea}
 figcaption{font-size:.88em;color:#444;margin-top:.3em}
 .cards{display:flex;flex-wrap:wrap;gap:.8em}
@@ -156,6 +176,12 @@ figcaption{font-size:.88em;color:#444;margin-top:.3em}
 .card .label{font-size:.85em;color:#555}.card .value{font-size:1.3em;font-weight:600;margin:.15em 0}
 .card .say{font-size:.88em}
 .note{background:#fff6e0;border-left:4px solid #e0a800;padding:.4em .7em}
+.validity{border:2px solid #777;border-radius:6px;padding:.5em .9em;margin:.4em 0 1em;background:#f2f2f2}
+.validity .vtitle{font-weight:700;font-size:1.15em}.validity ul{margin:.3em 0;padding-left:1.2em}
+.validity li{margin:.25em 0}
+.validity.fail,.card.fail{border-color:#c62828;background:#fdecea}
+.validity.warn,.card.warn{border-color:#e0a800;background:#fff6e0}
+.validity.ok,.card.ok{border-color:#2e7d32;background:#edf7ed}
 .meta{color:#555;font-size:.9em}nav a{margin-right:1em}
 """
 

@@ -175,3 +175,18 @@ def text(table: ParameterTable, width: int = 110) -> list[str]:
             first = False
         out.append(cur)
     return out + table.notes
+
+
+def html(table: ParameterTable, title: str) -> str:
+    """The table as HTML: each grid as a table, the other effects' lines as one table, the notes
+    as paragraphs; `title` heads the captions (e.g. the model's name)."""
+    from dt_runtime.reports.html import html_table, paragraph
+
+    out = [html_table([dict(zip(g.header, r)) for r in g.rows], g.header, row_header="",
+                      caption=f"{title}: {g.title}, {table.legend}") for g in table.grids]
+    if table.lines:
+        out.append(html_table([{"effect": ln.effect, "parameters": ", ".join(f"{k} {v}" for k, v in ln.entries)}
+                               for ln in table.lines], ["effect", "parameters"], row_header="effect",
+                              caption=f"{title}: " + ("other effects' " if table.grids else "")
+                                      + f"base parameters, {table.legend}"))
+    return "".join(out) + "".join(paragraph(n) for n in table.notes)

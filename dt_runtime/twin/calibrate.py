@@ -23,8 +23,10 @@ from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.metrology import uncertainty as unc
 from dt_runtime.metrology.stats import mean_std_mm, rms3
 from dt_runtime.models import effects as fx
+from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import GP_INPUTS, HybridModel
 from dt_runtime.twin import calibration as cal
+from dt_runtime.twin import validity
 from dt_runtime.twin.twin import Twin
 
 
@@ -128,7 +130,8 @@ def figures(c: Calibrated) -> dict:
         "improvement_pct": round(float(prec["improvement_pct"]), 2),
         "precision_per_axis": {"before_2s_e_mvs_doe_mm": _mm(2 * s_e_mvs),
                                "after_U_e_mvs_lt_hat_mm": _mm(b16.expanded())},
-        "maps": {"e_lt": {"effects": list(e_lt.effects), "gp_inputs": e_lt.gp_inputs, "parameters": e_lt.parameters()},
+        "maps": {"e_lt": {"effects": list(e_lt.effects), "gp_inputs": e_lt.gp_inputs, "parameters": e_lt.parameters(),
+                          "base_parameters": e_lt.base_parameters()},
                  "e_mvs_lt": {"effects": list(c.twin.e_mvs_lt.effects), "gp_inputs": c.twin.e_mvs_lt.gp_inputs}},
         "paper_literal_budget": {
             "note": "registration residual spread added as in the paper's Eqs. 13-16 (double counts, see README)",
@@ -190,32 +193,61 @@ def eq17_summary(t: Eq17) -> dict:
                                        for k, ax in enumerate(AXES)}}
 
 
-def validate(c: Calibrated, phase: PhaseData) -> dict:
-    """A validation phase measured without correction, against the twin: the tracker's error
-    at points the maps never saw, what is left after subtracting the prediction (the error a
-    corrected command would keep), its coverage by the per-position U(TCP_c) of Eq. 11, and the
-    Eq. 17 t-test."""
+@dataclass
+class Validation:
+    """A validation phase measured without correction, against the twin: the coverage sample
+    (e_LT - e_LT_hat at each positioning against its U(TCP_c)) and Eq. 17 on the same phase."""
+
+    sample: validity.Sample
+    e_lt: np.ndarray  # (n,3) m, the tracker-measured error of the uncorrected positionings, GL
+    eq17: Eq17
+
+    def summary(self) -> dict:
+        """The summary's `validation`: the tracker's error at points the maps never saw, what is
+        left after subtracting the prediction (the error a corrected command would keep), its
+        coverage by the per-position U(TCP_c) of Eq. 11, and the Eq. 17 t-test."""
+        e, r, U = self.e_lt, self.sample.error, self.sample.U
+        n = len(r)
+        inside = np.abs(r) <= U
+        return {
+            "n": n,
+            "note": "tracker-measured error e_LT of uncorrected validation positionings, and e_LT - e_LT_hat: the "
+                    "error a corrected command would keep (plus the positioning reproducibility)",
+            "rms_e_lt_mm": round(rms3(e) * MM_PER_M, 4) if n else None,
+            "rms_after_map_mm": round(rms3(r) * MM_PER_M, 4) if n else None,
+            "reduction_pct": round(100 * (1 - rms3(r) / rms3(e)), 2) if n and rms3(e) > 0 else None,
+            "coverage_95": {ax: float(inside[:, k].mean()) if n else None for k, ax in enumerate(AXES)},
+            "mean_U_mm": _mm(U.mean(axis=0)) if n else None,
+            "t_test_eq17": eq17_summary(self.eq17),
+        }
+
+
+def validation(c: Calibrated, phase: PhaseData) -> Validation:
+    """The twin against a validation phase measured without correction (`Validation`)."""
     fr, twin = c.frames, c.twin
     ok = np.all(np.isfinite(phase.p_lt), axis=1) & np.all(np.isfinite(phase.p_rdk), axis=1)
     e = fr.T_rdk.apply(phase.p_rdk[ok]) - fr.T_lt.apply(phase.p_lt[ok])
     inp = cal.phase_inputs(phase, ok)
     pred, s = twin.e_lt.predict(inp, return_std=True)
-    r = e - pred
+
     def U_at(p: np.ndarray, v: float, si: np.ndarray) -> np.ndarray:
         b = twin.tcp_budget(p, v, sigma=si)
         return b.expanded() if b is not None else twin.uncertainty.tcp_c.U
 
     U = np.array([U_at(p, v, si) for p, v, si in zip(phase.p_rdk[ok], phase.speed[ok], s)]).reshape(-1, 3)
-    inside = np.abs(r) <= U
-    n = int(ok.sum())
-    return {
-        "n": n,
-        "note": "tracker-measured error e_LT of uncorrected validation positionings, and e_LT - e_LT_hat: the "
-                "error a corrected command would keep (plus the positioning reproducibility)",
-        "rms_e_lt_mm": round(rms3(e) * MM_PER_M, 4) if n else None,
-        "rms_after_map_mm": round(rms3(r) * MM_PER_M, 4) if n else None,
-        "reduction_pct": round(100 * (1 - rms3(r) / rms3(e)), 2) if n and rms3(e) > 0 else None,
-        "coverage_95": {ax: float(inside[:, k].mean()) if n else None for k, ax in enumerate(AXES)},
-        "mean_U_mm": _mm(U.mean(axis=0)) if n else None,
-        "t_test_eq17": eq17_summary(eq17(c, phase)),
-    }
+    cond = Inputs(commanded=phase.p_rdk[ok], joints=phase.q[ok], t=phase.t[ok], temperature=phase.temperature[ok])
+    sample = validity.Sample("validation", f"the {int(ok.sum())} validation positionings (uncorrected commands)",
+                             "errors the laser tracker measured less the map's prediction (e_LT - e_LT_hat)",
+                             e - pred, U, cond)
+    return Validation(sample, e, eq17(c, phase))
+
+
+def validity_of(c: Calibrated, v: Validation | None, campaign: str | None) -> dict:
+    """The `validity` block of a calibration (`twin.validity`): the validation phase's coverage and
+    Eq. 17 on it; without a validation phase, nothing tests the stated uncertainty and it says so."""
+    if v is None:
+        return validity.assess([], unchecked="the campaign has no validation phase, so nothing tests the stated "
+                                             "U(TCP_c): measure one (uncorrected, at points the DOE did not visit) "
+                                             "and give it with --validation (docs/campaign-files.md)")
+    rates = validity.Eq17Rates(v.eq17.test.passed, c.budgets["eq14_e_lt_hat_minus_e_mvs"].expanded())
+    return validity.assess([v.sample], c.doe.inputs, ("validation", rates), campaign)

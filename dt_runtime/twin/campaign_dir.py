@@ -31,7 +31,16 @@ from dt_runtime.frames.kinematics import Chain
 from dt_runtime.measurements.campaign_files import check_robot, read_phase, write_phase
 from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.models.hybrid import HybridModel
-from dt_runtime.twin.calibrate import Calibrated, CalibrationOptions, Campaign, arrays, calibrate, figures, validate
+from dt_runtime.twin.calibrate import (
+    Calibrated,
+    CalibrationOptions,
+    Campaign,
+    arrays,
+    calibrate,
+    figures,
+    validation,
+    validity_of,
+)
 
 MANIFEST = "campaign.yaml"
 
@@ -174,8 +183,10 @@ def calibrate_campaign(files: CampaignFiles, options: CalibrationOptions, out: s
                             instruments=instruments, temperature=temps[np.isfinite(temps)])
     c.twin.provenance = prov
     summary = {"campaign": str(files.manifest or files.doe), **figures(c)}
-    if campaign.validation is not None:
-        summary["validation"] = validate(c, campaign.validation)
+    v = validation(c, campaign.validation) if campaign.validation is not None else None
+    if v is not None:
+        summary["validation"] = v.summary()
+    summary["validity"] = validity_of(c, v, str(files.manifest.parent) if files.manifest else None)
     summary["units"] = "mm; errors e = commanded - measured, in the global frame GL"
     summary["provenance"] = prov.to_dict()
     out = Path(out)

@@ -18,6 +18,7 @@ from dt_runtime.common.progress import Progress
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.plans import PlanRow
 from dt_runtime.metrology.stats import rms3
+from dt_runtime.models.effects import Inputs
 from dt_runtime.twin.campaign import Instruments, run_rows
 from dt_runtime.twin.twin import Correction, Twin
 
@@ -30,15 +31,27 @@ class CoverageCheck:
     error: np.ndarray  # (n,3) m, true error in GL: target - where the arm truly went
     distance: np.ndarray  # (n,) m, signed distance of the command to the DOE hull
     inside: np.ndarray  # (n,) bool, the twin's flag
+    requested: int | None = None  # the number of targets the check asked for (None: as many as it has)
+    joints: np.ndarray | None = None  # (n,dof) rad, where the arm stood at each position
+    t: np.ndarray | None = None  # (n,) s
+    temperature: np.ndarray | None = None  # (n,) deg C
 
     @property
     def n(self) -> int:
         return len(self.target)
 
     def head(self, n: int) -> CoverageCheck:
-        """The first n positions (the check states coverage over a fixed number of targets)."""
+        """The first n positions (the check states coverage over a fixed number of targets); when
+        fewer were reached, all of them, with the number asked for kept in `requested`."""
+        def cut(a):
+            return None if a is None else a[:n]
+
         return CoverageCheck(self.target[:n], self.command[:n], self.U[:n], self.error[:n], self.distance[:n],
-                             self.inside[:n])
+                             self.inside[:n], n, cut(self.joints), cut(self.t), cut(self.temperature))
+
+    def conditions(self) -> Inputs:
+        """The commanded targets and what the arm and the cell were at (the validity check's input)."""
+        return Inputs(commanded=self.target, joints=self.joints, t=self.t, temperature=self.temperature)
 
     def coverage(self) -> dict[str, float]:
         """Per axis, the fraction of positions whose true error lies within +/- U."""
@@ -46,7 +59,8 @@ class CoverageCheck:
         return {ax: float(ok[:, k].mean()) for k, ax in enumerate(AXES)}
 
     def summary(self) -> dict:
-        return {"n": self.n, "coverage_95": self.coverage(),
+        return {"n": self.n, **({"n_requested": self.requested} if self.requested is not None else {}),
+                "coverage_95": self.coverage(),
                 "mean_U_mm": [round(float(x) * MM_PER_M, 4) for x in self.U.mean(axis=0)],
                 "true_rms_mm": round(rms3(self.error) * MM_PER_M, 4),
                 "distance_mm": [round(float(self.distance.min()) * MM_PER_M, 1),
@@ -96,4 +110,5 @@ def run_check(inst: Instruments, twin: Twin, targets: np.ndarray, speeds: np.nda
     # True error in GL (the frame the tracker realises): the intended target vs where the arm went.
     err = twin.T_rdk.apply(data.target[ok]) - twin.T_lt.apply(data.truth_lt[ok])
     return CoverageCheck(data.target[ok], np.array([c.command for c in cs])[ok], np.array([c.U for c in cs])[ok],
-                         err, np.array([c.distance_m for c in cs])[ok], np.array([c.inside for c in cs])[ok])
+                         err, np.array([c.distance_m for c in cs])[ok], np.array([c.inside for c in cs])[ok],
+                         joints=data.q[ok], t=data.t[ok], temperature=data.temperature[ok])
