@@ -36,7 +36,7 @@ import numpy as np
 from dt_kernel.errors import DataError
 from dt_kernel.units import AXES, M_PER_MM, MM_PER_M
 from dt_runtime.frames.kinematics import Chain
-from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header
+from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header, refuse_near_misses
 from dt_runtime.measurements.checks import DEGREES_HINT, MAX_JOINT_RAD, joints_vs_commanded, positions_in_mm
 from dt_runtime.measurements.phase import PhaseData
 
@@ -92,6 +92,10 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
     if not path.is_file():
         raise DataError(f"{path}: no such campaign file")
     header = read_header(path, ",")
+    names = ["point_id", "rep", "axis", "distance", *_cols("t"), *_XYZ, "speed", "temperature", "payload", "t",
+             *(c for p in ("lt_", "mvs_", "truth_lt_") for c in _cols(p)), *(f"q{j}" for j in range(1, 8))]
+    refuse_near_misses(path, [c for c in header if c not in names and not _QCOL.fullmatch(c)],
+                       [c for c in names if c not in header], "docs/campaign-files.md")
     mm = M_PER_MM
     specs = [ColumnSpec(a, a, scale=mm) for a in _XYZ] + [ColumnSpec("speed", "speed", scale=mm)]
     specs += [ColumnSpec(c, c, scale=mm, required=False) for c in _cols("lt_")]
