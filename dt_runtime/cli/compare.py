@@ -32,7 +32,8 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
     cp.add_argument("--cv", type=cv_folds, default=0, metavar="K",
                     help="held-out figures from the training file: refit each model's configuration on K-1 "
                          "folds grouped by target point (default 0: the models as saved)")
-    cp.add_argument("--report", default=None, metavar="DIR", help="write DIR/report.html and DIR/compare.json")
+    cp.add_argument("--report", default=None, metavar="DIR",
+                    help="write DIR/report.html and DIR/compare.json (DIR replaced whole at the end)")
     add_effects_file_arg(cp)
     cp.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
@@ -53,9 +54,16 @@ def run(args: argparse.Namespace) -> Any:
                              refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"))
     result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
     if args.report:
+        from pathlib import Path
+
+        from dt_runtime.cli.common import data_inputs
+        from dt_runtime.common.outputs import staged
         from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
 
-        result["report"] = str(write_compare_report(result, arrays, args.report))
+        result["report"] = str(Path(args.report) / "report.html")
+        # report.html and compare.json written whole or not at all (common.outputs)
+        with staged(args.report, "dt compare", marks=("compare.json", "report.html"), inputs=data_inputs(args)) as rep:
+            write_compare_report(result, arrays, rep)
     return result
 
 

@@ -22,6 +22,7 @@ from drivers.simulated.devices import SimWorld
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import UnreachableError
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.common.outputs import final_path
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, Provenance
@@ -137,7 +138,8 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
         result = _summarise(plan_cfg, quick, c, val_plain, val_corr, corrections, world, time.monotonic() - t0,
                             reg_data.refusals + doe_data.refusals + val_plain.refusals + val_corr.refusals,
                             provenance=prov, checks=checks)
-        result.summary["campaign"] = str(files.manifest)
+        # where the manifest will be once the output is swapped in (the command line stages it: common.outputs)
+        result.summary["campaign"] = str(final_path(files.manifest or files.doe))
     finally:
         inst.close()
         world.close()
