@@ -1,7 +1,7 @@
 """Synthetic stand-in for the paper's DOE (Sect. 2.2): swap `doe_dataset` for simulator data later;
 and the real UR10 laser-tracker data shipped with the project (Fraunhofer IPA, Series A).
 
-Positions in metres, speed in m/s, errors in metres (SI inside the code, DESIGN.md)."""
+Positions in metres, speed in m/s, errors in metres (SI inside the code: docs/cli.md, Conventions)."""
 from __future__ import annotations
 
 import functools

@@ -1,4 +1,4 @@
-"""Lower-level errors are converted once per boundary (DESIGN.md, house style): sqlite3 in the
+"""Lower-level errors are converted once per boundary (docs/architecture.md: the layer rules): sqlite3 in the
 store, pyserial/OS errors in the serial link, zenoh in the bus session module; each raises the
 project's error `from` the original."""
 from __future__ import annotations

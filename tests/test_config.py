@@ -1,4 +1,5 @@
 import pytest
+from pydantic import ValidationError
 
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import ConfigError
@@ -26,7 +27,7 @@ def test_config_is_frozen(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text("name: a\njoint: {stiffness: 1.0}\n")
     cfg = load_yaml(p, Outer)
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="frozen"):
         cfg.name = "b"
 
 

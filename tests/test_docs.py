@@ -211,3 +211,12 @@ def test_effects_md_covers_every_effect_and_its_diagnosis_factor():
     rows = {m.group(1): m.group(0) for m in re.finditer(r"^\| `(\w+)` \|.*$", text, flags=re.M)}
     missing = [n for n in names if n not in rows or factors[n] not in rows[n]]
     assert not missing, f"docs/effects.md table lacks the effect or its diagnosis factor: {missing}"
+
+
+def test_nothing_points_to_a_design_file_a_clone_does_not_have():
+    """The design's contracts are carried by docs/ (a fresh clone has no ../shared design file)."""
+    name = "DESIGN" + ".md"  # spelled apart so this test does not find itself
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    bad = [f for f in files if f.endswith((".py", ".md", ".yaml", ".toml"))
+           and name in (ROOT / f).read_text(encoding="utf-8", errors="replace")]
+    assert not bad, f"files naming {name}, which the repository lacks: {bad}"

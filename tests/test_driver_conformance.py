@@ -1,4 +1,4 @@
-"""One conformance suite for every driver implementation (DESIGN.md, house style).
+"""One conformance suite for every driver implementation (docs/drivers.md: the conformance suite).
 
 The suite runs on every driver the registry knows (drivers.registry: the built-in ones and any
 installed plugin), of every kind, cameras included. `FIXTURES` gives each (kind, name) one or

@@ -1,5 +1,5 @@
 """The effect registry is the one place that lists the model's effects: its names are the
-simulator's (DESIGN.md contract), every effect declares what it needs, and what it declares
+simulator's (docs/effects.md: the names are a contract), every effect declares what it needs, and what it declares
 is what it does (availability, errors, regressor shapes)."""
 import numpy as np
 import pytest

@@ -115,7 +115,7 @@ def test_restore_after_restart_resumes_the_same_state(tmp_path):
     ref_states = run(ref, outcomes)
     assert ref.state == "out_of_control"  # mid-confirmation: the interesting case
     with Store(db) as store:
-        esc = Escalator(on_transition=lambda s, d, ev, t: store.log_transition(s, d, ev, t))
+        esc = Escalator(on_transition=lambda s, d, ev, t: store.record_transition(s, d, ev, t))
         run(esc, outcomes[:305])
         store.save_state("escalation", esc.snapshot())
     with Store(db) as store:  # "daemon restart"

@@ -3,6 +3,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
 from dt_kernel.errors import ConfigError, DataError
@@ -73,10 +74,10 @@ def test_mapping_validation_names_key(tmp_path):
     with pytest.raises(ConfigError) as exc:
         load_mapping(bad)
     assert exc.value.key == "decimal" and "bad.yaml" in str(exc.value)
-    with pytest.raises(Exception, match="exactly one"):
+    with pytest.raises(ValidationError, match="exactly one"):
         ImportMapping.model_validate({"columns": {"x": "a", "y": "b", "z": "c", "ex": "d", "ey": "e", "ez": "f",
                                                   "mx": "g", "my": "h", "mz": "i"}})
-    with pytest.raises(Exception, match="instrument"):
+    with pytest.raises(ValidationError, match="instrument"):
         ImportMapping.model_validate({"measured_frame": "instrument",
                                       "columns": {"x": "a", "y": "b", "z": "c", "ex": "d", "ey": "e", "ez": "f"}})
 

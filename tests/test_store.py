@@ -12,21 +12,23 @@ from pathlib import Path
 
 import pytest
 
-from dt_runtime.service.store import Store, StoreError
 from dt_kernel.errors import TwinError
+from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
+from dt_runtime.service.store import Store, StoreError
 
 ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = textwrap.dedent("""
     import sys
+    from dt_runtime.service.rows import MeasurementRow, TTestRow
     from dt_runtime.service.store import Store
     s = Store(sys.argv[1], batch_rows=50, batch_ms=1e9)
     i = 0
     while True:
         for _ in range(50):
             i += 1
-            s.log_measurement(float(i), 0.1, 0.2, 0.3, 1e-4, 2e-4, 3e-4, data={"i": i})
-            s.log_tstat(float(i), 0.5, 10, 0.6, True)
+            s.put(MeasurementRow(float(i), 0.1, 0.2, 0.3, 1e-4, 2e-4, 3e-4, data={"i": i}))
+            s.put(TTestRow(float(i), 0.5, 10, 0.6, True))
         if i % 500 == 0:
             s.outbox_add("dt/c/r/maintenance/request", {"i": i})
         print(i, flush=True)   # only after the batch above was committed
@@ -60,7 +62,7 @@ def test_sigkill_mid_run_keeps_every_committed_row(tmp_path):
     assert con.execute("SELECT COUNT(*) FROM outbox").fetchone()[0] >= reported // 500
     con.close()
     with Store(db) as s:  # reopens cleanly after the crash, and keeps writing
-        s.log_measurement(1e9, 0, 0, 0)
+        s.put(MeasurementRow(1e9, 0, 0, 0))
         assert s.flush() == 1
         assert s.integrity_ok()
 
@@ -68,13 +70,13 @@ def test_sigkill_mid_run_keeps_every_committed_row(tmp_path):
 def test_disk_full_raises_store_error_and_keeps_committed_rows(tmp_path):
     s = Store(tmp_path / "full.db", batch_rows=10_000, batch_ms=1e9)
     for i in range(100):
-        s.log_command(float(i), 0.1, 0.2, 0.3, 0.25)
+        s.put(CommandRow(float(i), 0.1, 0.2, 0.3, 0.25))
     assert s.flush() == 100
     oid = s.outbox_add("k", {"a": 1})
     pages = s._db.execute("PRAGMA page_count").fetchone()[0]
     s._db.execute(f"PRAGMA max_page_count={pages}")  # the "disk" is now full
     for i in range(5000):
-        s.log_command(1000.0 + i, 0.1, 0.2, 0.3, 0.25, data={"pad": "x" * 200})
+        s.put(CommandRow(1000.0 + i, 0.1, 0.2, 0.3, 0.25, data={"pad": "x" * 200}))
     with pytest.raises(StoreError) as ei:
         s.flush()
     assert isinstance(ei.value, TwinError) and isinstance(ei.value.__cause__, sqlite3.Error)
@@ -96,12 +98,12 @@ def test_disk_full_raises_store_error_and_keeps_committed_rows(tmp_path):
 
 def test_failed_flush_buffer_is_bounded(tmp_path):
     s = Store(tmp_path / "b.db", batch_rows=10_000, batch_ms=1e9, max_pending_rows=300)
-    s.log_tstat(0.0, 1.0)
+    s.put(TTestRow(0.0, 1.0))
     s.flush()
     pages = s._db.execute("PRAGMA page_count").fetchone()[0]
     s._db.execute(f"PRAGMA max_page_count={pages}")
     for i in range(1000):
-        s.log_tstat(float(i), 1.0, data={"pad": "z" * 300})
+        s.put(TTestRow(float(i), 1.0, data={"pad": "z" * 300}))
     with pytest.raises(StoreError):
         s.flush()
     assert s.dropped_rows == 700
@@ -115,28 +117,28 @@ def test_batching_commits_by_rows_and_by_time(tmp_path):
     now = [0.0]
     with Store(tmp_path / "t.db", batch_rows=10, batch_ms=50, clock=lambda: now[0]) as s:
         for i in range(9):
-            s.log_measurement(float(i), 0, 0, 0)
+            s.put(MeasurementRow(float(i), 0, 0, 0))
         assert s.count("measurements") == 0  # still buffered
-        s.log_measurement(9.0, 0, 0, 0)
+        s.put(MeasurementRow(9.0, 0, 0, 0))
         assert s.count("measurements") == 10  # row threshold
-        s.log_measurement(10.0, 0, 0, 0)
+        s.put(MeasurementRow(10.0, 0, 0, 0))
         now[0] += 0.049
-        s.log_measurement(11.0, 0, 0, 0)
+        s.put(MeasurementRow(11.0, 0, 0, 0))
         assert s.count("measurements") == 10  # 49 ms: not yet
         now[0] += 0.002
-        s.log_measurement(12.0, 0, 0, 0)
+        s.put(MeasurementRow(12.0, 0, 0, 0))
         assert s.count("measurements") == 13  # time threshold
-        assert s.write_batch([("corrections", {"t": 1.0, "dx": 1e-4, "dy": 0, "dz": 0,
-                                               "note": "extra"})]) == 1
+        s.put(CorrectionRow(1.0, 1e-4, 0, 0, data={"note": "extra"}))
+        assert s.flush() == 1
 
 
 def test_transitions_outbox_state_and_figures(tmp_path):
     path = tmp_path / "s.db"
     with Store(path, batch_ms=1e9) as s:
-        s.log_measurement(1.0, 0.1, 0.2, 0.3, 1e-4, 0, 0)
-        s.log_tstat(1.0, 2.5, 9, 0.03, False)
+        s.put(MeasurementRow(1.0, 0.1, 0.2, 0.3, 1e-4, 0, 0))
+        s.put(TTestRow(1.0, 2.5, 9, 0.03, False))
         # a transition commits immediately, together with the evidence rows buffered before it
-        s.log_transition("nominal", "suspect", {"window_failures": 5, "cusum": 2.1}, 1.0)
+        s.record_transition("nominal", "suspect", {"window_failures": 5, "cusum": 2.1}, 1.0)
         assert s.count("t_stats") == 1
         a = s.outbox_add("dt/c/r1/maintenance/request", {"uid": "u1", "x": float("nan")})
         b = s.outbox_add("dt/c/r1/maintenance/request", {"uid": "u2"})
@@ -167,7 +169,7 @@ def test_closed_store_and_bad_path_raise_store_error(tmp_path):
     s = Store(tmp_path / "c.db")
     s.close()
     with pytest.raises(StoreError):
-        s.log_tstat(0.0, 1.0)
+        s.put(TTestRow(0.0, 1.0))
     (tmp_path / "dir.db").mkdir()
     with pytest.raises(StoreError):
         Store(tmp_path / "dir.db")

@@ -55,16 +55,34 @@ def test_background_store_never_commits_on_the_callers_thread(tmp_path):
         s.put(MeasurementRow(float(i), 0.1, 0.2, 0.3))
     assert s.count("measurements") == 0 and s.last_figures()["buffered_rows"] == 10
     # an immediate write commits the queued evidence with it, in one transaction
-    s.log_transition("nominal", "suspect", {"window_failures": 5}, 9.0)
+    s.record_transition("nominal", "suspect", {"window_failures": 5}, 9.0)
     assert s.count("measurements") == 10 and s.last_figures()["buffered_rows"] == 0
     s.close()
     with pytest.raises(StoreError):
         s.put(MeasurementRow(0.0, 0, 0, 0))
 
 
-def test_write_batch_takes_typed_rows_and_table_pairs(tmp_path):
-    with Store(tmp_path / "w.db", batch_ms=1e9) as s:
-        assert s.write_batch([CommandRow(1.0, 0.1, 0.2, 0.3), ("t_stats", {"t": 1.0, "t_value": 2.0})]) == 2
-        with pytest.raises(StoreError, match="unknown table"):
-            s.write_batch([("nope", {"t": 1.0})])
+def test_put_is_the_one_way_rows_are_written(tmp_path):
+    """Typed rows through put, committed by flush; the store has no other writer of rows."""
+    from dt_runtime.service.rows import TTestRow
+    from dt_runtime.service.store import Store as S
+
+    with S(tmp_path / "w.db", batch_ms=1e9) as s:
+        s.put(CommandRow(1.0, 0.1, 0.2, 0.3))
+        s.put(TTestRow(1.0, 2.0))
+        assert s.flush() == 2
         assert (s.count("commands"), s.count("t_stats")) == (1, 1)
+    assert not [n for n in dir(S) if n.startswith("log_") or n == "write_batch"]
+
+def test_the_high_rate_schema_is_the_row_types_and_a_newer_store_is_refused(tmp_path):
+    path = tmp_path / "v.db"
+    with Store(path) as s:
+        for table, cls in ROW_TYPES.items():
+            cols = [r[1] for r in s._query(f"PRAGMA table_info({table})")]
+            assert cols == ["id", *cls.columns()]
+    db = sqlite3.connect(path)
+    db.execute("PRAGMA user_version=99")
+    db.commit()
+    db.close()
+    with pytest.raises(StoreError, match="schema version 99 is newer"):
+        Store(path)

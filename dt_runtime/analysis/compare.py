@@ -11,7 +11,7 @@ configuration), so a user sees where a model fails and which factor the failure 
 
 `result` is a `CompareResult` (dt_runtime.analysis.results); its `to_dict()` is the JSON object
 (mm), where the primary model (the last one given) is also at the top level, so `n`, `rmse_mm`,
-`mae_mm`, `max_mm`, `per_axis`, `failures` are top-level keys (DESIGN.md). `arrays` holds the
+`mae_mm`, `max_mm`, `per_axis`, `failures` are top-level keys (docs/cli.md, contract). `arrays` holds the
 SI arrays the report plots.
 
 Data of several sessions (several files of one campaign: a `session` column, `sessions()`) are

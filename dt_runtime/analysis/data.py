@@ -97,8 +97,9 @@ class ReplicateFloor:
 
     def to_dict(self) -> dict:
         return {"mm": self.value_m / M_PER_MM, "dof": self.dof, "cells": self.cells,
-                "definition": "consecutive rows of one target at the same speed, payload and joint angles (repeated "
-                              "readings of one visit): pooled within-visit variance per axis, 3D RMS = sqrt of their sum"}
+                "definition": "consecutive rows of one target at the same speed, payload and joint angles "
+                              "(repeated readings of one visit): pooled within-visit variance per axis, 3D RMS = "
+                              "sqrt of their sum"}
 
 
 def replicate_floor(ds: Dataset, min_dof: int = 10) -> ReplicateFloor | None:

@@ -100,12 +100,6 @@ class Evaluator:
             return self.time
         return self.deploy
 
-    def hypers_on(self, gp_inputs: str) -> list | None:
-        """The GP hyperparameters (log) of the configuration last fitted on `gp_inputs`: the warm start
-        of a switch back to those inputs (None: a cold start)."""
-        found = [h for c, h in self._log_hypers.items() if c.gp_inputs == gp_inputs and h is not None]
-        return found[-1] if found else None
-
     def compute(self, cfg: Config, scheme: validation.Scheme, starts=None, thetas=None) -> CvResult:
         """One cross-validation, not memoised: `thetas` fixed GP hyperparameters, else fitted on all
         rows from `starts`."""

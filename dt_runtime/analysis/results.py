@@ -1,5 +1,5 @@
 """Typed results of `fit`, `diagnose` and `compare`. Each `to_dict()` gives the JSON object of
-the command line (DESIGN.md contract keys), in millimetres, JSON-ready (no numpy, no NaN).
+the command line (docs/cli.md: contract keys marked), in millimetres, JSON-ready (no numpy, no NaN).
 
     r = diagnose(...)
     r.ranking[0].effect, r.ranking[0].p_value        # typed

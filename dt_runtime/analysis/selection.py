@@ -1,13 +1,14 @@
-"""`dt diagnose --auto`: forward selection over the effects and the GP's inputs, judged the way the
-twin will be used.
+"""`dt diagnose --auto`: forward selection over the effects, the session terms and the GP's
+inputs, judged the way the twin will be used.
 
 Each step:
 1. Candidates the campaign cannot separate from the pose are not tested (analysis.confounding:
    a time-dependent effect in a scan, one speed for a speed effect, ...); they are reported with
    what would make them testable.
-2. Every other candidate change is held out by point (analysis.ranking): it qualifies when its
-   one-sided p is below alpha / m (m changes tested at the step, Bonferroni), it explains at least
-   `min_explained` of the held-out variance and lowers the held-out RMS.
+2. Every effect and session term not yet in the model is held out by point (analysis.ranking):
+   it qualifies when its one-sided p is below alpha / m (m: every change the step may test, the
+   GP's inputs included; Bonferroni), it explains at least `min_explained` of the held-out
+   variance and lowers the held-out RMS.
 3. Qualifying effects that read the same factor (backlash and dynamic both read the direction of
    travel; thermal and drift when the temperature followed time) are tested head to head: the
    model with both against each with one (does B explain what A leaves? does A explain what B
@@ -15,11 +16,12 @@ Each step:
 4. The best qualifying change is taken only if it also lowers the held-out RMS on the deployment
    scheme (held-out regions of the workspace, held-out sessions, or held-out time blocks for a
    time-dependent term: analysis.validation); otherwise the next qualifying one is tried. So the
-   final model is never worse than its predecessor on the deployment figures.
+   final model is never worse than its predecessor on the deployment figures. A session term is
+   a nuisance (never deployed): the points decide it.
+5. Only when no effect or session term passes are the GP's other inputs tested (the same rules):
+   physics first, the GP, which takes up anything, last (UR10 Series D: switching first left
+   backlash out, 0.280 instead of 0.276 mm).
 The loop stops when the held-out residual is at the noise floor, or when no change passes.
-
-Several sessions: before the loop, the session terms are tested on the starting model
-(analysis.sessions); the best significant one stays in every model as a nuisance (never deployed).
 """
 from __future__ import annotations
 
@@ -139,6 +141,32 @@ def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float) -> tu
     return ok, records
 
 
+def _choose(ev: Evaluator, cfg: Config, base, tested: list[Gain], level: float, min_explained: float,
+            step: Step) -> Gain | None:
+    """The change a step takes among `tested`: the one explaining most held-out variance whose p is
+    below `level`, that explains at least `min_explained` and lowers the RMS by point, after rival
+    effects met head to head, and that also lowers the RMS on its deployment scheme (a session term,
+    never deployed, needs only the points). Records rejections and head-to-head tests on `step`."""
+    ok = sorted([g for g in tested if g.p_value < level and g.explained_fraction >= min_explained
+                 and g.rmse_after_mm < g.rmse_before_mm], key=lambda g: -g.explained_fraction)
+    ok, h2h = head_to_head(ev, cfg, ok, level)
+    step.head_to_head += h2h
+    # the deployment figures the veto below will most likely need, at once
+    ev.cv_many([(changed(cfg, g.kind, g.candidate), ev.scheme_for(g.candidate if g.kind == "effect" else None),
+                 base.log_hypers if g.kind != "gp_inputs" else None) for g in ok[:2] if g.kind != "session"])
+    for g in ok:
+        if g.kind == "session":  # a nuisance is never deployed: its evidence is the held-out points
+            return g
+        deployment_figures(ev, cfg, g)
+        if g.deploys:
+            return g
+        step.rejected.append({"change": _change(g), "reason": "deployment", "p_value": g.p_value,
+                              "explained_fraction": g.explained_fraction, "deploy_kind": g.deploy_kind,
+                              "deploy_rmse_before_mm": g.deploy_rmse_before_mm,
+                              "deploy_rmse_after_mm": g.deploy_rmse_after_mm})
+    return None
+
+
 def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alpha: float = ALPHA,
            min_explained: float = 0.02, max_steps: int = 10, floor_m: float | None = None,
            progress: Progress | None = None) -> Selection:
@@ -172,31 +200,19 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
         if k == max_steps:
             break
         todo = [c for c in cands if c not in cfg.effects]
-        eff, gps, sess = rank(ev, cfg, todo, gp_alternatives(p.inp, cfg.gp_inputs), progress,
-                              session_terms=[t for t in terms if t not in cfg.nuisance])
-        session_gains = sess or session_gains
-        tested = eff + gps + sess
-        level = alpha / max(len(tested), 1)
+        alts = gp_alternatives(p.inp, cfg.gp_inputs)
+        sess_todo = [t for t in terms if t not in cfg.nuisance]
+        # Bonferroni over every change the step may test (the GP's inputs included, tested last)
+        level = alpha / max(len(todo) + len(sess_todo) + len(alts), 1)
         step.alpha = level
-        ok = sorted([g for g in tested if g.p_value < level and g.explained_fraction >= min_explained
-                     and g.rmse_after_mm < g.rmse_before_mm], key=lambda g: -g.explained_fraction)
-        ok, step.head_to_head = head_to_head(ev, cfg, ok, level)
-        # the deployment figures the veto below will most likely need, at once
-        ev.cv_many([(changed(cfg, g.kind, g.candidate), ev.scheme_for(g.candidate if g.kind == "effect" else None),
-                     base.log_hypers) for g in ok[:2] if g.kind != "session"])
-        chosen = None
-        for g in ok:
-            if g.kind == "session":  # a nuisance is never deployed: its evidence is the held-out points
-                chosen = g
-                break
-            deployment_figures(ev, cfg, g)
-            if g.deploys:
-                chosen = g
-                break
-            step.rejected.append({"change": _change(g), "reason": "deployment", "p_value": g.p_value,
-                                  "explained_fraction": g.explained_fraction, "deploy_kind": g.deploy_kind,
-                                  "deploy_rmse_before_mm": g.deploy_rmse_before_mm,
-                                  "deploy_rmse_after_mm": g.deploy_rmse_after_mm})
+        # Physical terms first: the GP's inputs change only when no effect or session term passes
+        # (the GP is the catch-all; an effect is physics that holds beyond the data).
+        eff, _, sess = rank(ev, cfg, todo, [], progress, session_terms=sess_todo)
+        session_gains = sess or session_gains
+        chosen = _choose(ev, cfg, base, eff + sess, level, min_explained, step)
+        if chosen is None and alts:
+            _, gps, _ = rank(ev, cfg, [], alts, progress)
+            chosen = _choose(ev, cfg, base, gps, level, min_explained, step)
         if chosen is None:
             stop = "nothing passes"
             break

@@ -1,4 +1,4 @@
-"""The measurement table (DESIGN.md, **contract**) in memory and on disk.
+"""The measurement table (docs/measurement-table.md, **contract**) in memory and on disk.
 
 `Dataset` holds one row per measured positioning as SI numpy arrays (metres, rad, s, kg,
 m/s; temperature in deg C). The file form is the contract CSV: UTF-8, comma separated, header

@@ -34,7 +34,8 @@ from __future__ import annotations
 import calendar
 import logging
 import math
-import time as _time
+import time as _time_mod
+from dataclasses import dataclass
 from datetime import date, datetime
 from pathlib import Path
 from typing import Literal
@@ -364,27 +365,53 @@ def _extra_columns(path: Path, m: ImportMapping, header: list[str], used: set[st
     return {k: np.asarray(v, dtype=float) for k, v in cols.items()}
 
 
-def import_file(path: str | Path, mapping: ImportMapping | str | Path,
-                skip_bad: bool = False, robot: Chain | str | Path | None = None) -> tuple[Dataset, RegistrationReport]:
-    """Read a foreign file through `mapping` (a model or a YAML path) into an SI Dataset.
+@dataclass
+class _Read:
+    """What the file gave: parsed columns by field, their file lines, the rows skipped."""
 
-    Returns the dataset (commanded TCP, error = commanded - measured, measured in the robot
-    frame, flange orientation when given) and a RegistrationReport (residual RMS, fitted or
-    given transform and offset, notes, import time). Bad rows: DataError with file, line, column
-    and value, or skipped and listed in `dataset.skipped` with skip_bad=True. `robot` (a Chain
-    or a config path; default the mapping's `robot:`) is needed only when the file has no
-    commanded x, y, z: the commanded TCP is then the forward kinematics of the joint angles.
-    """
-    started = _time.perf_counter()
-    path = Path(path)
-    mapping_path = None if isinstance(mapping, ImportMapping) else Path(mapping)
-    m = mapping if isinstance(mapping, ImportMapping) else load_mapping(mapping)
-    mapping_dir = None if mapping_path is None else mapping_path.parent
-    mfile = "<mapping>" if mapping_path is None else str(mapping_path)
+    vals: dict
+    lines: list[int]
+    skipped: list
+    joint_keys: list[str]
+
+    def col3(self, keys) -> np.ndarray:
+        return np.column_stack([self.vals[k] for k in keys]).astype(float)
+
+    def arr(self, k: str) -> np.ndarray | None:
+        return np.asarray(self.vals[k], float) if k in self.vals else None
+
+
+@dataclass
+class _Commanded:
+    """The commanded TCP (n, 3) m before any probe offset, the flange orientations that carry one
+    (from the file, or the nominal forward kinematics), and the chain when it came from the joints."""
+
+    p: np.ndarray
+    R_f: np.ndarray | None
+    R_fk: np.ndarray | None
+    chain: Chain | None
+
+
+@dataclass
+class _Registered:
+    """The measurement in the robot frame: commanded (offset applied), measured, error, how."""
+
+    commanded: np.ndarray
+    measured: np.ndarray | None
+    error: np.ndarray
+    u: np.ndarray | None
+    method: str
+    R: np.ndarray
+    t: np.ndarray
+    offset: np.ndarray
+    stds: tuple
+    tool: ToolFit | None
+
+
+def _specs(path: Path, m: ImportMapping, header: list[str]) -> list[ColumnSpec]:
+    """Stage 1: the columns to read and how (unit scale, kind), each mapping field checked against
+    the header (a missing optional one is left out)."""
     c, u = m.columns, m.units
-    has_xyz = c.x is not None
-    header = read_header(path, m.separator, m.encoding, m.sheet)
-    notes: list[str] = []
 
     def present(field_name: str, names) -> bool:
         names = [names] if isinstance(names, str) else list(names)
@@ -396,7 +423,7 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         raise DataError(f"{path}: line 1: mapping field '{field_name}' wants column(s) {miss}, "
                         f"not in the header {header}" + sheet_hint(path, m.encoding, m.sheet))
 
-    specs = [ColumnSpec(a, getattr(c, a), scale=_LENGTH[u.position]) for a in "xyz"] if has_xyz else []
+    specs = [ColumnSpec(a, getattr(c, a), scale=_LENGTH[u.position]) for a in "xyz"] if c.x is not None else []
     meas_keys = ("mx", "my", "mz") if c.mx else ("ex", "ey", "ez")
     specs += [ColumnSpec(k, getattr(c, k), scale=_LENGTH[u.measurement]) for k in meas_keys]
     if c.ux and present("ux", [c.ux, c.uy, c.uz]):
@@ -422,38 +449,44 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         specs.append(ColumnSpec("t", tspec.column, kind=kind))
     if m.joints is not None and isinstance(m.joints.join, KeyJoin):
         specs.append(ColumnSpec("join_key", m.joints.join.key, kind="str"))
+    return specs
 
+
+def _read(path: Path, m: ImportMapping, specs: list[ColumnSpec], skip_bad: bool, mapping_dir: Path | None,
+          mfile: str, notes: list[str]) -> _Read:
+    """Stage 2: the rows, and the joint-angle table joined to them (rows whose joints were skipped
+    leave with them)."""
     vals, lines, skipped, _ = parse_rows(path, m.separator, m.decimal, specs, skip_bad, encoding=m.encoding,
                                          sheet=m.sheet)
     if m.joints is not None and lines:
         jj = join_joints(m.joints, path, lines, vals.get("join_key"), m.separator, m.encoding, mapping_dir,
                          skip_bad, mfile, data_sheet=m.sheet)
-        if not jj.keep.all():  # rows whose joints were skipped (skip_bad) leave with them
+        if not jj.keep.all():
             vals = {k: [v for v, ok in zip(vs, jj.keep) if ok] for k, vs in vals.items()}
             lines = [ln for ln, ok in zip(lines, jj.keep) if ok]
             skipped = sorted(skipped + jj.skipped, key=lambda r: r.line)
         vals.update({f"q{i + 1}": list(jj.q[:, i]) for i in range(jj.q.shape[1])})
         how = "row order" if m.joints.join == "row" else f"key column '{m.joints.join.key}'"
         notes.append(f"joint angles joined from {jj.source} by {how}")
-    n = len(lines)
-    if n == 0:
+    if not lines:
         raise DataError(f"{path}: no usable data rows" + (f" ({len(skipped)} skipped)" if skipped else ""))
-    col3 = lambda ks: np.column_stack([vals[k] for k in ks]).astype(float)  # noqa: E731
-    arr = lambda k: np.asarray(vals[k], float) if k in vals else None  # noqa: E731
-    lines_a = np.asarray(lines, dtype=np.int64)
+    c = m.columns
     n_joints = len(c.joints) if c.joints else (len(m.joints.columns) if m.joints is not None else 0)
-    joint_keys = [f"q{i + 1}" for i in range(n_joints)]
+    return _Read(vals, lines, skipped, [f"q{i + 1}" for i in range(n_joints)])
 
-    R_fk = None
-    tool: ToolFit | None = None
-    chain = None
-    if has_xyz:
-        p_cmd = col3("xyz")
+
+def _commanded(r: _Read, m: ImportMapping, robot, mapping_path: Path | None, path: Path,
+               notes: list[str]) -> _Commanded:
+    """Stage 3: the commanded TCP, from the file's x, y, z, else the robot's nominal forward
+    kinematics of the joint angles (which also gives the flange orientation to carry a probe)."""
+    R_fk, chain = None, None
+    if m.columns.x is not None:
+        p_cmd = r.col3("xyz")
     else:
-        if "q1" not in vals:
+        if "q1" not in r.vals:
             raise DataError(f"{path}: no commanded x, y, z and no joint angles to compute them from")
         chain = _chain(robot, m, mapping_path, path)
-        q = col3(joint_keys)
+        q = r.col3(r.joint_keys)
         if q.shape[1] != chain.dof:
             raise DataError(f"{path}: {q.shape[1]} joint angle columns, the robot config {chain.name} has "
                             f"{chain.dof} joints: data of another robot? (give its config with --robot)")
@@ -462,99 +495,115 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         # carry a probe offset (registration.fit_offset) like a file's orientation columns
         p_cmd, R_fk = T[:, :3, 3].copy(), T[:, :3, :3].copy()
         notes.append(f"commanded TCP = nominal forward kinematics of the joint angles (robot config {chain.name})")
-    R_f = flange_rotation(m, np.column_stack([vals[f"o{i}"] for i in range(len(c.orientation or ()))]), path) \
-        if "o0" in vals else R_fk
-    u_meas = col3(["ux", "uy", "uz"]) if "ux" in vals else None
+    c = m.columns
+    R_f = flange_rotation(m, np.column_stack([r.vals[f"o{i}"] for i in range(len(c.orientation or ()))]), path) \
+        if "o0" in r.vals else R_fk
+    return _Commanded(p_cmd, R_f, R_fk, chain)
+
+
+def _register(r: _Read, m: ImportMapping, cmd: _Commanded, path: Path, mapping_dir: Path | None, mfile: str,
+              notes: list[str]) -> _Registered:
+    """Stage 4: the measurement in the robot frame and the error e = commanded - measured (Eq. 8):
+    the registration given (a 4x4 file) or fitted (rigid, with the probe offset on the flange), or
+    none for data in the robot frame (a robot without a tool gets its offset fitted)."""
+    n = len(r.lines)
+    u_meas = r.col3(["ux", "uy", "uz"]) if "ux" in r.vals else None
     reg = m.registration
     o_init = np.asarray(reg.offset_init_mm, float) * M_PER_MM
+    R_f = cmd.R_f
     if np.any(o_init) and R_f is None:
         raise DataError(f"{path}: registration.offset_init_mm is not zero but the mapping has no "
                         "orientation columns to carry the offset on the flange")
-
-    # --- measurement -> error (commanded - measured, Eq. 8) in the robot frame
     method, R, t_vec, offset = "none", np.eye(3), np.zeros(3), (o_init if R_f is not None else np.zeros(3))
     stds: tuple = (None, None, None)
-    if "mx" in vals:
-        p_meas = col3(["mx", "my", "mz"])
-        if (chain is not None and not chain.tool_given and R_fk is not None and m.measured_frame == "robot"
-                and not np.any(o_init)):
-            # the robot gives no tool offset: the TCP the tracker measured, on the flange (frames.tool_fit)
-            tool = fit_tool(chain, col3(joint_keys), p_meas, "measured")
-            offset, stds = tool.offset, (None, None, tool.u / M_PER_MM)
-            notes.append(tool.line())
-        if m.measured_frame == "instrument" and reg.transform is not None:
-            # the session's registration as measured by the user: applied, not fitted
-            tpath = companion(reg.transform, path, mapping_dir, "registration.transform", mfile)
-            R, t_vec = read_transform(tpath, reg.transform_unit, reg.transform_maps)
-            method = "given"
-            notes.append(f"registration given by {tpath} ({reg.transform_maps}), not fitted")
-            p_meas = p_meas @ R.T + t_vec
-            if u_meas is not None:
-                u_meas = np.sqrt((u_meas ** 2) @ (R ** 2).T)
-        elif m.measured_frame == "instrument":
-            if n < 3:
-                raise DataError(f"{path}: registration needs at least 3 rows, got {n}")
-            fit = fit_rigid_offset(p_meas, p_cmd, R_f, o_init, reg.fit_offset, reg.loss, reg.f_scale_mm * M_PER_MM)
-            fitted_offset = fit.offset_dof > 0
-            if reg.fit_offset and R_f is not None and fit.offset_dof < 3:
-                notes.append(f"flange orientations vary in {fit.offset_dof} of 3 directions: only "
-                             f"{fit.offset_dof} probe-offset component(s) fitted, the rest kept at offset_init_mm")
-            if reg.fit_offset and R_f is None:
-                notes.append("no orientation columns: probe offset not fitted (rigid registration only)")
-            method = "rigid+offset" if fitted_offset else "rigid"
-            R, t_vec, offset = fit.rotation, fit.translation, fit.offset
-            stds = (fit.rotation_std, fit.translation_std / M_PER_MM,
-                    fit.offset_std / M_PER_MM if fitted_offset else None)
-            p_meas = p_meas @ R.T + t_vec
-            if u_meas is not None:
-                # diagonal instrument-frame covariance rotated into the robot frame, per-axis std
-                u_meas = np.sqrt((u_meas ** 2) @ (R ** 2).T)
-        commanded = p_cmd + (R_f @ offset if R_f is not None else 0.0)
-        measured = p_meas
-        error = commanded - measured
-    else:
-        commanded = p_cmd + (R_f @ offset if R_f is not None else 0.0)
-        error = col3(["ex", "ey", "ez"])
-        measured = None
-    if m.error_sign == "measured_minus_commanded":
-        if measured is None:
+    tool: ToolFit | None = None
+    if "mx" not in r.vals:
+        commanded = cmd.p + (R_f @ offset if R_f is not None else 0.0)
+        error = r.col3(["ex", "ey", "ez"])
+        if m.error_sign == "measured_minus_commanded":
             error = -error
-        else:
-            notes.append("error_sign ignored for measured columns: error is computed as commanded - measured")
+        return _Registered(commanded, None, error, u_meas, method, R, t_vec, offset, stds, tool)
+    p_meas = r.col3(["mx", "my", "mz"])
+    if (cmd.chain is not None and not cmd.chain.tool_given and cmd.R_fk is not None and m.measured_frame == "robot"
+            and not np.any(o_init)):
+        # the robot gives no tool offset: the TCP the tracker measured, on the flange (frames.tool_fit)
+        tool = fit_tool(cmd.chain, r.col3(r.joint_keys), p_meas, "measured")
+        offset, stds = tool.offset, (None, None, tool.u / M_PER_MM)
+        notes.append(tool.line())
+    if m.measured_frame == "instrument" and reg.transform is not None:
+        # the session's registration as measured by the user: applied, not fitted
+        tpath = companion(reg.transform, path, mapping_dir, "registration.transform", mfile)
+        R, t_vec = read_transform(tpath, reg.transform_unit, reg.transform_maps)
+        method = "given"
+        notes.append(f"registration given by {tpath} ({reg.transform_maps}), not fitted")
+    elif m.measured_frame == "instrument":
+        if n < 3:
+            raise DataError(f"{path}: registration needs at least 3 rows, got {n}")
+        fit = fit_rigid_offset(p_meas, cmd.p, R_f, o_init, reg.fit_offset, reg.loss, reg.f_scale_mm * M_PER_MM)
+        fitted_offset = fit.offset_dof > 0
+        if reg.fit_offset and R_f is not None and fit.offset_dof < 3:
+            notes.append(f"flange orientations vary in {fit.offset_dof} of 3 directions: only "
+                         f"{fit.offset_dof} probe-offset component(s) fitted, the rest kept at offset_init_mm")
+        if reg.fit_offset and R_f is None:
+            notes.append("no orientation columns: probe offset not fitted (rigid registration only)")
+        method = "rigid+offset" if fitted_offset else "rigid"
+        R, t_vec, offset = fit.rotation, fit.translation, fit.offset
+        stds = (fit.rotation_std, fit.translation_std / M_PER_MM,
+                fit.offset_std / M_PER_MM if fitted_offset else None)
+    if method != "none":
+        p_meas = p_meas @ R.T + t_vec
+        if u_meas is not None:
+            # diagonal instrument-frame covariance rotated into the robot frame, per-axis std
+            u_meas = np.sqrt((u_meas ** 2) @ (R ** 2).T)
+    commanded = cmd.p + (R_f @ offset if R_f is not None else 0.0)
+    if m.error_sign == "measured_minus_commanded":
+        notes.append("error_sign ignored for measured columns: error is computed as commanded - measured")
+    return _Registered(commanded, p_meas, commanded - p_meas, u_meas, method, R, t_vec, offset, stds, tool)
 
-    # --- time
-    t = order = None
+
+def _time(r: _Read, m: ImportMapping, path: Path, notes: list[str]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Stage 5: the time of each row (seconds, a timestamp, or the row order) and, when the file's
+    time goes backwards and the mapping says so, the order that sorts it."""
+    tspec, lines, n = m.time, r.lines, len(r.lines)
     if tspec == "row_order" or (isinstance(tspec, TimeSpec) and tspec.source == "row_order"):
-        t = np.arange(n, dtype=float)
         notes.append("t is the row index (time unknown, row order only)")
-    elif isinstance(tspec, TimeSpec):
-        if tspec.source == "seconds":
-            t = np.asarray(vals["t"], float)
+        return np.arange(n, dtype=float), None
+    if not isinstance(tspec, TimeSpec):
+        return None, None
+    vals = r.vals
+    if tspec.source == "seconds":
+        t = np.asarray(vals["t"], float)
+    else:
+        parsed = _parse_timestamps(vals["t"], tspec.format)
+        if parsed is None:
+            bad = next(i for i, s in enumerate(vals["t"]) if _parse_timestamps([s], tspec.format) is None)
+            if tspec.fallback == "error":
+                raise DataError(f"{path}: line {lines[bad]}: column '{tspec.column}': value "
+                                f"{cell_text(vals['t'][bad])!r}: not a timestamp of format {tspec.format!r}")
+            parsed = np.arange(n, dtype=float)
+            notes.append(f"column '{tspec.column}' does not parse as {tspec.format!r} (line {lines[bad]}: "
+                         f"{cell_text(vals['t'][bad])!r}): t is the row index (row order only)")
+        t = parsed
+    order = None
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        where = f"{back.size} place(s), first at line {lines[back[0] + 1]}"
+        if tspec.order == "error":
+            raise DataError(f"{path}: line {lines[back[0] + 1]}: column '{tspec.column}': time goes "
+                            f"backwards ({where}); set time.order to 'sort' or 'keep'")
+        if tspec.order == "sort":
+            order = np.argsort(t, kind="stable")
+            notes.append(f"time goes backwards in the file ({where}): rows sorted by time")
         else:
-            t = _parse_timestamps(vals["t"], tspec.format)
-            if t is None:
-                bad = next(i for i, s in enumerate(vals["t"]) if _parse_timestamps([s], tspec.format) is None)
-                if tspec.fallback == "error":
-                    raise DataError(f"{path}: line {lines[bad]}: column '{tspec.column}': value "
-                                    f"{cell_text(vals['t'][bad])!r}: not a timestamp of format {tspec.format!r}")
-                t = np.arange(n, dtype=float)
-                notes.append(f"column '{tspec.column}' does not parse as {tspec.format!r} (line {lines[bad]}: "
-                             f"{cell_text(vals['t'][bad])!r}): t is the row index (row order only)")
-        back = np.flatnonzero(np.diff(t) < 0)
-        if back.size:
-            where = f"{back.size} place(s), first at line {lines[back[0] + 1]}"
-            if tspec.order == "error":
-                raise DataError(f"{path}: line {lines[back[0] + 1]}: column '{tspec.column}': time goes "
-                                f"backwards ({where}); set time.order to 'sort' or 'keep'")
-            if tspec.order == "sort":
-                order = np.argsort(t, kind="stable")
-                notes.append(f"time goes backwards in the file ({where}): rows sorted by time")
-            else:
-                notes.append(f"time goes backwards in the file ({where}): file order kept")
-        t = t - t.min()
+            notes.append(f"time goes backwards in the file ({where}): file order kept")
+    return t - t.min(), order
 
-    point_id = np.asarray(vals["point_id"], np.int64) if "point_id" in vals else None
-    rep = np.asarray(vals["rep"], np.int64) if "rep" in vals else None
+
+def _points(r: _Read, m: ImportMapping, p_cmd: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Stage 6: target point ids and repetitions, from the file or numbered from the commanded
+    position (by first appearance, within the mapping's tolerance)."""
+    point_id = np.asarray(r.vals["point_id"], np.int64) if "point_id" in r.vals else None
+    rep = np.asarray(r.vals["rep"], np.int64) if "rep" in r.vals else None
     if m.point_id_from_commanded and point_id is None:
         key = np.round(p_cmd / (m.point_id_tolerance_mm * M_PER_MM)).astype(np.int64)
         _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
@@ -562,41 +611,79 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
         rank = np.empty_like(first)
         rank[np.argsort(first)] = np.arange(first.size)  # number points by first appearance
         point_id = rank[inv]
-        rep = np.zeros(n, np.int64)
+        rep = np.zeros(len(point_id), np.int64)
         seen: dict[int, int] = {}
         for i, p in enumerate(point_id):
             rep[i] = seen.get(int(p), 0)
             seen[int(p)] = rep[i] + 1
+    return point_id, rep
 
-    u_stated = None
-    if u_meas is not None:
-        u_stated = m.uncertainty.record() | {"columns": [c.ux, c.uy, c.uz]}
-        if m.uncertainty.kind == "expanded":
-            u_meas = u_meas / m.uncertainty.factor()  # u = U / k (GUM 6.2.1); linear, so after the rotation too
-            notes.append(f"ux, uy, uz ({', '.join(u_stated['columns'])}) are expanded uncertainties: divided by "
-                         f"k = {u_stated['k']:.4g} ({u_stated['k_from']}) into standard uncertainties")
-    extra = _extra_columns(path, m, header, {s.column for s in specs}, lines, notes)
 
-    ds = Dataset(commanded=commanded, error=error, measured=measured, speed=arr("speed"),
-                 joints=col3(joint_keys) if "q1" in vals else None,
-                 temperature=arr("temperature"), payload=arr("payload"), t=t,
-                 point_id=point_id, rep=rep, u=u_meas, flange_rotation=R_f,
-                 source=str(path), lines=lines_a, skipped=skipped, extra=extra)
+def _stated_uncertainty(u: np.ndarray | None, m: ImportMapping, notes: list[str]) -> tuple[np.ndarray | None,
+                                                                                         dict | None]:
+    """Stage 7: the stated uncertainties as standard ones (expanded ones divided by their k)."""
+    if u is None:
+        return None, None
+    c = m.columns
+    stated = m.uncertainty.record() | {"columns": [c.ux, c.uy, c.uz]}
+    if m.uncertainty.kind == "expanded":
+        u = u / m.uncertainty.factor()  # u = U / k (GUM 6.2.1); linear, so after the rotation too
+        notes.append(f"ux, uy, uz ({', '.join(stated['columns'])}) are expanded uncertainties: divided by "
+                     f"k = {stated['k']:.4g} ({stated['k_from']}) into standard uncertainties")
+    return u, stated
+
+
+def import_file(path: str | Path, mapping: ImportMapping | str | Path,
+                skip_bad: bool = False, robot: Chain | str | Path | None = None) -> tuple[Dataset, RegistrationReport]:
+    """Read a foreign file through `mapping` (a model or a YAML path) into an SI Dataset.
+
+    Returns the dataset (commanded TCP, error = commanded - measured, measured in the robot
+    frame, flange orientation when given) and a RegistrationReport (residual RMS, fitted or
+    given transform and offset, notes, import time). Bad rows: DataError with file, line, column
+    and value, or skipped and listed in `dataset.skipped` with skip_bad=True. `robot` (a Chain
+    or a config path; default the mapping's `robot:`) is needed only when the file has no
+    commanded x, y, z: the commanded TCP is then the forward kinematics of the joint angles.
+    The stages: the columns to read, the rows (and the joint table), the commanded TCP, the
+    registration and error, the time, the points, the stated uncertainty.
+    """
+    started = _time_mod.perf_counter()
+    path = Path(path)
+    mapping_path = None if isinstance(mapping, ImportMapping) else Path(mapping)
+    m = mapping if isinstance(mapping, ImportMapping) else load_mapping(mapping)
+    mapping_dir = None if mapping_path is None else mapping_path.parent
+    mfile = "<mapping>" if mapping_path is None else str(mapping_path)
+    header = read_header(path, m.separator, m.encoding, m.sheet)
+    notes: list[str] = []
+    specs = _specs(path, m, header)
+    r = _read(path, m, specs, skip_bad, mapping_dir, mfile, notes)
+    cmd = _commanded(r, m, robot, mapping_path, path, notes)
+    reg = _register(r, m, cmd, path, mapping_dir, mfile, notes)
+    t, order = _time(r, m, path, notes)
+    point_id, rep = _points(r, m, cmd.p)
+    u, u_stated = _stated_uncertainty(reg.u, m, notes)
+    extra = _extra_columns(path, m, header, {s.column for s in specs}, r.lines, notes)
+    n = len(r.lines)
+    ds = Dataset(commanded=reg.commanded, error=reg.error, measured=reg.measured, speed=r.arr("speed"),
+                 joints=r.col3(r.joint_keys) if "q1" in r.vals else None,
+                 temperature=r.arr("temperature"), payload=r.arr("payload"), t=t,
+                 point_id=point_id, rep=rep, u=u, flange_rotation=cmd.R_f,
+                 source=str(path), lines=np.asarray(r.lines, dtype=np.int64), skipped=r.skipped, extra=extra)
     if order is not None:
         ds = ds.select(order)
     res_mm = ds.error / M_PER_MM
     report = RegistrationReport(
-        method=method, n=n, rms_axis_mm=np.sqrt(np.mean(res_mm ** 2, axis=0)),
+        method=reg.method, n=n, rms_axis_mm=np.sqrt(np.mean(res_mm ** 2, axis=0)),
         rms_3d_mm=rms3(res_mm),
-        rotation=R, translation=t_vec, offset=np.asarray(offset, float),
-        rotation_std_rad=stds[0], translation_std_mm=stds[1], offset_std_mm=stds[2],
-        n_skipped=len(skipped), notes=notes, uncertainty=u_stated)
-    if chain is not None and not chain.tool_given and R_fk is not None and method in ("none", "rigid+offset") \
-            and "mx" in vals and (tool is not None or method == "rigid+offset"):
+        rotation=reg.R, translation=reg.t, offset=np.asarray(reg.offset, float),
+        rotation_std_rad=reg.stds[0], translation_std_mm=reg.stds[1], offset_std_mm=reg.stds[2],
+        n_skipped=len(r.skipped), notes=notes, uncertainty=u_stated)
+    if cmd.chain is not None and not cmd.chain.tool_given and cmd.R_fk is not None \
+            and reg.method in ("none", "rigid+offset") and "mx" in r.vals \
+            and (reg.tool is not None or reg.method == "rigid+offset"):
         # the offset stands for the robot's missing tool: the analysis appends it to the chain
-        report.tool_offset = (tool.to_dict() if tool is not None else
-                              {"xyz_mm": [float(v) / M_PER_MM for v in offset],
-                               "u_mm": [float(v) for v in np.ravel(stds[2])], "residual_rms_mm": rms3(res_mm),
+        report.tool_offset = (reg.tool.to_dict() if reg.tool is not None else
+                              {"xyz_mm": [float(v) / M_PER_MM for v in reg.offset],
+                               "u_mm": [float(v) for v in np.ravel(reg.stds[2])], "residual_rms_mm": rms3(res_mm),
                                "n": n, "from": "measured (fitted with the registration)", "frame": "flange"})
-    report.seconds = _time.perf_counter() - started
+    report.seconds = _time_mod.perf_counter() - started
     return ds, report

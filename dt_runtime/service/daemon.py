@@ -162,6 +162,8 @@ class Daemon:
         self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
         self._last_tick_wall: float | None = None
         self._last_tick_mono = float("-inf")  # the watchdog is fed from READY on
+        self._notify_lock = threading.Lock()  # STOPPING=1 is the last message systemd gets
+        self._stopping = False
         self._health_key: tuple | None = None
         self._health_due = threading.Event()  # the loop saw a change: the housekeeper publishes
         self._applying: OperatorAction | None = None  # the 'done' whose transition is being recorded
@@ -413,9 +415,11 @@ class Daemon:
                 log.warning("housekeeping: %s", exc)
             except Exception:  # noqa: BLE001 - a defect here must not end paging or the watchdog
                 log.exception("housekeeping failed")
-            # The watchdog is fed only while the loop ticks: a wedged loop gets restarted.
-            if watchdog and time.monotonic() - self._last_tick_mono < watchdog:
-                sdnotify.notify("WATCHDOG=1")
+            # The watchdog is fed only while the loop ticks: a wedged loop gets restarted. Never
+            # after STOPPING=1 (close() takes the same lock to send it).
+            with self._notify_lock:
+                if watchdog and not self._stopping and time.monotonic() - self._last_tick_mono < watchdog:
+                    sdnotify.notify("WATCHDOG=1")
             self._poll_now.wait(min(0.5, period, watchdog / 2 if watchdog else 0.5))
             self._poll_now.clear()
 
@@ -630,7 +634,9 @@ class Daemon:
         return out
 
     def close(self) -> None:
-        sdnotify.notify("STOPPING=1")
+        with self._notify_lock:
+            self._stopping = True
+            sdnotify.notify("STOPPING=1")
         try:
             self.store.save_state("escalation", self.escalator.snapshot())
         except TwinError as exc:

@@ -35,10 +35,10 @@ Durability choices (why):
   a deque append, no lock, no I/O). They are committed in one transaction either by a writer
   thread every `batch_ms` milliseconds (`background=True`, the daemon: its loop never waits
   on a lock or an fsync), or on the caller's thread when `batch_rows` rows wait or `batch_ms`
-  elapsed (checked on each call; call `flush()` when idle). `log_command` & co. are the same
-  path with positional arguments. A crash loses at most the uncommitted rows; `flush()`
-  returns only after the rows are committed.
-- `log_transition`, `outbox_*`, `save_state` commit immediately (after flushing the queue in
+  elapsed (checked on each call; call `flush()` when idle). That is the one way rows are
+  written. A crash loses at most the uncommitted rows; `flush()` returns only after the rows are
+  committed.
+- `record_transition`, `outbox_*`, `save_state` commit immediately (after flushing the queue in
   the same transaction, so the evidence that led to a transition is stored with it).
 
 Errors: any sqlite3 error (disk full, I/O error, locked) becomes a StoreError, chained with
@@ -61,13 +61,13 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 from dt_kernel.errors import TwinError
 from dt_runtime.common.jsonsafe import compact
-from dt_runtime.service.rows import ROW_TYPES, CommandRow, CorrectionRow, MeasurementRow, Row, TTestRow
+from dt_runtime.service.rows import ROW_TYPES, Row
 
 log = logging.getLogger("dt.store")
 
@@ -76,18 +76,20 @@ SCHEMA_VERSION = 2  # 2 added operator_actions (a version-1 file gains it on ope
 # Table name -> (columns written by the high-rate path, in order): the typed rows' fields.
 _HIGH_RATE: dict[str, tuple[str, ...]] = {table: cls.columns() for table, cls in ROW_TYPES.items()}
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS commands (
-    id INTEGER PRIMARY KEY, t REAL NOT NULL, x REAL, y REAL, z REAL, speed REAL, data TEXT);
-CREATE TABLE IF NOT EXISTS corrections (
-    id INTEGER PRIMARY KEY, t REAL NOT NULL, dx REAL, dy REAL, dz REAL,
-    ux REAL, uy REAL, uz REAL, data TEXT);
-CREATE TABLE IF NOT EXISTS measurements (
-    id INTEGER PRIMARY KEY, t REAL NOT NULL, x REAL, y REAL, z REAL,
-    ex REAL, ey REAL, ez REAL, data TEXT);
-CREATE TABLE IF NOT EXISTS t_stats (
-    id INTEGER PRIMARY KEY, t REAL NOT NULL, t_value REAL, dof REAL, p_value REAL,
-    passed INTEGER, data TEXT);
+_SQL_TYPE = {"float": "REAL", "bool": "INTEGER"}  # a row field's annotation -> its column's type; else TEXT
+
+
+def _high_rate_table(table: str, cls: type[Row]) -> str:
+    """CREATE TABLE of a high-rate table from its row type: the fields are the columns, in order."""
+    cols = []
+    for f in fields(cls):  # type: ignore[arg-type]
+        base = str(f.type).split("|")[0].strip()
+        sql = _SQL_TYPE.get(base, "TEXT")
+        cols.append(f"{f.name} {sql}" + (" NOT NULL" if f.name == "t" else ""))
+    return f"CREATE TABLE IF NOT EXISTS {table} (\n    id INTEGER PRIMARY KEY, {', '.join(cols)});"
+
+
+_SCHEMA = "\n".join(_high_rate_table(t, c) for t, c in ROW_TYPES.items()) + """
 CREATE TABLE IF NOT EXISTS transitions (
     id INTEGER PRIMARY KEY, t REAL NOT NULL, src TEXT NOT NULL, dst TEXT NOT NULL,
     evidence TEXT NOT NULL, created REAL NOT NULL);
@@ -223,7 +225,12 @@ class Store:
                 raise StoreError(f"{self.path}: cannot switch to WAL journal (got {mode!r})")
             self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
             self._db.execute(f"PRAGMA busy_timeout={int(timeout_s * 1000)}")
-            self._db.executescript(_SCHEMA)
+            found = int(self._db.execute("PRAGMA user_version").fetchone()[0])
+            if found > SCHEMA_VERSION:
+                self._db.close()
+                raise StoreError(f"{self.path}: store schema version {found} is newer than this software's "
+                                 f"({SCHEMA_VERSION}): use the dt that wrote it, or another `store:` file")
+            self._db.executescript(_SCHEMA)  # creates what a new file lacks; version 1 gains operator_actions
             self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
 
     # ------------------------------------------------------------------ lifecycle
@@ -264,45 +271,6 @@ class Store:
                 len(self._queue) + len(self._pending) >= self.batch_rows
                 or self._clock() - self._last_flush >= self.batch_s):
             self.flush()
-
-    def log_command(self, t: float, x: float, y: float, z: float, speed: float | None = None,
-                    data: Mapping[str, Any] | None = None) -> None:
-        """Commanded TCP (m, robot frame) and speed (m/s); queued."""
-        self.put(CommandRow(t, x, y, z, speed, data))
-
-    def log_correction(self, t: float, dx: float, dy: float, dz: float,
-                       ux: float | None = None, uy: float | None = None,
-                       uz: float | None = None, data: Mapping[str, Any] | None = None) -> None:
-        """Predicted error e_hat (m) applied to a command and its standard uncertainty; queued."""
-        self.put(CorrectionRow(t, dx, dy, dz, ux, uy, uz, data))
-
-    def log_measurement(self, t: float, x: float, y: float, z: float,
-                        ex: float | None = None, ey: float | None = None,
-                        ez: float | None = None, data: Mapping[str, Any] | None = None) -> None:
-        """Measured TCP (m) and error e = commanded - measured (m); queued."""
-        self.put(MeasurementRow(t, x, y, z, ex, ey, ez, data))
-
-    def log_tstat(self, t: float, t_value: float, dof: float | None = None,
-                  p_value: float | None = None, passed: bool | None = None,
-                  data: Mapping[str, Any] | None = None) -> None:
-        """One in-service t-test outcome; queued."""
-        self.put(TTestRow(t, t_value, dof, p_value, passed, data))
-
-    def write_batch(self, rows: Iterable[Row | tuple[str, Mapping[str, Any]]]) -> int:
-        """Commit many high-rate rows at once: typed rows or (table, {column: value}) pairs
-        (keys that are not columns go into `data`). Returns how many rows were committed."""
-        typed = []
-        for row in rows:
-            if not isinstance(row, Row):
-                table, mapping = row
-                if table not in ROW_TYPES:
-                    raise StoreError(f"unknown table {table!r}; allowed {sorted(ROW_TYPES)}")
-                row = ROW_TYPES[table].from_mapping(mapping)
-            typed.append(row)
-        with self._lock:
-            self._check_open()
-            self._queue.extend(typed)
-            return self.flush()
 
     def flush(self) -> int:
         """Commit the queued rows in one transaction; returns how many were committed."""
@@ -371,12 +339,6 @@ class Store:
             return n if result is None else result
 
     # ------------------------------------------------------------------ immediate writes
-    def log_transition(self, src: str, dst: str, evidence: Mapping[str, Any], t: float) -> int:
-        """Escalation transition with its evidence; committed before returning. Returns row id."""
-        return self._tx(lambda: self._db.execute(
-            "INSERT INTO transitions (t, src, dst, evidence, created) VALUES (?,?,?,?,?)",
-            (float(t), str(src), str(dst), compact(dict(evidence)), time.time())).lastrowid)
-
     def outbox_add(self, key: str, payload: Mapping[str, Any]) -> int:
         """Durably record a message that must be delivered; returns its id (committed)."""
         text = compact(dict(payload))
@@ -437,12 +399,12 @@ class Store:
         self._staged_state = (str(name), dict(data))
 
     def record_transition(self, src: str, dst: str, evidence: Mapping[str, Any], t: float, *,
-                          state: tuple[str, Mapping[str, Any]],
+                          state: tuple[str, Mapping[str, Any]] | None = None,
                           requests: Iterable[tuple[str, Mapping[str, Any]]] = (),
                           applied: tuple[int, str] | None = None) -> tuple[int, list[int]]:
         """One transition as one transaction (module docstring): the transition row, the resume
-        row `state` (name, snapshot), the outbox `requests` (key, payload) it opens and the
-        operator action `applied` (id, result) it carries out. Returns (transition id, outbox
+        row `state` (name, snapshot; the daemon always gives it), the outbox `requests` (key,
+        payload) it opens and the operator action `applied` (id, result) it carries out. Returns (transition id, outbox
         ids); StoreError and nothing written if it cannot commit."""
         reqs = [(str(k), compact(dict(p))) for k, p in requests]
         # The staged resume row is taken by _tx under the lock and overwritten by `state` below;
@@ -454,7 +416,8 @@ class Store:
             tid = self._db.execute(
                 "INSERT INTO transitions (t, src, dst, evidence, created) VALUES (?,?,?,?,?)",
                 (float(t), str(src), str(dst), compact(dict(evidence)), now)).lastrowid
-            self._write_state(*state)
+            if state is not None:
+                self._write_state(*state)
             ids = [self._insert_outbox(k, text) for k, text in reqs]
             if applied is not None:
                 self._db.execute("UPDATE operator_actions SET applied_at = ?, result = ? WHERE id = ?",

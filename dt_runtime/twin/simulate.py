@@ -1,4 +1,4 @@
-"""`dt simulate`: the measurement table (DESIGN.md) from the simulated cell, for any scenario.
+"""`dt simulate`: the measurement table (docs/measurement-table.md) from the simulated cell, for any scenario.
 
 A scenario file is the plant's scenario YAML (configs/scenarios/: which effects the plant has,
 their sizes, temperature and payload schedules, noise) with an optional `data:` block saying how

@@ -1,6 +1,6 @@
 """The calibrated twin: frames, error maps and uncertainty, with the correction law.
 
-Sign convention (DESIGN.md, Eq. 8): e = commanded - measured. The twin's estimate of where the
+Sign convention (docs/measurement-table.md, Eq. 8): e = commanded - measured. The twin's estimate of where the
 robot really is: TCP_hat = TCP_cmd - e_hat(TCP_cmd, v). To reach a target the corrected command
 solves c - e_hat(c, v) = target by fixed-point iteration, starting at c = target + e_hat(target, v).
 Maps predict errors in the GL axes; the robot frame is rotated by R_RDK^GL (nearly identity).

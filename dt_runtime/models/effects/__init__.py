@@ -2,7 +2,7 @@
 parameters that mean something physically (joint offsets in rad, stiffness in N m/rad, backlash
 width in rad, expansion coefficient in 1/K, lag in s, drift in rad/h).
 
-`REGISTRY` is the one place that lists them, in the DESIGN.md contract order: geometric,
+`REGISTRY` is the one place that lists them, in the contract order (docs/effects.md): geometric,
 compliance, gear, backlash, thermal, dynamic, drift. Each `Effect` subclass declares its name,
 the data columns it reads, whether it needs the robot's kinematic chain and the factor the
 diagnose verdict names, and builds its regressor block. Adding an effect: one module with one

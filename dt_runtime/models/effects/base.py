@@ -132,7 +132,7 @@ def carry_forward(d: np.ndarray, still: np.ndarray, per_column: bool = False) ->
 class Effect:
     """One physical effect term. A subclass declares, once:
 
-    name: the DESIGN.md contract name (the simulator's scenario uses the same).
+    name: the contract name (docs/effects.md) (the simulator's scenario uses the same).
     columns: the `Inputs` columns its regressors read.
     needs_chain: whether it acts through the robot's kinematic chain (joint-space effects).
     factor: what the residual follows when the effect is missing (the diagnose verdict).
