@@ -80,7 +80,8 @@ class CorrectionRow(Row):
 
 @dataclass(frozen=True, slots=True)
 class MeasurementRow(Row):
-    """Measured TCP (m) and error e = commanded - measured (m)."""
+    """A measured TCP (m) and its difference from the prediction (m): the daemon stores the MVS
+    point in the MVS frame and e_LT_hat - e_MVS in GL, what Eq. 17 tests (`dt status` names them)."""
 
     TABLE: ClassVar[str] = "measurements"
     t: float
