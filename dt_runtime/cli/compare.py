@@ -43,27 +43,30 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    import contextlib
+    from pathlib import Path
+
     from dt_runtime.analysis.compare import compare
     from dt_runtime.analysis.data import floor_of, refit_sessions
+    from dt_runtime.cli.common import data_inputs
     from dt_runtime.common.jsonsafe import jsonable
+    from dt_runtime.common.outputs import staged
 
     d = load(args)
-    result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
-                             cv_folds=args.cv, seed=args.seed, progress=progress(args),
-                             instruments=args.instruments, inputs=input_files(args),
-                             refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"))
-    result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
-    if args.report:
-        from pathlib import Path
+    # --report: report.html and compare.json written whole or not at all (common.outputs); a
+    # directory it may not replace is refused before the comparison runs
+    with (staged(args.report, "dt compare", marks=("compare.json", "report.html"), inputs=data_inputs(args))
+          if args.report else contextlib.nullcontext()) as report_dir:
+        result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
+                                 cv_folds=args.cv, seed=args.seed, progress=progress(args),
+                                 instruments=args.instruments, inputs=input_files(args),
+                                 refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"))
+        result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
+        if report_dir is not None:
+            from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
 
-        from dt_runtime.cli.common import data_inputs
-        from dt_runtime.common.outputs import staged
-        from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
-
-        result["report"] = str(Path(args.report) / "report.html")
-        # report.html and compare.json written whole or not at all (common.outputs)
-        with staged(args.report, "dt compare", marks=("compare.json", "report.html"), inputs=data_inputs(args)) as rep:
-            write_compare_report(result, arrays, rep)
+            result["report"] = str(Path(args.report) / "report.html")
+            write_compare_report(result, arrays, report_dir)
     return result
 
 

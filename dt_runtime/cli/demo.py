@@ -33,7 +33,8 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.twin.demo import run_demo
 
     prog = progress(args)
-    with staged(args.out, "dt demo", marks=MARKS) as out:  # written whole or not at all
+    # written whole or not at all (common.outputs)
+    with staged(args.out, "dt demo", marks=MARKS, inputs=[args.config] if args.config else []) as out:
         res = run_demo(out, quick=args.quick, seed=args.seed, config=args.config,
                        progress=prog, camera=args.camera)
         write_demo_report(res, out / "report.html")
