@@ -140,12 +140,14 @@ def test_a_signal_during_the_swap_is_delivered_after_it(tmp_path):
         pytest.fail("the held Ctrl-C must arrive when the swap is done")
 
     outputs._swap_in = swap_with_ctrl_c  # type: ignore[assignment]
+    ctrl_c = signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C is KeyboardInterrupt, as in dt
     try:
         with pytest.raises(KeyboardInterrupt):
             with staged(out, "dt fit", marks=("hybrid.json",)) as work:
                 (work / "hybrid.json").write_text("new run\n")
     finally:
         outputs._swap_in = real  # type: ignore[assignment]
+        signal.signal(signal.SIGINT, ctrl_c)
     assert (out / "hybrid.json").read_text() == "new run\n"  # swapped whole, then interrupted
 
 

@@ -701,14 +701,17 @@ def run_daemon(config: str | Path, duration_s: float | None = None, status_every
             timer.start()
             deadline.append(timer)
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # The handlers hold this daemon: put the caller's back when it is closed (a later signal to a
+    # process that ran `dt run` in-process, a test, must not stop a daemon that is gone).
+    before = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         return d.run(duration_s)
     finally:
         d.close()
         for timer in deadline:
             timer.cancel()
+        for s, handler in before.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def _exit_hard(after_s: float) -> None:
