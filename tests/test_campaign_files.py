@@ -134,6 +134,16 @@ def test_metres_in_a_mm_file_and_missing_columns(tmp_path):
         read_phase(write_phase(tmp_path / "r.csv", _phase()), "registration", registration=True)
 
 
+@pytest.mark.parametrize("wrong, right", [("temprature", "temperature"), ("mvs x", "mvs_x"), ("Payload", "payload")])
+def test_a_misspelled_campaign_column_is_refused_naming_it(tmp_path, wrong, right):
+    p = write_phase(tmp_path / "doe.csv", _phase())
+    head, rest = p.read_text().split("\n", 1)
+    p.write_text(",".join(wrong if c == right else c for c in head.split(",")) + "\n" + rest)
+    with pytest.raises(DataError, match=f"column '{wrong}' is not a contract column but looks like '{right}'") as e:
+        read_phase(p, "doe")
+    assert "doe.csv: line 1" in str(e.value) and "campaign-files.md" in str(e.value)
+
+
 def test_files_of_another_robot(tmp_path):
     back = read_phase(write_phase(tmp_path / "doe.csv", _phase()), "doe")
     with pytest.raises(DataError, match=r"doe\.csv.*robot config ur10.* by [0-9.]+ mm.*another robot"):

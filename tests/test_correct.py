@@ -64,6 +64,51 @@ def test_bad_programs_name_line_and_column(quick_demo, tmp_path, capsys, rows, m
     assert message in json.loads(capsys.readouterr().out)["error"]
 
 
+@pytest.mark.parametrize("header, rows, message", [
+    # metres in the mm columns (issue 22: a program was written, every target ~1 mm from the base)
+    ("point_id,x,y,z,speed", ["a,0.9,0,0.55,500", "b,0.88,0.04,0.56,250"], "columns x, y, z: largest |value| 0.9 mm; "
+     "this looks like metres"),
+    ("point_id,x,y,z,speed", ["a,900,0,550,500", "b,1e300,0,550,250"], "data row 2: [1e+300, 0.0, 550.0] mm lies more "
+     "than 5000 mm from the base"),
+    ("point_id,x,y,z,speed", ["a,900,0,550,500", "b,4000,0,550,250"], "1 of 2 targets lie beyond the arm's reach "
+     "(2338 mm from its base, robot config cobot_hc20_like"),
+    ("point_id,x,y,z,speed", ["a,900,0,550,500", "b,inf,0,550,250"], "line 3: column 'x': value 'inf': not a finite"),
+    ("point_id,x,y,z,speed", ["a,900,0,nan,500"], "line 2: column 'z': value 'nan': not a finite"),
+    ("point_id,x,y,z,speed", ["a,900,0,550,5e5"], "column 'speed', data row 1: 500000 mm/s is not plausible"),
+    ("point_id,x,y,z,sped", ["a,900,0,550,500"], "column 'sped' is not a contract column but looks like 'speed'"),
+    ("point_id,x,y,z,speed,Temperature", ["a,900,0,550,500,21"], "column 'Temperature' is not a contract column but "
+     "looks like 'temperature'"),
+    ("point_id,x,y,z,speed,q1,q2,q3,q4,q5,q6", ["a,900,0,550,500,0,20,30,0,45,0"], "line 2: column 'q2': value "
+     "'20': joint angles are in rad (|q| <= 2 pi); this looks like degrees"),
+])
+def test_targets_in_another_unit_or_outside_the_workspace_are_refused(quick_demo, tmp_path, capsys, header, rows,
+                                                                      message):
+    prog = tmp_path / "p.csv"
+    prog.write_text(header + "\n" + "".join(f"{r}\n" for r in rows))
+    out = tmp_path / "p_corr.csv"
+    rc = main(["correct", "--twin", str(quick_demo[2] / "model"), "--targets", str(prog), "--out", str(out), "--json"])
+    err = json.loads(capsys.readouterr().out)["error"]
+    assert rc == 2 and not out.exists() and list(tmp_path.iterdir()) == [prog], err
+    assert message in err and "p.csv" in err
+
+
+def test_a_twin_without_its_robot_config_bounds_the_workspace_by_its_volume(quick_demo, tmp_path):
+    from dt_kernel.errors import DataError
+    from dt_runtime.twin.program import FAR_OUTSIDE_M, check_workspace, read_program
+
+    twin = Twin.load(quick_demo[2] / "model")
+    twin.e_lt.robot = None  # an older twin, or one whose robot config is gone
+    t = np.array([0.9, 0.0, 0.55])
+    while twin.volume.distance(t)[0] < FAR_OUTSIDE_M + 0.01:
+        t = t + np.array([0.0, 0.0, 0.02])
+    near = _far_target(twin)  # 120 mm outside: corrected and flagged, not refused
+    prog = read_program(_program(tmp_path / "p.csv", [f"near,{near[0] * 1e3},{near[1] * 1e3},{near[2] * 1e3},250",
+                                                      f"far,{t[0] * 1e3},{t[1] * 1e3},{t[2] * 1e3},250"]))
+    with pytest.raises(DataError, match=r"1 of 2 targets lie beyond the workspace: more than 500 mm outside the "
+                                        r"twin's calibrated volume .*: far \(line 3"):
+        check_workspace(twin, prog, "p.csv")
+
+
 def test_not_a_twin(tmp_path, capsys):
     prog = _program(tmp_path / "p.csv", ["a,900,0,550,500"])
     rc = main(["correct", "--twin", str(tmp_path), "--targets", str(prog), "--out", str(tmp_path / "o.csv"), "--json"])

@@ -85,3 +85,67 @@ def test_fold_counts_are_validated(argv, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "folds" in err or "--cv" in err
+
+
+# --- issue 22: units and columns checked on every table, with or without a robot config ---------------
+def _csv(tmp_path, ds: Dataset, rename: dict[str, str] | None = None):
+    csv = write_table(ds, tmp_path / "d.csv")
+    if rename:
+        head, rest = csv.read_text().split("\n", 1)
+        csv.write_text(",".join(rename.get(c, c) for c in head.split(",")) + "\n" + rest)
+    return csv
+
+
+def _dt(capsys, *argv: str) -> tuple[int, dict]:
+    rc = main([*argv, "--json", "--no-progress"])
+    return rc, json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose", "compare"])
+def test_a_table_in_metres_is_refused_without_joints_and_nothing_is_written(tmp_path, capsys, command):
+    ds = _data()
+    ds.joints = None
+    ds.commanded, ds.error = ds.commanded / 1000.0, ds.error / 1000.0  # the whole table in metres
+    csv = _csv(tmp_path, ds)
+    out = tmp_path / "m"
+    argv = {"fit": ["fit", "--data", str(csv), "--out", str(out)],
+            "diagnose": ["diagnose", "--data", str(csv), "--folds", "3"],
+            "compare": ["compare", "--data", str(csv), "--model", str(out), "--report", str(tmp_path / "r")]}[command]
+    rc, res = _dt(capsys, *argv)
+    assert rc == 2 and "d.csv: columns x, y, z: largest |value| " in res["error"], res
+    assert "this looks like metres" in res["error"] and "units: {position: m}" in res["error"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.csv"]  # no model, no report
+
+
+@pytest.mark.parametrize("wrong, right", [("sped", "speed"), ("Temperature", "temperature"), ("point id", "point_id"),
+                                          ("temprature", "temperature"), ("e_x", "ex")])
+def test_a_misspelled_contract_column_is_refused_naming_the_contract_name(tmp_path, capsys, wrong, right):
+    ds = _data()
+    ds.temperature = np.full(ds.n, 21.0)
+    csv = _csv(tmp_path, ds, {right: wrong})
+    rc, res = _dt(capsys, "fit", "--data", str(csv), "--gp-inputs", "tcp", "--out", str(tmp_path / "m"))
+    assert rc == 2 and f"column '{wrong}' is not a contract column but looks like '{right}'" in res["error"], res
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_column_far_from_every_contract_name_stays_an_extra_column(tmp_path, capsys):
+    from dt_runtime.measurements.dataset import read_table
+
+    ds = _data()
+    ds.extra = {"humidity": np.linspace(30, 60, ds.n), "fixture_temperature": np.full(ds.n, 22.5)}
+    csv = write_table(ds, tmp_path / "d.csv")
+    head, rest = csv.read_text().split("\n", 1)
+    rows = rest.strip().split("\n")
+    csv.write_text(head + ",humidity,fixture_temperature\n"
+                   + "".join(f"{r},{30 + i},22.5\n" for i, r in enumerate(rows)))
+    assert sorted(read_table(csv).extra) == ["fixture_temperature", "humidity"]
+    rc, res = _dt(capsys, "fit", "--data", str(csv), "--gp-inputs", "tcp", "--out", str(tmp_path / "m"))
+    assert rc == 0, res
+
+
+def test_joints_in_degrees_are_refused_when_no_model_reads_them(tmp_path, capsys):
+    ds = _data()
+    ds.joints = np.degrees(ds.joints)
+    rc, res = _dt(capsys, "fit", "--data", str(_csv(tmp_path, ds)), "--gp-inputs", "tcp", "--out", str(tmp_path / "m"))
+    assert rc == 2 and "d.csv: column 'q" in res["error"] and "this looks like degrees" in res["error"], res
+    assert not (tmp_path / "m").exists()

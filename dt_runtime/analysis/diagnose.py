@@ -38,6 +38,7 @@ from dt_runtime.analysis.ranking import ALPHA, deployment_figures, gp_alternativ
 from dt_runtime.analysis.results import AutoResult, DiagnoseResult
 from dt_runtime.analysis.selection import select, testable
 from dt_runtime.analysis.training import data_provenance
+from dt_runtime.common.outputs import final_path
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Provenance
 from dt_runtime.frames.kinematics import Chain
@@ -211,7 +212,7 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
     else:
         r.deploy = {"ok": r.final_deploy_rmse_mm < as_is_mm, "by": ev.deploy.kind}
     if out is not None:
-        r.model_out = str(save_final(prep, ev, final, out, r))
+        r.model_out = str(final_path(save_final(prep, ev, final, out, r)))  # where it is once swapped in
     r.evaluator = ev
     return r
 

@@ -10,6 +10,7 @@ from dt_kernel.units import MM_PER_M
 from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import Data, select_sessions
 from dt_runtime.analysis.results import FitResult
+from dt_runtime.common.outputs import final_path
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Provenance, build, files_under, load_instruments
 from dt_runtime.frames import robots
@@ -48,7 +49,7 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
     model.fit(ds)
     seconds = time.perf_counter() - t0
     model.save(out, provenance=prov)
-    res = FitResult(str(out), ds.n, list(effects), gp_inputs, model.robot_, seconds,
+    res = FitResult(str(final_path(out)), ds.n, list(effects), gp_inputs, model.robot_, seconds,
                     rms3(ds.error - model.predict(ds)) * MM_PER_M, model.parameters(),
                     {k: v for k, v in d.info.items() if k != "n"}, provenance=prov,
                     base_parameters=model.base_parameters())

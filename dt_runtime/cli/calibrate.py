@@ -52,7 +52,8 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
                    help="calibrated volume: the DOE hull widened by this margin (default 25 mm)")
     c.add_argument("--seed", type=seed_number, default=None,
                    help="seed of folds and GP restarts (default: the campaign manifest's, else 0)")
-    c.add_argument("--out", required=True, metavar="TWIN", help="twin directory to write")
+    c.add_argument("--out", required=True, metavar="TWIN",
+                   help="twin directory to write (replaced whole at the end: an interrupted run leaves it as it was)")
     add_strict_arg(c)
     add_output_args(c)
 
@@ -92,6 +93,7 @@ def run(args: argparse.Namespace) -> Any:
     from pydantic import ValidationError
 
     from dt_kernel.errors import DataError
+    from dt_runtime.common.outputs import staged
     from dt_runtime.models.hybrid import load_map
     from dt_runtime.reports.demo_report import write_demo_report  # matplotlib only when reporting
     from dt_runtime.twin.calibrate import CalibrationOptions
@@ -113,9 +115,11 @@ def run(args: argparse.Namespace) -> Any:
         if files.robot is None and lt_model.robot is not None:
             files = dataclasses.replace(files, robot=str(lt_model.robot))
     prog = progress(args)
-    res = calibrate_campaign(files, options, args.out, lt_model, args.model, prog)
-    res.summary["report"] = str(write_demo_report(res, Path(args.out) / "report.html",
-                                                  title="Traceable digital twin of the cobot: calibration report"))
+    inputs = [*files.inputs(), *([args.model] if args.model else [])]
+    with staged(args.out, "dt calibrate", marks=("twin.json",), inputs=inputs) as out:  # whole or not at all
+        res = calibrate_campaign(files, options, out, lt_model, args.model, prog)
+        write_demo_report(res, out / "report.html", title="Traceable digital twin of the cobot: calibration report")
+    res.summary["report"] = str(Path(args.out) / "report.html")
     return res.summary
 
 

@@ -24,19 +24,18 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
     c.add_argument("--doe-rows", type=int, default=None, metavar="N",
                    help="measure only N DOE rows, spread evenly through the plan")
     c.add_argument("--folds", type=folds, default=5, metavar="K", help="grouped cross-validation folds (default 5)")
-    c.add_argument("--out", required=True, metavar="DIR", help="writes DIR/campaign and the twin DIR/model")
+    c.add_argument("--out", required=True, metavar="DIR",
+                   help="writes DIR/campaign and the twin DIR/model (DIR replaced whole at the end of the run)")
     add_output_args(c)
 
 
 def run(args: argparse.Namespace) -> Any:
 
     from dt_kernel.errors import DataError
+    from dt_runtime.common.outputs import staged
     from dt_runtime.common.paths import CONFIGS
     from dt_runtime.measurements.plans import build_plan, load_plan
     from dt_runtime.service.runtime_config import load_runtime_config
-    from dt_runtime.twin.calibrate import CalibrationOptions, Campaign
-    from dt_runtime.twin.campaign import Instruments, run_rows
-    from dt_runtime.twin.campaign_dir import calibrate_campaign, write_campaign
 
     config = Path(args.config)
     cfg = load_runtime_config(config)  # every driver's options checked before anything opens
@@ -49,9 +48,19 @@ def run(args: argparse.Namespace) -> Any:
             raise DataError(f"--doe-rows {args.doe_rows}: the plan has {len(doe)} DOE rows")
         doe = spread(doe, args.doe_rows)
     prog = progress(args)
-    world = _world(cfg, config.parent)
-    out = Path(args.out)
     names = {k: n for k, n, _ in cfg.drivers.chosen()}
+    with staged(args.out, "dt campaign", marks=("campaign", "model"), inputs=[config]) as out:  # whole or not at all
+        return _measure_and_calibrate(args, cfg, config, plan, plan_cfg, doe, names, out, prog)
+
+
+def _measure_and_calibrate(args, cfg, config: Path, plan, plan_cfg, doe: list, names: dict, out: Path, prog) -> dict:
+    """Phases 1 and 2 through the runtime YAML's drivers, written as OUT/campaign; the twin in OUT/model."""
+    from dt_runtime.common.outputs import final_path
+    from dt_runtime.twin.calibrate import CalibrationOptions, Campaign
+    from dt_runtime.twin.campaign import Instruments, run_rows
+    from dt_runtime.twin.campaign_dir import calibrate_campaign, write_campaign
+
+    world = _world(cfg, config.parent)
     try:
         robot, tracker, camera = cfg.drivers.create(world, str(config))
         inst = Instruments(robot, tracker, camera, world=world,
@@ -70,7 +79,8 @@ def run(args: argparse.Namespace) -> Any:
     options = CalibrationOptions(cv_folds=args.folds, seed=plan_cfg.seed)
     res = calibrate_campaign(files, options, out / "model", progress=prog)
     refusals = reg.refusals + doe_data.refusals
-    return {"campaign": str(files.manifest), "twin": str(out / "model"), "drivers": names,
+    return {"campaign": str(final_path(files.manifest or files.doe)), "twin": str(final_path(out / "model")),
+            "drivers": names,
             "registration_rows": reg.n, "doe_rows": doe_data.n, "refusals": len(refusals),
             "refusal_examples": refusals[:5],
             "registration_residuals_mm": res.summary.get("table2_registration_residuals"),

@@ -103,6 +103,20 @@ def declare_effects(args: argparse.Namespace) -> list[str]:
     return fx.register_file(path) if path else []
 
 
+#: What a model directory of `dt fit` / `dt diagnose --auto --out` holds: a directory replaced by
+#: a new model must have it (common.outputs.staged).
+MODEL_MARKS = ("hybrid.json",)
+
+
+def data_inputs(args: argparse.Namespace) -> list[str]:
+    """Every file a data command reads (--data, --mapping, --effects-file, --instruments, --model):
+    an output directory that holds one of them is refused (it is replaced whole)."""
+    data = args.data if isinstance(args.data, list) else [args.data]
+    models = args.model if isinstance(getattr(args, "model", None), list) else [getattr(args, "model", None)]
+    return [str(f) for f in (*data, getattr(args, "mapping", None), getattr(args, "effects_file", None),
+                             getattr(args, "instruments", None), *models) if f]
+
+
 def input_files(args: argparse.Namespace) -> list[str]:
     """The files beside the data that shaped the result, for the provenance (hashed): the import
     mapping and the declared effects."""

@@ -32,7 +32,8 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
     cp.add_argument("--cv", type=cv_folds, default=0, metavar="K",
                     help="held-out figures from the training file: refit each model's configuration on K-1 "
                          "folds grouped by target point (default 0: the models as saved)")
-    cp.add_argument("--report", default=None, metavar="DIR", help="write DIR/report.html and DIR/compare.json")
+    cp.add_argument("--report", default=None, metavar="DIR",
+                    help="write DIR/report.html and DIR/compare.json (DIR replaced whole at the end)")
     add_effects_file_arg(cp)
     cp.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
@@ -42,20 +43,30 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    import contextlib
+    from pathlib import Path
+
     from dt_runtime.analysis.compare import compare
     from dt_runtime.analysis.data import floor_of, refit_sessions
+    from dt_runtime.cli.common import data_inputs
     from dt_runtime.common.jsonsafe import jsonable
+    from dt_runtime.common.outputs import staged
 
     d = load(args)
-    result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
-                             cv_folds=args.cv, seed=args.seed, progress=progress(args),
-                             instruments=args.instruments, inputs=input_files(args),
-                             refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"))
-    result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
-    if args.report:
-        from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
+    # --report: report.html and compare.json written whole or not at all (common.outputs); a
+    # directory it may not replace is refused before the comparison runs
+    with (staged(args.report, "dt compare", marks=("compare.json", "report.html"), inputs=data_inputs(args))
+          if args.report else contextlib.nullcontext()) as report_dir:
+        result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
+                                 cv_folds=args.cv, seed=args.seed, progress=progress(args),
+                                 instruments=args.instruments, inputs=input_files(args),
+                                 refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"))
+        result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
+        if report_dir is not None:
+            from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
 
-        result["report"] = str(write_compare_report(result, arrays, args.report))
+            result["report"] = str(Path(args.report) / "report.html")
+            write_compare_report(result, arrays, report_dir)
     return result
 
 

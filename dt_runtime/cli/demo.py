@@ -1,7 +1,8 @@
 """`dt demo`: the paper's whole experiment on the simulated cell, and its report.
 
 Registration, DOE, GPR, uncertainty budget, validation and t-test on the simulated cell; writes
-DIR/summary.json and DIR/report.html.
+DIR/summary.json, DIR/report.html, the campaign files DIR/campaign and the twin DIR/model, all at
+once at the end (an interrupted run leaves a previous DIR as it was).
 """
 from __future__ import annotations
 
@@ -10,10 +11,14 @@ from pathlib import Path
 from typing import Any
 
 from dt_runtime.cli.common import add_strict_arg, progress, seed_number, validity_exit
+from dt_runtime.common.outputs import staged
+
+MARKS = ("summary.json", "report.html", "model", "campaign")  # what a previous `dt demo --out DIR` left
 
 
 def add_arguments(d: argparse.ArgumentParser) -> None:
-    d.add_argument("--out", default="out/demo", metavar="DIR", help="output directory (default out/demo)")
+    d.add_argument("--out", default="out/demo", metavar="DIR",
+                   help="output directory (default out/demo), replaced whole at the end of the run")
     d.add_argument("--quick", action="store_true", help="reduced plan, well under a minute")
     d.add_argument("--seed", type=seed_number, default=None, help="plan seed (default: the plan config's)")
     d.add_argument("--config", default=None, help="demo config YAML (default: configs/demo.yaml)")
@@ -29,10 +34,12 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.twin.demo import run_demo
 
     prog = progress(args)
-    res = run_demo(args.out, quick=args.quick, seed=args.seed, config=args.config,
-                   progress=prog, camera=args.camera)
-    report = write_demo_report(res, Path(args.out) / "report.html")
-    prog.note(f"wrote {report}")
+    # written whole or not at all (common.outputs)
+    with staged(args.out, "dt demo", marks=MARKS, inputs=[args.config] if args.config else []) as out:
+        res = run_demo(out, quick=args.quick, seed=args.seed, config=args.config,
+                       progress=prog, camera=args.camera)
+        write_demo_report(res, out / "report.html")
+    prog.note(f"wrote {Path(args.out) / 'report.html'}")
     return res.summary
 
 

@@ -45,7 +45,8 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     dg.add_argument("--min-explained", type=_fraction, default=0.02,
                     help="--auto: smallest explained fraction of held-out variance worth adding (0.02)")
     dg.add_argument("--out", default=None, metavar="MODEL",
-                    help="--auto: fit the final model on all rows and save it here (with diagnose.json)")
+                    help="--auto: fit the final model on all rows and save it here (with diagnose.json); the "
+                         "directory is replaced whole at the end")
     add_session_args(dg)
     dg.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
@@ -65,28 +66,34 @@ def _fraction(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> Any:
+    import contextlib
     import json
     from pathlib import Path
 
     from dt_kernel.errors import DataError
     from dt_runtime.analysis.diagnose import diagnose
     from dt_runtime.analysis.parallel import default_to_cores
-    from dt_runtime.cli.common import robot_of
+    from dt_runtime.cli.common import MODEL_MARKS, data_inputs, robot_of
     from dt_runtime.common.jsonsafe import jsonable
+    from dt_runtime.common.outputs import staged
     from dt_runtime.reports.verdicts import with_verdict
 
     if args.out is not None and not args.auto:
         raise DataError("--out saves the final model of --auto; without --auto, fit a model with dt fit")
     default_to_cores()  # the candidates of a step in parallel, one process per core (DT_WORKERS)
     d = load(args)
-    r = diagnose(d, args.model, names(args.effects), args.gp_inputs, robot_of(args, d),
-                 names(args.candidates) or None, args.folds, args.seed, progress=progress(args),
-                 instruments=args.instruments, inputs=input_files(args), auto=args.auto, alpha=args.alpha,
-                 min_explained=args.min_explained, out=args.out, exclude_sessions=names(args.exclude_session),
-                 reference_session=args.reference_session, session_terms=names(args.session_term))
-    out = with_verdict(jsonable(r))
-    if args.out is not None:  # the verdict beside the model it chose
-        (Path(args.out) / "diagnose.json").write_text(json.dumps(out, indent=2, allow_nan=False), encoding="utf-8")
+    # --out: the final model and its verdict written whole or not at all (common.outputs)
+    with (staged(args.out, "dt diagnose", marks=MODEL_MARKS, inputs=data_inputs(args)) if args.out is not None
+          else contextlib.nullcontext()) as model_dir:
+        r = diagnose(d, args.model, names(args.effects), args.gp_inputs, robot_of(args, d),
+                     names(args.candidates) or None, args.folds, args.seed, progress=progress(args),
+                     instruments=args.instruments, inputs=input_files(args), auto=args.auto, alpha=args.alpha,
+                     min_explained=args.min_explained, out=model_dir, exclude_sessions=names(args.exclude_session),
+                     reference_session=args.reference_session, session_terms=names(args.session_term))
+        out = with_verdict(jsonable(r))
+        if model_dir is not None:  # the verdict beside the model it chose
+            (Path(model_dir) / "diagnose.json").write_text(json.dumps(out, indent=2, allow_nan=False),
+                                                           encoding="utf-8")
     return out
 
 

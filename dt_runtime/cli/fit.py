@@ -26,7 +26,8 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
     add_data_args(ft)
     ft.add_argument("--effects", default="", metavar="a,b,...", help="effect terms (default none: the paper's GP)")
     add_effects_file_arg(ft)
-    ft.add_argument("--out", required=True, metavar="MODEL", help="model directory (JSON + NPZ)")
+    ft.add_argument("--out", required=True, metavar="MODEL",
+                    help="model directory (JSON + NPZ), replaced whole once the model is saved")
     ft.add_argument("--cv", type=cv_folds, default=0, metavar="K",
                     help="also report the held-out RMS by K-fold CV grouped by target point")
     add_session_args(ft)
@@ -38,13 +39,15 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> Any:
     from dt_runtime.analysis.training import fit
-    from dt_runtime.cli.common import robot_of
+    from dt_runtime.cli.common import MODEL_MARKS, data_inputs, robot_of
+    from dt_runtime.common.outputs import staged
 
     d = load(args)
-    return fit(d, names(args.effects), args.gp_inputs, robot_of(args, d), args.out,
-               seed=args.seed, cv_folds=args.cv, progress=progress(args), instruments=args.instruments,
-               inputs=input_files(args), session_terms=names(args.session_term),
-               exclude_sessions=names(args.exclude_session), reference_session=args.reference_session)
+    with staged(args.out, "dt fit", marks=MODEL_MARKS, inputs=data_inputs(args)) as out:  # whole or not at all
+        return fit(d, names(args.effects), args.gp_inputs, robot_of(args, d), out,
+                   seed=args.seed, cv_folds=args.cv, progress=progress(args), instruments=args.instruments,
+                   inputs=input_files(args), session_terms=names(args.session_term),
+                   exclude_sessions=names(args.exclude_session), reference_session=args.reference_session)
 
 
 def human(result: dict) -> str:

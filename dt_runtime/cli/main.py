@@ -65,11 +65,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class JsonLines(logging.Formatter):
-    """One JSON object per log record on stderr: machine-readable logs for the daemon."""
+    """One JSON object per log record on stderr: machine-readable logs for the daemon (a record's
+    `fields`, e.g. of its status line, go in beside the message)."""
 
     def format(self, record: logging.LogRecord) -> str:
         out = {"ts": round(record.created, 3), "level": record.levelname, "logger": record.name,
-               "msg": record.getMessage()}
+               "msg": record.getMessage()} | (getattr(record, "fields", None) or {})
         if record.exc_info:
             out["exc"] = self.formatException(record.exc_info)
         return json.dumps(out)
@@ -80,7 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     mod = COMMANDS[args.cmd][0]
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JsonLines() if getattr(mod, "JSON_LOGS", False) else
+    json_logs = getattr(mod, "json_logs", None)  # the command decides (dt run: by --log-format), or says JSON_LOGS
+    as_lines = json_logs(args) if json_logs is not None else getattr(mod, "JSON_LOGS", False)
+    handler.setFormatter(JsonLines() if as_lines else
                          logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler])
     as_json = getattr(args, "json", False)

@@ -1,17 +1,25 @@
-"""`dt status`: the daemon's current state and last figures, read from its store."""
+"""`dt status`: the daemon's current state and last figures, read from its store.
+
+A summary an operator reads at a glance: the escalation state and since when, what the daemon did
+(rows, Eq. 17 failures), its last command, correction, MVS measurement and test, in mm with the
+frame each is in and times in local time (or on the simulated clock), the open maintenance
+requests and the operator's actions. `--json`: the store's figures as they are (SI, epoch times).
+"""
 from __future__ import annotations
 
 import argparse
-import json
+import time
 from pathlib import Path
 from typing import Any
 
 from dt_kernel.errors import TwinError
+from dt_kernel.units import MM_PER_M
 
 
 def add_arguments(st: argparse.ArgumentParser) -> None:
     st.add_argument("--store", default="out/run/dt.sqlite", help="the daemon's SQLite store")
-    st.add_argument("--json", action="store_true", help="print one JSON object")
+    st.add_argument("--json", action="store_true",
+                    help="print one JSON object (the raw figures: SI units, epoch times)")
 
 
 def run(args: argparse.Namespace) -> Any:
@@ -23,5 +31,87 @@ def run(args: argparse.Namespace) -> Any:
         return st.last_figures()
 
 
-def human(result: dict) -> str:
-    return json.dumps(result, indent=2)
+def _wall(epoch: float | None) -> str:
+    """A wall-clock time (epoch s) in local time, with how long ago."""
+    if epoch is None:
+        return "never"
+    ago = time.time() - epoch
+    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(epoch))
+    return f"{when} ({_ago(ago)} ago)" if ago >= 0 else when
+
+
+def _ago(s: float) -> str:
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.0f} min" if s < 7200 else f"{s / 3600:.1f} h"
+
+
+def _mm(d: dict, keys: str) -> str:
+    """Three values of a row (m) as 'x 1.234  y ...' in mm; 'none' where not stated."""
+    return "  ".join(f"{a} " + ("none" if d.get(k) is None else f"{d[k] * MM_PER_M:.3f}")
+                     for a, k in zip("xyz", keys.split()))
+
+
+def human(r: dict) -> str:
+    from dt_runtime.service.rows import shown_time
+
+    state = r.get("state") or {}
+    esc = state.get("data") or {}
+    lines = [f"store {r['path']}"]
+    if esc:
+        lines.append(f"escalation state: {esc.get('state')} (episode {esc.get('episode', 0)})"
+                     + (f", halted: {esc['halt_reason']}" if esc.get("halt_reason") else "")
+                     + f"; saved {_wall(state.get('updated'))}")
+    else:
+        lines.append("escalation state: none saved yet (a fresh store)")
+    c, tt = r["counts"], r["t_tests"]
+    failed = f" ({100 * tt['failed'] / tt['n']:.1f} %)" if tt["n"] else ""
+    lines.append(f"rows: {c['commands']} commands, {c['measurements']} MVS measurements, {tt['n']} Eq. 17 tests, "
+                 f"{tt['failed']} failed{failed}; {c['transitions']} transitions"
+                 + (f"; {r['dropped_rows']} rows dropped (store writes failed)" if r.get("dropped_rows") else ""))
+    cmd, corr = r.get("last_command"), r.get("last_correction")
+    if cmd:
+        speed = "" if cmd.get("speed") is None else f" at {cmd['speed'] * MM_PER_M:.0f} mm/s"
+        lines.append(f"last command, {shown_time(cmd['t'])}: target (robot frame) {_mm(cmd, 'x y z')} mm{speed}")
+    if corr and corr.get("ux") is None:
+        lines.append("  sent uncorrected (the correction was not trusted): no uncertainty claimed")
+    elif corr:
+        lines.append(f"  correction applied (command - target, robot frame) {_mm(corr, 'dx dy dz')} mm; "
+                     f"standard uncertainty of the position reached (GL axes) {_mm(corr, 'ux uy uz')} mm")
+    m = r.get("last_measurement")
+    if m:
+        lines.append(f"last MVS measurement, {shown_time(m['t'])}: TCP (MVS frame) {_mm(m, 'x y z')} mm; "
+                     f"e_LT_hat - e_MVS (GL) {_mm(m, 'ex ey ez')} mm")
+    t = r.get("last_tstat")
+    if t:
+        lines.append(f"last Eq. 17 test, {shown_time(t['t'])}: t = {t['t_value']:.2f} on the worst axis, "
+                     + (f"p = {t['p_value']:.3g}, " if t.get("p_value") is not None else "")
+                     + ("passed" if t.get("passed") else "failed"))
+    tr = r.get("last_transition")
+    if tr:
+        lines.append(f"last transition, {shown_time(tr['t'])}: {tr['src']} -> {tr['dst']}"
+                     + _evidence(tr.get("evidence") or {}))
+    lines.append(f"maintenance requests: {r['outbox_pending']} not acknowledged"
+                 + (f", the oldest made {_wall(r['oldest_pending_created'])}" if r.get("oldest_pending_created")
+                    else ""))
+    for q in r.get("requests") or []:
+        lines.append(f"  #{q['id']} to {q.get('group')}, {q.get('kind')}, episode {q.get('episode')}, made "
+                     f"{_wall(q.get('created'))}: " + (f"acknowledged {_wall(q['acked_at'])}" if q.get("acked")
+                                                       else f"not acknowledged ({q.get('attempts', 0)} attempts)")
+                     + (f"; {q['reason']}" if q.get("reason") else ""))
+    for a in r.get("operator_actions") or []:
+        lines.append(f"  operator: {a['kind']} by {a['by']} ({a['source']}), {_wall(a['created'])}: {a['note']}"
+                     + (f"; applied: {a['result']}" if a.get("applied_at") else "; not applied yet"))
+    return "\n".join(lines)
+
+
+def _evidence(e: dict) -> str:
+    """The evidence an operator reads first (the rest: `dt status --json`): the rule that fired,
+    the failures in the window and the CUSUM, a halt's reason, who acknowledged and why."""
+    parts = []
+    if e.get("rule"):
+        parts.append(f"rule {e['rule']}")
+    if e.get("window_len"):
+        parts.append(f"{e.get('window_failures')} of the last {e['window_len']} tests failed, CUSUM "
+                     f"{e.get('cusum', 0):.2f} (limit {e.get('cusum_h')})")
+    parts += [f"halted: {e['halt_reason']}"] if e.get("halt_reason") else []
+    parts += [f"by {e['by']}: {e.get('note', '')}"] if e.get("by") else []
+    return (" (" + "; ".join(parts) + ")") if parts else ""

@@ -28,6 +28,7 @@ from pydantic import Field, model_validator
 
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import DataError
+from dt_runtime.common.outputs import final_path
 from dt_runtime.common.paths import ROOT
 from dt_runtime.common.version import DIST, git_commit, version
 
@@ -47,8 +48,9 @@ def sha256_file(path: str | Path) -> str:
 
 
 def shown_path(path: str | Path) -> str:
-    """How a record names a file: relative to the checkout when inside it, else absolute."""
-    p = Path(path).resolve()
+    """How a record names a file: relative to the checkout when inside it, else absolute; a file
+    of an output still being written names where it will be (`outputs.final_path`)."""
+    p = final_path(path).resolve()
     try:
         return str(p.relative_to(ROOT))
     except ValueError:

@@ -48,6 +48,12 @@ class Chain:
     def dof(self) -> int:
         return len(self.axes)
 
+    @property
+    def reach_m(self) -> float:
+        """An upper bound of the TCP's distance from the base (m): the links' lengths summed (a
+        revolute joint turns a link, never stretches it)."""
+        return float(sum(np.linalg.norm(o[:3, 3]) for o in self.origins) + np.linalg.norm(self.tool[:3, 3]))
+
     def with_tool(self, offset) -> Chain:
         """This chain with the TCP moved by `offset` (m, in the current tool frame): the tool offset
         that `frames.tool_fit` fitted on a chain whose tool is its flange."""

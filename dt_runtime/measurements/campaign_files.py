@@ -36,11 +36,10 @@ import numpy as np
 from dt_kernel.errors import DataError
 from dt_kernel.units import AXES, M_PER_MM, MM_PER_M
 from dt_runtime.frames.kinematics import Chain
-from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header
-from dt_runtime.measurements.checks import joints_vs_commanded
+from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header, refuse_near_misses
+from dt_runtime.measurements.checks import DEGREES_HINT, MAX_JOINT_RAD, joints_vs_commanded, positions_in_mm
 from dt_runtime.measurements.phase import PhaseData
 
-MIN_SPAN_MM = 10.0  # a robot campaign spans more than this: smaller positions are metres
 MAX_ROWS = 2_000_000
 
 _XYZ = ("x", "y", "z")
@@ -93,6 +92,10 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
     if not path.is_file():
         raise DataError(f"{path}: no such campaign file")
     header = read_header(path, ",")
+    names = ["point_id", "rep", "axis", "distance", *_cols("t"), *_XYZ, "speed", "temperature", "payload", "t",
+             *(c for p in ("lt_", "mvs_", "truth_lt_") for c in _cols(p)), *(f"q{j}" for j in range(1, 8))]
+    refuse_near_misses(path, [c for c in header if c not in names and not _QCOL.fullmatch(c)],
+                       [c for c in names if c not in header], "docs/campaign-files.md")
     mm = M_PER_MM
     specs = [ColumnSpec(a, a, scale=mm) for a in _XYZ] + [ColumnSpec("speed", "speed", scale=mm)]
     specs += [ColumnSpec(c, c, scale=mm, required=False) for c in _cols("lt_")]
@@ -130,8 +133,8 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
         if registration and row["axis"] not in AXES:
             fail("axis", f"registration axis must be one of {', '.join(AXES)}")
         for q in qcols:
-            if abs(row[q]) > 2 * np.pi + 0.01:
-                fail(q, "joint angles are in rad (|q| <= 2 pi); this looks like degrees")
+            if abs(row[q]) > MAX_JOINT_RAD:
+                fail(q, DEGREES_HINT)
 
     vals, lines, _, _ = parse_rows(path, ",", ".", specs, row_check=check)
     n = len(lines)
@@ -151,8 +154,8 @@ def read_phase(path: str | Path, phase: str, registration: bool = False) -> Phas
 
     p_rdk = xyz("")
     target = xyz("t") if "tx" in vals else p_rdk.copy()
-    _check_units(path, {"x, y, z": p_rdk, "tx, ty, tz": target, "lt_x, lt_y, lt_z": xyz("lt_"),
-                        "mvs_x, mvs_y, mvs_z": xyz("mvs_")})
+    positions_in_mm({"x, y, z": p_rdk, "tx, ty, tz": target, "lt_x, lt_y, lt_z": xyz("lt_"),
+                     "mvs_x, mvs_y, mvs_z": xyz("mvs_")}, str(path), "campaign files hold positions in mm")
     return PhaseData(
         phase=phase,
         point_id=_ids(vals["point_id"]) if "point_id" in vals else np.arange(1, n + 1),
@@ -174,15 +177,6 @@ def _ids(cells: list[str]) -> np.ndarray:
         return np.array([int(c) for c in cells], dtype=np.int64)
     except (ValueError, OverflowError):  # OverflowError: beyond int64
         return np.array(cells)
-
-
-def _check_units(path: Path, groups: dict[str, np.ndarray]) -> None:
-    """Positions in metres in a mm file: a robot campaign spans more than MIN_SPAN_MM."""
-    for name, P in groups.items():
-        ok = P[np.all(np.isfinite(P), axis=1)]
-        if len(ok) and np.max(np.abs(ok)) * MM_PER_M < MIN_SPAN_MM:
-            raise DataError(f"{path}: columns {name}: largest |value| {np.max(np.abs(ok)) * MM_PER_M:.4g} mm; "
-                            f"this looks like metres (campaign files hold positions in mm)")
 
 
 def check_robot(data: PhaseData, chain: Chain, where: str, tol_m: float = 1e-3) -> None:

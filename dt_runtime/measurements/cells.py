@@ -15,9 +15,11 @@ DataError naming the line (a file without line breaks is not read whole).
 from __future__ import annotations
 
 import csv
+import difflib
 import logging
 import math
-from collections.abc import Callable, Iterator, Sequence
+import re
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -262,6 +264,48 @@ def read_header(path: str | Path, separator: str, encoding: str = "utf-8-sig",
                 sheet: str | int | None = None) -> list[str]:
     """The column names of `path` (CSV; with `sheet` also a spreadsheet, by sheet name or index)."""
     return _open(Path(path), separator, encoding, sheet).header
+
+
+# How close a column name must come to a contract name to be taken for a misspelling of it
+# (difflib's ratio of the two names lowercased without separators: 'sped' / 'speed' 0.89,
+# 'temprature' / 'temperature' 0.95; 'humidity', 'session', 'fixture_temperature' stay far).
+NEAR_MISS_RATIO = 0.8
+
+
+def _folded(name: str) -> str:
+    return re.sub(r"[^0-9a-z]", "", name.lower())
+
+
+def near_miss(column: str, names: Iterable[str]) -> str | None:
+    """The contract name among `names` that `column` most likely misspells, or None: the same
+    name but for case and separators ('Speed', 'point id', 'e_x'), or, for names of three
+    characters and more, a difflib ratio of at least NEAR_MISS_RATIO ('sped' -> 'speed')."""
+    c = _folded(column)
+    best: tuple[float, str] | None = None
+    for name in names:
+        k = _folded(name)
+        if not c:
+            break
+        if c == k:
+            return name
+        if min(len(c), len(k)) >= 3:
+            r = difflib.SequenceMatcher(None, c, k).ratio()
+            if r >= NEAR_MISS_RATIO and (best is None or r > best[0]):
+                best = (r, name)
+    return None if best is None else best[1]
+
+
+def refuse_near_misses(path: str | Path, unknown: Iterable[str], absent: Iterable[str], what: str) -> None:
+    """DataError for the first column of `unknown` (not read as a contract column) that misspells
+    a contract name of `absent` (one the file lacks): a misspelt `sped` must not pass as a column
+    of the user's own while the speed silently drops out. `what`: where the names are documented."""
+    absent = list(absent)
+    for col in unknown:
+        name = near_miss(col, absent)
+        if name is not None:
+            raise DataError(f"{path}: line 1: column {col!r} is not a contract column but looks like {name!r} "
+                            f"({what}): rename it to {name!r}, or give a column of your own a name further "
+                            "from the contract's")
 
 
 def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[ColumnSpec],

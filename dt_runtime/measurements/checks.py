@@ -11,6 +11,10 @@ error a thousandfold. Two checks catch them and say which unit is likely wrong:
 - `plausible_ranges`: speed > 0 and at most 10 m/s, payload in [0, 1000] kg, temperature in
   [-50, 150] deg C, commanded positions within 5 m of the base: a value outside names its column,
   its row and the allowed range.
+
+Two need no robot config and run on every table, campaign file and program: `positions_in_mm`
+(a robot's positions span more than MIN_SPAN_MM: a file whose largest |x|, |y|, |z| is smaller
+holds metres) and `joints_in_radians` (no joint angle beyond a turn and a bit, MAX_JOINT_RAD).
 """
 from __future__ import annotations
 
@@ -30,6 +34,34 @@ RANGES = {
 }
 MAX_REACH_M = 5.0
 MAX_ERROR_M = 1.0  # a positioning "error" of a metre is a wrong file or unit, not an arm's error
+MIN_SPAN_MM = 10.0  # a robot's positions span more than this: smaller ones are metres
+# Radians: a joint angle beyond a turn and a bit (an arm's joints turn at most +-2 pi) is in degrees.
+MAX_JOINT_RAD = 2 * np.pi + 0.01
+DEGREES_HINT = "joint angles are in rad (|q| <= 2 pi); this looks like degrees"
+
+
+def positions_in_mm(groups: dict[str, np.ndarray], where: str,
+                    expected: str = "the file holds positions in mm") -> None:
+    """DataError when a group of positions (SI, read from a file in mm) looks like metres: its
+    largest |value| is below MIN_SPAN_MM. `groups`: the columns' names ("x, y, z") -> (n, 3) m."""
+    for name, P in groups.items():
+        P = np.asarray(P, dtype=float)
+        ok = P[np.all(np.isfinite(P), axis=1)]
+        if len(ok) and np.max(np.abs(ok)) * MM_PER_M < MIN_SPAN_MM:
+            raise DataError(f"{where}: columns {name}: largest |value| {np.max(np.abs(ok)) * MM_PER_M:.4g} mm; "
+                            f"this looks like metres ({expected})")
+
+
+def joints_in_radians(q: np.ndarray | None, where: str) -> None:
+    """DataError naming the first joint column, row and value beyond MAX_JOINT_RAD (degrees)."""
+    if q is None:
+        return
+    q = np.asarray(q, dtype=float)
+    bad = np.argwhere(np.isfinite(q) & (np.abs(q) > MAX_JOINT_RAD))
+    if bad.size:
+        i, j = (int(k) for k in bad[0])
+        raise DataError(f"{where}: column 'q{j + 1}', data row {i + 1}: {q[i, j]:g}: {DEGREES_HINT} "
+                        f"({len(np.unique(bad[:, 0]))} rows beyond {MAX_JOINT_RAD:.4f} rad)")
 
 
 @dataclass(frozen=True)
@@ -120,8 +152,10 @@ def plausible_ranges(columns: dict[str, np.ndarray | None], commanded: np.ndarra
 
 
 def check_dataset(ds, chain: Chain | None, where: str | None = None, refuse_m: float = 0.02) -> dict:
-    """Both checks on a Dataset (ranges always; joints with a robot config and joint columns).
-    Returns the facts for the result's `source` block: {'joint_check': {...}} or {}."""
+    """The checks on a Dataset: ranges and units (positions in mm, joints in rad) always; joints
+    against the commanded TCP with a robot config and joint columns (first: its message names the
+    likely mistake more precisely). Returns the facts for the result's `source` block:
+    {'joint_check': {...}} or {}."""
     where = where or ds.source
     plausible_ranges({"speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature}, ds.commanded, where)
     big = np.flatnonzero(np.abs(np.asarray(ds.error, dtype=float)).max(axis=1) > MAX_ERROR_M)
@@ -130,7 +164,9 @@ def check_dataset(ds, chain: Chain | None, where: str | None = None, refuse_m: f
         raise DataError(f"{where}: the error (ex, ey, ez or commanded - measured), data row {i + 1}: "
                         f"{np.asarray(ds.error[i]) * MM_PER_M} mm exceeds {MAX_ERROR_M * MM_PER_M:g} mm: not a "
                         f"positioning error (a wrong value, unit or frame; {big.size} rows)")
-    if chain is None or ds.joints is None:
-        return {}
-    jc = joints_vs_commanded(ds.joints, ds.commanded, chain, where, refuse_m)
+    jc = None if chain is None or ds.joints is None else joints_vs_commanded(ds.joints, ds.commanded, chain, where,
+                                                                             refuse_m)
+    positions_in_mm({"x, y, z": ds.commanded}, where, "the table holds positions in mm; a file in metres is read "
+                    "through an import mapping with `units: {position: m}`")
+    joints_in_radians(ds.joints, where)
     return {} if jc is None else {"joint_check": jc.to_dict()}

@@ -27,7 +27,15 @@ import numpy as np
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM
 from dt_runtime.common.safe_json import read_json
-from dt_runtime.measurements.cells import ColumnSpec, SkippedRow, cell_error, numeric_columns, parse_rows, read_header
+from dt_runtime.measurements.cells import (
+    ColumnSpec,
+    SkippedRow,
+    cell_error,
+    numeric_columns,
+    parse_rows,
+    read_header,
+    refuse_near_misses,
+)
 
 log = logging.getLogger(__name__)
 
@@ -165,11 +173,18 @@ def read_table(path: str | Path, skip_bad: bool = False) -> Dataset:
     """Read a contract measurement table (mm in the file, SI in the Dataset).
 
     Needs x, y, z and either ex, ey, ez or mx, my, mz (both: they must agree to 1 um and
-    the error is taken from ex..ez). Unknown columns are ignored with a warning. `t` must not
+    the error is taken from ex..ez). Columns outside the contract are kept in `extra` if numeric
+    (ignored with a warning if not), but one that misspells a contract column the file lacks
+    ('sped', 'Temperature', 'point id') is a DataError naming the contract name. `t` must not
     decrease; a row where it does is a bad row.
     """
     path = Path(path)
     header = read_header(path, ",")
+    contract = [*XYZ, *ERROR_COLS, *MEASURED_COLS, *U_COLS, *SCALAR_COLS, *ID_COLS]
+    joints_given = [c for c in header if _JOINT_RE.match(c)]
+    refuse_near_misses(path, [c for c in header if c not in contract and c not in joints_given],
+                       [c for c in [*contract, *(f"q{i}" for i in range(1, 8))] if c not in header],
+                       "docs/measurement-table.md")
     specs = [ColumnSpec(c, c, scale=M_PER_MM) for c in XYZ]
     has_e = all(c in header for c in ERROR_COLS)
     has_m = all(c in header for c in MEASURED_COLS)

@@ -71,9 +71,9 @@ from dt_kernel.errors import ConfigError, DriverError, TwinError
 from dt_runtime.service import sdnotify
 from dt_runtime.service.bus import Bus, CorrectionServer
 from dt_runtime.service.bus.publisher import new_requests
-from dt_runtime.service.correction import CorrectionFault, Corrector, Monitor
+from dt_runtime.service.correction import Corrected, CorrectionFault, Corrector, Monitor
 from dt_runtime.service.escalation import PAGING, Escalator
-from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
+from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow, shown_time
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,
     Fault,
@@ -92,11 +92,14 @@ from dt_runtime.twin.simulate import load_scenario_file
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
+status_log = logging.getLogger("dt.run.status")  # the operator's periodic one-line status
 
 
 class Daemon:
-    def __init__(self, cfg: RuntimeConfig, base: Path, world=None, source: str = "<runtime config>"):
+    def __init__(self, cfg: RuntimeConfig, base: Path, world=None, source: str = "<runtime config>",
+                 status_every_s: float | None = None):
         self.cfg, self.base, self.source = cfg, base, source  # source: names the runtime YAML in errors
+        self.status_every_s = status_every_s  # the operator's status line on stderr (`status_line`), or None
         self._closers: list[Callable[[], Any]] = []  # what is open, closed in reverse on failure
         try:
             self._start(world)
@@ -168,6 +171,8 @@ class Daemon:
         self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
         self._last_tick_wall: float | None = None
         self._last_tick_mono = float("-inf")  # the watchdog is fed from READY on
+        self._last_corrected: tuple[float, Corrected] | None = None  # (t, the last command sent), for status_line
+        self._status_mark = (time.monotonic(), 0)  # (when, ticks) of the last status line: its rate
         self._notify_lock = threading.Lock()  # STOPPING=1 is the last message systemd gets
         self._stopping = False
         self._health_key: tuple | None = None
@@ -371,6 +376,29 @@ class Daemon:
                 "bus_last_refused": self.bus.last_refused if self.bus else None,
                 "pid": os.getpid(), "t": time.time()}
 
+    def status_line(self) -> tuple[str, dict[str, Any]]:
+        """The operator's one line (`dt run` logs it every `status_every_s`): ticks and their rate
+        since the last line, status and escalation state, the time of the last command and the
+        expanded uncertainty (95 %) of the position it reached; and the same as fields."""
+        now, ticks = time.monotonic(), self.ticks
+        then, before = self._status_mark
+        self._status_mark = (now, ticks)
+        rate = (ticks - before) / (now - then) if now > then else 0.0
+        status, reason = self._status()
+        f: dict[str, Any] = {"ticks": ticks, "rate_hz": round(rate, 2), "status": status, "reason": reason,
+                             "escalation": self.escalator.state, "t_test_failures": self.failures}
+        text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
+            f", escalation {self.escalator.state}, Eq. 17 failed {self.failures}"
+        last = self._last_corrected
+        if last is None:
+            return text + ", no command yet", f
+        t, corr = last
+        U = [round(float(u) * 1e3, 4) for u in corr.U_tcp] if np.all(np.isfinite(corr.U_tcp)) else None
+        f |= {"last_t": t, "U95_mm": U, "inside": corr.inside}
+        return (text + f", last command {shown_time(t)}, U95 "
+                + ("x/y/z " + "/".join(f"{u:.3f}" for u in U) + " mm" if U else "none (sent uncorrected)")
+                + ("" if corr.inside else " (outside the calibrated volume)")), f
+
     def _driver_counters(self) -> dict[str, dict]:
         """Each driver's own counters, for those that keep them (`counters()`, no I/O: an RTDE
         link's drops and reconnections, NatNet frames lost and late): a fault the driver
@@ -410,6 +438,7 @@ class Daemon:
     def _housekeep(self) -> None:
         period = self.cfg.bus.health_period_s
         next_health = next_prune = time.monotonic()
+        next_status = next_health + (self.status_every_s or 0.0)
         watchdog = sdnotify.watchdog_period()
         while not self._stop.is_set():
             now = time.monotonic()
@@ -422,6 +451,10 @@ class Daemon:
                 if now >= next_prune:
                     next_prune = now + self.cfg.retention.every_s
                     self.prune()
+                if self.status_every_s and now >= next_status:
+                    next_status = now + self.status_every_s
+                    text, fields = self.status_line()
+                    status_log.info("%s", text, extra={"fields": fields})
             except TwinError as exc:  # the store or bus is down: keep trying
                 log.warning("housekeeping: %s", exc)
             except Exception:  # noqa: BLE001 - a defect here must not end paging or the watchdog
@@ -431,7 +464,7 @@ class Daemon:
             with self._notify_lock:
                 if watchdog and not self._stopping and time.monotonic() - self._last_tick_mono < watchdog:
                     sdnotify.notify("WATCHDOG=1")
-            self._poll_now.wait(min(0.5, period, watchdog / 2 if watchdog else 0.5))
+            self._poll_now.wait(min(0.5, period, watchdog / 2 if watchdog else 0.5, self.status_every_s or 0.5))
             self._poll_now.clear()
 
     def _stop_housekeeping(self) -> None:
@@ -531,6 +564,7 @@ class Daemon:
         x, y, z = corr.target
         self.store.put(CommandRow(t, x, y, z, speed=v))
         self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
+        self._last_corrected = (t, corr)
         camera = self.inst.camera
         assert camera is not None  # _make_instruments always builds one (drivers.camera names a driver)
         reading = read_exposed_after(camera, arrived)  # a streamed frame exposed mid-move saw the arm elsewhere
@@ -696,12 +730,13 @@ class Daemon:
         self._close_opened()
 
 
-def run_daemon(config: str | Path, duration_s: float | None = None) -> dict:
+def run_daemon(config: str | Path, duration_s: float | None = None, status_every_s: float | None = None) -> dict:
     """`dt run`: start (a failure raises with everything closed), run until the duration ends or
-    SIGTERM/SIGINT, stop within `stop_timeout_s` whatever a device does."""
+    SIGTERM/SIGINT, stop within `stop_timeout_s` whatever a device does; the status line every
+    `status_every_s` (None: never)."""
     config = Path(config)
     cfg = load_runtime_config(config)
-    d = Daemon(cfg, config.parent, source=str(config))
+    d = Daemon(cfg, config.parent, source=str(config), status_every_s=status_every_s)
     deadline: list[threading.Timer] = []
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -712,14 +747,17 @@ def run_daemon(config: str | Path, duration_s: float | None = None) -> dict:
             timer.start()
             deadline.append(timer)
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    # The handlers hold this daemon: put the caller's back when it is closed (a later signal to a
+    # process that ran `dt run` in-process, a test, must not stop a daemon that is gone).
+    before = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         return d.run(duration_s)
     finally:
         d.close()
         for timer in deadline:
             timer.cancel()
+        for s, handler in before.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def _exit_hard(after_s: float) -> None:

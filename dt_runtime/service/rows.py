@@ -7,6 +7,7 @@ are the table's column names, in order. Units: SI (m, m/s); `t` is the caller's 
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from functools import cache
@@ -79,7 +80,8 @@ class CorrectionRow(Row):
 
 @dataclass(frozen=True, slots=True)
 class MeasurementRow(Row):
-    """Measured TCP (m) and error e = commanded - measured (m)."""
+    """A measured TCP (m) and its difference from the prediction (m): the daemon stores the MVS
+    point in the MVS frame and e_LT_hat - e_MVS in GL, what Eq. 17 tests (`dt status` names them)."""
 
     TABLE: ClassVar[str] = "measurements"
     t: float
@@ -103,6 +105,14 @@ class TTestRow(Row):
     p_value: float | None = None
     passed: bool | None = None
     data: Mapping[str, Any] | None = None
+
+
+def shown_time(t: float) -> str:
+    """A row's time stamp `t` as an operator reads it: local time when it is a wall-clock time
+    (epoch seconds: a daemon with `realtime: true`), else seconds of the simulated clock."""
+    if t > 1e9:  # 2001-09-09 or later: the wall clock; a simulated clock never gets there
+        return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 10)}"
+    return f"t = {t:.1f} s (simulated clock)"
 
 
 ROW_TYPES: dict[str, type[Row]] = {c.TABLE: c for c in (CommandRow, CorrectionRow, MeasurementRow, TTestRow)}

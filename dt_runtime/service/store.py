@@ -567,6 +567,8 @@ class Store:
             "counts": {t: self.count(t) for t in (*_HIGH_RATE, "transitions", "outbox")},
             "buffered_rows": len(self._queue) + len(self._pending),
             "dropped_rows": self.dropped_rows,
+            "last_command": last("commands", "t, x, y, z, speed"),
+            "last_correction": last("corrections", "t, dx, dy, dz, ux, uy, uz"),
             "last_measurement": last("measurements", "t, x, y, z, ex, ey, ez"),
             "last_tstat": last("t_stats", "t, t_value, dof, p_value, passed"),
             "t_tests": {"n": int(tstats[0] or 0), "failed": int(tstats[1] or 0)},

@@ -23,6 +23,7 @@ import yaml
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import DataError
 from dt_runtime.common.jsonsafe import jsonable
+from dt_runtime.common.outputs import final_path
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, files_under, load_instruments
 from dt_runtime.common.provenance import build as build_provenance
@@ -182,16 +183,16 @@ def calibrate_campaign(files: CampaignFiles, options: CalibrationOptions, out: s
                             robot_name=chain.name if chain is not None else None,
                             instruments=instruments, temperature=temps[np.isfinite(temps)])
     c.twin.provenance = prov
-    summary = {"campaign": str(files.manifest or files.doe), **figures(c)}
+    summary = {"campaign": str(final_path(files.manifest or files.doe)), **figures(c)}
     v = validation(c, campaign.validation) if campaign.validation is not None else None
     if v is not None:
         summary["validation"] = v.summary()
-    summary["validity"] = validity_of(c, v, str(files.manifest.parent) if files.manifest else None)
+    summary["validity"] = validity_of(c, v, str(final_path(files.manifest.parent)) if files.manifest else None)
     summary["units"] = "mm; errors e = commanded - measured, in the global frame GL"
     summary["provenance"] = prov.to_dict()
     out = Path(out)
     c.twin.save(out)
-    summary["twin"] = str(out)
+    summary["twin"] = str(final_path(out))  # not the staged directory it is written in (common.outputs)
     (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=2))
     progress.note(f"wrote the twin in {out}")
     return CalibrationRun(summary, arrays(c), c)

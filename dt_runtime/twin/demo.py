@@ -22,6 +22,7 @@ from drivers.simulated.devices import SimWorld
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import ConfigError
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.common.outputs import final_path
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, Provenance
@@ -151,9 +152,10 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
         twin.save(out / "model")
         result = _summarise(plan_cfg, quick, c, val_plain, val_corr, corrections, world, time.monotonic() - t0,
                             reg_data.refusals + doe_data.refusals + val_plain.refusals + val_corr.refusals,
-                            provenance=prov, checks=checks, campaign=str(out / "campaign"))
-        result.summary["campaign"] = str(files.manifest)
-        result.summary["twin"] = str(out / "model")
+                            provenance=prov, checks=checks, campaign=str(final_path(out / "campaign")))
+        # where the files will be once the output is swapped in (the command line stages it: common.outputs)
+        result.summary["campaign"] = str(final_path(files.manifest or files.doe))
+        result.summary["twin"] = str(final_path(out / "model"))
     finally:
         inst.close()
         world.close()

@@ -11,6 +11,14 @@ them), and any other numeric column a map's declared effect reads (`humidity`: d
 columns and adds `cx, cy, cz` (the command, mm),
 `Ux, Uy, Uz` (mm, 95 %, per GL axis), `inside` (1 or 0) and `distance_mm` (signed distance of
 the command to the DOE hull, negative inside).
+
+What is refused, before anything is corrected (a DataError naming file, column or target; `dt
+correct` then writes nothing): a column that misspells a program column ('sped', 'Temperature'),
+positions that look like metres, joint angles that look like degrees, implausible speeds,
+payloads and temperatures (`measurements.checks`), and targets outside the workspace: beyond the
+arm's reach (its robot config's links summed) or, for a twin without a robot config, farther than
+FAR_OUTSIDE_M from its calibrated volume. A target inside the workspace but outside the calibrated
+volume is corrected and flagged (`inside` 0, a larger U); `--refuse-outside` refuses it too.
 """
 from __future__ import annotations
 
@@ -20,13 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
-from dt_kernel.errors import DataError
+from dt_kernel.errors import DataError, TwinError
 from dt_kernel.units import M_PER_MM, MM_PER_M
-from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header
+from dt_runtime.measurements.cells import CellError, ColumnSpec, parse_rows, read_header, refuse_near_misses
+from dt_runtime.measurements.checks import DEGREES_HINT, MAX_JOINT_RAD, plausible_ranges, positions_in_mm
 from dt_runtime.twin.conditions import SOURCES, Conditions, missing
 from dt_runtime.twin.twin import Correction, Twin
 
 MAX_TARGETS = 1_000_000  # a program is read whole: bound what that may cost
+# Without a robot config the twin knows its workspace only as its calibrated volume: a target this
+# far outside it (m) is not in the cell (wrong frame, wrong unit, a typo), not an extrapolation.
+FAR_OUTSIDE_M = 0.5
+PROGRAM_COLUMNS = ("x", "y", "z", "speed", "point_id", "temperature", "payload", "t")
 
 
 @dataclass(frozen=True)
@@ -40,6 +53,7 @@ class Program:
     t: np.ndarray | None = None  # (n,) s
     joints: np.ndarray | None = None  # (n, dof) rad, where the arm stands before each target
     extra: dict[str, np.ndarray] | None = None  # (n,) each: the columns the user's declared effects read
+    source: str = "<program>"  # the file it was read from, for messages
 
     def conditions(self, i: int, base: Conditions | None = None) -> Conditions:
         """Target i's conditions: the program's columns, else `base`'s (e.g. the sensors')."""
@@ -71,9 +85,12 @@ def read_program(path: str | Path, needs: tuple[str, ...] = ()) -> Program:
         specs.append(ColumnSpec("point_id", "point_id", kind="str"))
     opt = [k for k in ("temperature", "payload", "t") if k in header]
     qcols = [f"q{j}" for j in range(1, 13) if f"q{j}" in header]
-    known = {"x", "y", "z", "speed", "point_id", "temperature", "payload", "t", "joints"}
+    known = {*PROGRAM_COLUMNS, "joints"}
     own = [k for k in needs if k not in known and k in header]
     specs += [ColumnSpec(k, k) for k in opt + qcols + own]
+    names = [*PROGRAM_COLUMNS, *(f"q{j}" for j in range(1, 8)), *(k for k in needs if k != "joints")]
+    refuse_near_misses(path, [c for c in header if c not in names and c not in qcols],
+                       [c for c in names if c not in header], "dt correct's program columns: docs/cli.md")
 
     def fail(column: str, why: str) -> None:
         err = CellError(why)
@@ -85,9 +102,9 @@ def read_program(path: str | Path, needs: tuple[str, ...] = ()) -> Program:
             fail("speed", "speed must be > 0 mm/s")
         if "payload" in row and not row["payload"] >= 0:
             fail("payload", "payload must be >= 0 kg")
-        for q in qcols:  # radians: a joint angle beyond a turn and a bit is in degrees
-            if abs(row[q]) > 2 * np.pi + 0.01:
-                fail(q, "joint angles are in rad; this looks like degrees")
+        for q in qcols:
+            if abs(row[q]) > MAX_JOINT_RAD:
+                fail(q, DEGREES_HINT)
 
     vals, lines, _, _ = parse_rows(path, ",", ".", specs, row_check=check)
     n = len(lines)
@@ -99,10 +116,40 @@ def read_program(path: str | Path, needs: tuple[str, ...] = ()) -> Program:
     def col(k: str) -> np.ndarray | None:
         return np.asarray(vals[k], float) if k in vals else None
 
-    return Program(np.column_stack([vals[k] for k in ("x", "y", "z")]), np.asarray(vals["speed"], float), ids,
+    target = np.column_stack([vals[k] for k in ("x", "y", "z")])
+    positions_in_mm({"x, y, z": target}, str(path), "a program holds positions in mm, robot frame")
+    plausible_ranges({"speed": col("speed"), "payload": col("payload"), "temperature": col("temperature")},
+                     target, str(path))
+    return Program(target, np.asarray(vals["speed"], float), ids,
                    list(lines), col("temperature"), col("payload"), col("t"),
                    np.column_stack([vals[q] for q in qcols]) if qcols else None,
-                   {k: np.asarray(vals[k], float) for k in own} or None)
+                   {k: np.asarray(vals[k], float) for k in own} or None, str(path))
+
+
+def check_workspace(twin: Twin, program: Program, where: str) -> None:
+    """DataError naming the targets outside the workspace: beyond the arm's reach (the twin's
+    robot config), or, for a twin without one, farther than FAR_OUTSIDE_M from its calibrated
+    volume. Such a target is not an extrapolation the twin can state an uncertainty for."""
+    try:
+        chain = twin.e_lt.chain()
+    except TwinError:  # the robot config is gone: the calibrated volume still bounds the cell
+        chain = None
+    if chain is not None:
+        far = np.linalg.norm(program.target, axis=1)
+        limit, what = chain.reach_m, f"the arm's reach ({chain.reach_m * MM_PER_M:.0f} mm from its base, robot " \
+                                     f"config {chain.name}: its links summed)"
+    elif twin.volume is not None:
+        far = twin.volume.distance(program.target)
+        limit, what = FAR_OUTSIDE_M, (f"the workspace: more than {FAR_OUTSIDE_M * MM_PER_M:.0f} mm outside the "
+                                      "twin's calibrated volume (a twin without a robot config)")
+    else:
+        return
+    bad = np.flatnonzero(far > limit)
+    if bad.size:
+        first = ", ".join(f"{program.point_id[i]} (line {program.line[i]}: "
+                          f"{np.round(program.target[i] * MM_PER_M, 1).tolist()} mm)" for i in bad[:3])
+        raise DataError(f"{where}: {bad.size} of {program.n} targets lie beyond {what}: {first}"
+                        f"{' ...' if bad.size > 3 else ''}; targets are in mm in the robot frame")
 
 
 def correct_program(twin: Twin, program: Program) -> list[Correction]:
@@ -115,7 +162,14 @@ def correct_program(twin: Twin, program: Program) -> list[Correction]:
                         f"({', '.join('q1..q6' if n == 'joints' else n for n in lack)})"
                         + (f"; {', '.join(own)}: read by the map's declared effect(s) "
                            f"{', '.join(declared_readers(twin, own))}" if own else ""))
-    return [twin.correct(t, v, program.conditions(i)) for i, (t, v) in enumerate(zip(program.target, program.speed))]
+    check_workspace(twin, program, program.source)
+    out = [twin.correct(t, v, program.conditions(i)) for i, (t, v) in enumerate(zip(program.target, program.speed))]
+    for i, c in enumerate(out):  # a map that returns NaN or inf there: refused, not written
+        if not (np.all(np.isfinite(c.command)) and np.all(np.isfinite(c.U))):
+            raise DataError(f"{program.source}: target {program.point_id[i]} (line {program.line[i]}): the twin "
+                            f"gives no finite correction there (command {np.round(c.command * MM_PER_M, 3).tolist()} "
+                            f"mm, U {np.round(c.U * MM_PER_M, 3).tolist()} mm)")
+    return out
 
 
 def declared_readers(twin: Twin, columns: list[str]) -> list[str]:
