@@ -1,5 +1,5 @@
 """`python -m benchmarks.blas_threads [--json] [--baseline-timeout S]`: the docs/library.md session
-(what a library user pastes; tests/test_library_example.py runs it) on a loaded machine, in a
+(what a library user pastes; tests/integration/test_library_example.py runs it) on a loaded machine, in a
 fresh process started as a user's script would be: no DT_BLAS_THREADS, no OPENBLAS_NUM_THREADS,
 so OpenBLAS is free to use a thread per core.
 
@@ -29,7 +29,7 @@ from pathlib import Path
 from benchmarks._common import cli, emit
 
 ROOT = Path(__file__).resolve().parents[1]
-# The child: the page as a doctest from the repository's root (as tests/test_library_example.py),
+# The child: the page as a doctest from the repository's root (as tests/integration/test_library_example.py),
 # printing its own wall and CPU time.
 SESSION = """
 import doctest, json, time

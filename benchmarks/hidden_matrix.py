@@ -1,6 +1,6 @@
 """`python -m benchmarks.hidden_matrix [--json] [--effects a,b] [--starts paper,geometric,gp-joints]
 [--seed N] [--clean-seeds K] [--points P] [--passes R]`: `dt diagnose --auto` on hidden effects
-from a generator that is not the project's plant (issue 13): tests/ur10_generator.py, a UR10 from
+from a generator that is not the project's plant (issue 13): tests/support/ur10_generator.py, a UR10 from
 its published DH table with its own forward kinematics, geometric errors, random path orders, a
 structure lagging the air temperature by 20-40 min, payload compliance through the real gravity
 torque, gear, backlash, drift, and a clean control.
@@ -27,7 +27,7 @@ from benchmarks._common import cli
 from dt_runtime.analysis.diagnose import diagnose
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.models.hybrid import HybridModel
-from tests import ur10_generator as gen
+from tests.support import ur10_generator as gen
 
 UR10 = CONFIGS / "robots" / "ur10.yaml"
 STARTS = {"paper": ((), "tcp_speed"), "geometric": (("geometric",), "tcp_speed"), "gp-joints": ((), "joints")}

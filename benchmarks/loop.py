@@ -43,7 +43,7 @@ from benchmarks._common import cli
 from dt_runtime.cli.main import main as dt_main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
-from tests.emulated_cell_process import cell_process
+from tests.support.emulated_cell_process import cell_process
 
 
 def _port() -> int:

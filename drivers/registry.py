@@ -27,7 +27,7 @@ A class is imported only when its driver is chosen, so a plugin that does not im
 then, with a ConfigError naming the plugin, its package and the import error. Two packages
 giving one name to different classes is a ConfigError naming both when that name is used.
 
-`BUILTIN` mirrors pyproject.toml's entry points (tests/test_registry.py checks they agree): an
+`BUILTIN` mirrors pyproject.toml's entry points (tests/integration/test_registry.py checks they agree): an
 editable checkout whose installed metadata predates them (entry points are installed metadata:
 `pip install -e .` writes them) still finds its own drivers.
 """

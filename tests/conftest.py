@@ -1,6 +1,6 @@
 """Suite-wide setup: BLAS on one thread, as the `dt` command line runs (dt_runtime.common.threads),
 and the diagnosis in this process (DT_WORKERS=1: `dt diagnose` called in process would otherwise
-start a worker per core; tests/test_diagnose_parallel.py checks the workers on their own)."""
+start a worker per core; tests/integration/test_diagnose_parallel.py checks the workers on their own)."""
 import os
 
 from dt_runtime.common.threads import limit_blas_threads
@@ -39,10 +39,18 @@ def quick_demo(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def twin_dir(quick_demo):
+    """The quick demo's twin (DIR/model), the one twin the service and bus tests run; read only."""
+    rc, _, out = quick_demo
+    assert rc == 0
+    return out / "model"
+
+
+@pytest.fixture(scope="session")
 def ur_natnet_cell():
     """`python -m drivers.emulated_cell` (UR, NatNet, serial tracker over one plant), 20x faster
     than real time, for the session's end-to-end tests."""
-    from tests.emulated_cell_process import cell_process
+    from tests.support.emulated_cell_process import cell_process
 
     with cell_process("--time-scale", "0.05", "--seed", "1") as cell:
         yield cell
@@ -52,6 +60,6 @@ def ur_natnet_cell():
 def ur_natnet_campaign(ur_natnet_cell, tmp_path_factory):
     """`dt campaign` through the emulated cell (registration + 60 DOE rows): (exit code, its
     JSON, a runtime YAML whose twin it is)."""
-    from tests.emulated_cell_process import campaign
+    from tests.support.emulated_cell_process import campaign
 
     return campaign(ur_natnet_cell, tmp_path_factory.mktemp("ur_natnet"))

@@ -65,7 +65,7 @@ def _is_module(name: str, root: Path) -> bool:
 def import_lines(source: str, module: str, is_package: bool) -> list[tuple[int, str, list[str]]]:
     """(line, imported module, names imported from it) of every import statement in `source`,
     lazy ones inside functions included, relative imports resolved against `module`. The one
-    import walker: tests/test_architecture.py checks the layer rules with it."""
+    import walker: tests/unit/test_architecture.py checks the layer rules with it."""
     out: list[tuple[int, str, list[str]]] = []
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Import):
@@ -120,9 +120,9 @@ def sort_key(node: str) -> tuple[int, int, str]:
 
 
 def _layers() -> tuple[str, ...]:
-    """dt_runtime's layers, lowest first, as tests/test_architecture.py declares them."""
+    """dt_runtime's layers, lowest first, as tests/unit/test_architecture.py declares them."""
     try:
-        tree = ast.parse((ROOT / "tests" / "test_architecture.py").read_text(encoding="utf-8"))
+        tree = ast.parse((ROOT / "tests" / "unit" / "test_architecture.py").read_text(encoding="utf-8"))
         for n in tree.body:
             if isinstance(n, ast.Assign) and any(getattr(t, "id", "") == "LAYERS" for t in n.targets):
                 return tuple(ast.literal_eval(n.value))

@@ -3,7 +3,7 @@
 Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`drivers.ur.emulator`).
 References: Universal Robots, "Real-Time Data Exchange (RTDE) Guide"; checked against UR's own
 Python client (RTDE_Python_Client_Library, `rtde/serialize.py`) and the `ur_rtde` package
-(tests/test_ur_rtde.py connects its receive interface to our emulator).
+(tests/integration/test_ur_rtde.py connects its receive interface to our emulator).
 
 Package (every direction, big-endian, "network byte order")::
 

@@ -20,7 +20,7 @@ rows for theta (3n < 2 (3 + p)) the offset alone is fitted (the mean of R_f^T (p
 = n I) and `fitted_from` says so.
 
 Shortfall: the offset also shares directions with combinations of the other joints' errors (on
-the synthetic Panda, tests/test_tool_fit.py, arm errors of 0.3-0.6 mm RMS: up to 0.03 mm across
+the synthetic Panda, tests/unit/test_tool_fit.py, arm errors of 0.3-0.6 mm RMS: up to 0.03 mm across
 and 0.06 mm along the flange's axis, up to several times the stated u, which holds for noise alone). The geometric
 effect's tool terms take up what is left when the model is fitted.
 

@@ -7,7 +7,7 @@ compliance, gear, backlash, thermal, dynamic, drift. Each `Effect` subclass decl
 the data columns it reads, whether it needs the robot's kinematic chain and the factor the
 diagnose verdict names, and builds its regressor block. Adding an effect: one module with one
 `Effect` subclass, one entry in `REGISTRY`, one test (the simulator's scenario must know the
-same name: tests/test_effects_registry.py). The user's own effects (declared in YAML or from a
+same name: tests/unit/test_effects_registry.py). The user's own effects (declared in YAML or from a
 package's entry point, `models.effects.declared`) are registered beside the catalogue.
 
     from dt_runtime.models import effects
