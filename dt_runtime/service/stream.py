@@ -1,0 +1,224 @@
+"""The streaming loop: a path's set-points corrected and handed to the controller at its rate
+(issue 23, item 2).
+
+`run_stream` is the loop itself: set-point k is sent at its scheduled time t0 + k / rate (an
+absolute schedule: a late tick does not shift the ones after it), and set-point k + 1 is corrected
+right after, in the slack before its own time, so the correction's cost never delays a send. The
+wait is a sleep to `spin_s` before the deadline and then a spin on the monotonic clock (a sleep
+alone wakes 0.05-1 ms late); the garbage collector is held off while it runs (a collection is a
+pause of milliseconds). Nothing in the loop touches the store, the bus or the camera: the caller
+gets the report, and a `progress` callable (a shared counter, never blocking) if it wants one.
+
+`StreamProcess` runs the loop in its own process, so the GIL of the daemon (its bus, store and
+camera threads) cannot stall it: the child builds the corrector and the driver from picklable
+factories, asks for real-time scheduling (SCHED_FIFO, when the user may: `realtime` in the report
+says whether it got it; see docs/streaming.md for granting it), streams, and sends the report
+back. Its progress (set-points sent) is a shared integer the parent reads without a lock.
+
+Units: SI (m, s).
+"""
+from __future__ import annotations
+
+import contextlib
+import gc
+import multiprocessing as mp
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from dt_kernel.errors import DriverError, TwinError
+
+Corrector = Callable[[np.ndarray, float], np.ndarray]  # (target m, t s) -> command m
+
+
+@dataclass
+class StreamReport:
+    """What a streamed path did. Times in ms or us as named; `lateness_*`: send time minus its
+    scheduled time; `jitter_*`: the period between two sends minus the nominal period."""
+
+    target_hz: float
+    n_planned: int
+    n_sent: int
+    rate_hz: float  # set-points sent per second of the stream's duration
+    lateness_p99_ms: float
+    lateness_max_ms: float
+    jitter_p99_ms: float
+    jitter_max_ms: float
+    overruns: int  # ticks that started more than one period after their scheduled time
+    correction_us_mean: float
+    correction_us_p99: float
+    send_us_p99: float
+    stopped: str = ""  # why the stream ended early ("" when every set-point was sent)
+    realtime: bool = False  # the loop ran with real-time scheduling
+    commands: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)  # (n_sent, 3) m
+    sent_at: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # (n_sent,) s from t0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k not in ("commands", "sent_at")}
+
+
+@contextlib.contextmanager
+def _gc_held() -> Iterator[None]:
+    was = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+def _p99(x: np.ndarray) -> float:
+    return float(np.percentile(x, 99)) if x.size else float("nan")
+
+
+def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, driver: Any, rate_hz: float,
+               lookahead_s: float = 0.1, gain: float = 300.0, spin_s: float = 3e-4,
+               progress: Callable[[int], None] | None = None, clock: Callable[[], float] = time.perf_counter,
+               paced: bool = True) -> StreamReport:
+    """Stream `targets` (n, 3), m, meant for `times` (n,), s, each corrected by `correct`, to a
+    driver that declares drivers.base.SetpointStreamer, at `rate_hz` (the controller's rate: the
+    set-points must be on that grid). `paced=False` sends as fast as the loop can (the baseline a
+    benchmark sets the paced rate against). A DriverError from the driver (protective stop, the
+    controller's watchdog) ends the stream early with its reason in `stopped`."""
+    times, targets = np.asarray(times, dtype=float), np.asarray(targets, dtype=float)
+    n = times.size
+    if targets.shape != (n, 3) or n == 0:
+        raise TwinError(f"a stream needs n times and n x 3 targets, got {times.shape} and {targets.shape}")
+    period = 1.0 / rate_hz
+    commands = np.full((n, 3), np.nan)
+    lateness, sent_at, corr_ns, send_ns = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    stopped, k = "", 0
+    driver.start_stream(rate_hz, lookahead_s, gain)
+    try:
+        with _gc_held():
+            c0 = time.perf_counter_ns()
+            commands[0] = correct(targets[0], times[0])
+            corr_ns[0] = time.perf_counter_ns() - c0
+            t0 = clock() + 2 * period  # room for the first correction's cache warm-up
+            for k in range(n):
+                due = t0 + k * period
+                if paced:
+                    while (left := due - clock()) > spin_s:
+                        time.sleep(left - spin_s)
+                    while clock() < due:
+                        pass
+                now = clock()
+                s0 = time.perf_counter_ns()
+                try:
+                    driver.stream(commands[k], times[k])
+                except DriverError as exc:
+                    stopped = f"set-point {k + 1} of {n} refused: {exc}"
+                    break
+                send_ns[k] = time.perf_counter_ns() - s0
+                sent_at[k], lateness[k] = now - t0, now - due
+                if progress is not None:
+                    progress(k + 1)
+                if k + 1 < n:  # the next set-point, corrected in this tick's slack
+                    c0 = time.perf_counter_ns()
+                    commands[k + 1] = correct(targets[k + 1], times[k + 1])
+                    corr_ns[k + 1] = time.perf_counter_ns() - c0
+            else:
+                k = n
+    finally:
+        with contextlib.suppress(DriverError):
+            driver.stop_stream()
+    sent = k
+    late, at = lateness[:sent], sent_at[:sent]
+    jit = np.abs(np.diff(at) - period) if paced else np.zeros(0)
+    span = at[-1] - at[0] if sent > 1 else float("nan")
+    return StreamReport(
+        target_hz=float(rate_hz), n_planned=int(n), n_sent=int(sent),
+        rate_hz=float((sent - 1) / span) if sent > 1 and span > 0 else float("nan"),
+        lateness_p99_ms=1e3 * _p99(np.abs(late)) if paced else float("nan"),
+        lateness_max_ms=1e3 * float(np.max(np.abs(late))) if paced and sent else float("nan"),
+        jitter_p99_ms=1e3 * _p99(jit), jitter_max_ms=1e3 * float(jit.max()) if jit.size else float("nan"),
+        overruns=int(np.sum(late > period)) if paced else 0,
+        correction_us_mean=float(corr_ns[:sent].mean() / 1e3) if sent else float("nan"),
+        correction_us_p99=_p99(corr_ns[:sent]) / 1e3, send_us_p99=_p99(send_ns[:sent]) / 1e3,
+        stopped=stopped, commands=commands[:sent].copy(), sent_at=at.copy())
+
+
+def _realtime(priority: int) -> bool:
+    """SCHED_FIFO for this process when the user may (root, CAP_SYS_NICE or an rtprio limit)."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (PermissionError, OSError):
+        return False
+
+
+def _child(conn, sent, make_corrector, make_driver, times, targets, rate_hz, lookahead_s, gain,
+           rt_priority, paced) -> None:  # pragma: no cover (runs in the child process; tested through it)
+    try:
+        rt = _realtime(rt_priority)
+        correct, driver = make_corrector(), make_driver()
+
+        def progress(k: int) -> None:
+            sent.value = k  # an aligned store to shared memory: no lock, never blocks
+
+        try:
+            rep = run_stream(times, targets, correct, driver, rate_hz, lookahead_s, gain, progress=progress,
+                             paced=paced)
+        finally:
+            with contextlib.suppress(Exception):
+                driver.close()
+        rep.realtime = rt
+        conn.send(("ok", rep))
+    except BaseException as exc:  # noqa: BLE001 (reported to the parent, which raises it)
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+class StreamProcess:
+    """`run_stream` in its own (spawned) process. `make_corrector` and `make_driver` are
+    picklable callables (module-level functions or functools.partial of them) that build the
+    corrector and the active streaming driver in the child. `sent` is the progress, readable at
+    any time; `result(timeout)` waits for the report (TwinError if the child failed or did not
+    answer in time: it is then killed)."""
+
+    def __init__(self, make_corrector: Callable[[], Corrector], make_driver: Callable[[], Any],
+                 times: np.ndarray, targets: np.ndarray, rate_hz: float, lookahead_s: float = 0.1,
+                 gain: float = 300.0, rt_priority: int = 10, paced: bool = True):
+        ctx = mp.get_context("spawn")
+        self._sent = ctx.Value("q", 0, lock=False)
+        self._recv, send = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_child, name="dt-stream", daemon=True, args=(
+            send, self._sent, make_corrector, make_driver, np.asarray(times, dtype=float),
+            np.asarray(targets, dtype=float), rate_hz, lookahead_s, gain, rt_priority, paced))
+        self._proc.start()
+        send.close()
+
+    @property
+    def sent(self) -> int:
+        return int(self._sent.value)
+
+    def result(self, timeout: float) -> StreamReport:
+        if not self._recv.poll(timeout):
+            self._proc.kill()
+            self._proc.join(5)
+            raise TwinError(f"the streaming process gave no report within {timeout} s (killed;"
+                            f" {self.sent} set-points had been sent)")
+        try:
+            status, payload = self._recv.recv()
+        except EOFError:
+            self._proc.join(5)
+            raise TwinError(f"the streaming process died (exit code {self._proc.exitcode}) after"
+                            f" {self.sent} set-points") from None
+        self._proc.join(5)
+        if status != "ok":
+            raise TwinError(f"the streaming process failed: {payload}")
+        return payload
+
+    def kill(self) -> None:
+        if self._proc.is_alive():
+            self._proc.kill()
+        self._proc.join(5)

@@ -1,0 +1,47 @@
+"""Picklable stand-ins for the streaming loop's tests (dt_runtime.service.stream): a streaming
+driver that records what it is handed, and a corrector that adds a known offset."""
+from __future__ import annotations
+
+import numpy as np
+
+from dt_kernel.errors import DriverError
+
+OFFSET = np.array([1e-4, -2e-4, 3e-4])  # m, what the fake corrector adds
+
+
+class RecordingStreamer:
+    """Follows nothing: records each set-point; refuses from set-point `refuse_at` (1-based) on,
+    as a controller in protective stop does."""
+
+    def __init__(self, refuse_at: int | None = None):
+        self.refuse_at = refuse_at
+        self.calls: list[tuple[np.ndarray, float]] = []
+        self.started: tuple | None = None
+        self.stopped = 0
+        self.closed = False
+
+    def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None:
+        self.started = (rate_hz, lookahead_s, gain)
+
+    def stream(self, target, t: float) -> None:
+        if self.refuse_at is not None and len(self.calls) + 1 >= self.refuse_at:
+            raise DriverError("protective stop")
+        self.calls.append((np.array(target, dtype=float), float(t)))
+
+    def stop_stream(self) -> None:
+        self.stopped += 1
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def offset_corrector():
+    return lambda target, t: np.asarray(target, dtype=float) + OFFSET
+
+
+def recording_streamer():
+    return RecordingStreamer()
+
+
+def broken_streamer():
+    raise DriverError("no controller at 127.0.0.1:30004")

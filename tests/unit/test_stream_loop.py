@@ -1,0 +1,66 @@
+"""The streaming loop (dt_runtime.service.stream): every set-point corrected once and sent once,
+in order, at its time; a refusal ends the stream with its reason; the loop in its own process.
+No assertion on timing (the machine is shared): the benchmark measures it (benchmarks.stream)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dt_kernel.errors import TwinError
+from dt_runtime.service.stream import StreamProcess, run_stream
+from tests.support.stream_fakes import OFFSET, RecordingStreamer, broken_streamer, offset_corrector, recording_streamer
+
+
+def line(n: int = 200, rate: float = 500.0):
+    t = np.arange(n) / rate
+    return t, np.column_stack([0.6 + 0.25 * t, 0 * t, 0.5 + 0 * t])  # 250 mm/s along x
+
+
+@pytest.mark.parametrize("paced", [False, True])
+def test_every_set_point_is_corrected_once_and_sent_once_in_order(paced):
+    t, p = line()
+    calls = []
+
+    def correct(target, tk):
+        calls.append(tk)
+        return target + OFFSET
+
+    drv = RecordingStreamer()
+    rep = run_stream(t, p, correct, drv, 500.0, lookahead_s=0.05, gain=500.0, paced=paced)
+    assert drv.started == (500.0, 0.05, 500.0) and drv.stopped == 1
+    assert calls == list(t)  # each corrected once, in order
+    assert [c[1] for c in drv.calls] == list(t)  # each sent once, in order, with its time
+    assert np.allclose(np.array([c[0] for c in drv.calls]), p + OFFSET)
+    assert rep.n_sent == rep.n_planned == 200 and not rep.stopped
+    assert np.allclose(rep.commands, p + OFFSET) and np.all(np.diff(rep.sent_at) >= 0)
+    assert rep.correction_us_mean > 0 and np.isfinite(rep.correction_us_p99)
+    if paced:  # the sends follow the schedule: 199 periods of 2 ms at the least
+        assert np.all(rep.sent_at >= np.arange(200) / 500.0)  # never before its time
+        assert np.isfinite(rep.jitter_p99_ms) and np.isfinite(rep.rate_hz)
+
+
+def test_a_refused_set_point_ends_the_stream_with_its_reason_and_stops_it():
+    t, p = line()
+    drv = RecordingStreamer(refuse_at=50)
+    rep = run_stream(t, p, offset_corrector(), drv, 500.0, paced=False)
+    assert rep.n_sent == 49 and len(drv.calls) == 49 and drv.stopped == 1
+    assert rep.stopped == "set-point 50 of 200 refused: protective stop"
+    assert rep.commands.shape == (49, 3)
+
+
+def test_bad_input_is_refused_before_the_stream_starts():
+    drv = RecordingStreamer()
+    with pytest.raises(TwinError, match="n x 3 targets"):
+        run_stream(np.arange(3.0), np.zeros((2, 3)), offset_corrector(), drv, 125.0)
+    assert drv.started is None
+
+
+def test_the_loop_runs_in_its_own_process_and_reports_back():
+    t, p = line(100, 125.0)
+    sp = StreamProcess(offset_corrector, recording_streamer, t, p, 125.0, rt_priority=0)
+    rep = sp.result(timeout=60)
+    assert rep.n_sent == 100 and not rep.stopped and sp.sent == 100
+    assert np.allclose(rep.commands, p + OFFSET) and rep.realtime is False
+    bad = StreamProcess(offset_corrector, broken_streamer, t, p, 125.0, rt_priority=0)
+    with pytest.raises(TwinError, match="DriverError: no controller at 127.0.0.1:30004"):
+        bad.result(timeout=60)
