@@ -19,7 +19,7 @@ limits.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -88,8 +88,8 @@ class Piece:
     speed: float  # m/s: the programmed speed (the map's speed input)
     centre: np.ndarray | None = None
     radius: float = 0.0
-    u: np.ndarray | None = None  # unit vector centre -> p0
-    w: np.ndarray | None = None  # unit vector in the plane, 90 degrees ahead of u along the motion
+    u: np.ndarray = field(default_factory=lambda: np.zeros(3))  # unit vector centre -> p0 (arcs)
+    w: np.ndarray = field(default_factory=lambda: np.zeros(3))  # in the plane, 90 degrees ahead of u
     sweep: float = 0.0  # rad
 
     def at(self, s: np.ndarray) -> np.ndarray:
@@ -103,7 +103,7 @@ class Piece:
         if self.centre is None:
             return (self.p1 - self.p0) / self.length
         ang = self.sweep if end else 0.0
-        return -math.sin(ang) * self.u + math.cos(ang) * self.w
+        return np.asarray(-math.sin(ang) * self.u + math.cos(ang) * self.w)
 
 
 @dataclass(frozen=True)
@@ -117,6 +117,7 @@ class PathProgram:
     pose_t: np.ndarray | None = None  # (n,) s
     pose_p: np.ndarray | None = None  # (n, 3) m
     pose_line: tuple[int, ...] = ()
+    pose_source: str = ""  # the poses CSV, for messages
     joints: np.ndarray | None = None
     temperature: float | None = None
     payload: float | None = None
@@ -180,7 +181,8 @@ def read_path(path: str | Path) -> PathProgram:
         if m.start is not None:
             raise ConfigError(f, "start", list(m.start), "no start with poses (the first pose is the start)")
         t, p, lines = _read_poses((path.parent / m.poses), f)
-        return PathProgram(**common, pose_t=t, pose_p=p, pose_line=lines)  # type: ignore[arg-type]
+        return PathProgram(**common, pose_t=t, pose_p=p, pose_line=lines,  # type: ignore[arg-type]
+                           pose_source=str(path.parent / m.poses))
     if m.start is None:
         raise ConfigError(f, "start", "<missing>", "the path's first point [x, y, z] in mm (robot base frame)")
     if not m.segments:
@@ -296,7 +298,7 @@ def _profile(v0: float, v1: float, vmax: float, a: float, L: float) -> _Profile:
 
 
 def interpolate(path: PathProgram, rate_hz: float) -> Setpoints:
-    """The path's timed set-points at `rate_hz` (from t = 0 to its end, the end included)."""
+    """The path's timed set-points at `rate_hz`, from t = 0 until its end (`_grid`)."""
     if not (math.isfinite(rate_hz) and 1.0 <= rate_hz <= 10_000.0):
         raise DataError(f"interpolation rate {rate_hz} Hz: allowed 1 to 10000 Hz (a UR: 125 or 500)")
     if path.pose_t is not None:
@@ -305,12 +307,7 @@ def interpolate(path: PathProgram, rate_hz: float) -> Setpoints:
     vj = _junction_speeds(path.pieces, a)
     profiles = [_profile(vj[k], vj[k + 1], pc.vmax, a, pc.length) for k, pc in enumerate(path.pieces)]
     starts = np.concatenate([[0.0], np.cumsum([pr.duration for pr in profiles])])
-    n = int(math.floor(starts[-1] * rate_hz + 1e-9)) + 1
-    if n > MAX_SETPOINTS:
-        raise DataError(f"{path.source}: {n} set-points at {rate_hz:g} Hz, more than {MAX_SETPOINTS}")
-    t = np.arange(n) / rate_hz
-    if t[-1] < starts[-1] - 1e-12:  # the end itself is a set-point (the arm stops there)
-        t = np.append(t, starts[-1])
+    t = _grid(starts[-1], rate_hz, path.source)
     seg = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(profiles) - 1)
     p = np.empty((len(t), 3))
     v = np.empty(len(t))
@@ -321,6 +318,15 @@ def interpolate(path: PathProgram, rate_hz: float) -> Setpoints:
             p[sel] = pc.at(s)
     programmed = np.array([pc.speed for pc in path.pieces])[seg]
     return Setpoints(t, p, v, seg, programmed, rate_hz)
+
+
+def _grid(duration: float, rate_hz: float, source: str) -> np.ndarray:
+    """Set-point times k / rate from 0 until the end is reached: the last one at or after the end
+    holds the end (a controller's rate is constant; the arm stands there)."""
+    n = int(math.ceil(duration * rate_hz - 1e-9)) + 1
+    if n > MAX_SETPOINTS:
+        raise DataError(f"{source}: {n} set-points at {rate_hz:g} Hz, more than {MAX_SETPOINTS}")
+    return np.arange(n) / rate_hz
 
 
 def _interpolate_poses(path: PathProgram, rate_hz: float) -> Setpoints:
@@ -335,7 +341,7 @@ def _interpolate_poses(path: PathProgram, rate_hz: float) -> Setpoints:
     fast = np.flatnonzero(sp > path.speed * lim)
     if fast.size:
         k = int(fast[0]) + 1
-        raise DataError(f"{path.source}: pose at line {path.pose_line[k]} (t {path.pose_t[k]:g} s): speed "
+        raise DataError(f"{path.pose_source}: pose at line {path.pose_line[k]} (t {path.pose_t[k]:g} s): speed "
                         f"{sp[k - 1] * 1e3:.1f} mm/s since the pose before exceeds the path's "
                         f"{path.speed * 1e3:g} mm/s")
     if len(dt) > 1:
@@ -343,15 +349,11 @@ def _interpolate_poses(path: PathProgram, rate_hz: float) -> Setpoints:
         hard = np.flatnonzero(acc > path.acceleration * lim)
         if hard.size:
             k = int(hard[0]) + 1
-            raise DataError(f"{path.source}: pose at line {path.pose_line[k]} (t {path.pose_t[k]:g} s): acceleration "
-                            f"{acc[k - 1] * 1e3:.0f} mm/s^2 exceeds the path's {path.acceleration * 1e3:g} mm/s^2")
-    n = int(math.floor(tp[-1] * rate_hz + 1e-9)) + 1
-    if n > MAX_SETPOINTS:
-        raise DataError(f"{path.source}: {n} set-points at {rate_hz:g} Hz, more than {MAX_SETPOINTS}")
-    t = np.arange(n) / rate_hz
-    if t[-1] < tp[-1] - 1e-12:
-        t = np.append(t, tp[-1])
+            raise DataError(f"{path.pose_source}: pose at line {path.pose_line[k]} (t {path.pose_t[k]:g} s): "
+                            f"acceleration {acc[k - 1] * 1e3:.0f} mm/s^2 exceeds the path's "
+                            f"{path.acceleration * 1e3:g} mm/s^2")
+    t = _grid(tp[-1], rate_hz, path.source)
     seg = np.clip(np.searchsorted(tp, t, side="right") - 1, 0, len(dt) - 1)
-    frac = (t - tp[seg]) / dt[seg]
+    frac = np.minimum((t - tp[seg]) / dt[seg], 1.0)
     p = pp[seg] + frac[:, None] * (pp[seg + 1] - pp[seg])
     return Setpoints(t, p, sp[seg], seg, sp[seg], rate_hz)

@@ -46,9 +46,10 @@ def correct_path(twin: Twin, path: PathProgram, sp: Setpoints) -> list[Setpoint]
     if lack:
         raise DataError(f"{path.source}: the twin's maps need {', '.join(lack)}; give "
                         + "; ".join(f"the path's key {PATH_KEYS.get(n, n)}" for n in lack))
-    if path.joints is not None and twin.e_lt.chain() is not None and len(path.joints) != twin.e_lt.chain().dof:
+    chain = twin.e_lt.chain() if "joints" in twin.needs else None
+    if path.joints is not None and chain is not None and len(path.joints) != chain.dof:
         raise DataError(f"{path.source}: key 'joints': {len(path.joints)} values, the twin's robot has "
-                        f"{twin.e_lt.chain().dof} joints")
+                        f"{chain.dof} joints")
     check_workspace(twin, Program(sp.p, sp.programmed, [label(sp, k) for k in range(sp.n)],
                                   [0] * sp.n, source=path.source, labels=True), path.source)
     corrector = SetpointCorrector(twin)
