@@ -155,7 +155,8 @@ def check_workspace(twin: Twin, program: Program, where: str) -> None:
     if bad.size:
         first = ", ".join(program.where(i, f"{np.round(program.target[i] * MM_PER_M, 1).tolist()} mm")
                           for i in bad[:3])
-        raise DataError(f"{where}: {bad.size} of {program.n} targets lie beyond {what}: {first}"
+        raise DataError(f"{where}: {bad.size} of {program.n} {'set-points' if program.labels else 'targets'} lie "
+                        f"beyond {what}: {first}"
                         f"{' ...' if bad.size > 3 else ''}; targets are in mm in the robot frame")
 
 
