@@ -67,15 +67,19 @@ class SetpointCorrector:
         self._margin = 0.0 if vol is None else vol.margin_m
         pu = twin.position_u
         self._U_global = twin.uncertainty.tcp_c.U
+        self._pu = pu
         if pu is not None:
             us = np.array([c.u for c in pu.rest.components])
-            dofs = np.array([c.dof for c in pu.rest.components])[:, None]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                self._rest_u4 = np.sum(np.where(np.isfinite(dofs), us ** 4 / dofs, 0.0), axis=0)
-            self._rest_u2 = np.sum(us ** 2, axis=0)
-            self._lam, self._kappa = pu.model_scale, pu.extrapolation_scale
-            self._mdof, self._kdof = pu.model_dof, pu.extrapolation_dof
-        self._pu = pu is not None
+            dofs = np.array([c.dof for c in pu.rest.components])
+            # Welch-Satterthwaite's terms u^4 / nu (metrology.uncertainty), the fixed ones summed once
+            self._fast_u = bool(np.all(dofs > 0) and pu.model_dof > 0 and pu.extrapolation_dof > 0)
+            if self._fast_u:
+                self._rest_u2 = np.sum(us ** 2, axis=0).tolist()
+                u4 = np.where(np.isfinite(dofs)[:, None], us ** 4 / dofs[:, None], 0.0)
+                self._rest_u4 = np.sum(u4, axis=0).tolist()
+                self._lam, self._kappa = pu.model_scale.tolist(), pu.extrapolation_scale.tolist()
+                self._w_m = 1.0 / pu.model_dof if math.isfinite(pu.model_dof) else 0.0  # 1 / nu
+                self._w_k = 1.0 / pu.extrapolation_dof if math.isfinite(pu.extrapolation_dof) else 0.0
         self._k_inf = float(stats.norm.ppf(P95))
 
     def _lt(self, c: np.ndarray, v: float, cond: Conditions | None, q_seed):
@@ -100,7 +104,7 @@ class SetpointCorrector:
         for _ in range(self.iters):  # Twin._solve's fixed point, step for step
             m, s, q = self._lt(c, v, cond, q)
             c_new = target + Rt @ m
-            done = float(np.max(np.abs(c_new - c))) < tol
+            done = np.abs(c_new - c).max() < tol
             c = c_new
             if done:
                 break
@@ -113,18 +117,18 @@ class SetpointCorrector:
 
     def _expanded(self, sigma: np.ndarray, dist: float) -> np.ndarray:
         """Eq. 11's U at the position (`PositionUncertainty.budget_at(...).expanded()`)."""
-        if not self._pu:
+        pu = self._pu
+        if pu is None:
             return self._U_global
-        um = np.abs(self._lam * sigma)
-        ue = np.abs(self._kappa * max(dist if math.isfinite(dist) else 0.0, 0.0)) * np.ones(3)
-        uc2 = self._rest_u2 + um ** 2 + ue ** 2
-        den = self._rest_u4.copy()
-        for u, dof in ((um, self._mdof), (ue, self._kdof)):
-            if math.isfinite(dof):
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    den = den + u ** 4 / dof
-        with np.errstate(divide="ignore", invalid="ignore"):
-            nu = np.where(den > 0, uc2 ** 2 / np.where(den > 0, den, 1.0), np.inf)
-        fin = np.isfinite(nu)
-        k = np.where(fin, special.stdtrit(np.where(fin, np.maximum(nu, 1), 1), P95), self._k_inf)
-        return k * np.sqrt(uc2)
+        d = max(dist if math.isfinite(dist) else 0.0, 0.0)
+        if not self._fast_u:  # a zero degree of freedom somewhere: the budget's own arithmetic
+            return pu.budget_at(sigma, d).expanded()
+        U = []  # per axis on plain floats: three numbers do not pay numpy's per-call overhead
+        for r2, r4, lam, kap, sg in zip(self._rest_u2, self._rest_u4, self._lam, self._kappa, sigma.tolist()):
+            um2, ue2 = (lam * sg) ** 2, (kap * d) ** 2
+            uc2 = r2 + um2 + ue2
+            den = r4 + um2 * um2 * self._w_m + ue2 * ue2 * self._w_k
+            # nu_eff = u_c^4 / sum(u_i^4 / nu_i); k from the t quantile (what stats.t.ppf evaluates)
+            k = special.stdtrit(max(uc2 * uc2 / den, 1.0), P95) if den > 0 else self._k_inf
+            U.append(k * math.sqrt(uc2))
+        return np.array(U)
