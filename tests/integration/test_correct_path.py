@@ -116,3 +116,17 @@ def test_a_joint_space_map_follows_the_arm_along_the_path(geometric_twin, tmp_pa
         c = twin.correct(_mm(rows[k], "xyz") * 1e-3, v, cond)
         assert _mm(rows[k], ("cx", "cy", "cz")) == pytest.approx(c.command * 1e3, abs=1e-5)
         assert _mm(rows[k], ("Ux", "Uy", "Uz")) == pytest.approx(c.U * 1e3, abs=1e-5)
+
+
+def test_the_setpoint_benchmark_short_run(twin_dir, geometric_twin):
+    """`python -m benchmarks.setpoint` at 50 Hz on both twins: the fast code gives the per-command
+    code's numbers, and costs less CPU than it in the same run (ratios, not times)."""
+    from benchmarks.setpoint import run
+
+    r = run(50.0, str(twin_dir), str(geometric_twin))
+    assert r["n_setpoints"] == 84 and r["ik_us"]["max_joint_diff_rad"] < 1e-9 and r["ik_us"]["mean_steps"] <= 3
+    assert r["ik_us"]["speedup"] > 3  # 14x measured at 500 Hz
+    for name in ("demo", "geometric"):
+        t = r["twins"][name]
+        assert t["max_diff_mm"] < 1e-9 and t["correction_us"]["speedup"] > 1.3, (name, t)  # 3.6x, 3.1x measured
+    assert r["twins"]["geometric"]["needs"] == ["joints"] and r["twins"]["demo"]["needs"] == []
