@@ -99,6 +99,8 @@ class NewtonIK:
             prev_inv = np.eye(4)
             prev_inv[:3, :3] = A[j].T
         self._fixed = tuple(fixed)
+        # A_j^T per joint (None where the axis is z already): back from the z form to the chain's frames
+        self._At = tuple(None if np.allclose(a, np.eye(3)) else tuple(a.T.ravel().tolist()) for a in A)
         self._tool = _affine(prev_inv @ chain.tool)
         self._last: tuple[tuple[float, ...], tuple] | None = None  # (q, its forward kinematics)
         self.iterations = 0  # Newton steps of the last solve (the benchmark reports them)
@@ -114,6 +116,23 @@ class NewtonIK:
             T = (t0 * c + t1 * s, t1 * c - t0 * s, t2, t3, t4 * c + t5 * s, t5 * c - t4 * s, t6, t7,
                  t8 * c + t9 * s, t9 * c - t8 * s, t10, t11)
         return _mul(T, self._tool), joints
+
+    def frames(self, q) -> tuple[Affine, list[Affine]]:
+        """The TCP transform (3x4, row-major floats) at q and every joint's frame before its
+        rotation (`Chain.frames`: position and orientation), as 3x4 row-major floats."""
+        T: Affine = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+        out = []
+        for B, At, qj in zip(self._fixed, self._At, q):
+            C = _mul(T, B)
+            t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11 = C
+            if At is not None:  # the chain's own frame: C A_j^T (A_j took z to the joint's axis)
+                out.append(_mul(C, (*At[0:3], 0.0, *At[3:6], 0.0, *At[6:9], 0.0)))
+            else:
+                out.append(C)
+            c, s = math.cos(qj), math.sin(qj)
+            T = (t0 * c + t1 * s, t1 * c - t0 * s, t2, t3, t4 * c + t5 * s, t5 * c - t4 * s, t6, t7,
+                 t8 * c + t9 * s, t9 * c - t8 * s, t10, t11)
+        return _mul(T, self._tool), out
 
     def pose(self, q) -> tuple[np.ndarray, np.ndarray]:
         """TCP position (3,) and orientation (3, 3) at q (as `Chain.pose`)."""

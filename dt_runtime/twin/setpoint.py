@@ -59,7 +59,18 @@ class SetpointCorrector:
         gp = twin.e_lt.gp_.predictor() if self._map.plain and twin.e_lt.gp_ is not None else None
         self._gp = gp if gp is not None and gp.shared else None
         self._chain = twin.e_lt.chain() if "joints" in self.needs else None
-        self._ik = NewtonIK(self._chain).solve if self._chain is not None else None
+        self._newton = NewtonIK(self._chain) if self._chain is not None else None
+        self._ik = self._newton.solve if self._newton is not None else None
+        # A map of geometric terms (+ GP): its design row on floats (`geometric_row`), no Inputs
+        model = twin.e_lt
+        self._geo = (self._newton is not None and tuple(model.effects) == ("geometric",) and not model.nuisance
+                     and model.theta_.size > 0 and model.gp_inputs in ("tcp_speed", "tcp", "joints", "none"))
+        if self._geo:
+            assert self._chain is not None
+            self._theta, self._cov = model.theta_, model.theta_cov_
+            g = model.gp_.predictor() if model.gp_ is not None else None
+            self._geo_gp = g
+            self._geo_shared = g is not None and g.shared
         self._x = np.empty(4)
         vol = twin.volume
         self._normals = None if vol is None else np.ascontiguousarray(vol.normals)
@@ -83,17 +94,55 @@ class SetpointCorrector:
         self._k_inf = float(stats.norm.ppf(P95))
 
     def _lt(self, c: np.ndarray, v: float, cond: Conditions | None, q_seed):
-        """e_LT_hat's mean at c (GL axes), what its std needs (the GP's kernel vectors, or the std),
-        and c's joints."""
+        """e_LT_hat's mean at c (GL axes), what its std needs (`_std`), and c's joints."""
         if self._gp is not None:
             x = self._x
             x[:3] = c
             x[3] = v
             m, K = self._gp.mean_kernel(x)
             return m, K, None
+        if self._geo and cond is not None and cond.joints is not None:
+            return self._lt_geometric(c, v, cond.joints if q_seed is None else q_seed)
         inp, q = command_inputs(c, v, self.needs, cond, self._chain, q_seed, self._ik)
         m, s = self._map(inp)
         return m, s, q
+
+    def _lt_geometric(self, c: np.ndarray, v: float, q_seed):
+        """`MapPredictor` on a geometric + GP map, for the command's row only (the geometric
+        terms read no history): the joints, the design row, A theta plus the GP's mean."""
+        assert self._newton is not None
+        q = self._newton.solve(c, q_seed)
+        A = geometric_row(self._newton, q)
+        m = A @ self._theta
+        g = self._geo_gp
+        if g is None:
+            return m, (A, None), q
+        if self._geo_shared:
+            if self.twin.e_lt.gp_inputs == "tcp_speed":
+                x = self._x
+                x[:3] = c
+                x[3] = v
+            else:
+                x = q if self.twin.e_lt.gp_inputs == "joints" else np.asarray(c, dtype=float)
+            mg, K = g.mean_kernel(x)
+            return m + mg, (A, K), q
+        xg = {"tcp_speed": np.array([c[0], c[1], c[2], v]), "tcp": np.asarray(c, dtype=float)}.get(
+            self.twin.e_lt.gp_inputs, q)
+        mg, sg = g(xg)
+        return m + mg, (A, sg), q
+
+    def _std(self, state) -> np.ndarray:
+        """The std where `_lt` left `state`."""
+        if self._gp is not None:
+            return self._gp.std_of(state)
+        if not (self._geo and isinstance(state, tuple)):
+            return state
+        A, gs = state
+        var = np.einsum("ap,pq,aq->a", A, self._cov, A)  # as MapPredictor
+        if gs is not None:
+            g = self._geo_gp
+            var = var + (g.std_of(gs) if g is not None and self._geo_shared else gs) ** 2
+        return np.sqrt(np.maximum(var, 0.0))
 
     def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> Setpoint:
         """The corrected set-point for `target` (m, robot frame) at speed v (m/s) under `cond`."""
@@ -108,7 +157,7 @@ class SetpointCorrector:
             c = c_new
             if done:
                 break
-        sigma = self._gp.std_of(s) if self._gp is not None else s
+        sigma = self._std(s)
         if self._normals is None:
             dist = float("nan")
         else:
@@ -132,3 +181,29 @@ class SetpointCorrector:
             k = special.stdtrit(max(uc2 * uc2 / den, 1.0), P95) if den > 0 else self._k_inf
             U.append(k * math.sqrt(uc2))
         return np.array(U)
+
+
+def geometric_row(ik: NewtonIK, q: np.ndarray) -> np.ndarray:
+    """The geometric effect's regressors (`models.effects.geometric.Geometric.regressors`) for one
+    joint vector (3, 7 dof + 3), on floats: -J (dof columns), per joint frame -R_j (its
+    translation) and [lever]x R_j (its rotation), then -R_tcp (the tool's translation); tested
+    equal (tests/unit/test_setpoint.py)."""
+    T, frames = ik.frames(q)
+    px, py, pz = T[3], T[7], T[11]
+    r0: list[float] = []
+    r1: list[float] = []
+    r2: list[float] = []
+    f0: list[float] = []
+    f1: list[float] = []
+    f2: list[float] = []
+    for (a00, a01, a02, x, a10, a11, a12, y, a20, a21, a22, z), (u, w, t) in zip(frames, ik.chain.axes):
+        ax, ay, az = a00 * u + a01 * w + a02 * t, a10 * u + a11 * w + a12 * t, a20 * u + a21 * w + a22 * t
+        lx, ly, lz = px - x, py - y, pz - z
+        r0.append(-(ay * lz - az * ly))
+        r1.append(-(az * lx - ax * lz))
+        r2.append(-(ax * ly - ay * lx))
+        f0 += (-a00, -a01, -a02, ly * a20 - lz * a10, ly * a21 - lz * a11, ly * a22 - lz * a12)
+        f1 += (-a10, -a11, -a12, lz * a00 - lx * a20, lz * a01 - lx * a21, lz * a02 - lx * a22)
+        f2 += (-a20, -a21, -a22, lx * a10 - ly * a00, lx * a11 - ly * a01, lx * a12 - ly * a02)
+    return np.array([r0 + f0 + [-T[0], -T[1], -T[2]], r1 + f1 + [-T[4], -T[5], -T[6]],
+                     r2 + f2 + [-T[8], -T[9], -T[10]]])

@@ -24,3 +24,23 @@ def test_equals_twin_correct_inside_and_outside_the_volume(twin_dir):
     assert 0 < sum(inside) < len(inside)  # both cases were compared
     c = fast.correct(targets[0], 0.5).correction(targets[0])
     assert c.budget is None and np.array_equal(c.target, targets[0])
+
+
+@pytest.mark.parametrize("robot", ["cobot_hc20_like.yaml", "ur10.yaml", "catalogue/panda.yaml", "catalogue/iiwa7.yaml"])
+def test_the_geometric_row_on_floats_is_the_effects_regressors(robot):
+    """geometric_row (a path set-point's design row) equals the geometric effect's batched
+    regressors, on 6- and 7-axis arms with z and non-z joint axes."""
+    from dt_runtime.common.paths import CONFIGS
+    from dt_runtime.frames.kinematics import load_robot
+    from dt_runtime.frames.newton_ik import NewtonIK
+    from dt_runtime.models.effects import Inputs
+    from dt_runtime.models.effects.geometric import Geometric
+    from dt_runtime.twin.setpoint import geometric_row
+
+    chain = load_robot(CONFIGS / "robots" / robot)
+    ik = NewtonIK(chain)
+    rng = np.random.default_rng(5)
+    q = rng.uniform(-1.5, 1.5, (5, chain.dof))
+    ref = Geometric().regressors(Inputs(commanded=chain.fk(q), joints=q), chain).A
+    for k in range(len(q)):
+        assert geometric_row(ik, q[k]) == pytest.approx(ref[k], abs=1e-13)
