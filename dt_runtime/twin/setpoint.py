@@ -9,7 +9,10 @@ numbers (equal to ~1e-12 m) with what can be precomputed taken out of the per-se
 - the plain map (GP of TCP and speed): the GP's mean at every fixed-point step, its std only at
   the last one (`FastPredictor.mean_kernel` / `std_of`: the same operations);
 - a map with joint-space effects: the command's joints by `frames.newton_ik` warm-started from
-  the previous step's (the same solution as `Chain.ik`, a fraction of its cost);
+  the previous step's (the same solution as `Chain.ik`, a fraction of its cost); a map of
+  geometric terms (+ GP) also gets its design row on floats from the IK's frames
+  (`geometric_row`), its variance once at the last step; other effects go through the map's
+  own predictor (`MapPredictor`);
 - Eq. 11 at the position: the position-independent components summed once (u^2 and the
   Welch-Satterthwaite terms u^4 / nu), the two position-dependent ones (lambda sigma_GP(c),
   kappa d(c)) added per set-point, the coverage factor from the t quantile's special function
