@@ -1,0 +1,46 @@
+"""The fast per-set-point correction (twin.setpoint) gives Twin.correct's numbers: the command,
+U (Eq. 11 at the position) and the volume flag, on the quick demo's twin (the paper's map)."""
+import numpy as np
+import pytest
+
+from dt_runtime.twin.setpoint import SetpointCorrector
+from dt_runtime.twin.twin import Twin
+
+
+def test_equals_twin_correct_inside_and_outside_the_volume(twin_dir):
+    twin = Twin.load(twin_dir)
+    fast = SetpointCorrector(twin)
+    rng = np.random.default_rng(3)
+    targets = np.array([0.9, 0.0, 0.55]) + rng.uniform(-0.25, 0.25, (60, 3))  # some outside the DOE hull
+    inside = []
+    for t in targets:
+        v = float(rng.uniform(0.1, 1.0))
+        ref, got = twin.correct(t, v), fast.correct(t, v)
+        assert got.command == pytest.approx(ref.command, abs=1e-12)  # 1e-9 mm
+        assert got.U == pytest.approx(ref.U, abs=1e-12)
+        assert got.inside == ref.inside and got.distance_m == pytest.approx(ref.distance_m, abs=1e-12)
+        assert got.joints is None  # the paper's map reads no joints
+        inside.append(ref.inside)
+    assert 0 < sum(inside) < len(inside)  # both cases were compared
+    c = fast.correct(targets[0], 0.5).correction(targets[0])
+    assert c.budget is None and np.array_equal(c.target, targets[0])
+
+
+@pytest.mark.parametrize("robot", ["cobot_hc20_like.yaml", "ur10.yaml", "catalogue/panda.yaml", "catalogue/iiwa7.yaml"])
+def test_the_geometric_row_on_floats_is_the_effects_regressors(robot):
+    """geometric_row (a path set-point's design row) equals the geometric effect's batched
+    regressors, on 6- and 7-axis arms with z and non-z joint axes."""
+    from dt_runtime.common.paths import CONFIGS
+    from dt_runtime.frames.kinematics import load_robot
+    from dt_runtime.frames.newton_ik import NewtonIK
+    from dt_runtime.models.effects import Inputs
+    from dt_runtime.models.effects.geometric import Geometric
+    from dt_runtime.twin.setpoint import geometric_row
+
+    chain = load_robot(CONFIGS / "robots" / robot)
+    ik = NewtonIK(chain)
+    rng = np.random.default_rng(5)
+    q = rng.uniform(-1.5, 1.5, (5, chain.dof))
+    ref = Geometric().regressors(Inputs(commanded=chain.fk(q), joints=q), chain).A
+    for k in range(len(q)):
+        assert geometric_row(ik, q[k]) == pytest.approx(ref[k], abs=1e-13)
