@@ -2,5 +2,5 @@
 the laser tracker, the point MVS stand-in and the camera-rig image simulator.
 
 Knows nothing of the model side: imports only dt_kernel, never drivers or dt_runtime. The
-serial devices' emulators live beside their drivers (drivers/serial/emulator.py).
+devices' emulators, which serve the real wire protocols over this plant, are in emulators/.
 """

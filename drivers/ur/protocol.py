@@ -1,6 +1,6 @@
 """RTDE (Real-Time Data Exchange, Universal Robots, TCP 30004): package codec, pure functions.
 
-Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`drivers.ur.emulator`).
+Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`emulators.ur`).
 References: Universal Robots, "Real-Time Data Exchange (RTDE) Guide"; checked against UR's own
 Python client (RTDE_Python_Client_Library, `rtde/serialize.py`) and the `ur_rtde` package
 (tests/integration/test_ur_rtde.py connects its receive interface to our emulator).

@@ -2,7 +2,7 @@
 30002) served over a plant, so the real driver (`drivers.ur.driver`) and third-party RTDE clients
 talk to it exactly as to a UR.
 
-    python -m drivers.ur.emulator --port 30004 --script-port 30002
+    python -m emulators.ur --port 30004 --script-port 30002
 
 runs it over the simulated cell (`configs/scenarios/paper_default.yaml`, `configs/cell.yaml`)
 until Ctrl-C. In tests, `UrEmulator(world.cell.plant, rtde_port=0, script_port=0)` takes free
@@ -47,8 +47,8 @@ from scipy.spatial.transform import Rotation
 
 from drivers.ur import protocol as rp
 from drivers.ur import urscript
-from drivers.ur.motion import Motion
 from dt_kernel.errors import ConfigError
+from emulators.ur.motion import Motion
 from sim.kinematics import TOOL_DOWN
 
 CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller: 500 Hz RTDE
@@ -459,7 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     from drivers.simulated.devices import SimWorld
 
     configs = Path(__file__).resolve().parents[2] / "configs"
-    ap = argparse.ArgumentParser(prog="python -m drivers.ur.emulator",
+    ap = argparse.ArgumentParser(prog="python -m emulators.ur",
                                  description="A UR controller (RTDE + script port) over the simulated cell.")
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=30004, help="RTDE port (default 30004)")
