@@ -63,6 +63,12 @@ class _PublishingPlant:
         finally:  # a failed move may still have moved the arm: publish where it is
             self._publish(self._plant)
 
+    def servo_step(self, target: np.ndarray, speed: float, dt: float) -> None:
+        try:
+            self._plant.servo_step(target, speed, dt)
+        finally:
+            self._publish(self._plant)
+
     def __getattr__(self, name: str) -> Any:  # joint_angles, controller_tcp, nominal, ...
         return getattr(self._plant, name)
 

@@ -165,6 +165,20 @@ def test_robot_move_then_read(factory):
 
 
 @_robot
+def test_robot_streams_setpoints(factory):
+    conformance.robot_streams_setpoints(factory)
+
+
+def test_streaming_is_declared_by_the_drivers_that_stream():
+    """Streaming is a capability a driver declares (drivers.base.SetpointStreamer), not a method
+    every driver fakes: the simulated and UR drivers declare it, the serial controller does not."""
+    from drivers.base import SetpointStreamer
+
+    declared = {n for n in registry.known("robot") if issubclass(registry.driver_class("robot", n), SetpointStreamer)}
+    assert declared == {"sim", "ur_rtde"}
+
+
+@_robot
 def test_robot_refuses_nan_target(factory):
     conformance.robot_refuses_nan_target(factory)
 

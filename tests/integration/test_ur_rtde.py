@@ -289,7 +289,7 @@ def test_rtde_dropped_during_a_move_the_move_is_not_repeated(drv, emu, world):
     assert np.allclose(drv.read_commanded_tcp(), target, atol=1e-6)
     # sent once, executed once: nothing moved twice
     assert emu.stats["scripts"] == 1 and emu.stats["movel"] == 1 and emu.stats["moves_done"] == 1
-    assert drv.stats == {"moves_sent": 1, "moves_arrived": 1, "refused": 0}
+    assert drv.stats == {"moves_sent": 1, "moves_arrived": 1, "refused": 0, "setpoints_sent": 0, "streams": 0}
 
 
 def test_protective_stop_during_a_move_is_reported_and_nothing_moves_again(drv, emu, world):
