@@ -18,9 +18,11 @@ RTDE clients report ~34 ms from set-point to motion at lookahead 0.03 s on an e-
 model's 30 ms. It is a model of the documented behaviour, not UR's controller; the twin sees its
 lag and overshoot as the plant's truth, the way it would see a real arm's.
 
-Integrated with semi-implicit Euler on sub-steps short enough (w h <= 0.05) to be exact to well
-under a micrometre at these rates; the follower works in the TCP's position (m), one axis at a
-time (joint servoing through the controller's IK moves the TCP the same way for small steps).
+Within a control cycle the target moves linearly from the last set-point to the new one (a
+set-point is where the arm should be at the end of its cycle), integrated on sub-steps short
+enough (w h <= 0.01) that a ramp's lag is the look-ahead time to 0.1 %; the
+follower works in the TCP's position (m), one axis at a time (joint servoing through the
+controller's IK moves the TCP the same way for small steps).
 """
 from __future__ import annotations
 
@@ -38,6 +40,7 @@ class ServoFollower:
         self.lookahead_s, self.gain = float(lookahead_s), float(gain)
         self.x = np.array(position, dtype=float)
         self.v = np.zeros_like(self.x)
+        self.r = self.x.copy()  # the last set-point
 
     @property
     def damping_ratio(self) -> float:
@@ -45,15 +48,17 @@ class ServoFollower:
 
     def step(self, target: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Track `target` (m) for `dt` seconds; returns (position m, velocity m/s) at the end."""
-        r = np.asarray(target, dtype=float)
+        r1 = np.asarray(target, dtype=float)
         k, c = self.gain, self.gain * self.lookahead_s
-        n = max(1, math.ceil(dt * math.sqrt(k) / 0.05))
+        n = max(1, math.ceil(dt * math.sqrt(k) / 0.01))
         h = dt / n
-        x, v = self.x, self.v
-        for _ in range(n):
-            v = v + h * (k * (r - x) - c * v)
-            x = x + h * v
-        self.x, self.v = x, v
+        x, v, r0 = self.x, self.v, self.r
+        for j in range(n):
+            r = r0 + (r1 - r0) * (j / n)  # the target at the sub-step's start, like x and v
+            v_new = v + h * (k * (r - x) - c * v)
+            x = x + h * 0.5 * (v + v_new)  # the mean velocity over the sub-step: no lag of its own
+            v = v_new
+        self.x, self.v, self.r = x, v, r1.copy()
         return x.copy(), v.copy()
 
     def stop(self) -> np.ndarray:
