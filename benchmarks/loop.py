@@ -22,9 +22,9 @@ calibrates there first (`dt campaign`, 60 DOE rows); RTDE at 125 Hz (a CB3) for 
 same run at the same target as the baseline (`baseline`, and the ratio `rate_vs_baseline`).
 Extra keys: `exposure_latency_p50_ms`, `exposure_latency_p99_ms` (from the frame's
 mid-exposure on the host clock to the test done) and `mvs_refused`. Every move is a blocking
-`movel` waited for on the RTDE stream (the driver's `stream_setpoint` is a blocking move for
-now), so the loop's rate is bounded by the move, the arrival seen at the RTDE rate and a NatNet
-frame exposed after it.
+`movel` waited for on the RTDE stream (this point loop does not use the driver's set-point
+streaming, docs/drivers.md), so the loop's rate is bounded by the move, the arrival seen at the
+RTDE rate and a NatNet frame exposed after it.
 """
 from __future__ import annotations
 

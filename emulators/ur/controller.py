@@ -629,9 +629,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-scale", type=float, default=1.0, help="wall time per second of motion (0.1: 10x faster)")
     ap.add_argument("--drop-rtde-after", type=int, default=None, help="fault: close RTDE after N data packages")
     ap.add_argument("--protective-stop-on-move", type=int, default=None, help="fault: motion N stops half-way")
+    ap.add_argument("--taken-inputs", nargs="*", default=(), metavar="REGISTER",
+                    help="fault: input registers a fieldbus writes (IN_USE), e.g. input_double_register_24")
     args = ap.parse_args(argv)
     world = SimWorld(args.scenario, args.cell, args.seed)
-    faults = UrFaults(drop_rtde_after=args.drop_rtde_after, protective_stop_on_move=args.protective_stop_on_move)
+    faults = UrFaults(drop_rtde_after=args.drop_rtde_after, protective_stop_on_move=args.protective_stop_on_move,
+                      taken_inputs=tuple(args.taken_inputs))
     emu = UrEmulator(world.cell.plant, args.host, args.port, args.script_port, faults=faults,
                      time_scale=args.time_scale)
     print(f"UR emulator ({world.scenario_name}): RTDE on {emu.host}:{emu.rtde_port}, script port "
