@@ -30,7 +30,9 @@
   ended, the RTDE connection is down, the times do not increase or the step would exceed
   `limits.max_speed_m_s`. `stop_stream()` writes sequence -1: the program stops the arm (`stopj`)
   and ends. If the host stops writing, the program stops the arm by itself after
-  `watchdog_cycles` cycles without a new sequence number.
+  `watchdog_cycles` cycles without a new sequence number (also after `abort()`, which only sets an
+  event: the next `stream` call fails and the watchdog stops the arm). `move_linear` is refused
+  while a stream runs.
 
 Config keys (validated once into `UrConfig`; errors name key, value and what is allowed):
 `host` (required), `rtde_port` (30004), `script_port` (30002), `frequency_hz` (125, at most 500),
@@ -88,7 +90,10 @@ class UrStream(Frozen):
 
     @property
     def outputs(self) -> tuple[str, ...]:
-        return (f"output_int_register_{self.status_register}", f"output_int_register_{self.status_register + 1}")
+        """The program's state and the sequence it took, and the sequence register read back (the
+        controller has the first set-point before the program starts)."""
+        return (f"output_int_register_{self.status_register}", f"output_int_register_{self.status_register + 1}",
+                f"input_int_register_{self.seq_register}")
 
 
 class _Stream:
@@ -226,6 +231,8 @@ class UrRtdeController(Abortable, Lifecycle):
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         self._require("active")
         self._check_abort()
+        if self._stream is not None and not self._stream.stopped:
+            raise StateError(f"{self.name}: a stream is running (its program would be replaced); stop_stream() first")
         target, speed = self._check_move(target, speed)
         cfg, link = self._cfg, self._link
         before = self.read_sample()
@@ -259,12 +266,28 @@ class UrRtdeController(Abortable, Lifecycle):
                                         st.watchdog_cycles, st.stop_deceleration)
         stream = _Stream(program, rate, rot, np.array(pose[:3]))
         link.write_inputs([stream.seq, *pose[:3], *rot])  # where the arm is: the first cycle holds it
+        self._await_register(f"input_int_register_{st.seq_register}", stream.seq)  # before the program reads it
         with link.cond:
             n_msg, t_sent = link.stats["messages"], time.monotonic()
         self._send_script(urscript.servo_program(program), "servo program")
         self._await_program(n_msg, t_sent)
         self._stream = stream
         self.stats["streams"] += 1
+
+    def _await_register(self, name: str, value: int) -> None:
+        """Wait (up to timeout_s) until a package shows the register holding `value`."""
+        cfg, link = self._cfg, self._link
+        deadline = time.monotonic() + cfg.timeout_s
+        with link.cond:
+            while True:
+                s = link.latest
+                if s is not None and s.values.get(name) == value:
+                    return
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise DriverError(f"{self.name}: the controller does not show {name} = {value} within "
+                                      f"{cfg.timeout_s} s (it reads {None if s is None else s.values.get(name)})")
+                link.cond.wait(min(left, 0.05))
 
     def _await_program(self, n_msg: int, t_sent: float) -> None:
         """Wait (up to timeout_s) for a package, received after the program was sent, that shows it running."""

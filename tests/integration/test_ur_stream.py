@@ -15,7 +15,7 @@ import pytest
 
 from drivers.ur import protocol as rp
 from drivers.ur import urscript
-from dt_kernel.errors import ConfigError, DriverError
+from dt_kernel.errors import ConfigError, DriverError, StateError
 from tests.support.loopback import wait_until
 
 SCENARIO, CELL = "configs/scenarios/paper_default.yaml", "configs/cell.yaml"
@@ -88,6 +88,9 @@ def test_a_streamed_line_arrives_once_in_order_and_the_servo_lags_then_overshoot
     wait_until(lambda: drv.stream_status().consumed == n, 5.0)
     status = drv.stream_status()
     assert (status.state, status.sent, status.consumed) == ("streaming", n, n)
+    with pytest.raises(StateError, match="a stream is running"):  # a movel would replace the servo program
+        drv.move_linear(p0, 0.1)
+    assert emu.stats["scripts"] == 1
     drv.stop_stream()
     assert emu.stats["host_stops"] == 1 and emu.stats["watchdog_stops"] == 0
     assert emu.register("output_int_register_24") == urscript.STREAM_HOST_STOP
