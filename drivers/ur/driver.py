@@ -28,7 +28,9 @@
   and returns: it never waits for the arm. It refuses (DriverError naming the reason, nothing
   sent) when the newest package shows a safety stop, the program stopped by its watchdog or
   ended, the RTDE connection is down, the times do not increase or the step would exceed
-  `limits.max_speed_m_s`. `stop_stream()` writes sequence -1: the program stops the arm (`stopj`)
+  `limits.max_speed_m_s`. A refusal stops the stream for good (a set-point after a gap would make
+  the arm jump): the controller's watchdog stops the arm, and `start_stream` starts again from
+  where it stands. `stop_stream()` writes sequence -1: the program stops the arm (`stopj`)
   and ends. If the host stops writing, the program stops the arm by itself after
   `watchdog_cycles` cycles without a new sequence number (also after `abort()`, which only sets an
   event: the next `stream` call fails and the watchdog stops the arm). `move_linear` is refused
@@ -358,7 +360,12 @@ class UrRtdeController(Abortable, Lifecycle):
             self.stats["refused"] += 1
             raise DriverError(f"{self.name}: set-point {stream.sent + 1} not sent: {why} "
                               f"({stream.sent} sent, the controller took {self._consumed(stream)})")
-        self._link.write_inputs([stream.seq + 1, *target, *stream.rot])
+        try:
+            self._link.write_inputs([stream.seq + 1, *target, *stream.rot])
+        except DriverError as exc:  # the connection went down since the check: stopped all the same
+            stream.stopped = f"the RTDE connection is down ({exc})"
+            self.stats["refused"] += 1
+            raise DriverError(f"{self.name}: set-point {stream.sent + 1} not sent: {stream.stopped}") from exc
         stream.seq += 1
         stream.sent += 1
         stream.last_t, stream.last_p = t, target

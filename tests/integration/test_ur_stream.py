@@ -167,6 +167,40 @@ def test_a_protective_stop_mid_stream_is_refused_with_its_reason_then_resumed(dr
     drv.stop_stream()
 
 
+def test_rtde_dropped_mid_stream_stops_it_the_watchdog_stops_the_arm_and_a_new_stream_resumes(emu):
+    # reconnection held off for a second, so the refusal is seen while the connection is down
+    from drivers.ur.driver import UrRtdeController
+
+    drv = UrRtdeController.from_config({"host": "127.0.0.1", "rtde_port": emu.rtde_port,
+                                        "script_port": emu.script_port, "timeout_s": 5.0,
+                                        "reconnect_interval_s": 1.0, "stream": {"watchdog_cycles": 25}})
+    drv.activate()
+    try:
+        p0 = drv.read_commanded_tcp()
+        drv.start_stream(RATE, 0.1, 300.0)
+        _paced(drv, [p0 + np.array([0.0005 * k, 0.0, 0.0]) for k in range(1, 6)])
+        emu.inject_drop(after_packages=0)
+        assert wait_until(lambda: drv.link.stats["drops"] == 1, 5.0)
+        sent = emu.stats["input_packages"]
+        with pytest.raises(DriverError, match="set-point 6 not sent: the RTDE connection is down"):
+            drv.stream(p0 + np.array([0.003, 0.0, 0.0]), 1.0)
+        assert emu.stats["input_packages"] == sent
+        # the controller's watchdog stops the arm; the restored connection does not revive the stream
+        assert wait_until(lambda: emu.stats["watchdog_stops"] == 1, 10.0)
+        assert wait_until(lambda: drv.link.stats["connects"] == 2, 10.0)
+        with pytest.raises(DriverError, match="connection is down"):
+            drv.stream(p0 + np.array([0.003, 0.0, 0.0]), 1.1)
+        assert _seqs(emu) == list(range(1, 7))  # nothing written twice
+        # resumed where the arm stands, as a new stream
+        here = drv.read_commanded_tcp()
+        drv.start_stream(RATE, 0.1, 300.0)
+        _paced(drv, [here + np.array([0.0005 * k, 0.0, 0.0]) for k in range(1, 4)])
+        drv.stop_stream()
+        assert emu.stats["servo_programs"] == 2 and emu.stats["host_stops"] == 1
+    finally:
+        drv.close()
+
+
 def test_input_registers_taken_by_a_fieldbus_are_a_config_error_naming_them(world):
     from emulators.ur import UrFaults
 
