@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivers.base import StreamStatus
 from dt_kernel.errors import DriverError
 
 OFFSET = np.array([1e-4, -2e-4, 3e-4])  # m, what the fake corrector adds
@@ -30,6 +31,9 @@ class RecordingStreamer:
 
     def stop_stream(self) -> None:
         self.stopped += 1
+
+    def stream_status(self) -> StreamStatus:
+        return StreamStatus("streaming" if self.started and not self.stopped else "idle", len(self.calls))
 
     def close(self) -> None:
         self.closed = True

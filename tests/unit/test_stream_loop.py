@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from drivers.base import streams
 from dt_kernel.errors import TwinError
 from dt_runtime.service.stream import StreamProcess, run_stream
 from tests.support.stream_fakes import OFFSET, RecordingStreamer, broken_streamer, offset_corrector, recording_streamer
@@ -26,6 +27,7 @@ def test_every_set_point_is_corrected_once_and_sent_once_in_order(paced):
         return target + OFFSET
 
     drv = RecordingStreamer()
+    assert streams(drv)  # it declares the capability the loop needs (drivers.base.SetpointStreamer)
     rep = run_stream(t, p, correct, drv, 500.0, lookahead_s=0.05, gain=500.0, paced=paced)
     assert drv.started == (500.0, 0.05, 500.0) and drv.stopped == 1
     assert calls == list(t)  # each corrected once, in order
