@@ -32,6 +32,20 @@ class FastPredictor:
         else:
             self._per = [(g.x_mean_, g.x_scale_, g._Xb, g._alpha, g._Q) for g in models]
 
+    def mean_kernel(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The mean (k,) at x (d,) and the kernel vectors (U, k) its std needs (`std_of`): a
+        fixed-point correction needs the mean at every step and the std only at its last. The
+        same operations as `__call__`, so the same numbers; shared outputs only, x not checked."""
+        diff = self._Xb - (x - self._xm) / self._xs
+        K = self._sf2 * np.exp((diff * diff) @ self._neg_half_inv_ell2)
+        return self._m0 + self._ys * np.einsum("uk,uk->k", K, self._alpha), K
+
+    def std_of(self, K: np.ndarray) -> np.ndarray:
+        """The latent std (k,) where `mean_kernel` gave K."""
+        Kt = K.T
+        var = self._sf2 - np.einsum("ku,ku->k", Kt, np.matmul(self._Q, Kt[:, :, None])[:, :, 0])
+        return self._ys * np.sqrt(np.maximum(var, 0.0))
+
     def __call__(self, x) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(x, dtype=float)
         if x.shape != (self.d,) or not np.isfinite(x).all():

@@ -153,18 +153,19 @@ class HybridModel(RegressorMixin, BaseEstimator):
         return self.gp_options
 
     # --- linear effect part ------------------------------------------------------------------
-    def design_matrix(self, X, y=None) -> Design:
+    def design_matrix(self, X, y=None, *, chain: Chain | None = None) -> Design:
         """The effect terms' regressors on X (rows in time order: backlash and dynamic read the
         previous row). Cross-validation builds it once on all rows and passes row subsets to
         fit/predict, so held-out rows keep their true history. The effects' nonlinear parameters
         (the thermal lag): a fitted model's; else estimated on (X, y) by profile likelihood
-        (models.hyper) when the error y is given; else their defaults."""
+        (models.hyper) when the error y is given; else their defaults. `chain`: the effects'
+        kinematic chain when the caller has resolved it (`MapPredictor`, once); else resolved here."""
         inp = as_inputs(X)
         cat = self.catalogue or fx.PROCESS
         cat.check_names(self.effects)
         if inp.t_origin is None and getattr(self, "t_origin_", None) is not None:
             inp = replace(inp, t_origin=self.t_origin_)
-        chain = self._effects_chain()
+        chain = chain if chain is not None else self._effects_chain()  # MapPredictor resolves it once
         hyper = getattr(self, "hyper_", None)
         if hyper is None:
             hyper = hp.profile(self.effects, inp, y, chain, self.ridge, cat) if y is not None else {}
@@ -668,6 +669,8 @@ class MapPredictor:
         self.model = model
         self.needs = model.needs()
         self._gp = model.gp_.predictor() if model.gp_ is not None else None
+        # the effects' chain, resolved once: per command it is a file lookup (~0.5 ms)
+        self._chain = model._effects_chain() if model.effects else None
         # The paper's map: GP(TCP, v) only; one call of the GP's lean predictor per command.
         self.plain = not model.effects and model.gp_inputs == "tcp_speed"
         # The structure's temperature, carried from command to command when it lags the air
@@ -696,7 +699,7 @@ class MapPredictor:
         m = self.model
         if self._lag > 0:
             inp = self._structure_temperature(inp)
-        A = m.design_matrix(inp).A[-1] if m.theta_.size else np.zeros((3, 0))
+        A = m.design_matrix(inp, chain=self._chain).A[-1] if m.theta_.size else np.zeros((3, 0))
         mean = A @ m.theta_ if A.shape[1] else np.zeros(3)
         var = np.einsum("ap,pq,aq->a", A, m.theta_cov_, A) if A.shape[1] else np.zeros(3)
         if self._gp is not None:

@@ -10,6 +10,7 @@ history, then the command itself.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,10 +51,13 @@ def missing(needs: tuple[str, ...], cond: Conditions | None) -> list[str]:
 
 
 def command_inputs(c: np.ndarray, v: float, needs: tuple[str, ...], cond: Conditions | None,
-                   chain: Chain | None, q_seed: np.ndarray | None = None) -> tuple[Inputs, np.ndarray | None]:
+                   chain: Chain | None, q_seed: np.ndarray | None = None,
+                   ik: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                   ) -> tuple[Inputs, np.ndarray | None]:
     """The map's input rows for command c at speed v: [previous command, c] (the direction of
     approach) or [c] without history, and the joint angles of c (None if the map needs none).
-    q_seed: where the inverse kinematics of c starts (default: the arm's joints now)."""
+    q_seed: where the inverse kinematics of c starts (default: the arm's joints now); ik: the
+    solver (default `chain.ik`; a path's set-points use `frames.newton_ik`, the same solution)."""
     cond = cond or Conditions()
     lack = missing(needs, cond)
     if lack:
@@ -72,7 +76,7 @@ def command_inputs(c: np.ndarray, v: float, needs: tuple[str, ...], cond: Condit
         if chain is None:
             raise DataError("the twin's error map needs joint angles but names no robot config")
         assert q_now is not None  # `missing` checked it
-        q_c = chain.ik(rows[-1], q_now if q_seed is None else q_seed)
+        q_c = (ik or chain.ik)(rows[-1], q_now if q_seed is None else q_seed)
         joints = np.vstack([q_now, q_c])[-n:]
 
     def col(x: float | None) -> np.ndarray | None:

@@ -54,6 +54,13 @@ class Program:
     joints: np.ndarray | None = None  # (n, dof) rad, where the arm stands before each target
     extra: dict[str, np.ndarray] | None = None  # (n,) each: the columns the user's declared effects read
     source: str = "<program>"  # the file it was read from, for messages
+    labels: bool = False  # point_id says where each target is (a path's set-points), not a line
+
+    def where(self, i: int, what: str = "") -> str:
+        """Target i for a message: its id and line (and `what` after the line)."""
+        if self.labels:
+            return f"{self.point_id[i]}{': ' + what if what else ''}"
+        return f"{self.point_id[i]} (line {self.line[i]}{': ' + what if what else ''})"
 
     def conditions(self, i: int, base: Conditions | None = None) -> Conditions:
         """Target i's conditions: the program's columns, else `base`'s (e.g. the sensors')."""
@@ -146,9 +153,10 @@ def check_workspace(twin: Twin, program: Program, where: str) -> None:
         return
     bad = np.flatnonzero(far > limit)
     if bad.size:
-        first = ", ".join(f"{program.point_id[i]} (line {program.line[i]}: "
-                          f"{np.round(program.target[i] * MM_PER_M, 1).tolist()} mm)" for i in bad[:3])
-        raise DataError(f"{where}: {bad.size} of {program.n} targets lie beyond {what}: {first}"
+        first = ", ".join(program.where(i, f"{np.round(program.target[i] * MM_PER_M, 1).tolist()} mm")
+                          for i in bad[:3])
+        raise DataError(f"{where}: {bad.size} of {program.n} {'set-points' if program.labels else 'targets'} lie "
+                        f"beyond {what}: {first}"
                         f"{' ...' if bad.size > 3 else ''}; targets are in mm in the robot frame")
 
 
@@ -186,11 +194,12 @@ def write_corrected(path: str | Path, program: Program, corrections: list[Correc
         w = csv.writer(f)
         w.writerow(["point_id", "x", "y", "z", "speed", "cx", "cy", "cz", "Ux", "Uy", "Uz", "inside", "distance_mm"])
         for pid, t, v, c in zip(program.point_id, program.target, program.speed, corrections):
-            w.writerow([pid, *_mm(t), f"{v * MM_PER_M:.6g}", *_mm(c.command), *_mm(c.U), int(c.inside),
+            w.writerow([pid, *mm_cells(t), f"{v * MM_PER_M:.6g}", *mm_cells(c.command), *mm_cells(c.U),
+                        int(c.inside),
                         "" if not np.isfinite(c.distance_m) else f"{c.distance_m * MM_PER_M:.3f}"])
     tmp.replace(path)
     return path
 
 
-def _mm(a: np.ndarray) -> list[str]:
+def mm_cells(a: np.ndarray) -> list[str]:
     return [f"{float(x) * MM_PER_M:.6f}" for x in a]

@@ -28,7 +28,7 @@ class Geometric(Effect):
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
         pos, rot, T = chain.frames(inp.column("joints"))
-        J = chain.jacobian(inp.column("joints"))
+        J = np.cross(chain.world_axes(rot), T[:, None, :3, 3] - pos).transpose(0, 2, 1)  # Chain.jacobian, same frames
         dof = J.shape[2]
         p = T[:, :3, 3]
         blocks = [-J]

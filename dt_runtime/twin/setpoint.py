@@ -1,0 +1,134 @@
+"""One set-point corrected fast: the per-set-point correction of a path (`dt correct --path`, a
+streaming loop at a controller's 125 or 500 Hz).
+
+`Twin.correct` is the reference: the fixed point c - e_hat(c, v) = target, the e_LT map's std at
+the command, Eq. 11's budget there (a labelled `Budget`, its coverage factor from scipy's t
+distribution) and the calibrated-volume flag. `SetpointCorrector.correct` computes the same
+numbers (equal to ~1e-12 m) with what can be precomputed taken out of the per-set-point work:
+
+- the plain map (GP of TCP and speed): the GP's mean at every fixed-point step, its std only at
+  the last one (`FastPredictor.mean_kernel` / `std_of`: the same operations);
+- a map with joint-space effects: the command's joints by `frames.newton_ik` warm-started from
+  the previous step's (the same solution as `Chain.ik`, a fraction of its cost);
+- Eq. 11 at the position: the position-independent components summed once (u^2 and the
+  Welch-Satterthwaite terms u^4 / nu), the two position-dependent ones (lambda sigma_GP(c),
+  kappa d(c)) added per set-point, the coverage factor from the t quantile's special function
+  (`scipy.special.stdtrit`, what `stats.t.ppf` evaluates) without the labelled budget.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import special, stats
+
+from dt_runtime.frames.newton_ik import NewtonIK
+from dt_runtime.twin.conditions import Conditions, command_inputs
+from dt_runtime.twin.twin import Correction, Twin
+
+P95 = 0.975  # two-sided 95 % coverage: the t quantile at 0.5 + 0.95 / 2 (metrology.uncertainty)
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """A corrected set-point: the command (m, robot frame), U (m, 95 %, GL axes), the volume flag,
+    the signed distance to the DOE hull (m, NaN if unknown) and the command's joints (rad, or None
+    when the map reads none): the next set-point's inverse kinematics starts there."""
+
+    command: np.ndarray
+    U: np.ndarray
+    inside: bool
+    distance_m: float
+    joints: np.ndarray | None
+
+    def correction(self, target: np.ndarray) -> Correction:
+        """As `Twin.correct` returns it (without the labelled budget)."""
+        return Correction(np.asarray(target, dtype=float), self.command, self.U, self.inside, self.distance_m, None)
+
+
+class SetpointCorrector:
+    """`Twin.correct`'s numbers for one set-point at a time, precomputed for speed. Holds its own
+    map predictor (a thermal map's structure temperature is carried from set-point to set-point)."""
+
+    def __init__(self, twin: Twin, iters: int = 6, tol: float = 1e-8):
+        self.twin, self.iters, self.tol = twin, iters, tol  # Twin.corrected_command's defaults
+        self._Rt = twin.T_rdk.R.T  # GL axes -> robot axes
+        self._map = twin.e_lt.predictor()
+        self.needs = self._map.needs
+        gp = twin.e_lt.gp_.predictor() if self._map.plain and twin.e_lt.gp_ is not None else None
+        self._gp = gp if gp is not None and gp.shared else None
+        self._chain = twin.e_lt.chain() if "joints" in self.needs else None
+        self._ik = NewtonIK(self._chain).solve if self._chain is not None else None
+        self._x = np.empty(4)
+        vol = twin.volume
+        self._normals = None if vol is None else np.ascontiguousarray(vol.normals)
+        self._offsets = None if vol is None else vol.offsets
+        self._margin = 0.0 if vol is None else vol.margin_m
+        pu = twin.position_u
+        self._U_global = twin.uncertainty.tcp_c.U
+        self._pu = pu
+        if pu is not None:
+            us = np.array([c.u for c in pu.rest.components])
+            dofs = np.array([c.dof for c in pu.rest.components])
+            # Welch-Satterthwaite's terms u^4 / nu (metrology.uncertainty), the fixed ones summed once
+            self._fast_u = bool(np.all(dofs > 0) and pu.model_dof > 0 and pu.extrapolation_dof > 0)
+            if self._fast_u:
+                self._rest_u2 = np.sum(us ** 2, axis=0).tolist()
+                u4 = np.where(np.isfinite(dofs)[:, None], us ** 4 / dofs[:, None], 0.0)
+                self._rest_u4 = np.sum(u4, axis=0).tolist()
+                self._lam, self._kappa = pu.model_scale.tolist(), pu.extrapolation_scale.tolist()
+                self._w_m = 1.0 / pu.model_dof if math.isfinite(pu.model_dof) else 0.0  # 1 / nu
+                self._w_k = 1.0 / pu.extrapolation_dof if math.isfinite(pu.extrapolation_dof) else 0.0
+        self._k_inf = float(stats.norm.ppf(P95))
+
+    def _lt(self, c: np.ndarray, v: float, cond: Conditions | None, q_seed):
+        """e_LT_hat's mean at c (GL axes), what its std needs (the GP's kernel vectors, or the std),
+        and c's joints."""
+        if self._gp is not None:
+            x = self._x
+            x[:3] = c
+            x[3] = v
+            m, K = self._gp.mean_kernel(x)
+            return m, K, None
+        inp, q = command_inputs(c, v, self.needs, cond, self._chain, q_seed, self._ik)
+        m, s = self._map(inp)
+        return m, s, q
+
+    def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> Setpoint:
+        """The corrected set-point for `target` (m, robot frame) at speed v (m/s) under `cond`."""
+        target = np.asarray(target, dtype=float)
+        Rt, tol = self._Rt, self.tol
+        m, s, q = self._lt(target, v, cond, None)
+        c = target + Rt @ m
+        for _ in range(self.iters):  # Twin._solve's fixed point, step for step
+            m, s, q = self._lt(c, v, cond, q)
+            c_new = target + Rt @ m
+            done = np.abs(c_new - c).max() < tol
+            c = c_new
+            if done:
+                break
+        sigma = self._gp.std_of(s) if self._gp is not None else s
+        if self._normals is None:
+            dist = float("nan")
+        else:
+            dist = float(np.max(self._normals @ c + self._offsets))
+        return Setpoint(c, self._expanded(sigma, dist), self._normals is None or dist <= self._margin, dist, q)
+
+    def _expanded(self, sigma: np.ndarray, dist: float) -> np.ndarray:
+        """Eq. 11's U at the position (`PositionUncertainty.budget_at(...).expanded()`)."""
+        pu = self._pu
+        if pu is None:
+            return self._U_global
+        d = max(dist if math.isfinite(dist) else 0.0, 0.0)
+        if not self._fast_u:  # a zero degree of freedom somewhere: the budget's own arithmetic
+            return pu.budget_at(sigma, d).expanded()
+        U = []  # per axis on plain floats: three numbers do not pay numpy's per-call overhead
+        for r2, r4, lam, kap, sg in zip(self._rest_u2, self._rest_u4, self._lam, self._kappa, sigma.tolist()):
+            um2, ue2 = (lam * sg) ** 2, (kap * d) ** 2
+            uc2 = r2 + um2 + ue2
+            den = r4 + um2 * um2 * self._w_m + ue2 * ue2 * self._w_k
+            # nu_eff = u_c^4 / sum(u_i^4 / nu_i); k from the t quantile (what stats.t.ppf evaluates)
+            k = special.stdtrit(max(uc2 * uc2 / den, 1.0), P95) if den > 0 else self._k_inf
+            U.append(k * math.sqrt(uc2))
+        return np.array(U)
