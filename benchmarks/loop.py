@@ -15,16 +15,16 @@ the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done.
 
 `--robot ur_rtde --camera natnet` runs the loop through the Universal Robots RTDE driver and the
 OptiTrack NatNet driver against the emulated cell it starts itself (`python -m
-drivers.emulated_cell` in a subprocess, as a controller and Motive are other machines; moves
+emulators.emulated_cell` in a subprocess, as a controller and Motive are other machines; moves
 `--cell-time-scale` times real time, NatNet at `--natnet-rate` frames/s), with a twin it
 calibrates there first (`dt campaign`, 60 DOE rows); RTDE at 125 Hz (a CB3) for `--rate` up to
 125, 500 Hz (an e-Series) above. The simulated drivers (`sim`, `sim_point`) are measured in the
 same run at the same target as the baseline (`baseline`, and the ratio `rate_vs_baseline`).
 Extra keys: `exposure_latency_p50_ms`, `exposure_latency_p99_ms` (from the frame's
 mid-exposure on the host clock to the test done) and `mvs_refused`. Every move is a blocking
-`movel` waited for on the RTDE stream (the driver's `stream_setpoint` is a blocking move for
-now), so the loop's rate is bounded by the move, the arrival seen at the RTDE rate and a NatNet
-frame exposed after it.
+`movel` waited for on the RTDE stream (this point loop does not use the driver's set-point
+streaming, docs/drivers.md), so the loop's rate is bounded by the move, the arrival seen at the
+RTDE rate and a NatNet frame exposed after it.
 """
 from __future__ import annotations
 
@@ -70,8 +70,8 @@ def _robot(kind: str):
     if kind == "sim":
         yield None, {"kind": "sim"}
         return
-    from drivers.serial.emulator import ControllerEmulator
     from drivers.simulated.devices import SimWorld
+    from emulators.serial import ControllerEmulator
 
     world = SimWorld(CONFIGS / "scenarios" / "paper_default.yaml", CONFIGS / "cell.yaml")
     try:

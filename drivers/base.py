@@ -196,9 +196,6 @@ class RobotController(Protocol):
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         """Linear move of the TCP to `target` (m, robot frame) at `speed` (m/s); returns when settled."""
 
-    def stream_setpoint(self, target: np.ndarray, speed: float) -> None:
-        """One set-point of a streamed trajectory (non-blocking)."""
-
     def read_joint_state(self) -> JointState: ...
 
     def read_commanded_tcp(self) -> np.ndarray:
@@ -209,6 +206,70 @@ class RobotController(Protocol):
         callable from any thread or a signal handler (`Abortable`)."""
 
     def clear_abort(self) -> None: ...
+
+
+# Streaming set-points is a capability a robot driver declares by implementing SetpointStreamer
+# (`streams(driver)`), not a method every driver must fake with a blocking move: a controller
+# that follows a stream (a UR's servoj over RTDE registers) keeps moving between set-points,
+# with the lag and overshoot of its servo, and stops by itself when the stream stops.
+LOOKAHEAD_RANGE_S = (0.03, 0.2)  # servoj's lookahead_time (URScript manual): smoothing vs. lag
+GAIN_RANGE = (100.0, 2000.0)  # servoj's proportional gain (URScript manual)
+
+
+@dataclass(frozen=True)
+class StreamStatus:
+    """What a streaming driver knows of its stream. `state`: "idle" (never started or stopped
+    by the host), "streaming", or "stopped" (the controller ended it: `reason` says why, e.g.
+    the watchdog or a protective stop). `sent`: set-points written since `start_stream`;
+    `consumed`: the newest set-point number the controller has taken (0: none yet, -1: unknown);
+    `cycles_quiet`: control cycles since the controller last saw a new one (-1: unknown)."""
+
+    state: str
+    sent: int = 0
+    consumed: int = -1
+    reason: str = ""
+    rate_hz: float = 0.0
+    lookahead_s: float = 0.0
+    gain: float = 0.0
+    cycles_quiet: int = -1
+
+
+@runtime_checkable
+class SetpointStreamer(Protocol):
+    """A robot driver that follows a stream of TCP set-points at the controller's rate.
+
+    `start_stream` makes the controller follow set-points (servo with `lookahead_s` and `gain`,
+    one expected every 1/`rate_hz` s); `stream(target, t)` hands over one set-point (m, robot
+    frame) meant for time `t` (s, the caller's clock, increasing) and returns at once, never
+    waiting for the arm; a set-point the controller refuses (protective stop, the watchdog has
+    stopped the stream) is a DriverError naming the reason. `stop_stream` ends it (the arm stops
+    where the stream left it). If the host stops calling `stream` for the controller's watchdog
+    time, the controller stops the arm by itself."""
+
+    def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None: ...
+    def stream(self, target: np.ndarray, t: float) -> None: ...
+    def stop_stream(self) -> None: ...
+    def stream_status(self) -> StreamStatus: ...
+
+
+def streams(driver: Any) -> bool:
+    """True when the driver declares the streaming capability (implements SetpointStreamer)."""
+    return isinstance(driver, SetpointStreamer)
+
+
+def check_stream_params(rate_hz: Any, lookahead_s: Any, gain: Any, max_rate_hz: float) -> tuple[float, float, float]:
+    """A stream's rate (Hz), look-ahead (s) and gain as floats, or DriverError saying what is allowed."""
+    rate, la, g = float(rate_hz), float(lookahead_s), float(gain)
+    if not (math.isfinite(rate) and 0.0 < rate <= max_rate_hz):
+        raise DriverError(f"invalid stream rate {rate_hz!r} Hz: need 0 < rate <= {max_rate_hz} Hz "
+                          "(the controller's loop)")
+    lo, hi = LOOKAHEAD_RANGE_S
+    if not (math.isfinite(la) and lo <= la <= hi):
+        raise DriverError(f"invalid look-ahead time {lookahead_s!r} s: need {lo} <= lookahead_s <= {hi} s")
+    lo, hi = GAIN_RANGE
+    if not (math.isfinite(g) and lo <= g <= hi):
+        raise DriverError(f"invalid servo gain {gain!r}: need {lo:g} <= gain <= {hi:g}")
+    return rate, la, g
 
 
 @runtime_checkable

@@ -1,6 +1,7 @@
 """The physical world in software: the simulated cobot plant with switchable error effects,
-the laser tracker, the point MVS stand-in and the camera-rig image simulator.
+the laser tracker, the point MVS stand-in, the camera-rig image simulator and the servo follower of
+a streamed path (servo).
 
 Knows nothing of the model side: imports only dt_kernel, never drivers or dt_runtime. The
-serial devices' emulators live beside their drivers (drivers/serial/emulator.py).
+devices' emulators, which serve the real wire protocols over this plant, are in emulators/.
 """

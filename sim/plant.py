@@ -49,6 +49,15 @@ class SimulatedCobot:
     # --- commands -----------------------------------------------------------------------
     def move_linear(self, target: np.ndarray, speed: float) -> None:
         """Move the TCP to `target` (m, robot frame) at `speed` (m/s) and settle there."""
+        self._go(target, speed, None)
+
+    def servo_step(self, target: np.ndarray, speed: float, dt: float) -> None:
+        """One control cycle of a streamed path (sim.servo): the TCP is at `target` (m) moving at
+        `speed` (m/s) after `dt` s. The clock advances `dt`, without the dwell of a positioning;
+        the effects see the speed (dynamic) and the direction of motion (backlash)."""
+        self._go(target, speed, float(dt))
+
+    def _go(self, target: np.ndarray, speed: float, dt: float | None) -> None:
         target = np.asarray(target, dtype=float)
         speed = float(min(speed, self.scn.max_speed_m_s))
         q_new = self.nominal.ik(target, q_seed=self.q_cmd)
@@ -59,7 +68,7 @@ class SimulatedCobot:
         moved = np.abs(dq) > 1e-9
         self._last_dir = np.where(moved, np.sign(dq), self._last_dir)
         self._approach = step / dist if dist > 1e-9 else self._approach
-        self.clock.advance(dist / max(speed, 1e-6) + self.scn.dwell_s)
+        self.clock.advance(dist / max(speed, 1e-6) + self.scn.dwell_s if dt is None else dt)
         self.q_cmd, self._target, self._speed = q_new, target, speed
         self._settle()
 

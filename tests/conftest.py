@@ -48,7 +48,7 @@ def twin_dir(quick_demo):
 
 @pytest.fixture(scope="session")
 def ur_natnet_cell():
-    """`python -m drivers.emulated_cell` (UR, NatNet, serial tracker over one plant), 20x faster
+    """`python -m emulators.emulated_cell` (UR, NatNet, serial tracker over one plant), 20x faster
     than real time, for the session's end-to-end tests."""
     from tests.support.emulated_cell_process import cell_process
 

@@ -1,7 +1,7 @@
 """Robot controller over a serial line (pyserial), speaking `drivers.serial.protocol`.
 
 The same code talks to a real port (`/dev/ttyUSB0`), a pseudo-terminal served by
-`drivers.serial.emulator.ControllerEmulator` (`/dev/pts/N`) or a TCP bridge
+`emulators.serial.ControllerEmulator` (`/dev/pts/N`) or a TCP bridge
 (`socket://host:port`), since the port is opened with `serial.serial_for_url`.
 
 `drivers.serial.link.SerialLink` is the host side of the protocol (sequence numbers,

@@ -1,6 +1,6 @@
 """Line protocol spoken by the robot controller and the laser tracker (codec, shared).
 
-Both sides use this codec: the emulators in `drivers.serial.emulator` serve it, the drivers in
+Both sides use this codec: the emulators in `emulators.serial` serve it, the drivers in
 `drivers.serial.controller` / `drivers.serial.tracker` speak it through `drivers.serial.link`.
 
 Frame

@@ -9,18 +9,29 @@ truth, offered so the twin can be *scored* in simulation; no correction path may
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pybullet as pb
 
-from drivers.base import Abortable, JointState, Lifecycle, RigReading, TrackerReading, reject_keys
+from drivers.base import (
+    Abortable,
+    JointState,
+    Lifecycle,
+    RigReading,
+    StreamStatus,
+    TrackerReading,
+    check_stream_params,
+    reject_keys,
+)
 from dt_kernel.config import Frozen
-from dt_kernel.errors import DriverError, UnreachableError
+from dt_kernel.errors import DriverError, StateError, UnreachableError
 from dt_kernel.geometry import spherical_to_cartesian
 from sim.cell import SimCell
 from sim.kinematics import TOOL_DOWN
+from sim.servo import ServoFollower
 
 
 class SimWorld:
@@ -158,7 +169,50 @@ class SimRobot(Abortable, _OnWorld):
         except Exception as exc:  # pybullet errors surface as DriverError
             raise DriverError(f"simulated controller failed: {exc}") from exc
 
-    stream_setpoint = move_linear
+    # --- streaming (drivers.base.SetpointStreamer) in simulated time ------------------------
+    def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None:
+        """The plant follows set-points through the servo model of sim.servo (the UR emulator's),
+        in simulated time: each set-point advances the simulated clock by its time step, so the
+        path's lag and overshoot are in the plant's truth. No watchdog: the simulated controller
+        moves only when it is handed a set-point."""
+        self._require("active")
+        self._check_abort()
+        rate, la, g = check_stream_params(rate_hz, lookahead_s, gain, 1000.0)
+        self._follower: ServoFollower | None = ServoFollower(self._plant.controller_tcp(), la, g)
+        self._status = StreamStatus("streaming", 0, 0, "", rate, la, g)
+        self._last_t: float | None = None
+
+    def stream(self, target: np.ndarray, t: float) -> None:
+        self._require("active")
+        self._check_abort()
+        follower = getattr(self, "_follower", None)
+        if follower is None:
+            raise StateError(f"{type(self).__name__}: stream() before start_stream()")
+        target = np.asarray(target, dtype=float)
+        if target.shape != (3,) or not np.all(np.isfinite(target)):
+            raise DriverError(f"invalid set-point {target!r}")
+        st = self._status
+        dt = 1.0 / st.rate_hz if self._last_t is None else float(t) - self._last_t
+        if not dt > 0:
+            raise DriverError(f"set-point time {t} s does not follow the last one ({self._last_t} s)")
+        x, v = follower.step(target, dt)
+        try:
+            self._plant.servo_step(x, float(np.linalg.norm(v)), dt)
+        except UnreachableError:
+            raise
+        except Exception as exc:  # pybullet errors surface as DriverError
+            raise DriverError(f"simulated controller failed: {exc}") from exc
+        self._last_t = float(t)
+        self._status = replace(st, sent=st.sent + 1, consumed=st.sent + 1, cycles_quiet=0)
+
+    def stop_stream(self) -> None:
+        self._require("active")
+        if getattr(self, "_follower", None) is not None:
+            self._follower = None
+            self._status = replace(self._status, state="idle")
+
+    def stream_status(self) -> StreamStatus:
+        return getattr(self, "_status", StreamStatus("idle"))
 
     def read_joint_state(self) -> JointState:
         self._require("active")

@@ -19,8 +19,18 @@
   `stale_after_s` old; the call waits up to `timeout_s` for a fresh one): `actual_q`, and
   `actual_TCP_pose[:3]` (the controller's TCP from its encoders and nominal kinematics, m).
   `JointState.t` is the controller's `timestamp`; `JointState.host_time` the host's receive time.
-* `stream_setpoint` is `move_linear` (a UR streams set-points with servoj over RTDE inputs:
-  not done yet).
+* Streaming (`drivers.base.SetpointStreamer`): `start_stream(rate_hz, lookahead_s, gain)` writes
+  the arm's current pose and sequence number 1 into the RTDE input registers of `stream` and
+  sends the servo program (`urscript.servo_program`: servoj on the controller's IK of the pose in
+  the registers, at period 1/rate_hz, with the look-ahead and gain given, and a watchdog of
+  `stream.watchdog_cycles` control cycles), then waits until the program reports it runs.
+  `stream(target, t)` writes one set-point (pose, next sequence number) as one RTDE input package
+  and returns: it never waits for the arm. It refuses (DriverError naming the reason, nothing
+  sent) when the newest package shows a safety stop, the program stopped by its watchdog or
+  ended, the RTDE connection is down, the times do not increase or the step would exceed
+  `limits.max_speed_m_s`. `stop_stream()` writes sequence -1: the program stops the arm (`stopj`)
+  and ends. If the host stops writing, the program stops the arm by itself after
+  `watchdog_cycles` cycles without a new sequence number.
 
 Config keys (validated once into `UrConfig`; errors name key, value and what is allowed):
 `host` (required), `rtde_port` (30004), `script_port` (30002), `frequency_hz` (125, at most 500),
@@ -28,7 +38,12 @@ Config keys (validated once into `UrConfig`; errors name key, value and what is 
 stream quiet this long is treated as lost), `reconnect_interval_s` (0.2), `move_timeout_s` (60),
 `arrival_tol_m` (1e-4), `still_m_s` (1e-3), `acceleration_m_s2` (1.2, movel's `a`),
 `tool_rotvec` (null: keep the current orientation), `extra_outputs` ([]: more RTDE outputs to
-record), `limits` {`tcp_abs_m` 3.0, `max_speed_m_s` 1.0}.
+record), `limits` {`tcp_abs_m` 3.0, `max_speed_m_s` 1.0}, `stream` {`enabled` true (the input
+registers are claimed at activate: IN_USE -> ConfigError), `double_register` 24 (the first of six
+input double registers: x, y, z, rx, ry, rz), `seq_register` 24 (input int register: the
+sequence number), `status_register` 24 (output int registers N and N+1: the program's state and
+the sequence number it took), `watchdog_cycles` 25 (0.2 s at 125 Hz), `stop_deceleration` 4.0
+(rad/s^2, stopj's)}.
 """
 from __future__ import annotations
 
@@ -39,12 +54,12 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from drivers.base import Abortable, JointState, Lifecycle, check_move
+from drivers.base import Abortable, JointState, Lifecycle, StreamStatus, check_move, check_stream_params
 from drivers.ur import protocol as rp
 from drivers.ur import urscript
 from drivers.ur.rtde_link import RtdeLink, RtdeSample
 from dt_kernel.config import Frozen, validate
-from dt_kernel.errors import DriverError, StateError
+from dt_kernel.errors import ConfigError, DriverError, StateError
 
 # What the driver needs from every package (the guide's names).
 OUTPUTS = ("timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_speed", "target_TCP_pose",
@@ -55,6 +70,36 @@ _MOVABLE_SAFETY = (rp.SAFETY_NORMAL, rp.SAFETY_REDUCED)
 class UrLimits(Frozen):
     tcp_abs_m: float = Field(3.0, gt=0)
     max_speed_m_s: float = Field(1.0, gt=0, le=5.0)
+
+
+class UrStream(Frozen):
+    enabled: bool = True
+    double_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 6)
+    seq_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 1)
+    status_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 2)
+    watchdog_cycles: int = Field(25, ge=1, le=100_000)
+    stop_deceleration: float = Field(4.0, gt=0, le=40.0)
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The input registers written, in package order: the sequence number, then the pose."""
+        return (f"input_int_register_{self.seq_register}",
+                *(f"input_double_register_{self.double_register + i}" for i in range(6)))
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        return (f"output_int_register_{self.status_register}", f"output_int_register_{self.status_register + 1}")
+
+
+class _Stream:
+    """The host's side of a running stream."""
+
+    def __init__(self, program: urscript.ServoProgram, rate_hz: float, rot: tuple[float, ...], p0: np.ndarray):
+        self.program, self.rate_hz, self.rot = program, rate_hz, rot
+        self.seq, self.sent = 1, 0
+        self.last_t: float | None = None
+        self.last_p = p0
+        self.stopped = ""  # why the controller ended it, once known
 
 
 class UrConfig(Frozen):
@@ -72,6 +117,7 @@ class UrConfig(Frozen):
     tool_rotvec: tuple[float, float, float] | None = None
     extra_outputs: tuple[str, ...] = ()
     limits: UrLimits = UrLimits()
+    stream: UrStream = UrStream()
 
 
 class UrRtdeController(Abortable, Lifecycle):
@@ -84,7 +130,8 @@ class UrRtdeController(Abortable, Lifecycle):
         self._source = source or "<ur_rtde robot config>"
         self.cfg: UrConfig | None = None
         self.link: RtdeLink | None = None
-        self.stats = {"moves_sent": 0, "moves_arrived": 0, "refused": 0}
+        self.stats = {"moves_sent": 0, "moves_arrived": 0, "refused": 0, "setpoints_sent": 0, "streams": 0}
+        self._stream: _Stream | None = None
 
     # --- lifecycle hooks ----------------------------------------------------------------
     def _on_configure(self, config: dict[str, Any]) -> None:
@@ -92,10 +139,13 @@ class UrRtdeController(Abortable, Lifecycle):
 
     def _on_activate(self) -> None:
         cfg = self._cfg
-        names = OUTPUTS + tuple(n for n in cfg.extra_outputs if n not in OUTPUTS)
+        extra = (*cfg.extra_outputs, *(cfg.stream.outputs if cfg.stream.enabled else ()))
+        names = OUTPUTS + tuple(dict.fromkeys(n for n in extra if n not in OUTPUTS))
         self.link = RtdeLink(cfg.host, cfg.rtde_port, names, cfg.frequency_hz, timeout_s=cfg.timeout_s,
                              stale_after_s=cfg.stale_after_s, reconnect_interval_s=cfg.reconnect_interval_s,
-                             source=self._source)
+                             source=self._source, inputs=cfg.stream.inputs if cfg.stream.enabled else (),
+                             input_source_key="stream")
+        self._stream = None
         self.link.open()
 
     def _on_deactivate(self) -> None:
@@ -189,7 +239,143 @@ class UrRtdeController(Abortable, Lifecycle):
         self._await_arrival(target, n_msg, t_sent)
         self.stats["moves_arrived"] += 1
 
-    stream_setpoint = move_linear
+    # --- streaming (drivers.base.SetpointStreamer) ---------------------------------------
+    def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None:
+        self._require("active")
+        self._check_abort()
+        cfg, link = self._cfg, self._link
+        if not cfg.stream.enabled:
+            raise ConfigError(self._source, "stream.enabled", False, "true to stream set-points (the input "
+                              "registers of `stream` are then claimed at activate)")
+        if self._stream is not None and not self._stream.stopped:
+            raise StateError(f"{self.name}: a stream is running; stop_stream() first")
+        rate, la, g = check_stream_params(rate_hz, lookahead_s, gain, rp.MAX_FREQUENCY_HZ)
+        s = self.read_sample()
+        self._movable(s)
+        pose = tuple(float(x) for x in s.values["actual_TCP_pose"])
+        rot = tuple(cfg.tool_rotvec) if cfg.tool_rotvec is not None else pose[3:]
+        st = cfg.stream
+        program = urscript.ServoProgram(st.double_register, st.seq_register, st.status_register, 1.0 / rate, la, g,
+                                        st.watchdog_cycles, st.stop_deceleration)
+        stream = _Stream(program, rate, rot, np.array(pose[:3]))
+        link.write_inputs([stream.seq, *pose[:3], *rot])  # where the arm is: the first cycle holds it
+        with link.cond:
+            n_msg, t_sent = link.stats["messages"], time.monotonic()
+        self._send_script(urscript.servo_program(program), "servo program")
+        self._await_program(n_msg, t_sent)
+        self._stream = stream
+        self.stats["streams"] += 1
+
+    def _await_program(self, n_msg: int, t_sent: float) -> None:
+        """Wait (up to timeout_s) for a package, received after the program was sent, that shows it running."""
+        cfg, link = self._cfg, self._link
+        reg = f"output_int_register_{cfg.stream.status_register}"
+        deadline = t_sent + cfg.timeout_s
+        with link.cond:
+            while True:
+                new = link.stats["messages"] - n_msg
+                errors = [m for m in link.messages[-new:] if m.is_error] if new > 0 else []
+                if errors:
+                    raise DriverError(f"{self.name}: the controller refused the servo program: "
+                                      f"{errors[0].source}: {errors[0].message}")
+                s = link.latest
+                if (s is not None and s.t_host > t_sent and s.values.get(reg) == urscript.STREAM_RUNNING
+                        and s.values["runtime_state"] == rp.RUNTIME_PLAYING):
+                    return
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise DriverError(f"{self.name}: the servo program did not report running ({reg} = "
+                                      f"{None if s is None else s.values.get(reg)}) within {cfg.timeout_s} s")
+                link.cond.wait(min(left, 0.05))
+
+    def _stream_refusal(self, stream: _Stream) -> str:
+        """Why the controller will not take another set-point now ('' if it will), from the newest package."""
+        link = self._link
+        if not link.connected:
+            return f"the RTDE connection is down ({link.last_error or 'reconnecting'})"
+        s = link.latest
+        if s is None:
+            return "no RTDE package yet"
+        v = s.values
+        if v["safety_mode"] not in _MOVABLE_SAFETY:
+            name = rp.SAFETY_MODES.get(v["safety_mode"], str(v["safety_mode"]))
+            what = "protective stop" if v["safety_mode"] == rp.SAFETY_PROTECTIVE_STOP else f"safety stop ({name})"
+            return (f"{what}: the arm stopped at {np.round(v['actual_TCP_pose'][:3], 6).tolist()} m (safety mode "
+                    f"{name}); clear it and start_stream again")
+        state = v.get(f"output_int_register_{stream.program.status_register}")
+        if state == urscript.STREAM_WATCHDOG:
+            return (f"the controller's watchdog stopped the arm: no new set-point for "
+                    f"{stream.program.watchdog_cycles} control cycles")
+        if state == urscript.STREAM_RUNNING and v["runtime_state"] != rp.RUNTIME_PLAYING:
+            return "the servo program is no longer running"
+        return ""
+
+    def stream(self, target: np.ndarray, t: float) -> None:
+        self._require("active")
+        self._check_abort()
+        stream = self._stream
+        if stream is None:
+            raise StateError(f"{self.name}: stream() before start_stream()")
+        cfg = self._cfg
+        target = np.asarray(target, dtype=float)
+        if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(np.abs(target) > cfg.limits.tcp_abs_m):
+            raise DriverError(f"invalid set-point {target!r}: need 3 finite coordinates within "
+                              f"±{cfg.limits.tcp_abs_m} m")
+        t = float(t)
+        if stream.last_t is not None:
+            if not t > stream.last_t:
+                raise DriverError(f"set-point time {t} s does not follow the last one ({stream.last_t} s)")
+            speed = float(np.linalg.norm(target - stream.last_p)) / (t - stream.last_t)
+            if speed > cfg.limits.max_speed_m_s:
+                raise DriverError(f"set-point {np.round(target, 6).tolist()} m at {t} s: {speed:.3f} m/s from the "
+                                  f"last one exceeds limits.max_speed_m_s {cfg.limits.max_speed_m_s}")
+        why = stream.stopped or self._stream_refusal(stream)
+        if why:
+            stream.stopped = why
+            self.stats["refused"] += 1
+            raise DriverError(f"{self.name}: set-point {stream.sent + 1} not sent: {why} "
+                              f"({stream.sent} sent, the controller took {self._consumed(stream)})")
+        self._link.write_inputs([stream.seq + 1, *target, *stream.rot])
+        stream.seq += 1
+        stream.sent += 1
+        stream.last_t, stream.last_p = t, target
+        self.stats["setpoints_sent"] += 1
+
+    def _consumed(self, stream: _Stream) -> int:
+        s = self._link.latest
+        v = None if s is None else s.values.get(f"output_int_register_{stream.program.echo_register}")
+        return -1 if v is None else max(int(v) - 1, 0)  # sequence 1 is start_stream's hold
+
+    def stop_stream(self) -> None:
+        """Sequence -1: the program stops the arm and ends; waits (up to timeout_s) until it has."""
+        self._require("active")
+        stream, self._stream = self._stream, None
+        if stream is None:
+            return
+        cfg, link = self._cfg, self._link
+        if stream.stopped or not link.connected:
+            return
+        t_sent = time.monotonic()
+        link.write_inputs([-1, *stream.last_p, *stream.rot])
+        reg = f"output_int_register_{stream.program.status_register}"
+        deadline = t_sent + cfg.timeout_s
+        with link.cond:
+            while time.monotonic() < deadline:
+                s = link.latest
+                if s is not None and s.t_host > t_sent and (s.values.get(reg) != urscript.STREAM_RUNNING
+                                                            or s.values["runtime_state"] != rp.RUNTIME_PLAYING):
+                    return
+                link.cond.wait(0.05)
+        raise DriverError(f"{self.name}: the servo program did not stop within {cfg.timeout_s} s of the host's stop")
+
+    def stream_status(self) -> StreamStatus:
+        stream = self._stream
+        if stream is None:
+            return StreamStatus("idle")
+        why = stream.stopped or self._stream_refusal(stream)
+        p = stream.program
+        return StreamStatus("stopped" if why else "streaming", stream.sent, self._consumed(stream), why,
+                            stream.rate_hz, p.lookahead_s, p.gain)
 
     def _send_script(self, script: str, what: str) -> None:
         """One program to the script port on a fresh connection; never retried (it may have arrived)."""

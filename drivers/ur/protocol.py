@@ -1,6 +1,6 @@
 """RTDE (Real-Time Data Exchange, Universal Robots, TCP 30004): package codec, pure functions.
 
-Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`drivers.ur.emulator`).
+Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`emulators.ur`).
 References: Universal Robots, "Real-Time Data Exchange (RTDE) Guide"; checked against UR's own
 Python client (RTDE_Python_Client_Library, `rtde/serialize.py`) and the `ur_rtde` package
 (tests/integration/test_ur_rtde.py connects its receive interface to our emulator).
@@ -74,7 +74,19 @@ OUTPUT_TYPES: dict[str, str] = {
     "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
     **{f"output_int_register_{i}": "INT32" for i in range(48)},
     **{f"output_double_register_{i}": "DOUBLE" for i in range(48)},
+    # the guide: the general purpose input registers can also be read as outputs (what was written)
+    **{f"input_int_register_{i}": "INT32" for i in range(48)},
+    **{f"input_double_register_{i}": "DOUBLE" for i in range(48)},
 }
+
+# Inputs a client may write (SETUP_INPUTS): the general purpose registers, 0-23 the lower range
+# (often taken by a fieldbus: EtherNet/IP, PROFINET, MODBUS), 24-47 the upper range. A register
+# another client or a fieldbus adapter already writes comes back IN_USE.
+INPUT_TYPES: dict[str, str] = {
+    **{f"input_int_register_{i}": "INT32" for i in range(48)},
+    **{f"input_double_register_{i}": "DOUBLE" for i in range(48)},
+}
+N_REGISTERS = 48
 
 # robot_mode (guide: ROBOT_MODE_*)
 ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
@@ -197,6 +209,10 @@ def parse_setup_outputs_request(payload: bytes) -> tuple[float, list[str]]:
         raise ProtocolError("RTDE SETUP_OUTPUTS: expected a double frequency and at least one name")
     (freq,) = struct.unpack_from(">d", payload)
     return freq, split_names(payload[8:])
+
+
+def setup_inputs_request(names: Sequence[str]) -> bytes:
+    return pack(SETUP_INPUTS, ",".join(names).encode("ascii"))
 
 
 def split_names(raw: bytes) -> list[str]:

@@ -3,7 +3,11 @@ read data packages in a background thread that reconnects when the stream is los
 
 `RtdeLink.open()` does the first connection in the caller's thread, so a wrong host, a refused
 version or an output the controller does not know (NOT_FOUND -> ConfigError naming it) fail the
-driver's `activate`. After that the reader thread owns the socket: an EOF, a socket error, a
+driver's `activate`. With `inputs` (names of input registers the host writes), an input recipe is
+set up too, before the start: a register another client or a fieldbus adapter already writes
+comes back IN_USE and is a ConfigError naming it (`input_source_key` names the config key), and
+`write_inputs(values)` sends one data package of that recipe (from any thread; it never waits
+for the controller). After that the reader thread owns the socket: an EOF, a socket error, a
 malformed package or no data package for `stale_after_s` closes the connection, counts a drop
 and reconnects every `reconnect_interval_s` with the same recipe until `close()`.
 
@@ -38,18 +42,22 @@ class RtdeSample:
 
 class RtdeLink:
     def __init__(self, host: str, port: int, names: Sequence[str], frequency_hz: float, *, timeout_s: float,
-                 stale_after_s: float, reconnect_interval_s: float, source: str, device: str = "UR RTDE"):
+                 stale_after_s: float, reconnect_interval_s: float, source: str, device: str = "UR RTDE",
+                 inputs: Sequence[str] = (), input_source_key: str = "inputs"):
         self.host, self.port, self.names = host, int(port), tuple(names)
         self.frequency_hz, self.timeout_s = float(frequency_hz), float(timeout_s)
         self.stale_after_s, self.reconnect_interval_s = float(stale_after_s), float(reconnect_interval_s)
         self.source, self.device = source, device
+        self.inputs, self.input_source_key = tuple(inputs), input_source_key
+        self._input_recipe: rp.Recipe | None = None
+        self._send_lock = threading.Lock()  # one writer of input packages at a time
         self.cond = threading.Condition()
         self.latest: RtdeSample | None = None
         self.messages: list[rp.TextMessage] = []  # text messages from the controller, oldest first
         self.connected = False
         self.last_error = ""
         self.controller_version: tuple[int, int, int, int] | None = None
-        self.stats = {"packages": 0, "connects": 0, "drops": 0, "stale": 0, "messages": 0}
+        self.stats = {"packages": 0, "connects": 0, "drops": 0, "stale": 0, "messages": 0, "inputs_sent": 0}
         self._sock: socket.socket | None = None
         self._recipe: rp.Recipe | None = None
         self._reader = rp.PackageReader()
@@ -113,8 +121,46 @@ class RtdeLink:
         if rid == 0:
             raise DriverError(f"{self.where}: output recipe refused (frequency {self.frequency_hz} Hz?)")
         self._recipe = rp.Recipe(rid, self.names, tuple(types))
+        if self.inputs:
+            self._setup_inputs(sock)
         if not rp.parse_u8(self._ask(sock, rp.pack(rp.START), rp.START), "START"):
             raise DriverError(f"{self.where}: the controller refused to start the data synchronisation")
+
+    def _setup_inputs(self, sock: socket.socket) -> None:
+        rid, types = rp.parse_setup_reply(self._ask(sock, rp.setup_inputs_request(self.inputs), rp.SETUP_INPUTS))
+        if len(types) != len(self.inputs):
+            raise DriverError(f"{self.where}: input setup answered {len(types)} types for {len(self.inputs)} names")
+        taken = [n for n, t in zip(self.inputs, types) if t == rp.IN_USE]
+        if taken:
+            raise ConfigError(self.source, self.input_source_key, ", ".join(taken),
+                              f"input registers no other RTDE client or fieldbus adapter (EtherNet/IP, PROFINET, "
+                              f"MODBUS) writes: the controller at {self.host}:{self.port} answered IN_USE for "
+                              f"{', '.join(taken)}; choose another range (24-47 is the upper one)")
+        unknown = [n for n, t in zip(self.inputs, types) if t == rp.NOT_FOUND]
+        if unknown:
+            raise ConfigError(self.source, self.input_source_key, ", ".join(unknown),
+                              f"input registers the controller at {self.host}:{self.port} knows "
+                              "(input_int_register_N / input_double_register_N, N 0-47; it answered NOT_FOUND)")
+        if rid == 0:
+            raise DriverError(f"{self.where}: input recipe refused")
+        self._input_recipe = rp.Recipe(rid, self.inputs, tuple(types))
+
+    def write_inputs(self, values: Sequence[object]) -> None:
+        """One data package of the input recipe (values in `inputs` order). DriverError when not
+        connected (the reader thread reconnects) or the send fails; never waits for a reply."""
+        recipe = self._input_recipe
+        if recipe is None:
+            raise DriverError(f"{self.where}: no input recipe set up")
+        pkg = recipe.pack(values)
+        with self._send_lock:
+            sock = self._sock
+            if sock is None:
+                raise DriverError(f"{self.where}: not connected (reconnecting; last error: {self.last_error})")
+            try:
+                sock.sendall(pkg)
+            except OSError as exc:
+                raise DriverError(f"{self.where}: input package not sent: {exc}") from exc
+        self.stats["inputs_sent"] += 1
 
     def _ask(self, sock: socket.socket, request: bytes, reply_type: int) -> bytes:
         """Send a setup request and return the payload of its reply (text messages are kept)."""

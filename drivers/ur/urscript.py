@@ -12,6 +12,19 @@ Accepted here::
     movel(p[x,y,z,rx,ry,rz], a=A, v=V)     linear move of the TCP
     movej(p[...] or [q1..q6], a=A, v=V)    joint move (to a pose or joint positions)
     stopl(A) / stopj(A)                    decelerate to a stop
+    the servo program of `servo_program`   set-points streamed through RTDE input registers
+
+The servo program (`ServoProgram`, a `def dt_servo(): ... end` block) loops once per control
+cycle: it reads the sequence number the host writes into an input int register (a negative one
+asks it to stop), counts the cycles in which it did not change (more than `watchdog_cycles` in a
+row: `stopj` and `halt`, the host has stopped streaming), reads the TCP set-point p[x, y, z, rx,
+ry, rz] from six consecutive input double registers, and servos to it with
+`servoj(get_inverse_kin(x, qnear=get_actual_joint_positions()), 0, 0, t, lookahead_time, gain)`
+(the URScript manual's recipe for servoing Cartesian set-points). It reports its state in an output
+int register (`STREAM_RUNNING`, `STREAM_WATCHDOG`, `STREAM_HOST_STOP`) and the newest sequence
+number it has taken in the next one. The emulator accepts exactly this program (`parse` checks the
+text is what `servo_program` writes for the parameters it reads from it) and runs the same
+semantics over its plant.
 
 Numbers are written in fixed notation with 9 decimals (1 nm, 1 nrad): no exponent, which every
 URScript version parses.
@@ -36,13 +49,38 @@ class ScriptError(DriverError):
     """A script the controller would not run (the emulator reports it as a text message)."""
 
 
+# What the servo program writes into its status output register.
+STREAM_RUNNING, STREAM_WATCHDOG, STREAM_HOST_STOP = 1, 2, 3
+STREAM_STATES = {0: "not started", STREAM_RUNNING: "running", STREAM_WATCHDOG: "stopped by the watchdog",
+                 STREAM_HOST_STOP: "stopped by the host"}
+
+
+@dataclass(frozen=True)
+class ServoProgram:
+    """The parameters of the servo program (see the module docstring); registers are numbers 0-47."""
+
+    double_register: int  # first of six input double registers: x, y, z (m), rx, ry, rz (rad)
+    seq_register: int  # input int register: the host's set-point sequence number (< 0: stop)
+    status_register: int  # output int register: STREAM_*; the next one echoes the sequence taken
+    period_s: float  # servoj's t: the control period (0.008 CB3, 0.002 e-Series)
+    lookahead_s: float  # servoj's lookahead_time
+    gain: float  # servoj's gain
+    watchdog_cycles: int  # control cycles without a new sequence number before the arm is stopped
+    stop_a: float  # stopj's deceleration (rad/s^2)
+
+    @property
+    def echo_register(self) -> int:
+        return self.status_register + 1
+
+
 @dataclass(frozen=True)
 class Command:
-    kind: str  # movel, movej, stopl, stopj
+    kind: str  # movel, movej, stopl, stopj, servo
     a: float
     v: float = 0.0
     pose: tuple[float, ...] | None = None  # p[...]: x, y, z (m), rx, ry, rz (rad)
     q: tuple[float, ...] | None = None  # [...]: joint positions (rad)
+    servo: ServoProgram | None = None  # kind "servo": the servo program's parameters
 
 
 def _num(x: float) -> str:
@@ -63,12 +101,103 @@ def stopl(a: float) -> str:
     return f"stopl({_num(a)})\n"
 
 
+def servo_program(sp: ServoProgram) -> str:
+    """The servo program's text for these parameters (see the module docstring)."""
+    d, s, e, st = sp.double_register, sp.seq_register, sp.echo_register, sp.status_register
+    if not (0 <= d <= 42 and 0 <= s <= 47 and 0 <= st <= 46 and sp.watchdog_cycles >= 1):
+        raise ScriptError(f"servo program: registers or watchdog out of range: {sp}")
+    regs = ", ".join(f"read_input_float_register({d + i})" for i in range(6))
+    return "\n".join([
+        "def dt_servo():",
+        "  # cobot-dt set-point stream (drivers.ur.urscript.servo_program)",
+        f"  write_output_integer_register({st}, {STREAM_RUNNING})",
+        f"  dt_seen = read_input_integer_register({s})",
+        "  dt_quiet = 0",
+        "  while True:",
+        f"    dt_seq = read_input_integer_register({s})",
+        "    if dt_seq < 0:",
+        f"      write_output_integer_register({st}, {STREAM_HOST_STOP})",
+        f"      stopj({_num(sp.stop_a)})",
+        "      halt",
+        "    end",
+        "    if dt_seq == dt_seen:",
+        "      dt_quiet = dt_quiet + 1",
+        f"      if dt_quiet > {sp.watchdog_cycles}:",
+        f"        write_output_integer_register({st}, {STREAM_WATCHDOG})",
+        f"        textmsg(\"cobot-dt stream watchdog: no new set-point for {sp.watchdog_cycles} control cycles\")",
+        f"        stopj({_num(sp.stop_a)})",
+        "        halt",
+        "      end",
+        "    else:",
+        "      dt_seen = dt_seq",
+        "      dt_quiet = 0",
+        "    end",
+        f"    write_output_integer_register({e}, dt_seen)",
+        f"    dt_x = p[{regs}]",
+        f"    servoj(get_inverse_kin(dt_x, qnear=get_actual_joint_positions()), 0, 0, {_num(sp.period_s)}, "
+        f"{_num(sp.lookahead_s)}, {_num(sp.gain)})",
+        "  end",
+        "end",
+        ""])
+
+
+def program_end(lines: list[str]) -> int | None:
+    """Index of the `end` closing the block opened by lines[0] (`def ...:`), or None if the block
+    is not complete yet (`if`/`while`/`def` open a block, `else:`/`elif` continue one)."""
+    depth = 0
+    for i, raw in enumerate(lines):
+        ln = raw.split("#", 1)[0].strip()
+        if ln == "end":
+            depth -= 1
+            if depth == 0:
+                return i
+        elif ln.endswith(":") and re.match(r"^(def|if|while)\b", ln):
+            depth += 1
+    return None
+
+
+_SERVO_PARAMS = {
+    "double_register": (r"dt_x = p\[read_input_float_register\((\d+)\)", int),
+    "seq_register": (r"dt_seen = read_input_integer_register\((\d+)\)", int),
+    "status_register": (r"^write_output_integer_register\((\d+), 1\)", int),
+    "watchdog_cycles": (r"if dt_quiet > (\d+):", int),
+    "stop_a": (rf"stopj\(({_NUM})\)", float),
+    "period_s": (rf"servoj\(.*\), 0, 0, ({_NUM}), ", float),
+    "lookahead_s": (rf"servoj\(.*\), 0, 0, {_NUM}, ({_NUM}), ", float),
+    "gain": (rf"servoj\(.*\), 0, 0, {_NUM}, {_NUM}, ({_NUM})\)$", float),
+}
+
+
+def _norm(text: str) -> list[str]:
+    lines = [ln.split("#", 1)[0].strip() for ln in text.replace("\r", "").split("\n")]
+    return [ln for ln in lines if ln]
+
+
+def parse_servo(text: str) -> ServoProgram:
+    """The parameters of a servo program, if `text` is exactly what `servo_program` writes for
+    them (comments and indentation aside); ScriptError otherwise."""
+    lines = _norm(text)
+    found = {}
+    for key, (pattern, typ) in _SERVO_PARAMS.items():
+        m = next((m for ln in lines if (m := re.search(pattern, ln))), None)
+        if m is None:
+            raise ScriptError(f"servo program: no {key} found")
+        found[key] = typ(m.group(1))
+    sp = ServoProgram(**found)
+    if _norm(servo_program(sp)) != lines:
+        raise ScriptError("servo program: not the dt_servo program this controller runs "
+                          "(drivers.ur.urscript.servo_program)")
+    return sp
+
+
 def parse(text: str) -> list[Command]:
     """The commands of a one-line program or a `def ...: end` block; ScriptError otherwise."""
-    lines = [ln.split("#", 1)[0].strip() for ln in text.replace("\r", "").split("\n")]
-    lines = [ln for ln in lines if ln]
+    lines = _norm(text)
     if not lines:
         raise ScriptError("empty program")
+    if lines[0] == "def dt_servo():":
+        sp = parse_servo(text)
+        return [Command("servo", sp.stop_a, servo=sp)]
     if _DEF.match(lines[0]):
         if lines[-1] != "end" or len(lines) < 2:
             raise ScriptError(f"program '{lines[0]}' has no matching 'end'")

@@ -1,7 +1,7 @@
 """`dt campaign`: run the calibration campaign on the cell of a runtime YAML, then calibrate.
 
 The drivers are the runtime YAML's (`drivers:`, exactly as `dt run` builds them: a real cell,
-the emulated cell of `python -m drivers.emulated_cell`, or the simulated drivers), so the twin
+the emulated cell of `python -m emulators.emulated_cell`, or the simulated drivers), so the twin
 is calibrated with the instruments the daemon will use. Phase 1 (registration) and phase 2 (the
 DOE) of the plan are measured through them and written as a campaign directory (OUT/campaign,
 docs/campaign-files.md, its manifest naming the drivers); `dt calibrate` then makes the twin in

@@ -6,12 +6,12 @@ import threading
 import numpy as np
 
 from drivers import registry
-from drivers.serial.emulator import ControllerEmulator, TrackerEmulator
 from drivers.simulated.devices import SimWorld
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.twin import calibration as cal
 from dt_runtime.twin.campaign import Instruments, run_rows
+from emulators.serial import ControllerEmulator, TrackerEmulator
 
 
 def _campaign(inst, plan):

@@ -1,6 +1,6 @@
 """Issue 14's end to end: the calibration campaign (`dt campaign`) and the twin daemon (`dt run`)
 with `robot: ur_rtde` against the UR emulator, `camera: natnet` against the NatNet emulator and
-the serial laser tracker, all in the emulated cell (`python -m drivers.emulated_cell`, one
+the serial laser tracker, all in the emulated cell (`python -m emulators.emulated_cell`, one
 plant), on loopback. No timing assertions: counts, states and magnitudes only."""
 from __future__ import annotations
 

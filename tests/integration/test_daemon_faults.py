@@ -495,8 +495,8 @@ def test_one_daemon_per_store(twin_dir, tmp_path):
 
 
 def test_sigterm_with_a_silent_device_stops_within_the_bound(twin_dir, tmp_path):
-    from drivers.serial.emulator import ControllerEmulator
     from drivers.simulated.devices import SimWorld
+    from emulators.serial import ControllerEmulator
 
     world = SimWorld(SCENARIO, CELL)
     emu = ControllerEmulator(world.cell.plant)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from drivers import registry
-from drivers.serial.emulator import ControllerEmulator
 from drivers.simulated.devices import SimWorld
 from dt_kernel.errors import DriverError
 from dt_runtime.common.paths import CONFIGS
+from emulators.serial import ControllerEmulator
 
 
 def test_abort_ends_a_move_to_a_silent_device_at_once():

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.serial.emulator import TrackerEmulator
 from drivers.serial.tracker import SerialTracker
 from dt_kernel.errors import ConfigError
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.daemon import Daemon
 from dt_runtime.service.runtime_config import load_runtime_config
+from emulators.serial import TrackerEmulator
 from tests.support.loopback import free_port
 
 SCENARIO, CELL = CONFIGS / "scenarios" / "paper_default.yaml", CONFIGS / "cell.yaml"

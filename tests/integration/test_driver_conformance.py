@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from drivers import registry
-from drivers.serial.emulator import ControllerEmulator, TrackerEmulator
+from emulators.serial import ControllerEmulator, TrackerEmulator
 from tests.support import conformance
 from tests.support.serial_plant import FakePlant
 
@@ -79,7 +79,7 @@ def serial_robot_sim_plant_over_socket():
 def ur_rtde_sim_plant():
     # A Universal Robots controller emulated on loopback (RTDE + script port) over the simulated plant.
     from drivers.ur.driver import UrRtdeController
-    from drivers.ur.emulator import UrEmulator
+    from emulators.ur import UrEmulator
 
     with _sim_world() as world, UrEmulator(world.cell.plant, "127.0.0.1", 0, 0, time_scale=0.25) as emu:
         drv = UrRtdeController()
@@ -109,8 +109,7 @@ def serial_tracker_fake():
 def natnet_camera():
     # The NatNet driver against its emulator streaming the simulated rig (static tool) on loopback.
     from drivers.natnet.driver import NatNetRig
-    from drivers.natnet.emulator import NatNetEmulator
-    from drivers.natnet.rig_source import SimRigMarkers
+    from emulators.natnet import NatNetEmulator, SimRigMarkers
     from sim.kinematics import TOOL_DOWN
 
     src = SimRigMarkers(lambda: (TOOL_DOWN, np.array([0.9, 0.05, 0.5])), seed=3)
@@ -163,6 +162,20 @@ def test_robot_satisfies_protocol_and_lifecycle_order(factory):
 @_robot
 def test_robot_move_then_read(factory):
     conformance.robot_move_then_read(factory)
+
+
+@_robot
+def test_robot_streams_setpoints(factory):
+    conformance.robot_streams_setpoints(factory)
+
+
+def test_streaming_is_declared_by_the_drivers_that_stream():
+    """Streaming is a capability a driver declares (drivers.base.SetpointStreamer), not a method
+    every driver fakes: the simulated and UR drivers declare it, the serial controller does not."""
+    from drivers.base import SetpointStreamer
+
+    declared = {n for n in registry.known("robot") if issubclass(registry.driver_class("robot", n), SetpointStreamer)}
+    assert declared == {"sim", "ur_rtde"}
 
 
 @_robot

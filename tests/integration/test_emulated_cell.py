@@ -1,4 +1,4 @@
-"""The emulated cell (`python -m drivers.emulated_cell`): one simulated plant behind RTDE, NatNet
+"""The emulated cell (`python -m emulators.emulated_cell`): one simulated plant behind RTDE, NatNet
 and the serial laser tracker, on loopback. The three real drivers see the same arm: the
 distances between the arm's stations measured by the NatNet rig and by the tracker agree (each
 instrument's frame is its own; distances are not), and the UR received each move once. The

@@ -111,8 +111,7 @@ def _circle(center=(0.9, 0.0, 0.5), radius=0.05):
 @contextlib.contextmanager
 def _stream(emu_cfg=None, drv_cfg=None, seed=0, activate=True):
     from drivers.natnet.driver import NatNetRig
-    from drivers.natnet.emulator import NatNetEmulator
-    from drivers.natnet.rig_source import SimRigMarkers
+    from emulators.natnet import NatNetEmulator, SimRigMarkers
 
     src = SimRigMarkers(_circle(), seed=seed)
     with NatNetEmulator(src, {"command_port": 0, "data_port": 0, **(emu_cfg or {})}) as emu:
@@ -416,8 +415,7 @@ def test_a_restarted_server_on_the_same_ports_is_read_again():
     """A real restart: the server process goes, a new one binds the same ports, counts from 1 on
     a clock that starts afresh. The keep-alive subscribes the client again and readings resume
     (the transit minimum is learnt again: the new clock is not the old one)."""
-    from drivers.natnet.emulator import NatNetEmulator
-    from drivers.natnet.rig_source import SimRigMarkers
+    from emulators.natnet import NatNetEmulator, SimRigMarkers
 
     with _stream(drv_cfg={"keepalive_s": 0.1}) as (emu, drv):
         rs = [drv.read() for _ in range(30)]

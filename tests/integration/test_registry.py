@@ -11,8 +11,8 @@ import pytest
 
 from drivers import registry
 from drivers.base import CameraRig, LaserTracker, RigReading, RobotController
-from drivers.serial.emulator import ControllerEmulator, TrackerEmulator
 from dt_kernel.errors import ConfigError, DriverError, StateError
+from emulators.serial import ControllerEmulator, TrackerEmulator
 from tests.support.conformance import check_lifecycle_order
 from tests.support.serial_plant import FakePlant
 
@@ -35,13 +35,12 @@ def world():
 def context(kind: str, name: str):
     """(world or None, the config the driver takes) for one registered driver."""
     if (kind, name) == ("robot", "ur_rtde"):  # a UR emulated on loopback over the simulated plant
-        from drivers.ur.emulator import UrEmulator
+        from emulators.ur import UrEmulator
 
         with world() as w, UrEmulator(w.cell.plant, "127.0.0.1", 0, 0, time_scale=0.25) as ur:
             yield None, {"host": "127.0.0.1", "rtde_port": ur.rtde_port, "script_port": ur.script_port}
     elif (kind, name) == ("camera", "natnet"):  # OptiTrack NatNet emulated on loopback (static tool)
-        from drivers.natnet.emulator import NatNetEmulator
-        from drivers.natnet.rig_source import SimRigMarkers
+        from emulators.natnet import NatNetEmulator, SimRigMarkers
         from sim.kinematics import TOOL_DOWN
 
         src = SimRigMarkers(lambda: (TOOL_DOWN, np.array([0.9, 0.05, 0.5])), seed=3)

@@ -1,7 +1,6 @@
 """The daemon end to end: simulated cell, bounded correction, Eq. 17, escalation, Zenoh, SQLite."""
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -14,9 +13,6 @@ from dt_runtime.service.runtime_config import DriverChoice
 from dt_runtime.service.store import Store
 from dt_runtime.twin.twin import Twin
 from tests.support.loopback import free_port, wait_until
-
-
-
 
 
 def daemon_cfg(twin_dir, tmp_path, port, faults=(), publish=True) -> RuntimeConfig:
@@ -137,8 +133,8 @@ def test_twin_used_with_another_camera_is_refused(twin_dir, tmp_path):
 def test_daemon_drives_the_cell_through_the_serial_emulator_on_a_pty(twin_dir, tmp_path):
     """The robot is commanded over the line protocol on a pseudo-terminal; the emulator serves
     the simulated plant; a fault mid-run reaches a Zenoh consumer as a maintenance request."""
-    from drivers.serial.emulator import ControllerEmulator
     from drivers.simulated.devices import SimWorld
+    from emulators.serial import ControllerEmulator
 
     world = SimWorld(CONFIGS / "scenarios" / "paper_default.yaml", CONFIGS / "cell.yaml")
     emu = ControllerEmulator(world.cell.plant)

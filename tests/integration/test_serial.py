@@ -8,13 +8,14 @@ import pytest
 import serial
 
 from drivers.base import LaserTracker, RobotController
+from drivers.serial import protocol as lp
 from drivers.serial.controller import SerialController
 from drivers.serial.tracker import SerialTracker
-from drivers.serial import protocol as lp
-from drivers.serial.emulator import ControllerEmulator, Faults, TrackerEmulator
 from dt_kernel.errors import ConfigError, DriverError, StateError, UnreachableError
 from dt_kernel.geometry import spherical_to_cartesian
+from emulators.serial import ControllerEmulator, Faults, TrackerEmulator
 from tests.support.serial_plant import HOME, FakePlant
+
 
 @pytest.fixture
 def plant():

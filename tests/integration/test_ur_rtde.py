@@ -126,7 +126,7 @@ def world():
 
 @pytest.fixture
 def emu(world):
-    from drivers.ur.emulator import UrEmulator
+    from emulators.ur import UrEmulator
 
     e = UrEmulator(world.cell.plant, "127.0.0.1", 0, 0, time_scale=TIME_SCALE)
     yield e
@@ -289,7 +289,7 @@ def test_rtde_dropped_during_a_move_the_move_is_not_repeated(drv, emu, world):
     assert np.allclose(drv.read_commanded_tcp(), target, atol=1e-6)
     # sent once, executed once: nothing moved twice
     assert emu.stats["scripts"] == 1 and emu.stats["movel"] == 1 and emu.stats["moves_done"] == 1
-    assert drv.stats == {"moves_sent": 1, "moves_arrived": 1, "refused": 0}
+    assert drv.stats == {"moves_sent": 1, "moves_arrived": 1, "refused": 0, "setpoints_sent": 0, "streams": 0}
 
 
 def test_protective_stop_during_a_move_is_reported_and_nothing_moves_again(drv, emu, world):
@@ -364,7 +364,7 @@ def _loopback_with_rtde_port_free(port: int = 30004) -> str:
 
 @pytest.fixture
 def emulator_process():
-    """The emulator in its own process (`python -m drivers.ur.emulator`, the documented command):
+    """The emulator in its own process (`python -m emulators.ur`, the documented command):
     ur_rtde's constructor blocks holding the GIL, so an emulator thread in the test process would
     never answer it."""
     import signal
@@ -375,7 +375,7 @@ def emulator_process():
     from tests.support.loopback import free_port, wait_until
 
     host, script_port = _loopback_with_rtde_port_free(), free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "drivers.ur.emulator", "--host", host, "--port", "30004",
+    proc = subprocess.Popen([sys.executable, "-m", "emulators.ur", "--host", host, "--port", "30004",
                              "--script-port", str(script_port), "--seed", "3", "--time-scale", "0.25"],
                             cwd=Path(__file__).resolve().parents[2], stderr=subprocess.PIPE, text=True)
 

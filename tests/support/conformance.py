@@ -13,7 +13,15 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from drivers.base import CameraRig, JointState, LaserTracker, RigReading, RobotController, TrackerReading
+from drivers.base import (
+    CameraRig,
+    JointState,
+    LaserTracker,
+    RigReading,
+    RobotController,
+    TrackerReading,
+    streams,
+)
 from dt_kernel.errors import DriverError, StateError
 
 Factory = Callable[[], contextlib.AbstractContextManager]
@@ -78,9 +86,10 @@ def robot_satisfies_protocol_and_lifecycle_order(factory):
     with factory() as (drv, config):
         assert isinstance(drv, RobotController)
         p = np.array([0.8, 0.0, 0.6])
-        check_lifecycle_order(drv, config, [
-            lambda: drv.move_linear(p, 0.1), lambda: drv.stream_setpoint(p, 0.1),
-            drv.read_joint_state, drv.read_commanded_tcp])
+        calls = [lambda: drv.move_linear(p, 0.1), drv.read_joint_state, drv.read_commanded_tcp]
+        if streams(drv):  # a declared capability is held to the same lifecycle
+            calls += [lambda: drv.start_stream(125.0), lambda: drv.stream(p, 0.0)]
+        check_lifecycle_order(drv, config, calls)
 
 
 def robot_move_then_read(factory):
@@ -95,8 +104,39 @@ def robot_move_then_read(factory):
         js = timed(drv.read_joint_state)
         assert isinstance(js, JointState) and js.q.ndim == 1 and js.q.size >= 6
         assert np.all(np.isfinite(js.q)) and math.isfinite(js.t)
-        drv.stream_setpoint(p0, 0.2)
+        drv.move_linear(p0, 0.2)
         assert np.allclose(drv.read_commanded_tcp(), p0, atol=2e-6)
+
+
+def robot_streams_setpoints(factory):
+    """Only for drivers that declare streaming (drivers.base.SetpointStreamer): out-of-range
+    look-ahead or gain refused; a 5 mm line of set-points at 125 Hz, then the end held: the arm
+    follows and settles at the end; stop_stream leaves the driver idle. The set-points are paced
+    with sleep (a controller expects one per cycle); nothing asserts on time."""
+    with factory() as (drv, config):
+        if not streams(drv):
+            return
+        drv.configure(config)
+        drv.activate()
+        for bad in ((125.0, 0.5, 300.0), (125.0, 0.1, 5000.0), (0.0, 0.1, 300.0)):
+            with pytest.raises(DriverError):
+                drv.start_stream(*bad)
+        with pytest.raises(StateError):
+            drv.stream(np.zeros(3), 0.0)  # before start_stream
+        p0 = np.asarray(drv.read_commanded_tcp(), dtype=float)
+        end = p0 + np.array([0.005, 0.0, -0.002])
+        drv.start_stream(125.0, 0.1, 300.0)
+        assert drv.stream_status().state == "streaming"
+        for k in range(75):
+            drv.stream(p0 + (end - p0) * min(k / 25, 1.0), k / 125.0)
+            time.sleep(1 / 125.0)
+        with pytest.raises(DriverError):
+            drv.stream(np.array([np.nan, 0.0, 0.5]), 1.0)
+        status = drv.stream_status()
+        assert status.sent == 75 and (status.rate_hz, status.lookahead_s, status.gain) == (125.0, 0.1, 300.0)
+        drv.stop_stream()
+        assert drv.stream_status().state == "idle"
+        assert np.linalg.norm(drv.read_commanded_tcp() - end) < 1e-4, drv.read_commanded_tcp() - end
 
 
 def robot_refuses_nan_target(factory):
@@ -195,7 +235,7 @@ def camera_read_is_consistent(factory):
 CHECKS: dict[str, list[Callable]] = {
     "robot": [robot_satisfies_protocol_and_lifecycle_order, robot_move_then_read,
               robot_refuses_nan_target, robot_abort_refuses_moves_until_cleared,
-              robot_close_is_idempotent_from_active],
+              robot_close_is_idempotent_from_active, robot_streams_setpoints],
     "tracker": [tracker_satisfies_protocol_and_lifecycle_order, tracker_measure_is_consistent],
     "camera": [camera_satisfies_protocol_and_lifecycle_order, camera_read_is_consistent],
 }

@@ -1,4 +1,4 @@
-"""`python -m drivers.emulated_cell` in a subprocess for the tests: its ports (the JSON line it
+"""`python -m emulators.emulated_cell` in a subprocess for the tests: its ports (the JSON line it
 prints when ready) and a clean stop (SIGTERM, then its final statistics line)."""
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ class CellProcess:
         return {"kind": "serial", "url": self.ports["tracker_url"], **over}
 
     def control(self, line: str) -> dict:
-        from drivers.emulated_cell import control
+        from emulators.emulated_cell import control
 
         return control(self.ports["host"], self.ports["control_port"], line)
 
@@ -41,7 +41,7 @@ class CellProcess:
 @contextlib.contextmanager
 def cell_process(*args: str, timeout_s: float = 60.0) -> Iterator[CellProcess]:
     """Start the cell on free ports (plus `args`), wait for its ports line, SIGTERM it at the end."""
-    cmd = [sys.executable, "-m", "drivers.emulated_cell", "--rtde-port", "0", "--script-port", "0",
+    cmd = [sys.executable, "-m", "emulators.emulated_cell", "--rtde-port", "0", "--script-port", "0",
            "--natnet-command-port", "0", "--tracker-port", "0", *args]
     # stderr to a file, not a pipe nobody reads while the cell runs (a full pipe would block it)
     err = tempfile.TemporaryFile(mode="w+")

@@ -2,7 +2,8 @@
 lazy imports inside functions included):
 
 - dt_kernel (errors, config loader, units, geometry) imports nothing else of the project;
-- sim imports only dt_kernel; drivers import dt_kernel and sim, never dt_runtime;
+- sim imports only dt_kernel; drivers import dt_kernel and sim, never emulators or dt_runtime;
+- emulators import dt_kernel, sim and drivers (the protocol codecs); nothing else imports them;
 - inside dt_runtime nothing imports upward: each subpackage may import its own and lower
   layers only (LAYERS, lowest first; reports and the command line at the top). The package's
   __init__ is the public facade and may name anything.
@@ -15,9 +16,13 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PROJECT = ("dt_kernel", "sim", "drivers", "dt_runtime")
+PROJECT = ("dt_kernel", "sim", "drivers", "emulators", "dt_runtime")
+# emulators serve the drivers' wire protocols over the simulated plant; nothing of the product
+# imports them (a real driver imports no simulator's emulator; tests and benchmarks use them).
 ALLOWED = {"dt_kernel": {"dt_kernel"}, "sim": {"dt_kernel", "sim"},
-           "drivers": {"dt_kernel", "sim", "drivers"}, "dt_runtime": set(PROJECT)}
+           "drivers": {"dt_kernel", "sim", "drivers"},
+           "emulators": {"dt_kernel", "sim", "drivers", "emulators"},
+           "dt_runtime": {"dt_kernel", "sim", "drivers", "dt_runtime"}}
 LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "service",
           "reports", "cli")
 
@@ -109,6 +114,10 @@ def test_dt_runtime_modules_live_in_a_layer():
     ("dt_runtime.models.hybrid", "def f():\n    from dt_runtime.analysis import diagnose\n"),  # lazy
     ("dt_runtime.twin.demo", "from dt_runtime import HybridModel"),  # through the facade
     ("dt_runtime.models", "from ..analysis import crossval"),  # relative, upward
+    ("drivers.ur.driver", "from emulators.ur import UrEmulator"),  # a driver importing its emulator
+    ("drivers.registry", "def f():\n    from emulators.serial import ControllerEmulator\n"),
+    ("dt_runtime.service.daemon", "from emulators.emulated_cell import EmulatedCell"),
+    ("emulators.ur.controller", "from dt_runtime.models import effects"),
 ])
 def test_the_checker_catches_each_kind_of_breach(module, source):
     assert violations(module, source, is_package=module.count(".") == 1)
@@ -120,6 +129,8 @@ def test_the_checker_catches_each_kind_of_breach(module, source):
     ("dt_runtime.service.daemon", "from dt_runtime.twin.campaign import Instruments\nfrom drivers import registry"),
     ("dt_runtime.cli.compare", "from dt_runtime.reports.compare_report import write_compare_report"),
     ("dt_runtime", "from dt_runtime.models.hybrid import HybridModel"),  # the facade
+    ("emulators.ur.controller", "from drivers.ur import protocol as rp\nfrom sim.kinematics import TOOL_DOWN"),
+    ("emulators.emulated_cell.cell", "from emulators.ur import UrEmulator\nfrom drivers.simulated.devices import SimWorld"),
 ])
 def test_the_checker_allows_downward_imports(module, source):
     assert violations(module, source, is_package=module == "dt_runtime") == []

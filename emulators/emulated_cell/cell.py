@@ -1,19 +1,16 @@
 """A whole emulated cell in one process: one simulated plant behind the real protocols.
 
-(A package of its own: `drivers` itself is imported by every driver package, so a module of
-`drivers` importing them would close a cycle in the architecture graph.)
-
-    python -m drivers.emulated_cell [--scenario S] [--cell C] [--host 127.0.0.1] [--rtde-port 30004]
+    python -m emulators.emulated_cell [--scenario S] [--cell C] [--host 127.0.0.1] [--rtde-port 30004]
         [--script-port 30002] [--natnet-command-port 1510] [--natnet-data-port 1511] [--tracker-port 4000]
         [--control-port 0]
         [--time-scale 1.0] [--natnet-rate 120] [--seed N]
 
 serves, over ONE `SimWorld` (scenario and cell as `dt run` reads them):
 
-- the UR controller (`drivers.ur.emulator`: RTDE and the script port) moving the plant;
-- the OptiTrack NatNet server (`drivers.natnet.emulator`) streaming the rig's markers for the
+- the UR controller (`emulators.ur`: RTDE and the script port) moving the plant;
+- the OptiTrack NatNet server (`emulators.natnet`) streaming the rig's markers for the
   arm's actual tool pose, so the camera follows the arm the UR moves;
-- the serial laser tracker (`drivers.serial.emulator.TrackerEmulator`, `socket://` URL)
+- the serial laser tracker (`emulators.serial.TrackerEmulator`, `socket://` URL)
   measuring the same plant's true TCP;
 - a control port (one text line in, one JSON line out) for statistics and fault injection:
   `stats`, `drop_rtde [N]`, `protective_stop`, `unlock`, `natnet KEY=VALUE ...`
@@ -43,12 +40,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.natnet.emulator import NatNetEmulator
-from drivers.natnet.rig_source import SimRigMarkers
-from drivers.serial.emulator import TrackerEmulator
 from drivers.simulated.devices import SimWorld
-from drivers.ur.emulator import UrEmulator, UrFaults
 from dt_kernel.errors import ConfigError, DriverError
+from emulators.natnet import NatNetEmulator, SimRigMarkers
+from emulators.serial import TrackerEmulator
+from emulators.ur import UrEmulator, UrFaults
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -65,6 +61,12 @@ class _PublishingPlant:
         try:
             self._plant.move_linear(target, speed)
         finally:  # a failed move may still have moved the arm: publish where it is
+            self._publish(self._plant)
+
+    def servo_step(self, target: np.ndarray, speed: float, dt: float) -> None:
+        try:
+            self._plant.servo_step(target, speed, dt)
+        finally:
             self._publish(self._plant)
 
     def __getattr__(self, name: str) -> Any:  # joint_angles, controller_tcp, nominal, ...
@@ -94,7 +96,7 @@ class EmulatedCell:
                                            lock=self.plant_lock)
             self._opened.append(self.tracker.stop)
             src = SimRigMarkers(self.tool_pose, seed=natnet_seed)
-            # The NatNet server holds its data port too (drivers.natnet.emulator): a client trusts it
+            # The NatNet server holds its data port too (emulators.natnet): a client trusts it
             self.natnet = NatNetEmulator(src, {"host": host, "command_port": natnet_command_port,
                                                "data_port": natnet_data_port, "rate_hz": natnet_rate_hz},
                                          "<emulated cell natnet>").start()
@@ -227,7 +229,7 @@ def control(host: str, port: int, line: str, timeout_s: float = 10.0) -> dict[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m drivers.emulated_cell",
+    ap = argparse.ArgumentParser(prog="python -m emulators.emulated_cell",
                                  description="UR (RTDE), NatNet and serial laser tracker emulators "
                                              "over one simulated cell.")
     ap.add_argument("--scenario", default=str(CONFIGS / "scenarios" / "paper_default.yaml"))

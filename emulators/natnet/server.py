@@ -26,7 +26,7 @@ is sent `delay_s` after its capture: its transmit stamp says so), untracked_prob
 rigid body's tracking-valid flag off, pose zero), occluded_markers (0-based marker indices
 hidden from every camera: sent with the occluded flag and the model-solved position).
 
-Run one: `python -m drivers.natnet.emulator --command-port 1510 --data-port 1511`.
+Run one: `python -m emulators.natnet --command-port 1510 --data-port 1511`.
 """
 from __future__ import annotations
 
@@ -46,9 +46,9 @@ from scipy.spatial.transform import Rotation
 
 from drivers.mvs.cluster import kabsch
 from drivers.natnet import protocol as nn
-from drivers.natnet.rig_source import SimRigMarkers
 from dt_kernel.config import Frozen, validate
 from dt_kernel.errors import DriverError
+from emulators.natnet.rig_source import SimRigMarkers
 
 
 class Faults(Frozen):
@@ -91,7 +91,7 @@ class Stats:
 class NatNetEmulator:
     """The server; `start()` binds and streams in a thread, `close()` stops it (context manager).
 
-    `source` gives the markers (drivers.natnet.rig_source.SimRigMarkers); `config` a mapping
+    `source` gives the markers (emulators.natnet.rig_source.SimRigMarkers); `config` a mapping
     validated into EmulatorConfig (errors name `source_name`, the key and what is allowed)."""
 
     def __init__(self, source: SimRigMarkers, config: Mapping[str, Any] | None = None,
@@ -316,7 +316,7 @@ class NatNetEmulator:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m drivers.natnet.emulator",
+    ap = argparse.ArgumentParser(prog="python -m emulators.natnet",
                                  description="NatNet 4.1 server streaming the simulated camera rig.")
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--command-port", type=int, default=1510)

@@ -2,7 +2,7 @@
 30002) served over a plant, so the real driver (`drivers.ur.driver`) and third-party RTDE clients
 talk to it exactly as to a UR.
 
-    python -m drivers.ur.emulator --port 30004 --script-port 30002
+    python -m emulators.ur --port 30004 --script-port 30002
 
 runs it over the simulated cell (`configs/scenarios/paper_default.yaml`, `configs/cell.yaml`)
 until Ctrl-C. In tests, `UrEmulator(world.cell.plant, rtde_port=0, script_port=0)` takes free
@@ -17,8 +17,14 @@ calls are made under `plant_lock` (pass the one the rest of the simulation uses)
 What it emulates (the RTDE guide, protocol version 2 only): version negotiation, controller
 version (5.11.0), output recipes of `protocol.OUTPUT_TYPES` (unknown names -> NOT_FOUND, recipe
 id 0), start/pause, data packages at the recipe's frequency (a late package is skipped, not
-queued, as the controller does). Input recipes are answered NOT_FOUND (not emulated). Script port:
-programs of `urscript` (movel, movej, stopl, stopj); a new program replaces the running one;
+queued, as the controller does). Input recipes of the general purpose registers
+(`protocol.INPUT_TYPES`; anything else NOT_FOUND): a register another connected client has in its
+input recipe, or one in `UrFaults.taken_inputs` (a fieldbus adapter such as EtherNet/IP writing
+it), is answered IN_USE and the recipe refused (id 0); released when that client disconnects.
+Input data packages write the registers (`input_writes` keeps each package's values in arrival
+order, for tests), and the registers can be read back as outputs, as the guide allows. Script port:
+programs of `urscript` (movel, movej, stopl, stopj, the servo program); a new program replaces
+the running one;
 anything else, and any program while in protective stop, is refused with an RTDE text message
 (level ERROR, source "URScript") to every RTDE client. The real controller reports those on the
 primary interface instead, which is not emulated.
@@ -27,7 +33,18 @@ Faults (`UrFaults`, or `inject_*` at run time): `drop_rtde_after` closes the RTD
 after that many data packages (once); `protective_stop_on_move` makes that motion (1-based count)
 stop part-way (`protective_stop_fraction` of the path) in a protective stop: the plant stays where
 the arm stopped, `safety_mode` reads PROTECTIVE_STOP and programs are refused until
-`unlock_protective_stop()` (the dashboard server's "unlock protective stop").
+`unlock_protective_stop()` (the dashboard server's "unlock protective stop"). A protective stop
+injected while the servo program runs stops the arm at once and ends the program.
+
+The servo program (`urscript.ServoProgram`) runs its semantics on the control thread, one
+control cycle every `period_s` of wall time (a cycle that comes more than a period late is
+skipped and counted in `stats["late_cycles"]`, never caught up): read the sequence number (< 0:
+stopj, status STREAM_HOST_STOP, end), count the cycles without a new one (more than
+`watchdog_cycles`: stopj, status STREAM_WATCHDOG, `stats["watchdog_stops"]`, end), read the pose
+registers and servo to them with the follower of `sim.servo` (servoj's look-ahead and gain: the
+lag and overshoot are the plant's truth), committing the plant every cycle
+(`plant.servo_step`). `servo_log` holds, per cycle, the sequence number taken and the follower's
+position; `stats["servo_cycles"]` counts the cycles. stopj stops the arm where it is.
 """
 from __future__ import annotations
 
@@ -39,7 +56,8 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -47,9 +65,10 @@ from scipy.spatial.transform import Rotation
 
 from drivers.ur import protocol as rp
 from drivers.ur import urscript
-from drivers.ur.motion import Motion
 from dt_kernel.errors import ConfigError
+from emulators.ur.motion import Motion
 from sim.kinematics import TOOL_DOWN
+from sim.servo import ServoFollower
 
 CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller: 500 Hz RTDE
 _TICK_S = 0.004  # the emulated controller's bookkeeping period (moves start and end on it)
@@ -61,6 +80,7 @@ class UrFaults:
     drop_rtde_after: int | None = None  # data packages, then the RTDE connection is closed (once)
     protective_stop_on_move: int | None = None  # this motion (1 = the first) ends in a protective stop
     protective_stop_fraction: float = 0.5  # of its path
+    taken_inputs: tuple[str, ...] = ()  # input registers a fieldbus adapter writes: IN_USE to RTDE clients
 
     def __post_init__(self) -> None:
         for key in ("drop_rtde_after", "protective_stop_on_move"):
@@ -104,7 +124,19 @@ class UrEmulator:
         self._motions = 0
         self._clients: list[socket.socket] = []
         self.stats = {"movel": 0, "movej": 0, "stops": 0, "scripts": 0, "script_errors": 0, "moves_done": 0,
-                      "protective_stops": 0, "rtde_connections": 0, "packages": 0, "drops": 0}
+                      "protective_stops": 0, "rtde_connections": 0, "packages": 0, "drops": 0,
+                      "input_packages": 0, "servo_programs": 0, "servo_cycles": 0, "late_cycles": 0,
+                      "watchdog_stops": 0, "host_stops": 0}
+        # general purpose registers: what clients wrote (inputs) and what programs wrote (outputs)
+        self._inputs: dict[str, float] = {n: 0 for n in rp.INPUT_TYPES}
+        self._outputs: dict[str, float] = {}
+        self._input_owner: dict[str, int] = {}  # register -> the session whose input recipe holds it
+        self._sessions = 0
+        self.input_writes: deque[dict[str, Any]] = deque(maxlen=100_000)  # every input package, in order
+        self._servo: _Servo | None = None
+        self.servo_log: deque[tuple[int, tuple[float, ...]]] = deque(maxlen=100_000)  # (seq taken, position)
+        self._qd = np.zeros(6)
+        self._v = np.zeros(3)
         self._stop = threading.Event()
         self._rtde_srv = socket.create_server((host, rtde_port), reuse_port=False)
         self._script_srv = socket.create_server((host, script_port), reuse_port=False)
@@ -132,8 +164,15 @@ class UrEmulator:
             self._drop_after = int(after_packages)
 
     def inject_protective_stop(self) -> None:
-        """The next motion ends part-way in a protective stop."""
+        """The next motion ends part-way in a protective stop; a running servo program stops now."""
         with self._lock:
+            if self._servo is not None:
+                self._safety = rp.SAFETY_PROTECTIVE_STOP
+                self.stats["protective_stops"] += 1
+                self._servo_end()
+                self._error(f"C153A1 protective stop while servoing: the arm stopped at "
+                            f"{np.round(self._p, 6).tolist()} m", rp.WARNING_MESSAGE)
+                return
             self._stop_on_move = self._motions + 1
 
     def unlock_protective_stop(self) -> None:
@@ -176,7 +215,7 @@ class UrEmulator:
         """Every output field's value at wall time `now` (monotonic)."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            m, safety, playing = self._motion, self._safety, bool(self._motion or self._program)
+            m, safety, playing = self._motion, self._safety, bool(self._motion or self._program or self._servo)
             if m is not None:
                 q, qd, p, pd = m.sample(now)
                 if m.stop_at is not None and m.done(now):
@@ -184,7 +223,7 @@ class UrEmulator:
                 target_p = m.p1 if m.stop_at is not None and m.done(now) else m.p_goal
                 target_q = m.q1
             else:
-                q, qd, p, pd = self._q, np.zeros(6), self._p, np.zeros(3)
+                q, qd, p, pd = self._q, self._qd, self._p, self._v
                 target_p, target_q = self._p, self._q
         pose = [*p, *self.rotvec]
         speed = [*pd, 0.0, 0.0, 0.0]
@@ -199,11 +238,32 @@ class UrEmulator:
                 "robot_status_bits": 1 | (2 if runtime == rp.RUNTIME_PLAYING else 0),
                 "safety_status_bits": 4 if protective else 1}
 
+    def register(self, name: str) -> float:
+        """A general purpose register's value (input or output), 0 if never written."""
+        if name in self._inputs:
+            return self._inputs[name]
+        return self._outputs.get(name, 0)
+
     def _control(self) -> None:
-        """Ends finished moves, starts the program's next command."""
-        while not self._stop.wait(_TICK_S):
+        """Runs the servo program's control cycles, or ends finished moves and starts the program's
+        next command. A cycle more than one period late is skipped, not caught up."""
+        next_t = time.monotonic()
+        while True:
+            servo = self._servo
+            period = servo.program.period_s if servo is not None else _TICK_S
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < -period:
+                if servo is not None:
+                    self.stats["late_cycles"] += 1
+                next_t, delay = time.monotonic(), 0.0
+            if self._stop.wait(max(delay, 0.0)):
+                return
             now = time.monotonic()
             with self._lock:
+                if self._servo is not None:
+                    self._servo_cycle()
+                    continue
                 m = self._motion
                 if m is not None and m.done(now):
                     self._finish(m)
@@ -225,9 +285,65 @@ class UrEmulator:
             self._error(f"C153A1 protective stop during {m.dist * 1e3:.1f} mm move: the arm stopped at "
                         f"{np.round(m.p1, 6).tolist()} m", rp.WARNING_MESSAGE)
 
+    def _servo_cycle(self) -> None:
+        """One control cycle of the servo program (see the module docstring); under self._lock."""
+        servo = self._servo
+        assert servo is not None
+        sp = servo.program
+        seq = int(self._inputs[f"input_int_register_{sp.seq_register}"])
+        if seq < 0:
+            self._outputs[f"output_int_register_{sp.status_register}"] = urscript.STREAM_HOST_STOP
+            self.stats["host_stops"] += 1
+            self._servo_end()
+            return
+        if seq == servo.seen:
+            servo.quiet += 1
+            if servo.quiet > sp.watchdog_cycles:
+                self._outputs[f"output_int_register_{sp.status_register}"] = urscript.STREAM_WATCHDOG
+                self.stats["watchdog_stops"] += 1
+                self._error(f"cobot-dt stream watchdog: no new set-point for {sp.watchdog_cycles} control cycles",
+                            rp.INFO_MESSAGE)
+                self._servo_end()
+                return
+        else:
+            servo.seen, servo.quiet = seq, 0
+        self._outputs[f"output_int_register_{sp.echo_register}"] = servo.seen
+        pose = np.array([self._inputs[f"input_double_register_{sp.double_register + i}"] for i in range(6)])
+        try:
+            if not np.allclose(_rot_distance(pose[3:], self.rotvec), 0.0, atol=1e-3):
+                raise urscript.ScriptError(f"servoj: orientation {pose[3:].tolist()} is not the tool-down "
+                                           f"{np.round(self.rotvec, 6).tolist()} this arm holds")
+            x, v = servo.follower.step(pose[:3], sp.period_s)
+            with self.plant_lock:
+                self.plant.servo_step(x, float(np.linalg.norm(v)), sp.period_s)
+                q = np.asarray(self.plant.joint_angles(), dtype=float)
+                p = np.asarray(self.plant.controller_tcp(), dtype=float)
+        except Exception as exc:  # get_inverse_kin failed, unreachable: the program ends with an error
+            self._servo_end()
+            self._error(f"servo program ended: get_inverse_kin({np.round(pose[:3], 6).tolist()}): {exc}")
+            return
+        self._qd, self._q, self._p, self._v = (q - self._q) / sp.period_s, q, p, v
+        self.stats["servo_cycles"] += 1
+        self.servo_log.append((servo.seen, tuple(x)))
+
+    def _servo_end(self) -> None:
+        """stopj: the arm stops where it is and the program ends."""
+        if self._servo is not None:
+            self._servo.follower.stop()
+        self._servo = None
+        self._qd, self._v = np.zeros(6), np.zeros(3)
+        self.stats["stops"] += 1
+
     def _begin(self, cmd: urscript.Command, now: float) -> None:
         if cmd.kind in ("stopl", "stopj"):
             return  # nothing moving (a running motion was stopped when the program arrived)
+        if cmd.servo is not None:
+            sp = cmd.servo
+            self._servo = _Servo(sp, ServoFollower(self._p, sp.lookahead_s, sp.gain),
+                                 seen=int(self._inputs[f"input_int_register_{sp.seq_register}"]))
+            self._outputs[f"output_int_register_{sp.status_register}"] = urscript.STREAM_RUNNING
+            self.stats["servo_programs"] += 1
+            return
         if cmd.pose is not None:
             goal, rot = np.array(cmd.pose[:3]), np.array(cmd.pose[3:])
             if not np.allclose(_rot_distance(rot, self.rotvec), 0.0, atol=1e-3):
@@ -302,6 +418,8 @@ class UrEmulator:
                 self._error("program not started: the robot is in protective stop")
                 return
             self._halt(now)  # a new program replaces the running one
+            if self._servo is not None:
+                self._servo_end()
             self._program = cmds
 
     # --- script port --------------------------------------------------------------------
@@ -333,10 +451,10 @@ class UrEmulator:
             text = buf.decode("utf-8", "replace")
             if text.lstrip().startswith("def "):
                 lines = text.split("\n")
-                ends = [i for i, ln in enumerate(lines) if ln.split("#", 1)[0].strip() == "end"]
-                if not ends:
+                end = urscript.program_end(lines)
+                if end is None:
                     return buf
-                prog = "\n".join(lines[:ends[0] + 1]) + "\n"
+                prog = "\n".join(lines[:end + 1]) + "\n"
             else:
                 prog = text[:text.index("\n") + 1]
             buf = buf[len(prog.encode("utf-8")):]
@@ -352,7 +470,9 @@ class UrEmulator:
 
     def _serve_rtde(self, conn: socket.socket) -> None:
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        reader, ses = rp.PackageReader(), _Session()
+        with self._lock:
+            self._sessions += 1
+            reader, ses = rp.PackageReader(), _Session(self._sessions)
         next_t, sent = 0.0, 0
         self._clients.append(conn)
         try:
@@ -373,7 +493,8 @@ class UrEmulator:
                 now = time.monotonic()
                 if ses.started and ses.recipe is not None and now >= next_t:
                     snap = self.snapshot(now)
-                    conn.sendall(ses.recipe.pack([snap.get(n, 0) for n in ses.recipe.names]))  # registers: 0
+                    values = [snap[n] if n in snap else self.register(n) for n in ses.recipe.names]
+                    conn.sendall(ses.recipe.pack(values))
                     sent += 1
                     self.stats["packages"] += 1
                     # a late package is skipped, not caught up (the guide: the controller sends the newest)
@@ -388,6 +509,9 @@ class UrEmulator:
         finally:
             if conn in self._clients:
                 self._clients.remove(conn)
+            with self._lock:  # its input registers are free again
+                for name in [n for n, owner in self._input_owner.items() if owner == ses.id]:
+                    del self._input_owner[name]
             _close(conn)
 
     def _rtde_request(self, ptype: int, payload: bytes, ses: _Session) -> bytes:
@@ -406,7 +530,28 @@ class UrEmulator:
             return rp.setup_reply(ptype, 1, types)
         if ptype == rp.SETUP_INPUTS:
             names = rp.split_names(payload)
-            return rp.setup_reply(ptype, 0, [rp.NOT_FOUND] * len(names))
+            with self._lock:
+                types = [rp.INPUT_TYPES.get(n, rp.NOT_FOUND) for n in names]
+                types = [rp.IN_USE if t != rp.NOT_FOUND and (n in self.faults.taken_inputs or self._input_owner.get(
+                    n, ses.id) != ses.id) else t for n, t in zip(names, types)]
+                if rp.NOT_FOUND in types or rp.IN_USE in types or ses.started:
+                    return rp.setup_reply(ptype, 0, types)
+                rid = ses.next_id
+                ses.next_id += 1
+                ses.inputs[rid] = rp.Recipe(rid, tuple(names), tuple(types))
+                for n in names:
+                    self._input_owner[n] = ses.id
+            return rp.setup_reply(ptype, rid, types)
+        if ptype == rp.DATA_PACKAGE:
+            recipe = ses.inputs.get(rp.data_recipe_id(payload))
+            if recipe is None:
+                return b""  # the controller ignores a package of no input recipe of this client
+            values = recipe.unpack(payload)
+            with self._lock:
+                self._inputs.update(values)  # type: ignore[arg-type]
+                self.input_writes.append(values)
+                self.stats["input_packages"] += 1
+            return b""
         if ptype == rp.START:
             ses.started = ses.recipe is not None
             return rp.pack(ptype, rp.u8(ses.started))
@@ -418,11 +563,25 @@ class UrEmulator:
 
 @dataclass
 class _Session:
-    """One RTDE client's setup: its output recipe, frequency and whether it is streaming."""
+    """One RTDE client's setup: its output recipe, frequency, input recipes and whether it is streaming."""
 
+    id: int
     recipe: rp.Recipe | None = None
     freq: float = 125.0
     started: bool = False
+    inputs: dict[int, rp.Recipe] = field(default_factory=dict)
+    next_id: int = 2  # the output recipe is 1
+
+
+@dataclass
+class _Servo:
+    """The servo program running: its parameters, the follower, the sequence number last taken and
+    the control cycles since it changed."""
+
+    program: urscript.ServoProgram
+    follower: ServoFollower
+    seen: int
+    quiet: int = 0
 
 
 def _rot_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -459,7 +618,7 @@ def main(argv: list[str] | None = None) -> int:
     from drivers.simulated.devices import SimWorld
 
     configs = Path(__file__).resolve().parents[2] / "configs"
-    ap = argparse.ArgumentParser(prog="python -m drivers.ur.emulator",
+    ap = argparse.ArgumentParser(prog="python -m emulators.ur",
                                  description="A UR controller (RTDE + script port) over the simulated cell.")
     ap.add_argument("--host", default="127.0.0.1")
     ap.add_argument("--port", type=int, default=30004, help="RTDE port (default 30004)")
@@ -470,9 +629,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--time-scale", type=float, default=1.0, help="wall time per second of motion (0.1: 10x faster)")
     ap.add_argument("--drop-rtde-after", type=int, default=None, help="fault: close RTDE after N data packages")
     ap.add_argument("--protective-stop-on-move", type=int, default=None, help="fault: motion N stops half-way")
+    ap.add_argument("--taken-inputs", nargs="*", default=(), metavar="REGISTER",
+                    help="fault: input registers a fieldbus writes (IN_USE), e.g. input_double_register_24")
     args = ap.parse_args(argv)
     world = SimWorld(args.scenario, args.cell, args.seed)
-    faults = UrFaults(drop_rtde_after=args.drop_rtde_after, protective_stop_on_move=args.protective_stop_on_move)
+    faults = UrFaults(drop_rtde_after=args.drop_rtde_after, protective_stop_on_move=args.protective_stop_on_move,
+                      taken_inputs=tuple(args.taken_inputs))
     emu = UrEmulator(world.cell.plant, args.host, args.port, args.script_port, faults=faults,
                      time_scale=args.time_scale)
     print(f"UR emulator ({world.scenario_name}): RTDE on {emu.host}:{emu.rtde_port}, script port "

@@ -1,0 +1,5 @@
+import sys
+
+from emulators.emulated_cell.cell import main
+
+sys.exit(main())

@@ -1,0 +1,3 @@
+from emulators.natnet.server import main
+
+raise SystemExit(main())

@@ -1,0 +1,5 @@
+import sys
+
+from emulators.ur.controller import main
+
+sys.exit(main())
