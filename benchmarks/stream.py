@@ -75,6 +75,9 @@ SPEEDS = (100.0, 250.0, 500.0)  # mm/s
 RATES = (125.0, 500.0)  # Hz: a CB3's and an e-Series' control loop
 LOOKAHEAD_S, GAIN = 0.03, 1200.0  # servoj's parameters in the public reports (~34 ms of lag)
 PASSES = ("uncorrected", "corrected", "lag_compensated")
+EMULATOR_PRIORITY = 20  # SCHED_FIFO: above StreamProcess's 10 (the controller preempts the host)
+SETTLE_S = 0.2  # the cruise: set-points at the programmed speed for at least this long (the
+# follower's transient after an acceleration, 1 / (zeta w) = 55 ms at look-ahead 0.03 s, gain 1200, is over)
 
 
 # --- built in the streaming process (module-level: StreamProcess pickles them) ---------------
@@ -171,8 +174,28 @@ class _TruthPlant:
         return getattr(self._plant, name)
 
 
+@contextlib.contextmanager
+def _realtime_threads(priority: int):
+    """Threads started inside run with SCHED_FIFO at `priority` (they inherit the starting thread's
+    policy), when the user may have it; yields whether they do. The calling thread gets its own
+    policy back on leaving."""
+    try:
+        old = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, PermissionError, OSError):
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        os.sched_setscheduler(0, *old)
+
+
 class _UrCell:
-    """The UR emulator over a SimWorld plant, in this process."""
+    """The UR emulator over a SimWorld plant, in this process. A UR's controller is another machine
+    with a real-time kernel: the emulator's threads (control cycle, RTDE) run with SCHED_FIFO,
+    above the streaming loop's priority, when the user may (`realtime`), so that a loaded host
+    delays the host's loop, not the controller's cycles."""
 
     def __init__(self):
         from drivers.simulated.devices import SimWorld
@@ -180,7 +203,9 @@ class _UrCell:
 
         self.world = SimWorld(SCENARIO, CELL)
         self.plant = _TruthPlant(self.world.cell.plant)
-        self.emu = UrEmulator(self.plant, "127.0.0.1", 0, 0)
+        with _realtime_threads(EMULATOR_PRIORITY) as rt:
+            self.emu = UrEmulator(self.plant, "127.0.0.1", 0, 0)
+        self.realtime = rt
 
     def driver(self, rate_hz: float, start: np.ndarray):
         return functools.partial(ur_driver, self.emu.rtde_port, self.emu.script_port, rate_hz, start)
@@ -239,13 +264,23 @@ class _Scorer:
         self.twin = twin
         self.R, self.p = world.cell.cell.laser_tracker.pose.matrix()
 
-    def errors(self, sp, t: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    def errors(self, sp, t: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(set-point indices, true error (n, 3) m at them)."""
         k = np.clip(np.rint(t * sp.rate_hz).astype(int), 0, sp.n - 1)
         truth_lt = (truth - self.p) @ self.R  # R^T (truth - p), row by row
-        return self.twin.T_rdk.apply(sp.p[k]) - self.twin.T_lt.apply(truth_lt)
+        return k, self.twin.T_rdk.apply(sp.p[k]) - self.twin.T_lt.apply(truth_lt)
 
     def measured_gl(self, truth: np.ndarray) -> np.ndarray:
         return self.twin.T_lt.apply((truth - self.p) @ self.R)
+
+
+def _cruise(sp) -> np.ndarray:
+    """Set-points that have been at the programmed speed for SETTLE_S or longer (bool, (n,))."""
+    at = np.abs(sp.speed - sp.programmed) < 1e-6
+    m = int(np.ceil(SETTLE_S * sp.rate_hz))
+    off = np.concatenate([[0], np.cumsum(~at)])  # off[k]: set-points before k not at speed
+    k = np.arange(sp.n)
+    return at & (k >= m) & (off[k + 1] - off[np.maximum(k + 1 - m, 0)] == 0)
 
 
 def _rate_entry(reports: list, corrected: list) -> dict:
@@ -294,6 +329,7 @@ def run(quick: bool = False, twin: str = "", progress=None) -> dict:
                     for speed in speeds:
                         sp = _path(speed, rate, tmp)
                         nominal = TimedPath(sp.t, sp.p)
+                        cruise = _cruise(sp)
                         res, lag = {}, None
                         for name in PASSES:
                             targets = sp.p if lag is None else compensate(nominal, lag).p
@@ -314,8 +350,10 @@ def run(quick: bool = False, twin: str = "", progress=None) -> dict:
                             reports.append(rep)
                             if correct:
                                 corrected.append(rep)
-                            e = scorer.errors(sp, t, truth)
-                            res[name] = (rms3(e) * 1e3, float(np.linalg.norm(e, axis=1).max()) * 1e3, len(e))
+                            ks, e = scorer.errors(sp, t, truth)
+                            c = cruise[ks]
+                            res[name] = (rms3(e) * 1e3, float(np.linalg.norm(e, axis=1).max()) * 1e3, len(e),
+                                         rms3(e[c]) * 1e3 if c.any() else float("nan"))
                             if name == "corrected":  # one measured pass: its truth stands in for the tracker
                                 lag = estimate_lag(TimedPath(sp.t, tw.T_rdk.apply(sp.p)), t,
                                                    scorer.measured_gl(truth), max_lag_s=0.2)
@@ -323,7 +361,9 @@ def run(quick: bool = False, twin: str = "", progress=None) -> dict:
                         rms = {k: round(v[0], 4) for k, v in res.items()}
                         per_speed[f"{speed:g}"] = {
                             "path_rms_mm": rms, "path_max_mm": {k: round(v[1], 4) for k, v in res.items()},
+                            "path_rms_cruise_mm": {k: round(v[3], 4) for k, v in res.items()},
                             "n": {k: v[2] for k, v in res.items()}, "n_planned": sp.n,
+                            "n_cruise_planned": int(cruise.sum()),
                             "lag_ms": round(lag.tau_s * 1e3, 3), "u_lag_ms": round(lag.u_tau_s * 1e3, 4),
                             "ratio_to_static": None if not static else {
                                 k: round(rms[k] / static, 2) for k in ("corrected", "lag_compensated")},
@@ -335,6 +375,7 @@ def run(quick: bool = False, twin: str = "", progress=None) -> dict:
                         entry["emulator"] = {k: int(st.get(k, 0) - emu0.get(k, 0))
                                              for k in ("servo_cycles", "late_cycles", "watchdog_stops",
                                                        "host_stops")}
+                        entry["emulator"]["realtime"] = ur.realtime
                     out["drivers"][drv_name][f"{rate:g}"] = entry
         finally:
             ur.close()
