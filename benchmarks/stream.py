@@ -26,19 +26,23 @@ The true path error at set-point k: where the plant's arm really is once the con
 that set-point (the cycle that first took it, for the UR; the set-point's step, for `sim`) minus the
 programmed path at k's time t_k, both in the global frame GL as the demo scores its static error
 (`T_rdk(target) - T_lt(truth in the tracker frame)`); `path_rms_mm` is its 3D RMS over the path,
-`path_max_mm` the largest 3D error. `static_corrected_rms_mm` is the same twin's corrected error
-standing still (the demo summary's `true_rms_corrected_mm`); the goal is corrected path RMS <= 1.5x
-that, and lag-compensated < corrected.
+`path_max_mm` the largest 3D error, `path_rms_cruise_mm` the RMS over the set-points that have been
+at the programmed speed for SETTLE_S or longer (no acceleration transient: what a time shift leaves
+there is the follower's response on the arc). `static_corrected_rms_mm` is the same twin's
+corrected error standing still (the demo summary's `true_rms_corrected_mm`); the goal is corrected
+path RMS <= 1.5x that, and lag-compensated < corrected.
 
 Keys, per driver (`drivers.<ur_rtde|sim>`) and target rate (`"125"`, `"500"`): `rate_hz` (the
 slowest of its passes), `target_hz`, `rate_pct`, `p99_jitter_ms` (the worst pass), `max_jitter_ms`,
 `overruns`, `correction_us_mean`, `correction_us_p99` (the corrected passes), `realtime`, `stopped`
-(the reasons a pass ended early, empty when none did), and per speed (`speeds.<mm/s>`): `path_rms_mm`
-and `path_max_mm` {`uncorrected`, `corrected`, `lag_compensated`}, `lag_ms`, `u_lag_ms`, `n`
-(set-points scored per pass), `ratio_to_static` {`corrected`, `lag_compensated`},
-`lag_compensated_better`. The UR entries add `emulator` (the controller's late and skipped control
-cycles, watchdog stops). Top level: `static_corrected_rms_mm`, `load` {`start`, `end`} (1-min load
-averages), `cores`, `servo` {`lookahead_s`, `gain`}, `seconds`.
+(the reasons a pass ended early, empty when none did), and per speed (`speeds.<mm/s>`):
+`path_rms_mm`, `path_max_mm` and `path_rms_cruise_mm` {`uncorrected`, `corrected`,
+`lag_compensated`}, `lag_ms`, `u_lag_ms`, `n` (set-points scored per pass: the UR controller skips
+a set-point when two arrive within one of its cycles), `n_planned`, `n_cruise_planned`,
+`ratio_to_static` {`corrected`, `lag_compensated`}, `lag_compensated_better`. The UR entries add
+`emulator` (its control cycles, late cycles skipped, watchdog and host stops, `realtime`: its
+threads got SCHED_FIFO). Top level: `static_corrected_rms_mm`, `load` {`start`, `end`} (1-min load
+averages), `cores`, `servo` {`lookahead_s`, `gain`}, `process`, `seconds`, `quick`.
 `--quick`: 125 Hz only, 500 mm/s only (the test's run); `--twin DIR` reuses a quick demo's twin
 (DIR/model, its summary beside it) instead of running `dt demo --quick` (~40 s).
 """

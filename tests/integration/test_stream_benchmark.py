@@ -21,7 +21,8 @@ def test_the_quick_stream_benchmark_lowers_the_path_error_by_lag_compensation(tw
         assert math.isfinite(e["rate_hz"]) and math.isfinite(e["p99_jitter_ms"])
         assert e["correction_us_mean"] > 0 and e["correction_us_p99"] > 0  # the corrected passes corrected
         s = e["speeds"]["500"]
-        assert set(s["path_rms_mm"]) == set(s["path_max_mm"]) == set(PASSES)
+        assert set(s["path_rms_mm"]) == set(s["path_max_mm"]) == set(s["path_rms_cruise_mm"]) == set(PASSES)
+        assert 0 < s["n_cruise_planned"] < s["n_planned"]
         # every set-point scored in simulated time; the UR controller may take a newer one in a cycle
         n = s["n"]
         assert all(0.8 * s["n_planned"] <= n[p] <= s["n_planned"] for p in PASSES), (name, n)
@@ -37,4 +38,5 @@ def test_the_quick_stream_benchmark_lowers_the_path_error_by_lag_compensation(tw
         if name == "sim" or e["emulator"]["late_cycles"] == 0:  # a stalled emulator is a different arm
             assert rms["lag_compensated"] < 0.3 * rms["corrected"], (name, rms)
             assert s["lag_compensated_better"]
+            assert s["path_rms_cruise_mm"]["lag_compensated"] < 0.3 * s["path_rms_cruise_mm"]["corrected"]
     assert r["drivers"]["ur_rtde"]["125"]["emulator"]["watchdog_stops"] == 0
