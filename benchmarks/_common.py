@@ -49,6 +49,9 @@ def cli(description: str, argv: list[str] | None = None, **options) -> argparse.
     p = argparse.ArgumentParser(description=description)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     for name, default in options.items():
+        if isinstance(default, bool):  # a flag: off unless given
+            p.add_argument(f"--{name.replace('_', '-')}", action="store_true", default=default)
+            continue
         p.add_argument(f"--{name.replace('_', '-')}", type=type(default), default=default,
                        help=f"default {default}")
     return p.parse_args(argv)
