@@ -1,19 +1,26 @@
 """Lag compensation of a streamed path (issue 23, item 5).
 
 A servo follower (a UR's servoj with its look-ahead time and gain) reaches a streamed set-point
-late: along a path at velocity v the arm stands about v tau behind the command, a systematic
-error of 0.1-2 mm at 100-500 mm/s for tau of a few milliseconds that the static error map does not
-contain. It is learnt from one measured pass of the path and removed by feed-forward:
+late: along a path at velocity v the arm stands about v tau behind the command, millimetres at
+100-500 mm/s for tau of tens of milliseconds, a systematic error the static error map does not
+contain; on a curve its dynamics add an error that follows the acceleration. Both are learnt from
+one measured pass of the path and removed by feed-forward.
 
-- `estimate_lag`: tau minimising sum_i |c(t_i - tau) - m_i|^2 over the measured positions m_i
-  at times t_i (c the commanded path, linear between set-points), on [0, max_lag_s] (a bounded
-  scalar search, then the standard uncertainty of tau from the curvature of that sum: the
-  residual variance over sum |v|^2, as for a linear fit of e = v tau);
-- `compensate`: the path each set-point time sends the position the path has tau later
-  (`TimedPath.shifted`), so the arm, tau late, is where the path should be.
+For a linear follower with transfer function H (the servo model of sim.servo, x'' + K T x' + K x
+= K r, as any smooth lag), the error e = c - m of the measured positions m against the commanded
+path c is, to second order in the path's derivatives,
 
-A pure time shift models a first-order lag; what a second-order follower adds on curves (the
-corner cutting of its overshoot) stays in the residual, which is reported with tau.
+    e = a c' + b c''          (servo: a = T, b = 1/K - T^2; a pure delay tau: a = tau, b = -tau^2/2)
+
+`estimate_lag` fits a and b by least squares on the measured positions (the derivatives are the
+commanded path's, smooth and noise-free; the first `max_lag_s` left out as start-up), with their
+standard uncertainties and the RMS before and after. `compensate` inverts it: to have the arm on
+the desired path d, stream
+
+    c = d + a d' + (b + a^2) d''     (servo: d + T d' + d''/K: exact for the model above)
+
+A plain time shift (a lag given as a number) sends d(t + tau) instead, which leaves the
+(1/K - T^2/2) d'' of a servo on every curve.
 Units: SI (s, m).
 """
 from __future__ import annotations
@@ -21,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from dt_kernel.errors import DataError
 from dt_runtime.metrology.stats import rms3
@@ -30,26 +36,34 @@ from dt_runtime.metrology.timing import TimedPath
 
 @dataclass(frozen=True)
 class LagEstimate:
-    tau_s: float
+    tau_s: float  # a: the lag (s)
     u_tau_s: float  # standard uncertainty of tau
+    accel_s2: float  # b + a^2: the feed-forward's coefficient of the path's acceleration (s^2; 1/K for a servo)
+    u_accel_s2: float
     n: int  # measured positions used (those on the moving part of the path)
     rms_before_m: float  # 3D RMS of commanded - measured at the measured times
     rms_after_m: float  # ... of the commanded path delayed by tau - measured
 
     def to_dict(self) -> dict:
-        return {"tau_ms": 1e3 * self.tau_s, "u_tau_ms": 1e3 * self.u_tau_s, "n": self.n,
+        return {"tau_ms": 1e3 * self.tau_s, "u_tau_ms": 1e3 * self.u_tau_s, "accel_ms2": 1e6 * self.accel_s2,
+                "u_accel_ms2": 1e6 * self.u_accel_s2, "n": self.n,
                 "rms_before_mm": 1e3 * self.rms_before_m, "rms_after_mm": 1e3 * self.rms_after_m}
 
 
-def _delayed(path: TimedPath, t: np.ndarray, tau: float) -> np.ndarray:
-    tq = np.clip(t - tau, path.t[0], path.t[-1])
-    return np.column_stack([np.interp(tq, path.t, path.p[:, j]) for j in range(3)])
+def _derivatives(path: TimedPath) -> tuple[np.ndarray, np.ndarray]:
+    """The path's velocity and acceleration at its set-points (central differences)."""
+    v = np.gradient(path.p, path.t, axis=0)
+    return v, np.gradient(v, path.t, axis=0)
+
+
+def _at(path: TimedPath, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(t, path.t, values[:, j]) for j in range(values.shape[1])])
 
 
 def estimate_lag(path: TimedPath, t: np.ndarray, measured: np.ndarray, max_lag_s: float = 0.5) -> LagEstimate:
-    """The follower's lag behind `path` from positions `measured` (n, 3), m, at times `t` (n,),
-    s, on the path's clock; only times at least `max_lag_s` after the path's start are used (the
-    start-up transient)."""
+    """The follower's lag and acceleration term behind `path` from positions `measured` (n, 3),
+    m, at times `t` (n,), s, on the path's clock; times in the path's first `max_lag_s` are left
+    out (the start-up transient)."""
     t, m = np.asarray(t, dtype=float), np.asarray(measured, dtype=float)
     if m.shape != (t.size, 3):
         raise DataError(f"estimate_lag needs n times and n x 3 positions, got {t.shape} and {m.shape}")
@@ -58,25 +72,32 @@ def estimate_lag(path: TimedPath, t: np.ndarray, measured: np.ndarray, max_lag_s
         raise DataError(f"estimate_lag needs at least 10 measured positions on the path after its first"
                         f" {max_lag_s} s, got {int(keep.sum())}")
     t, m = t[keep], m[keep]
-
-    def cost(tau: float) -> float:
-        return float(np.sum((_delayed(path, t, tau) - m) ** 2))
-
-    tau = float(minimize_scalar(cost, bounds=(0.0, max_lag_s), method="bounded",
-                                options={"xatol": 1e-7}).x)
-    r = _delayed(path, t, tau) - m
-    # velocity of the path at the measured times: the sensitivity of the fit to tau
-    dt = max(1e-4, float(np.median(np.diff(path.t))))
-    v = (_delayed(path, t, tau - dt / 2) - _delayed(path, t, tau + dt / 2)) / dt
-    sv2 = float(np.sum(v ** 2))
-    dof = max(1, r.size - 1)
-    u = float(np.sqrt(np.sum(r ** 2) / dof / sv2)) if sv2 > 0 else float("inf")
-    return LagEstimate(tau, u, int(t.size), rms3(_delayed(path, t, 0.0) - m), rms3(r))
+    v, acc = _derivatives(path)
+    c = _at(path, path.p, t)
+    e = (c - m).ravel()
+    A = np.column_stack([_at(path, v, t).ravel(), _at(path, acc, t).ravel()])
+    # a path at rest (|v| below 1 um/s) or with neither speed nor direction changing cannot tell them apart
+    if np.sqrt(np.mean(A[:, 0] ** 2)) < 1e-6 or np.linalg.cond(A) > 1e8:
+        raise DataError("estimate_lag needs a path that moves and changes speed or direction")
+    coef, *_ = np.linalg.lstsq(A, e, rcond=None)
+    r = e - A @ coef
+    dof = max(1, e.size - 2)
+    cov = np.linalg.inv(A.T @ A) * float(r @ r) / dof
+    a, b = float(coef[0]), float(coef[1])
+    # the feed-forward's coefficient b + a^2 and its uncertainty (first order in a and b)
+    g = np.array([2 * a, 1.0])
+    u_k2 = float(np.sqrt(g @ cov @ g))
+    return LagEstimate(a, float(np.sqrt(cov[0, 0])), b + a * a, u_k2, int(t.size), rms3(c - m),
+                       rms3(r.reshape(-1, 3)))
 
 
 def compensate(path: TimedPath, lag: LagEstimate | float) -> TimedPath:
-    """The path to stream so that a follower `lag` behind it is on the path on time."""
-    tau = lag.tau_s if isinstance(lag, LagEstimate) else float(lag)
-    if not (np.isfinite(tau) and tau >= 0):
-        raise DataError(f"a lag must be a finite time >= 0, got {tau}")
-    return path.shifted(tau)
+    """The path to stream so that the follower is on `path` on time: with an estimate, the
+    inverse of its lag and acceleration term; with a number (s), the path shifted by it."""
+    if not isinstance(lag, LagEstimate):
+        tau = float(lag)
+        if not (np.isfinite(tau) and tau >= 0):
+            raise DataError(f"a lag must be a finite time >= 0, got {tau}")
+        return path.shifted(tau)
+    v, acc = _derivatives(path)
+    return TimedPath(path.t, path.p + lag.tau_s * v + lag.accel_s2 * acc)
