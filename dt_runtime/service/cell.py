@@ -1,12 +1,12 @@
 """The cell the daemon commands: its drivers (robot, tracker, camera: `Instruments`) and its clock.
 
 `Cell` is a real cell: wall-clock time, nothing to inject, no truth. `SimCell` wraps the
-simulated cell (drivers.simulated.SimWorld): on `realtime: false` its clock is the simulated one
-and a tick that moved nothing lets a period of it pass; it injects the runtime config's faults
-(`sim.faults`) when their time comes, and scores every command against the simulator's truth
-(`true_rms_mm`, as `dt demo` scores it). No correction path reads that truth. `open_cell` builds
-whichever the config's drivers need, each driver by `drivers.registry` (kind and options checked
-before anything opens).
+simulated cell (drivers.simulated.SimWorld, itself over the simulator's `sim.cell.SimCell`): on
+`realtime: false` its clock is the simulated one and a tick that moved nothing lets a period of
+it pass; it injects the runtime config's faults (`sim.faults`) when their time comes, and scores
+every command against the simulator's truth (`true_rms_mm`, as `dt demo` scores it). No
+correction path reads that truth. `open_cell` builds whichever the config's drivers need, each
+driver by `drivers.registry` (kind and options checked before anything opens).
 """
 from __future__ import annotations
 
