@@ -42,6 +42,7 @@ class SimWorld:
         self.cell = SimCell.from_files(scenario, cell, seed, source)
         self.scenario_name = self.cell.scenario.name
         self.camera_shift = np.zeros(3)
+        self._lt_pose = self.cell.cell.laser_tracker.pose.matrix()  # fixed: scored every tick
 
     @property
     def t(self) -> float:
@@ -61,7 +62,7 @@ class SimWorld:
         The global frame GL is realised by the tracker's registration, so true errors are
         scored in GL by mapping this point through the twin's tracker registration.
         """
-        R, t = self.cell.cell.laser_tracker.pose.matrix()
+        R, t = self._lt_pose
         return R.T @ (self.truth_tcp() - t)
 
     def tool_pose(self):

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 INF = float("inf")
 
@@ -61,8 +61,10 @@ class Component:
 def coverage_factor(dof, p: float = 0.95) -> np.ndarray:
     dof = np.asarray(dof, dtype=float)
     q = 0.5 + p / 2
-    return np.where(np.isfinite(dof), stats.t.ppf(q, np.where(np.isfinite(dof), np.maximum(dof, 1), 1)),
-                    stats.norm.ppf(q))
+    # scipy.special's quantiles are what stats.t.ppf / stats.norm.ppf compute, without the
+    # ~0.15 ms of argument checking per call (this runs once per corrected command).
+    return np.where(np.isfinite(dof), special.stdtrit(np.where(np.isfinite(dof), np.maximum(dof, 1), 1), q),
+                    special.ndtri(q))
 
 
 def welch_satterthwaite(us: np.ndarray, dofs: np.ndarray) -> np.ndarray:
@@ -234,20 +236,37 @@ class TTest:
         return np.all(self.passed, axis=1)
 
 
+@dataclass(frozen=True)
+class TTestPlan:
+    """Eq. 17 with its uncertainties fixed: the combined u, the Welch-Satterthwaite dof and the
+    critical t are computed once (the daemon tests every MVS reading against the same budgets),
+    each call computes only t and its p-value."""
+
+    u: np.ndarray  # sqrt(u^2(diff) + u^2(pred))
+    dof: np.ndarray
+    d: np.ndarray  # dof for the t distribution (infinite -> 1e12)
+    t_crit: np.ndarray
+
+    @classmethod
+    def of(cls, u_diff, u_pred, dof_diff, dof_pred, alpha: float = 0.05) -> TTestPlan:
+        u_diff, u_pred = np.asarray(u_diff, dtype=float), np.asarray(u_pred, dtype=float)
+        u = np.sqrt(u_diff ** 2 + u_pred ** 2)
+        dof = welch_satterthwaite(np.array([u_diff * np.ones(3), u_pred * np.ones(3)]),
+                                  np.array([np.asarray(dof_diff, dtype=float) * np.ones(3),
+                                            np.asarray(dof_pred, dtype=float) * np.ones(3)]))
+        d = np.where(np.isfinite(dof), dof, 1e12)
+        return cls(u, dof, d, special.stdtrit(d, 1 - alpha / 2))  # = stats.t.ppf(1 - alpha / 2, d)
+
+    def __call__(self, diff, predicted) -> TTest:
+        t = (np.atleast_2d(diff) - np.atleast_2d(predicted)) / self.u
+        p = 2 * special.stdtr(self.d, -np.abs(t))  # = 2 stats.t.sf(|t|, d), two-sided
+        return TTest(t, self.dof, p, self.t_crit, np.abs(t) <= self.t_crit)
+
+
 def t_test(diff, predicted, u_diff, u_pred, dof_diff, dof_pred, alpha: float = 0.05) -> TTest:
     """Eq. 17: t = ((e_LT_hat - e_MVS) - e_MVS-LT_hat) / sqrt(u^2(diff) + u^2(pred)), per axis,
     two-sided at level alpha, dof by Welch-Satterthwaite of the two uncertainties."""
-    diff, predicted = np.atleast_2d(diff), np.atleast_2d(predicted)
-    u_diff, u_pred = np.asarray(u_diff, dtype=float), np.asarray(u_pred, dtype=float)
-    u = np.sqrt(u_diff ** 2 + u_pred ** 2)
-    t = (diff - predicted) / u
-    dof = welch_satterthwaite(np.array([u_diff * np.ones(3), u_pred * np.ones(3)]),
-                              np.array([np.asarray(dof_diff, dtype=float) * np.ones(3),
-                                        np.asarray(dof_pred, dtype=float) * np.ones(3)]))
-    d = np.where(np.isfinite(dof), dof, 1e12)
-    p = 2 * stats.t.sf(np.abs(t), d)
-    tc = stats.t.ppf(1 - alpha / 2, d)
-    return TTest(t, dof, p, tc, np.abs(t) <= tc)
+    return TTestPlan.of(u_diff, u_pred, dof_diff, dof_pred, alpha)(diff, predicted)
 
 
 def precision_figures(s_e_mvs_doe: np.ndarray, budget_pred: Budget) -> dict:

@@ -150,8 +150,7 @@ class Monitor:
     def __init__(self, twin: Twin, alpha: float = 0.05):
         self.twin, self.alpha = twin, alpha
         b14, b16 = twin.uncertainty.e_lt_hat_minus_e_mvs, twin.uncertainty.e_mvs_lt_hat  # Eqs. 14, 16
-        self._u14, self._u16 = b14.u, b16.u
-        self._d14, self._d16 = b14.dof, b16.dof
+        self._t_test = unc.TTestPlan.of(b14.u, b16.u, b14.dof, b16.dof, alpha)  # the same budgets every reading
 
     def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray, cond: Conditions | None = None) -> Check:
         p_mvs = np.asarray(p_mvs, dtype=float)
@@ -167,5 +166,5 @@ class Monitor:
             raise CorrectionFault(f"no prediction at command {np.round(command * 1e3, 1).tolist()} mm: {exc}") from exc
         if not (np.all(np.isfinite(e_lt_hat)) and np.all(np.isfinite(pred))):
             raise CorrectionFault(f"the error model predicts NaN at command {np.round(command * 1e3, 1).tolist()} mm")
-        tt = unc.t_test(e_lt_hat - e_mvs, pred, self._u14, self._u16, self._d14, self._d16, self.alpha)
+        tt = self._t_test(e_lt_hat - e_mvs, pred)
         return Check(tt.t[0], tt.p_value[0], bool(tt.passed_all[0]), e_lt_hat - e_mvs, pred)

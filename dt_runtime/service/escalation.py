@@ -17,7 +17,7 @@ interrupted, evidence included; a halt that needs a person (`sticky`, e.g. the p
 leaves only by `acknowledge`. Entering `maintenance_requested` or `halted` opens a new
 *episode* (`episode`, a counter in the snapshot): the daemon writes that episode's maintenance
 requests in the same transaction as the transition, and at start-up re-creates them if a store
-holds the state without them (`Store.record_transition`, `Daemon._reconcile`).
+holds the state without them (`Store.record_transition`, `Paging.reconcile`).
 
 Transitions are recorded before they count: `on_transition` runs after the machine moved; if it
 raises (the store could not commit), the machine is put back where it was, the exception

@@ -1,0 +1,123 @@
+"""The cell the daemon commands: its drivers (robot, tracker, camera: `Instruments`) and its clock.
+
+`Cell` is a real cell: wall-clock time, nothing to inject, no truth. `SimCell` wraps the
+simulated cell (drivers.simulated.SimWorld, itself over the simulator's `sim.cell.SimCell`): on
+`realtime: false` its clock is the simulated one and a tick that moved nothing lets a period of
+it pass; it injects the runtime config's faults (`sim.faults`) when their time comes, and scores
+every command against the simulator's truth (`true_rms_mm`, as `dt demo` scores it). No
+correction path reads that truth. `open_cell` builds whichever the config's drivers need, each
+driver by `drivers.registry` (kind and options checked before anything opens).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers import registry
+from dt_runtime.service.runtime_config import Fault, RuntimeConfig
+from dt_runtime.twin.campaign import Instruments
+from dt_runtime.twin.conditions import Conditions
+from dt_runtime.twin.simulate import load_scenario_file
+from dt_runtime.twin.twin import Twin
+
+log = logging.getLogger("dt.run")
+
+
+class Cell:
+    """Drivers and clock of a real cell (or of a simulated one paced on the wall clock)."""
+
+    world: Any = None  # the simulated world, SimCell only
+
+    def __init__(self, inst: Instruments):
+        self.inst = inst
+
+    def now(self) -> float:
+        """The daemon's time (s): the wall clock (UNIX time)."""
+        return time.time()
+
+    def idle(self, period_s: float) -> None:
+        """A tick that moved nothing: on the wall clock, time passes by itself."""
+
+    def conditions(self) -> Conditions:
+        """The cell's conditions before the next command, at the daemon's time."""
+        return dataclasses.replace(self.inst.conditions(), t=self.now())
+
+    def inject_due_faults(self) -> None:
+        """Fault injection: a real cell has none."""
+
+    def score(self, target: np.ndarray) -> None:
+        """The true error of the command that reached `target`: unknown on a real cell."""
+
+    def truth(self) -> dict[str, Any]:
+        """The summary's truth figures: none on a real cell."""
+        return {}
+
+
+class SimCell(Cell):
+    """The simulated cell: its clock (unless paced on the wall clock), its faults, its truth."""
+
+    def __init__(self, inst: Instruments, world, realtime: bool, faults: list[Fault], twin: Twin):
+        super().__init__(inst)
+        self.world, self.realtime = world, realtime
+        self._faults = sorted(faults, key=lambda f: f.at_s)
+        self._T_rdk, self._T_lt = twin.T_rdk, twin.T_lt  # the frames the truth is scored in (GL)
+        self._true_sq: list[float] = []  # squared 3D true error of each command
+
+    def now(self) -> float:
+        return time.time() if self.realtime else self.world.t
+
+    def idle(self, period_s: float) -> None:
+        """On the simulated clock, let a period pass (or a run of refused commands would never
+        end in simulated time)."""
+        if not self.realtime:
+            self.world.idle(period_s)
+
+    def inject_due_faults(self) -> None:
+        t = self.world.t
+        while self._faults and self._faults[0].at_s <= t:
+            f = self._faults.pop(0)
+            log.warning("injecting fault at t=%.1f s: %s", t, f.model_dump(exclude_none=True))
+            if f.joint_offset_rad is not None:
+                self.world.inject_joint_offset(f.joint_offset_rad)
+            if f.camera_shift_m is not None:
+                self.world.bump_camera(f.camera_shift_m)
+
+    def score(self, target: np.ndarray) -> None:
+        """The true error in GL, as `dt demo` scores it (target - truth)."""
+        e = self._T_rdk.apply(target) - self._T_lt.apply(self.world.truth_in_tracker_frame())
+        self._true_sq.append(float(np.sum(e ** 2)))
+
+    def truth(self) -> dict[str, Any]:
+        """3D RMS of target - where the arm went, over every command, and their number."""
+        if not self._true_sq:
+            return {}
+        return {"true_rms_mm": round(float(np.sqrt(np.mean(self._true_sq))) * 1e3, 5), "true_n": len(self._true_sq)}
+
+
+def open_cell(cfg: RuntimeConfig, base: Path, source: str, world, twin: Twin,
+              closers: list[Callable[[], Any]]) -> Cell:
+    """The cell of the config's drivers, activated; what it opens is appended to `closers`. A
+    simulated driver runs on `world` (the caller's, left open) or on one built from `sim`."""
+    def p(rel: str) -> Path:
+        return Path(rel) if Path(rel).is_absolute() else base / rel
+
+    if world is None and any(registry.needs_world(kind, name) for kind, name, _ in cfg.drivers.chosen()):
+        from drivers.simulated.devices import SimWorld
+
+        scenario, _ = load_scenario_file(p(cfg.sim.scenario))  # without dt simulate's `data:` block
+        world = SimWorld(scenario, p(cfg.sim.cell), source=str(p(cfg.sim.scenario)))
+        closers.append(world.close)
+    robot, tracker, camera = cfg.drivers.create(world, source)
+    inst = Instruments(robot, tracker, camera, world=world,
+                       max_speed=world.max_speed() if world else cfg.limits.max_speed_m_s)
+    closers.append(inst.close)
+    inst.activate()
+    if world is None:
+        return Cell(inst)
+    return SimCell(inst, world, cfg.realtime, list(cfg.sim.faults), twin)

@@ -1,0 +1,143 @@
+"""Escalation, paging and the operator's actions of one daemon.
+
+Every transition of the machine (`service.escalation`) is one store transaction with the
+machine's new snapshot and, on entering `maintenance_requested` or `halted`, that episode's
+maintenance requests (one per consumer group) in the outbox; only then is it published
+(`.../state`, `.../health`) and the bus woken to deliver the requests, which it republishes
+until each group acknowledges. If the store cannot commit, the machine stays where it was and
+the next test fires the transition again. At start-up a paging state that has no requests gets
+them (`reconcile`), and the machine resumes from the store's snapshot.
+
+Operator: `dt ack` (or a maintenance system's `.../maintenance/done/<id>` on the bus, signed with
+the service's key: bus.auth) stores an operator action (who, why); the housekeeping thread
+queues it (`take_actions`) and the loop applies it (`apply_actions`): `maintenance_requested` or
+`halted` -> `nominal`, statistics reset, in the transition's transaction. A 'done' that names a
+request of an earlier episode is stored as ignored.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+from dt_runtime.service.bus import BusConfig
+from dt_runtime.service.bus.publisher import Bus, new_requests
+from dt_runtime.service.escalation import PAGING, EscalationConfig, Escalator
+from dt_runtime.service.store import OperatorAction, Store
+
+log = logging.getLogger("dt.run")
+
+
+class Paging:
+    """The escalation machine with its store records, maintenance requests and operator actions;
+    `on_change` is called after every transition (the daemon publishes `.../health`)."""
+
+    def __init__(self, escalation: EscalationConfig, bus_cfg: BusConfig, store: Store,
+                 on_change: Callable[[], None]):
+        self.bus_cfg, self.store, self._on_change = bus_cfg, store, on_change
+        self.bus: Bus | None = None  # attached once the bus is open
+        self.requests: list[dict] = []  # the requests this daemon opened (the first group's, with all ids)
+        self.delivered: list[int] = []  # outbox ids a consumer acknowledged
+        self.actions: collections.deque[OperatorAction] = collections.deque()  # queued for the loop
+        self._actions_seen: set[int] = set()
+        self._actions_lock = threading.Lock()
+        self._applying: OperatorAction | None = None  # the 'done' whose transition is being recorded
+        self.escalator = Escalator(escalation, on_transition=self._on_transition)
+        saved = store.load_state()
+        if saved and saved.get("name") == "escalation":
+            self.escalator.restore(saved["data"])
+            log.info("resumed escalation state %s (episode %d) from %s", self.escalator.state,
+                     self.escalator.episode, store.path)
+
+    # --- transitions and requests (callbacks never block on the bus) ---------------------------
+    def _request_body(self, dst: str, evidence: dict, t: float, reconciled: bool = False) -> dict:
+        esc = self.escalator
+        halt = dst == "halted"
+        return {"t": t, "state": dst, "episode": esc.episode, "kind": "halt" if halt else "t_test",
+                "reason": (f"halted: {esc.halt_reason}" if halt else "repeated Eq. 17 t-test failures"),
+                "evidence": evidence, **({"reconciled": True} if reconciled else {})}
+
+    def _on_transition(self, src: str, dst: str, evidence: dict, t: float) -> None:
+        """Record first (one transaction; raises StoreError and the machine stays), then act."""
+        opens = dst in PAGING and src not in PAGING
+        reqs = new_requests(self.bus_cfg, self._request_body(dst, evidence, t)) if opens else []
+        applying = self._applying
+        applied = (applying.id, f"applied: {src} -> {dst}") if applying is not None and dst == "nominal" else None
+        _, ids = self.store.record_transition(src, dst, evidence, t, state=("escalation", self.escalator.snapshot()),
+                                              requests=reqs, applied=applied)
+        log.warning("escalation %s -> %s at t=%.1f s: %s", src, dst, t, evidence)
+        if reqs:
+            self.requests.append(reqs[0][1] | {"ids": ids})
+        if self.bus:
+            self.bus.publish_state({"src": src, "dst": dst, "t": t, "evidence": evidence})
+            if reqs:
+                self.bus.wake()
+        self._on_change()
+
+    def reconcile(self, now: float) -> None:
+        """A paging state without its requests (a store written by an older version, or edited)
+        gets them now (`now`: their time when no transition into the state is stored)."""
+        esc = self.escalator
+        if esc.state in PAGING and not self.store.outbox_of_episode(esc.episode):
+            last = next((tr for tr in reversed(self.store.transitions(50)) if tr["dst"] == esc.state), None)
+            evidence = last["evidence"] if last else esc.evidence()
+            body = self._request_body(esc.state, evidence, last["t"] if last else now, reconciled=True)
+            ids = self.store.outbox_add_many(new_requests(self.bus_cfg, body))
+            self.requests.append(body | {"ids": ids})
+            log.warning("state %s (episode %d) had no maintenance request in %s: re-created %s",
+                        esc.state, esc.episode, self.store.path, ids)
+            if self.bus:
+                self.bus.wake()
+
+    def on_ack(self, oid: int, payload: dict) -> None:
+        # Delivery acknowledgement: the request reached maintenance and leaves the outbox. The
+        # machine stays in maintenance_requested until maintenance is confirmed done, or the
+        # same fault would page again at once.
+        self.delivered.append(oid)
+
+    # --- operator actions -----------------------------------------------------------------------
+    def acknowledge(self, note: str, by: str) -> int:
+        """Operator confirmation, as `dt ack` does it: stored as an action (who, why), applied by
+        the loop at its next tick. Returns the action's id."""
+        with self._actions_lock:  # the housekeeper must not queue it a second time
+            aid = self.store.add_action("done", by, note, source="api")
+            self._actions_seen.add(aid)
+            self.actions.append(OperatorAction(aid, time.time(), "done", None, by, note, "api"))
+        return aid
+
+    def take_actions(self) -> None:
+        """Housekeeping: queue the operator actions the loop has not seen (never blocks the loop)."""
+        with self._actions_lock:
+            for a in self.store.actions(pending_only=True):
+                if a.kind == "done" and a.id not in self._actions_seen:
+                    self._actions_seen.add(a.id)
+                    self.actions.append(a)
+
+    def apply_actions(self, t: float) -> None:
+        """The loop: apply queued 'done' actions (machine transitions are the loop's alone)."""
+        while self.actions:
+            a = self.actions[0]
+            esc = self.escalator
+            if esc.state not in PAGING:
+                result = f"ignored: the escalation was {esc.state}"
+            elif a.request_id is not None and self._episode_of(a.request_id) != esc.episode:
+                result = f"ignored: request {a.request_id} is not of the open episode {esc.episode}"
+            else:
+                episode = esc.episode
+                self._applying = a
+                try:
+                    esc.acknowledge(t, note=a.note, by=a.by)  # records the action as applied, same transaction
+                finally:
+                    self._applying = None
+                self.actions.popleft()  # applied: a failing write below must not judge it again
+                self.store.outbox_ack_episode(episode)  # done implies delivered: stop republishing
+                continue
+            self.store.apply_action(a.id, result)
+            log.info("operator action %d (%s by %s) %s", a.id, a.kind, a.by, result)
+            self.actions.popleft()
+
+    def _episode_of(self, request_id: int) -> int | None:
+        item = self.store.outbox_get(request_id)
+        return None if item is None else item.payload.get("episode")
