@@ -345,60 +345,13 @@ def test_abort_during_a_move_stops_the_arm_short_of_the_target(drv, emu):
 
 
 # --- a third-party RTDE client against our emulator -------------------------------------
-def _loopback_with_rtde_port_free(port: int = 30004) -> str:
-    """A loopback address whose port 30004 is free: `ur_rtde`'s receive interface always connects
-    to 30004, and other work on this machine may hold 127.0.0.1:30004. Seeded order."""
-    import random
-    import socket
-
-    rng = random.Random(14)
-    for last in rng.sample(range(2, 255), 40):
-        host = f"127.0.0.{last}"
-        try:
-            with socket.create_server((host, port)):
-                return host
-        except OSError:
-            continue
-    pytest.skip(f"no loopback address with port {port} free")
-
-
 @pytest.fixture
 def emulator_process():
-    """The emulator in its own process (`python -m emulators.ur`, the documented command):
-    ur_rtde's constructor blocks holding the GIL, so an emulator thread in the test process would
-    never answer it."""
-    import signal
-    import subprocess
-    import sys
-    from pathlib import Path
+    """The emulator in its own process (`python -m emulators.ur`, the documented command)."""
+    from tests.support.ur_emulator_process import ur_emulator_process
 
-    from tests.support.loopback import free_port, wait_until
-
-    host, script_port = _loopback_with_rtde_port_free(), free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "emulators.ur", "--host", host, "--port", "30004",
-                             "--script-port", str(script_port), "--seed", "3", "--time-scale", "0.25"],
-                            cwd=Path(__file__).resolve().parents[2], stderr=subprocess.PIPE, text=True)
-
-    def serving() -> bool:
-        import socket
-
-        try:
-            socket.create_connection((host, script_port), timeout=0.5).close()
-            return True
-        except OSError:
-            return False
-
-    try:
-        assert wait_until(lambda: serving() or proc.poll() is not None, 60.0) and proc.poll() is None, \
-            proc.stderr.read() if proc.poll() is not None else "emulator did not start"
-        yield host, script_port
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    with ur_emulator_process("--seed", "3", "--time-scale", "0.25") as served:
+        yield served
 
 
 def test_ur_rtde_receive_client_reads_our_emulator(emulator_process):

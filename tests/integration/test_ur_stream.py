@@ -247,30 +247,10 @@ def test_ur_rtde_reads_the_registers_of_our_stream(tmp_path):
     are read back through the program's copy.)"""
     rtde_receive = pytest.importorskip(
         "rtde_receive", reason="the third-party RTDE client `ur_rtde` is not installed (pip install ur_rtde)")
-    import signal
-    import socket
-    import subprocess
-    import sys
-    from pathlib import Path
-
     from drivers.ur.driver import UrRtdeController
-    from tests.support.loopback import free_port
+    from tests.support.ur_emulator_process import ur_emulator_process
 
-    host = _loopback_with_rtde_port_free()
-    script_port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "emulators.ur", "--host", host, "--port", "30004",
-                             "--script-port", str(script_port), "--seed", "3"],
-                            cwd=Path(__file__).resolve().parents[2], stderr=subprocess.PIPE, text=True)
-
-    def serving() -> bool:
-        try:
-            socket.create_connection((host, script_port), timeout=0.5).close()
-            return True
-        except OSError:
-            return False
-
-    try:
-        assert wait_until(lambda: serving() or proc.poll() is not None, 60.0) and proc.poll() is None
+    with ur_emulator_process("--seed", "3", seed=23) as (host, script_port):
         # status in the upper range ur_rtde reads (output int registers 36-43)
         ours = UrRtdeController.from_config({"host": host, "script_port": script_port, "timeout_s": 5.0,
                                              "stream": {"status_register": 36, "watchdog_cycles": 5000}})
@@ -292,26 +272,3 @@ def test_ur_rtde_reads_the_registers_of_our_stream(tmp_path):
                 theirs.disconnect()
         finally:
             ours.close()
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
-def _loopback_with_rtde_port_free(port: int = 30004) -> str:
-    """A loopback address whose port 30004 is free (ur_rtde always connects to 30004). Seeded order."""
-    import random
-    import socket
-
-    rng = random.Random(23)
-    for last in rng.sample(range(2, 255), 40):
-        host = f"127.0.0.{last}"
-        try:
-            with socket.create_server((host, port)):
-                return host
-        except OSError:
-            continue
-    pytest.skip(f"no loopback address with port {port} free")
