@@ -9,7 +9,8 @@ Two drivers in the same run, each at a 125 Hz (a CB3) and a 500 Hz (an e-Series)
 Each pass runs `run_stream` in its own process (`service.stream.StreamProcess`: spawned, SCHED_FIFO
 when allowed, `realtime` says whether it got it): the child loads the twin, builds the driver (for
 `ur_rtde` it connects to the emulator here; for `sim` it opens its own SimWorld on the same scenario
-and seed) and moves the arm to the pass's first command before streaming.
+and seed) and moves the arm to where the path starts (its nominal start, corrected in the
+corrected passes) before streaming: a feed-forward's first command is a step away from it.
 
 The path (`PATH`, `dt correct --path`'s format, twin.path): a straight line, a half circle of
 75 mm radius and a straight line back (tangent-continuous, 496 mm) inside the quick demo's
@@ -261,6 +262,7 @@ def _stream(make_drv, twin_dir: str, sp, targets: np.ndarray, correct: bool):
 
 
 def _first_command(twin_dir: str, sp, targets: np.ndarray, correct: bool) -> np.ndarray:
+    """Where the arm waits before the pass: targets[0], corrected when the pass corrects."""
     return make_corrector(twin_dir, sp.t, sp.programmed, correct)(targets[0], float(sp.t[0]))
 
 
@@ -353,7 +355,9 @@ def run(quick: bool = False, twin: str = "", progress=None) -> dict:
                         for name in PASSES:
                             targets = sp.p if lag is None else compensate(nominal, lag).p
                             correct = name != "uncorrected"
-                            start = _first_command(str(twin_dir), sp, targets, correct)
+                            # the arm waits where the path starts (the nominal start, corrected or
+                            # not), not at the first command: a feed-forward starts with a step
+                            start = _first_command(str(twin_dir), sp, sp.p, correct)
                             say(f"{drv_name} {rate:g} Hz {speed:g} mm/s {name} ({sp.n} set-points)")
                             if drv_name == "ur_rtde":
                                 ur.reset()
