@@ -201,6 +201,11 @@ class StreamProcess:
     def sent(self) -> int:
         return int(self._sent.value)
 
+    @property
+    def pid(self) -> int | None:
+        """The streaming process's id (a supervisor's watchdog, or a test stalling it)."""
+        return self._proc.pid
+
     def result(self, timeout: float) -> StreamReport:
         if not self._recv.poll(timeout):
             self._proc.kill()

@@ -49,3 +49,14 @@ def recording_streamer():
 
 def broken_streamer():
     raise DriverError("no controller at 127.0.0.1:30004")
+
+
+def ur_stream_driver(rtde_port: int, script_port: int, rate_hz: float, watchdog_cycles: int):
+    """The UR driver, active, against an emulator on loopback, its stream watchdog set."""
+    from drivers.ur.driver import UrRtdeController
+
+    drv = UrRtdeController.from_config({
+        "host": "127.0.0.1", "rtde_port": rtde_port, "script_port": script_port, "timeout_s": 10.0,
+        "frequency_hz": rate_hz, "stream": {"watchdog_cycles": watchdog_cycles}}, source="<stream test>")
+    drv.activate()
+    return drv
