@@ -158,8 +158,8 @@ def _realtime(priority: int) -> bool:
 def _child(conn, sent, make_corrector, make_driver, times, targets, rate_hz, lookahead_s, gain,
            rt_priority, paced) -> None:  # pragma: no cover (runs in the child process; tested through it)
     try:
-        rt = _realtime(rt_priority)
         correct, driver = make_corrector(), make_driver()
+        rt = _realtime(rt_priority)  # after the set-up: loading a model at real-time priority would starve the host
 
         def progress(k: int) -> None:
             sent.value = k  # an aligned store to shared memory: no lock, never blocks
