@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import socket
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -180,18 +181,35 @@ class UrRtdeController(Abortable, Lifecycle):
         """The newest data package, at most `stale_after_s` old (waits up to `timeout_s`)."""
         self._require("active")
         cfg, link = self._cfg, self._link
-        deadline = time.monotonic() + cfg.timeout_s
+        fresh = self._await(lambda s: s if s is not None and time.monotonic() - s.t_host <= cfg.stale_after_s
+                            else None, time.monotonic() + cfg.timeout_s)
+        if fresh is not None:
+            return fresh
+        s = link.latest
+        age = "none received" if s is None else f"the last {time.monotonic() - s.t_host:.2f} s ago"
+        state = "connected" if link.connected else f"reconnecting; last error: {link.last_error}"
+        raise DriverError(f"{link.where}: no fresh RTDE data package ({age}; {state})")
+
+    def _await(self, ready: Callable[[RtdeSample | None], Any], deadline: float) -> Any:
+        """Wait on the link (its condition, at most 50 ms a wait) until `ready(newest package)`
+        gives something other than None, and return that; None once `deadline` (monotonic) has
+        passed. `ready` may raise (a refusal the controller reported)."""
+        link = self._link
         with link.cond:
             while True:
-                s = link.latest
-                if s is not None and time.monotonic() - s.t_host <= cfg.stale_after_s:
-                    return s
+                got = ready(link.latest)
+                if got is not None:
+                    return got
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    age = "none received" if s is None else f"the last {time.monotonic() - s.t_host:.2f} s ago"
-                    state = "connected" if link.connected else f"reconnecting; last error: {link.last_error}"
-                    raise DriverError(f"{link.where}: no fresh RTDE data package ({age}; {state})")
+                    return None
                 link.cond.wait(min(left, 0.05))
+
+    def _errors_since(self, n_msg: int) -> list:
+        """The controller's error messages among those received after the first `n_msg`."""
+        link = self._link
+        new = link.stats["messages"] - n_msg
+        return [m for m in link.messages[-new:] if m.is_error] if new > 0 else []
 
     def read_joint_state(self) -> JointState:
         s = self.read_sample()
@@ -278,40 +296,32 @@ class UrRtdeController(Abortable, Lifecycle):
 
     def _await_register(self, name: str, value: int) -> None:
         """Wait (up to timeout_s) until a package shows the register holding `value`."""
-        cfg, link = self._cfg, self._link
-        deadline = time.monotonic() + cfg.timeout_s
-        with link.cond:
-            while True:
-                s = link.latest
-                if s is not None and s.values.get(name) == value:
-                    return
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DriverError(f"{self.name}: the controller does not show {name} = {value} within "
-                                      f"{cfg.timeout_s} s (it reads {None if s is None else s.values.get(name)})")
-                link.cond.wait(min(left, 0.05))
+        cfg = self._cfg
+        if self._await(lambda s: True if s is not None and s.values.get(name) == value else None,
+                       time.monotonic() + cfg.timeout_s):
+            return
+        s = self._link.latest
+        raise DriverError(f"{self.name}: the controller does not show {name} = {value} within "
+                          f"{cfg.timeout_s} s (it reads {None if s is None else s.values.get(name)})")
 
     def _await_program(self, n_msg: int, t_sent: float) -> None:
         """Wait (up to timeout_s) for a package, received after the program was sent, that shows it running."""
-        cfg, link = self._cfg, self._link
+        cfg = self._cfg
         reg = f"output_int_register_{cfg.stream.status_register}"
-        deadline = t_sent + cfg.timeout_s
-        with link.cond:
-            while True:
-                new = link.stats["messages"] - n_msg
-                errors = [m for m in link.messages[-new:] if m.is_error] if new > 0 else []
-                if errors:
-                    raise DriverError(f"{self.name}: the controller refused the servo program: "
-                                      f"{errors[0].source}: {errors[0].message}")
-                s = link.latest
-                if (s is not None and s.t_host > t_sent and s.values.get(reg) == urscript.STREAM_RUNNING
-                        and s.values["runtime_state"] == rp.RUNTIME_PLAYING):
-                    return
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DriverError(f"{self.name}: the servo program did not report running ({reg} = "
-                                      f"{None if s is None else s.values.get(reg)}) within {cfg.timeout_s} s")
-                link.cond.wait(min(left, 0.05))
+
+        def running(s: RtdeSample | None) -> bool | None:
+            errors = self._errors_since(n_msg)
+            if errors:
+                raise DriverError(f"{self.name}: the controller refused the servo program: "
+                                  f"{errors[0].source}: {errors[0].message}")
+            return True if (s is not None and s.t_host > t_sent and s.values.get(reg) == urscript.STREAM_RUNNING
+                            and s.values["runtime_state"] == rp.RUNTIME_PLAYING) else None
+
+        if self._await(running, t_sent + cfg.timeout_s):
+            return
+        s = self._link.latest
+        raise DriverError(f"{self.name}: the servo program did not report running ({reg} = "
+                          f"{None if s is None else s.values.get(reg)}) within {cfg.timeout_s} s")
 
     def _stream_refusal(self, stream: _Stream) -> str:
         """Why the controller will not take another set-point now ('' if it will), from the newest package."""
@@ -388,14 +398,10 @@ class UrRtdeController(Abortable, Lifecycle):
         t_sent = time.monotonic()
         link.write_inputs([-1, *stream.last_p, *stream.rot])
         reg = f"output_int_register_{stream.program.status_register}"
-        deadline = t_sent + cfg.timeout_s
-        with link.cond:
-            while time.monotonic() < deadline:
-                s = link.latest
-                if s is not None and s.t_host > t_sent and (s.values.get(reg) != urscript.STREAM_RUNNING
-                                                            or s.values["runtime_state"] != rp.RUNTIME_PLAYING):
-                    return
-                link.cond.wait(0.05)
+        if self._await(lambda s: True if s is not None and s.t_host > t_sent and (
+                s.values.get(reg) != urscript.STREAM_RUNNING or s.values["runtime_state"] != rp.RUNTIME_PLAYING)
+                else None, t_sent + cfg.timeout_s):
+            return
         raise DriverError(f"{self.name}: the servo program did not stop within {cfg.timeout_s} s of the host's stop")
 
     def stream_status(self) -> StreamStatus:
@@ -419,30 +425,31 @@ class UrRtdeController(Abortable, Lifecycle):
                               "not retried, since part of it may have arrived") from exc
 
     def _await_arrival(self, target: np.ndarray, n_msg: int, t_sent: float) -> None:
-        cfg, link = self._cfg, self._link
-        deadline = t_sent + cfg.move_timeout_s
+        cfg = self._cfg
         last: RtdeSample | None = None
-        with link.cond:
-            while True:
-                if self.abort_event.is_set():
-                    break
-                new = link.stats["messages"] - n_msg
-                errors = [m for m in link.messages[-new:] if m.is_error] if new > 0 else []
-                if errors:
-                    raise DriverError(f"{self.name}: the controller refused the move to {target.tolist()} m: "
-                                      f"{errors[0].source}: {errors[0].message}")
-                s = link.latest
-                if s is not None and s.t_host > t_sent:
-                    last = s
-                    if self._arrived(s, target):
-                        return
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    where = "no package since the move was sent" if last is None else \
-                        f"TCP at {np.round(last.values['actual_TCP_pose'][:3], 6).tolist()} m"
-                    raise DriverError(f"{self.name}: movel to {target.tolist()} m did not arrive within "
-                                      f"{cfg.move_timeout_s} s ({where}); not re-sent")
-                link.cond.wait(min(left, 0.05))
+
+        def arrived_or_aborted(s: RtdeSample | None) -> str | None:
+            nonlocal last
+            if self.abort_event.is_set():
+                return "aborted"
+            errors = self._errors_since(n_msg)
+            if errors:
+                raise DriverError(f"{self.name}: the controller refused the move to {target.tolist()} m: "
+                                  f"{errors[0].source}: {errors[0].message}")
+            if s is not None and s.t_host > t_sent:
+                last = s
+                if self._arrived(s, target):
+                    return "arrived"
+            return None
+
+        got = self._await(arrived_or_aborted, t_sent + cfg.move_timeout_s)
+        if got == "arrived":
+            return
+        if got is None:
+            where = "no package since the move was sent" if last is None else \
+                f"TCP at {np.round(last.values['actual_TCP_pose'][:3], 6).tolist()} m"
+            raise DriverError(f"{self.name}: movel to {target.tolist()} m did not arrive within "
+                              f"{cfg.move_timeout_s} s ({where}); not re-sent")
         # aborted: stop the arm (best effort) outside the lock, then report
         try:
             self._send_script(urscript.stopl(max(cfg.acceleration_m_s2, 1.0)), "stopl")
