@@ -8,12 +8,16 @@ from pathlib import Path
 from dt_runtime.common.progress import Progress
 
 
-def folds(text: str) -> int:
-    """--folds K: an integer >= 2 (one fold leaves nothing to train on)."""
+def _integer(text: str) -> int:
     try:
-        k = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+
+
+def folds(text: str) -> int:
+    """--folds K: an integer >= 2 (one fold leaves nothing to train on)."""
+    k = _integer(text)
     if k < 2:
         raise argparse.ArgumentTypeError(f"{k}: cross-validation needs at least 2 folds")
     return k
@@ -21,10 +25,7 @@ def folds(text: str) -> int:
 
 def seed_number(text: str) -> int:
     """--seed N: a non-negative integer (numpy's generators take no negative seed)."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    n = _integer(text)
     if n < 0:
         raise argparse.ArgumentTypeError(f"{n}: a seed is a non-negative integer (0, 1, 2, ...)")
     return n
@@ -32,10 +33,7 @@ def seed_number(text: str) -> int:
 
 def cv_folds(text: str) -> int:
     """--cv K: 0 (no cross-validation) or an integer >= 2."""
-    try:
-        k = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    k = _integer(text)
     if k != 0 and k < 2:
         raise argparse.ArgumentTypeError(f"{k}: 0 (none) or at least 2 folds")
     return k
