@@ -54,8 +54,12 @@ class TimedPath:
     def shifted(self, tau_s: float) -> TimedPath:
         """The same times, each sent the position the path has tau_s later (the last one held):
         a feed-forward that makes a follower lagging by tau_s arrive on time (twin.lag)."""
-        tq = np.clip(self.t + tau_s, self.t[0], self.t[-1])
-        return TimedPath(self.t, np.column_stack([np.interp(tq, self.t, self.p[:, j]) for j in range(3)]))
+        return TimedPath(self.t, self.sample(self.p, np.clip(self.t + tau_s, self.t[0], self.t[-1])))
+
+    def sample(self, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """`values` (n, k) given at the set-points (the positions, or their derivatives), linear
+        between them at times `t` (m,), held beyond the ends: (m, k)."""
+        return np.column_stack([np.interp(t, self.t, values[:, j]) for j in range(values.shape[1])])
 
 
 @dataclass(frozen=True)

@@ -56,10 +56,6 @@ def _derivatives(path: TimedPath) -> tuple[np.ndarray, np.ndarray]:
     return v, np.gradient(v, path.t, axis=0)
 
 
-def _at(path: TimedPath, values: np.ndarray, t: np.ndarray) -> np.ndarray:
-    return np.column_stack([np.interp(t, path.t, values[:, j]) for j in range(values.shape[1])])
-
-
 def estimate_lag(path: TimedPath, t: np.ndarray, measured: np.ndarray, max_lag_s: float = 0.5) -> LagEstimate:
     """The follower's lag and acceleration term behind `path` from positions `measured` (n, 3),
     m, at times `t` (n,), s, on the path's clock; times in the path's first `max_lag_s` are left
@@ -73,9 +69,9 @@ def estimate_lag(path: TimedPath, t: np.ndarray, measured: np.ndarray, max_lag_s
                         f" {max_lag_s} s, got {int(keep.sum())}")
     t, m = t[keep], m[keep]
     v, acc = _derivatives(path)
-    c = _at(path, path.p, t)
+    c = path.sample(path.p, t)
     e = (c - m).ravel()
-    A = np.column_stack([_at(path, v, t).ravel(), _at(path, acc, t).ravel()])
+    A = np.column_stack([path.sample(v, t).ravel(), path.sample(acc, t).ravel()])
     # a path at rest (|v| below 1 um/s) or with neither speed nor direction changing cannot tell them apart
     if np.sqrt(np.mean(A[:, 0] ** 2)) < 1e-6 or np.linalg.cond(A) > 1e8:
         raise DataError("estimate_lag needs a path that moves and changes speed or direction")
