@@ -89,29 +89,8 @@ SETTLE_S = 0.2  # the cruise: set-points at the programmed speed for at least th
 # follower's transient after an acceleration, 1 / (zeta w) = 55 ms at look-ahead 0.03 s, gain 1200, is over)
 
 
-# --- built in the streaming process (module-level: StreamProcess pickles them) ---------------
-def make_corrector(twin_dir: str, times: np.ndarray, speeds: np.ndarray, correct: bool):
-    """(target m, t s) -> command m: the twin's `SetpointCorrector` at the programmed speed of the
-    set-point meant for t, or the target itself (`correct` False)."""
-    if not correct:
-        return lambda target, t: target
-    from dt_runtime.twin.setpoint import SetpointCorrector
-    from dt_runtime.twin.twin import Twin
-
-    twin = Twin.load(twin_dir)
-    extra = set(twin.needs) - {"speed"}
-    if extra:  # the benchmark streams without cell conditions
-        raise SystemExit(f"benchmarks.stream needs a twin of TCP and speed; {twin_dir} also reads {sorted(extra)}")
-    sc = SetpointCorrector(twin)
-    last = len(times) - 1
-
-    def correct_one(target: np.ndarray, t: float) -> np.ndarray:
-        k = min(int(np.searchsorted(times, t - 1e-9)), last)
-        return sc.correct(target, float(speeds[k])).command
-
-    return correct_one
-
-
+# --- built in the streaming process (module-level: StreamProcess pickles them; the corrector is
+# service.path_run.path_corrector, dt run's own) --------------------------------------------
 def ur_driver(rtde_port: int, script_port: int, rate_hz: float, start: np.ndarray):
     """The UR driver, active, streaming at `rate_hz` (RTDE at that frequency), the arm at `start`."""
     from drivers.ur.driver import UrRtdeController
@@ -254,16 +233,19 @@ def _path(speed_mm_s: float, rate_hz: float, tmp: Path):
 
 
 def _stream(make_drv, twin_dir: str, sp, targets: np.ndarray, correct: bool):
+    from dt_runtime.service.path_run import path_corrector
     from dt_runtime.service.stream import StreamProcess
 
-    proc = StreamProcess(functools.partial(make_corrector, twin_dir, sp.t, sp.programmed, correct), make_drv,
+    proc = StreamProcess(functools.partial(path_corrector, twin_dir, sp.t, sp.programmed, correct), make_drv,
                          sp.t, targets, sp.rate_hz, LOOKAHEAD_S, GAIN)
     return proc.result(timeout=120.0 + 3 * sp.t[-1])
 
 
 def _first_command(twin_dir: str, sp, targets: np.ndarray, correct: bool) -> np.ndarray:
     """Where the arm waits before the pass: targets[0], corrected when the pass corrects."""
-    return make_corrector(twin_dir, sp.t, sp.programmed, correct)(targets[0], float(sp.t[0]))
+    from dt_runtime.service.path_run import path_corrector
+
+    return path_corrector(twin_dir, sp.t, sp.programmed, correct)(targets[0], float(sp.t[0]))
 
 
 class _Scorer:

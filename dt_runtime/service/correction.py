@@ -10,6 +10,7 @@ the position it reaches (Eq. 11 at that position, `Twin.correct`).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -123,16 +124,47 @@ class Corrector:
                                   f"{self.limits.max_correction_m * 1e3:.3f} mm")
         if self._last is not None:
             last_target, last_corr = self._last
-            step = float(np.linalg.norm(corr - last_corr))
-            travel = float(np.linalg.norm(target - last_target))
-            bound = self.limits.max_correction_step_m + self.limits.max_correction_gradient * travel
-            if step > bound:
-                raise CorrectionFault(f"correction changes by {step * 1e3:.3f} mm over {travel * 1e3:.1f} mm "
-                                      f"of travel, bound {bound * 1e3:.3f} mm")
+            why = _step_fault(self.limits, float(np.linalg.norm(corr - last_corr)),
+                              float(np.linalg.norm(target - last_target)))
+            if why:
+                raise CorrectionFault(why)
         self._last = (target, corr)
         if res.budget is None:  # an older twin: the global Eq. 11 figures
             return Corrected(target, c, corr, self._u, self._U, res.inside, res.distance_m)
         return Corrected(target, c, corr, res.budget.combined(), res.U, res.inside, res.distance_m)
+
+
+def _step_fault(limits: Limits, step: float, travel: float) -> str:
+    """Why a change of the correction by `step` over `travel` (m) breaks the step bound ('' if not)."""
+    bound = limits.max_correction_step_m + limits.max_correction_gradient * travel
+    if step > bound:
+        return (f"correction changes by {step * 1e3:.3f} mm over {travel * 1e3:.1f} mm of travel, "
+                f"bound {bound * 1e3:.3f} mm")
+    return ""
+
+
+def check_path_bounds(limits: Limits, targets: np.ndarray, commands: np.ndarray) -> str:
+    """The bounded-correction rules of `Corrector` over a whole path's set-points (n, 3) m and
+    their commands: why the first one that breaks them would be refused, or ''."""
+    lo, hi = np.array(limits.workspace_min_m), np.array(limits.workspace_max_m)
+    corr = commands - targets
+    for k in range(len(targets)):
+        c = commands[k]
+        if not np.all(np.isfinite(c)):
+            return f"set-point {k + 1}: no finite correction"
+        if np.any(targets[k] < lo) or np.any(targets[k] > hi) or np.any(c < lo) or np.any(c > hi):
+            return (f"set-point {k + 1}: target {np.round(targets[k] * 1e3, 1).tolist()} mm or its command outside "
+                    f"the workspace {(lo * 1e3).tolist()} .. {(hi * 1e3).tolist()} mm")
+        mag = float(np.linalg.norm(corr[k]))
+        if mag > limits.max_correction_m:
+            return (f"set-point {k + 1}: correction {mag * 1e3:.3f} mm exceeds the bound "
+                    f"{limits.max_correction_m * 1e3:.3f} mm")
+        if k:
+            why = _step_fault(limits, float(np.linalg.norm(corr[k] - corr[k - 1])),
+                              float(np.linalg.norm(targets[k] - targets[k - 1])))
+            if why:
+                return f"set-point {k + 1}: {why}"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -152,7 +184,16 @@ class Monitor:
         b14, b16 = twin.uncertainty.e_lt_hat_minus_e_mvs, twin.uncertainty.e_mvs_lt_hat  # Eqs. 14, 16
         self._t_test = unc.TTestPlan.of(b14.u, b16.u, b14.dof, b16.dof, alpha)  # the same budgets every reading
 
-    def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray, cond: Conditions | None = None) -> Check:
+    @property
+    def u(self) -> np.ndarray:
+        """Eq. 17's combined standard uncertainty per axis, sqrt(u^2(diff) + u^2(pred)), m."""
+        return self._t_test.u
+
+    def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray, cond: Conditions | None = None,
+                 u_extra: np.ndarray | None = None) -> Check:
+        """Eq. 17 of `p_mvs` (MVS frame) against the arm at `command`; `u_extra` (per axis, m) adds
+        a Type B component to the denominator (a moving arm's timing term, metrology.timing), the
+        degrees of freedom kept (an infinite-dof term only raises them: the test stays conservative)."""
         p_mvs = np.asarray(p_mvs, dtype=float)
         if p_mvs.shape != (3,) or not np.all(np.isfinite(p_mvs)):
             raise CorrectionFault(f"MVS point {p_mvs!r} is not a finite 3-vector")
@@ -166,5 +207,8 @@ class Monitor:
             raise CorrectionFault(f"no prediction at command {np.round(command * 1e3, 1).tolist()} mm: {exc}") from exc
         if not (np.all(np.isfinite(e_lt_hat)) and np.all(np.isfinite(pred))):
             raise CorrectionFault(f"the error model predicts NaN at command {np.round(command * 1e3, 1).tolist()} mm")
-        tt = self._t_test(e_lt_hat - e_mvs, pred)
+        plan = self._t_test
+        if u_extra is not None and np.any(u_extra):
+            plan = dataclasses.replace(plan, u=np.sqrt(plan.u ** 2 + np.asarray(u_extra, dtype=float) ** 2))
+        tt = plan(e_lt_hat - e_mvs, pred)
         return Check(tt.t[0], tt.p_value[0], bool(tt.passed_all[0]), e_lt_hat - e_mvs, pred)

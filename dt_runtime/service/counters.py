@@ -16,7 +16,7 @@ from typing import Any
 
 @dataclass
 class Counters:
-    ticks: int = 0  # commands sent (moved)
+    ticks: int = 0  # commands sent (moved): points of a program, set-points of a path
     failures: int = 0  # Eq. 17 tests failed
     refused: int = 0  # commands the correction refused (the robot not moved)
     driver_faults: int = 0
@@ -35,8 +35,9 @@ class Counters:
         """A run of refusals or faults is going on: the status is degraded while it lasts."""
         return bool(self.refused_in_row or self.driver_faults_in_row or self.mvs_refused_in_row)
 
-    def ticked(self) -> None:
-        self.ticks += 1
+    def ticked(self, n: int = 1) -> None:
+        """`n` commands (set-points of a path) were sent."""
+        self.ticks += n
         self.last_tick_wall, self.last_tick_mono = time.time(), time.monotonic()
 
     def summary(self) -> dict[str, Any]:

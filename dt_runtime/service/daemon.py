@@ -81,6 +81,7 @@ from dt_runtime.service.correction import Corrected, CorrectionFault, Corrector,
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.housekeeping import Housekeeper
 from dt_runtime.service.paging import Paging
+from dt_runtime.service.path_run import PathStreamer, check_streaming_robot, plan_path
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow, shown_time
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,
@@ -124,7 +125,12 @@ class Daemon:
                               f"the daemon's camera driver '{cfg.drivers.camera.kind}': a twin is valid only "
                               "with the instruments (and frames) it was calibrated with")
         # Read before anything is opened: a bad program stops the start with nothing to close.
-        self._program = read_program(self._p(cfg.path.program)) if cfg.path.program else None
+        file = self._p(cfg.path.program) if cfg.path.program is not None else None
+        self._program = read_program(file) if file is not None and cfg.path.kind == "program" else None
+        self._plan = None
+        if file is not None and cfg.path.kind == "path":
+            check_streaming_robot(cfg.drivers.robot.kind, self.source)
+            self._plan = plan_path(self.twin, file, cfg.rate_hz, cfg.limits, self.source)
         self._check_condition_sources()
         self._check_model()
         self.corrector = Corrector(self.twin, cfg.limits)
@@ -156,7 +162,15 @@ class Daemon:
             self._closers.append(self.correct_server.close)
         self.cell: Cell = open_cell(cfg, self.base, self.source, world, self.twin, self._closers)
         self.world, self.inst = self.cell.world, self.cell.inst
-        self.targets = targets_for(cfg.path, self._program, self.inst.max_speed, cfg.rate_hz)
+        self.targets = None if self._plan else targets_for(cfg.path, self._program, self.inst.max_speed, cfg.rate_hz)
+        self.path: PathStreamer | None = None
+        if self._plan is not None:
+            self.path = PathStreamer(self._plan, cfg.stream, cfg.rate_hz, self.twin, self._p(cfg.twin), self.inst,
+                                     (cfg.drivers.robot.kind, dict(cfg.drivers.robot.options)), self.source,
+                                     self.world, self._test_moving, self._camera_refused, self.monitor.u,
+                                     self._path_stop, self._beat)
+            self.path.restore(self.paging.saved_extra.get("path"))
+            self.paging.resume_extra = lambda: {"path": self.path.state.to_dict()} if self.path else {}
         self._camera_halt = False  # halted because the camera gave no usable reading (resumes on one)
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
         self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
@@ -197,7 +211,7 @@ class Daemon:
         a NaN there is refused, counted and, repeated, halts)."""
         if self.twin.needs:
             return
-        probe = probe_point(self.cfg.path, self._program)
+        probe = self._plan.sp.p[0] if self._plan is not None else probe_point(self.cfg.path, self._program)
         v = 0.5 * self.cfg.limits.max_speed_m_s
         try:
             e = np.concatenate([np.ravel(self.twin.e_lt_hat(probe, v)[0]),
@@ -292,7 +306,8 @@ class Daemon:
                 # acks and 'done's on the bus without the service's signature: refused, not recorded
                 "bus_refused": self.bus.refused if self.bus else 0,
                 "bus_last_refused": self.bus.last_refused if self.bus else None,
-                "pid": os.getpid(), "t": time.time()}
+                "pid": os.getpid(), "t": time.time(),
+                **({"stream": self.path.state.to_dict()} if self.path is not None else {})}
 
     def status_line(self) -> tuple[str, dict[str, Any]]:
         """The operator's one line (`dt run` logs it every `status_every_s`): ticks and their rate
@@ -308,6 +323,10 @@ class Daemon:
                              "escalation": self.escalator.state, "t_test_failures": failures}
         text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
             f", escalation {self.escalator.state}, Eq. 17 failed {failures}"
+        if self.path is not None:  # a path: where the stream is, not a last command
+            st = self.path.state
+            f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}
+            return text + f", path {st.state}, pass {st.pass_started}, at {self.path.plan.where(st.next)}", f
         last = self._last_corrected
         if last is None:
             return text + ", no command yet", f
@@ -374,6 +393,7 @@ class Daemon:
         n = self.counters
         t_now = self._now()
         self.paging.apply_actions(t_now)
+        assert self.targets is not None  # a path program runs passes (`_run_path`), not ticks
         target, v, step = self.targets.next()
         self.cell.inject_due_faults()
         esc = self.escalator
@@ -422,13 +442,7 @@ class Daemon:
         reading = read_exposed_after(camera, arrived)  # a streamed frame exposed mid-move saw the arm elsewhere
         n.ticked()
         if not reading.ok or reading.point is None:
-            # nothing to test: counted and reported (degraded while it lasts), the arm is not moved again
-            n.mvs_refused += 1
-            n.mvs_refused_in_row += 1
-            n.last_problem = f"MVS refused: {reading.refused}"
-            log.info("MVS refused: %s", reading.refused)
-            self._camera_untested(n.last_problem)
-            self._publish_health()
+            self._camera_refused(reading)  # the arm is not moved again
             return
         n.mvs_refused_in_row = 0
         age = arrived - reading.host_time
@@ -440,31 +454,54 @@ class Daemon:
             self._camera_untested(n.last_problem)
             self._publish_health()
             return
-        try:
-            chk = self.monitor(corr.command, v, reading.point, cond)
-        except CorrectionFault as exc:
-            log.error("MVS value rejected: %s", exc)
-            self._camera_untested(f"MVS value rejected: {exc}")
+        chk = self._test(corr.command, v, reading.point, cond, t, None, True,
+                         {"target": corr.target.tolist(), "command": corr.command.tolist()})
+        if chk is None:
             return
-        n.camera_refused_since = None
-        self.store.put(MeasurementRow(t, *reading.point, *chk.diff))
-        worst = int(np.argmax(np.abs(chk.t)))
-        self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
-                                data={"t": chk.t.tolist()}))
-        n.failures += int(not chk.passed)
-        esc.observe(chk.passed, float(chk.t[worst]), t)
         done = time.monotonic()
         if self.latencies is not None:
             self.latencies.append(done - reading.host_time)
         mid = reading.quality.get("mid_exposure_host_s")
         if self.exposure_latencies is not None and mid is not None:
             self.exposure_latencies.append(done - mid)
+        self._publish_health()
+
+    def _test(self, command: np.ndarray, v: float, point: np.ndarray, cond: Conditions | None, t: float,
+              u_extra: np.ndarray | None, observe: bool, telemetry: dict[str, Any]):
+        """Eq. 17 of one MVS reading of the arm at `command`: stored, and when `observe`d counted,
+        fed to the escalation and published; the Check, or None if the value was rejected."""
+        n, esc = self.counters, self.escalator
+        try:
+            chk = self.monitor(command, v, point, cond, u_extra)
+        except CorrectionFault as exc:
+            log.error("MVS value rejected: %s", exc)
+            self._camera_untested(f"MVS value rejected: {exc}")
+            return None
+        n.camera_refused_since = None
+        self.store.put(MeasurementRow(t, *point, *chk.diff))
+        if not observe:
+            return chk
+        worst = int(np.argmax(np.abs(chk.t)))
+        self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
+                                data={"t": chk.t.tolist()}))
+        n.failures += int(not chk.passed)
+        esc.observe(chk.passed, float(chk.t[worst]), t)
         # The statistics travel with the next batch of rows: a restart resumes them.
-        self.store.stage_state("escalation", esc.snapshot())
+        self.store.stage_state(*self.paging.resume_row())
         if self.bus:
-            self.bus.publish_telemetry({"t": t, "target": corr.target.tolist(), "command": corr.command.tolist(),
-                                        "t_stat": chk.t.tolist(), "passed": chk.passed,
+            self.bus.publish_telemetry({"t": t, **telemetry, "t_stat": chk.t.tolist(), "passed": chk.passed,
                                         "state": esc.state})
+        return chk
+
+    def _camera_refused(self, reading) -> None:
+        """A reading the camera driver refused: nothing to test; counted and reported (degraded
+        while it lasts, a halt after `halt.after_camera_refused_s`)."""
+        n = self.counters
+        n.mvs_refused += 1
+        n.mvs_refused_in_row += 1
+        n.last_problem = f"MVS refused: {reading.refused}"
+        log.info("MVS refused: %s", reading.refused)
+        self._camera_untested(n.last_problem)
         self._publish_health()
 
     def _camera_untested(self, why: str) -> None:
@@ -509,6 +546,8 @@ class Daemon:
         self._publish_health()
 
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> dict:
+        if self.path is not None:  # passes of a path: the streaming loop keeps the controller's rate
+            return self._run_path(duration_s)
         if not self.cfg.realtime:
             return self._run(duration_s, max_ticks)
         # A thread that wakes for its tick waits for the GIL until its holder (the store's writer,
@@ -562,6 +601,118 @@ class Daemon:
                     next_t = time.monotonic()
         return self.summary()
 
+    # --- a path program (service.path_run) ---------------------------------------------------
+    def _test_moving(self, command: np.ndarray, v: float, point: np.ndarray, cond: Conditions | None, s: float,
+                     u_extra: np.ndarray, observe: bool):
+        """A reading of the moving arm at path time `s`, against where the path has the arm then."""
+        self.counters.mvs_refused_in_row = 0
+        return self._test(command, v, point, cond, self._now(), u_extra, observe,
+                          {"target": command.tolist(), "command": command.tolist(), "path_t": s})
+
+    def _path_stop(self) -> str:
+        """Why a pass must end now ('' to go on): the daemon stopping, or a halt (the camera's:
+        the arm must not move unmonitored; a sticky one)."""
+        if self._stop.is_set():
+            return "the daemon is stopping"
+        esc = self.escalator
+        if esc.state == "halted":
+            return f"halted: {esc.halt_reason}"
+        if not self._trusted() and self.cfg.halt.on_untrusted == "halt":
+            return f"{esc.state}: the correction is not trusted (halt.on_untrusted: halt)"
+        return ""
+
+    def _beat(self) -> None:
+        """A step of a pass: the watchdog's tick, the simulated cell's faults when due, health on
+        a change (no I/O here)."""
+        self.counters.last_tick_mono = time.monotonic()
+        self.cell.inject_due_faults()
+        self._publish_health()
+
+    def _run_path(self, duration_s: float | None) -> dict:
+        """Passes of the path until the duration, `stream.passes` or a stop; a pass that stopped
+        early halts (sticky) until the operator's 'done' resumes it where the arm stands."""
+        ps = self.path
+        assert ps is not None
+        st, esc, n = ps.state, self.escalator, self.counters
+        t0 = self._now()
+        sdnotify.notify("READY=1")
+        n.last_tick_mono = time.monotonic()
+        k0 = st.next  # 0, or where the last run of this path stopped (restored at the start)
+        while not self._stop.is_set():
+            if duration_s is not None and self._now() - t0 >= duration_s:
+                break
+            if self.cfg.stream.passes is not None and st.passes >= self.cfg.stream.passes:
+                break
+            t_now = self._now()
+            self.paging.apply_actions(t_now)
+            if not self._trusted() and self.cfg.halt.on_untrusted == "halt":
+                esc.halt(f"{esc.state}: the correction is not trusted (halt.on_untrusted: halt)", t_now, sticky=True)
+            if self._camera_halt and esc.state != "halted":
+                self._camera_halt, n.camera_refused_since = False, None
+            if self._camera_halt:
+                self._probe_camera(t_now)
+                self._stop.wait(0.0 if self.world is not None and not self.cfg.realtime else 0.05)
+                continue
+            if esc.state == "halted":  # sticky: waits for the operator's 'done'
+                self._idle()
+                self._beat()
+                self._stop.wait(0.0 if self.world is not None and not self.cfg.realtime else 0.05)
+                continue
+            if st.rerun_from is not None:
+                log.warning("resuming the path at %s", ps.plan.where(k0) + st.rerun_from)
+                st.rerun_from = None
+            corrected = self._trusted() or self.cfg.halt.on_untrusted == "correct"
+            try:
+                rep = ps.run_pass(k0, corrected)
+            except (DriverError, TwinError) as exc:  # the child could not start (a driver, the twin)
+                if isinstance(exc, StoreError):
+                    raise
+                self._driver_fault(DriverError(f"path pass from {ps.plan.where(k0)}: {exc}"))
+                self._stop.wait(0.5)
+                continue
+            n.ticked(rep.n_sent)
+            if not corrected:
+                n.uncorrected += rep.n_sent
+            n.driver_faults_in_row = 0
+            self._stage_path()
+            if not rep.stopped:
+                k0 = 0
+                log.info("pass %d of the path done: %d set-points at %.1f Hz%s", st.passes, rep.n_sent, rep.rate_hz,
+                         f", p99 jitter {rep.jitter_p99_ms:.3f} ms" if np.isfinite(rep.jitter_p99_ms)
+                         else " (the simulated clock: not paced)")
+                continue
+            k_stop = st.next  # the first set-point not sent
+            k0 = ps.resume_point(self._arm_position(), k0, k_stop)
+            st.next = k0
+            if k0 < k_stop:
+                st.rerun += k_stop - k0
+                st.rerun_from = (f" (set-points {k0 + 1}..{k_stop} were sent before the stop but the arm had not "
+                                 f"reached them: they are streamed again)")
+            else:
+                st.rerun_from = ""
+            self._stage_path()
+            if self._stop.is_set() or esc.state == "halted":
+                continue  # stopping, or already halted (the camera's halt resumes by itself)
+            why = (f"path stopped at {ps.plan.where(k_stop)}: {rep.stopped}; clear the cause, then confirm "
+                   f"(dt ack): the path resumes at {ps.plan.where(k0)}")
+            n.last_problem = why
+            log.error("%s", why)
+            esc.halt(why, self._now(), sticky=True)
+        return self.summary()
+
+    def _arm_position(self) -> np.ndarray | None:
+        """Where the arm stands (the controller's TCP), None if the controller cannot tell now."""
+        try:
+            return np.asarray(self.inst.robot.read_commanded_tcp(), dtype=float)
+        except (DriverError, TwinError) as exc:
+            log.warning("the arm's position is unknown after the stop (%s): the path resumes at the first "
+                        "set-point not sent", exc)
+            return None
+
+    def _stage_path(self) -> None:
+        """The path's state (its resume point) travels with the next batch of rows."""
+        self.store.stage_state(*self.paging.resume_row())
+
     def stop(self, *_: Any) -> None:
         """Stop the loop (a signal handler: only sets flags): the move in flight is aborted."""
         self._stop.set()
@@ -572,17 +723,21 @@ class Daemon:
         abort = getattr(robot, "abort", None)
         if abort is not None:
             abort("the daemon is stopping")
+        path = getattr(self, "path", None)
+        if path is not None:
+            path.cancel()
 
     def summary(self) -> dict:
         esc = self.escalator
         return {**self.counters.summary(), "state": esc.state, "halt_reason": esc.halt_reason,
                 "maintenance_requests": len(self.paging.requests), "requests_delivered": len(self.paging.delivered),
-                "store": str(self.store.path), **self.cell.truth()}
+                "store": str(self.store.path), **self.cell.truth(),
+                **({"path": self.path.state.to_dict()} if self.path is not None else {})}
 
     def close(self) -> None:
         self.housekeeper.stopping()
         try:
-            self.store.save_state("escalation", self.escalator.snapshot())
+            self.store.save_state(*self.paging.resume_row())
         except TwinError as exc:
             log.error("could not save state on close: %s", exc)
         self.housekeeper.stop()

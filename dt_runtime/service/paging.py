@@ -21,6 +21,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 from dt_runtime.service.bus import BusConfig
 from dt_runtime.service.bus.publisher import Bus, new_requests
@@ -45,11 +46,20 @@ class Paging:
         self._actions_lock = threading.Lock()
         self._applying: OperatorAction | None = None  # the 'done' whose transition is being recorded
         self.escalator = Escalator(escalation, on_transition=self._on_transition)
+        # What else resumes from the store's one resume row beside the machine (the daemon's path
+        # program: its resume point): a key of that row, read back by `saved_extra`.
+        self.resume_extra: Callable[[], dict[str, Any]] = dict
         saved = store.load_state()
+        self.saved_extra: dict[str, Any] = {}
         if saved and saved.get("name") == "escalation":
             self.escalator.restore(saved["data"])
+            self.saved_extra = {k: v for k, v in saved["data"].items() if k == "path"}
             log.info("resumed escalation state %s (episode %d) from %s", self.escalator.state,
                      self.escalator.episode, store.path)
+
+    def resume_row(self) -> tuple[str, dict[str, Any]]:
+        """The store's resume row: the machine's snapshot and what `resume_extra` adds."""
+        return "escalation", self.escalator.snapshot() | self.resume_extra()
 
     # --- transitions and requests (callbacks never block on the bus) ---------------------------
     def _request_body(self, dst: str, evidence: dict, t: float, reconciled: bool = False) -> dict:
@@ -65,7 +75,7 @@ class Paging:
         reqs = new_requests(self.bus_cfg, self._request_body(dst, evidence, t)) if opens else []
         applying = self._applying
         applied = (applying.id, f"applied: {src} -> {dst}") if applying is not None and dst == "nominal" else None
-        _, ids = self.store.record_transition(src, dst, evidence, t, state=("escalation", self.escalator.snapshot()),
+        _, ids = self.store.record_transition(src, dst, evidence, t, state=self.resume_row(),
                                               requests=reqs, applied=applied)
         log.warning("escalation %s -> %s at t=%.1f s: %s", src, dst, t, evidence)
         if reqs:

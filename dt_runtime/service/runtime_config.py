@@ -15,6 +15,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from drivers import registry
+from drivers.base import GAIN_RANGE, LOOKAHEAD_RANGE_S
 from dt_kernel.config import Frozen, load_yaml
 from dt_runtime.service.bus import BusConfig
 from dt_runtime.service.correction import Limits
@@ -43,8 +44,10 @@ class PathConfig(Frozen):
     simulation stand-ins, 'random' points in a box (seeded) or a 'circle' streamed at the loop
     rate (set-points v / rate_hz apart). Speeds are fractions of the maximum speed, in (0, 1]."""
 
-    kind: Literal["random", "circle", "program"] = "random"
-    program: str | None = None  # the program file for kind 'program' (relative to the runtime config)
+    kind: Literal["random", "circle", "program", "path"] = "random"
+    # the program file for kind 'program' (a point program) or 'path' (a path program, streamed at
+    # rate_hz: `stream`), relative to the runtime config
+    program: str | None = None
     circle_center_m: Vec3 = (0.9, 0.0, 0.55)
     circle_radius_m: float = Field(0.15, gt=0, le=2.0)
     box_min_m: Vec3 = (0.65, -0.3, 0.25)
@@ -62,13 +65,31 @@ class PathConfig(Frozen):
 
     @model_validator(mode="after")
     def _check(self) -> PathConfig:
-        if (self.kind == "program") != (self.program is not None):
-            raise ValueError("path.program names the program file exactly when path.kind is 'program'")
+        if (self.kind in ("program", "path")) != (self.program is not None):
+            raise ValueError("path.program names the program file exactly when path.kind is 'program' or 'path'")
         _finite("box_min_m/box_max_m/circle_center_m", *self.box_min_m, *self.box_max_m, *self.circle_center_m)
         if not all(lo < hi for lo, hi in zip(self.box_min_m, self.box_max_m)):
             raise ValueError(f"box_min_m {list(self.box_min_m)} must be below box_max_m {list(self.box_max_m)} "
                              "on every axis")
         return self
+
+
+class StreamSection(Frozen):
+    """How `dt run` streams a path program (path.kind 'path'; docs/streaming.md): the servo's
+    look-ahead (s) and gain (servoj's ranges), the streaming process's SCHED_FIFO priority (0:
+    none), how many passes (null: until stopped), the servo lag (`learn` from the first pass's
+    readings, or `none`), the camera readings tested per second, the standard uncertainty of a
+    reading's time on the path's clock (s) and how far its timing term may exceed the reading's
+    own uncertainty before the reading is refused."""
+
+    lookahead_s: float = Field(0.1, ge=LOOKAHEAD_RANGE_S[0], le=LOOKAHEAD_RANGE_S[1])
+    gain: float = Field(300.0, ge=GAIN_RANGE[0], le=GAIN_RANGE[1])
+    rt_priority: int = Field(10, ge=0, le=98)
+    passes: int | None = Field(None, ge=1, le=10_000_000)
+    lag: Literal["learn", "none"] = "learn"
+    monitor_hz: float = Field(50.0, gt=0, le=1000)
+    u_time_s: float = Field(0.5e-3, ge=0, le=0.1)
+    max_timing_ratio: float = Field(1.0, gt=0, le=100)
 
 
 class SimSection(Frozen):
@@ -197,6 +218,7 @@ class RuntimeConfig(Frozen):
     drivers: Drivers = Drivers()
     sim: SimSection = SimSection()
     path: PathConfig = PathConfig()
+    stream: StreamSection = StreamSection()
     limits: Limits = Limits()
     escalation: EscalationConfig = EscalationConfig()
     halt: HaltConfig = HaltConfig()
@@ -233,4 +255,4 @@ def load_runtime_config(path: str | Path) -> RuntimeConfig:
 
 
 __all__ = ["DriverChoice", "Drivers", "Fault", "HaltConfig", "PathConfig", "RetentionConfig", "RuntimeConfig",
-           "SimSection", "load_runtime_config"]
+           "SimSection", "StreamSection", "load_runtime_config"]

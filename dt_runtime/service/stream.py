@@ -80,12 +80,16 @@ def _p99(x: np.ndarray) -> float:
 def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, driver: Any, rate_hz: float,
                lookahead_s: float = 0.1, gain: float = 300.0, spin_s: float = 3e-4,
                progress: Callable[[int], None] | None = None, clock: Callable[[], float] = time.perf_counter,
-               paced: bool = True) -> StreamReport:
+               paced: bool = True, started: Callable[[float], None] | None = None,
+               cancelled: Callable[[], str] | None = None) -> StreamReport:
     """Stream `targets` (n, 3), m, meant for `times` (n,), s, each corrected by `correct`, to a
     driver that declares drivers.base.SetpointStreamer, at `rate_hz` (the controller's rate: the
     set-points must be on that grid). `paced=False` sends as fast as the loop can (the baseline a
     benchmark sets the paced rate against). A DriverError from the driver (protective stop, the
-    controller's watchdog) ends the stream early with its reason in `stopped`."""
+    controller's watchdog) ends the stream early with its reason in `stopped`. `started(t0)` is
+    told the schedule's origin on `clock` (set-point k is due at t0 + k / rate_hz) before the first
+    send; `cancelled()`, checked before every send, returns why the host ends the stream ("" to
+    go on): both are a shared value's read or write, never a wait."""
     times, targets = np.asarray(times, dtype=float), np.asarray(targets, dtype=float)
     n = times.size
     if targets.shape != (n, 3) or n == 0:
@@ -101,8 +105,14 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
             commands[0] = correct(targets[0], times[0])
             corr_ns[0] = time.perf_counter_ns() - c0
             t0 = clock() + 2 * period  # room for the first correction's cache warm-up
+            if started is not None:
+                started(t0)
             for k in range(n):
                 due = t0 + k * period
+                why = cancelled() if cancelled is not None else ""
+                if why:
+                    stopped = f"set-point {k + 1} of {n} not sent: {why}"
+                    break
                 if paced:
                     while (left := due - clock()) > spin_s:
                         time.sleep(left - spin_s)
@@ -155,7 +165,7 @@ def _realtime(priority: int) -> bool:
         return False
 
 
-def _child(conn, sent, make_corrector, make_driver, times, targets, rate_hz, lookahead_s, gain,
+def _child(conn, sent, t0, cancel, make_corrector, make_driver, times, targets, rate_hz, lookahead_s, gain,
            rt_priority, paced) -> None:  # pragma: no cover (runs in the child process; tested through it)
     try:
         correct, driver = make_corrector(), make_driver()
@@ -164,9 +174,16 @@ def _child(conn, sent, make_corrector, make_driver, times, targets, rate_hz, loo
         def progress(k: int) -> None:
             sent.value = k  # an aligned store to shared memory: no lock, never blocks
 
+        def started(at: float) -> None:
+            t0.value = at
+
+        def cancelled() -> str:
+            return "the host stopped the stream" if cancel.value else ""
+
         try:
+            # time.monotonic: CLOCK_MONOTONIC, the clock the parent reads too (a reading's host time)
             rep = run_stream(times, targets, correct, driver, rate_hz, lookahead_s, gain, progress=progress,
-                             paced=paced)
+                             clock=time.monotonic, paced=paced, started=started, cancelled=cancelled)
         finally:
             with contextlib.suppress(Exception):
                 driver.close()
@@ -181,18 +198,22 @@ def _child(conn, sent, make_corrector, make_driver, times, targets, rate_hz, loo
 class StreamProcess:
     """`run_stream` in its own (spawned) process. `make_corrector` and `make_driver` are
     picklable callables (module-level functions or functools.partial of them) that build the
-    corrector and the active streaming driver in the child. `sent` is the progress, readable at
-    any time; `result(timeout)` waits for the report (TwinError if the child failed or did not
-    answer in time: it is then killed)."""
+    corrector and the active streaming driver in the child. `sent` is the progress and `t0` the
+    schedule's origin on CLOCK_MONOTONIC (time.monotonic here too: set-point k is due at t0 + k /
+    rate_hz; NaN until the first is due), readable at any time; `cancel()` asks the loop to stop
+    before its next send (the driver's stop_stream then stops the arm); `result(timeout)` waits for
+    the report (TwinError if the child failed or did not answer in time: it is then killed)."""
 
     def __init__(self, make_corrector: Callable[[], Corrector], make_driver: Callable[[], Any],
                  times: np.ndarray, targets: np.ndarray, rate_hz: float, lookahead_s: float = 0.1,
                  gain: float = 300.0, rt_priority: int = 10, paced: bool = True):
         ctx = mp.get_context("spawn")
         self._sent = ctx.Value("q", 0, lock=False)
+        self._t0 = ctx.Value("d", float("nan"), lock=False)
+        self._cancel = ctx.Value("b", 0, lock=False)
         self._recv, send = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_child, name="dt-stream", daemon=True, args=(
-            send, self._sent, make_corrector, make_driver, np.asarray(times, dtype=float),
+            send, self._sent, self._t0, self._cancel, make_corrector, make_driver, np.asarray(times, dtype=float),
             np.asarray(targets, dtype=float), rate_hz, lookahead_s, gain, rt_priority, paced))
         self._proc.start()
         send.close()
@@ -200,6 +221,17 @@ class StreamProcess:
     @property
     def sent(self) -> int:
         return int(self._sent.value)
+
+    @property
+    def t0(self) -> float:
+        return float(self._t0.value)
+
+    def cancel(self) -> None:
+        self._cancel.value = 1
+
+    def done(self, timeout: float = 0.0) -> bool:
+        """True once the report is ready (or the child is gone), waiting at most `timeout` s."""
+        return bool(self._recv.poll(timeout)) or not self._proc.is_alive()
 
     @property
     def pid(self) -> int | None:

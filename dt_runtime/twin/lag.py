@@ -33,6 +33,9 @@ from dt_kernel.errors import DataError
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.metrology.timing import TimedPath
 
+SETTLE_S = 0.2  # s: a servo's transient after a step of the path's acceleration is over (1 / (zeta w) = 55 ms
+# at look-ahead 0.03 s, gain 1200; a few of its time constants at the default look-ahead 0.1 s, gain 300)
+
 
 @dataclass(frozen=True)
 class LagEstimate:
@@ -43,6 +46,12 @@ class LagEstimate:
     n: int  # measured positions used (those on the moving part of the path)
     rms_before_m: float  # 3D RMS of commanded - measured at the measured times
     rms_after_m: float  # ... of the commanded path delayed by tau - measured
+
+    @classmethod
+    def from_dict(cls, d: dict) -> LagEstimate:
+        """`to_dict`'s inverse (a stored estimate)."""
+        return cls(1e-3 * d["tau_ms"], 1e-3 * d["u_tau_ms"], 1e-6 * d["accel_ms2"], 1e-6 * d["u_accel_ms2"],
+                   int(d["n"]), 1e-3 * d["rms_before_mm"], 1e-3 * d["rms_after_mm"])
 
     def to_dict(self) -> dict:
         return {"tau_ms": 1e3 * self.tau_s, "u_tau_ms": 1e3 * self.u_tau_s, "accel_ms2": 1e6 * self.accel_s2,
@@ -85,6 +94,24 @@ def estimate_lag(path: TimedPath, t: np.ndarray, measured: np.ndarray, max_lag_s
     u_k2 = float(np.sqrt(g @ cov @ g))
     return LagEstimate(a, float(np.sqrt(cov[0, 0])), b + a * a, u_k2, int(t.size), rms3(c - m),
                        rms3(r.reshape(-1, 3)))
+
+
+def settled(path: TimedPath, settle_s: float = SETTLE_S, jump: float = 0.05) -> np.ndarray:
+    """Per set-point (n,): True when the path's acceleration has not jumped within the last
+    `settle_s` (a jump: a change between two set-points larger than `jump` x the path's largest
+    acceleration). A trapezoidal profile's acceleration steps at every start, end of a ramp and
+    change of curvature; a follower (and a feed-forward built on the path's second derivative,
+    which steps there too) leaves a transient of a few time constants after each, where neither
+    e = a c' + b c'' nor its inverse holds: a reading there tests the servo, not the twin."""
+    _, acc = _derivatives(path)
+    da = np.linalg.norm(np.diff(acc, axis=0), axis=1)
+    peak = float(np.max(np.linalg.norm(acc, axis=1))) if len(acc) else 0.0
+    ok = np.ones(path.t.size, dtype=bool)
+    if peak < 1e-6:  # m/s^2: a path at rest (its differences' rounding is not an acceleration)
+        return ok
+    for k in np.flatnonzero(da > jump * peak):
+        ok[(path.t >= path.t[k]) & (path.t < path.t[k + 1] + settle_s)] = False
+    return ok
 
 
 def compensate(path: TimedPath, lag: LagEstimate | float) -> TimedPath:

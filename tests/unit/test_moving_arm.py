@@ -139,3 +139,32 @@ def test_estimate_lag_refuses_too_little_data():
     still = TimedPath(p.t, np.repeat(p.p[:1], p.t.size, axis=0))
     with pytest.raises(DataError, match="moves and changes speed"):
         estimate_lag(still, p.t, still.p)
+
+
+def test_settled_marks_the_transient_after_each_step_of_the_acceleration():
+    """A trapezoid along x: accelerate for 0.1 s, cruise 1 s, decelerate 0.1 s; the readings in
+    the 0.2 s after each of the four steps of its acceleration are in the servo's transient."""
+    from dt_runtime.twin.lag import SETTLE_S, settled
+
+    t = np.arange(0.0, 1.6, 1.0 / RATE)
+    a, v = 1.0, 0.1
+    x = np.where(t < 0.1, 0.5 * a * t ** 2, 0.005 + v * (t - 0.1))
+    x = np.where(t > 1.1, 0.005 + v + v * (t - 1.1) - 0.5 * a * (t - 1.1) ** 2, x)
+    x = np.where(t > 1.2, x[np.searchsorted(t, 1.2)], x)
+    ok = settled(TimedPath(t, np.column_stack([x, 0 * t, 0 * t])))
+    assert not ok[np.searchsorted(t, 0.05)] and not ok[np.searchsorted(t, 0.25)]  # the ramp and after it
+    assert ok[np.searchsorted(t, 0.1 + SETTLE_S + 0.05)] and ok[np.searchsorted(t, 1.0)]  # cruising, settled
+    assert not ok[np.searchsorted(t, 1.15)] and not ok[np.searchsorted(t, 1.35)]  # the stop and after it
+    assert ok[-1]  # standing still long after
+    still = TimedPath(t, np.zeros((t.size, 3)) + 0.5)
+    assert settled(still).all()
+
+
+def test_a_stored_lag_estimate_reads_back_the_same():
+    from dt_runtime.twin.lag import LagEstimate
+
+    e = LagEstimate(0.0303, 3e-5, 7.9e-4, 3e-5, 278, 3.03e-3, 8.4e-5)
+    back = LagEstimate.from_dict(e.to_dict())
+    assert np.allclose([back.tau_s, back.u_tau_s, back.accel_s2, back.u_accel_s2, back.rms_before_m,
+                        back.rms_after_m], [e.tau_s, e.u_tau_s, e.accel_s2, e.u_accel_s2, e.rms_before_m,
+                                            e.rms_after_m], rtol=1e-12) and back.n == e.n

@@ -1,0 +1,431 @@
+"""`dt run` streaming a path program (issue 23): passes of the path at the controller's rate,
+every set-point corrected in the loop, the moving arm tested against the path, stops resumed by
+the operator.
+
+The plan (`plan_path`, at start-up, before anything moves): the path file (twin.path) interpolated
+at `rate_hz`, every set-point corrected offline (`twin.path_correct.correct_path`, the loop's own
+numbers) and held to the bounded-correction rules (`correction.check_path_bounds`): a path the
+daemon would refuse in the middle is refused before its first set-point.
+
+A pass (`PathStreamer.run_pass`) streams set-points k0 .. n-1:
+- a robot driver that needs the simulated world streams in this process on the simulated clock
+  (each set-point advances it by one period; `run_stream` unpaced), and the camera is read every
+  `rate_hz / stream.monitor_hz` set-points from the loop's progress;
+- any other driver streams from its own process (`service.stream.StreamProcess`: the GIL of the
+  daemon's bus, store and housekeeping threads cannot stall it; SCHED_FIFO when allowed): the
+  daemon's own driver is deactivated for the pass (the registers and the connection are the
+  child's), the child builds the driver from the same kind and options, moves the arm to the
+  pass's first command and streams; the daemon reads the camera `stream.monitor_hz` times a second
+  meanwhile and never touches the loop (it only reads the shared progress and may cancel).
+
+Each camera reading is placed on the path's clock at its mid-exposure (a streaming camera's
+`quality.mid_exposure_host_s`, else its receipt on the host; the simulated camera's device time),
+set against the path there (`metrology.timing.compare_at`: the commanded position, interpolated,
+and the timing's Type B term |v| u_t, `stream.u_time_s`), refused and counted when the timing term
+dominates, else tested by Eq. 17 with that term added (`Monitor`'s `u_extra`) and fed to the
+escalation exactly as a point program's readings are.
+
+The servo lag (twin.lag). What the arm lags behind a streamed path is not in the static error map;
+tested against the path it would fail every reading at speed. With `stream.lag: learn` (default)
+the first pass is a learning pass: its readings are compared, not tested; their Eq. 17 residuals
+fit `estimate_lag` (e = a c' + b c''), and every later pass streams the path compensated by it
+(`compensate`), tested against the uncompensated corrected path (where the arm should now be),
+with what the fit left unexplained (its residual RMS per axis, `u_lag`) as one more Type B
+component of Eq. 17's denominator. Readings in the servo's transient after a step of the path's
+acceleration (`twin.lag.settled`) are neither learnt from nor tested: counted.
+`lag: none` streams and tests the path as it is (slow paths, or a controller that compensates).
+
+Stops and resume (item 7). A pass that ends early (protective stop, the controller's watchdog,
+the connection dropped) halts the daemon, sticky, with the set-point it stopped at: the halt is
+stored, paged and on `.../health` (`stream`). The operator clears the cause and confirms (`dt
+ack`); the next pass resumes where the arm stands: at the set-point of this pass nearest the arm's
+position, never earlier than the pass's start, never later than the first not sent. Set-points
+that were sent but that the arm had not yet reached are streamed again, and the log and
+`.../health` say which; nothing else is re-run. The resume point is staged in the store with every
+batch of rows (`path` state): a daemon restarted after a crash resumes from it.
+
+Units: SI (m, s).
+"""
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers import registry
+from drivers.base import RigReading
+from dt_kernel.errors import ConfigError, DataError
+from dt_runtime.metrology.timing import TimedPath, compare_at
+from dt_runtime.service.correction import Limits, check_path_bounds
+from dt_runtime.service.runtime_config import StreamSection
+from dt_runtime.service.stream import StreamProcess, StreamReport, run_stream
+from dt_runtime.twin.conditions import Conditions
+from dt_runtime.twin.lag import SETTLE_S, LagEstimate, compensate, estimate_lag, settled
+from dt_runtime.twin.path import Setpoints, interpolate, read_path
+from dt_runtime.twin.path_correct import correct_path
+from dt_runtime.twin.setpoint import SetpointCorrector
+from dt_runtime.twin.twin import Twin
+
+log = logging.getLogger("dt.run")
+APPROACH_SPEED_M_S = 0.05  # the move to a pass's first command (a resume point may be anywhere)
+MIN_LAG_READINGS = 20  # fewer tested positions on a moving arm: the lag is not learnt, the pass repeats
+
+
+# --- built in the streaming process (module-level: StreamProcess pickles them) ---------------
+def setpoint_corrector(sc: SetpointCorrector, times: np.ndarray, speeds: np.ndarray,
+                       joints: np.ndarray | None = None) -> Callable[[np.ndarray, float], np.ndarray]:
+    """(target m, t s) -> command m: `sc` at the programmed speed of the set-point meant for t,
+    the arm's joints carried from set-point to set-point (a map with joint-space effects)."""
+    last = len(times) - 1
+    q = [None if joints is None else np.asarray(joints, dtype=float)]
+
+    def correct_one(target: np.ndarray, t: float) -> np.ndarray:
+        k = min(int(np.searchsorted(times, t - 1e-9)), last)
+        cond = None if q[0] is None else Conditions(joints=q[0])
+        r = sc.correct(target, float(speeds[k]), cond)
+        if r.joints is not None:
+            q[0] = r.joints
+        return r.command
+
+    return correct_one
+
+
+def path_corrector(twin_dir: str, times: np.ndarray, speeds: np.ndarray, correct: bool = True,
+                   joints: np.ndarray | None = None) -> Callable[[np.ndarray, float], np.ndarray]:
+    """`setpoint_corrector` of the twin in `twin_dir` (loaded in the streaming process), or the
+    target itself (`correct` False: an uncorrected stream)."""
+    if not correct:
+        return lambda target, t: target
+    return setpoint_corrector(SetpointCorrector(Twin.load(twin_dir)), times, speeds, joints)
+
+
+def streaming_robot(name: str, options: dict, source: str, start: np.ndarray, speed: float):
+    """The robot driver `name` with `options`, active, the arm moved to `start` (m) at `speed`."""
+    drv = registry.create("robot", name, options, source=source, key="drivers.robot")
+    try:
+        drv.activate()
+        drv.move_linear(np.asarray(start, dtype=float), speed)
+    except BaseException:
+        drv.close()
+        raise
+    return drv
+
+
+# --- the plan --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PathPlan:
+    """The path interpolated and corrected offline: set-points `sp`, their corrected commands
+    (n, 3) m, U (n, 3) m (95 %) and joints (n, dof) rad or None."""
+
+    file: Path
+    sp: Setpoints
+    commands: np.ndarray
+    U: np.ndarray
+    joints: np.ndarray | None
+    start_joints: np.ndarray | None
+
+    @property
+    def n(self) -> int:
+        return self.sp.n
+
+    def where(self, k: int) -> str:
+        """Set-point k (0-based) as the operator reads it: 1-based, with its segment and time."""
+        k = min(k, self.n - 1)
+        return f"set-point {k + 1} of {self.n} (segment {int(self.sp.segment[k])}, t {self.sp.t[k]:.3f} s)"
+
+
+def plan_path(twin: Twin, file: Path, rate_hz: float, limits: Limits, source: str) -> PathPlan:
+    """The path file read, interpolated at the controller's rate, corrected offline and checked
+    against the bounded-correction rules; ConfigError naming the runtime config's `path.program`
+    for anything the daemon would refuse later."""
+    try:
+        program = read_path(file)
+        sp = interpolate(program, rate_hz)
+        corrected = correct_path(twin, program, sp)
+    except (DataError, ConfigError) as exc:
+        raise ConfigError(source, "path.program", str(file), f"a path the twin can correct ({exc})") from exc
+    commands = np.array([r.command for r in corrected])
+    why = check_path_bounds(limits, sp.p, commands)
+    if why:
+        raise ConfigError(source, "path.program", str(file), f"a path within the limits: {why}")
+    extra = set(twin.needs) - {"speed", "joints"}
+    if extra:
+        raise ConfigError(source, "path.kind", "path", "a twin whose maps read TCP, speed and joints only: a streamed "
+                          f"path is corrected in its own process without the cell's sensors (this twin reads "
+                          f"{sorted(extra)}); run the path as a point program instead")
+    joints = None if corrected[0].joints is None else np.array([r.joints for r in corrected])
+    return PathPlan(file, sp, commands, np.array([r.U for r in corrected]), joints, program.joints)
+
+
+# --- a pass -----------------------------------------------------------------------------------
+@dataclass
+class StreamState:
+    """The path's state, as `.../health` carries it under `stream` and the summary under `path`."""
+
+    n: int
+    file: str
+    state: str = "idle"  # idle | learning | streaming | stopped | done
+    passes: int = 0  # passes completed to their last set-point
+    pass_started: int = 0  # passes started (learning included)
+    next: int = 0  # 0-based: the set-point the next pass starts at
+    sent: int = 0  # set-points streamed since the start, every pass
+    rerun: int = 0  # set-points streamed a second time after a stop (the arm had not reached them)
+    tested: int = 0  # readings of the moving arm tested by Eq. 17
+    learning_readings: int = 0  # readings of a learning pass (compared, not tested)
+    timing_refused: int = 0  # readings refused: the timing term dominated
+    outside_refused: int = 0  # readings outside the pass's time span (before its start, after its end)
+    transient_refused: int = 0  # readings in the servo's transient after a step of the path's acceleration
+    stopped: str = ""  # why the last pass ended early ("" when none did)
+    rerun_from: str | None = None  # set at a stop: what the resume re-runs, in words (logged once, at the resume)
+    lag: dict | None = None  # LagEstimate.to_dict() once learnt
+    last: dict = field(default_factory=dict)  # the last pass's rate, jitter, correction cost, realtime
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+ReadingTest = Callable[[np.ndarray, float, np.ndarray, Conditions | None, float, np.ndarray, bool], Any]
+
+
+class PathStreamer:
+    """Passes of `plan` for the daemon. `test(command, v, point, cond, s, u_extra, observe)` is the
+    daemon's Eq. 17 of one reading at path time s (returns its `Check`, or None if the reading
+    was rejected); `observe` False for a learning pass (compared, not fed to the escalation);
+    `refused(reading)` takes a reading the camera refused (counted, as a point program's); `stop()`
+    says why the pass must end now ('' to go on: the daemon stopping, a halt); `beat()` is called
+    at every step of a pass (the daemon's watchdog and health)."""
+
+    def __init__(self, plan: PathPlan, cfg: StreamSection, rate_hz: float, twin: Twin, twin_dir: Path,
+                 inst, robot_choice: tuple[str, dict], source: str, world, test: ReadingTest,
+                 refused: Callable[[RigReading], None], u_reading: np.ndarray, stop: Callable[[], str],
+                 beat: Callable[[], None]):
+        self.plan, self.cfg, self.rate_hz, self.twin, self.twin_dir = plan, cfg, rate_hz, twin, twin_dir
+        self.inst, self.robot_choice, self.source, self.world = inst, robot_choice, source, world
+        self.test, self.refused, self.stop, self.beat = test, refused, stop, beat
+        self.corrected = True
+        self._pass_t0 = 0.0  # the path time of the running pass's first set-point
+        self.u_reading = np.asarray(u_reading, dtype=float)
+        self.state = StreamState(plan.n, str(plan.file))
+        self.lag: LagEstimate | None = None
+        self.reference = TimedPath(plan.sp.t, plan.commands)  # where the arm should be, on the path's clock
+        self.settled = settled(TimedPath(plan.sp.t, plan.sp.p))  # set-points out of the servo's transients
+        self.proc: StreamProcess | None = None
+
+    @property
+    def u_lag(self) -> float:
+        """The lag model's standard uncertainty per axis, m: what its fit left unexplained in the
+        learning pass (3D RMS / sqrt 3: the follower's unmodelled dynamics, the timing's noise),
+        where a compensated arm is known no better than that."""
+        return 0.0 if self.lag is None else self.lag.rms_after_m / np.sqrt(3.0)
+
+    @property
+    def learning(self) -> bool:
+        return self.cfg.lag == "learn" and self.lag is None
+
+    def _targets(self) -> np.ndarray:
+        """The targets streamed: the path, compensated for the learnt lag."""
+        sp = self.plan.sp
+        if self.lag is None:
+            return sp.p
+        return compensate(TimedPath(sp.t, sp.p), self.lag).p
+
+    def run_pass(self, k0: int, corrected: bool = True) -> StreamReport:
+        """Stream set-points k0 .. n-1 (the arm first moved to k0's command), testing the moving
+        arm meanwhile; the state updated, the report returned (its `stopped` empty if every
+        set-point was sent). `corrected` False streams the targets as they are (the correction is
+        not trusted: halt.on_untrusted 'uncorrected'), tested against them."""
+        st, sp = self.state, self.plan.sp
+        learning = self.learning and corrected
+        self.corrected = corrected
+        self.reference = TimedPath(sp.t, self.plan.commands if corrected else sp.p)
+        st.state, st.next, st.stopped = ("learning" if learning else "streaming"), k0, ""
+        st.pass_started += 1
+        targets = self._targets()
+        self._pass_t0 = float(sp.t[k0])
+        residuals: list[tuple[float, np.ndarray]] = []
+        if self.world is not None:
+            rep = self._pass_in_process(k0, targets, learning, residuals)
+        else:
+            rep = self._pass_in_child(k0, targets, learning, residuals)
+        st.sent += rep.n_sent
+        st.last = {k: rep.to_dict()[k] for k in ("rate_hz", "target_hz", "jitter_p99_ms", "overruns",
+                                                  "correction_us_mean", "correction_us_p99", "realtime")}
+        if rep.stopped:
+            st.state, st.stopped = "stopped", rep.stopped
+            st.next = k0 + rep.n_sent
+        else:
+            st.state, st.next = "done", 0
+            st.passes += 1
+            if learning:
+                self._learn(residuals)
+        return rep
+
+    # the simulated robot: in this process, on the simulated clock
+    def _start(self, k0: int) -> np.ndarray:
+        """Where the arm waits for a pass's first set-point: where the path has it then (set-point
+        k0's corrected command, the target uncorrected), not the first command streamed (a
+        feed-forward's is ahead of the path: the arm would start off it)."""
+        return self.plan.commands[k0] if self.corrected else self.plan.sp.p[k0]
+
+    def _pass_in_process(self, k0: int, targets: np.ndarray, learning: bool,
+                         residuals: list[tuple[float, np.ndarray]]) -> StreamReport:
+        sp, robot, world = self.plan.sp, self.inst.robot, self.world
+        robot.move_linear(self._start(k0), APPROACH_SPEED_M_S)
+        t_w0, period = world.t, 1.0 / self.rate_hz
+        every = max(1, int(round(self.rate_hz / self.cfg.monitor_hz)))
+        correct = (setpoint_corrector(SetpointCorrector(self.twin), sp.t[k0:], sp.programmed[k0:],
+                                      None if self.plan.joints is None else self.plan.joints[k0])
+                   if self.corrected else (lambda target, t: target))
+
+        def progress(j: int) -> None:
+            self.state.next = k0 + j
+            self.beat()
+            if j % every == 0:
+                reading = self.inst.camera.read()
+                # set-point j - 1 of the pass (meant for sp.t[k0 + j - 1]) was applied at t_w0 + j periods
+                self._reading(reading, lambda r: float(sp.t[k0]) + (r.t - t_w0) - period, learning, residuals)
+
+        return run_stream(sp.t[k0:], targets[k0:], correct, robot, self.rate_hz, self.cfg.lookahead_s,
+                          self.cfg.gain, progress=progress, paced=False,
+                          cancelled=self.stop)
+
+    # any other robot: its own process
+    def _pass_in_child(self, k0: int, targets: np.ndarray, learning: bool,
+                       residuals: list[tuple[float, np.ndarray]]) -> StreamReport:
+        sp, cfg = self.plan.sp, self.cfg
+        name, options = self.robot_choice
+        start = self._start(k0)
+        robot = self.inst.robot
+        robot.deactivate()  # the child's driver takes the connection and the controller's registers
+        try:
+            proc = self.proc = StreamProcess(
+                functools.partial(path_corrector, str(self.twin_dir), sp.t[k0:], sp.programmed[k0:], self.corrected,
+                                  None if self.plan.joints is None else self.plan.joints[k0]),
+                functools.partial(streaming_robot, name, options, self.source, start, APPROACH_SPEED_M_S),
+                sp.t[k0:], targets[k0:], self.rate_hz, cfg.lookahead_s, cfg.gain, cfg.rt_priority)
+            period = 1.0 / cfg.monitor_hz
+            try:
+                while not proc.done(period):
+                    self.beat()
+                    if self.stop():
+                        proc.cancel()
+                    self.state.next = k0 + proc.sent
+                    t0 = proc.t0
+                    if proc.sent == 0 or not np.isfinite(t0):
+                        continue  # still setting up (loading the twin, the approach move)
+                    reading = self.inst.camera.read()
+                    self._reading(reading, functools.partial(_on_host_clock, float(sp.t[k0]) - t0), learning,
+                                  residuals)
+                # the approach move and the twin's loading come first: bounded by the path's own duration
+                rep = proc.result(timeout=60.0 + float(sp.t[-1] - sp.t[k0]))
+            finally:
+                proc.kill()
+                self.proc = None
+        finally:
+            robot.activate()
+        return rep
+
+    def _reading(self, reading: RigReading, path_time: Callable[[RigReading], float], learning: bool,
+                 residuals: list[tuple[float, np.ndarray]]) -> None:
+        """One camera reading of the moving arm: placed on the path's clock, compared, tested."""
+        st, cfg = self.state, self.cfg
+        if not reading.ok or reading.point is None:
+            self.refused(reading)
+            return
+        s = path_time(reading)
+        cmp = compare_at(self.reference, s, cfg.u_time_s, self.u_reading, cfg.max_timing_ratio)
+        if not cmp.ok:
+            if "outside the path" in (cmp.refused or ""):
+                st.outside_refused += 1
+            else:
+                st.timing_refused += 1
+                log.info("reading refused: %s", cmp.refused)
+            return
+        k = min(int(np.searchsorted(self.plan.sp.t, s)), self.plan.n - 1)
+        if not self.settled[k] or s < self._pass_t0 + SETTLE_S:  # a resumed pass starts at speed from rest
+            st.transient_refused += 1
+            return
+        v = float(self.plan.sp.programmed[k])
+        cond = None if self.plan.joints is None else Conditions(joints=self.plan.joints[k])
+        u_extra = cmp.u_timing if self.lag is None else np.sqrt(cmp.u_timing ** 2 + self.u_lag ** 2)
+        chk = self.test(cmp.commanded, v, reading.point, cond, s, u_extra, not learning)
+        if chk is None:
+            return
+        if learning:
+            st.learning_readings += 1
+            residuals.append((s, chk.diff - chk.predicted))
+        else:
+            st.tested += 1
+
+    def _learn(self, residuals: list[tuple[float, np.ndarray]]) -> None:
+        """The lag from a learning pass's residuals: an arm lagging by a along the path shows
+        e_MVS larger by a c' (GL), so the Eq. 17 residual diff - pred is -(a c' + b c'')."""
+        if len(residuals) < MIN_LAG_READINGS:
+            log.warning("the servo lag is not learnt: %d readings of the moving arm in the learning pass (need %d); "
+                        "the next pass learns again", len(residuals), MIN_LAG_READINGS)
+            return
+        s = np.array([r[0] for r in residuals])
+        rho_robot = np.array([r[1] for r in residuals]) @ self.twin.T_rdk.R  # GL -> robot axes (R^T rho)
+        measured = self.reference.sample(self.reference.p, s) + rho_robot
+        order = np.argsort(s)
+        self.lag = estimate_lag(self.reference, s[order], measured[order])
+        self.state.lag = self.lag.to_dict()
+        log.warning("servo lag learnt from %d readings: %.2f +- %.2f ms (RMS %.3f -> %.3f mm); later passes are "
+                    "compensated", self.lag.n, 1e3 * self.lag.tau_s, 1e3 * self.lag.u_tau_s,
+                    1e3 * self.lag.rms_before_m, 1e3 * self.lag.rms_after_m)
+
+    def restore(self, stored: dict | None) -> int:
+        """The resume point and the learnt lag a previous run of the same path stored (its
+        `StreamState`), or 0 and nothing when it was another path or none."""
+        st = self.state
+        if not stored or stored.get("file") != st.file or stored.get("n") != st.n:
+            return 0
+        if self.cfg.lag == "learn" and stored.get("lag"):
+            try:
+                self.lag = LagEstimate.from_dict(stored["lag"])
+                st.lag = self.lag.to_dict()
+            except (KeyError, TypeError, ValueError) as exc:
+                log.warning("the stored servo lag is unreadable (%s): learnt again", exc)
+        k = int(stored.get("next", 0))
+        if 0 < k < st.n:
+            log.warning("the last run of this path stopped before %s: resuming there", self.plan.where(k))
+            st.next, st.rerun_from = k, " (where the last run stopped)"
+            return k
+        return 0
+
+    def resume_point(self, position: np.ndarray | None, k0: int, k_stop: int) -> int:
+        """Where the next pass starts after a stop between k0 and k_stop (the first not sent):
+        the set-point of that stretch nearest the arm's `position` (m), k_stop if unknown."""
+        if position is None or not np.all(np.isfinite(position)) or k_stop <= k0:
+            return k_stop
+        d = np.linalg.norm(self.plan.commands[k0:k_stop + 1] - position, axis=1)
+        return k0 + int(np.argmin(d))
+
+    def cancel(self) -> None:
+        if self.proc is not None:
+            self.proc.cancel()
+
+
+def _on_host_clock(offset: float, reading: RigReading) -> float:
+    """A reading's mid-exposure on the host's monotonic clock (its receipt when not stated) plus
+    `offset`: the pass's first set-point's path time minus its scheduled host time."""
+    mid = reading.quality.get("mid_exposure_host_s")
+    return offset + (float(mid) if mid is not None else float(reading.host_time))
+
+
+def check_streaming_robot(name: str, source: str) -> None:
+    """ConfigError unless the robot driver `name` declares the streaming capability
+    (drivers.base.SetpointStreamer), checked on its class: before anything is opened."""
+    cls = registry.driver_class("robot", name, source=source, key="drivers.robot.kind")
+    if not all(callable(getattr(cls, m, None)) for m in ("start_stream", "stream", "stop_stream", "stream_status")):
+        raise ConfigError(source, "drivers.robot.kind", name, "a robot driver that streams set-points "
+                          "(drivers.base.SetpointStreamer: the simulated and ur_rtde drivers do) for path.kind 'path'")
+
+
+__all__ = ["PathPlan", "PathStreamer", "StreamState", "check_streaming_robot", "path_corrector", "plan_path",
+           "setpoint_corrector", "streaming_robot"]
