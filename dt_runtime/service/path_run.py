@@ -307,10 +307,13 @@ class PathStreamer:
                 functools.partial(path_corrector, str(self.twin_dir), sp.t[k0:], sp.programmed[k0:], self.corrected,
                                   None if self.plan.joints is None else self.plan.joints[k0]),
                 functools.partial(streaming_robot, name, options, self.source, start, APPROACH_SPEED_M_S),
-                sp.t[k0:], targets[k0:], self.rate_hz, cfg.lookahead_s, cfg.gain, cfg.rt_priority)
+                sp.t[k0:], targets[k0:], self.rate_hz, cfg.lookahead_s, cfg.gain, cfg.rt_priority,
+                host_timeout_s=cfg.host_timeout_s)
             period = 1.0 / cfg.monitor_hz
             try:
+                proc.heartbeat()
                 while not proc.done(period):
+                    proc.heartbeat()
                     self.beat()
                     if self.stop():
                         proc.cancel()

@@ -90,6 +90,10 @@ class StreamSection(Frozen):
     monitor_hz: float = Field(50.0, gt=0, le=1000)
     u_time_s: float = Field(0.5e-3, ge=0, le=0.1)
     max_timing_ratio: float = Field(1.0, gt=0, le=100)
+    # A streaming process stops the stream (the arm stops) when the daemon gave no sign for this
+    # long: a stalled daemon no longer monitors the moving arm. Many monitor periods, above a
+    # loaded host's scheduling hiccups.
+    host_timeout_s: float = Field(1.0, ge=0.05, le=60)
 
 
 class SimSection(Frozen):

@@ -165,8 +165,9 @@ def _realtime(priority: int) -> bool:
         return False
 
 
-def _child(conn, sent, t0, cancel, make_corrector, make_driver, times, targets, rate_hz, lookahead_s, gain,
-           rt_priority, paced) -> None:  # pragma: no cover (runs in the child process; tested through it)
+def _child(conn, sent, t0, cancel, beat, host_timeout_s, make_corrector, make_driver, times, targets, rate_hz,
+           lookahead_s, gain, rt_priority, paced) -> None:  # pragma: no cover (runs in the child; tested through it)
+    parent = os.getppid()
     try:
         correct, driver = make_corrector(), make_driver()
         rt = _realtime(rt_priority)  # after the set-up: loading a model at real-time priority would starve the host
@@ -178,7 +179,16 @@ def _child(conn, sent, t0, cancel, make_corrector, make_driver, times, targets, 
             t0.value = at
 
         def cancelled() -> str:
-            return "the host stopped the stream" if cancel.value else ""
+            # a shared value, a clock and a system call: about a microsecond, never a wait
+            if cancel.value:
+                return "the host stopped the stream"
+            if os.getppid() != parent:
+                return "the daemon that started the stream is gone"
+            last = beat.value
+            if host_timeout_s is not None and last > 0 and time.monotonic() - last > host_timeout_s:
+                return (f"the daemon gave no sign for {time.monotonic() - last:.2f} s (host_timeout_s "
+                        f"{host_timeout_s:g}): the moving arm is not monitored")
+            return ""
 
         try:
             # time.monotonic: CLOCK_MONOTONIC, the clock the parent reads too (a reading's host time)
@@ -201,20 +211,24 @@ class StreamProcess:
     corrector and the active streaming driver in the child. `sent` is the progress and `t0` the
     schedule's origin on CLOCK_MONOTONIC (time.monotonic here too: set-point k is due at t0 + k /
     rate_hz; NaN until the first is due), readable at any time; `cancel()` asks the loop to stop
-    before its next send (the driver's stop_stream then stops the arm); `result(timeout)` waits for
+    before its next send (the driver's stop_stream then stops the arm), and so does the loop by
+    itself when the parent is gone or, with `host_timeout_s`, has not called `heartbeat()` for that
+    long (a SIGSTOPped or frozen daemon no longer monitors the arm); `result(timeout)` waits for
     the report (TwinError if the child failed or did not answer in time: it is then killed)."""
 
     def __init__(self, make_corrector: Callable[[], Corrector], make_driver: Callable[[], Any],
                  times: np.ndarray, targets: np.ndarray, rate_hz: float, lookahead_s: float = 0.1,
-                 gain: float = 300.0, rt_priority: int = 10, paced: bool = True):
+                 gain: float = 300.0, rt_priority: int = 10, paced: bool = True, host_timeout_s: float | None = None):
         ctx = mp.get_context("spawn")
         self._sent = ctx.Value("q", 0, lock=False)
         self._t0 = ctx.Value("d", float("nan"), lock=False)
         self._cancel = ctx.Value("b", 0, lock=False)
+        self._beat = ctx.Value("d", 0.0, lock=False)
         self._recv, send = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_child, name="dt-stream", daemon=True, args=(
-            send, self._sent, self._t0, self._cancel, make_corrector, make_driver, np.asarray(times, dtype=float),
-            np.asarray(targets, dtype=float), rate_hz, lookahead_s, gain, rt_priority, paced))
+            send, self._sent, self._t0, self._cancel, self._beat, host_timeout_s, make_corrector, make_driver,
+            np.asarray(times, dtype=float), np.asarray(targets, dtype=float), rate_hz, lookahead_s, gain, rt_priority,
+            paced))
         self._proc.start()
         send.close()
 
@@ -228,6 +242,12 @@ class StreamProcess:
 
     def cancel(self) -> None:
         self._cancel.value = 1
+
+    def heartbeat(self) -> None:
+        """The parent is alive and monitoring: with `host_timeout_s`, the loop stops the stream
+        when no heartbeat came for that long (a stalled or frozen daemon: the moving arm is not
+        monitored any more); the first heartbeat arms the check."""
+        self._beat.value = time.monotonic()
 
     def done(self, timeout: float = 0.0) -> bool:
         """True once the report is ready (or the child is gone), waiting at most `timeout` s."""

@@ -6,6 +6,11 @@ streaming process while NatNet measures the arm. Checks are on counts, states an
 numbers, never on wall-clock thresholds."""
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -13,7 +18,7 @@ import pytest
 import yaml
 
 from dt_kernel.errors import ConfigError
-from dt_runtime.common.paths import CONFIGS
+from dt_runtime.common.paths import CONFIGS, ROOT
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from dt_runtime.service.runtime_config import load_runtime_config
 from dt_runtime.service.store import Store
@@ -133,20 +138,28 @@ def test_a_path_the_limits_refuse_is_refused_at_start_naming_the_key(twin_dir, t
 
 
 # --- the UR over RTDE and NatNet: a protective stop mid-path, resumed by the operator ----------
-def test_a_protective_stop_mid_path_halts_and_the_operators_done_resumes_where_the_arm_stands(
-        ur_natnet_cell, ur_natnet_campaign, tmp_path):
-    rc, _, cfg_path = ur_natnet_campaign
+def ur_path_yaml(campaign, tmp_path, seam: str = SEAM, **stream):
+    """The campaign's runtime YAML (its twin, the emulated cell's drivers) streaming `seam` at 125 Hz."""
+    rc, _, cfg_path = campaign
     assert rc == 0
     doc = yaml.safe_load(cfg_path.read_text())
-    (tmp_path / "seam.yaml").write_text(SEAM)
-    # two passes: the first learns the servo lag, the stop comes in the second (compensated, tested)
+    (tmp_path / "seam.yaml").write_text(seam)
     doc.update(store=str(tmp_path / "dt.sqlite"), rate_hz=125, publish=False,
                path={"kind": "path", "program": str(tmp_path / "seam.yaml")},
-               stream={"passes": 2, "rt_priority": 0, "monitor_hz": 40})
+               stream={"rt_priority": 0, **stream})
     doc["drivers"]["robot"] = {**doc["drivers"]["robot"], "stream": {"watchdog_cycles": 50}}
     doc["halt"] = {**doc["halt"], "on_untrusted": "correct"}  # a page on the way keeps the path corrected
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(doc))
-    cfg = load_runtime_config(tmp_path / "run.yaml")
+    return tmp_path / "run.yaml"
+
+
+@pytest.mark.parametrize("fault,why", [("protective_stop", "protective stop"),
+                                       ("drop_rtde", "RTDE connection is down")])
+def test_a_stop_mid_path_halts_and_the_operators_done_resumes_where_the_arm_stands(
+        ur_natnet_cell, ur_natnet_campaign, tmp_path, fault, why):
+    """A protective stop, or the RTDE connection dropped, in the second pass."""
+    # two passes: the first learns the servo lag, the stop comes in the second (compensated, tested)
+    cfg = load_runtime_config(ur_path_yaml(ur_natnet_campaign, tmp_path, passes=2, monitor_hz=40))
     d = Daemon(cfg, tmp_path, source=str(tmp_path / "run.yaml"))
     out: dict = {}
     runner = threading.Thread(target=lambda: out.update(d.run()), daemon=True)
@@ -154,14 +167,15 @@ def test_a_protective_stop_mid_path_halts_and_the_operators_done_resumes_where_t
         runner.start()
         assert wait_until(lambda: d.path.state.pass_started == 2 and d.path.state.next >= 150, 120.0), d.path.state
         assert d.path.state.lag is not None
-        ur_natnet_cell.control("protective_stop")
+        ur_natnet_cell.control(fault)
         assert wait_until(lambda: d.escalator.state == "halted", 60.0), d.health()
         h = d.health()
         assert h["status"] == "halted" and h["stream"]["state"] == "stopped"
-        assert "protective stop" in h["reason"] and "dt ack" in h["reason"] and "resumes at set-point" in h["reason"]
+        assert why in h["reason"] and "dt ack" in h["reason"] and "resumes at set-point" in h["reason"], h["reason"]
         k = h["stream"]["next"]
         assert 150 <= k < h["stream"]["n"]
-        ur_natnet_cell.control("unlock")
+        if fault == "protective_stop":
+            ur_natnet_cell.control("unlock")
         d.acknowledge_maintenance("protective stop cleared", by="test operator")
         runner.join(180.0)
         assert not runner.is_alive()
@@ -179,7 +193,7 @@ def test_a_protective_stop_mid_path_halts_and_the_operators_done_resumes_where_t
     with Store(tmp_path / "dt.sqlite") as st:
         tr = st.transitions()
     halts = [r for r in tr if r["dst"] == "halted"]
-    assert len(halts) == 1 and "protective stop" in halts[0]["evidence"]["halt_reason"]
+    assert len(halts) == 1 and why in halts[0]["evidence"]["halt_reason"]
     assert any(r["src"] == "halted" and r["evidence"].get("by") == "test operator" for r in tr)
 
 
@@ -212,3 +226,44 @@ def test_a_robot_that_cannot_stream_and_a_bad_stream_value_are_refused_before_an
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
     with pytest.raises(ConfigError, match=r"stream\.lookahead_s"):
         load_runtime_config(tmp_path / "bad.yaml")
+
+
+def test_a_stalled_daemon_stops_its_stream_and_halts_with_where_when_it_runs_again(
+        ur_natnet_cell, ur_natnet_campaign, tmp_path):
+    """SIGSTOP `dt run` mid-pass: its streaming process sees no sign of it for host_timeout_s and
+    stops the stream (the arm stops: the servo program ends on the host's stop, not the
+    controller's watchdog); SIGCONT: the daemon finds the pass stopped and halts with where."""
+    cfg = ur_path_yaml(ur_natnet_campaign, tmp_path, SEAM.replace("speed: 100", "speed: 40"), passes=1, lag="none",
+                       monitor_hz=20, host_timeout_s=0.5)
+    before = ur_natnet_cell.control("stats")["ur"]
+    p = subprocess.Popen([sys.executable, "-m", "dt_runtime.cli.main", "run", "--config", str(cfg), "--json"],
+                         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_until(lambda: ur_natnet_cell.control("stats")["ur"]["servo_cycles"]
+                          > before["servo_cycles"] + 200, 120.0), "the path never streamed"
+        os.kill(p.pid, signal.SIGSTOP)
+        try:
+            assert wait_until(lambda: ur_natnet_cell.control("stats")["ur"]["host_stops"] > before["host_stops"],
+                              60.0), ur_natnet_cell.control("stats")
+        finally:
+            os.kill(p.pid, signal.SIGCONT)
+        store = tmp_path / "dt.sqlite"
+
+        def halted() -> bool:
+            with Store(store) as st:
+                return any(r["dst"] == "halted" for r in st.transitions())
+
+        assert wait_until(halted, 60.0)
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 0, err[-3000:]
+    run = json.loads(out)
+    after = ur_natnet_cell.control("stats")["ur"]
+    assert after["watchdog_stops"] == before["watchdog_stops"]  # the host stopped it, in time
+    assert run["state"] == "halted" and "gave no sign" in run["halt_reason"], run["halt_reason"]
+    assert "path stopped at set-point" in run["halt_reason"] and "dt ack" in run["halt_reason"]
+    assert run["path"]["state"] == "stopped" and 0 < run["path"]["next"] < run["path"]["n"]
