@@ -83,13 +83,15 @@ def setpoint_corrector(sc: SetpointCorrector, times: np.ndarray, speeds: np.ndar
     the arm's joints carried from set-point to set-point (a map with joint-space effects)."""
     last = len(times) - 1
     q = [None if joints is None else np.asarray(joints, dtype=float)]
+    warm: list[np.ndarray | None] = [None]  # the previous set-point's correction: the fixed point starts there
 
     def correct_one(target: np.ndarray, t: float) -> np.ndarray:
         k = min(int(np.searchsorted(times, t - 1e-9)), last)
         cond = None if q[0] is None else Conditions(joints=q[0])
-        r = sc.correct(target, float(speeds[k]), cond)
+        r = sc.correct(target, float(speeds[k]), cond, warm[0])
         if r.joints is not None:
             q[0] = r.joints
+        warm[0] = r.command - target
         return r.command
 
     return correct_one
