@@ -73,6 +73,7 @@ from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
 APPROACH_SPEED_M_S = 0.05  # the move to a pass's first command (a resume point may be anywhere)
+LAG_WARN_RATIO = 3.0  # the lag model's u over Eq. 17's u above which the operator is told
 MIN_LAG_READINGS = 20  # fewer tested positions on a moving arm: the lag is not learnt, the pass repeats
 
 
@@ -380,6 +381,13 @@ class PathStreamer:
         order = np.argsort(s)
         self.lag = estimate_lag(self.reference, s[order], measured[order])
         self.state.lag = self.lag.to_dict()
+        ratio = self.u_lag / float(np.max(self.u_reading))
+        if ratio > LAG_WARN_RATIO:  # the test of the moving arm is that much less sensitive than a static one's
+            self.state.lag["warning"] = (
+                f"the lag model leaves {1e3 * self.lag.rms_after_m:.3f} mm (RMS) unexplained, {ratio:.1f} x Eq. 17's "
+                "own uncertainty: the moving arm is tested that much less sharply; slow the path, raise the servo's "
+                "gain or look-ahead smoothing, or check the camera's timing (stream.u_time_s)")
+            log.warning("%s", self.state.lag["warning"])
         log.warning("servo lag learnt from %d readings: %.2f +- %.2f ms (RMS %.3f -> %.3f mm); later passes are "
                     "compensated", self.lag.n, 1e3 * self.lag.tau_s, 1e3 * self.lag.u_tau_s,
                     1e3 * self.lag.rms_before_m, 1e3 * self.lag.rms_after_m)

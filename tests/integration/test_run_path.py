@@ -60,7 +60,7 @@ def test_a_path_streams_its_passes_learns_the_servo_lag_and_tests_the_moving_arm
     # the first pass learns the lag (a 30 ms look-ahead servo): a tight estimate that explains the error
     lag = p["lag"]
     assert 20 < lag["tau_ms"] < 45 and lag["u_tau_ms"] < 1.0, lag
-    assert lag["rms_before_mm"] > 1.0 and lag["rms_after_mm"] < 0.2, lag
+    assert lag["rms_before_mm"] > 1.0 and lag["rms_after_mm"] < 0.2 and "warning" not in lag, lag
     assert p["learning_readings"] > 100 and p["tested"] > 300
     assert p["transient_refused"] > 0  # the servo's transients after each step of the acceleration
     # compensated, the moving arm agrees with the twin: Eq. 17 fails at most at the test's level
