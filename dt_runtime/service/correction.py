@@ -152,6 +152,12 @@ class Monitor:
         b14, b16 = twin.uncertainty.e_lt_hat_minus_e_mvs, twin.uncertainty.e_mvs_lt_hat  # Eqs. 14, 16
         self._t_test = unc.TTestPlan.of(b14.u, b16.u, b14.dof, b16.dof, alpha)  # the same budgets every reading
 
+    @property
+    def t_crit(self) -> np.ndarray:
+        """The critical |t| per axis (two-sided at alpha, Welch-Satterthwaite dof): a reading
+        passes Eq. 17 on an axis when its |t| is at most this."""
+        return self._t_test.t_crit
+
     def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray, cond: Conditions | None = None) -> Check:
         p_mvs = np.asarray(p_mvs, dtype=float)
         if p_mvs.shape != (3,) or not np.all(np.isfinite(p_mvs)):

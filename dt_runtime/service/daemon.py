@@ -464,7 +464,14 @@ class Daemon:
         if self.bus:
             self.bus.publish_telemetry({"t": t, "target": corr.target.tolist(), "command": corr.command.tolist(),
                                         "t_stat": chk.t.tolist(), "passed": chk.passed,
-                                        "state": esc.state})
+                                        "state": esc.state,
+                                        # for the dashboard's view (docs/bus.md): the controller's joint
+                                        # angles, U (95 %) of the position reached, the MVS's TCP in the
+                                        # robot frame, the calibrated-volume flag
+                                        "q": self.inst.robot.read_joint_state().q.tolist(),
+                                        "U": corr.U_tcp.tolist(), "inside": corr.inside,
+                                        "measured": self.twin.T_rdk.inverse().apply(
+                                            self.twin.T_mvs.apply(reading.point)).tolist()})
         self._publish_health()
 
     def _camera_untested(self, why: str) -> None:
