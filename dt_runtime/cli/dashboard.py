@@ -69,14 +69,18 @@ def run(args: argparse.Namespace) -> Any:
     cfg = load_runtime_config(config)
     bus = load_bus_config(args.bus) if args.bus else None
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
     with Dashboard(cfg, config, bus=bus, host=args.host, port=args.port, token_file=args.token_file,
                    group=args.group, tls=(args.tls_cert, args.tls_key), max_rate_hz=args.max_rate) as dash:
-        print(f"dt dashboard: {dash.url} (bus {dash.feed.prefix}; "
-              f"{'operators ' + ', '.join(dash.operators.names) if dash.operators else 'read-only'})",
-              file=sys.stderr, flush=True)
-        stop.wait(args.duration)
+        # installed once it runs, and the caller's put back after (a test calling main in process)
+        before = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            print(f"dt dashboard: {dash.url} (bus {dash.feed.prefix}; "
+                  f"{'operators ' + ', '.join(dash.operators.names) if dash.operators else 'read-only'})",
+                  file=sys.stderr, flush=True)
+            stop.wait(args.duration)
+        finally:
+            for s, handler in before.items():
+                signal.signal(s, signal.SIG_DFL if handler is None else handler)
         return dash.summary()
 
 
