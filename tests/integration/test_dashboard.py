@@ -176,6 +176,7 @@ def test_an_unauthenticated_acknowledgement_is_refused_and_nothing_is_published(
     assert seen == before and dash.server.actions == []
     assert not [a for a in cell[0].store.actions(limit=100) if a.kind == "done"]
     assert cell[0].escalator.state == "maintenance_requested"
+    _shot(page, "dashboard_degraded.png")
 
 
 def test_an_operators_acknowledgement_from_the_page_reaches_the_daemon_by_name(page, dash, cell):

@@ -4,7 +4,6 @@ package, /usr/bin/chromium) driven by Playwright for Python. Playwright's own br
 installs the OS package when it is missing."""
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -27,35 +26,30 @@ def launch(playwright):
     return playwright.chromium.launch(executable_path=chromium_path(), headless=True)
 
 
-def processes_rss_mb(marker: str) -> float:
-    """Resident memory (MB) of every process whose command line holds `marker` (a browser's
-    profile directory: all its processes, renderer and GPU included), summed from /proc."""
-    total_kb = 0
+def processes_memory_mb(marker: str) -> dict[str, float]:
+    """Memory (MB) of every process whose command line holds `marker` (a browser's profile
+    directory: all its processes, renderer and GPU included), from /proc: `rss` summed (counts the
+    pages the processes share once per process) and `pss` summed (shares them out: the browser's
+    real cost)."""
+    kb = {"rss": 0, "pss": 0}
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
             continue
         try:
             if marker not in (d / "cmdline").read_bytes().decode(errors="replace"):
                 continue
-            for line in (d / "status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total_kb += int(line.split()[1])
+            for line in (d / "smaps_rollup").read_text().splitlines():
+                name, _, rest = line.partition(":")
+                if name in ("Rss", "Pss"):
+                    kb[name.lower()] += int(rest.split()[0])
         except OSError:
             continue
-    return total_kb / 1024
-
-
-def self_rss_mb() -> float:
-    for line in Path(f"/proc/{os.getpid()}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+    return {k: v / 1024 for k, v in kb.items()}
 
 
 def canvas_ink(page, selector: str) -> dict:
-    """How much of a canvas is drawn: pixels that differ from its top-left (background) pixel,
-    and those close to a colour the caller names later (returned raw: counts by rounded colour
-    are too many, so only `drawn` and the pixel count)."""
+    """How much of a canvas is drawn: `drawn`, pixels that differ from its top-left (background)
+    pixel; `grey`, dark neutral pixels (the arm's links and joints); `pixels`, all of them."""
     return page.evaluate("""(sel) => {
         const c = document.querySelector(sel), g = c.getContext('2d');
         const d = g.getImageData(0, 0, c.width, c.height).data;

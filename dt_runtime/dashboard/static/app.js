@@ -8,7 +8,8 @@ const MAX_TEL = 400;        // telemetry samples kept for the plot and the point
 const MAX_LAT = 5000;       // latency samples kept
 const S = { scene: null, health: null, timeline: [], requests: new Map(), tel: [], last: null,
             token: null, operator: null, readOnly: true, group: null, bus: null, arrivals: [] };
-const stats = window.dtStats = { batches: 0, messages: 0, skipped: 0, frames: 0, latT: [], latRx: [], connected: false };
+const stats = window.dtStats = { batches: 0, messages: 0, skipped: 0, frames: 0, latT: [], latRx: [], connected: false,
+                                 firstDataMs: null };  // performance.now() of the first frame that showed telemetry
 const $ = (id) => document.getElementById(id);
 const mm = (v) => (v == null ? "–" : (v * 1e3).toFixed(3));
 const ago = (t) => (t == null ? "–" : `${Math.max(0, Date.now() / 1e3 - t).toFixed(1)} s ago`);
@@ -67,6 +68,7 @@ function scheduleDraw(tel) {
     const shown = pending; pending = null;
     drawViews(); drawT(); drawStrip(); renderRate();
     stats.frames++;
+    if (stats.firstDataMs == null && S.last) stats.firstDataMs = performance.now();
     const now = Date.now();  // the frame that shows them: bus-to-screen latency
     for (const m of shown) {
       if (m.t != null) pushBounded(stats.latT, now - m.t * 1e3, MAX_LAT);
