@@ -455,7 +455,7 @@ class Daemon:
             self._publish_health()
             return
         chk = self._test(corr.command, v, reading.point, cond, t, None, True,
-                         self._telemetry(corr, cond) if self.bus else {})
+                         self._telemetry(corr) if self.bus else {})
         if chk is None:
             return
         done = time.monotonic()
@@ -466,11 +466,11 @@ class Daemon:
             self.exposure_latencies.append(done - mid)
         self._publish_health()
 
-    def _telemetry(self, corr: Corrected, cond: Conditions | None) -> dict[str, Any]:
+    def _telemetry(self, corr: Corrected) -> dict[str, Any]:
         """A command's telemetry beside its Eq. 17 (docs/bus.md): for the dashboard's view also the
-        controller's joint angles (the conditions' when read for the twin, else read now), U (95 %)
-        of the position reached and the calibrated-volume flag."""
-        q = cond.joints if cond is not None and cond.joints is not None else self.inst.robot.read_joint_state().q
+        controller's joint angles after the move (the conditions' are from before it), U (95 %) of
+        the position reached and the calibrated-volume flag."""
+        q = self.inst.robot.read_joint_state().q
         return {"target": corr.target.tolist(), "command": corr.command.tolist(), "q": np.asarray(q).tolist(),
                 "U": corr.U_tcp.tolist(), "inside": corr.inside}
 
