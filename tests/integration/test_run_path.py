@@ -18,6 +18,7 @@ import pytest
 import yaml
 
 from dt_kernel.errors import ConfigError
+from dt_runtime.cli.run import human
 from dt_runtime.common.paths import CONFIGS, ROOT
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from dt_runtime.service.runtime_config import load_runtime_config
@@ -67,6 +68,8 @@ def test_a_path_streams_its_passes_learns_the_servo_lag_and_tests_the_moving_arm
     assert s["t_test_failures"] <= 0.05 * p["tested"], (s["t_test_failures"], p["tested"])
     assert s["state"] == "nominal" and s["maintenance_requests"] == 0
     assert health["stream"]["passes"] == 3 and health["status"] == "running"
+    words = human(s)  # dt run's last lines: on which data the moving arm was tested
+    assert "readings the lag fit did not see" in words and f"{p['tested']} readings tested" in words
     with Store(tmp_path / "dt.sqlite") as st:
         assert st.count("t_stats") == p["tested"]
         assert st.count("measurements") == p["tested"] + p["learning_readings"]
