@@ -32,6 +32,7 @@ from dt_runtime.reports.html import (
 )
 from dt_runtime.reports.parameter_table import html as parameters_html
 from dt_runtime.reports.parameter_table import parameter_table
+from dt_runtime.reports.residuals import write_residuals
 from dt_runtime.reports.traceability import traceability
 
 
@@ -408,10 +409,12 @@ def build_compare_report(result: dict, arrays: dict) -> str:
 
 
 def write_compare_report(result: dict, arrays: dict, out_dir) -> Path:
-    """Write out_dir/report.html and out_dir/compare.json; return the HTML path."""
+    """Write out_dir/report.html, out_dir/compare.json and out_dir/residuals.csv (every row's
+    residual per model: reports.residuals); return the HTML path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "compare.json").write_text(json.dumps(result, indent=2, ensure_ascii=False), encoding="utf-8")
+    write_residuals(arrays, out)
     path = out / "report.html"
     path.write_text(build_compare_report(result, arrays), encoding="utf-8")
     return path
