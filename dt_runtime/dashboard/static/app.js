@@ -299,7 +299,7 @@ function renderProvenance() {
 }
 
 fetch("/api/scene").then((r) => r.json()).then((sc) => {
-  S.scene = sc; setupViews(); renderProvenance(); renderErrorMapLegend(); renderT(); scheduleDraw([]);
+  S.scene = sc; $("metrology").hidden = !sc.metrology; setupViews(); renderProvenance(); renderErrorMapLegend(); renderT(); scheduleDraw([]);
   $("arrows").addEventListener("change", () => scheduleDraw([]));
   connect();
 });
