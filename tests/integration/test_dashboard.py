@@ -152,7 +152,6 @@ def test_the_error_map_is_drawn_as_arrows_at_the_campaigns_points_and_toggles(pa
     page.check("#arrows")
     frames = page.evaluate("dtStats.frames")
     page.wait_for_function(f"dtStats.frames > {frames + 1}")
-    _shot(page, "dashboard_error_map.png")
     assert on > 4 * len(em["points"]) and off < 0.02 * on, (on, off)  # 531 and 0 when written
     assert browser.canvas_colour(page, "#view3d", ARROWS) > 0.5 * on
 
