@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs
 
-from dt_kernel.errors import DataError, ModelError
+from dt_kernel.errors import ConfigError, DataError, ModelError
 from dt_runtime.common.jsonsafe import dumps
 from dt_runtime.common.safe_json import loads
 from dt_runtime.dashboard.feed import BusFeed
@@ -154,9 +154,12 @@ class Handler(BaseHTTPRequestHandler):
         if path == "/metrology" and self.server.results is not None:
             return self._send(HTTPStatus.OK, _static("metrology.html"), STATIC["metrology.html"])
         if path == "/api/results" and self.server.results is not None:
+            try:
+                found = find_results(self.server.results)
+            except ConfigError as exc:  # the directory went away while served
+                return self._error(HTTPStatus.NOT_FOUND, str(exc))
             return self._json(HTTPStatus.OK, {"root": str(self.server.results), "live": live,
-                                              "results": [{"name": r.name, "kind": r.kind}
-                                                          for r in find_results(self.server.results)]})
+                                              "results": [{"name": r.name, "kind": r.kind} for r in found]})
         if path == "/api/result" and self.server.results is not None:
             return self._result(parse_qs(query).get("name", [""])[0])
         if path.startswith("/static/") and path[len("/static/"):] in STATIC:
@@ -181,7 +184,10 @@ class Handler(BaseHTTPRequestHandler):
         """One result of the metrologist's directory, named as /api/results lists it (nothing else
         under or beside the directory is read)."""
         assert self.server.results is not None
-        found = {r.name: r for r in find_results(self.server.results)}
+        try:
+            found = {r.name: r for r in find_results(self.server.results)}
+        except ConfigError:  # the directory went away while served
+            found = {}
         if name not in found:
             return self._error(HTTPStatus.NOT_FOUND, f"no result {name[:200]!r} under {self.server.results}")
         try:
