@@ -13,6 +13,11 @@ Acknowledging a request or confirming maintenance done needs an operator: `--tok
 action with the key under the operator's name; the daemon stores it by that name. Without a
 token file the page is read-only.
 
+The metrologist's view (/metrology, `--results DIR`): the results in DIR and below (`dt compare
+--report`, `dt diagnose --auto --out`, twins), one chosen on the page: the residual map per point in
+3D with filters by session, speed and direction of approach, the diagnose steps, the report's
+figures. With `--results` alone no bus is joined and only that page is served.
+
 Beyond loopback (`--host` another address) the page is served only over TLS (`--tls-cert`,
 `--tls-key`): the operators' tokens travel in its requests. Runs until SIGINT/SIGTERM or
 `--duration`.
@@ -29,7 +34,11 @@ from typing import Any
 
 
 def add_arguments(d: argparse.ArgumentParser) -> None:
-    d.add_argument("--config", required=True, metavar="YAML", help="the runtime YAML of the `dt run` to watch")
+    d.add_argument("--config", default=None, metavar="YAML",
+                   help="the runtime YAML of the `dt run` to watch (the live view)")
+    d.add_argument("--results", default=None, metavar="DIR",
+                   help="results of dt compare --report, dt diagnose --auto --out or twins, in DIR or below it: the "
+                        "metrologist's view at /metrology (with --results alone, only that page, no bus)")
     d.add_argument("--bus", default=None, metavar="YAML",
                    help="a bus config of its own (another machine, a router) instead of joining the runtime "
                         "YAML's daemon")
@@ -65,18 +74,23 @@ def run(args: argparse.Namespace) -> Any:
 
     if not 1 <= args.max_rate <= 200:
         raise ConfigError("<command line>", "--max-rate", args.max_rate, "1 to 200 updates a second")
-    config = Path(args.config)
-    cfg = load_runtime_config(config)
+    config = Path(args.config) if args.config else None
+    cfg = load_runtime_config(config) if config else None
     bus = load_bus_config(args.bus) if args.bus else None
     stop = threading.Event()
     with Dashboard(cfg, config, bus=bus, host=args.host, port=args.port, token_file=args.token_file,
-                   group=args.group, tls=(args.tls_cert, args.tls_key), max_rate_hz=args.max_rate) as dash:
+                   group=args.group, tls=(args.tls_cert, args.tls_key), max_rate_hz=args.max_rate,
+                   results=args.results) as dash:
         # installed once it runs, and the caller's put back after (a test calling main in process)
         before = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
-            print(f"dt dashboard: {dash.url} (bus {dash.feed.prefix}; "
-                  f"{'operators ' + ', '.join(dash.operators.names) if dash.operators else 'read-only'})",
-                  file=sys.stderr, flush=True)
+            if dash.feed is not None:
+                print(f"dt dashboard: {dash.url} (bus {dash.feed.prefix}; "
+                      f"{'operators ' + ', '.join(dash.operators.names) if dash.operators else 'read-only'})",
+                      file=sys.stderr, flush=True)
+            if args.results:
+                print(f"dt dashboard: the metrologist's view {dash.url}metrology (results in {args.results})",
+                      file=sys.stderr, flush=True)
             stop.wait(args.duration)
         finally:
             for s, handler in before.items():

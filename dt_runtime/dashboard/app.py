@@ -1,6 +1,7 @@
 """`Dashboard`: the parts of `dt dashboard` put together and started (the twin's scene, the hub,
 the bus feed, the web server in its own thread); `close()` stops them in reverse. Tests and the
-benchmark start it in process; `dt dashboard` wraps it."""
+benchmark start it in process; `dt dashboard` wraps it. Without a runtime config it serves the
+metrologist's page only (`results`: no bus, no twin of a cell)."""
 from __future__ import annotations
 
 import logging
@@ -13,6 +14,7 @@ from dt_kernel.errors import ConfigError
 from dt_runtime.dashboard.feed import BusFeed, joining
 from dt_runtime.dashboard.hub import Hub
 from dt_runtime.dashboard.operators import Operators, load_operators
+from dt_runtime.dashboard.results import find_results
 from dt_runtime.dashboard.scene import Scene
 from dt_runtime.dashboard.server import DashboardServer, is_loopback
 from dt_runtime.service.bus import BusConfig
@@ -23,11 +25,16 @@ log = logging.getLogger("dt.dashboard")
 
 
 class Dashboard:
-    def __init__(self, cfg: RuntimeConfig, config_path: str | Path, *, bus: BusConfig | None = None,
+    def __init__(self, cfg: RuntimeConfig | None, config_path: str | Path | None, *, bus: BusConfig | None = None,
                  host: str = "127.0.0.1", port: int = 8765, token_file: str | Path | None = None,
                  group: str = "maintenance", tls: tuple[str | None, str | None] = (None, None),
-                 max_rate_hz: float = 50.0):
-        config_path = Path(config_path)
+                 max_rate_hz: float = 50.0, results: str | Path | None = None):
+        if cfg is None and results is None:
+            raise ConfigError("<command line>", "--config/--results", None, "a runtime YAML (the live cell), a "
+                              "directory of results (the metrologist's view), or both")
+        if results is not None:
+            results = Path(results).resolve()
+            find_results(results)  # a directory, or a ConfigError now rather than on the page
         cert, key = tls
         if (cert is None) != (key is None):
             raise ConfigError("<command line>", "--tls-cert/--tls-key", cert or key, "both, or neither")
@@ -37,6 +44,22 @@ class Dashboard:
                               "the host the page is served over TLS only (the operators' tokens travel in it)")
         # Everything is read and checked before anything opens: a bad token file or key opens no session.
         self.operators: Operators | None = load_operators(token_file) if token_file is not None else None
+        self.hub = Hub()
+        self._closers: list[Any] = []
+        self.scene: Scene | None = None
+        self.feed: BusFeed | None = None
+        try:
+            if cfg is not None:
+                self._join(cfg, Path(config_path or "."), bus, group)
+            self.server = DashboardServer((host, port), self.hub, self.scene, self.feed, self.operators, max_rate_hz,
+                                          results)
+        except BaseException:
+            self.close()
+            raise
+        self._serve(cert, key)
+
+    def _join(self, cfg: RuntimeConfig, config_path: Path, bus: BusConfig | None, group: str) -> None:
+        """The live cell: the twin's scene and the bus feed."""
         bus_cfg = bus if bus is not None else joining(cfg.bus, str(config_path))
         # To act, the service's key (as `dt ack --bus`: never made here, a new one could not be the service's);
         # to read, the key is used when present, to refuse what the daemon did not sign.
@@ -50,12 +73,11 @@ class Dashboard:
                 log.info("dashboard: read-only without the bus key (messages not checked): %s", exc)
         twin = Path(cfg.twin)
         self.scene = Scene(twin if twin.is_absolute() else config_path.parent / twin, cfg.alpha)
-        self.hub = Hub()
-        self._closers: list[Any] = []
+        self.feed = BusFeed(bus_cfg, self.hub, self.scene, signer, group)
+        self._closers.append(self.feed.close)
+
+    def _serve(self, cert: str | None, key: str | None) -> None:
         try:
-            self.feed = BusFeed(bus_cfg, self.hub, self.scene, signer, group)
-            self._closers.append(self.feed.close)
-            self.server = DashboardServer((host, port), self.hub, self.scene, self.feed, self.operators, max_rate_hz)
             self._closers.append(self.server.server_close)
             if cert is not None:
                 ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
@@ -80,8 +102,9 @@ class Dashboard:
         return self.server.url
 
     def summary(self) -> dict[str, Any]:
-        return {"url": self.url, "bus": self.feed.prefix, "received": dict(self.hub.received),
-                "bus_refused": self.hub.bus_refused, "dropped": self.feed.dropped,
+        return {"url": self.url, "bus": self.feed.prefix if self.feed else None, "received": dict(self.hub.received),
+                "bus_refused": self.hub.bus_refused, "dropped": self.feed.dropped if self.feed else 0,
+                "metrology": self.server.results is not None and self.url + "metrology",
                 "actions": list(self.server.actions),
                 "operators": self.operators.names if self.operators else []}
 

@@ -8,7 +8,10 @@ arrives as a few messages a batch). No framework, no dependency, nothing fetched
 Routes:
     GET  /                      the page (static/index.html)
     GET  /static/<file>         its script and style sheet (a fixed list)
-    GET  /api/scene             the twin: robot, calibrated volume, Eq. 17 thresholds, provenance
+    GET  /api/scene             the twin: robot, calibrated volume, Eq. 17 thresholds, provenance, error map
+    GET  /metrology             the metrologist's page (static/metrology.html; with --results)
+    GET  /api/results           the results under --results: [{name, kind}]
+    GET  /api/result?name=N     one of them, as results.load reads it (N: a name of /api/results)
     GET  /api/snapshot          the live state now (JSON)
     GET  /api/events            server-sent events: `snapshot`, then batches (`message`)
     GET  /api/whoami            the operator a token names (401/403 as for an action)
@@ -30,19 +33,24 @@ import time
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
+from pathlib import Path
 from typing import Any
+from urllib.parse import parse_qs
 
-from dt_kernel.errors import DataError
+from dt_kernel.errors import ConfigError, DataError, ModelError
 from dt_runtime.common.jsonsafe import dumps
 from dt_runtime.common.safe_json import loads
 from dt_runtime.dashboard.feed import BusFeed
 from dt_runtime.dashboard.hub import Hub
 from dt_runtime.dashboard.operators import Operators
+from dt_runtime.dashboard.results import find_results
+from dt_runtime.dashboard.results import load as load_result
 from dt_runtime.dashboard.scene import Scene
 
 log = logging.getLogger("dt.dashboard")
 STATIC = {"index.html": "text/html; charset=utf-8", "app.js": "text/javascript; charset=utf-8",
-          "view3d.js": "text/javascript; charset=utf-8", "style.css": "text/css; charset=utf-8"}
+          "view3d.js": "text/javascript; charset=utf-8", "style.css": "text/css; charset=utf-8",
+          "metrology.html": "text/html; charset=utf-8", "metrology.js": "text/javascript; charset=utf-8"}
 MAX_BODY = 4096
 MAX_NOTE = 500
 MAX_STREAMS = 16  # pages open at once (each holds a thread)
@@ -66,12 +74,14 @@ class DashboardServer(ThreadingHTTPServer):
     daemon_threads = True  # a page's stream never holds the process up at exit
     allow_reuse_address = True
 
-    def __init__(self, address: tuple[str, int], hub: Hub, scene: Scene, feed: BusFeed | None,
-                 operators: Operators | None, max_rate_hz: float = 50.0):
+    def __init__(self, address: tuple[str, int], hub: Hub, scene: Scene | None, feed: BusFeed | None,
+                 operators: Operators | None, max_rate_hz: float = 50.0, results: Path | None = None):
         super().__init__(address, Handler)
         self.hub, self.scene, self.feed, self.operators = hub, scene, feed, operators
+        self.results = results  # the metrologist's directory (None: no /metrology)
         self.min_interval_s = 1.0 / max_rate_hz
-        self.scene_json = dumps(scene.to_dict()).encode()
+        # None: no live cell (the metrologist's page only)
+        self.scene_json = dumps(scene.to_dict() | {"metrology": results is not None}).encode() if scene else None
         self.streams = 0
         self.actions: list[dict[str, Any]] = []  # what the operators did (also logged)
         self._lock = threading.Lock()
@@ -135,15 +145,29 @@ class Handler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:  # noqa: N802 - http.server's name
         if not self.server.allowed_host(self.headers.get("Host")):
             return self._error(HTTPStatus.FORBIDDEN, "Host not served here")
-        path = self.path.split("?", 1)[0]
+        path, _, query = self.path.partition("?")
+        live = self.server.scene_json is not None
+        if path in ("/", "/index.html") and not live:
+            return self._send(HTTPStatus.FOUND, b"", "text/plain", {"Location": "/metrology"})
         if path in ("/", "/index.html"):
             return self._send(HTTPStatus.OK, _static("index.html"), STATIC["index.html"])
+        if path == "/metrology" and self.server.results is not None:
+            return self._send(HTTPStatus.OK, _static("metrology.html"), STATIC["metrology.html"])
+        if path == "/api/results" and self.server.results is not None:
+            try:
+                found = find_results(self.server.results)
+            except ConfigError as exc:  # the directory went away while served
+                return self._error(HTTPStatus.NOT_FOUND, str(exc))
+            return self._json(HTTPStatus.OK, {"root": str(self.server.results), "live": live,
+                                              "results": [{"name": r.name, "kind": r.kind} for r in found]})
+        if path == "/api/result" and self.server.results is not None:
+            return self._result(parse_qs(query).get("name", [""])[0])
         if path.startswith("/static/") and path[len("/static/"):] in STATIC:
             name = path[len("/static/"):]
             return self._send(HTTPStatus.OK, _static(name), STATIC[name])
         if path == "/favicon.ico":
             return self._send(HTTPStatus.NO_CONTENT, b"", "image/x-icon")
-        if path == "/api/scene":
+        if path == "/api/scene" and self.server.scene_json is not None:
             return self._send(HTTPStatus.OK, self.server.scene_json, "application/json")
         if path == "/api/snapshot":
             return self._json(HTTPStatus.OK, self._snapshot())
@@ -155,6 +179,23 @@ class Handler(BaseHTTPRequestHandler):
                 self._json(HTTPStatus.OK, {"operator": who})
             return None
         return self._error(HTTPStatus.NOT_FOUND, f"no such page: {path}")
+
+    def _result(self, name: str) -> None:
+        """One result of the metrologist's directory, named as /api/results lists it (nothing else
+        under or beside the directory is read)."""
+        assert self.server.results is not None
+        try:
+            found = {r.name: r for r in find_results(self.server.results)}
+        except ConfigError:  # the directory went away while served
+            found = {}
+        if name not in found:
+            return self._error(HTTPStatus.NOT_FOUND, f"no result {name[:200]!r} under {self.server.results}")
+        try:
+            body = load_result(found[name])
+        except (DataError, ModelError, OSError) as exc:
+            log.warning("dashboard: result %s not readable: %s", name, exc)
+            return self._error(HTTPStatus.UNPROCESSABLE_ENTITY, str(exc))
+        return self._json(HTTPStatus.OK, body)
 
     def _snapshot(self) -> dict[str, Any]:
         feed = self.server.feed

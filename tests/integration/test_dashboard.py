@@ -16,6 +16,7 @@ import time
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from dt_runtime.common.paths import CONFIGS
@@ -124,6 +125,35 @@ def test_the_page_loads_against_the_daemon_and_draws_the_cell(page, dash):
     detail = page.text_content("#errors")
     assert "measured − target" in detail and " mm" in detail
     _shot(page, "dashboard_live.png")
+
+
+ARROWS = (0x00, 0x89, 0x7B)  # the error map's colour (app.js drawErrorMap)
+
+
+def test_the_error_map_is_drawn_as_arrows_at_the_campaigns_points_and_toggles(page, dash, twin_dir):
+    em = page.evaluate("S.scene.error_map")
+    # the quick demo's DOE: its points, every row of the campaign's doe.csv counted once
+    doe_rows = sum(1 for _ in open(twin_dir.parent / "campaign" / "doe.csv")) - 1
+    assert sum(em["count"]) == em["rows"] == doe_rows and len(em["points"]) == len(em["e_hat"]) > 20
+    # the twin's own prediction at a point (its map at rest there: no previous command to approach from)
+    twin = dash.scene.twin
+    e0 = twin.e_lt_hat(em["points"][0], 0.3)[0]
+    assert 0.05e-3 < float(np.linalg.norm(e0)) < 5e-3  # the demo arm's error: about a millimetre
+    assert float(np.linalg.norm(np.array(em["e_hat"][0]) - e0)) < 0.3 * float(np.linalg.norm(e0))
+    # drawn at a stated scale: the longest arrow about a tenth of the ~1 m campaign
+    assert em["scale"] in (20, 50, 100) and 0.04 < em["scale"] * em["max_m"] < 0.15
+    assert f"× {em['scale']:g}" in page.text_content("#arrows-key")
+    page.wait_for_function("dtStats.frames > 3")
+    on = browser.canvas_colour(page, "#view3d", ARROWS)
+    page.uncheck("#arrows")
+    frames = page.evaluate("dtStats.frames")
+    page.wait_for_function(f"dtStats.frames > {frames + 1}")
+    off = browser.canvas_colour(page, "#view3d", ARROWS)
+    page.check("#arrows")
+    frames = page.evaluate("dtStats.frames")
+    page.wait_for_function(f"dtStats.frames > {frames + 1}")
+    assert on > 4 * len(em["points"]) and off < 0.02 * on, (on, off)  # 531 and 0 when written
+    assert browser.canvas_colour(page, "#view3d", ARROWS) > 0.5 * on
 
 
 def test_a_state_change_on_the_bus_appears_in_the_dom_within_a_second(page, dash, bus_peer, cell):

@@ -62,3 +62,15 @@ def canvas_ink(page, selector: str) -> dict:
         }
         return {drawn, grey, pixels: d.length / 4};
     }""", selector)
+
+
+def canvas_colour(page, selector: str, rgb: tuple[int, int, int], tol: int = 40) -> int:
+    """Pixels of a canvas within `tol` (sum of |channel differences|) of the colour `rgb`."""
+    return page.evaluate("""([sel, [r, g, b], tol]) => {
+        const c = document.querySelector(sel), d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        let n = 0;
+        for (let i = 0; i < d.length; i += 4) {
+            if (Math.abs(d[i] - r) + Math.abs(d[i + 1] - g) + Math.abs(d[i + 2] - b) <= tol && d[i + 3] > 0) n++;
+        }
+        return n;
+    }""", [selector, list(rgb), tol])

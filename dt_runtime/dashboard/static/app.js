@@ -113,6 +113,7 @@ function drawViews() {
   v.line([0, 0, 0], [0, 0, 0.2], "#36c", 2);
   const vol = S.scene && S.scene.volume;
   if (vol) for (const [a, b] of vol.edges) v.line(vol.corners[a], vol.corners[b], "#5b7fa8", 1, [5, 4]);
+  if ($("arrows").checked) drawErrorMap(v, S.scene && S.scene.error_map);
   for (const m of S.tel) if (m.measured) v.dot(m.measured, 3, tColor(tRatio(m)));
   const last = S.last;
   if (last && last.arm) {
@@ -127,6 +128,21 @@ function drawViews() {
     if (last.measured) v.marker(last.measured, "diamond", 5, "#8e24aa");
   }
   drawDetail(last);
+}
+// The twin's e_LT_hat at its campaign's points (scene.error_map), scale times its length: from the
+// commanded point to where the twin says the arm really goes, c - N ê (e = commanded - measured, Eq. 8).
+function drawErrorMap(v, em) {
+  if (!em || !em.points) return;
+  em.points.forEach((c, i) => {
+    const e = em.e_hat[i];
+    v.arrow(c, c.map((x, k) => x - em.scale * e[k]), "#00897b", 2, 6);
+  });
+}
+function renderErrorMapLegend() {
+  const em = S.scene.error_map, key = $("arrows-key");
+  if (!em || !em.points) { $("arrows").disabled = true; key.textContent = `error map: none (${em ? em.why : "no twin"})`; return; }
+  key.textContent = `error map: ê_LT at the campaign's ${em.points.length} points (${em.rows} rows), drawn × ${em.scale} ` +
+    `(longest ${(em.max_m * 1e3).toFixed(3)} mm, RMS ${(em.rms_m * 1e3).toFixed(3)} mm), pointing to where the arm goes`;
 }
 function drawDetail(last) {
   const d = detail;
@@ -283,6 +299,7 @@ function renderProvenance() {
 }
 
 fetch("/api/scene").then((r) => r.json()).then((sc) => {
-  S.scene = sc; setupViews(); renderProvenance(); renderT(); scheduleDraw([]);
+  S.scene = sc; $("metrology").hidden = !sc.metrology; setupViews(); renderProvenance(); renderErrorMapLegend(); renderT(); scheduleDraw([]);
+  $("arrows").addEventListener("change", () => scheduleDraw([]));
   connect();
 });

@@ -67,6 +67,20 @@ class View3D {
     g.setLineDash([]);
   }
 
+  // An arrow from a to b (m) with its head in screen space (a 3D error of 0.1 mm times N).
+  arrow(a, b, color, width = 1.5, head = 6) {
+    const [x0, y0] = this.project(a), [x1, y1] = this.project(b), g = this.ctx;
+    const len = Math.hypot(x1 - x0, y1 - y0);
+    g.strokeStyle = color; g.fillStyle = color; g.lineWidth = width; g.setLineDash([]);
+    g.beginPath(); g.moveTo(x0, y0); g.lineTo(x1, y1); g.stroke();
+    if (len < 1) return;
+    const ux = (x1 - x0) / len, uy = (y1 - y0) / len, h = Math.min(head, 0.5 * len);
+    g.beginPath(); g.moveTo(x1, y1);
+    g.lineTo(x1 - h * ux + 0.5 * h * uy, y1 - h * uy - 0.5 * h * ux);
+    g.lineTo(x1 - h * ux - 0.5 * h * uy, y1 - h * uy + 0.5 * h * ux);
+    g.closePath(); g.fill();
+  }
+
   dot(p, r, fill, stroke = null) {
     const [x, y] = this.project(p), g = this.ctx;
     g.beginPath(); g.arc(x, y, r, 0, 2 * Math.PI);
