@@ -214,7 +214,21 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
     if out is not None:
         r.model_out = str(final_path(save_final(prep, ev, final, out, r)))  # where it is once swapped in
     r.evaluator = ev
+    r.heldout_rows = heldout_rows(prep, ev, Config.of(sel.steps[0].config), final)
     return r
+
+
+def heldout_rows(prep: Prepared, ev: Evaluator, first: Config, final: Config) -> dict:
+    """The rows and the held-out residuals by point of the `first` model (before any step) and the
+    `final` one, as reports.residuals writes them: the cross-validations the steps already ran
+    (memoised), nothing refitted. The model names say which is which; one model when nothing
+    was changed."""
+    ds = prep.data.dataset
+    pair = [("first", first), ("final", final)] if first != final else [("first = final", final)]
+    return {"commanded": ds.commanded, "speed": ds.speed, "joints": ds.joints, "session": ds.extra.get("session"),
+            "point_id": ds.point_id, "lines": ds.lines,
+            "models": [{"name": f"{which}: {cfg.label()}", "residual": ev.cv(cfg, ev.points).residual}
+                       for which, cfg in pair]}
 
 
 def save_final(prep: Prepared, ev: Evaluator, cfg: Config, out: str | Path, result: AutoResult) -> Path:

@@ -45,6 +45,11 @@ class Config:
     def to_dict(self) -> dict:
         return {"effects": list(self.effects), "gp_inputs": self.gp_inputs, "session_terms": list(self.nuisance)}
 
+    @classmethod
+    def of(cls, d: dict) -> Config:
+        """The configuration of `to_dict`'s dict (a step's `config`)."""
+        return cls(tuple(d["effects"]), d["gp_inputs"], tuple(d["session_terms"]))
+
 
 @dataclass
 class Problem:

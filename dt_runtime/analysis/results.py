@@ -163,9 +163,13 @@ class AutoResult:
     # The diagnosis's cross-validations (analysis.evaluation.Evaluator; not in the JSON): a caller
     # scoring the same configurations on the same data reuses them.
     evaluator: Any = None
+    # Every row's held-out residual (by point, the steps' figure) of the first and the final model,
+    # with the rows' points, sessions, speeds and joints (not in the JSON): the arrays of
+    # reports.residuals, written beside the model by `dt diagnose --auto --out` (residuals.csv).
+    heldout_rows: dict | None = None
 
     def to_dict(self) -> dict:
-        d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source", "evaluator")}
+        d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source", "evaluator", "heldout_rows")}
         return jsonable(d | {"steps": [s.to_dict() for s in self.steps]} | self.source)
 
 

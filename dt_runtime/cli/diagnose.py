@@ -11,7 +11,8 @@ candidates the campaign cannot separate from the pose are not tested; effects th
 factor are tested head to head; sessions that disagree are tested against the session terms. It
 prints the steps (model, both held-out figures, p, explained fraction) and the verdict, whose last
 sentence says whether to deploy. `--out MODEL` fits the final model on all rows and saves it (with
-diagnose.json) for dt compare, dt calibrate --model and dt export.
+diagnose.json) for dt compare, dt calibrate --model and dt export, and residuals.csv beside it: every
+row's held-out residual (by point) of the first and the final model (reports.residuals).
 """
 from __future__ import annotations
 
@@ -45,7 +46,8 @@ def add_arguments(dg: argparse.ArgumentParser) -> None:
     dg.add_argument("--min-explained", type=_fraction, default=0.02,
                     help="--auto: smallest explained fraction of held-out variance worth adding (0.02)")
     dg.add_argument("--out", default=None, metavar="MODEL",
-                    help="--auto: fit the final model on all rows and save it here (with diagnose.json); the "
+                    help="--auto: fit the final model on all rows and save it here (with diagnose.json and "
+                         "residuals.csv, every row's held-out residual of the first and the final model); the "
                          "directory is replaced whole at the end")
     add_session_args(dg)
     dg.add_argument("--instruments", default=None, metavar="YAML",
@@ -73,9 +75,11 @@ def run(args: argparse.Namespace) -> Any:
     from dt_kernel.errors import DataError
     from dt_runtime.analysis.diagnose import diagnose
     from dt_runtime.analysis.parallel import default_to_cores
+    from dt_runtime.analysis.results import AutoResult
     from dt_runtime.cli.common import MODEL_MARKS, data_inputs, robot_of
     from dt_runtime.common.jsonsafe import jsonable
     from dt_runtime.common.outputs import staged
+    from dt_runtime.reports.residuals import write_residuals
     from dt_runtime.reports.verdicts import with_verdict
 
     if args.out is not None and not args.auto:
@@ -91,9 +95,11 @@ def run(args: argparse.Namespace) -> Any:
                      min_explained=args.min_explained, out=model_dir, exclude_sessions=names(args.exclude_session),
                      reference_session=args.reference_session, session_terms=names(args.session_term))
         out = with_verdict(jsonable(r))
-        if model_dir is not None:  # the verdict beside the model it chose
+        if model_dir is not None:  # the verdict beside the model it chose, and its map of held-out residuals
             (Path(model_dir) / "diagnose.json").write_text(json.dumps(out, indent=2, allow_nan=False),
                                                            encoding="utf-8")
+            assert isinstance(r, AutoResult) and r.heldout_rows is not None  # --out needs --auto (above)
+            write_residuals(r.heldout_rows, model_dir)
     return out
 
 

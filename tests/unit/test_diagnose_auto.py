@@ -126,3 +126,41 @@ def test_several_files_are_one_campaign_and_sessions_that_disagree_are_a_finding
     assert any(s["rmse_mm"] > s["as_is_rmse_mm"] for s in out["sessions"]) and out["deploy"]["ok"] is False
     v = out["verdict"]
     assert "Held out by session" in v and v.rfind(" Do not deploy: held out") > v.rfind(" Stopped")
+
+
+def test_out_writes_every_rows_held_out_residual_of_the_first_and_the_final_model(hidden, tmp_path):
+    """residuals.csv beside the model: the residuals the steps were scored on (each point predicted by
+    the model fitted on the other folds), not the saved model's in-sample ones."""
+    import numpy as np
+
+    from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
+    from dt_runtime.analysis.data import load_data
+    from dt_runtime.models.hybrid import HybridModel, load_map
+    from dt_runtime.reports.residuals import read_residuals
+
+    out = tmp_path / "model"
+    with contextlib.redirect_stdout(io.StringIO()) as text:
+        assert main(["diagnose", "--data", str(hidden["backlash"]), "--auto", "--out", str(out), "--json",
+                     "--no-progress"]) == 0
+    d = json.loads(text.getvalue())
+    t = read_residuals(out / "residuals.csv")
+    names = [k[4:] for k in t if k.startswith("r_x:")]
+    assert names == [f"first: {d['steps'][0]['model']}", f"final: {d['steps'][-1]['model']}"]
+    r = {n: np.array([[float(v) for v in t[f"r_{a}:{n}"]] for a in "xyz"]).T for n in names}
+    ds = load_data(hidden["backlash"]).dataset
+    assert len(t["x"]) == ds.n == d["n"] and [int(v) for v in t["line"]] == ds.lines.tolist()
+    # the figures of the steps are these residuals' RMS
+    for n, step in zip(names, (d["steps"][0], d["steps"][-1])):
+        assert np.sqrt(np.mean(np.sum(r[n] ** 2, axis=1))) == pytest.approx(step["rmse_mm"], rel=1e-5)
+    # the same cross-validation done here: the diagnosis's folds (groups_of, folds_of, seed 0), the first
+    # model's hyperparameters fitted on all rows, the final one with the saved model's
+    final = load_map(out)
+    groups = groups_of(ds)
+    folds = folds_of(groups, d["folds"], 0)
+    first = cross_validate(HybridModel((), "tcp_speed", robot=final.robot, seed=0), ds, ds.error, groups, folds)
+    assert np.abs(first.residual * 1e3 - r[names[0]]).max() < 1e-5  # mm; the file holds 6 digits
+    assert final.gp_ is not None
+    last = cross_validate(final, ds, ds.error, groups, folds, thetas=final.gp_.thetas_)
+    assert np.abs(last.residual * 1e3 - r[names[1]]).max() < 1e-5
+    in_sample = (ds.error - final.predict(ds)) * 1e3
+    assert np.abs(in_sample - r[names[1]]).max() > 1e-3  # held out: not what the saved model fits
