@@ -5,7 +5,8 @@ A result is a directory holding one of:
     compare.json   `dt compare --report DIR`: its models' figures, every row's residual per model
                    (residuals.csv, reports.residuals) and the report's figures (report.html)
     diagnose.json  `dt diagnose --auto --out MODEL`: the steps (the change at each step, the
-                   held-out error before and after it) and the verdict
+                   held-out error before and after it), the verdict and every row's held-out
+                   residual of the first and the final model (residuals.csv, reports.residuals)
     twin.json      `dt demo` / `dt calibrate`: the twin's provenance, its e_LT map at its campaign's
                    points (scene.error_map) and the figures of the report beside it (`dt demo`'s)
 DIR itself may be a result; results below it are found down to `MAX_DEPTH` directories. The
@@ -121,14 +122,20 @@ def _compare(d: Path) -> dict[str, Any]:
                "max_mm": m.get("max_mm"), "fails": (m.get("failures") or {}).get("fraction")}
               for m in c.get("models") or []]
     first = (c.get("models") or [{}])[0].get("sessions") or []
-    rows = read_residuals(d / RESIDUALS) if (d / RESIDUALS).is_file() else None
     return {"dataset": c.get("dataset"), "n": c.get("n"), "noise_floor_mm": c.get("noise_floor_mm"),
             "heldout": c.get("heldout"), "in_sample": c.get("in_sample") or [], "models": models,
             "sessions": {str(s.get("session")): s.get("name") or s.get("file") for s in first},
             "worst_cells": c.get("worst_cells") or [],
-            "rows": rows, "rows_why": None if rows is not None else
-            f"no {RESIDUALS} in {d} (written by dt compare --report since the dashboard's metrologist's view)",
-            "figures": report_figures(d / "report.html")}
+            "figures": report_figures(d / "report.html")} | _rows(d, "dt compare --report", "")
+
+
+def _rows(d: Path, command: str, instead: str) -> dict[str, Any]:
+    """The result's residuals.csv (`rows`), or why there is none (`rows_why`): a result written
+    before its command wrote one."""
+    if (d / RESIDUALS).is_file():
+        return {"rows": read_residuals(d / RESIDUALS), "rows_why": None}
+    return {"rows": None, "rows_why": f"no {RESIDUALS} in {d} (written by {command} since the dashboard's "
+                                      f"metrologist's view){instead}"}
 
 
 STEP_KEYS = ("model", "rmse_mm", "u_rmse_mm", "deploy_rmse_mm", "deploy_kind", "change", "p_value",
@@ -146,7 +153,10 @@ def _diagnose(d: Path) -> dict[str, Any]:
             "deploy_kind": g.get("deploy_kind"), "noise_floor_mm": g.get("noise_floor_mm"),
             "stop_reason": g.get("stop_reason"), "verdict": g.get("verdict"),
             "steps": [{k: s.get(k) for k in STEP_KEYS} for s in steps if isinstance(s, dict)],
-            "ranking": g.get("ranking") or [], "figures": []}
+            "ranking": g.get("ranking") or [], "heldout": {"method": "by point, the steps' folds (residuals.csv)"},
+            "sessions": {str(s.get("session")): s.get("name") for s in g.get("sessions") or [] if isinstance(s, dict)},
+            "figures": []} | _rows(d, "dt diagnose --auto --out", ": compare its model on the data (dt compare "
+                                   "--model DIR --data FILE --report OUT) and open that result")
 
 
 def _twin(d: Path) -> dict[str, Any]:

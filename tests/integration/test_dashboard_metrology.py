@@ -11,6 +11,7 @@ import io
 import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +26,9 @@ from tests.support import browser
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
-    """DIR/model: `dt diagnose --auto --out` (diagnose.json beside the model); DIR/compare: `dt compare
-    --report` of that model on the same data (compare.json, report.html, residuals.csv)."""
+    """DIR/model: `dt diagnose --auto --out` (diagnose.json and residuals.csv beside the model); DIR/compare:
+    `dt compare --report` of that model on the same data (compare.json, report.html, residuals.csv);
+    DIR/older: the diagnose result as written before residuals.csv."""
     root = tmp_path_factory.mktemp("results")
     data = root.parent / f"{root.name}-backlash.csv"
     with contextlib.redirect_stdout(io.StringIO()):
@@ -36,6 +38,7 @@ def results(tmp_path_factory):
                      "--no-progress"]) == 0
         assert main(["compare", "--model", str(root / "model"), "--data", str(data), "--report",
                      str(root / "compare"), "--json", "--no-progress"]) == 0
+    shutil.copytree(root / "model", root / "older", ignore=shutil.ignore_patterns("residuals.csv"))
     return root
 
 
@@ -103,7 +106,9 @@ def test_filters_change_the_rows_and_points_shown(page, results):
     P = np.column_stack([t[a].astype(float) for a in "xyz"])[rose]
     m = page.evaluate("dtMetro")
     assert m["rows"] == int(rose.sum()) and m["points"] == len(per_point(P, P)[0]) < all_points
-    assert page.text_content("#shown") == f"{m['points']} points ({m['rows']} rows) shown"
+    r = np.column_stack([t[f"r_{a}:model"].astype(float) for a in "xyz"])[rose]
+    assert m["rms"] == pytest.approx(float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))), rel=1e-6)
+    assert page.text_content("#shown") == f"{m['points']} points ({m['rows']} rows) shown, 3D RMS {m['rms']:.4f} mm"
     page.select_option("#f-joint", "")
     assert page.evaluate("dtMetro.points") == all_points
 
@@ -119,7 +124,54 @@ def test_the_diagnose_steps_are_the_results(page, results):
     first = rows.nth(0).locator("td").nth(3).text_content()
     assert first == f"{d['steps'][0]['rmse_mm']:.4f} → {d['steps'][1]['rmse_mm']:.4f}"
     assert page.text_content("#verdict") == d["verdict"]
-    assert "no per-row residuals" in page.text_content("#map-why")
+    page.select_option("#result", "compare")
+    page.wait_for_function("dtMetro.loaded === 'compare'", timeout=30_000)
+
+
+def test_a_diagnose_result_maps_the_held_out_residuals_of_its_first_and_final_model(page, results):
+    """residuals.csv of dt diagnose --auto --out: the map as for a compare result, the model selector
+    the first and the final model; the final one's held-out error is the smaller (the hidden backlash
+    found), and a filter changes what is shown."""
+    page.select_option("#result", "model")
+    page.wait_for_function("dtMetro.loaded === 'model'", timeout=30_000)
+    d = json.loads((results / "model" / "diagnose.json").read_text())
+    t = _table(results / "model" / "residuals.csv")
+    names = [k[4:] for k in t if k.startswith("r_x:")]
+    first, final = f"first: {d['steps'][0]['model']}", f"final: {d['steps'][-1]['model']}"
+    assert names == [first, final]
+    assert page.locator("#f-model option").all_text_contents() == names
+    assert page.input_value("#f-model") == final and page.text_content("#map-why") == ""
+    P = np.column_stack([t[a].astype(float) for a in "xyz"])
+    m = page.evaluate("dtMetro")
+    assert m["rows"] == len(P) == d["n"] and m["points"] == len(per_point(P, P)[0])
+    ink = browser.canvas_ink(page, "#map3d")
+    assert ink["drawn"] > 0.01 * ink["pixels"], ink
+    final_rms, all_points, scale = m["rms"], m["points"], page.text_content("#scale-text")
+    _shot(page, "dashboard_metrology_diagnose.png")
+    page.select_option("#f-model", first)
+    first_rms = page.evaluate("dtMetro.rms")
+    assert page.text_content("#scale-text") == scale  # one colour scale for both: the error removed shows
+    # the map's RMS over its rows is the steps' held-out figure of each model, and the diagnosis lowered it
+    assert first_rms == pytest.approx(d["steps"][0]["rmse_mm"], rel=1e-5)
+    assert final_rms == pytest.approx(d["final_rmse_mm"], rel=1e-5)
+    assert final_rms < 0.5 * first_rms
+    page.select_option("#f-model", final)
+    page.select_option("#f-joint", "approach_q1")
+    page.select_option("#f-dir", "-1")
+    fell = t["approach_q1"] == "-1"
+    m = page.evaluate("dtMetro")
+    assert m["rows"] == int(fell.sum()) < len(P) and m["points"] == len(per_point(P[fell], P[fell])[0]) < all_points
+    page.select_option("#f-joint", "")
+    page.select_option("#result", "compare")
+    page.wait_for_function("dtMetro.loaded === 'compare'", timeout=30_000)
+
+
+def test_an_older_diagnose_result_without_residuals_says_how_to_get_its_map(page):
+    page.select_option("#result", "older")
+    page.wait_for_function("dtMetro.loaded === 'older'", timeout=30_000)
+    assert page.evaluate("dtMetro.points") == 0 and page.locator("#steps tbody tr").count() >= 2
+    why = page.text_content("#map-why")
+    assert "no residuals.csv" in why and "dt compare --model DIR --data FILE --report OUT" in why
     page.select_option("#result", "compare")
     page.wait_for_function("dtMetro.loaded === 'compare'", timeout=30_000)
 

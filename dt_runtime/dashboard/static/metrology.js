@@ -1,10 +1,11 @@
 "use strict";
 // The metrologist's view: a result of dt compare / dt diagnose or a twin (/api/results, /api/result),
-// its residual map per commanded point in 3D (rows filtered, then aggregated per point: mean residual
-// and row count, coloured by |mean r|), the diagnose steps and the report's own figures. Files hold
+// its residual map per commanded point in 3D (residuals.csv: compare's models, or diagnose's first and
+// final model held out; rows filtered, then aggregated per point: mean residual and row count,
+// coloured by |mean r|), the diagnose steps and the report's own figures. Files hold
 // mm; the 3D view draws m. window.dtMetro keeps what the tests read.
 const R = { res: null, rows: null, models: [], view: null, points: [], vmax: 1 };
-const stats = window.dtMetro = { loaded: null, kind: null, points: 0, rows: 0, draws: 0 };
+const stats = window.dtMetro = { loaded: null, kind: null, points: 0, rows: 0, rms: null, draws: 0 };
 const $ = (id) => document.getElementById(id);
 const fx = (v, d = 4) => (v == null || !isFinite(v) ? "–" : Number(v).toFixed(d));
 function el(tag, attrs = {}, ...kids) {
@@ -92,6 +93,12 @@ function aggregate(rows, model) {  // per commanded point (1 um, as analysis.poi
   for (const p of out) { p.r = p.r.map((v) => v / p.n); p.norm = Math.hypot(...p.r); }
   return out;
 }
+function rms3(rows, model) {  // the 3D RMS of the rows' residuals (mm), as the results' figures (rows, not points)
+  const c = R.rows, rx = c[`r_x:${model}`], ry = c[`r_y:${model}`], rz = c[`r_z:${model}`];
+  let sum = 0, n = 0;
+  for (const i of rows) { const q = rx[i] ** 2 + ry[i] ** 2 + rz[i] ** 2; if (isFinite(q)) { sum += q; n++; } }
+  return n ? Math.sqrt(sum / n) : null;
+}
 function percentile(values, q) {
   const s = values.filter(isFinite).sort((a, b) => a - b);
   return s.length ? s[Math.min(s.length - 1, Math.floor(q * (s.length - 1)))] : 0;
@@ -100,31 +107,35 @@ function redraw() {
   const res = R.res;
   if (R.rows) {
     const model = $("f-model").value, rows = selectedRows();
-    // the scale of the whole result for this model (95th percentile, as the report's map): a filter does not rescale
-    R.vmax = percentile(aggregate(R.rows.x.map((_, i) => i), model).map((p) => p.norm), 0.95) || 1e-3;
+    // the scale of the whole result for this model (95th percentile, as the report's map): a filter does not rescale;
+    // a diagnose result's first and final model share one (the larger), so the map shows where the error went
+    const all = R.rows.x.map((_, i) => i);
+    R.vmax = Math.max(...(res.kind === "diagnose" ? R.models : [model]).map((m) =>
+      percentile(aggregate(all, m).map((p) => p.norm), 0.95))) || 1e-3;
     R.points = aggregate(rows, model);
     stats.rows = rows.length;
+    stats.rms = rms3(rows, model);
     $("map-why").textContent = "";
-    $("map-what").textContent = `r = e − ê of ${model} per commanded point (replicates aggregated: mean and count); ` +
-      "drag to turn, wheel to zoom; robot frame";
+    $("map-what").textContent = `r = e − ê of ${model} per commanded point (replicates aggregated: mean and count)` +
+      (res.kind === "diagnose" ? ", each row held out (predicted by the model fitted without its point)" : "") +
+      "; drag to turn, wheel to zoom; robot frame";
   } else if (res.kind === "twin" && res.error_map && res.error_map.points) {
     const em = res.error_map;
     R.points = em.points.map((p, i) => { const r = em.e_hat[i].map((v) => v * 1e3);
       return { at: p.map((v) => v * 1e3), r, n: em.count[i], fails: 0, norm: Math.hypot(...r) }; });
     R.vmax = percentile(R.points.map((p) => p.norm), 0.95) || 1e-3;
-    stats.rows = em.rows;
+    stats.rows = em.rows; stats.rms = null;
     $("map-why").textContent = `the twin's predicted error ê_LT at its campaign's points (${em.campaign}); arrows × ${em.scale}, ` +
       "pointing to where the arm goes";
     $("map-what").textContent = "ê_LT per DOE point (its rows averaged); drag to turn, wheel to zoom; robot frame";
   } else {
-    R.points = []; stats.rows = 0;
-    $("map-why").textContent = res.rows_why || (res.kind === "diagnose" ? "a diagnose result holds no per-row residuals: " +
-      "compare its model on the data (dt compare --model DIR --data FILE --report OUT) and open that result" :
-      (res.error_map && res.error_map.why) || "no residuals in this result");
+    R.points = []; stats.rows = 0; stats.rms = null;
+    $("map-why").textContent = res.rows_why || (res.error_map && res.error_map.why) || "no residuals in this result";
   }
   stats.points = R.points.length;
   document.querySelector("#map-panel .views").hidden = !R.points.length && !R.rows;
-  $("shown").textContent = `${R.points.length} points (${stats.rows} rows) shown`;
+  $("shown").textContent = `${R.points.length} points (${stats.rows} rows) shown` +
+    (R.rows && stats.rms != null ? `, 3D RMS ${fx(stats.rms)} mm` : "");
   renderScale(); renderWorst(); draw();
 }
 
@@ -171,7 +182,8 @@ function draw() {
 function renderScale() {
   const c = $("scale-bar"), g = c.getContext("2d");
   for (let x = 0; x < c.width; x++) { g.fillStyle = colour((x / (c.width - 1)) * R.vmax); g.fillRect(x, 0, 1, c.height); }
-  $("scale-text").textContent = R.points.length ? `|mean r| per point: 0 … ${fx(R.vmax)} mm (95th percentile of the result's points; ` +
+  $("scale-text").textContent = R.points.length ? `|mean r| per point: 0 … ${fx(R.vmax)} mm (95th percentile of the result's points` +
+    (R.res.kind === "diagnose" && R.rows ? " of the model with the larger error" : "") + "; " +
     "red beyond); dot size: rows; dark ring: fails Eq. 17 in at least half its rows" : "";
 }
 function renderWorst() {
