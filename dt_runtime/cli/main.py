@@ -26,6 +26,7 @@ from dt_runtime.cli import (
     export,
     fit,
     robots,
+    router,
     run,
     simulate,
     status,
@@ -49,6 +50,7 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line hel
     "status": (status, "current state and last figures from the daemon's store"),
     "ack": (ack, "confirm that maintenance was done (or a request delivered)"),
     "consume": (consume, "receive and acknowledge maintenance requests (a maintenance system's side)"),
+    "router": (router, "run the plant's Zenoh router (cells and the plant's tools connect to it)"),
 }
 
 
