@@ -13,7 +13,7 @@ The plant's inbox: `--bus plant.yaml` (a plant config, configs/plant/plant.yaml)
 fabric through its router and records every new request in the plant history (its `history:`
 section, or `--history FILE.sqlite|postgresql://...`) before acknowledging it; a restarted inbox
 does not record a request twice (docs/plant.md). `--key` narrows the cells it serves (a hall's:
-`dt/hall-a-*/*/maintenance/request`).
+`dt/hall-a-$*/*/maintenance/request`).
 """
 from __future__ import annotations
 
