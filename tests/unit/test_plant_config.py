@@ -10,7 +10,7 @@ from dt_runtime.plant.config import history_url, load_plant_config
 from dt_runtime.plant.status import query_key
 
 
-@pytest.mark.parametrize("name", ["plant.yaml", "hall_router.yaml", "cell_bus.yaml"])
+@pytest.mark.parametrize("name", ["plant.yaml", "hall_router.yaml", "cell_bus.yaml", "plant_acl.yaml"])
 def test_the_shipped_plant_configs_load_and_map_onto_zenoh(name):
     cfg = load_plant_config(CONFIGS / "plant" / name)
     cfg.bus.zenoh_config()
