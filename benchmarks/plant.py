@@ -12,8 +12,8 @@ the inbox's ack comes back (the outbox's rule). Real daemons are in tests/integr
 here the cells are light so that 1,000 fit on 2 cores.
 
 Bounded: `--duration` s of load, then at most `--drain` s for the last requests to be acked.
-Shared memory between Zenoh sessions is off on the router and every client (on one host Zenoh
-negotiates it per session and runs out of segments near 350 sessions: docs/plant.md).
+Shared memory between Zenoh sessions is off on the router (its default: on one host Zenoh
+negotiates it per session and refuses sessions near 350, docs/plant.md) and on every client.
 
 Keys: `cells`, `duration_s`, `offered_msgs_per_s` (what the fleet was asked to publish),
 `published_msgs_per_s`, `msgs_per_s` (received by the consumer process through the router),
@@ -43,8 +43,6 @@ from typing import Any
 from benchmarks._common import cli, emit
 
 NO_SHM = {"transport/shared_memory/enabled": False}
-# A router for a thousand cells: zenoh's default max_sessions is 1000 (docs/plant.md).
-ROUTER_EXTRA = NO_SHM | {"transport/unicast/max_sessions": 10000}
 ACK_PERIOD_S = 2.0  # the outbox's republish period (bus.republish_period_s default)
 
 
@@ -286,7 +284,8 @@ def run(cells: int = 10, duration: float = 20.0, rate_hz: float = 10.0, request_
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
         port = _free_port()
         cfg = tmp / "plant.yaml"
-        cfg.write_text(json.dumps({"router": {"listen": [f"tcp/127.0.0.1:{port}"], "extra": ROUTER_EXTRA}}))
+        # the router's defaults: max_sessions 10000, shared memory off (dt_runtime.plant.config)
+        cfg.write_text(json.dumps({"router": {"listen": [f"tcp/127.0.0.1:{port}"]}}))
         try:
             rlog = tmp / "router.log"
             router = _spawn(["-m", "dt_runtime.cli.main", "router", "--config", str(cfg)], rlog, env)

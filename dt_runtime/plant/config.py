@@ -3,6 +3,8 @@
     router:            # `dt router --config plant.yaml`: the Zenoh router this host runs
       listen: [tcp/0.0.0.0:7447]
       connect: []      # other routers (a router per hall joins the plant's router)
+      max_sessions: 10000   # zenoh's default, 1000, would refuse the 1001st cell
+      shared_memory: false  # zenoh's per-session shared memory refuses sessions near 350 on one host
       tls: ...         # as the bus's (service.bus.config.TlsConfig)
       access_control: ...  # as the bus's: what each cell may publish (docs/plant.md)
     bus:               # how the plant's tools (dt status --bus, dt consume) join: a BusConfig
@@ -20,7 +22,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from pydantic import field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from dt_kernel.config import Frozen, read_yaml, validate
 from dt_runtime.service.bus.config import (
@@ -43,6 +45,13 @@ class RouterConfig(Frozen):
     connect: list[str] = []  # other routers: a hall's router connects to the plant's
     multicast_scouting: bool = False
     gossip_scouting: bool = True
+    # Zenoh's default is 1000 sessions per router: a plant of more cells (plus its tools) would
+    # have the 1001st refused. A session costs the router about 0.1 MB (benchmarks.plant).
+    max_sessions: int = Field(10_000, ge=1)
+    # Shared memory between the router and clients on its host: off. Zenoh negotiates it per
+    # session and refuses new sessions once its segment's counters run out (about 350 sessions on
+    # one host, zenoh 1.10: benchmarks.plant); a plant's messages are small, nothing to gain.
+    shared_memory: bool = False
     tls: TlsConfig | None = None
     access_control: AccessControlConfig | None = None
     extra: dict[str, Any] = {}
@@ -61,8 +70,10 @@ class RouterConfig(Frozen):
         return self
 
     def zenoh_config(self):
+        extra = {"transport/unicast/max_sessions": self.max_sessions,
+                 "transport/shared_memory/enabled": self.shared_memory} | self.extra
         return zenoh_config("router", self.listen, self.connect, self.multicast_scouting, self.gossip_scouting,
-                            self.tls, self.access_control, self.extra)
+                            self.tls, self.access_control, extra)
 
 
 class HistoryConfig(Frozen):
