@@ -92,3 +92,46 @@ def test_the_inbox_records_before_it_acks_through_a_router(history_url, tmp_path
         bus.close()
         store.close()
         router.close()
+
+
+def test_dt_consume_with_a_plant_config_records_through_dt_router(tmp_path):
+    """The commands as an operator runs them: `dt router` and `dt consume --bus plant.yaml` (its
+    history: a SQLite file beside the config), a cell's Bus sending one request."""
+    import json
+    import subprocess
+    import sys
+
+    port = free_port()
+    plant = tmp_path / "plant.yaml"
+    plant.write_text(f"router: {{listen: ['tcp/127.0.0.1:{port}']}}\n"
+                     f"bus: {{cell: plant, robot: inbox, mode: client, connect: ['tcp/127.0.0.1:{port}']}}\n"
+                     "history: {url: history.sqlite}\n")
+    dt = [sys.executable, "-m", "dt_runtime.cli.main"]
+    bad = subprocess.run([*dt, "router", "--config", str(tmp_path / "none.yaml"), "--json"], capture_output=True,
+                         text=True, timeout=60)
+    assert bad.returncode == 2 and json.loads(bad.stdout)["type"] == "ConfigError"
+    router = subprocess.Popen([*dt, "router", "--config", str(plant), "--duration", "120"], stderr=subprocess.PIPE,
+                              text=True)
+    try:
+        assert "dt router: listening on" in router.stderr.readline()
+        consume = subprocess.Popen([*dt, "consume", "--bus", str(plant), "--count", "1", "--duration", "60", "--json"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert "listening on dt/**/maintenance/request, history" in consume.stderr.readline()
+        store = Store(tmp_path / "cell.sqlite")
+        bus = Bus(BusConfig(cell="c7", robot="r1", mode="client", connect=[f"tcp/127.0.0.1:{port}"],
+                            republish_period_s=0.2), store)
+        try:
+            bus.request_maintenance({"reason": "cli", "kind": "t_test", "episode": 1})
+            out, _ = consume.communicate(timeout=60)
+            assert wait_until(lambda: not store.outbox_pending(), 30)
+        finally:
+            bus.close()
+            store.close()
+        lines = out.strip().splitlines()
+        assert json.loads(lines[0])["cell"] == "c7"
+        summary = json.loads(lines[-1])
+        assert (summary["recorded"], summary["history_rows"]) == (1, 1)
+        assert summary["history"] == str(tmp_path / "history.sqlite")
+    finally:
+        router.terminate()
+        router.wait(30)
