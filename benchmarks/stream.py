@@ -1,4 +1,4 @@
-"""`python -m benchmarks.stream [--json] [--quick] [--twin DIR]`: a path streamed at the
+"""`python -m benchmarks.stream [--json] [--quick] [--twin DIR/model]`: a path streamed at the
 controller's rate with every set-point corrected (issue 23, "What it must show").
 
 Two drivers in the same run, each at a 125 Hz (a CB3) and a 500 Hz (an e-Series) controller rate:
@@ -47,8 +47,8 @@ threads got SCHED_FIFO). `goals_met` {`rate`, `jitter` (500 Hz only), `correctio
 of the rate, p99 jitter < 1 ms at 500 Hz, correction p99 <= 100 us, corrected path RMS <= 1.5x the
 static). Top level: `static_corrected_rms_mm`, `load` {`start`, `end`} (1-min load
 averages), `cores`, `servo` {`lookahead_s`, `gain`}, `process`, `seconds`, `quick`.
-`--quick`: 125 Hz only, 500 mm/s only (the test's run); `--twin DIR` reuses a quick demo's twin
-(DIR/model, its summary beside it) instead of running `dt demo --quick` (~40 s).
+`--quick`: 125 Hz only, 500 mm/s only (the test's run); `--twin DIR/model` reuses a quick demo's
+twin (its summary.json beside it, in DIR) instead of running `dt demo --quick` (~40 s).
 """
 from __future__ import annotations
 

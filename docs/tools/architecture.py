@@ -130,7 +130,7 @@ def _layers() -> tuple[str, ...]:
     except (OSError, SyntaxError, ValueError):
         pass
     return ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "service",
-            "reports", "cli")
+            "reports", "dashboard", "cli")
 
 
 def reduction(nodes: list[str], edges: set[tuple[str, str]]) -> set[tuple[str, str]]:

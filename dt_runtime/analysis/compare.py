@@ -459,5 +459,6 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                     ds.source, ", ".join(result.in_sample))
     arrays = {"commanded": ds.commanded, "error": ds.error, "u": ds.u, "u_meas": um,
               "speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature, "t": ds.t,
-              "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs}
+              "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs,
+              "session": ds.extra.get("session"), "point_id": ds.point_id, "lines": ds.lines}
     return result, arrays

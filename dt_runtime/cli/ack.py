@@ -97,7 +97,8 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
 
     from dt_runtime.service.bus import load_bus_config
     from dt_runtime.service.bus.auth import Signer
-    from dt_runtime.service.bus.session import close_session, open_session, put_json, zenoh_errors
+    from dt_runtime.service.bus.consumer import publish_done
+    from dt_runtime.service.bus.session import close_session, open_session, zenoh_errors
 
     if args.request is None or not args.uid:
         raise TwinError("--bus needs --request ID and --uid UID of the request (as `dt consume` printed them)")
@@ -109,9 +110,8 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
     key = f"{prefix}/maintenance/done/{args.request}"
     applied = threading.Event()
 
-    def done() -> bytes:  # signed afresh for every copy: its time must stay within bus.auth.max_age_s
-        return signer.sign(key, {"id": args.request, "uid": args.uid, "by": args.by, "note": args.note,
-                                 "t": time.time()})
+    def done() -> None:  # signed afresh for every copy: its time must stay within bus.auth.max_age_s
+        publish_done(session, signer, prefix, args.request, args.uid, args.by, args.note)
 
     def on_state(sample: Any) -> None:
         try:
@@ -131,9 +131,9 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
         # Re-sent until the twin's state shows it applied (or --wait ends): a put made before
         # the peers have met is lost, and the twin ignores copies once it is back to nominal.
         deadline = time.monotonic() + max(0.0, args.wait)
-        put_json(session, key, done())
+        done()
         while not applied.wait(1.0) and time.monotonic() < deadline:
-            put_json(session, key, done())
+            done()
         sub.undeclare()
     finally:
         close_session(session, cfg.close_timeout_s)

@@ -21,6 +21,7 @@ from dt_runtime.cli import (
     compare,
     consume,
     correct,
+    dashboard,
     demo,
     diagnose,
     export,
@@ -50,6 +51,7 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line hel
     "status": (status, "current state and last figures from the daemon's store"),
     "ack": (ack, "confirm that maintenance was done (or a request delivered)"),
     "consume": (consume, "receive and acknowledge maintenance requests (a maintenance system's side)"),
+    "dashboard": (dashboard, "the live cell in a browser, beside a running `dt run`"),
     "router": (router, "run the plant's Zenoh router (cells and the plant's tools connect to it)"),
 }
 

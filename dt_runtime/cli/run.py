@@ -8,6 +8,7 @@ the last command and the expanded uncertainty of the position it reached (--quie
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from typing import Any
 
@@ -57,5 +58,40 @@ def human(r: dict) -> str:
              + f"; maintenance requests {r['maintenance_requests']} ({r['requests_delivered']} delivered)"]
     if "true_rms_mm" in r:
         lines.append(f"simulated cell: true 3D RMS error {r['true_rms_mm']:.4f} mm over {r['true_n']} commands")
+    if "path" in r:
+        lines += path_lines(r["path"], r["t_test_failures"])
     lines.append(f"store {r['store']} (dt status --store {r['store']})")
     return "\n".join(lines)
+
+
+def path_lines(p: dict, failed: int) -> list[str]:
+    """A streamed path's summary in words: passes, the lag and on which data the moving arm was
+    tested, and what to do when something needs doing."""
+    last = p["last"]
+    jitter = last.get("jitter_p99_ms")
+    if not last:
+        rate = ""
+    elif jitter is None or not math.isfinite(jitter):  # NaN in process, null in the JSON: not paced
+        rate = f", last pass on the simulated clock ({last['target_hz']:g} Hz of simulated time, not paced)"
+    else:
+        rate = f", last pass {last['rate_hz']:.1f} Hz of {last['target_hz']:g} Hz, p99 jitter {jitter:.3f} ms"
+    out = [f"path {p['file']}: {p['passes']} passes completed ({p['pass_started']} started), {p['sent']} set-points "
+           f"sent ({p['rerun']} again after a stop){rate}"]
+    lag = p.get("lag")
+    if lag:
+        out.append(f"servo lag {lag['tau_ms']:.2f} +- {lag['u_tau_ms']:.2f} ms, learnt from {lag['n']} readings of the "
+                   f"learning pass (RMS {lag['rms_before_mm']:.3f} -> {lag['rms_after_mm']:.3f} mm)")
+    if p["tested"]:
+        where = "in the passes after the learning pass (readings the lag fit did not see)" if lag else "as streamed"
+        out.append(f"moving arm: {p['tested']} readings tested by Eq. 17 {where}, {failed} failed "
+                   f"({100 * failed / p['tested']:.1f} %); refused: {p['transient_refused']} in servo transients, "
+                   f"{p['timing_refused']} timing-dominated, {p['outside_refused']} outside a pass")
+    else:
+        out.append("moving arm: no reading tested (a learning pass only, or the camera gave none): "
+                   "run more passes to test the twin on the path")
+    if lag and lag.get("warning"):
+        out.append(f"WARNING: {lag['warning']}")
+    if p["state"] == "stopped":
+        out.append(f"the path is stopped: {p['stopped']}; it resumes at set-point {p['next'] + 1} of {p['n']} "
+                   "at the next start (or after dt ack while running)")
+    return out

@@ -17,6 +17,7 @@ import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
 from dt_runtime.analysis.compare import MIN_CELL
+from dt_runtime.analysis.points import approach, per_point
 from dt_runtime.reports.blocks import COLORS, LABEL, LEGEND, TICK, TITLE, Missing, fixed, levels, run_block
 from dt_runtime.reports.html import (
     Section,
@@ -31,6 +32,7 @@ from dt_runtime.reports.html import (
 )
 from dt_runtime.reports.parameter_table import html as parameters_html
 from dt_runtime.reports.parameter_table import parameter_table
+from dt_runtime.reports.residuals import write_residuals
 from dt_runtime.reports.traceability import traceability
 
 
@@ -228,18 +230,6 @@ def _table_method(s: dict, a: dict) -> str:
 
 # --------------------------------------------------------------------------- figures
 
-def per_point(commanded: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Replicates aggregated per commanded position (1 um): (positions, mean of `values` per
-    position, row count per position)."""
-    key = np.round(np.asarray(commanded, float) / 1e-6).astype(np.int64)
-    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inv = inv.ravel()
-    cnt = np.bincount(inv).astype(float)
-    v = np.asarray(values, float).reshape(len(inv), -1)
-    means = np.stack([np.bincount(inv, weights=v[:, k]) for k in range(v.shape[1])], axis=1) / cnt[:, None]
-    return np.asarray(commanded)[first], means, cnt
-
-
 def _fig_maps(s: dict, a: dict) -> str:
     p = _primary(a)
     fail_rows = p["fail"].any(axis=1) if p["fail"] is not None else np.zeros(len(p["residual"]), bool)
@@ -297,8 +287,7 @@ def _approach(a: dict) -> list[Factor]:
     q = a.get("joints")
     if q is None or len(q) < 3:
         return []
-    d = np.sign(np.diff(q, axis=0, prepend=q[:1]))
-    d[0] = d[1]
+    d = approach(q)
     out: list[Factor] = []
     for j in range(q.shape[1]):
         if not np.any(d[:, j] != 0):
@@ -420,10 +409,12 @@ def build_compare_report(result: dict, arrays: dict) -> str:
 
 
 def write_compare_report(result: dict, arrays: dict, out_dir) -> Path:
-    """Write out_dir/report.html and out_dir/compare.json; return the HTML path."""
+    """Write out_dir/report.html, out_dir/compare.json and out_dir/residuals.csv (every row's
+    residual per model: reports.residuals); return the HTML path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "compare.json").write_text(json.dumps(result, indent=2, ensure_ascii=False), encoding="utf-8")
+    write_residuals(arrays, out)
     path = out / "report.html"
     path.write_text(build_compare_report(result, arrays), encoding="utf-8")
     return path

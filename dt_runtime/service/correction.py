@@ -185,6 +185,12 @@ class Monitor:
         self._t_test = unc.TTestPlan.of(b14.u, b16.u, b14.dof, b16.dof, alpha)  # the same budgets every reading
 
     @property
+    def t_crit(self) -> np.ndarray:
+        """The critical |t| per axis (two-sided at alpha, Welch-Satterthwaite dof): a reading
+        passes Eq. 17 on an axis when its |t| is at most this."""
+        return self._t_test.t_crit
+
+    @property
     def u(self) -> np.ndarray:
         """Eq. 17's combined standard uncertainty per axis, sqrt(u^2(diff) + u^2(pred)), m."""
         return self._t_test.u

@@ -462,7 +462,7 @@ class Daemon:
             self._publish_health()
             return
         chk = self._test(corr.command, v, reading.point, cond, t, None, True,
-                         {"target": corr.target.tolist(), "command": corr.command.tolist()})
+                         self._telemetry(corr) if self.bus else {})
         if chk is None:
             return
         done = time.monotonic()
@@ -472,6 +472,14 @@ class Daemon:
         if self.exposure_latencies is not None and mid is not None:
             self.exposure_latencies.append(done - mid)
         self._publish_health()
+
+    def _telemetry(self, corr: Corrected) -> dict[str, Any]:
+        """A command's telemetry beside its Eq. 17 (docs/bus.md): for the dashboard's view also the
+        controller's joint angles after the move (the conditions' are from before it), U (95 %) of
+        the position reached and the calibrated-volume flag."""
+        q = self.inst.robot.read_joint_state().q
+        return {"target": corr.target.tolist(), "command": corr.command.tolist(), "q": np.asarray(q).tolist(),
+                "U": corr.U_tcp.tolist(), "inside": corr.inside}
 
     def _test(self, command: np.ndarray, v: float, point: np.ndarray, cond: Conditions | None, t: float,
               u_extra: np.ndarray | None, observe: bool, telemetry: dict[str, Any]):
@@ -496,8 +504,10 @@ class Daemon:
         # The statistics travel with the next batch of rows: a restart resumes them.
         self.store.stage_state(*self.paging.resume_row())
         if self.bus:
+            # `measured` (the MVS's TCP in the robot frame) for the dashboard's view (docs/bus.md)
+            measured = self.twin.T_rdk.inverse().apply(self.twin.T_mvs.apply(point)).tolist()
             self.bus.publish_telemetry({"t": t, **telemetry, "t_stat": chk.t.tolist(), "passed": chk.passed,
-                                        "state": esc.state})
+                                        "state": esc.state, "measured": measured})
         return chk
 
     def _camera_refused(self, reading) -> None:
@@ -613,8 +623,9 @@ class Daemon:
                      u_extra: np.ndarray, observe: bool):
         """A reading of the moving arm at path time `s`, against where the path has the arm then."""
         self.counters.mvs_refused_in_row = 0
+        q = {"q": np.asarray(cond.joints).tolist()} if cond is not None and cond.joints is not None else {}
         return self._test(command, v, point, cond, self._now(), u_extra, observe,
-                          {"target": command.tolist(), "command": command.tolist(), "path_t": s})
+                          {"target": command.tolist(), "command": command.tolist(), "path_t": s, **q})
 
     def _path_stop(self) -> str:
         """Why a pass must end now ('' to go on): the daemon stopping, or a halt (the camera's:

@@ -73,6 +73,7 @@ from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
 APPROACH_SPEED_M_S = 0.05  # the move to a pass's first command (a resume point may be anywhere)
+LAG_WARN_RATIO = 3.0  # the lag model's u over Eq. 17's u above which the operator is told
 MIN_LAG_READINGS = 20  # fewer tested positions on a moving arm: the lag is not learnt, the pass repeats
 
 
@@ -83,13 +84,15 @@ def setpoint_corrector(sc: SetpointCorrector, times: np.ndarray, speeds: np.ndar
     the arm's joints carried from set-point to set-point (a map with joint-space effects)."""
     last = len(times) - 1
     q = [None if joints is None else np.asarray(joints, dtype=float)]
+    warm: list[np.ndarray | None] = [None]  # the previous set-point's correction: the fixed point starts there
 
     def correct_one(target: np.ndarray, t: float) -> np.ndarray:
         k = min(int(np.searchsorted(times, t - 1e-9)), last)
         cond = None if q[0] is None else Conditions(joints=q[0])
-        r = sc.correct(target, float(speeds[k]), cond)
+        r = sc.correct(target, float(speeds[k]), cond, warm[0])
         if r.joints is not None:
             q[0] = r.joints
+        warm[0] = r.command - target
         return r.command
 
     return correct_one
@@ -378,6 +381,13 @@ class PathStreamer:
         order = np.argsort(s)
         self.lag = estimate_lag(self.reference, s[order], measured[order])
         self.state.lag = self.lag.to_dict()
+        ratio = self.u_lag / float(np.max(self.u_reading))
+        if ratio > LAG_WARN_RATIO:  # the test of the moving arm is that much less sensitive than a static one's
+            self.state.lag["warning"] = (
+                f"the lag model leaves {1e3 * self.lag.rms_after_m:.3f} mm (RMS) unexplained, {ratio:.1f} x Eq. 17's "
+                "own uncertainty: the moving arm is tested that much less sharply; slow the path, raise the servo's "
+                "gain or look-ahead smoothing, or check the camera's timing (stream.u_time_s)")
+            log.warning("%s", self.state.lag["warning"])
         log.warning("servo lag learnt from %d readings: %.2f +- %.2f ms (RMS %.3f -> %.3f mm); later passes are "
                     "compensated", self.lag.n, 1e3 * self.lag.tau_s, 1e3 * self.lag.u_tau_s,
                     1e3 * self.lag.rms_before_m, 1e3 * self.lag.rms_after_m)

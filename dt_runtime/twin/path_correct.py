@@ -58,7 +58,7 @@ def correct_path(twin: Twin, path: PathProgram, sp: Setpoints) -> list[Setpoint]
     for k in range(sp.n):
         cond = Conditions(temperature=path.temperature, payload=path.payload,
                           t=None if path.t0 is None else path.t0 + float(sp.t[k]), joints=q, previous=prev)
-        r = corrector.correct(sp.p[k], float(sp.programmed[k]), cond)
+        r = corrector.correct(sp.p[k], float(sp.programmed[k]), cond, None if prev is None else prev - sp.p[k - 1])
         if not (np.all(np.isfinite(r.command)) and np.all(np.isfinite(r.U))):
             raise DataError(f"{path.source}: {label(sp, k)}: the twin gives no finite correction there (command "
                             f"{np.round(r.command * MM_PER_M, 3).tolist()} mm, "

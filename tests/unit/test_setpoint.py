@@ -44,3 +44,26 @@ def test_the_geometric_row_on_floats_is_the_effects_regressors(robot):
     ref = Geometric().regressors(Inputs(commanded=chain.fk(q), joints=q), chain).A
     for k in range(len(q)):
         assert geometric_row(ik, q[k]) == pytest.approx(ref[k], abs=1e-13)
+
+
+def test_a_warm_start_from_the_previous_set_point_reaches_the_same_command_with_fewer_map_evaluations(twin_dir):
+    twin = Twin.load(twin_dir)
+    cold, warm = SetpointCorrector(twin), SetpointCorrector(twin)
+    calls = {"cold": 0, "warm": 0}
+    for name, sc in (("cold", cold), ("warm", warm)):
+        lt = sc._lt
+
+        def counted(*a, _lt=lt, _name=name):
+            calls[_name] += 1
+            return _lt(*a)
+
+        sc._lt = counted
+    line = np.column_stack([np.linspace(0.85, 0.95, 200), np.zeros(200), np.full(200, 0.55)])  # 0.5 mm apart
+    prev = None
+    for x in line:
+        a = cold.correct(x, 0.25)
+        b = warm.correct(x, 0.25, warm=prev)
+        assert b.command == pytest.approx(a.command, abs=2e-8)  # the same fixed point, to its tolerance
+        assert b.U == pytest.approx(a.U, abs=1e-9)
+        prev = b.command - x
+    assert calls["warm"] < 0.8 * calls["cold"], calls

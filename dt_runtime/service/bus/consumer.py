@@ -9,6 +9,8 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
+import zenoh
+
 from dt_kernel.errors import DataError
 from dt_runtime.common.safe_json import loads
 from dt_runtime.service.bus.auth import Signer
@@ -16,6 +18,23 @@ from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, BusConfig
 from dt_runtime.service.bus.session import BusError, close_session, open_session, put_json, shut_down, zenoh_errors
 
 log = logging.getLogger("dt_runtime.service.bus")
+
+
+def publish_ack(session: zenoh.Session, signer: Signer, prefix: str, oid: int, uid: str, group: str) -> str:
+    """Acknowledge delivery of `group`'s copy `oid` (uid `uid`) of a request of `prefix`
+    (= 'dt/<cell>/<robot>'), signed and time-stamped now; the key it was put on."""
+    key = f"{prefix}/maintenance/ack/{oid}"
+    put_json(session, key, signer.sign(key, {"id": oid, "uid": uid, "group": group, "t": time.time()}))
+    return key
+
+
+def publish_done(session: zenoh.Session, signer: Signer, prefix: str, oid: int, uid: str, by: str, note: str) -> str:
+    """Tell the twin of `prefix` that the maintenance asked for by request `oid` (uid `uid`) was
+    done, by whom and why (stored with the transition back to nominal), signed and time-stamped
+    now (it must reach the twin within bus.auth.max_age_s); the key it was put on."""
+    key = f"{prefix}/maintenance/done/{oid}"
+    put_json(session, key, signer.sign(key, {"id": oid, "uid": uid, "by": by, "note": note, "t": time.time()}))
+    return key
 
 
 class MaintenanceConsumer:
@@ -114,18 +133,14 @@ class MaintenanceConsumer:
         """Publish the ack for request `oid` of `prefix` (= 'dt/<cell>/<robot>')."""
         if self._closed:
             return
-        key = f"{prefix}/maintenance/ack/{oid}"
-        put_json(self._session, key, self.signer.sign(key, {"id": oid, "uid": uid, "group": self.group,
-                                                            "t": time.time()}))
+        publish_ack(self._session, self.signer, prefix, oid, uid, self.group)
 
     def done(self, prefix: str, oid: int, uid: str, by: str, note: str) -> None:
         """Tell the twin of `prefix` (= 'dt/<cell>/<robot>') that the maintenance asked for by
         request `oid` was done: who and why are stored with the transition back to nominal."""
         if self._closed:
             raise BusError("consumer is closed")
-        key = f"{prefix}/maintenance/done/{oid}"
-        put_json(self._session, key, self.signer.sign(key, {"id": oid, "uid": uid, "by": by, "note": note,
-                                                            "t": time.time()}))
+        publish_done(self._session, self.signer, prefix, oid, uid, by, note)
 
     def wait_for(self, n: int, timeout: float) -> bool:
         """Wait until at least n distinct requests arrived; False on time-out."""

@@ -1,0 +1,123 @@
+"""`Dashboard`: the parts of `dt dashboard` put together and started (the twin's scene, the hub,
+the bus feed, the web server in its own thread); `close()` stops them in reverse. Tests and the
+benchmark start it in process; `dt dashboard` wraps it. Without a runtime config it serves the
+metrologist's page only (`results`: no bus, no twin of a cell)."""
+from __future__ import annotations
+
+import logging
+import ssl
+import threading
+from pathlib import Path
+from typing import Any
+
+from dt_kernel.errors import ConfigError
+from dt_runtime.dashboard.feed import BusFeed, joining
+from dt_runtime.dashboard.hub import Hub
+from dt_runtime.dashboard.operators import Operators, load_operators
+from dt_runtime.dashboard.results import find_results
+from dt_runtime.dashboard.scene import Scene
+from dt_runtime.dashboard.server import DashboardServer, is_loopback
+from dt_runtime.service.bus import BusConfig
+from dt_runtime.service.bus.auth import Signer
+from dt_runtime.service.runtime_config import RuntimeConfig
+
+log = logging.getLogger("dt.dashboard")
+
+
+class Dashboard:
+    def __init__(self, cfg: RuntimeConfig | None, config_path: str | Path | None, *, bus: BusConfig | None = None,
+                 host: str = "127.0.0.1", port: int = 8765, token_file: str | Path | None = None,
+                 group: str = "maintenance", tls: tuple[str | None, str | None] = (None, None),
+                 max_rate_hz: float = 50.0, results: str | Path | None = None):
+        if cfg is None and results is None:
+            raise ConfigError("<command line>", "--config/--results", None, "a runtime YAML (the live cell), a "
+                              "directory of results (the metrologist's view), or both")
+        if results is not None:
+            results = Path(results).resolve()
+            find_results(results)  # a directory, or a ConfigError now rather than on the page
+        cert, key = tls
+        if (cert is None) != (key is None):
+            raise ConfigError("<command line>", "--tls-cert/--tls-key", cert or key, "both, or neither")
+        if not is_loopback(host) and cert is None:
+            raise ConfigError("<command line>", "--host", host,
+                              "a loopback address (127.0.0.1, ::1, localhost), or --tls-cert and --tls-key: beyond "
+                              "the host the page is served over TLS only (the operators' tokens travel in it)")
+        # Everything is read and checked before anything opens: a bad token file or key opens no session.
+        self.operators: Operators | None = load_operators(token_file) if token_file is not None else None
+        self.hub = Hub()
+        self._closers: list[Any] = []
+        self.scene: Scene | None = None
+        self.feed: BusFeed | None = None
+        try:
+            if cfg is not None:
+                self._join(cfg, Path(config_path or "."), bus, group)
+            self.server = DashboardServer((host, port), self.hub, self.scene, self.feed, self.operators, max_rate_hz,
+                                          results)
+        except BaseException:
+            self.close()
+            raise
+        self._serve(cert, key)
+
+    def _join(self, cfg: RuntimeConfig, config_path: Path, bus: BusConfig | None, group: str) -> None:
+        """The live cell: the twin's scene and the bus feed."""
+        bus_cfg = bus if bus is not None else joining(cfg.bus, str(config_path))
+        # To act, the service's key (as `dt ack --bus`: never made here, a new one could not be the service's);
+        # to read, the key is used when present, to refuse what the daemon did not sign.
+        signer: Signer | None = None
+        if self.operators is not None:
+            signer = Signer(bus_cfg.auth, create=False)
+        else:
+            try:
+                signer = Signer(bus_cfg.auth, create=False)
+            except ConfigError as exc:
+                log.info("dashboard: read-only without the bus key (messages not checked): %s", exc)
+        twin = Path(cfg.twin)
+        self.scene = Scene(twin if twin.is_absolute() else config_path.parent / twin, cfg.alpha)
+        self.feed = BusFeed(bus_cfg, self.hub, self.scene, signer, group)
+        self._closers.append(self.feed.close)
+
+    def _serve(self, cert: str | None, key: str | None) -> None:
+        try:
+            self._closers.append(self.server.server_close)
+            if cert is not None:
+                ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+                ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+                try:
+                    ctx.load_cert_chain(cert, key)
+                except (OSError, ssl.SSLError) as exc:
+                    raise ConfigError(str(cert), "--tls-cert/--tls-key", str(exc), "a PEM certificate chain and "
+                                      "its private key") from exc
+                self.server.socket = ctx.wrap_socket(self.server.socket, server_side=True)
+                self.server.scheme = "https"
+            self._thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.2},
+                                            name="dashboard-http", daemon=True)
+            self._thread.start()
+            self._closers[-1] = self.server.stop
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def url(self) -> str:
+        return self.server.url
+
+    def summary(self) -> dict[str, Any]:
+        return {"url": self.url, "bus": self.feed.prefix if self.feed else None, "received": dict(self.hub.received),
+                "bus_refused": self.hub.bus_refused, "dropped": self.feed.dropped if self.feed else 0,
+                "metrology": self.server.results is not None and self.url + "metrology",
+                "actions": list(self.server.actions),
+                "operators": self.operators.names if self.operators else []}
+
+    def close(self) -> None:
+        while self._closers:
+            close = self._closers.pop()
+            try:
+                close()
+            except Exception as exc:  # noqa: BLE001 - closing is best effort, keep closing the rest
+                log.warning("dashboard: while closing: %s", exc)
+
+    def __enter__(self) -> Dashboard:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
