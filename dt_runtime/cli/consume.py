@@ -8,6 +8,12 @@ until acknowledged, so copies arrive. A maintenance system reads those lines (id
 robot, reason, evidence) and, when the work is done, answers with
 `dt ack --bus BUS.yaml --request ID --uid UID --by NAME --note TEXT`.
 Runs until SIGINT/SIGTERM or `--duration`; `--count N` stops after N new requests.
+
+The plant's inbox: `--bus plant.yaml` (a plant config, configs/plant/plant.yaml) joins the plant's
+fabric through its router and records every new request in the plant history (its `history:`
+section, or `--history FILE.sqlite|postgresql://...`) before acknowledging it; a restarted inbox
+does not record a request twice (docs/plant.md). `--key` narrows the cells it serves (a hall's:
+`dt/hall-a-$*/*/maintenance/request`).
 """
 from __future__ import annotations
 
@@ -19,13 +25,20 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from dt_kernel.errors import ConfigError
 from dt_runtime.common.jsonsafe import dumps
 
 JSON_LOGS = True
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
-    c.add_argument("--bus", required=True, metavar="YAML", help="bus config (configs/bus.yaml: endpoints, TLS)")
+    c.add_argument("--bus", required=True, metavar="YAML",
+                   help="bus config (configs/bus.yaml: endpoints, TLS) or plant config (configs/plant/plant.yaml)")
+    c.add_argument("--key", default="dt/**/maintenance/request", metavar="KEYEXPR",
+                   help="the requests taken (default dt/**/maintenance/request: every cell)")
+    c.add_argument("--history", default=None, metavar="URL",
+                   help="record every new request here first (a SQLite file or postgresql://...; "
+                        "default: the plant config's history, none for a bus config)")
     c.add_argument("--group", default="maintenance", help="this consumer's group (default maintenance)")
     c.add_argument("--log", default=None, metavar="FILE.jsonl", help="append each new request to this file")
     c.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
@@ -34,9 +47,18 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
-    from dt_runtime.service.bus import MaintenanceConsumer, load_bus_config
+    from dt_runtime.plant.config import history_url, load_plant_config
+    from dt_runtime.plant.inbox import PlantInbox
+    from dt_runtime.service.bus import MaintenanceConsumer
+    from dt_runtime.service.bus.config import keyexpr_ok
 
-    cfg = load_bus_config(args.bus)
+    cfg = load_plant_config(args.bus)
+    try:
+        keyexpr_ok(args.key)
+    except ValueError as exc:
+        raise ConfigError("--key", "--key", args.key, str(exc)) from exc
+    history = args.history or (history_url(cfg, Path(args.bus).parent) if "history" in cfg.model_fields_set
+                               else None)
     stop = threading.Event()
     log_path = Path(args.log) if args.log else None
     seen = 0
@@ -54,10 +76,17 @@ def run(args: argparse.Namespace) -> Any:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with MaintenanceConsumer(cfg, on_request=on_request, group=args.group) as cons:
-        print(f"dt consume: group {args.group!r} listening on dt/**/maintenance/request", file=sys.stderr)
+    if history is None:
+        with MaintenanceConsumer(cfg.bus, key_expr=args.key, on_request=on_request, group=args.group) as cons:
+            print(f"dt consume: group {args.group!r} listening on {args.key}", file=sys.stderr)
+            stop.wait(args.duration)
+            return {"requests": len(cons.requests), "copies": cons.copies, "group": args.group}
+    with PlantInbox(cfg.bus, history, group=args.group, key_expr=args.key, on_request=on_request) as inbox:
+        print(f"dt consume: group {args.group!r} listening on {args.key}, history {inbox.history.where}",
+              file=sys.stderr)
         stop.wait(args.duration)
-        return {"requests": len(cons.requests), "copies": cons.copies, "group": args.group}
+        return {"requests": len(inbox.requests), "copies": inbox.consumer.copies, "group": args.group,
+                "recorded": inbox.recorded, "history": inbox.history.where, "history_rows": inbox.history.count()}
 
 
 def human(result: dict) -> str:

@@ -27,6 +27,7 @@ from dt_runtime.cli import (
     export,
     fit,
     robots,
+    router,
     run,
     simulate,
     status,
@@ -51,6 +52,7 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line hel
     "ack": (ack, "confirm that maintenance was done (or a request delivered)"),
     "consume": (consume, "receive and acknowledge maintenance requests (a maintenance system's side)"),
     "dashboard": (dashboard, "the live cell in a browser, beside a running `dt run`"),
+    "router": (router, "run the plant's Zenoh router (cells and the plant's tools connect to it)"),
 }
 
 

@@ -1,9 +1,15 @@
-"""`dt status`: the daemon's current state and last figures, read from its store.
+"""`dt status`: the daemon's current state and last figures, read from its store; or, with
+`--bus plant.yaml [SELECTOR]`, every cell of the plant that answers one query on the fabric.
 
 A summary an operator reads at a glance: the escalation state and since when, what the daemon did
 (rows, Eq. 17 failures), its last command, correction, MVS measurement and test, in mm with the
 frame each is in and times in local time (or on the simulated clock), the open maintenance
 requests and the operator's actions. `--json`: the store's figures as they are (SI, epoch times).
+
+`dt status --bus plant.yaml 'dt/*/*'` sends ONE query on `dt/*/*/q/status` (`--kind`: status,
+health, requests, tests, provenance, or * for all) through the plant's router, prints a table of
+every cell that answered within `--timeout` and names the cells of the plant config's `cells:`
+that did not (docs/plant.md). `--json`: {key, kind, cells: [...], answered, expected, missing}.
 """
 from __future__ import annotations
 
@@ -18,6 +24,13 @@ from dt_kernel.units import MM_PER_M
 
 def add_arguments(st: argparse.ArgumentParser) -> None:
     st.add_argument("--store", default="out/run/dt.sqlite", help="the daemon's SQLite store")
+    st.add_argument("--bus", default=None, metavar="YAML",
+                    help="ask the cells on the bus instead (a plant config, configs/plant/, or a bus config)")
+    st.add_argument("selector", nargs="?", default=None,
+                    help="with --bus: the cells asked, a key expression (default dt/*/*: every cell)")
+    st.add_argument("--kind", default="status", help="with --bus: status, health, requests, tests, provenance or *")
+    st.add_argument("--timeout", type=float, default=3.0, metavar="S",
+                    help="with --bus: how long to wait for the cells' answers (default 3 s)")
     st.add_argument("--json", action="store_true",
                     help="print one JSON object (the raw figures: SI units, epoch times)")
 
@@ -25,6 +38,13 @@ def add_arguments(st: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> Any:
     from dt_runtime.service.store import Store
 
+    if args.bus is not None:
+        from dt_runtime.plant.config import load_plant_config
+        from dt_runtime.plant.status import plant_status
+
+        return plant_status(load_plant_config(args.bus), args.selector or "dt/*/*", args.kind, args.timeout)
+    if args.selector is not None:
+        raise TwinError(f"a selector ({args.selector!r}) asks the cells on the bus: give --bus plant.yaml")
     if not Path(args.store).exists():
         raise TwinError(f"{args.store}: no such store (start `dt run` first)")
     with Store(args.store) as st:
@@ -53,6 +73,8 @@ def _mm(d: dict, keys: str) -> str:
 def human(r: dict) -> str:
     from dt_runtime.service.rows import shown_time
 
+    if "answered" in r:
+        return _plant(r)
     state = r.get("state") or {}
     esc = state.get("data") or {}
     lines = [f"store {r['path']}"]
@@ -115,3 +137,27 @@ def _evidence(e: dict) -> str:
     parts += [f"halted: {e['halt_reason']}"] if e.get("halt_reason") else []
     parts += [f"by {e['by']}: {e.get('note', '')}"] if e.get("by") else []
     return (" (" + "; ".join(parts) + ")") if parts else ""
+
+
+def _plant(r: dict) -> str:
+    """The plant's table: one line per answer (status: state, escalation, open requests, last
+    tick, twin), then the expected cells that did not answer."""
+    lines = [f"{len(r['answered'])} cell(s) answered {r['key']} in {r['elapsed_ms'] / 1e3:.2f} s"
+             + (f" ({len(r['expected'])} expected)" if r["expected"] else "")]
+    head = f"{'cell/robot':<24} {'kind':<10} {'status':<9} {'escalation':<22} {'open':>4}  last tick / answer"
+    lines.append(head)
+    for c in r["cells"]:
+        name = f"{c.get('cell')}/{c.get('robot')}"
+        if "error" in c:
+            lines.append(f"{name:<24} {c.get('kind', '?'):<10} error: {c['error']}")
+            continue
+        opened = c.get("open_requests", len(c["open"]) if isinstance(c.get("open"), list) else "")
+        when = c.get("last_tick") or c.get("t")
+        lines.append(f"{name:<24} {c.get('kind', ''):<10} {c.get('status', '') or '':<9} "
+                     f"{c.get('escalation', '') or '':<22} {opened!s:>4}  {_wall(when)}"
+                     + (f"; {c['reason']}" if c.get("reason") else ""))
+    if r["missing"]:
+        lines.append(f"did not answer: {', '.join(r['missing'])}")
+    for e in r.get("errors") or []:
+        lines.append(f"unreadable reply: {e}")
+    return "\n".join(lines)

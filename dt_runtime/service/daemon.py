@@ -75,7 +75,9 @@ from drivers import registry
 from drivers.base import read_exposed_after
 from dt_kernel.errors import ConfigError, DriverError, TwinError
 from dt_runtime.service import sdnotify
+from dt_runtime.service.answers import answers
 from dt_runtime.service.bus import Bus, CorrectionServer
+from dt_runtime.service.bus.queries import QueryServer
 from dt_runtime.service.cell import Cell, open_cell
 from dt_runtime.service.correction import Corrected, CorrectionFault, Corrector, Monitor
 from dt_runtime.service.counters import Counters
@@ -178,6 +180,11 @@ class Daemon:
         self._last_corrected: tuple[float, Corrected] | None = None  # (t, the last command sent), for status_line
         self._status_mark = (time.monotonic(), 0)  # (when, ticks) of the last status line: its rate
         self._health_key: tuple | None = None
+        # The plant asks every cell on `dt/<cell>/<robot>/q/*` (docs/plant.md): served once the daemon is whole.
+        self.queries = (QueryServer(cfg.bus, self.bus.session, answers(self, self._p(cfg.twin)),
+                                    sign=self.bus.signer.sign) if self.bus else None)
+        if self.queries:
+            self._closers.append(self.queries.close)
         self.paging.reconcile(self._now())
         self.housekeeper.start()
         self._closers.append(self.housekeeper.stop)

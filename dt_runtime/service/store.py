@@ -484,6 +484,12 @@ class Store:
                  **{k: v for k, v in json.loads(r[2]).items()
                     if k in ("uid", "episode", "group", "kind", "reason", "state", "t")}} for r in rows]
 
+    def last_t_tests(self, limit: int = 10) -> list[dict[str, Any]]:
+        """The latest Eq. 17 tests, newest first (a cell's `q/tests` answer: service.answers)."""
+        rows = self._query("SELECT t, t_value, dof, p_value, passed FROM t_stats ORDER BY id DESC LIMIT ?",
+                           (int(limit),))
+        return [{"t": r[0], "t_value": r[1], "dof": r[2], "p_value": r[3], "passed": bool(r[4])} for r in rows]
+
     # ------------------------------------------------------------------ retention
     def prune(self, *, before_t: float | None = None, keep_rows: int | None = None,
               chunk: int = 5_000) -> int:

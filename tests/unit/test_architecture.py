@@ -23,7 +23,7 @@ ALLOWED = {"dt_kernel": {"dt_kernel"}, "sim": {"dt_kernel", "sim"},
            "drivers": {"dt_kernel", "sim", "drivers"},
            "emulators": {"dt_kernel", "sim", "drivers", "emulators"},
            "dt_runtime": {"dt_kernel", "sim", "drivers", "dt_runtime"}}
-LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "service",
+LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "service", "plant",
           "reports", "dashboard", "cli")
 
 

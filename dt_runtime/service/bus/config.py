@@ -51,7 +51,7 @@ def keyexpr_ok(k: str) -> str:
     return k
 
 
-def _check_endpoint(e: str) -> str:
+def check_endpoint(e: str) -> str:
     proto, sep, rest = e.partition("/")
     if not sep or not rest or proto not in ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream"):
         raise ValueError(f"endpoint {e!r} must look like tcp/127.0.0.1:7447 "
@@ -168,7 +168,7 @@ class BusConfig(Frozen):
     @field_validator("listen", "connect")
     @classmethod
     def _eps(cls, v: list[str]) -> list[str]:
-        return [_check_endpoint(e) for e in v]
+        return [check_endpoint(e) for e in v]
 
     @model_validator(mode="after")
     def _tls_endpoints(self) -> BusConfig:
@@ -186,23 +186,29 @@ class BusConfig(Frozen):
 
     def zenoh_config(self) -> zenoh.Config:
         """The zenoh.Config this maps to (see the module docstring)."""
-        with zenoh_errors("zenoh rejected the bus config"):
-            c = zenoh.Config()
-            c.insert_json5("mode", json.dumps(self.mode))
-            c.insert_json5("listen/endpoints", json.dumps(self.listen if self.mode == "peer"
-                                                          else []))
-            c.insert_json5("connect/endpoints", json.dumps(self.connect))
-            c.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
-            c.insert_json5("scouting/gossip/enabled", json.dumps(self.gossip_scouting))
-            if self.tls is not None:
-                for k, v in self.tls.model_dump(exclude_none=True).items():
-                    c.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
-            if self.access_control is not None:
-                c.insert_json5("access_control",
-                               json.dumps(self.access_control.model_dump(exclude_none=True)))
-            for k, v in self.extra.items():
-                c.insert_json5(k, json.dumps(v))
-        return c
+        return zenoh_config(self.mode, self.listen if self.mode == "peer" else [], self.connect,
+                            self.multicast_scouting, self.gossip_scouting, self.tls, self.access_control, self.extra)
+
+
+def zenoh_config(mode: str, listen: list[str], connect: list[str], multicast_scouting: bool, gossip_scouting: bool,
+                 tls: TlsConfig | None, access_control: AccessControlConfig | None,
+                 extra: dict[str, Any]) -> zenoh.Config:
+    """The zenoh.Config of a node (a bus peer or client, or the plant's router: dt_runtime.plant)."""
+    with zenoh_errors("zenoh rejected the bus config"):
+        c = zenoh.Config()
+        c.insert_json5("mode", json.dumps(mode))
+        c.insert_json5("listen/endpoints", json.dumps(listen))
+        c.insert_json5("connect/endpoints", json.dumps(connect))
+        c.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
+        c.insert_json5("scouting/gossip/enabled", json.dumps(gossip_scouting))
+        if tls is not None:
+            for k, v in tls.model_dump(exclude_none=True).items():
+                c.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
+        if access_control is not None:
+            c.insert_json5("access_control", json.dumps(access_control.model_dump(exclude_none=True)))
+        for k, v in extra.items():
+            c.insert_json5(k, json.dumps(v))
+    return c
 
 
 def load_bus_config(path: str | Path) -> BusConfig:

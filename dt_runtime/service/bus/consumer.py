@@ -6,7 +6,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import zenoh
@@ -44,8 +44,11 @@ class MaintenanceConsumer:
     have been lost). A consumer belongs to one consumer `group` and takes only its group's copy
     of each request (the twin sends one per configured group; a copy without a group, from an
     older twin, is everybody's). `on_request(request)` is called once per new request from the
-    worker thread. `done(...)` tells the twin that maintenance was done. Used by tests and by
-    `dt consume`.
+    worker thread; if it raises, the request is neither acked nor remembered, so the twin's next
+    republication brings it again (a plant inbox acks only what its history committed).
+    `seen`: (dt/<cell>/<robot>, uid) pairs taken before (a restarted consumer's history): their
+    copies are acked, not passed on again. `done(...)` tells the twin that maintenance was done.
+    Used by tests, `dt consume` and the plant's inbox (dt_runtime.plant.inbox).
 
     Signed both ways (bus.auth): a request without the service's signature is not taken (a
     forged one: logged, counted in `refused`, `last_refused`, not acked); acks and dones leave
@@ -54,7 +57,7 @@ class MaintenanceConsumer:
 
     def __init__(self, config: BusConfig, *, key_expr: str = "dt/**/maintenance/request",
                  on_request: Callable[[dict[str, Any]], None] | None = None,
-                 auto_ack: bool = True, group: str = "maintenance"):
+                 auto_ack: bool = True, group: str = "maintenance", seen: Iterable[tuple[str, str]] = ()):
         self.config = config
         self.group = group
         self.on_request = on_request
@@ -64,7 +67,7 @@ class MaintenanceConsumer:
         self.refused = 0  # requests without the service's signature (forged, or another key)
         self.last_refused: str | None = None
         self.signer = Signer(config.auth, create=True)
-        self._seen: set[tuple[str, str]] = set()  # (dt/<cell>/<robot>, uid)
+        self._seen: set[tuple[str, str]] = set(seen)  # (dt/<cell>/<robot>, uid)
         self._cond = threading.Condition()
         self._tasks: queue.Queue = queue.Queue()
         self._closed = False
@@ -116,7 +119,13 @@ class MaintenanceConsumer:
                 self.requests.append(req | {"key": key})
                 self._cond.notify_all()
         if new and self.on_request is not None:
-            self.on_request(req | {"key": key})
+            try:
+                self.on_request(req | {"key": key})
+            except BaseException:
+                with self._cond:  # not taken: the next copy is new again, and nothing is acked now
+                    self._seen.discard(ident)
+                    self.requests = [r for r in self.requests if not (r["key"] == key and str(r["uid"]) == uid)]
+                raise
         if self.auto_ack:
             self.ack(prefix, oid, uid)
 

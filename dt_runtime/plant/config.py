@@ -1,0 +1,132 @@
+"""The plant config (`configs/plant/*.yaml`), validated once into frozen models.
+
+    router:            # `dt router --config plant.yaml`: the Zenoh router this host runs
+      listen: [tcp/0.0.0.0:7447]
+      connect: []      # other routers (a router per hall joins the plant's router)
+      max_sessions: 10000   # zenoh's default, 1000, would refuse the 1001st cell
+      shared_memory: false  # zenoh's per-session shared memory refuses sessions near 350 on one host
+      tls: ...         # as the bus's (service.bus.config.TlsConfig)
+      access_control: ...  # as the bus's: what each cell may publish (docs/plant.md)
+    bus:               # how the plant's tools (dt status --bus, dt consume) join: a BusConfig
+      mode: client
+      connect: [tcp/plant-router:7447]
+    cells: [hall-a-c1/r1, hall-a-c2/r1]   # the cells expected to answer (`cell/robot`)
+    history:
+      url: plant_history.sqlite           # or postgresql://user@host/db
+
+`load_plant_config` also takes a plain bus config (the keys of `configs/bus.yaml` at the top):
+then the plant is that bus, with no cell list, no router section and the default history.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, field_validator, model_validator
+
+from dt_kernel.config import Frozen, read_yaml, validate
+from dt_runtime.service.bus.config import (
+    AccessControlConfig,
+    BusConfig,
+    TlsConfig,
+    check_endpoint,
+    zenoh_config,
+)
+
+#: Top-level keys that make a YAML a plant config rather than a bus config.
+PLANT_KEYS = ("router", "bus", "cells", "history")
+POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+
+
+class RouterConfig(Frozen):
+    """The router a plant (or a hall) runs: endpoints, TLS and access control as the bus's."""
+
+    listen: list[str] = ["tcp/127.0.0.1:7447"]
+    connect: list[str] = []  # other routers: a hall's router connects to the plant's
+    multicast_scouting: bool = False
+    gossip_scouting: bool = True
+    # Zenoh's default is 1000 sessions per router: a plant of more cells (plus its tools) would
+    # have the 1001st refused. A session costs the router about 0.1 MB (benchmarks.plant).
+    max_sessions: int = Field(10_000, ge=1)
+    # Shared memory between the router and clients on its host: off. Zenoh negotiates it per
+    # session and refuses new sessions once its segment's counters run out (about 350 sessions on
+    # one host, zenoh 1.10: benchmarks.plant); a plant's messages are small, nothing to gain.
+    shared_memory: bool = False
+    tls: TlsConfig | None = None
+    access_control: AccessControlConfig | None = None
+    extra: dict[str, Any] = {}
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _eps(cls, v: list[str]) -> list[str]:
+        return [check_endpoint(e) for e in v]
+
+    @model_validator(mode="after")
+    def _shape(self) -> RouterConfig:
+        if not self.listen:
+            raise ValueError("a router needs at least one listen endpoint (the cells connect to it)")
+        if self.tls is not None and not any(e.startswith(("tls/", "quic/")) for e in self.listen + self.connect):
+            raise ValueError("tls is configured but no listen/connect endpoint uses tls/ or quic/")
+        return self
+
+    def zenoh_config(self):
+        extra = {"transport/unicast/max_sessions": self.max_sessions,
+                 "transport/shared_memory/enabled": self.shared_memory} | self.extra
+        return zenoh_config("router", self.listen, self.connect, self.multicast_scouting, self.gossip_scouting,
+                            self.tls, self.access_control, extra)
+
+
+class HistoryConfig(Frozen):
+    """Where the plant's inbox records what it received: a file path (SQLite, relative to the
+    config's directory) or a `postgresql://` URL."""
+
+    url: str = "plant_history.sqlite"
+
+    @field_validator("url")
+    @classmethod
+    def _url(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("history.url must be a file path (SQLite) or a postgresql:// URL")
+        if "://" in v and not v.startswith(POSTGRES_SCHEMES + ("sqlite:///",)):
+            raise ValueError(f"{v!r}: a file path (SQLite), sqlite:///PATH or postgresql://... (other databases: "
+                             "not supported)")
+        return v
+
+    @property
+    def is_postgres(self) -> bool:
+        return self.url.startswith(POSTGRES_SCHEMES)
+
+
+class PlantConfig(Frozen):
+    router: RouterConfig | None = None
+    bus: BusConfig = BusConfig()
+    cells: list[str] = []  # `cell/robot` of every cell expected to answer
+    history: HistoryConfig = HistoryConfig()
+
+    @field_validator("cells")
+    @classmethod
+    def _cells(cls, v: list[str]) -> list[str]:
+        for c in v:
+            parts = c.split("/")
+            if len(parts) != 2 or any(not p or any(ch in p for ch in "*$?#") for p in parts):
+                raise ValueError(f"{c!r} must be 'cell/robot' (two key chunks, no * $ ? #)")
+        if len(set(v)) != len(v):
+            raise ValueError(f"cells {v} name a cell twice")
+        return v
+
+
+def load_plant_config(path: str | Path) -> PlantConfig:
+    """A plant config, or a plain bus config taken as a plant of that bus (module docstring)."""
+    data = read_yaml(path)
+    if data and not any(k in data for k in PLANT_KEYS):
+        return PlantConfig(bus=validate(BusConfig, data, path))
+    return validate(PlantConfig, data, path)
+
+
+def history_url(cfg: PlantConfig, base: Path) -> str:
+    """The history's URL with a relative SQLite path taken from `base` (the config's directory)."""
+    url = cfg.history.url
+    if cfg.history.is_postgres:
+        return url
+    p = Path(url.removeprefix("sqlite:///") if url.startswith("sqlite:///") else url)
+    return str(p if p.is_absolute() else base / p)

@@ -1,0 +1,108 @@
+"""`dt/<cell>/<robot>/q/<kind>`: a cell answers questions about itself (queryables).
+
+One queryable on `dt/<cell>/<robot>/q/*` per daemon; a query names the kinds it wants by its key
+expression (`dt/*/*/q/status` through a router asks every cell for its status, `dt/c1/r1/q/*` one
+cell for everything) and gets one reply per kind it intersects, on `dt/<cell>/<robot>/q/<kind>`,
+signed like the daemon's other messages (bus.auth: readers may ignore `sig`). The kinds and what
+they answer are the caller's (`answers`: kind -> a function returning a JSON object); the daemon's
+are `service.answers` (status, health, requests, provenance).
+
+Zenoh callbacks only enqueue (they never block and never touch SQLite: an answer may read the
+store); one worker thread answers and then drops the query, so the asker sees the end of the
+replies at once. A query left waiting longer than `max_queued` deep is answered with an error
+reply (the asker's timeout would otherwise be the only answer).
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import zenoh
+
+from dt_kernel.errors import TwinError, cut
+from dt_runtime.service.bus.config import BusConfig
+from dt_runtime.service.bus.session import BusError, encode, zenoh_errors
+
+log = logging.getLogger("dt_runtime.service.bus")
+
+KINDS = ("status", "health", "requests", "tests", "provenance")
+
+
+class QueryServer:
+    """Answers `dt/<cell>/<robot>/q/<kind>` queries with `answers[kind]()` on `session` (the
+    daemon's bus session: one listen endpoint per process). `sign(key, payload) -> bytes`
+    encodes a reply (the Bus's signer; default: plain JSON)."""
+
+    def __init__(self, config: BusConfig, session: zenoh.Session, answers: Mapping[str, Callable[[], Any]],
+                 sign: Callable[[str, Mapping[str, Any]], bytes] | None = None, max_queued: int = 64):
+        self.config, self.answers = config, dict(answers)
+        self._sign = sign
+        self.prefix = config.key("q")
+        self._kinds = {k: zenoh.KeyExpr(f"{self.prefix}/{k}") for k in self.answers}
+        self._tasks: queue.Queue = queue.Queue(maxsize=max_queued)
+        self.served = self.failed = self.overflow = 0
+        with zenoh_errors(f"declare queryable {self.prefix}/*"):
+            self._queryable = session.declare_queryable(f"{self.prefix}/*", self._on_query)
+        self._worker = threading.Thread(target=self._run, name=f"queries-{config.robot}", daemon=True)
+        self._worker.start()
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            self._tasks.put_nowait(query)
+        except queue.Full:
+            self.overflow += 1
+            try:
+                with zenoh_errors("query overflow reply"):
+                    query.reply_err(encode({"error": "too many queries waiting", "type": "Busy"}))
+            except BusError as exc:
+                log.debug("%s", exc)
+            finally:
+                query.drop()
+
+    def _run(self) -> None:
+        while True:
+            query = self._tasks.get()
+            if query is None:
+                return
+            try:
+                self._answer(query)
+            except Exception:  # noqa: BLE001 - the worker must survive any single failure
+                log.exception("query %s not answered", query.key_expr)
+            finally:
+                query.drop()  # the asker sees the end of the replies now
+
+    def _answer(self, query: zenoh.Query) -> None:
+        asked = query.key_expr
+        for kind, key in self._kinds.items():
+            if not asked.intersects(key):
+                continue
+            try:
+                body = {"cell": self.config.cell, "robot": self.config.robot, "kind": kind, **self.answers[kind]()}
+            except TwinError as exc:
+                body = {"cell": self.config.cell, "robot": self.config.robot, "kind": kind, "error": str(exc),
+                        "type": type(exc).__name__}
+                self.failed += 1
+            except Exception as exc:  # noqa: BLE001 - a defect: logged, and still a reply
+                log.exception("answer %s failed", kind)
+                body = {"cell": self.config.cell, "robot": self.config.robot, "kind": kind,
+                        "error": cut(f"internal error: {exc}"), "type": type(exc).__name__}
+                self.failed += 1
+            data = self._sign(str(key), body) if self._sign is not None else encode(body)
+            with zenoh_errors(f"reply on {key}"):
+                query.reply(key, data, encoding=zenoh.Encoding.APPLICATION_JSON)
+            self.served += 1
+
+    def close(self, timeout: float | None = None) -> None:
+        try:
+            with zenoh_errors(f"undeclare {self.prefix}/*"):
+                self._queryable.undeclare()
+        except BusError as exc:
+            log.warning("%s", exc)
+        try:
+            self._tasks.put(None, timeout=0.5)
+        except queue.Full:
+            pass
+        self._worker.join(self.config.close_timeout_s if timeout is None else timeout)

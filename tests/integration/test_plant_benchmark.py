@@ -1,0 +1,25 @@
+"""`python -m benchmarks.plant --quick`'s run, short: the router, the inbox and a fleet of light
+cells as processes on loopback; every request sent is recorded (none lost), and the contract's
+keys are there. No speed is asserted (a shared, loaded machine)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_plant_benchmark_quick_run_loses_no_request():
+    out = subprocess.run([sys.executable, "-m", "benchmarks.plant", "--quick", "--json"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    r = json.loads(out.stdout)
+    assert {"cells", "msgs_per_s", "request_latency_ms", "lost", "consumer_rss_mb"} <= r.keys()
+    assert set(r["request_latency_ms"]) >= {"p50", "p99"}
+    assert r["cells"] == 5 and r["lost"] == 0
+    assert r["requests"]["sent"] >= 1 and r["requests"]["recorded"] == r["requests"]["sent"]
+    assert r["requests"]["unacked"] == 0  # the inbox's acks reached the cells
+    assert r["msgs_per_s"] > 0 and 0 < r["delivered_ratio"] <= 1.0
+    assert r["consumer_rss_mb"] > 0 and r["request_latency_ms"]["p50"] > 0

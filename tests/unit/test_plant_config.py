@@ -1,0 +1,57 @@
+"""The plant config at its boundary (errors name the key and what is allowed), the shipped
+examples, and the query key a plant status sends."""
+from __future__ import annotations
+
+import pytest
+
+from dt_kernel.errors import ConfigError, DataError
+from dt_runtime.common.paths import CONFIGS
+from dt_runtime.plant.config import history_url, load_plant_config
+from dt_runtime.plant.status import query_key
+
+
+@pytest.mark.parametrize("name", ["plant.yaml", "hall_router.yaml", "cell_bus.yaml", "plant_acl.yaml"])
+def test_the_shipped_plant_configs_load_and_map_onto_zenoh(name):
+    cfg = load_plant_config(CONFIGS / "plant" / name)
+    cfg.bus.zenoh_config()
+    if cfg.router is not None:
+        cfg.router.zenoh_config()
+
+
+def test_the_shipped_plant_names_its_cells_and_a_hall_router_joins_the_plant_router():
+    plant = load_plant_config(CONFIGS / "plant" / "plant.yaml")
+    hall = load_plant_config(CONFIGS / "plant" / "hall_router.yaml")
+    assert plant.cells == ["cell1/r1", "cell2/r1", "cell3/r1"] and plant.bus.mode == "client"
+    assert hall.router.connect == plant.router.listen
+    assert history_url(plant, CONFIGS / "plant") == str(CONFIGS / "plant" / "plant_history.sqlite")
+
+
+def test_a_plain_bus_config_is_a_plant_of_that_bus(tmp_path):
+    cfg = load_plant_config(CONFIGS / "bus.yaml")
+    assert cfg.router is None and cfg.cells == [] and "history" not in cfg.model_fields_set
+
+
+@pytest.mark.parametrize("text, key, seen", [
+    ("cells: [c1]\n", "cells", "['c1']"),
+    ("cells: [c1/r1, c1/r1]\n", "cells", "c1/r1"),
+    ("router: {listen: []}\n", "router", "listen"),
+    ("history: {url: 'mysql://db/plant'}\n", "history.url", "mysql"),
+    ("bus: {mode: router}\n", "bus.mode", "router"),
+    ("routers: {}\n", "routers", "{}"),
+])
+def test_a_bad_plant_config_names_the_key(tmp_path, text, key, seen):
+    p = tmp_path / "plant.yaml"
+    p.write_text("bus: {}\n" + text if not text.startswith("bus") else text)
+    with pytest.raises(ConfigError) as err:
+        load_plant_config(p)
+    assert err.value.key == key and seen in str(err.value) and str(p) in str(err.value)
+
+
+def test_the_query_key_of_a_selector():
+    assert query_key("dt/*/*", "status") == "dt/*/*/q/status"
+    assert query_key("dt/hall-a-$*/*/", "health") == "dt/hall-a-$*/*/q/health"
+    assert query_key("dt/c1/r1/q/*", "status") == "dt/c1/r1/q/*"
+    with pytest.raises(DataError, match="unknown kind 'state'"):
+        query_key("dt/*/*", "state")
+    with pytest.raises(DataError, match="selector 'dt/\\*\\*\\*'"):
+        query_key("dt/***", "status")
