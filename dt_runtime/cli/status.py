@@ -6,7 +6,7 @@ A summary an operator reads at a glance: the escalation state and since when, wh
 frame each is in and times in local time (or on the simulated clock), the open maintenance
 requests and the operator's actions. `--json`: the store's figures as they are (SI, epoch times).
 
-`dt status --bus plant.yaml 'dt/*/*'` sends ONE query on `dt/*/*/q/status` (`--kind`: status,
+`dt status --bus plant.yaml 'dt/*/*'` sends ONE query on `dt/*/*/status` (`--kind`: status,
 health, requests, tests, provenance, or * for all) through the plant's router, prints a table of
 every cell that answered within `--timeout` and names the cells of the plant config's `cells:`
 that did not (docs/plant.md). `--json`: {key, kind, cells: [...], answered, expected, missing}.
@@ -28,7 +28,7 @@ def add_arguments(st: argparse.ArgumentParser) -> None:
                     help="ask the cells on the bus instead (a plant config, configs/plant/, or a bus config)")
     st.add_argument("selector", nargs="?", default=None,
                     help="with --bus: the cells asked, a key expression (default dt/*/*: every cell)")
-    st.add_argument("--kind", default="status", help="with --bus: status, health, requests, tests, provenance or *")
+    st.add_argument("--kind", default="status", help="with --bus: status, health, requests, tests or provenance")
     st.add_argument("--timeout", type=float, default=3.0, metavar="S",
                     help="with --bus: how long to wait for the cells' answers (default 3 s)")
     st.add_argument("--json", action="store_true",

@@ -6,7 +6,7 @@ every cell through one or more Zenoh routers:
 - `config`: the plant config (`PlantConfig`: the router's endpoints and access control, how the
   plant's tools join the fabric, the cells expected, the history database), validated once.
 - `router`: `dt router`, a Zenoh session in router mode (the library the bus already uses).
-- `status`: one query on `dt/<cell>/<robot>/q/<kind>` collects every cell's answer (the cells
+- `status`: one query on `dt/<cell>/<robot>/<kind>` collects every cell's answer (the cells
   serve them: `service.bus.queries`), and names the expected cells that did not answer.
 - `history`: the plant's record of every maintenance request received (SQLite by default,
   PostgreSQL when configured), one row per request (uid) and consumer group.

@@ -1,4 +1,4 @@
-"""One question to the whole plant: a single get on `<selector>/q/<kind>` through the fabric.
+"""One question to the whole plant: a single get on `<selector>/<kind>` through the fabric.
 
 `collect(session, "dt/*/*", "status", expected=["c1/r1", ...])` sends ONE query (target ALL: every
 matching queryable answers, not only the nearest), gathers every cell's reply until each has
@@ -21,13 +21,13 @@ from dt_runtime.service.bus.session import zenoh_errors
 
 
 def query_key(selector: str, kind: str) -> str:
-    """`dt/*/*` + `status` -> `dt/*/*/q/status`; a selector that already ends in `/q/<kind>` or
-    `/q/*` is taken as it is. DataError for a key expression zenoh refuses or an unknown kind."""
-    if kind not in KINDS and kind != "*":
-        raise DataError(f"unknown kind {kind!r}; a cell answers {', '.join(KINDS)} (or * for all)")
+    """`dt/*/*` + `status` -> `dt/*/*/status`; a selector that already ends in a kind is taken as
+    it is. DataError for a key expression zenoh refuses or an unknown kind."""
+    if kind not in KINDS:
+        raise DataError(f"unknown kind {kind!r}; a cell answers {', '.join(KINDS)}")
     key = selector.rstrip("/")
-    if "/q/" not in key + "/":
-        key = f"{key}/q/{kind}"
+    if key.rsplit("/", 1)[-1] not in KINDS:
+        key = f"{key}/{kind}"
     try:
         return keyexpr_ok(key)
     except ValueError as exc:
@@ -62,7 +62,7 @@ def collect(session: zenoh.Session, selector: str = "dt/*/*", kind: str = "statu
             (cells if r.ok is not None or "cell" in body else errors).append(body | {"latency_ms": ms})
     answered = sorted({f"{c.get('cell')}/{c.get('robot')}" for c in cells})
     asked = zenoh.KeyExpr(key)
-    expected = [c for c in expected if asked.intersects(zenoh.KeyExpr(f"dt/{c}/q/{kind if kind != '*' else 'status'}"))]
+    expected = [c for c in expected if asked.intersects(zenoh.KeyExpr(f"dt/{c}/{key.rsplit('/', 1)[-1]}"))]
     missing = [c for c in expected if c not in answered]
     cells.sort(key=lambda c: (str(c.get("cell")), str(c.get("robot")), str(c.get("kind"))))
     return {"key": key, "kind": kind, "cells": cells, "answered": answered, "expected": list(expected),

@@ -180,7 +180,7 @@ class Daemon:
         self._last_corrected: tuple[float, Corrected] | None = None  # (t, the last command sent), for status_line
         self._status_mark = (time.monotonic(), 0)  # (when, ticks) of the last status line: its rate
         self._health_key: tuple | None = None
-        # The plant asks every cell on `dt/<cell>/<robot>/q/*` (docs/plant.md): served once the daemon is whole.
+        # The plant asks every cell on `dt/<cell>/<robot>/<kind>` (docs/plant.md): served once the daemon is whole.
         self.queries = (QueryServer(cfg.bus, self.bus.session, answers(self, self._p(cfg.twin)),
                                     sign=self.bus.signer.sign) if self.bus else None)
         if self.queries:

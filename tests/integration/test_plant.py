@@ -135,5 +135,5 @@ def test_three_cells_one_router_one_inbox_through_restarts(twin_dir, plant, tmp_
     out = subprocess.run([sys.executable, "-m", "dt_runtime.cli.main", "status", "--bus", str(cfg_path), "dt/*/*"],
                          capture_output=True, text=True, timeout=60, env=os.environ)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "3 cell(s) answered dt/*/*/q/status" in out.stdout and "did not answer: c4/r1" in out.stdout
+    assert "3 cell(s) answered dt/*/*/status" in out.stdout and "did not answer: c4/r1" in out.stdout
     assert "c1/r1" in out.stdout and "maintenance_requested" in out.stdout

@@ -48,9 +48,11 @@ def test_a_bad_plant_config_names_the_key(tmp_path, text, key, seen):
 
 
 def test_the_query_key_of_a_selector():
-    assert query_key("dt/*/*", "status") == "dt/*/*/q/status"
-    assert query_key("dt/hall-a-$*/*/", "health") == "dt/hall-a-$*/*/q/health"
-    assert query_key("dt/c1/r1/q/*", "status") == "dt/c1/r1/q/*"
+    assert query_key("dt/*/*", "status") == "dt/*/*/status"
+    assert query_key("dt/hall-a-$*/*/", "health") == "dt/hall-a-$*/*/health"
+    assert query_key("dt/c1/r1/health", "status") == "dt/c1/r1/health"  # a selector naming its kind
+    with pytest.raises(DataError, match="unknown kind"):
+        query_key("dt/*/*", "*")  # a wildcard kind would also reach the daemon's `correct` queryable
     with pytest.raises(DataError, match="unknown kind 'state'"):
         query_key("dt/*/*", "state")
     with pytest.raises(DataError, match="selector 'dt/\\*\\*\\*'"):

@@ -1,8 +1,11 @@
-"""`dt/<cell>/<robot>/q/<kind>`: a cell answers questions about itself (queryables).
+"""`dt/<cell>/<robot>/<kind>`: a cell answers questions about itself (queryables; the bus keys'
+contract, docs/bus.md: one query on `dt/*/*/status` through a router collects a whole plant).
 
-One queryable on `dt/<cell>/<robot>/q/*` per daemon; a query names the kinds it wants by its key
-expression (`dt/*/*/q/status` through a router asks every cell for its status, `dt/c1/r1/q/*` one
-cell for everything) and gets one reply per kind it intersects, on `dt/<cell>/<robot>/q/<kind>`,
+One queryable per kind on `dt/<cell>/<robot>/<kind>` (status, health, requests, tests, provenance:
+`health` is also the key the daemon publishes on; a queryable and a publisher share a key without
+meeting); a query names the kind it wants by its key expression (`dt/*/*/status` through a router
+asks every cell for its status, `dt/c1/r1/health` one cell's health) and gets one reply per kind
+it intersects, on `dt/<cell>/<robot>/<kind>`,
 signed like the daemon's other messages (bus.auth: readers may ignore `sig`). The kinds and what
 they answer are the caller's (`answers`: kind -> a function returning a JSON object); the daemon's
 are `service.answers` (status, health, requests, provenance).
@@ -32,7 +35,7 @@ KINDS = ("status", "health", "requests", "tests", "provenance")
 
 
 class QueryServer:
-    """Answers `dt/<cell>/<robot>/q/<kind>` queries with `answers[kind]()` on `session` (the
+    """Answers `dt/<cell>/<robot>/<kind>` queries with `answers[kind]()` on `session` (the
     daemon's bus session: one listen endpoint per process). `sign(key, payload) -> bytes`
     encodes a reply (the Bus's signer; default: plain JSON)."""
 
@@ -40,12 +43,13 @@ class QueryServer:
                  sign: Callable[[str, Mapping[str, Any]], bytes] | None = None, max_queued: int = 64):
         self.config, self.answers = config, dict(answers)
         self._sign = sign
-        self.prefix = config.key("q")
-        self._kinds = {k: zenoh.KeyExpr(f"{self.prefix}/{k}") for k in self.answers}
+        self._kinds = {k: zenoh.KeyExpr(config.key(k)) for k in self.answers}
         self._tasks: queue.Queue = queue.Queue(maxsize=max_queued)
         self.served = self.failed = self.overflow = 0
-        with zenoh_errors(f"declare queryable {self.prefix}/*"):
-            self._queryable = session.declare_queryable(f"{self.prefix}/*", self._on_query)
+        self._queryables = []
+        for key in self._kinds.values():  # one per kind: a wildcard would also take `.../correct`'s queries
+            with zenoh_errors(f"declare queryable {key}"):
+                self._queryables.append(session.declare_queryable(key, self._on_query))
         self._worker = threading.Thread(target=self._run, name=f"queries-{config.robot}", daemon=True)
         self._worker.start()
 
@@ -96,11 +100,12 @@ class QueryServer:
             self.served += 1
 
     def close(self, timeout: float | None = None) -> None:
-        try:
-            with zenoh_errors(f"undeclare {self.prefix}/*"):
-                self._queryable.undeclare()
-        except BusError as exc:
-            log.warning("%s", exc)
+        for q in self._queryables:
+            try:
+                with zenoh_errors(f"undeclare {q.key_expr}"):
+                    q.undeclare()
+            except BusError as exc:
+                log.warning("%s", exc)
         try:
             self._tasks.put(None, timeout=0.5)
         except queue.Full:
