@@ -18,6 +18,11 @@ The metrologist's view (/metrology, `--results DIR`): the results in DIR and bel
 3D with filters by session, speed and direction of approach, the diagnose steps, the report's
 figures. With `--results` alone no bus is joined and only that page is served.
 
+The plant page (/plant, `--plant plant.yaml`, a plant config as `dt status --bus` takes): every
+cell on the fabric with its status, escalation, open requests and the age of its last contact,
+the expected cells that are silent marked; a click on a cell opens its own dashboard (the plant
+config's `dashboards:`). The plant is asked every `--plant-period` s (one query on dt/*/*/status).
+
 Beyond loopback (`--host` another address) the page is served only over TLS (`--tls-cert`,
 `--tls-key`): the operators' tokens travel in its requests. Runs until SIGINT/SIGTERM or
 `--duration`.
@@ -39,6 +44,10 @@ def add_arguments(d: argparse.ArgumentParser) -> None:
     d.add_argument("--results", default=None, metavar="DIR",
                    help="results of dt compare --report, dt diagnose --auto --out or twins, in DIR or below it: the "
                         "metrologist's view at /metrology (with --results alone, only that page, no bus)")
+    d.add_argument("--plant", default=None, metavar="YAML",
+                   help="a plant config (as dt status --bus): the plant page at /plant, every cell on the fabric")
+    d.add_argument("--plant-period", type=float, default=3.0, metavar="S",
+                   help="ask the plant every S seconds (default 3)")
     d.add_argument("--bus", default=None, metavar="YAML",
                    help="a bus config of its own (another machine, a router) instead of joining the runtime "
                         "YAML's daemon")
@@ -69,18 +78,22 @@ def _port(text: str) -> int:
 def run(args: argparse.Namespace) -> Any:
     from dt_kernel.errors import ConfigError
     from dt_runtime.dashboard.app import Dashboard
+    from dt_runtime.plant.config import load_plant_config
     from dt_runtime.service.bus import load_bus_config
     from dt_runtime.service.runtime_config import load_runtime_config
 
+    if not 0.2 <= args.plant_period <= 600:
+        raise ConfigError("<command line>", "--plant-period", args.plant_period, "0.2 to 600 seconds")
     if not 1 <= args.max_rate <= 200:
         raise ConfigError("<command line>", "--max-rate", args.max_rate, "1 to 200 updates a second")
     config = Path(args.config) if args.config else None
     cfg = load_runtime_config(config) if config else None
     bus = load_bus_config(args.bus) if args.bus else None
+    plant = load_plant_config(args.plant) if args.plant else None
     stop = threading.Event()
     with Dashboard(cfg, config, bus=bus, host=args.host, port=args.port, token_file=args.token_file,
                    group=args.group, tls=(args.tls_cert, args.tls_key), max_rate_hz=args.max_rate,
-                   results=args.results) as dash:
+                   results=args.results, plant=plant, plant_period_s=args.plant_period) as dash:
         # installed once it runs, and the caller's put back after (a test calling main in process)
         before = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
@@ -90,6 +103,9 @@ def run(args: argparse.Namespace) -> Any:
                       file=sys.stderr, flush=True)
             if args.results:
                 print(f"dt dashboard: the metrologist's view {dash.url}metrology (results in {args.results})",
+                      file=sys.stderr, flush=True)
+            if dash.plant is not None:
+                print(f"dt dashboard: the plant {dash.url}plant ({len(plant.cells) if plant else 0} cell(s) expected)",
                       file=sys.stderr, flush=True)
             stop.wait(args.duration)
         finally:

@@ -1,7 +1,8 @@
 """`Dashboard`: the parts of `dt dashboard` put together and started (the twin's scene, the hub,
 the bus feed, the web server in its own thread); `close()` stops them in reverse. Tests and the
 benchmark start it in process; `dt dashboard` wraps it. Without a runtime config it serves the
-metrologist's page only (`results`: no bus, no twin of a cell)."""
+metrologist's page only (`results`: no bus, no twin of a cell); with a plant config (`plant`), the
+plant page (/plant: every cell on the fabric, plant.PlantWatch)."""
 from __future__ import annotations
 
 import logging
@@ -14,9 +15,11 @@ from dt_kernel.errors import ConfigError
 from dt_runtime.dashboard.feed import BusFeed, joining
 from dt_runtime.dashboard.hub import Hub
 from dt_runtime.dashboard.operators import Operators, load_operators
+from dt_runtime.dashboard.plant import PERIOD_S, PlantWatch
 from dt_runtime.dashboard.results import find_results
 from dt_runtime.dashboard.scene import Scene
 from dt_runtime.dashboard.server import DashboardServer, is_loopback
+from dt_runtime.plant.config import PlantConfig
 from dt_runtime.service.bus import BusConfig
 from dt_runtime.service.bus.auth import Signer
 from dt_runtime.service.runtime_config import RuntimeConfig
@@ -28,10 +31,12 @@ class Dashboard:
     def __init__(self, cfg: RuntimeConfig | None, config_path: str | Path | None, *, bus: BusConfig | None = None,
                  host: str = "127.0.0.1", port: int = 8765, token_file: str | Path | None = None,
                  group: str = "maintenance", tls: tuple[str | None, str | None] = (None, None),
-                 max_rate_hz: float = 50.0, results: str | Path | None = None):
-        if cfg is None and results is None:
-            raise ConfigError("<command line>", "--config/--results", None, "a runtime YAML (the live cell), a "
-                              "directory of results (the metrologist's view), or both")
+                 max_rate_hz: float = 50.0, results: str | Path | None = None, plant: PlantConfig | None = None,
+                 plant_period_s: float = PERIOD_S):
+        if cfg is None and results is None and plant is None:
+            raise ConfigError("<command line>", "--config/--results/--plant", None, "a runtime YAML (the live "
+                              "cell), a directory of results (the metrologist's view), a plant config (the plant "
+                              "page), or several")
         if results is not None:
             results = Path(results).resolve()
             find_results(results)  # a directory, or a ConfigError now rather than on the page
@@ -48,11 +53,15 @@ class Dashboard:
         self._closers: list[Any] = []
         self.scene: Scene | None = None
         self.feed: BusFeed | None = None
+        self.plant: PlantWatch | None = None
         try:
             if cfg is not None:
                 self._join(cfg, Path(config_path or "."), bus, group)
+            if plant is not None:
+                self.plant = PlantWatch(plant, plant_period_s)
+                self._closers.append(self.plant.close)
             self.server = DashboardServer((host, port), self.hub, self.scene, self.feed, self.operators, max_rate_hz,
-                                          results)
+                                          results, self.plant)
         except BaseException:
             self.close()
             raise
@@ -105,6 +114,7 @@ class Dashboard:
         return {"url": self.url, "bus": self.feed.prefix if self.feed else None, "received": dict(self.hub.received),
                 "bus_refused": self.hub.bus_refused, "dropped": self.feed.dropped if self.feed else 0,
                 "metrology": self.server.results is not None and self.url + "metrology",
+                "plant": self.plant is not None and self.url + "plant",
                 "actions": list(self.server.actions),
                 "operators": self.operators.names if self.operators else []}
 

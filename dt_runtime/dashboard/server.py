@@ -12,6 +12,8 @@ Routes:
     GET  /metrology             the metrologist's page (static/metrology.html; with --results)
     GET  /api/results           the results under --results: [{name, kind}]
     GET  /api/result?name=N     one of them, as results.load reads it (N: a name of /api/results)
+    GET  /plant                 the plant page (static/plant.html; with --plant): every cell on the fabric
+    GET  /api/plant             its rows (plant.PlantWatch.snapshot)
     GET  /api/snapshot          the live state now (JSON)
     GET  /api/events            server-sent events: `snapshot`, then batches (`message`)
     GET  /api/whoami            the operator a token names (401/403 as for an action)
@@ -43,6 +45,7 @@ from dt_runtime.common.safe_json import loads
 from dt_runtime.dashboard.feed import BusFeed
 from dt_runtime.dashboard.hub import Hub
 from dt_runtime.dashboard.operators import Operators
+from dt_runtime.dashboard.plant import PlantWatch
 from dt_runtime.dashboard.results import find_results
 from dt_runtime.dashboard.results import load as load_result
 from dt_runtime.dashboard.scene import Scene
@@ -50,7 +53,8 @@ from dt_runtime.dashboard.scene import Scene
 log = logging.getLogger("dt.dashboard")
 STATIC = {"index.html": "text/html; charset=utf-8", "app.js": "text/javascript; charset=utf-8",
           "view3d.js": "text/javascript; charset=utf-8", "style.css": "text/css; charset=utf-8",
-          "metrology.html": "text/html; charset=utf-8", "metrology.js": "text/javascript; charset=utf-8"}
+          "metrology.html": "text/html; charset=utf-8", "metrology.js": "text/javascript; charset=utf-8",
+          "plant.html": "text/html; charset=utf-8", "plant.js": "text/javascript; charset=utf-8"}
 MAX_BODY = 4096
 MAX_NOTE = 500
 MAX_STREAMS = 16  # pages open at once (each holds a thread)
@@ -75,8 +79,10 @@ class DashboardServer(ThreadingHTTPServer):
     allow_reuse_address = True
 
     def __init__(self, address: tuple[str, int], hub: Hub, scene: Scene | None, feed: BusFeed | None,
-                 operators: Operators | None, max_rate_hz: float = 50.0, results: Path | None = None):
+                 operators: Operators | None, max_rate_hz: float = 50.0, results: Path | None = None,
+                 plant: PlantWatch | None = None):
         super().__init__(address, Handler)
+        self.plant = plant  # the plant page's source (None: no /plant)
         self.hub, self.scene, self.feed, self.operators = hub, scene, feed, operators
         self.results = results  # the metrologist's directory (None: no /metrology)
         self.min_interval_s = 1.0 / max_rate_hz
@@ -148,7 +154,12 @@ class Handler(BaseHTTPRequestHandler):
         path, _, query = self.path.partition("?")
         live = self.server.scene_json is not None
         if path in ("/", "/index.html") and not live:
-            return self._send(HTTPStatus.FOUND, b"", "text/plain", {"Location": "/metrology"})
+            home = "/plant" if self.server.plant is not None else "/metrology"
+            return self._send(HTTPStatus.FOUND, b"", "text/plain", {"Location": home})
+        if path == "/plant" and self.server.plant is not None:
+            return self._send(HTTPStatus.OK, _static("plant.html"), STATIC["plant.html"])
+        if path == "/api/plant" and self.server.plant is not None:
+            return self._json(HTTPStatus.OK, self.server.plant.snapshot())
         if path in ("/", "/index.html"):
             return self._send(HTTPStatus.OK, _static("index.html"), STATIC["index.html"])
         if path == "/metrology" and self.server.results is not None:

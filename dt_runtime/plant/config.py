@@ -11,6 +11,8 @@
       mode: client
       connect: [tcp/plant-router:7447]
     cells: [hall-a-c1/r1, hall-a-c2/r1]   # the cells expected to answer (`cell/robot`)
+    dashboards:                           # optional: each cell's own `dt dashboard` (the plant page links it)
+      hall-a-c1/r1: https://hall-a-c1.plant.local:8765/
     history:
       url: plant_history.sqlite           # or postgresql://user@host/db
 
@@ -34,7 +36,7 @@ from dt_runtime.service.bus.config import (
 )
 
 #: Top-level keys that make a YAML a plant config rather than a bus config.
-PLANT_KEYS = ("router", "bus", "cells", "history")
+PLANT_KEYS = ("router", "bus", "cells", "dashboards", "history")
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
 
 
@@ -101,7 +103,18 @@ class PlantConfig(Frozen):
     router: RouterConfig | None = None
     bus: BusConfig = BusConfig()
     cells: list[str] = []  # `cell/robot` of every cell expected to answer
+    # `cell/robot` -> the URL of that cell's own `dt dashboard`: the plant page's click opens it
+    dashboards: dict[str, str] = {}
     history: HistoryConfig = HistoryConfig()
+
+    @field_validator("dashboards")
+    @classmethod
+    def _dashboards(cls, v: dict[str, str]) -> dict[str, str]:
+        for c, url in v.items():
+            cls._cells([c])
+            if not url.startswith(("http://", "https://")) or any(ch.isspace() or ch in "\"'<>" for ch in url):
+                raise ValueError(f"dashboards[{c!r}] = {url!r}: an http:// or https:// URL (a cell's dt dashboard)")
+        return v
 
     @field_validator("cells")
     @classmethod
