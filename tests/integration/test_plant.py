@@ -12,50 +12,18 @@ timed."""
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-from dt_runtime.common.paths import CONFIGS
 from dt_runtime.plant.config import PlantConfig
 from dt_runtime.plant.inbox import PlantInbox
 from dt_runtime.plant.status import plant_status
 from tests.support.loopback import free_port, wait_until
+from tests.support.plant_cells import dt, router, runtime, stop
 
 CELLS = ("c1", "c2", "c3")
-FAULT = "[{at_s: 0, joint_offset_rad: [0, 1.0e-3, 0, 0, 0, 0]}]"  # ~1 mm: pages within a second
-
-
-def _dt(*args: str, log: Path) -> subprocess.Popen:
-    with log.open("ab") as f:
-        return subprocess.Popen([sys.executable, "-m", "dt_runtime.cli.main", *args], stdout=subprocess.DEVNULL,
-                                stderr=f, start_new_session=True)
-
-
-def _stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(20)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(10)
-
-
-def _runtime(tmp: Path, twin_dir: Path, cell: str, port: int) -> Path:
-    """A `dt run` config like test_runtime's daemon_cfg, paced (20 Hz on the wall clock: three
-    daemons share two cores with the rest of the test), a client of the router."""
-    cfg = tmp / f"{cell}.yaml"
-    cfg.write_text(
-        f"twin: {twin_dir}\nstore: {tmp / cell}.sqlite\nrate_hz: 20\nrealtime: true\n"
-        f"sim: {{scenario: {CONFIGS / 'scenarios' / 'paper_default.yaml'}, cell: {CONFIGS / 'cell.yaml'},"
-        f" faults: {FAULT if cell == 'c1' else '[]'}}}\n"
-        f"bus: {{cell: {cell}, robot: r1, mode: client, connect: ['tcp/127.0.0.1:{port}'],"
-        f" republish_period_s: 0.3, health_period_s: 0.5}}\n")
-    return cfg
 
 
 @pytest.fixture
@@ -69,14 +37,7 @@ def plant(tmp_path):
     procs: dict[str, subprocess.Popen] = {}
     yield port, cfg, procs
     for p in procs.values():
-        _stop(p)
-
-
-def _router(cfg: Path, log: Path) -> subprocess.Popen:
-    p = _dt("router", "--config", str(cfg), log=log)
-    assert wait_until(lambda: "dt router: listening" in log.read_text() or p.poll() is not None, 60), "no router"
-    assert p.poll() is None, log.read_text()[-2000:]
-    return p
+        stop(p)
 
 
 def test_three_cells_one_router_one_inbox_through_restarts(twin_dir, plant, tmp_path):
@@ -84,9 +45,10 @@ def test_three_cells_one_router_one_inbox_through_restarts(twin_dir, plant, tmp_
     cfg = PlantConfig.model_validate({"bus": {"cell": "plant", "robot": "inbox", "mode": "client",
                                               "connect": [f"tcp/127.0.0.1:{port}"]},
                                       "cells": [f"{c}/r1" for c in CELLS] + ["c4/r1"]})
-    procs["router"] = _router(cfg_path, tmp_path / "router1.log")
+    procs["router"] = router(cfg_path, tmp_path / "router1.log")
     for c in CELLS:
-        procs[c] = _dt("run", "--config", str(_runtime(tmp_path, twin_dir, c, port)), log=tmp_path / f"{c}.log")
+        cfg_c = runtime(tmp_path, twin_dir, c, port, faulty=c == "c1")
+        procs[c] = dt("run", "--config", str(cfg_c), log=tmp_path / f"{c}.log")
 
     def status(kind: str = "status") -> dict:
         return plant_status(cfg, "dt/*/*", kind, timeout_s=2.0)
@@ -110,8 +72,8 @@ def test_three_cells_one_router_one_inbox_through_restarts(twin_dir, plant, tmp_
     for name in ("router", "c1"):
         procs[name].kill()
         procs[name].wait(10)
-    procs["router"] = _router(cfg_path, tmp_path / "router2.log")
-    procs["c1"] = _dt("run", "--config", str(tmp_path / "c1.yaml"), log=tmp_path / "c1.log")
+    procs["router"] = router(cfg_path, tmp_path / "router2.log")
+    procs["c1"] = dt("run", "--config", str(tmp_path / "c1.yaml"), log=tmp_path / "c1.log")
 
     # The maintenance host comes back: two consumers of one group, one history.
     history = str(tmp_path / "history.sqlite")
