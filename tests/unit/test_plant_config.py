@@ -38,6 +38,8 @@ def test_a_plain_bus_config_is_a_plant_of_that_bus(tmp_path):
     ("history: {url: 'mysql://db/plant'}\n", "history.url", "mysql"),
     ("bus: {mode: router}\n", "bus.mode", "router"),
     ("routers: {}\n", "routers", "{}"),
+    ("dashboards: {c1: 'http://h:1/'}\n", "dashboards", "c1"),
+    ("dashboards: {c1/r1: 'javascript:alert(1)'}\n", "dashboards", "javascript"),
 ])
 def test_a_bad_plant_config_names_the_key(tmp_path, text, key, seen):
     p = tmp_path / "plant.yaml"
