@@ -31,7 +31,6 @@ import json
 import math
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -41,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._common import cli, emit
+from tests.support.plant_cells import stop
 
 NO_SHM = {"transport/shared_memory/enabled": False}
 ACK_PERIOD_S = 2.0  # the outbox's republish period (bus.republish_period_s default)
@@ -247,16 +247,6 @@ def _ready(p: subprocess.Popen, log: Path, timeout: float = 300.0) -> None:
         raise RuntimeError(f"{p.args}: not ready: {log.read_text()[-2000:]}")
 
 
-def _stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(15)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(5)
-
-
 def _pct(xs: list[float], q: float) -> float | None:
     if not xs:
         return None
@@ -334,7 +324,7 @@ def run(cells: int = 10, duration: float = 20.0, rate_hz: float = 10.0, request_
             c = json.loads((tmp / "consumer.json").read_text())
         finally:
             for p in reversed(procs):
-                _stop(p)
+                stop(p)
     sent = sum(f["sent"] for f in figs)
     published = sum(f["published"] for f in figs)
     wall = max(f["wall_s"] for f in figs)
