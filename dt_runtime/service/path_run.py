@@ -130,7 +130,6 @@ class PathPlan:
     commands: np.ndarray
     U: np.ndarray
     joints: np.ndarray | None
-    start_joints: np.ndarray | None
 
     @property
     def n(self) -> int:
@@ -162,7 +161,7 @@ def plan_path(twin: Twin, file: Path, rate_hz: float, limits: Limits, source: st
                           f"path is corrected in its own process without the cell's sensors (this twin reads "
                           f"{sorted(extra)}); run the path as a point program instead")
     joints = None if corrected[0].joints is None else np.array([r.joints for r in corrected])
-    return PathPlan(file, sp, commands, np.array([r.U for r in corrected]), joints, program.joints)
+    return PathPlan(file, sp, commands, np.array([r.U for r in corrected]), joints)
 
 
 # --- a pass -----------------------------------------------------------------------------------
