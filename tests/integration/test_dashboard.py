@@ -65,14 +65,10 @@ def dash(cell):
 
 @pytest.fixture(scope="module")
 def page(dash):
-    try:
-        exe = browser.chromium_path()
-    except RuntimeError as exc:
-        pytest.fail(str(exc))  # a missing browser fails the suite, it is never skipped silently
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=exe, headless=True)
+        b = browser.launch(pw)  # a missing browser fails the test
         # The page's Content-Security-Policy forbids eval; Playwright's string predicates use it.
         pg = b.new_context(viewport={"width": 1400, "height": 1100}, bypass_csp=True).new_page()
         errors: list[str] = []

@@ -44,14 +44,10 @@ def results(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def page(results):
-    try:
-        exe = browser.chromium_path()
-    except RuntimeError as exc:
-        pytest.fail(str(exc))  # a missing browser fails the suite, it is never skipped silently
     from playwright.sync_api import sync_playwright
 
     with Dashboard(None, None, port=0, results=results) as dash, sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=exe, headless=True)
+        b = browser.launch(pw)  # a missing browser fails the test
         pg = b.new_context(viewport={"width": 1400, "height": 1100}, bypass_csp=True).new_page()
         errors: list[str] = []
         pg.on("pageerror", lambda e: errors.append(str(e)))

@@ -53,14 +53,10 @@ def test_plant_page_lists_the_cells_marks_the_silent_one_and_opens_a_cells_live_
                         and r["c1/r1"].get("open_requests") == 1 and not r["c2/r1"]["silent"])
             assert wait_until(paged, 120), (rows(), [(tmp_path / f"{c}.log").read_text()[-1500:] for c in cfgs])
 
-            try:
-                exe = browser.chromium_path()
-            except RuntimeError as exc:
-                pytest.fail(str(exc))  # a missing browser fails the suite, it is never skipped silently
             from playwright.sync_api import sync_playwright
 
             with sync_playwright() as pw:
-                b = pw.chromium.launch(executable_path=exe, headless=True)
+                b = browser.launch(pw)  # a missing browser fails the test
                 try:
                     pg = b.new_context(viewport={"width": 1400, "height": 900}, bypass_csp=True).new_page()
                     errors: list[str] = []

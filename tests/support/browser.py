@@ -22,8 +22,15 @@ def chromium_path() -> str:
 
 
 def launch(playwright):
-    """Headless Chromium of the OS, launched by Playwright."""
-    return playwright.chromium.launch(executable_path=chromium_path(), headless=True)
+    """Headless Chromium of the OS, launched by Playwright. A test that asks for it on a machine
+    without one fails, saying what to install: the browser tests are never skipped silently."""
+    try:
+        exe = chromium_path()
+    except RuntimeError as exc:
+        import pytest  # only the tests launch through here (the benchmark opens its own profile)
+
+        pytest.fail(str(exc))
+    return playwright.chromium.launch(executable_path=exe, headless=True)
 
 
 def processes_memory_mb(marker: str) -> dict[str, float]:
