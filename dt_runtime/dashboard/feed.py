@@ -28,7 +28,14 @@ from dt_runtime.dashboard.scene import Scene
 from dt_runtime.service.bus.auth import Signer
 from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, BusConfig
 from dt_runtime.service.bus.consumer import publish_ack, publish_done
-from dt_runtime.service.bus.session import BusError, close_session, open_session, shut_down, zenoh_errors
+from dt_runtime.service.bus.session import (
+    BusError,
+    close_session,
+    open_session,
+    serve_tasks,
+    shut_down,
+    zenoh_errors,
+)
 
 log = logging.getLogger("dt.dashboard")
 QUEUE = 10_000  # messages between the zenoh callbacks and the worker (80 s of telemetry at 125 Hz)
@@ -101,14 +108,8 @@ class BusFeed:
         return on_sample
 
     def _run(self) -> None:
-        while True:
-            task = self._tasks.get()
-            if task is None:
-                return
-            try:
-                self._handle(*task)
-            except Exception:  # noqa: BLE001 - one bad message must not stop the feed
-                log.exception("dashboard: message on %s not handled", task[1])
+        serve_tasks(self._tasks, lambda task: self._handle(*task),
+                    lambda task: f"dashboard: message on {task[1]} not handled", log)
 
     def _handle(self, kind: str, key: str, raw: bytes, rx: float) -> None:
         try:

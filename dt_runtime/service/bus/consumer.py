@@ -15,7 +15,15 @@ from dt_kernel.errors import DataError
 from dt_runtime.common.safe_json import loads
 from dt_runtime.service.bus.auth import Signer
 from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, BusConfig
-from dt_runtime.service.bus.session import BusError, close_session, open_session, put_json, shut_down, zenoh_errors
+from dt_runtime.service.bus.session import (
+    BusError,
+    close_session,
+    open_session,
+    put_json,
+    serve_tasks,
+    shut_down,
+    zenoh_errors,
+)
 
 log = logging.getLogger("dt_runtime.service.bus")
 
@@ -84,14 +92,8 @@ class MaintenanceConsumer:
         self._worker.start()
 
     def _run(self) -> None:
-        while True:
-            task = self._tasks.get()
-            if task is None:
-                return
-            try:
-                self._handle(*task)
-            except Exception:  # noqa: BLE001
-                log.exception("maintenance consumer failed on %s", task[0])
+        serve_tasks(self._tasks, lambda task: self._handle(*task),
+                    lambda task: f"maintenance consumer failed on {task[0]}")
 
     def _handle(self, key: str, raw: bytes) -> None:
         try:

@@ -27,7 +27,7 @@ import zenoh
 
 from dt_kernel.errors import TwinError, cut
 from dt_runtime.service.bus.config import BusConfig
-from dt_runtime.service.bus.session import BusError, encode, zenoh_errors
+from dt_runtime.service.bus.session import BusError, encode, serve_tasks, zenoh_errors
 
 log = logging.getLogger("dt_runtime.service.bus")
 
@@ -67,16 +67,13 @@ class QueryServer:
                 query.drop()
 
     def _run(self) -> None:
-        while True:
-            query = self._tasks.get()
-            if query is None:
-                return
-            try:
-                self._answer(query)
-            except Exception:  # noqa: BLE001 - the worker must survive any single failure
-                log.exception("query %s not answered", query.key_expr)
-            finally:
-                query.drop()  # the asker sees the end of the replies now
+        serve_tasks(self._tasks, self._answer_then_drop, lambda query: f"query {query.key_expr} not answered")
+
+    def _answer_then_drop(self, query: zenoh.Query) -> None:
+        try:
+            self._answer(query)
+        finally:
+            query.drop()  # the asker sees the end of the replies now
 
     def _answer(self, query: zenoh.Query) -> None:
         asked = query.key_expr

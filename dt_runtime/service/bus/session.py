@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -85,3 +86,18 @@ def shut_down(session: zenoh.Session, worker: threading.Thread, wake: Callable[[
     wake()
     worker.join(max(0.0, deadline - time.monotonic()))
     return close_session(session, max(0.1, deadline - time.monotonic())) and not worker.is_alive()
+
+
+def serve_tasks(tasks: queue.Queue, handle: Callable[[Any], None], failed: Callable[[Any], str],
+                logger: logging.Logger = log) -> None:
+    """A bus worker thread's loop (zenoh's callbacks only enqueue): `handle` each task until a None
+    comes; a task that raises is logged with `failed(task)` and the worker goes on (one bad
+    message must not stop it)."""
+    while True:
+        task = tasks.get()
+        if task is None:
+            return
+        try:
+            handle(task)
+        except Exception:  # noqa: BLE001 - the worker must survive any single failure
+            logger.exception("%s", failed(task))
