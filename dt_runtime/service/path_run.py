@@ -123,12 +123,11 @@ def streaming_robot(name: str, options: dict, source: str, start: np.ndarray, sp
 @dataclass(frozen=True)
 class PathPlan:
     """The path interpolated and corrected offline: set-points `sp`, their corrected commands
-    (n, 3) m, U (n, 3) m (95 %) and joints (n, dof) rad or None."""
+    (n, 3) m and joints (n, dof) rad or None."""
 
     file: Path
     sp: Setpoints
     commands: np.ndarray
-    U: np.ndarray
     joints: np.ndarray | None
 
     @property
@@ -161,7 +160,7 @@ def plan_path(twin: Twin, file: Path, rate_hz: float, limits: Limits, source: st
                           f"path is corrected in its own process without the cell's sensors (this twin reads "
                           f"{sorted(extra)}); run the path as a point program instead")
     joints = None if corrected[0].joints is None else np.array([r.joints for r in corrected])
-    return PathPlan(file, sp, commands, np.array([r.U for r in corrected]), joints)
+    return PathPlan(file, sp, commands, joints)
 
 
 # --- a pass -----------------------------------------------------------------------------------
