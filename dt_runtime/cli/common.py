@@ -216,12 +216,15 @@ def robot_of(args: argparse.Namespace, d) -> str:
     from dt_runtime.analysis.data import DEFAULT_ROBOT
     from dt_runtime.frames import robots
     from dt_runtime.frames.tool_fit import fit_tool
+    from dt_runtime.measurements.checks import joints_vs_commanded
 
     ref = robots.resolve(args.robot or d.info.get("robot") or DEFAULT_ROBOT, [Path.cwd()])
     chain = robots.load(ref)
     q = d.dataset.joints
     if chain.tool_given or q is None or q.shape[1] != chain.dof:
         return _used(d, ref.text)
+    # the nominal chain first: do the joints explain the commanded TCP with some tool at all?
+    joints_vs_commanded(q, d.dataset.commanded, chain, d.dataset.source, free_tool=True)
     fit = fit_tool(chain, q, d.dataset.commanded, "commanded")
     imported = (d.info.get("registration") or {}).get("tool_offset")
     d.info["tool_offset"] = imported or fit.to_dict()
@@ -229,7 +232,10 @@ def robot_of(args: argparse.Namespace, d) -> str:
     log.info("%s gives no tool offset: %s", ref.text, fit.line() if imported is None else
              f"the import's: {imported['xyz_mm']} mm +/- {imported['u_mm']} mm, residual 3D RMS "
              f"{imported['residual_rms_mm']:.3f} mm ({imported['n']} rows)")
-    if fit.residual_rms > 1e-3:
+    note = fit.note() if imported is None else ""
+    if note:
+        log.warning("%s", note)
+    if fit.residual_rms > 1e-3 and not fit.undetermined:
         log.warning("the commanded TCP departs from %s's nominal kinematics plus one tool offset by %.3f mm RMS: "
                     "another robot, or joints in another order or zero?", ref.text, fit.residual_rms * 1e3)
     return _used(d, ref.with_tool(fit.offset).text)

@@ -7,7 +7,8 @@ error a thousandfold. Two checks catch them and say which unit is likely wrong:
 - `joints_vs_commanded`: with a robot config, the forward kinematics of the joint columns must
   reproduce the commanded TCP. A mismatch is reported (median over the rows); beyond `refuse_m`
   it is a DataError that names the likely cause, found by trying the usual mistakes: the joints
-  in degrees, the positions in metres, the joints of another robot (count, or nothing fits).
+  in degrees, the positions in metres, a tool offset the config does not give (a constant offset
+  explains it), the joints of another robot (count, or nothing fits).
 - `plausible_ranges`: speed > 0 and at most 10 m/s, payload in [0, 1000] kg, temperature in
   [-50, 150] deg C, commanded positions within 5 m of the base: a value outside names its column,
   its row and the allowed range.
@@ -78,14 +79,38 @@ class JointCheck:
                 "robot": self.robot}
 
 
+def _mm(v: np.ndarray) -> str:
+    return "(" + ", ".join(f"{x * MM_PER_M:.3f}" for x in v) + ")"
+
+
+def _flange_mean(chain: Chain, q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The mean of the commanded TCP in the flange frame: R_f^T (p - p_f) averaged over the rows."""
+    T = chain.frames(q)[2]
+    return np.einsum("nba,nb->na", T[:, :3, :3], p - T[:, :3, 3]).mean(axis=0)
+
+
 def _mismatch(chain: Chain, q: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.linalg.norm(chain.fk(q) - p, axis=1)
 
 
+def _with_offset(chain: Chain, q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mismatch left when the best constant tool offset o (flange frame) and constant shift t
+    (robot frame) are added to FK(q): (per-row distances, o, t), least squares."""
+    T = chain.frames(q)[2]
+    n = len(q)
+    X = np.concatenate([T[:, :3, :3], np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2).reshape(3 * n, 6)
+    d = (p - T[:, :3, 3]).reshape(-1)
+    beta = np.linalg.lstsq(X, d, rcond=1e-8)[0]
+    return np.linalg.norm((d - X @ beta).reshape(n, 3), axis=1), beta[:3], beta[3:]
+
+
 def joints_vs_commanded(q: np.ndarray | None, commanded: np.ndarray, chain: Chain, where: str,
-                        refuse_m: float = 0.02) -> JointCheck | None:
+                        refuse_m: float = 0.02, free_tool: bool = False) -> JointCheck | None:
     """The mismatch of FK(q) and the commanded TCP (both robot frame, SI); DataError naming the
-    likely unit error when its median exceeds `refuse_m`. None when there are no joint columns."""
+    likely cause when its median exceeds `refuse_m`: units, a tool offset the config does not give,
+    or another robot / joint order. None when there are no joint columns. `free_tool`: the chain
+    ends at the flange and its tool is still to be fitted: the mismatch is measured after the best
+    constant tool offset and shift (the nominal chain's check before any fit)."""
     if q is None:
         return None
     q = np.asarray(q, dtype=float)
@@ -99,11 +124,22 @@ def joints_vs_commanded(q: np.ndarray | None, commanded: np.ndarray, chain: Chai
         raise DataError(f"{where}: {q.shape[1]} joint angle columns (q1..q{q.shape[1]}), the robot config "
                         f"{chain.name} has {chain.dof} joints: data of another robot? (give its config with --robot)")
     q, p = q[ok], p[ok]
-    d = _mismatch(chain, q, p)
+    d = _with_offset(chain, q, p)[0] if free_tool else _mismatch(chain, q, p)
     check = JointCheck(float(np.median(d)) * MM_PER_M, float(np.percentile(d, 95)) * MM_PER_M, int(ok.sum()),
                        chain.name)
     if np.median(d) <= refuse_m:
         return check
+    head = (f"{where}: the joint angles do not match the commanded TCP through the robot config {chain.name}"
+            + (" with any tool offset" if free_tool else "") + f": they differ by {check.median_mm:.3f} mm "
+            f"(median over {check.rows} rows)")
+    if not free_tool:
+        left = _with_offset(chain, q, p)[0]
+        if np.median(left) <= refuse_m:
+            raise DataError(
+                f"{head}, but the forward kinematics plus one constant tool offset matches it within "
+                f"{np.median(left) * MM_PER_M:.3f} mm: a tool offset the robot config does not give, or not the one "
+                f"the data's TCP carries (the commanded TCP lies {_mm(_flange_mean(chain, q, p))} mm from the flange "
+                "in the flange frame, on average): give tool_xyz_m in the robot config")
     # Which usual mistake explains the data? Each alternative is tried on the same rows.
     tries = {
         "the q columns look like degrees (in radians their forward kinematics matches the commanded TCP "
@@ -116,13 +152,9 @@ def joints_vs_commanded(q: np.ndarray | None, commanded: np.ndarray, chain: Chai
     for text, f in tries.items():
         alt = float(np.median(f()))
         if alt <= refuse_m:
-            raise DataError(f"{where}: the joint angles do not match the commanded TCP through the robot config "
-                            f"{chain.name}: they differ by {check.median_mm:.3f} mm (median over {check.rows} rows): "
-                            + text.format(alt * MM_PER_M))
+            raise DataError(f"{head}: " + text.format(alt * MM_PER_M))
     looks_deg = float(np.max(np.abs(q))) > 2.5 * np.pi
-    raise DataError(f"{where}: the joint angles do not match the commanded TCP through the robot config {chain.name}: "
-                    f"they differ by {check.median_mm:.3f} mm (median over {check.rows} rows, allowed "
-                    f"{refuse_m * MM_PER_M:g} mm): "
+    raise DataError(f"{head[:-1]}, allowed {refuse_m * MM_PER_M:g} mm; no tool offset explains it): "
                     + ("the q columns exceed 2.5 pi, so they look like degrees; " if looks_deg else "")
                     + "data of another robot (give its config with --robot), or joints in another order or "
                     "zero convention")
