@@ -110,36 +110,87 @@ def testable(ev: Evaluator, candidates: list[str]) -> tuple[list[str], list[dict
     return out, skipped
 
 
-def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float) -> tuple[list[Gain], list[dict]]:
-    """Qualifying effects that compete for the same residual, tested against each other: the
-    model with both against each alone. Returns the qualifying list with the preferred one first."""
-    if len(ok) < 2 or ok[0].kind != "effect":
+def _scheme(ev: Evaluator, *effects: str):
+    """The deployment scheme two rivals are compared on: time blocks when either reads time."""
+    schemes = [ev.scheme_for(e) for e in effects]
+    return next((sc for sc in schemes if sc is not ev.deploy), ev.deploy)
+
+
+def _verdict(p_b_beyond_a: float, p_a_beyond_b: float, level: float) -> str:
+    if p_b_beyond_a < level <= p_a_beyond_b:
+        return "b"
+    if p_a_beyond_b < level <= p_b_beyond_a:
+        return "a"
+    return "both" if p_a_beyond_b < level and p_b_beyond_a < level else "neither"
+
+
+def _duel(ev: Evaluator, cfg: Config, a: str, b: str, factor: str, level: float) -> dict:
+    """Two rivals not yet in `cfg`, in both orders: the model with both against each with one, by
+    point (does b explain what a leaves? does a explain what b leaves?), and each alone on the
+    deployment scheme. The data prefer the one the other adds nothing to; when the points cannot
+    tell ('both' real or 'neither' separable), the lower deployment RMS decides which goes first."""
+    ca, cb = cfg.plus(a), cfg.plus(b)
+    cva, cvb = ev.cv(ca, ev.points), ev.cv(cb, ev.points)
+    both = ev.cv(ca.plus(b), ev.points, starts=cva.log_hypers)
+    p_b_beyond_a, p_a_beyond_b = paired_gain(cva, both)[0], paired_gain(cvb, both)[0]
+    scheme = _scheme(ev, a, b)
+    dep_a, dep_b = ev.rms_mm(ca, scheme), ev.rms_mm(cb, scheme)
+    v = _verdict(p_b_beyond_a, p_a_beyond_b, level)
+    preferred = {"a": a, "b": b}.get(v, v)
+    first = preferred if preferred in (a, b) else (a if dep_a <= dep_b else b)
+    return {"a": a, "b": b, "factor": factor, "p_b_beyond_a": p_b_beyond_a, "p_a_beyond_b": p_a_beyond_b,
+            "rmse_a_mm": rms3(cva.residual) * 1e3, "rmse_b_mm": rms3(cvb.residual) * 1e3,
+            "deploy_kind": scheme.kind, "deploy_rmse_a_mm": dep_a, "deploy_rmse_b_mm": dep_b,
+            "preferred": preferred, "winner": first, "loser": b if first == a else a}
+
+
+def _rivals(ev: Evaluator, top: str, names) -> list[tuple[str, str]]:
+    """The candidates among `names` that read a factor `top` reads, with that factor."""
+    p = ev.problem
+    out = []
+    for name in names:
+        if name != top and (shared := confounding.competing(top, name, p.inp, p.catalogue)) is not None:
+            out.append((name, shared))
+    return out
+
+
+def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float,
+                 tested: list[Gain] = ()) -> tuple[list[Gain], list[dict]]:
+    """The best qualifying effect met by every tested effect that reads the same factor (qualifying
+    or not: a rival that explains the residual only partly alone may still be the cause), in both
+    orders (`_duel`). Returns the qualifying list with the preferred one first, and the duels."""
+    if not ok or ok[0].kind != "effect":
         return ok, []
     top = ok[0]
+    pool = {g.candidate: g for g in [*ok, *tested] if g.kind == "effect" and g.rmse_after_mm < g.rmse_before_mm}
     records = []
-    for rival in [g for g in ok[1:] if g.kind == "effect"][:MAX_RIVALS]:
-        shared = confounding.competing(top.candidate, rival.candidate, ev.problem.inp, ev.problem.catalogue)
-        if shared is None:
-            continue
-        a, b = cfg.plus(top.candidate), cfg.plus(rival.candidate)
-        cva, cvb = ev.cv(a, ev.points), ev.cv(b, ev.points)
-        both = ev.cv(a.plus(rival.candidate), ev.points, starts=cva.log_hypers)
-        p_b_beyond_a = paired_gain(cva, both)[0]
-        p_a_beyond_b = paired_gain(cvb, both)[0]
-        if p_b_beyond_a < level <= p_a_beyond_b:
-            preferred = rival.candidate
-        elif p_a_beyond_b < level <= p_b_beyond_a:
-            preferred = top.candidate
-        elif p_a_beyond_b < level and p_b_beyond_a < level:
-            preferred = "both"
-        else:
-            preferred = "neither"
-        records.append({"a": top.candidate, "b": rival.candidate, "factor": shared,
-                        "p_b_beyond_a": p_b_beyond_a, "p_a_beyond_b": p_a_beyond_b, "preferred": preferred})
-        if preferred == rival.candidate:
-            ok = [rival] + [g for g in ok if g is not rival]
+    for rival, shared in _rivals(ev, top.candidate, list(pool))[:MAX_RIVALS]:
+        rec = _duel(ev, cfg, top.candidate, rival, shared, level)
+        records.append(rec)
+        if rec["winner"] == rival:
+            ok = [pool[rival]] + [g for g in ok if g.candidate != rival]
             break
     return ok, records
+
+
+def _removable(ev: Evaluator, start: Config, cfg: Config, alpha: float, protect: str | None = None):
+    """The weakest effect the loop added that the current model no longer needs: it lowers the
+    error of `cfg` by point no more than chance (p >= alpha / number added) and the model without it
+    is no worse on its deployment scheme (a rival added later explains what it explained). Returns
+    (effect, model without it, p) or None; `protect`: the effect just added (never removed at once)."""
+    added = [e for e in cfg.effects if e not in start.effects and e != protect]
+    if not added:
+        return None
+    level = alpha / len(added)
+    cur = ev.cv(cfg, ev.points)
+    fewer = [Config(tuple(x for x in cfg.effects if x != e), cfg.gp_inputs, cfg.nuisance) for e in added]
+    results = ev.cv_many([(f, ev.points, cur.log_hypers) for f in fewer])
+    effect, without, res = max(zip(added, fewer, results), key=lambda t: paired_gain(t[2], cur)[0])
+    p = paired_gain(res, cur)[0]
+    scheme = ev.scheme_for(effect)
+    if p < level or ev.rms_mm(without, scheme) > ev.rms_mm(cfg, scheme):
+        return None
+    return effect, without, p
 
 
 def _choose(ev: Evaluator, cfg: Config, base, tested: list[Gain], level: float, min_explained: float,
@@ -150,7 +201,7 @@ def _choose(ev: Evaluator, cfg: Config, base, tested: list[Gain], level: float, 
     never deployed, needs only the points). Records rejections and head-to-head tests on `step`."""
     ok = sorted([g for g in tested if g.p_value < level and g.explained_fraction >= min_explained
                  and g.rmse_after_mm < g.rmse_before_mm], key=lambda g: -g.explained_fraction)
-    ok, h2h = head_to_head(ev, cfg, ok, level)
+    ok, h2h = head_to_head(ev, cfg, ok, level, tested)
     step.head_to_head += h2h
     # the deployment figures the veto below will most likely need, at once
     ev.cv_many([(changed(cfg, g.kind, g.candidate), ev.scheme_for(g.candidate if g.kind == "effect" else None),
@@ -187,6 +238,7 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
             cfg = Config(cfg.effects, cfg.gp_inputs, (*cfg.nuisance, "base"))
         terms = [t for t in available_terms(ev) if t not in cfg.nuisance]
     stop = "max steps"
+    just_added: str | None = None
     for k in range(max_steps + 1):
         if progress:
             progress.note(f"diagnose --auto: step {len(steps) + 1}: {cfg.label()}")
@@ -200,6 +252,12 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
             break
         if k == max_steps:
             break
+        # What the last change made redundant goes first (a rival that now explains nothing more)
+        if k and (gone := _removable(ev, start, cfg, alpha, protect=just_added)) is not None:
+            effect, without, p_rm = gone
+            _removal(ev, step, cfg, without, effect, p_rm)
+            cfg, just_added = without, None
+            continue
         todo = [c for c in cands if c not in cfg.effects]
         alts = gp_alternatives(p.inp, cfg.gp_inputs)
         sess_todo = [t for t in terms if t not in cfg.nuisance]
@@ -223,37 +281,30 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
             step.change_deploy_kind = chosen.deploy_kind
             step.change_deploy_rmse_mm = (chosen.deploy_rmse_before_mm, chosen.deploy_rmse_after_mm)
         cfg = changed(cfg, chosen.kind, chosen.candidate)
+        just_added = chosen.candidate if chosen.kind == "effect" else None
     cfg = prune(ev, start, cfg, steps, alpha)
     return Selection(steps, cfg, stop, not_testable, session_gains)
 
 
+def _removal(ev: Evaluator, step: Step, cfg: Config, without: Config, effect: str, p: float) -> None:
+    """Record on `step` (the model `cfg`) the removal of `effect`."""
+    scheme = ev.scheme_for(effect)
+    step.change, step.p_value, step.follows = f"-{effect}", p, None
+    step.explained_fraction = float(1 - (step.rmse_mm / ev.rms_mm(without, ev.points)) ** 2)
+    step.change_deploy_kind = scheme.kind
+    step.change_deploy_rmse_mm = (ev.rms_mm(cfg, scheme), ev.rms_mm(without, scheme))
+
+
 def prune(ev: Evaluator, start: Config, cfg: Config, steps: list[Step], alpha: float) -> Config:
-    """The backward pass: an effect the loop added early can be redundant once later changes are
-    in (a thermal term taken before the GP moved to the joint angles, which then carry the same
-    error). Each added effect is tested again against the final model without it; it is removed
-    when it no longer lowers the error significantly by point and the model without it is no worse
-    on the deployment scheme. Removals are steps too ("-thermal"), one at a time, weakest first."""
-    while True:
-        added = [e for e in cfg.effects if e not in start.effects]
-        if not added:
-            return cfg
-        level = alpha / len(added)
-        cur = ev.cv(cfg, ev.points)
-        fewer = [Config(tuple(x for x in cfg.effects if x != e), cfg.gp_inputs, cfg.nuisance) for e in added]
-        results = ev.cv_many([(f, ev.points, cur.log_hypers) for f in fewer])
-        weakest = max(zip(added, fewer, results), key=lambda t: paired_gain(t[2], cur)[0])
-        effect, without, res = weakest
-        p = paired_gain(res, cur)[0]  # does the effect still lower the error of the final model?
-        scheme = ev.scheme_for(effect)
-        if p < level or ev.rms_mm(without, scheme) > ev.rms_mm(cfg, scheme):
-            return cfg
-        last = steps[-1]
-        last.change, last.p_value = f"-{effect}", p
-        last.explained_fraction = float(1 - (last.rmse_mm / (rms3(res.residual) * 1e3)) ** 2)
-        last.change_deploy_kind = scheme.kind
-        last.change_deploy_rmse_mm = (ev.rms_mm(cfg, scheme), ev.rms_mm(without, scheme))
-        last.follows = None
+    """The backward pass: an effect the loop added can be redundant once later changes are in (a
+    thermal term taken before the GP moved to the joint angles, which then carry the same error; a
+    rival of an effect added later). Each added effect is tested again against the final model
+    without it (`_removable`); removals are steps too ("-thermal"), one at a time, weakest first."""
+    while (gone := _removable(ev, start, cfg, alpha)) is not None:
+        effect, without, p = gone
+        _removal(ev, steps[-1], cfg, without, effect, p)
         cfg = without
         base = ev.cv(cfg, ev.points)
         steps.append(Step(cfg.label(), cfg.to_dict(), rms3(base.residual) * 1e3, _rms_u(base.group_mse) * 1e3,
-                          ev.rms_mm(cfg, ev.deploy), ev.deploy.kind, None, None, None, level))
+                          ev.rms_mm(cfg, ev.deploy), ev.deploy.kind, None, None, None, alpha))
+    return cfg

@@ -139,18 +139,25 @@ def _why(step: dict) -> str:
 
 def _head_to_head(h: dict) -> str:
     a, b, f = h["a"], h["b"], h["factor"]
-    both = f"'{a}' and '{b}' both read {_factor(f) if f in FACTOR else f}; tested head to head"
+    both = f"'{a}' and '{b}' both read {_factor(f) if f in FACTOR else f}; tested head to head in both orders"
+    figures = ""
+    if "deploy_rmse_a_mm" in h:  # each alone, held out on the deployment scheme
+        dep = {a: h["deploy_rmse_a_mm"], b: h["deploy_rmse_b_mm"]}
+        win, lose = h.get("winner", a), h.get("loser", b)
+        figures = (f" Held out on {h['deploy_kind']}: with '{win}' {dep[win]:.4f} mm, with '{lose}' {dep[lose]:.4f} mm;"
+                   f" winner '{win}', loser '{lose}'.")
     if h["preferred"] in (a, b):
         win, lose = (a, b) if h["preferred"] == a else (b, a)
         p_lose = h["p_b_beyond_a"] if win == a else h["p_a_beyond_b"]
         p_win = h["p_a_beyond_b"] if win == a else h["p_b_beyond_a"]
         return (f" {both}, the data prefer '{win}' ('{lose}' explains nothing beyond it, p = {p_lose:.2g}; "
-                f"'{win}' beyond '{lose}': p = {p_win:.2g}).")
+                f"'{win}' beyond '{lose}': p = {p_win:.2g})." + figures)
     if h["preferred"] == "both":
-        return f" {both}, each explains part of the residual the other leaves: both are real."
+        return f" {both}, each explains part of the residual the other leaves: both are real." + figures
+    took = h.get("winner", a)
     return (f" {both}, neither explains anything beyond the other: this campaign cannot tell them apart "
-            f"(took '{a}', which explains more); {REMEDY.get(f, 'vary the factors independently')} to separate "
-            "them.")
+            f"(took '{took}', the lower held-out error); {REMEDY.get(f, 'vary the factors independently')} to "
+            "separate them." + figures)
 
 
 def _vector(params: list[dict], unit: str) -> str:

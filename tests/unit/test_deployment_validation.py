@@ -122,7 +122,8 @@ def test_backlash_and_dynamic_tested_head_to_head_when_both_qualify():
     (h,) = [h for s in r.steps for h in s.head_to_head]
     assert {h["a"], h["b"]} == {"backlash", "dynamic"} and h["preferred"] == "backlash"
     assert h["p_a_beyond_b" if h["a"] == "backlash" else "p_b_beyond_a"] < 1e-4
-    assert "tested head to head, the data prefer 'backlash'" in verdict(r)
+    assert "tested head to head in both orders, the data prefer 'backlash'" in verdict(r)
+    assert "winner 'backlash', loser 'dynamic'" in verdict(r)
 
 
 def test_the_replicate_floor_is_the_tracker_noise():
