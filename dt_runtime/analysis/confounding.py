@@ -25,6 +25,10 @@ from scipy.spatial import cKDTree
 from dt_runtime.models import effects as fx
 from dt_runtime.models.effects.base import approach
 
+# Time is separable from the pose only when poses are measured again later: at least MIN_REVISITS
+# points whose rows span at least REVISIT_GAP of the campaign's time (a scan has none).
+MIN_REVISITS = 5
+REVISIT_GAP = 0.1
 R2_MAX = 0.9  # above this share of a factor's variance predicted by the pose (or another factor): confounded
 NEIGHBOURS = 5
 CONTRACT = {"time": "t", "temperature": "temperature", "speed": "speed", "payload": "payload"}
@@ -33,17 +37,23 @@ CONTRACT = {"time": "t", "temperature": "temperature", "speed": "speed", "payloa
 @dataclass(frozen=True)
 class Finding:
     """A candidate's factor against what it is confounded with: `against` is 'pose' (R^2 of the
-    nearest-neighbour prediction), 'constant' (it does not vary) or another factor ('time')."""
+    nearest-neighbour prediction), 'scan' (time: no pose measured again later; `revisited` of
+    `points` poses were), 'constant' (it does not vary) or another factor ('time')."""
 
     candidate: str
     factor: str
     against: str
     r2: float | None
     testable: bool
+    revisited: int | None = None
+    points: int | None = None
 
     def to_dict(self) -> dict:
-        return {"candidate": self.candidate, "factor": self.factor, "against": self.against,
-                "r2": None if self.r2 is None else float(self.r2), "testable": self.testable}
+        out = {"candidate": self.candidate, "factor": self.factor, "against": self.against,
+               "r2": None if self.r2 is None else float(self.r2), "testable": self.testable}
+        if self.revisited is not None:
+            out |= {"revisited": self.revisited, "points": self.points, "min_gap": REVISIT_GAP}
+        return out
 
 
 def factor_values(factor: str, inp: fx.Inputs) -> np.ndarray | None:
@@ -109,7 +119,7 @@ def check(candidates: list[str], inp: fx.Inputs, groups: np.ndarray,
             if factor not in cache:
                 cache[factor] = _factor(factor, inp, pose, groups)
             f = cache[factor]
-            out.append(Finding(name, f.factor, f.against, f.r2, f.testable))
+            out.append(Finding(name, f.factor, f.against, f.r2, f.testable, f.revisited, f.points))
     return out
 
 
@@ -119,8 +129,27 @@ def _factor(factor: str, inp: fx.Inputs, pose: np.ndarray, groups: np.ndarray) -
         return Finding("", factor, "missing", None, False)
     if not varies(v):
         return Finding("", factor, "constant", None, False)
+    if factor == "time":
+        revisited, n_points = revisits(v[:, 0], groups)
+        if revisited < MIN_REVISITS:
+            return Finding("", factor, "scan", None, False, revisited, n_points)
     r2 = pose_r2(v, pose, groups)
     return Finding("", factor, "pose", r2, r2 <= R2_MAX)
+
+
+def revisits(t: np.ndarray, groups: np.ndarray) -> tuple[int, int]:
+    """How many points (groups) were measured again at least REVISIT_GAP of the campaign's time
+    after they were first measured, and how many points there are. Repeated readings in one visit
+    are not revisits: they say nothing of what time does at a pose."""
+    t = np.asarray(t, float)
+    span = float(np.ptp(t)) if len(t) else 0.0
+    ids, inv = np.unique(groups, return_inverse=True)
+    inv = inv.ravel()
+    lo = np.full(len(ids), np.inf)
+    hi = np.full(len(ids), -np.inf)
+    np.minimum.at(lo, inv, t)
+    np.maximum.at(hi, inv, t)
+    return int(np.sum(hi - lo >= REVISIT_GAP * span)) if span > 0 else 0, int(len(ids))
 
 
 def competing(a: str, b: str, inp: fx.Inputs, catalogue: fx.Catalogue = fx.PROCESS) -> str | None:

@@ -57,12 +57,14 @@ def folds_of(groups: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
 
 def heldout(Y: np.ndarray, folds: list[np.ndarray], predict_fold: Callable, return_std: bool = False):
     """Held-out residuals Y - prediction, each test mask predicted by `predict_fold(train, test)`
-    (boolean masks; it returns the prediction, or (prediction, std) with return_std). Rows in no
-    fold stay NaN. Returns (residual, std or None)."""
+    (boolean masks; it returns the prediction, or (prediction, std) with return_std). A fold is a
+    test mask (trained on the other rows) or a (train, test) pair (a forecast trains on the earlier
+    rows only). Rows in no fold stay NaN. Returns (residual, std or None)."""
     resid = np.full_like(Y, np.nan, dtype=float)
     std = np.zeros_like(Y, dtype=float) if return_std else None
-    for te in folds:
-        out = predict_fold(~te, te)
+    for fold in folds:
+        tr, te = fold if isinstance(fold, tuple) else (~fold, fold)
+        out = predict_fold(tr, te)
         if std is not None:
             out, std[te] = out
         resid[te] = Y[te] - out
@@ -79,9 +81,16 @@ def grouped_residuals(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, folds: i
 
 
 def group_mse(residual: np.ndarray, groups: np.ndarray) -> np.ndarray:
-    """Mean squared 3D residual per group (np.unique order)."""
+    """Mean squared 3D residual per group (np.unique order), over the group's held-out rows (NaN
+    for a group a forecast never predicts)."""
     sq = np.sum(residual ** 2, axis=1)
-    return np.array([sq[groups == g].mean() for g in np.unique(groups)])
+    out = np.full(len(np.unique(groups)), np.nan)
+    for i, g in enumerate(np.unique(groups)):
+        v = sq[groups == g]
+        v = v[np.isfinite(v)]
+        if len(v):
+            out[i] = v.mean()
+    return out
 
 
 @blas_limited  # one BLAS thread for the whole loop (common.threads), the caller's setting restored

@@ -83,7 +83,7 @@ class Evaluator:
         p = problem
         self.points = validation.points(p.groups, folds, seed)
         self.deploy = validation.deployment(p.inp.commanded, p.groups, p.session, folds, seed)
-        self.time = (validation.time_blocks(p.inp.t, p.n, folds) if p.session is None and p.inp.t is not None
+        self.time = (validation.forward(p.inp.t, p.n, folds) if p.session is None and p.inp.t is not None
                      else self.deploy)
         self._cv: dict[tuple[Config, str], CvResult] = {}
         self._thetas: dict[Config, list] = {}
@@ -99,7 +99,8 @@ class Evaluator:
                            catalogue=p.catalogue)
 
     def scheme_for(self, change: str | None) -> validation.Scheme:
-        """The deployment scheme a change is judged on: time blocks for a time-dependent effect."""
+        """The deployment scheme a change is judged on: a forecast (later times) for a time-dependent
+        effect."""
         cat = self.problem.catalogue
         if change and change in cat.names() and ({"time", "temperature"} & set(cat.get(change).drives())):
             return self.time
@@ -109,7 +110,7 @@ class Evaluator:
         """One cross-validation, not memoised: `thetas` fixed GP hyperparameters, else fitted on all
         rows from `starts`."""
         p = self.problem
-        return cross_validate(self.model(cfg), p.inp, p.error, p.groups, list(scheme.folds), thetas=thetas,
+        return cross_validate(self.model(cfg), p.inp, p.error, p.groups, scheme.splits(), thetas=thetas,
                               starts=None if thetas is not None else starts)
 
     def _store(self, cfg: Config, scheme: validation.Scheme, res: CvResult, fixed) -> CvResult:
@@ -150,4 +151,7 @@ class Evaluator:
         return res
 
     def rms_mm(self, cfg: Config, scheme: validation.Scheme) -> float:
-        return rms3(self.residual(cfg, scheme)) * 1e3
+        """The held-out 3D RMS (mm) over the rows the scheme predicts (a forecast never predicts
+        its first block)."""
+        r = self.residual(cfg, scheme)
+        return rms3(r[np.all(np.isfinite(r), axis=1)]) * 1e3

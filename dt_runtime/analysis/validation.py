@@ -5,13 +5,15 @@ brings new measurements.
   significance tests use (many independent groups), but a held-out point has measured neighbours.
 - `regions`: regions of the workspace held out in turn (k-means on the points' commanded TCP):
   new poses in a part of the workspace the model has not seen, as a new program brings them.
-- `time`: contiguous blocks of the campaign in time order: later (or earlier) times, the form a
-  time-dependent term is used in (a drift or a warm-up continues after the campaign).
+- `forward`: a forecast: the campaign cut into k blocks in time order, each block from the second
+  on predicted by a model fitted on the blocks before it only, the form a time-dependent term is
+  used in (a drift or a warm-up continues after the campaign). Never interleaved blocks: a middle
+  block would be interpolated in time.
 - `sessions`: one session (a file of the campaign, its own set-up) held out at a time: the next
   campaign or task.
 
 `deployment(...)` picks the scheme a step of the diagnosis is judged on: sessions when the campaign
-has several, else regions; time blocks for a time-dependent term on a single session.
+has several, else regions; time forward (later times) for a time-dependent term on a single session.
 """
 from __future__ import annotations
 
@@ -22,16 +24,22 @@ from scipy.cluster.vq import kmeans2
 
 from dt_runtime.analysis.crossval import folds_of
 
-KINDS = ("points", "regions", "time", "sessions")
+KINDS = ("points", "regions", "forward", "sessions")
 MIN_GROUPS_PER_REGION = 3  # fewer distinct points than this per region: hold out points instead
 
 
 @dataclass(frozen=True)
 class Scheme:
-    """One way of holding data out: `kind` (KINDS), its test masks, and how many folds."""
+    """One way of holding data out: `kind` (KINDS), its test masks, how many folds and, for a
+    forecast, each fold's training masks (else a fold trains on every row it does not test)."""
 
     kind: str
     folds: tuple[np.ndarray, ...]
+    train: tuple[np.ndarray, ...] | None = None
+
+    def splits(self) -> list:
+        """The folds as cross-validation takes them: test masks, or (train, test) pairs."""
+        return list(self.folds) if self.train is None else list(zip(self.train, self.folds))
 
     @property
     def k(self) -> int:
@@ -62,16 +70,19 @@ def regions(commanded: np.ndarray, groups: np.ndarray, k: int, seed: int) -> Sch
     return Scheme("regions", folds)
 
 
-def time_blocks(t: np.ndarray | None, n: int, k: int) -> Scheme:
-    """k contiguous blocks of the rows in time order (equal row counts; rows are in time order)."""
+def forward(t: np.ndarray | None, n: int, k: int) -> Scheme:
+    """A forecast in k blocks of the rows in time order (equal row counts): block j (j >= 1) held
+    out and predicted by a model fitted on blocks 0..j-1 only; block 0 is never predicted."""
     order = np.argsort(np.asarray(t, float), kind="stable") if t is not None else np.arange(n)
-    edges = np.linspace(0, n, k + 1).round().astype(int)
-    folds = []
-    for a, b in zip(edges[:-1], edges[1:]):
-        m = np.zeros(n, bool)
-        m[order[a:b]] = True
-        folds.append(m)
-    return Scheme("time", tuple(folds))
+    edges = np.linspace(0, n, max(k, 2) + 1).round().astype(int)
+    tests, trains = [], []
+    for a, b in zip(edges[1:-1], edges[2:]):
+        te, tr = np.zeros(n, bool), np.zeros(n, bool)
+        te[order[a:b]] = True
+        tr[order[:a]] = True
+        tests.append(te)
+        trains.append(tr)
+    return Scheme("forward", tuple(tests), tuple(trains))
 
 
 def sessions(session: np.ndarray) -> Scheme:
@@ -89,10 +100,10 @@ def session_of(extra: dict | None) -> np.ndarray | None:
 
 def deployment(commanded: np.ndarray, groups: np.ndarray, session: np.ndarray | None, k: int, seed: int,
                t: np.ndarray | None = None, time_dependent: bool = False) -> Scheme:
-    """The scheme a step is judged on: held-out sessions when there are several; else held-out time
-    blocks for a time-dependent term, held-out regions for any other."""
+    """The scheme a step is judged on: held-out sessions when there are several; else a forecast
+    (`forward`) for a time-dependent term, held-out regions for any other."""
     if session is not None:
         return sessions(session)
     if time_dependent:
-        return time_blocks(t, len(groups), k)
+        return forward(t, len(groups), k)
     return regions(commanded, groups, k, seed)

@@ -23,7 +23,7 @@ def with_verdict(result: Any) -> dict:
 
 GP_FACTOR = {"tcp_speed": "the Cartesian TCP and speed", "tcp": "the Cartesian TCP", "joints": "the joint angles"}
 SCHEME = {"regions": "held-out regions of the workspace", "sessions": "held-out sessions",
-          "time": "held-out time blocks", "points": "held-out points"}
+          "forward": "later times (a forecast: fitted on the earlier part only)", "points": "held-out points"}
 FACTOR = {"time": "the time", "temperature": "the temperature", "speed": "the speed", "payload": "the payload",
           "direction": "the direction of approach"}
 # What would make a confounded factor testable.
@@ -50,6 +50,11 @@ def not_testable_sentences(items: list[dict]) -> str:
             name, factor = it["candidate"], f["factor"]
             if f["against"] == "constant":
                 why = f"{_factor(factor)} did not vary in this campaign"
+            elif f["against"] == "scan":
+                why = (f"{_factor(factor)} moved with the position: no pose was measured again later (a scan: "
+                       f"{f.get('revisited', 0)} of {f.get('points', 0)} poses revisited after "
+                       f"{100 * f.get('min_gap', 0.1):.0f} % of the campaign's time), so an error that changes with "
+                       f"{_factor(factor)} cannot be told from one that changes with position")
             elif f["against"] == "missing":
                 why = f"the data have no {_factor(factor)}"
             else:
@@ -219,7 +224,7 @@ def auto_verdict(d: dict) -> str:
                 f"the 3D RMS held out by point fell from {first:.4f} to {final:.4f} mm, "
                 f"on {SCHEME[kind]} from {d['steps'][0]['deploy_rmse_mm']:.4f} to {d['final_deploy_rmse_mm']:.4f} mm "
                 f"({why}). Each addition was significant by point and lowered the RMS on {SCHEME[kind]}"
-                + (" (held-out time blocks for a time-dependent term)" if kind == "regions" else "")
+                + (" (a forecast of later times for a time-dependent term)" if kind == "regions" else "")
                 + ("; each removal no longer lowered the error significantly and left that RMS no higher"
                    if any(a.startswith("-") for a in d["added"]) else "") + ".")
     else:
