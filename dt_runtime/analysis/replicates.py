@@ -27,8 +27,8 @@ from dt_runtime.models.effects.base import approach
 MIN_DOF = 10  # fewer degrees of freedom: the floor's own uncertainty (> 20 % of it) is too large to stop on
 VISIT = "repeated readings of one visit"
 REVISIT = "revisits with the same approach direction, speed, payload and temperature"
-TO_MEASURE = ("repeat 10 poses, each twice in a row or revisited from the same direction at the same speed "
-              "(and payload and temperature)")
+TO_MEASURE = ("repeat 10 poses, each twice in a row or revisited from the same direction at the same speed, "
+              "payload and temperature")
 
 # Revisit tolerances: what may differ between rows of one group. Each bounds the change of the
 # effect that reads it well below a tracker's noise (~0.01-0.02 mm per axis):
@@ -42,6 +42,7 @@ TEMPERATURE_TOL_K = 0.5  # aluminium, 1.2 m reach: 23e-6 /K * 0.5 K * 1.2 m = 0.
 # 0.05 mrad/h below 0.01 mm at 1 m, and a 20-40 min thermal lag near where it was.
 MAX_SPAN_S = 600.0
 DIRECTION_TOL_DEG = 30.0  # the TCP's direction of travel into the pose (the dynamic lag lies along it)
+OPEN_GROUPS = 20  # the recent groups of one pose a revisit may join (bounds the work on long files)
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,7 @@ class ReplicateFloor:
 
     def source(self) -> str:
         """Where the floor came from, for `info['noise_floor']['source']` and the verdict."""
-        return f"the scatter of replicates: {self.definition} ({self.dof} dof, {self.cells} groups)"
+        return f"the scatter of replicates: {self.definition}; {self.dof} dof in {self.cells} groups"
 
     def to_dict(self) -> dict:
         return {"mm": self.value_m / M_PER_MM, "dof": self.dof, "cells": self.cells, "groups": self.cells,
@@ -139,7 +140,8 @@ def revisit_groups(ds: Dataset, drives: tuple[str, ...] | None = None) -> np.nda
     A condition whose column the data lack is not checked: no effect can read it. Rows in time
     order (the direction of approach is read from the previous row); the first row, whose approach
     is unknown, and rows with an empty cell in a checked column are in no group. Groups grow in
-    row order and a row that disagrees with one already in the group starts a new one."""
+    row order: a row joins the latest of the recent groups (OPEN_GROUPS) whose every row it agrees with,
+    else starts a new one."""
     drives = conditions() if drives is None else drives
     n = ds.n
     keys, ok = _exact_keys(ds, drives)
@@ -152,13 +154,16 @@ def revisit_groups(ds: Dataset, drives: tuple[str, ...] | None = None) -> np.nda
     out = np.full(n, -1, np.int64)
     group = -1
     for c in np.unique(label_of[ok]):
-        current: list[int] = []
+        open_groups: list[tuple[int, list[int]]] = []  # (label, rows), the latest last
         for i in map(int, np.flatnonzero(label_of == c)):
-            if not current or not all(fits(i, j) for fits in pairwise for j in current):
+            home = next((g for g in reversed(open_groups[-OPEN_GROUPS:])
+                         if all(fits(i, j) for fits in pairwise for j in g[1])), None)
+            if home is None:
                 group += 1
-                current = []
-            current.append(i)
-            out[i] = group
+                home = (group, [])
+                open_groups.append(home)
+            home[1].append(i)
+            out[i] = home[0]
     return out
 
 
