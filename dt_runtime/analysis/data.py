@@ -1,6 +1,6 @@
 """Measurement data for analysis: read a measurement table (or a foreign file through an import
 mapping) with the facts about it (source, skipped rows, registration, simulation sidecar), and
-its measurement noise floor.
+its measurement noise floor (`floor_of`; the replicates' in `analysis.replicates`).
 
 Rows are used in file order, which must be time order: the backlash and dynamic regressors
 read the direction of approach from the previous row.
@@ -15,6 +15,7 @@ import numpy as np
 
 from dt_kernel.errors import DataError
 from dt_kernel.units import M_PER_MM
+from dt_runtime.analysis.replicates import TO_MEASURE, ReplicateFloor, replicate_floor  # noqa: F401 (re-exported)
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.measurements.dataset import Dataset, read_meta_sidecar, read_table
 from dt_runtime.metrology.stats import rms3
@@ -68,7 +69,9 @@ def floor_of(d: Data) -> float | None:
     else the instrument's maximum permissible error (`info['mpe_mm']`, `--mpe-mm`): an MPE that
     bounds each coordinate's error is a rectangular distribution of standard uncertainty MPE/sqrt(3)
     per axis, whose 3D RMS over three axes is the MPE itself; else the scatter of replicates
-    (`replicate_floor`). Where it came from is recorded in `info['noise_floor']`."""
+    (`analysis.replicates.replicate_floor`: repeated readings of one visit, else revisits under the
+    same conditions). Where it came from is recorded in `info['noise_floor']`; with none of these,
+    `info['noise_floor']['to_measure']` says what to measure."""
     sim = d.info.get("simulation")
     rep = replicate_floor(d.dataset)
     found: tuple[float, str] | None = None
@@ -79,61 +82,13 @@ def floor_of(d: Data) -> float | None:
     elif d.info.get("mpe_mm") is not None:
         found = float(d.info["mpe_mm"]) * M_PER_MM, "the instrument's MPE (--mpe-mm)"
     elif rep is not None:
-        found = rep.value_m, "the scatter of replicates"
+        found = rep.value_m, rep.source()
     d.info["noise_floor"] = {"mm": None if found is None else found[0] / M_PER_MM,
                              "source": None if found is None else found[1],
                              "replicates": None if rep is None else rep.to_dict()}
+    if found is None:
+        d.info["noise_floor"]["to_measure"] = TO_MEASURE
     return None if found is None else found[0]
-
-
-@dataclass(frozen=True)
-class ReplicateFloor:
-    """The noise floor from replicates: 3D RMS (m) of the pooled within-visit scatter, its degrees
-    of freedom and the number of visits read more than once."""
-
-    value_m: float
-    dof: int
-    cells: int
-
-    def to_dict(self) -> dict:
-        return {"mm": self.value_m / M_PER_MM, "dof": self.dof, "cells": self.cells,
-                "definition": "consecutive rows of one target at the same speed, payload and joint angles "
-                              "(repeated readings of one visit): pooled within-visit variance per axis, 3D RMS = "
-                              "sqrt of their sum"}
-
-
-def replicate_floor(ds: Dataset, min_dof: int = 10) -> ReplicateFloor | None:
-    """The measurement noise floor from the data's own replicates: consecutive rows of one target
-    point at the same speed, payload and joint angles, i.e. repeated readings of one visit (the arm has not moved,
-    so no effect term can tell them apart). Per axis the pooled within-visit variance; the floor is
-    the 3D RMS sqrt(sum of the three). Revisits of a point later in the campaign are not replicates:
-    their scatter holds whatever changed in between (a drift, the temperature), and a floor that
-    high would stop a diagnosis early. It leaves out the arm's repeatability from one approach to
-    the next, so it is a lower bound of what a model can reach. None below `min_dof` degrees of
-    freedom (rows in repeated visits minus visits)."""
-    from dt_runtime.analysis.crossval import groups_of
-
-    if ds.n < 2:
-        return None
-    keys = [np.asarray(groups_of(ds), float)[:, None]]
-    for col in (ds.speed, ds.payload, ds.joints):  # the same pose in another configuration is not a replicate
-        if col is not None:
-            keys.append(np.round(np.asarray(col, float), 9).reshape(ds.n, -1))
-    K = np.hstack(keys)
-    new_visit = np.r_[True, np.any(K[1:] != K[:-1], axis=1)]
-    cell = np.cumsum(new_visit) - 1
-    counts = np.bincount(cell)
-    rep = counts[cell] > 1
-    n_cells = int(np.sum(counts > 1))
-    dof = int(rep.sum()) - n_cells
-    if dof < min_dof:
-        return None
-    e = ds.error[rep]
-    c = cell[rep]
-    means = np.stack([np.bincount(c, weights=e[:, a], minlength=len(counts)) for a in range(3)], 1) / np.maximum(
-        counts, 1)[:, None]
-    ss = np.sum((e - means[c]) ** 2, axis=0)
-    return ReplicateFloor(float(np.sqrt(np.sum(ss / dof))), dof, n_cells)
 
 
 def refit_sessions(d: Data) -> np.ndarray | None:

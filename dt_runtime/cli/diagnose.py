@@ -104,6 +104,8 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    from dt_runtime.reports.verdicts import floor_unknown
+
     if "steps" in result:  # --auto
         v = result["validation"]
         kind = v["deployment"]["kind"]
@@ -117,6 +119,8 @@ def human(result: dict) -> str:
         return "\n".join(lines + [result["verdict"]])
     lines = [f"held-out 3D RMS of the starting model: {result['rmse_base_mm']:.4f} mm"
              + (f" (noise floor {result['noise_floor_mm']:.4f} mm)" if result.get("noise_floor_mm") else "")]
+    if not result.get("noise_floor_mm"):
+        lines.append(floor_unknown(result) + ".")
 
     def fig(r: dict) -> str:
         dep = (f" | {r['deploy_kind']} {r['deploy_rmse_before_mm']:.4f} -> {r['deploy_rmse_after_mm']:.4f}"

@@ -251,14 +251,21 @@ def auto_verdict(d: dict) -> str:
     return text
 
 
+def floor_unknown(d: dict) -> str:
+    """That the noise floor is not known, and what to measure for it (the result's
+    `noise_floor.to_measure`): the sentence of the verdict and of the command's text."""
+    measure = (d.get("noise_floor") or {}).get("to_measure") or "measure some poses repeatedly"
+    return ("The noise floor is not known: the data state no uncertainty ux..uz and hold no replicates (give the "
+            f"instrument's MPE with --mpe-mm, or {measure})")
+
+
 def _floor_sentence(d: dict) -> str:
     floor, ratio, final = d.get("noise_floor_mm"), d.get("floor_ratio"), d["final_rmse_mm"]
     info = d.get("noise_floor") or {}
     src = f" (from {info['source']})" if info.get("source") else ""
     stop = d.get("stop_reason")
     if ratio is None:
-        return (" The noise floor is not known (state the measurement uncertainty ux..uz or the instrument's MPE "
-                "(--mpe-mm), or measure some poses twice in a row).")
+        return " " + floor_unknown(d) + "."
     if ratio <= 1.3:
         return (f" Stopped{' at the floor' if stop == 'floor' else ': nothing more passes'}; the residual is at the "
                 f"noise floor ({final:.4f} mm vs {floor:.4f} mm{src}: {ratio:.2f}x).")

@@ -7,7 +7,10 @@ and its own physics, so the diagnosis is tested on data its effect terms were no
 
 Each campaign: `n_points` random joint configurations (elbow up, the wrist anywhere), visited
 `passes` times, each pass in a new random order (so every point is approached from any
-direction), one move per `dt_s` seconds; the speed and the payload change from row to row. The
+direction), one move per `dt_s` seconds; the speed and the payload change from row to row. With
+`order="cycle"` it is a repeatability programme instead: one order of the points, each pass running
+it forwards or backwards (so every point is approached from two sides), each point always at its
+own speed and payload: revisits under the same conditions, which give the noise floor. The
 error of every row is the true arm's TCP (errors below) minus the nominal one, plus the tracker's
 noise (`noise_mm` per axis, stated in ux..uz). Hidden effects, one at a time:
 
@@ -88,13 +91,16 @@ def lagged(t: np.ndarray, air: np.ndarray, tau: float) -> np.ndarray:
 
 def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: float = 60.0,
              noise_mm: float = 0.015, arm_seed: int | None = None, truth: dict | None = None,
-             link_alpha: np.ndarray | None = None) -> Dataset:
+             link_alpha: np.ndarray | None = None, order: str = "random") -> Dataset:
     """One campaign with the hidden `effect` (EFFECTS). `seed` draws the points, the path, the
     temperatures and the noise; `arm_seed` (default `seed`) the arm: a training and a test file
     of the same arm share it. `truth`, if given, receives the hidden values (e.g. tau_s).
-    `link_alpha` (7,) 1/K: thermal expansion per link (fk's scale columns) instead of 23e-6 for all."""
+    `link_alpha` (7,) 1/K: thermal expansion per link (fk's scale columns) instead of 23e-6 for all.
+    `order`: "random" (every pass in a new order) or "cycle" (the repeatability programme, above)."""
     if effect not in EFFECTS:
         raise ValueError(f"effect {effect!r}; known: {EFFECTS}")
+    if order not in ("random", "cycle"):
+        raise ValueError(f"order {order!r}; known: random, cycle")
     arm = np.random.default_rng(1000 + (seed if arm_seed is None else arm_seed))
     rng = np.random.default_rng(seed)
     geo = {"a": A + arm.normal(0, 2e-4, 6) * (A != 0), "d": D + arm.normal(0, 2e-4, 6),
@@ -102,15 +108,26 @@ def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: 
     lo = np.array([-1.3, -2.3, -2.3, -2.6, 0.6, -2.5])
     hi = np.array([1.3, -0.9, -0.7, -0.6, 2.5, 2.5])
     targets = lo + (hi - lo) * rng.random((n_points, 6))
-    order = np.concatenate([rng.permutation(n_points) for _ in range(passes)])
-    q = targets[order]
+    rep = np.repeat(np.arange(passes), n_points)
+    if order == "cycle":
+        one = rng.permutation(n_points)
+        visits = np.concatenate([one if rng.random() < 0.5 else one[::-1] for _ in range(passes)])
+        moves = np.r_[True, visits[1:] != visits[:-1]]  # a reversal starts where the last pass ended: no move
+        visits, rep = visits[moves], rep[moves]
+    else:
+        visits = np.concatenate([rng.permutation(n_points) for _ in range(passes)])
+    q = targets[visits]
     n = len(q)
     t = np.arange(n) * dt_s
     hours = t / 3600
     # The air: a slow swing of +-2.5 K over ~3 h plus a warm-up ramp (logged as it is).
     air = 21.0 + 2.5 * np.sin(2 * np.pi * hours / rng.uniform(2.5, 3.5) + rng.uniform(0, 2 * np.pi)) + 0.4 * hours
-    speed = rng.choice([0.1, 0.25, 0.5], n)
-    payload = rng.choice([0.0, 5.0, 10.0], n)
+    if order == "cycle":  # each point its own speed and payload
+        speed = rng.choice([0.1, 0.25, 0.5], n_points)[visits]
+        payload = rng.choice([0.0, 5.0, 10.0], n_points)[visits]
+    else:
+        speed = rng.choice([0.1, 0.25, 0.5], n)
+        payload = rng.choice([0.0, 5.0, 10.0], n)
     dq = np.zeros((n, 6))
     scale: np.ndarray = np.ones(n)
     if effect == "thermal":
@@ -138,7 +155,7 @@ def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: 
     noise = rng.normal(0, noise_mm * 1e-3, (n, 3))
     error = commanded - (actual + noise)
     return Dataset(commanded=commanded, error=error, speed=speed, joints=q, temperature=air, payload=payload,
-                   t=t, point_id=order.astype(np.int64), rep=np.repeat(np.arange(passes), n_points),
+                   t=t, point_id=visits.astype(np.int64), rep=rep,
                    u=np.full((n, 3), noise_mm * 1e-3), source=f"<ur10 generator {effect} seed {seed}>")
 
 

@@ -101,7 +101,7 @@ def test_backlash_on_linear_moves_is_named_not_dynamic_and_reaches_the_floor_of_
     assert train.u is None
     r = diagnose(train, robot=UR10, auto=True)  # from the paper's model: GP(TCP, v)
     assert "backlash" in r.effects and "dynamic" not in r.effects
-    assert r.source["noise_floor"]["source"] == "the scatter of replicates"
+    assert r.source["noise_floor"]["source"].startswith("the scatter of replicates: repeated readings of one visit")
     assert r.floor_ratio is not None and r.floor_ratio <= 1.3
     m = HybridModel(tuple(r.effects), r.gp_inputs, robot=UR10).fit(train)
     moves = next(p for p in m.parameters() if p["name"] == "moves")

@@ -46,10 +46,17 @@ def arrivals(q: np.ndarray, chain: Chain, linear: bool) -> tuple[np.ndarray, np.
     return out
 
 
+def approach_signs(q: np.ndarray) -> np.ndarray:
+    """Per row and joint, the sign of the joint's motion into the pose on a joint move (n, dof): the
+    change from the previous row, a joint that did not move keeping its last direction (rows in time
+    order). The side each joint's play rests on; the replicate floor pairs revisits by it."""
+    return np.sign(approach(q, per_column=True))
+
+
 def _joint(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     d = np.zeros_like(q)
     d[1:] = q[1:] - q[:-1]
-    return _accumulate(np.sign(approach(q, per_column=True)), np.abs(d), np.zeros(q.shape, bool), np.abs(d))
+    return _accumulate(approach_signs(q), np.abs(d), np.zeros(q.shape, bool), np.abs(d))
 
 
 def _linear(q: np.ndarray, chain: Chain) -> tuple[np.ndarray, np.ndarray]:
