@@ -10,7 +10,7 @@ the way the twin will be used:
 - the significance test holds out whole target points (analysis.ranking: a model cannot win by
   remembering a point; paired one-sided Wilcoxon per point);
 - the decision also needs a lower held-out RMS on the deployment scheme (analysis.validation:
-  held-out regions of the workspace, held-out sessions when there are several, held-out time blocks
+  held-out regions of the workspace, held-out sessions when there are several, a forecast of later times
   for a time-dependent term), and both figures are reported side by side;
 - a candidate the campaign cannot separate from the pose is not tested (analysis.confounding);
 - several sessions: held out one at a time, and their disagreement tested against the session

@@ -4,7 +4,7 @@ inputs) held out against the model, and the evidence for each.
 The significance test: per held-out point, the paired difference of mean squared residuals,
 one-sided Wilcoxon signed rank (does the change lower the error?) on the point-grouped folds (many
 independent groups). The deployment figure: the held-out 3D RMS on the scheme deployment brings
-(held-out regions, sessions or time blocks, `validation`), which a change must also lower.
+(held-out regions, sessions or later times, `validation`), which a change must also lower.
 """
 from __future__ import annotations
 

@@ -9,20 +9,22 @@ Each step:
    it qualifies when its one-sided p is below alpha / m (m: every change the step may test, the
    GP's inputs included; Bonferroni), it explains at least `min_explained` of the held-out
    variance and lowers the held-out RMS.
-3. Qualifying effects that read the same factor (backlash and dynamic both read the direction of
-   travel; thermal and drift when the temperature followed time) are tested head to head: the
-   model with both against each with one (does B explain what A leaves? does A explain what B
-   leaves?); the one the data prefer goes first.
+3. The best qualifying effect meets every tested effect that reads the same factor (backlash and
+   dynamic both read the direction of travel; thermal and drift when the temperature followed
+   time) head to head, in both orders: the model with both against each with one, by point, and
+   each alone on the deployment scheme; the one the data prefer goes first (`_duel`).
 4. The best qualifying change is taken only if it also lowers the held-out RMS on the deployment
-   scheme (held-out regions of the workspace, held-out sessions, or held-out time blocks for a
+   scheme (held-out regions of the workspace, held-out sessions, or a forecast of later times for a
    time-dependent term: analysis.validation); otherwise the next qualifying one is tried. So the
    final model is never worse than its predecessor on the deployment figures. A session term is
    a nuisance (never deployed): the points decide it.
 5. Only when no effect or session term passes are the GP's other inputs tested (the same rules):
    physics first, the GP, which takes up anything, last (UR10 Series D: switching first left
    backlash out, 0.280 instead of 0.276 mm).
-The loop stops when the held-out residual is at the noise floor, or when no change passes; a
-backward pass (`prune`) then removes an added effect the final model no longer needs.
+Before adding, each step drops an effect an earlier step added that the model no longer needs (a
+rival added later explains it: `_removable`). The loop stops when the held-out residual is at the
+noise floor, or when no change passes; a backward pass (`prune`) then removes what the final model
+no longer needs.
 """
 from __future__ import annotations
 
@@ -57,7 +59,7 @@ class Step:
     p_value: float | None
     explained_fraction: float | None
     alpha: float  # the step's significance level (alpha / number of changes tested)
-    change_deploy_kind: str | None = None  # the scheme the change was judged on (time blocks for a time term)
+    change_deploy_kind: str | None = None  # the scheme the change was judged on (a forecast for a time term)
     change_deploy_rmse_mm: tuple[float, float] | None = None  # that figure before and after the change
     follows: str | None = None  # what the residual followed, for an added effect (Effect.factor)
     rejected: list[dict] = field(default_factory=list)
@@ -111,7 +113,7 @@ def testable(ev: Evaluator, candidates: list[str]) -> tuple[list[str], list[dict
 
 
 def _scheme(ev: Evaluator, *effects: str):
-    """The deployment scheme two rivals are compared on: time blocks when either reads time."""
+    """The deployment scheme two rivals are compared on: a forecast when either reads time."""
     schemes = [ev.scheme_for(e) for e in effects]
     return next((sc for sc in schemes if sc is not ev.deploy), ev.deploy)
 

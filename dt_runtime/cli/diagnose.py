@@ -2,7 +2,7 @@
 
 Cross-validation grouped by target point of the model with and without each candidate effect,
 one-sided Wilcoxon test per held-out point; each significant candidate also held out the way
-deployment brings new data (regions of the workspace, sessions, time blocks), side by side.
+deployment brings new data (regions of the workspace, sessions, later times), side by side.
 
 `--auto`: the whole compare/diagnose/add loop in one command (analysis.selection): each step adds
 the change that explains most held-out variance if it is significant at alpha / (changes tested at

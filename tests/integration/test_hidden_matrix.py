@@ -1,35 +1,46 @@
-"""The second hidden-effect matrix (issue 13): `dt diagnose --auto` on data from a generator that is
-not the project's plant (tests/support/ur10_generator.py), trained and tested on separate files
-(benchmarks/hidden_matrix.py). The default suite runs one case, the lagged thermal effect from the
-paper's model; the whole matrix (every effect from the three starting points, the clean control
-over 10 seeds) runs with `-m soak` or as `python -m benchmarks.hidden_matrix`."""
+"""The loop's regression net: `dt diagnose --auto` through the command line on hidden effects from a
+generator that is not the project's plant (tests/support/ur10_generator.py), on the campaign shapes
+users bring: the robot config with a tool, without one, or a catalogue arm, x the tool in one
+orientation or varied; no uncertainty columns (the floor comes from repeated readings). Trained and
+tested on separate files (benchmarks/hidden_matrix.py). The default suite runs every hidden effect
+and the clean control on every shape in the quick size (40 points, 3 passes); `-m soak` runs the
+full size and the other starting models."""
 import pytest
 
 from benchmarks import hidden_matrix as hm
+from tests.support import ur10_generator as gen
+
+SHAPES = [(robot, orientation) for robot in hm.ROBOTS for orientation in hm.ORIENTATIONS]
 
 
 def _check(c: dict) -> None:
+    assert c["floor_mm"] is not None and "replicates" in (c["floor_source"] or ""), c  # estimated, not given
+    assert abs(c["floor_mm"] / c["true_floor_mm"] - 1) < 0.2, c
     if c["effect"] == "none":
         assert c["named"] == [], c
         return
-    assert c["effect"] in c["named"], c  # named (geometric aside)
+    assert c["effect"] in c["named"], c  # named (geometric aside): backlash, not dynamic
     assert c["fall"] >= hm.FALL, c  # >= 30 % below the paper's model on the test file
-    assert c["floor_ratio"] <= hm.FLOOR, c  # within 1.3x of the generator's noise floor
+    assert c["floor_ratio"] <= hm.FLOOR, c  # within 1.3x of the floor estimated from replicates
 
 
-def test_lagged_heat_from_the_papers_model_is_named_and_the_test_file_falls_to_the_floor():
-    c = hm.case("thermal", "paper", seed=1)
-    # measured (seed 1): +geometric, +thermal, GP -> joints; test file 0.408 -> 0.027 mm (floor 0.026)
+@pytest.mark.parametrize("robot,orientation", SHAPES)
+@pytest.mark.parametrize("effect", gen.EFFECTS)
+def test_the_hidden_effect_is_named_and_the_test_file_falls_to_the_floor(effect, robot, orientation, tmp_path):
+    c = hm.case(effect, "paper", seed=1, points=40, passes=3, robot=robot, orientation=orientation, where=tmp_path)
     _check(c)
-    assert c["passed"]
+    if robot != "tool":  # the robot config gave no tool: the one the poses determine, the rest kept at 0
+        tool = c["tool_offset"]
+        assert tool["undetermined"] == (["z"] if orientation == "one" else []), tool
+        assert abs(tool["xyz_mm"][2] - (109.0 if orientation == "varied" else 0.0)) < 0.01, tool
 
 
 @pytest.mark.soak
-def test_the_whole_matrix_from_every_start():
-    cases = [hm.case(e, start, seed=1) for start in hm.STARTS for e in ("thermal", "compliance", "gear",
-                                                                          "backlash", "drift")]
-    for c in cases:
-        _check(c)
-    for start in hm.STARTS:
-        clean = [hm.case("none", start, seed=s)["named"] == [] for s in range(1, 11)]
-        assert sum(clean) >= 9, (start, clean)
+@pytest.mark.parametrize("start", list(hm.STARTS))
+def test_the_whole_matrix_at_full_size(start, tmp_path):
+    for robot, orientation in SHAPES:
+        for effect in gen.EFFECTS:
+            _check(hm.case(effect, start, seed=1, robot=robot, orientation=orientation, where=tmp_path))
+        clean = [hm.case("none", start, seed=s, robot=robot, orientation=orientation, where=tmp_path)["named"] == []
+                 for s in range(2, 6)]
+        assert sum(clean) >= 3, (start, robot, orientation, clean)

@@ -40,17 +40,20 @@ TOOL = 0.109
 G = 9.80665
 
 
-def fk(q: np.ndarray, a=A, d=D, alpha=ALPHA, theta0=None, scale=None) -> np.ndarray:
+def fk(q: np.ndarray, a=A, d=D, alpha=ALPHA, theta0=None, scale=None, tool: float = TOOL,
+       base_pi: bool = True) -> np.ndarray:
     """TCP positions (n, 3) of the standard-DH arm: T_i = Rz(q_i + theta0_i) Tz(d_i) Tx(a_i) Rx(alpha_i),
     lengths multiplied by `scale` (thermal expansion): (n,) for the whole arm, or (n, 7) per link
-    (column i + 1 scales DH row i, column 6 the tool too; column 0, the base, has no length here)."""
+    (column i + 1 scales DH row i, column 6 the tool too; column 0, the base, has no length here).
+    `tool`: the TCP along the flange's z (m); `base_pi`: the base turned pi about z (configs/robots/
+    ur10.yaml's frame), else the DH base (the catalogue arm's)."""
     q = np.atleast_2d(q)
     n = len(q)
     th0 = np.zeros(6) if theta0 is None else theta0
     per_link = np.ones((n, 7)) if scale is None else np.asarray(scale, dtype=float)
     if per_link.ndim == 1:
         per_link = np.repeat(per_link[:, None], 7, axis=1)
-    T = np.broadcast_to(np.diag([-1.0, -1.0, 1.0, 1.0]), (n, 4, 4)).copy()  # base: pi about z
+    T = np.broadcast_to(np.diag([-1.0, -1.0, 1.0, 1.0]) if base_pi else np.eye(4), (n, 4, 4)).copy()
     for i in range(6):
         s = per_link[:, i + 1]
         th = q[:, i] + th0[i]
@@ -61,7 +64,7 @@ def fk(q: np.ndarray, a=A, d=D, alpha=ALPHA, theta0=None, scale=None) -> np.ndar
         Ti[:, 2, 1], Ti[:, 2, 2], Ti[:, 2, 3] = sa, ca, d[i] * s
         Ti[:, 3, 3] = 1.0
         T = T @ Ti
-    return T[:, :3, 3] + T[:, :3, 2] * (TOOL * per_link[:, 6])[:, None]
+    return T[:, :3, 3] + T[:, :3, 2] * (tool * per_link[:, 6])[:, None]
 
 
 def jacobian(q: np.ndarray, **kw) -> np.ndarray:
@@ -91,12 +94,18 @@ def lagged(t: np.ndarray, air: np.ndarray, tau: float) -> np.ndarray:
 
 def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: float = 60.0,
              noise_mm: float = 0.015, arm_seed: int | None = None, truth: dict | None = None,
-             link_alpha: np.ndarray | None = None, order: str = "random") -> Dataset:
+             link_alpha: np.ndarray | None = None, order: str = "random", orientation: str = "varied",
+             tool: float = TOOL, base_pi: bool = True, readings: int = 1, stated_u: bool = True) -> Dataset:
     """One campaign with the hidden `effect` (EFFECTS). `seed` draws the points, the path, the
     temperatures and the noise; `arm_seed` (default `seed`) the arm: a training and a test file
     of the same arm share it. `truth`, if given, receives the hidden values (e.g. tau_s).
     `link_alpha` (7,) 1/K: thermal expansion per link (fk's scale columns) instead of 23e-6 for all.
-    `order`: "random" (every pass in a new order) or "cycle" (the repeatability programme, above)."""
+    `order`: "random" (every pass in a new order) or "cycle" (the repeatability programme, above).
+    `orientation`: "varied" (the wrist anywhere) or "one" (q5, q6 fixed and q4 keeping the tool
+    pointing down: the paper's DOE shape). `tool` (m along the flange's z) and `base_pi` (fk) shape
+    the TCP the commanded positions are of. `readings`: each visit read that many times in a row
+    (5 s apart: replicates under the same conditions). `stated_u`: write ux..uz (else no
+    uncertainty columns)."""
     if effect not in EFFECTS:
         raise ValueError(f"effect {effect!r}; known: {EFFECTS}")
     if order not in ("random", "cycle"):
@@ -116,9 +125,17 @@ def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: 
         visits, rep = visits[moves], rep[moves]
     else:
         visits = np.concatenate([rng.permutation(n_points) for _ in range(passes)])
+    if orientation == "one":
+        targets[:, 4], targets[:, 5] = -np.pi / 2, 0.0
+        targets[:, 3] = -np.pi / 2 - targets[:, 1] - targets[:, 2]
+    elif orientation != "varied":
+        raise ValueError(f"orientation {orientation!r}; known: varied, one")
+    q_visit = targets[visits]  # the moves; each visit read `readings` times in a row
+    row = np.repeat(np.arange(len(visits)), readings)
+    visits, rep = visits[row], rep[row]
     q = targets[visits]
     n = len(q)
-    t = np.arange(n) * dt_s
+    t = np.repeat(np.arange(n // readings) * dt_s, readings) + np.tile(np.arange(readings) * 5.0, n // readings)
     hours = t / 3600
     # The air: a slow swing of +-2.5 K over ~3 h plus a warm-up ramp (logged as it is).
     air = 21.0 + 2.5 * np.sin(2 * np.pi * hours / rng.uniform(2.5, 3.5) + rng.uniform(0, 2 * np.pi)) + 0.4 * hours
@@ -126,8 +143,8 @@ def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: 
         speed = rng.choice([0.1, 0.25, 0.5], n_points)[visits]
         payload = rng.choice([0.0, 5.0, 10.0], n_points)[visits]
     else:
-        speed = rng.choice([0.1, 0.25, 0.5], n)
-        payload = rng.choice([0.0, 5.0, 10.0], n)
+        speed = rng.choice([0.1, 0.25, 0.5], n // readings)[row]
+        payload = rng.choice([0.0, 5.0, 10.0], n // readings)[row]
     dq = np.zeros((n, 6))
     scale: np.ndarray = np.ones(n)
     if effect == "thermal":
@@ -145,18 +162,19 @@ def generate(effect: str, seed: int, n_points: int = 60, passes: int = 4, dt_s: 
         dq[:, 1] += 1e-4 * np.sin(101 * q[:, 1] + 0.7)
         dq[:, 2] += 1e-4 * np.sin(101 * q[:, 2] + 2.1)
     elif effect == "backlash":
-        move = np.diff(q, axis=0, prepend=q[:1] - rng.choice([-1, 1], 6) * 1e-3)
-        dq[:, :3] += -0.5 * 2.5e-4 * np.sign(move[:, :3])
+        move = np.diff(q_visit, axis=0, prepend=q_visit[:1] - rng.choice([-1, 1], 6) * 1e-3)
+        dq[:, :3] += -0.5 * 2.5e-4 * np.sign(move[row, :3])  # repeated readings rest where the move left them
     elif effect == "drift":
         dq[:, 1] += 0.06e-3 * hours
         dq[:, 2] += -0.04e-3 * hours
-    commanded = fk(q)
-    actual = fk(q + dq, scale=scale, **geo)
+    commanded = fk(q, tool=tool, base_pi=base_pi)
+    actual = fk(q + dq, scale=scale, tool=tool, base_pi=base_pi, **geo)
     noise = rng.normal(0, noise_mm * 1e-3, (n, 3))
     error = commanded - (actual + noise)
     return Dataset(commanded=commanded, error=error, speed=speed, joints=q, temperature=air, payload=payload,
                    t=t, point_id=visits.astype(np.int64), rep=rep,
-                   u=np.full((n, 3), noise_mm * 1e-3), source=f"<ur10 generator {effect} seed {seed}>")
+                   u=np.full((n, 3), noise_mm * 1e-3) if stated_u else None,
+                   source=f"<ur10 generator {effect} seed {seed}>")
 
 
 def noise_floor_mm(noise_mm: float = 0.015) -> float:
