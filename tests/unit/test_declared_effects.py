@@ -38,15 +38,6 @@ def data(tmp_path_factory):
             "swelling": campaign(d / "swelling.csv", np.array([0.0, 0.0, -5e-6]))}
 
 
-@pytest.fixture(autouse=True)
-def registry():
-    """Each test starts and ends with the effects it found (the registry is per process)."""
-    before = set(fx.user_effects())
-    yield
-    for name in set(fx.user_effects()) - before:
-        fx.unregister(name)
-
-
 def _run(capsys, *argv) -> tuple[int, dict]:
     rc = main([*argv, "--json"] + (["--no-progress"] if argv[0] not in ("correct",) else []))
     return rc, json.loads(capsys.readouterr().out)
@@ -198,9 +189,9 @@ def _twin(data, tmp_path) -> Path:
     from dt_runtime.models.hybrid import HybridModel
     from dt_runtime.twin.twin import Twin, TwinUncertainty
 
-    fx.register_file(HUMIDITY_YAML)
     ds = read_table(data["humidity"])
-    e_lt = HybridModel(("geometric", "humidity"), "tcp_speed", robot=UR10).fit(ds)
+    e_lt = HybridModel(("geometric", "humidity"), "tcp_speed", robot=UR10,
+                       catalogue=fx.default().with_file(HUMIDITY_YAML)).fit(ds)
     e_mvs = HybridModel((), "tcp_speed").fit(ds)
     stated = {"u": [1e-5] * 3, "dof": [50.0] * 3, "k": [2.0] * 3, "U": [2e-5] * 3}
     u = {k: stated for k in TwinUncertainty.KEYS.values()}
@@ -212,8 +203,7 @@ def _twin(data, tmp_path) -> Path:
 def test_dt_correct_reads_the_declared_column_from_the_program_or_refuses(data, tmp_path, capsys):
     from dt_runtime.measurements.dataset import read_table
 
-    twin = _twin(data, tmp_path)
-    fx.unregister("humidity")  # `dt correct` finds the declaration in the twin's map, not in a file
+    twin = _twin(data, tmp_path)  # `dt correct` finds the declaration in the twin's map, not in a file
     ds = read_table(data["humidity"])
     rows = [f"p{i},{','.join(f'{v * 1e3:.4f}' for v in ds.commanded[i])},250,"
             + ",".join(f"{q:.6f}" for q in ds.joints[i - 1]) for i in (5, 17, 40)]
