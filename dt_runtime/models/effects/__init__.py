@@ -109,6 +109,9 @@ class Catalogue:
             raise DataError(f"effect(s) {', '.join(clash)} have a catalogue effect's name; catalogue: "
                             f"{', '.join(REGISTRY)}")
 
+    def __repr__(self) -> str:  # a model's repr (sklearn's) shows what its names refer to
+        return f"Catalogue(own={list(self.own)}, plugins={list(self.plugins)})"
+
     def with_own(self, effects: Iterable[Effect]) -> Catalogue:
         """This catalogue with `effects` added to its own (the same plugins, not read again)."""
         return Catalogue([*self.own.values(), *effects], self.plugins)
