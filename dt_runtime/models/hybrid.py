@@ -131,15 +131,13 @@ class HybridModel(RegressorMixin, BaseEstimator):
         self.catalogue = catalogue
 
     def effects_catalogue(self) -> fx.Catalogue:
-        """The catalogue the effect names refer to: `catalogue`, else the default one
-        (`effects.default`), read once per model (the plugins' entry points cost a scan)."""
+        """The catalogue the effect names refer to: `catalogue`; else, fitted, the default one
+        read at fit (`catalogue_`: a deployed map does not scan the plugins' entry points per
+        prediction); else the default one read now (`effects.default`)."""
         if self.catalogue is not None:
             return self.catalogue
-        # Not a parameter (sklearn's get_params keeps `catalogue` None): a clone reads its own.
-        cat = self.__dict__.get("_default_catalogue")
-        if cat is None:
-            cat = self.__dict__["_default_catalogue"] = fx.default()
-        return cat
+        fitted = getattr(self, "catalogue_", None)
+        return fitted if fitted is not None else fx.default()
 
     def effect(self, name: str) -> fx.Effect:
         """An effect by name from the model's catalogue (`effects_catalogue`)."""
@@ -220,6 +218,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         regressors (design_matrix) of these rows; thetas: fixed GP hyperparameters per axis
         (skips their optimisation); starts: warm starts of that optimisation per axis (a nearby
         model's `gp_.log_hypers_`, e.g. the model a diagnose candidate extends)."""
+        self.catalogue_ = self.catalogue if self.catalogue is not None else fx.default()
         options = self._check_params()
         inp = as_inputs(X)
         if y is None:
@@ -589,7 +588,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.robot_, m.gp_options_, m.gp_ = robot_ref(robot), options, gp
         m.theta_, m.theta_u_, m.theta_cov_ = np.zeros(0), np.zeros(0), np.zeros((0, 0))
         m.param_names_, m.t_origin_, m.residual_rms_, m.hyper_ = [], None, float("nan"), {}
-        m.provenance_ = None
+        m.provenance_, m.catalogue_ = None, fx.default()
         return m
 
     @classmethod
