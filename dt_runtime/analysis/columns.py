@@ -28,12 +28,15 @@ def factor_columns(ds: Dataset) -> dict[str, np.ndarray]:
 
 
 def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np.ndarray],
-                 alpha: float = ALPHA, catalogue: fx.Catalogue = fx.PROCESS,
+                 alpha: float = ALPHA, catalogue: fx.Catalogue | None = None,
                  pose: np.ndarray | None = None) -> list[dict]:
     """Does the held-out residual follow a column? For each column: the per-point means of the
     residual (3 axes) regressed on the per-point mean of the column (a slope per axis; points,
     not rows, are the independent units), the fraction of the residual's variance it explains
-    and the F-test p-value; significant below alpha / number of columns (Bonferroni). Best first."""
+    and the F-test p-value; significant below alpha / number of columns (Bonferroni). Best first.
+    `catalogue`: the call's effects (default `effects.default()`), whose own effects reading a
+    column are named in its `read_by`."""
+    catalogue = catalogue if catalogue is not None else fx.default()
     ok = np.all(np.isfinite(residual), axis=1)
     out: list[dict] = []
     ids = np.unique(groups[ok])
@@ -79,8 +82,10 @@ def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np
 
 
 def read_columns(effects: Sequence[str], gp_inputs: str, n_joints: int,
-                 catalogue: fx.Catalogue = fx.PROCESS) -> set[str]:
-    """The columns a model with these effects and GP inputs reads (joints as q1..qk)."""
+                 catalogue: fx.Catalogue | None = None) -> set[str]:
+    """The columns a model with these effects and GP inputs reads (joints as q1..qk); the names
+    refer to `catalogue` (default `effects.default()`)."""
+    catalogue = catalogue if catalogue is not None else fx.default()
     cols = {c for e in effects for c in catalogue.get(e).columns}
     cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(gp_inputs, set())
     if "joints" in cols:

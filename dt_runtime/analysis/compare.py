@@ -41,6 +41,7 @@ from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, read_table
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
+from dt_runtime.models.effects import Catalogue
 from dt_runtime.models.hybrid import HybridModel, load_map
 
 log = logging.getLogger("dt.compare")
@@ -75,8 +76,10 @@ def trained_on(fitted: Sequence[tuple[str, HybridModel]], ds: Dataset | str | Pa
     return out
 
 
-def load_models(models: Sequence, names: Sequence[str] | None = None) -> list[tuple[str, HybridModel]]:
-    """(name, model) per entry; entries are HybridModel instances or model directories."""
+def load_models(models: Sequence, names: Sequence[str] | None = None,
+                catalogue: Catalogue | None = None) -> list[tuple[str, HybridModel]]:
+    """(name, model) per entry; entries are HybridModel instances or model directories, loaded
+    with `catalogue` (the call's effects, `HybridModel.load`) beside their own declared ones."""
     if names is not None and len(names) != len(models):
         raise DataError(f"compare: {len(names)} names for {len(models)} models")
     out: list[tuple[str, HybridModel]] = []
@@ -91,7 +94,7 @@ def load_models(models: Sequence, names: Sequence[str] | None = None) -> list[tu
             if not p.is_dir():
                 raise ModelError(f"{p}: no such model directory (expected the output of `dt fit`, or a twin)")
             try:
-                m = load_map(p)
+                m = load_map(p, catalogue)
             except ModelError:
                 raise
             except (OSError, KeyError, ValueError, DataError) as exc:  # a damaged save: name it, not numpy
@@ -380,7 +383,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             noise_floor_m: float | None = None, cv_folds: int = 0, seed: int = 0,
             progress: Progress | None = None, instruments: str | Path | None = None,
             inputs: Sequence[str | Path] = (), refit_sessions: np.ndarray | None = None,
-            sessions: Sequence[dict] | None = None) -> tuple[CompareResult, dict]:
+            sessions: Sequence[dict] | None = None,
+            catalogue: Catalogue | None = None) -> tuple[CompareResult, dict]:
     """Compare models (HybridModel instances or model directories, oldest first) with the
     measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
 
@@ -398,6 +402,8 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     sessions: for data of several sessions (`dataset.extra['session']`), what each one is
     ({'file', 'name'} by session index: `Data.info['session_files']`); every column then has its
     figures per session (`ModelScore.sessions`), after re-registration where `refit_sessions` says.
+    catalogue: the effects a saved model's names may refer to beyond its own declared ones (e.g.
+    --effects-file's); default `effects.default()`.
     Returns (result, arrays: SI arrays for the report); `result.to_dict()` is the JSON (mm)."""
     ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
     if ds.n == 0:
@@ -405,7 +411,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     check_dataset(ds, None)  # units and ranges; the models' robots check their joints when they read them
     models = list(models)
     prov = data_provenance(ds, None, None, instruments, inputs, models)
-    fitted = load_models(models, names)
+    fitted = load_models(models, names, catalogue)
     um, dm, u_source = _u_meas(ds, fitted)
     cells = factor_cells(ds)
     zeros = np.zeros((ds.n, 3))

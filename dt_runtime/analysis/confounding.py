@@ -108,9 +108,11 @@ def linear_r2(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def check(candidates: list[str], inp: fx.Inputs, groups: np.ndarray,
-          catalogue: fx.Catalogue = fx.PROCESS) -> list[Finding]:
+          catalogue: fx.Catalogue | None = None) -> list[Finding]:
     """The confounding findings of every candidate factor (not the pose itself); a candidate with a
-    finding whose `testable` is False is not tested."""
+    finding whose `testable` is False is not tested. The names refer to `catalogue` (default
+    `effects.default()`)."""
+    catalogue = catalogue if catalogue is not None else fx.default()
     pose = inp.joints if inp.joints is not None else inp.commanded
     cache: dict[str, Finding] = {}
     out: list[Finding] = []
@@ -152,9 +154,11 @@ def revisits(t: np.ndarray, groups: np.ndarray) -> tuple[int, int]:
     return int(np.sum(hi - lo >= REVISIT_GAP * span)) if span > 0 else 0, int(len(ids))
 
 
-def competing(a: str, b: str, inp: fx.Inputs, catalogue: fx.Catalogue = fx.PROCESS) -> str | None:
+def competing(a: str, b: str, inp: fx.Inputs, catalogue: fx.Catalogue | None = None) -> str | None:
     """The factor two candidates share, or the pair of factors that follow each other (temperature
-    and time, R^2 above R2_MAX): they explain the same residual and are tested head to head."""
+    and time, R^2 above R2_MAX): they explain the same residual and are tested head to head. The
+    names refer to `catalogue` (default `effects.default()`)."""
+    catalogue = catalogue if catalogue is not None else fx.default()
     fa, fb = set(catalogue.get(a).drives()), set(catalogue.get(b).drives())
     shared = sorted(fa & fb)
     if shared:

@@ -70,21 +70,25 @@ def prepare(data: Data | Dataset | str | Path, model: HybridModel | str | Path |
             effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", robot: str | Path | Chain | None = None,
             gp_options: GPOptions | None = None, instruments: str | Path | None = None,
             inputs: Sequence[str | Path] = (), exclude_sessions: Sequence[str | int] = (),
-            reference_session: str | int | None = None, session_terms: tuple[str, ...] = ()) -> Prepared:
+            reference_session: str | int | None = None, session_terms: tuple[str, ...] = (),
+            catalogue: fx.Catalogue | None = None) -> Prepared:
     """The data (a `Data`, a `Dataset` or a contract CSV path), the starting configuration (a
     model, fitted or not, or a saved model's directory; else `effects` + GP on `gp_inputs`), the
     kinematic model `robot`, the noise floor, the sessions (some excluded, one the reference of the
-    session terms) and the traceability record."""
+    session terms) and the traceability record. `catalogue`: the effects the names refer to and
+    the candidates come from (`effects.Catalogue`, e.g. with --effects-file's declarations; default
+    `effects.default()`); a model's own declared effects are added to it."""
     if isinstance(data, (str, Path)):
         data = load_data(data)
     d = data if isinstance(data, Data) else Data(data, {"n": data.n})
     ridge = DEFAULT_RIDGE
-    catalogue = fx.PROCESS
+    catalogue = catalogue if catalogue is not None else fx.default()
     if model is not None:
-        m = model if isinstance(model, HybridModel) else load_map(model)
+        m = model if isinstance(model, HybridModel) else load_map(model, catalogue)
         effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
         session_terms = session_terms or tuple(getattr(m, "nuisance", ()))
-        catalogue = m.catalogue or fx.PROCESS
+        # the call's effects and the model's own declared ones (a saved model's carry its file's)
+        catalogue = catalogue.with_own(m.effects_catalogue().own.values())
     d, names, ref = select_sessions(d, exclude_sessions, reference_session)
     ds = d.dataset
     chain = resolve_chain(robot)
@@ -117,13 +121,15 @@ def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path 
              inputs: Sequence[str | Path] = (), *, auto: bool = False, alpha: float = ALPHA,
              min_explained: float = 0.02, max_steps: int = 10, out: str | Path | None = None,
              exclude_sessions: Sequence[str | int] = (), reference_session: str | int | None = None,
-             session_terms: tuple[str, ...] = ()) -> DiagnoseResult | AutoResult:
+             session_terms: tuple[str, ...] = (),
+             catalogue: fx.Catalogue | None = None) -> DiagnoseResult | AutoResult:
     """Which effect does the model lack? `auto`: the whole loop (analysis.selection) and, with
     `out`, its final model saved there (with `diagnose.json`, the result). The result's
     `provenance` records the data file, the saved model's files, `inputs` and the `instruments`
-    YAML (hashed), the robot and the instruments."""
+    YAML (hashed), the robot and the instruments. `catalogue`: the effects the names refer to and
+    the candidates come from (`prepare`); it travels with the problem to the worker processes."""
     prep = prepare(data, model, effects, gp_inputs, robot, gp_options, instruments, inputs, exclude_sessions,
-                   reference_session, session_terms)
+                   reference_session, session_terms, catalogue)
     if out is not None and not auto:
         raise DataError("--out writes the final model of --auto; fit a model with dt fit")
     n = parallel.workers()
@@ -237,7 +243,8 @@ def save_final(prep: Prepared, ev: Evaluator, cfg: Config, out: str | Path, resu
     p = prep.problem
     robot = prep.robot if not isinstance(prep.robot, Chain) else p.chain
     m = HybridModel(cfg.effects, cfg.gp_inputs, ridge=p.ridge, seed=ev.seed, robot=robot,
-                    gp_options=p.gp_options, nuisance=cfg.nuisance, reference_session=p.reference_session)
+                    gp_options=p.gp_options, nuisance=cfg.nuisance, reference_session=p.reference_session,
+                    catalogue=p.catalogue)  # its declared effects are saved with it
     # its GP hyperparameters start from those the loop fitted on all rows (the same configuration)
     m.fit(prep.data.dataset, starts=ev.cv(cfg, ev.points).log_hypers)
     return m.save(out, provenance=prep.provenance)

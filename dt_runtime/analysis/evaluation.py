@@ -65,7 +65,9 @@ class Problem:
     gp_options: GPOptions | None = None
     ridge: float = DEFAULT_RIDGE
     reference_session: int = 0
-    catalogue: fx.Catalogue = fx.PROCESS  # the effects the names refer to (a loaded model's own included)
+    # The effects the names refer to (the call's: --effects-file's, a loaded model's own), pickled
+    # with the problem to the pool's workers (analysis.parallel), which register nothing.
+    catalogue: fx.Catalogue = field(default_factory=fx.default)
 
     @property
     def n(self) -> int:

@@ -119,11 +119,12 @@ def visit_groups(ds: Dataset) -> np.ndarray:
     return np.cumsum(new_visit) - 1
 
 
-def conditions() -> tuple[str, ...]:
-    """What the effect terms vary with beyond the pose (`Effect.drives`: 'direction', 'speed',
-    'payload', 'temperature', 'time' or a data column), over the catalogue and the user's own
-    effects: the rows of a revisit group must agree in all of them."""
-    return tuple(dict.fromkeys(c for name in fx.PROCESS.names() for c in fx.PROCESS.get(name).drives()))
+def conditions(catalogue: fx.Catalogue | None = None) -> tuple[str, ...]:
+    """What the effect terms of `catalogue` (default `effects.default()`) vary with beyond the pose
+    (`Effect.drives`: 'direction', 'speed', 'payload', 'temperature', 'time' or a data column): the
+    rows of a revisit group must agree in all of them."""
+    cat = catalogue if catalogue is not None else fx.default()
+    return tuple(dict.fromkeys(c for name in cat.names() for c in cat.get(name).drives()))
 
 
 def revisit_groups(ds: Dataset, drives: tuple[str, ...] | None = None) -> np.ndarray:

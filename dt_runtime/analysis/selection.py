@@ -28,6 +28,7 @@ no longer needs.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -157,7 +158,7 @@ def _rivals(ev: Evaluator, top: str, names) -> list[tuple[str, str]]:
 
 
 def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float,
-                 tested: list[Gain] = ()) -> tuple[list[Gain], list[dict]]:
+                 tested: Sequence[Gain] = ()) -> tuple[list[Gain], list[dict]]:
     """The best qualifying effect met by every tested effect that reads the same factor (qualifying
     or not: a rival that explains the residual only partly alone may still be the cause), in both
     orders (`_duel`). Returns the qualifying list with the preferred one first, and the duels."""

@@ -26,25 +26,29 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
         seed: int = 0, cv_folds: int = 0, gp_options: GPOptions | None = None,
         progress: Progress | None = None, instruments: str | Path | None = None,
         inputs: Sequence[str | Path] = (), session_terms: tuple[str, ...] = (),
-        exclude_sessions: Sequence[str | int] = (), reference_session: str | int | None = None) -> FitResult:
+        exclude_sessions: Sequence[str | int] = (), reference_session: str | int | None = None,
+        catalogue: fx.Catalogue | None = None) -> FitResult:
     """Train and save the hybrid model; with cv_folds > 1 also its held-out RMS (grouped CV).
     The model and the result carry the traceability record (`provenance`): the data file, its
     simulation sidecar and `inputs` (e.g. the import mapping) hashed, the robot config, the
     instruments of the `instruments` YAML and the temperature range of the data. Several sessions:
     `session_terms` fitted as nuisance (never deployed; against `reference_session`), and
-    `exclude_sessions` left out."""
+    `exclude_sessions` left out. `catalogue`: the effects the names refer to (e.g. with
+    --effects-file's declarations, which the saved model keeps); default `effects.default()`."""
     progress = progress or Progress(enabled=False)
+    cat = catalogue if catalogue is not None else fx.default()
+    cat.check_names(effects)
     d, _, ref = select_sessions(d, exclude_sessions, reference_session)
     ds = d.dataset
     # The joints are checked against the robot config when the model reads them.
-    chain = resolve_chain(robot) if any(fx.get(e).needs_chain or fx.get(e).uses_chain for e in effects) else None
-    reads_joints = gp_inputs == "joints" or any("joints" in fx.get(e).reads(chain) for e in effects)
+    chain = resolve_chain(robot) if any(cat.get(e).needs_chain or cat.get(e).uses_chain for e in effects) else None
+    reads_joints = gp_inputs == "joints" or any("joints" in cat.get(e).reads(chain) for e in effects)
     d.info.update(check_dataset(ds, resolve_chain(robot) if reads_joints and ds.joints is not None else None,
                                 d.info.get("data")))
     prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs)
     t0 = time.perf_counter()
     model = HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options,
-                        nuisance=tuple(session_terms), reference_session=ref)
+                        nuisance=tuple(session_terms), reference_session=ref, catalogue=cat)
     progress.note(f"fitting effects [{', '.join(effects) or 'none'}] + GP on {gp_inputs} to {ds.n} rows")
     model.fit(ds)
     seconds = time.perf_counter() - t0

@@ -17,7 +17,7 @@ from dt_runtime.cli.common import (
     add_effects_file_arg,
     add_output_args,
     add_strict_arg,
-    declare_effects,
+    effects_catalogue,
     folds,
     names,
     parameter_lines,
@@ -100,24 +100,25 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.twin.campaign_dir import calibrate_campaign
 
     files = files_of(args)
-    declare_effects(args)  # before --effects is checked
+    cat = effects_catalogue(args)  # --effects may name --effects-file's effects
     seed = args.seed if args.seed is not None else files.seed if files.seed is not None else 0
     try:
-        options = CalibrationOptions(cv_folds=args.folds, volume_margin_m=args.margin_mm / 1000.0,
-                                     effects=names(args.effects), gp_inputs=args.gp_inputs, seed=seed)
+        options = CalibrationOptions.model_validate(
+            {"cv_folds": args.folds, "volume_margin_m": args.margin_mm / 1000.0, "effects": names(args.effects),
+             "gp_inputs": args.gp_inputs, "seed": seed}, context={"catalogue": cat})
     except ValidationError as exc:
         err = exc.errors()[0]
         raise DataError(f"dt calibrate: {'.'.join(map(str, err['loc']))}: {err['msg']}") from exc
     lt_model = None
     if args.model:
         # the model's configuration as deployed: session terms are nuisance (one campaign here)
-        lt_model = load_map(args.model).unfitted(seed=seed, nuisance=())
+        lt_model = load_map(args.model, cat).unfitted(seed=seed, nuisance=())
         if files.robot is None and lt_model.robot is not None:
             files = dataclasses.replace(files, robot=str(lt_model.robot))
     prog = progress(args)
     inputs = [*files.inputs(), *([args.model] if args.model else [])]
     with staged(args.out, "dt calibrate", marks=("twin.json",), inputs=inputs) as out:  # whole or not at all
-        res = calibrate_campaign(files, options, out, lt_model, args.model, prog)
+        res = calibrate_campaign(files, options, out, lt_model, args.model, prog, cat)
         write_demo_report(res, out / "report.html", title="Traceable digital twin of the cobot: calibration report")
     res.summary["report"] = str(Path(args.out) / "report.html")
     return res.summary

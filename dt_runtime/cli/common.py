@@ -90,15 +90,18 @@ def add_effects_file_arg(q: argparse.ArgumentParser) -> None:
     q.add_argument("--effects-file", default=None, metavar="YAML",
                    help="effects of your own, declared in YAML as regressors built from the data's columns "
                         "(e.g. configs/effects/humidity.yaml; docs/effects.md): usable in --effects, tested by "
-                        "diagnose after the catalogue")
+                        "diagnose after the catalogue, kept by a saved model")
 
 
-def declare_effects(args: argparse.Namespace) -> list[str]:
-    """Register the --effects-file's effects (before any --effects name is checked); their names."""
+def effects_catalogue(args: argparse.Namespace):
+    """The command's effects (`models.effects.Catalogue`): the catalogue, the installed plugins and
+    --effects-file's declarations as its own. Built once per command and passed down; nothing is
+    registered in the process, so one call's file does not change what the next call knows."""
     from dt_runtime.models import effects as fx
 
     path = getattr(args, "effects_file", None)
-    return fx.register_file(path) if path else []
+    cat = fx.default()
+    return cat.with_file(path) if path else cat
 
 
 #: What a model directory of `dt fit` / `dt diagnose --auto --out` holds: a directory replaced by
@@ -121,15 +124,15 @@ def input_files(args: argparse.Namespace) -> list[str]:
     return [f for f in (getattr(args, "mapping", None), getattr(args, "effects_file", None)) if f]
 
 
-def check_declared(names_: list[str], inp, where: str, path: str) -> None:
+def check_declared(names_: list[str], inp, where: str, path: str, catalogue) -> None:
     """DataError when the data lack a column a declared effect of --effects-file reads: the user
-    named the file's effects to test them, so a typo must not pass as 'not testable'."""
+    named the file's effects to test them, so a typo must not pass as 'not testable'. The names
+    are `catalogue`'s (`effects_catalogue`)."""
     from dt_kernel.errors import DataError
-    from dt_runtime.models import effects as fx
     from dt_runtime.models.effects.declared import columns_of
 
     for name in names_:
-        missing = [c if c != "joints" else "q1..qk" for c in fx.get(name).columns if not inp.has(c)]
+        missing = [c if c != "joints" else "q1..qk" for c in catalogue.get(name).columns if not inp.has(c)]
         if missing:
             raise DataError(f"{where}: effect '{name}' (declared in {path}) reads the column(s) {', '.join(missing)}, "
                             f"which the data do not have; their columns: {', '.join(columns_of(inp)) or 'none'}")
@@ -172,13 +175,13 @@ def progress(args: argparse.Namespace) -> Progress:
     return Progress(enabled=not getattr(args, "no_progress", False))
 
 
-def load(args: argparse.Namespace):
-    """The --data file (through --mapping if given), after registering --effects-file's effects,
-    whose columns the data must have."""
+def load(args: argparse.Namespace, catalogue):
+    """The --data file (through --mapping if given); the effects --effects-file declared into
+    `catalogue` (`effects_catalogue`) must find their columns in it."""
     from dt_runtime.analysis.data import load_data
     from dt_runtime.models import effects as fx
 
-    declared = declare_effects(args)
+    declared = list(catalogue.own) if getattr(args, "effects_file", None) else []
 
     files = args.data if isinstance(args.data, list) else [args.data]
     robot = getattr(args, "robot", None)  # joints-only files: their commanded TCP is its forward kinematics
@@ -200,7 +203,7 @@ def load(args: argparse.Namespace):
     if getattr(args, "mpe_mm", None) is not None:
         d.info["mpe_mm"] = args.mpe_mm
     if declared:
-        check_declared(declared, fx.Inputs.of(d.dataset), ", ".join(map(str, files)), args.effects_file)
+        check_declared(declared, fx.Inputs.of(d.dataset), ", ".join(map(str, files)), args.effects_file, catalogue)
         d.info["declared_effects"] = {"file": str(args.effects_file), "effects": declared}
     return d
 

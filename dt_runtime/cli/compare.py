@@ -15,6 +15,7 @@ from dt_runtime.cli.common import (
     add_mpe_arg,
     add_output_args,
     cv_folds,
+    effects_catalogue,
     input_files,
     load,
     names,
@@ -52,7 +53,8 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.common.jsonsafe import jsonable
     from dt_runtime.common.outputs import staged
 
-    d = load(args)
+    cat = effects_catalogue(args)
+    d = load(args, cat)
     # --report: report.html and compare.json written whole or not at all (common.outputs); a
     # directory it may not replace is refused before the comparison runs
     with (staged(args.report, "dt compare", marks=("compare.json", "report.html"), inputs=data_inputs(args))
@@ -60,7 +62,8 @@ def run(args: argparse.Namespace) -> Any:
         result, arrays = compare(args.model, d.dataset, names(args.names) or None, noise_floor_m=floor_of(d),
                                  cv_folds=args.cv, seed=args.seed, progress=progress(args),
                                  instruments=args.instruments, inputs=input_files(args),
-                                 refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"))
+                                 refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"),
+                                 catalogue=cat)
         result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
         if report_dir is not None:
             from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting

@@ -25,6 +25,7 @@ from dt_runtime.cli.common import (
     add_mpe_arg,
     add_output_args,
     add_session_args,
+    effects_catalogue,
     folds,
     input_files,
     load,
@@ -85,7 +86,8 @@ def run(args: argparse.Namespace) -> Any:
     if args.out is not None and not args.auto:
         raise DataError("--out saves the final model of --auto; without --auto, fit a model with dt fit")
     default_to_cores()  # the candidates of a step in parallel, one process per core (DT_WORKERS)
-    d = load(args)
+    cat = effects_catalogue(args)  # passed down to the diagnosis and its worker processes
+    d = load(args, cat)
     # --out: the final model and its verdict written whole or not at all (common.outputs)
     with (staged(args.out, "dt diagnose", marks=MODEL_MARKS, inputs=data_inputs(args)) if args.out is not None
           else contextlib.nullcontext()) as model_dir:
@@ -93,7 +95,8 @@ def run(args: argparse.Namespace) -> Any:
                      names(args.candidates) or None, args.folds, args.seed, progress=progress(args),
                      instruments=args.instruments, inputs=input_files(args), auto=args.auto, alpha=args.alpha,
                      min_explained=args.min_explained, out=model_dir, exclude_sessions=names(args.exclude_session),
-                     reference_session=args.reference_session, session_terms=names(args.session_term))
+                     reference_session=args.reference_session, session_terms=names(args.session_term),
+                     catalogue=cat)
         out = with_verdict(jsonable(r))
         if model_dir is not None:  # the verdict beside the model it chose, and its map of held-out residuals
             (Path(model_dir) / "diagnose.json").write_text(json.dumps(out, indent=2, allow_nan=False),

@@ -14,6 +14,7 @@ from dt_runtime.cli.common import (
     add_output_args,
     add_session_args,
     cv_folds,
+    effects_catalogue,
     input_files,
     load,
     names,
@@ -42,12 +43,14 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.cli.common import MODEL_MARKS, data_inputs, robot_of
     from dt_runtime.common.outputs import staged
 
-    d = load(args)
+    cat = effects_catalogue(args)
+    d = load(args, cat)
     with staged(args.out, "dt fit", marks=MODEL_MARKS, inputs=data_inputs(args)) as out:  # whole or not at all
         return fit(d, names(args.effects), args.gp_inputs, robot_of(args, d), out,
                    seed=args.seed, cv_folds=args.cv, progress=progress(args), instruments=args.instruments,
                    inputs=input_files(args), session_terms=names(args.session_term),
-                   exclude_sessions=names(args.exclude_session), reference_session=args.reference_session)
+                   exclude_sessions=names(args.exclude_session), reference_session=args.reference_session,
+                   catalogue=cat)
 
 
 def human(result: dict) -> str:

@@ -112,8 +112,9 @@ class HybridModel(RegressorMixin, BaseEstimator):
     MultiOutputGP's defaults); nuisance: session terms (models.effects.session: 'tool', 'base',
     'joints') fitted per session of the training data (the `session` column) and never deployed:
     rows without a session, or of the `reference_session`, get none, so the map predicts the
-    reference session's robot; catalogue: the effects the names refer to (`effects.Catalogue`,
-    default the process's; a loaded model's carries its declared effects).
+    reference session's robot; catalogue: the effects the names refer to (`effects.Catalogue`;
+    None: the default one, the catalogue and the installed plugins; a loaded model's carries its
+    declared effects).
     """
 
     def __init__(self, effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", ridge: float = DEFAULT_RIDGE,
@@ -129,10 +130,18 @@ class HybridModel(RegressorMixin, BaseEstimator):
         self.reference_session = reference_session
         self.catalogue = catalogue
 
+    def effects_catalogue(self) -> fx.Catalogue:
+        """The catalogue the effect names refer to: `catalogue`; else, fitted, the default one
+        read at fit (`catalogue_`: a deployed map does not scan the plugins' entry points per
+        prediction); else the default one read now (`effects.default`)."""
+        if self.catalogue is not None:
+            return self.catalogue
+        fitted = getattr(self, "catalogue_", None)
+        return fitted if fitted is not None else fx.default()
+
     def effect(self, name: str) -> fx.Effect:
-        """An effect by name from the model's catalogue (a loaded model's own declared effects,
-        else the process's: models.effects.Catalogue)."""
-        return (self.catalogue or fx.PROCESS).get(name)
+        """An effect by name from the model's catalogue (`effects_catalogue`)."""
+        return self.effects_catalogue().get(name)
 
     def unfitted(self, **changes) -> HybridModel:
         """An unfitted model with this one's parameters, `changes` applied (sklearn.base.clone
@@ -140,7 +149,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         return type(self)(**(self.get_params(deep=False) | changes))
 
     def _check_params(self) -> GPOptions:
-        (self.catalogue or fx.PROCESS).check_names(self.effects)
+        self.effects_catalogue().check_names(self.effects)
         if self.gp_inputs not in GP_INPUTS:
             raise DataError(f"unknown GP inputs '{self.gp_inputs}'; allowed: {', '.join(GP_INPUTS)}")
         bad = [t for t in self.nuisance if t not in session_terms.TERMS]
@@ -161,7 +170,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         (models.hyper) when the error y is given; else their defaults. `chain`: the effects'
         kinematic chain when the caller has resolved it (`MapPredictor`, once); else resolved here."""
         inp = as_inputs(X)
-        cat = self.catalogue or fx.PROCESS
+        cat = self.effects_catalogue()
         cat.check_names(self.effects)
         if inp.t_origin is None and getattr(self, "t_origin_", None) is not None:
             inp = replace(inp, t_origin=self.t_origin_)
@@ -209,6 +218,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
         regressors (design_matrix) of these rows; thetas: fixed GP hyperparameters per axis
         (skips their optimisation); starts: warm starts of that optimisation per axis (a nearby
         model's `gp_.log_hypers_`, e.g. the model a diagnose candidate extends)."""
+        self.catalogue_ = self.catalogue if self.catalogue is not None else fx.default()
         options = self._check_params()
         inp = as_inputs(X)
         if y is None:
@@ -547,7 +557,7 @@ class HybridModel(RegressorMixin, BaseEstimator):
                 "effects": list(self.effects), "gp_inputs": self.gp_inputs, "ridge": self.ridge,
                 # The user's declared effects travel with the model (it loads without their file).
                 "declared_effects": [eff.spec.model_dump(mode="json")
-                                     for eff in (self.catalogue or fx.PROCESS).declared(self.effects)],
+                                     for eff in self.effects_catalogue().declared(self.effects)],
                 "seed": self.seed, "robot": self.robot_, "gp_options": self.gp_options_.to_dict(),
                 "nuisance": list(self.nuisance), "reference_session": self.reference_session,
                 "nuisance_sessions": list(getattr(self, "nuisance_sessions_", ())),
@@ -578,31 +588,36 @@ class HybridModel(RegressorMixin, BaseEstimator):
         m.robot_, m.gp_options_, m.gp_ = robot_ref(robot), options, gp
         m.theta_, m.theta_u_, m.theta_cov_ = np.zeros(0), np.zeros(0), np.zeros((0, 0))
         m.param_names_, m.t_origin_, m.residual_rms_, m.hyper_ = [], None, float("nan"), {}
-        m.provenance_ = None
+        m.provenance_, m.catalogue_ = None, fx.default()
         return m
 
     @classmethod
-    def load(cls, directory: str | Path) -> HybridModel:
+    def load(cls, directory: str | Path, catalogue: fx.Catalogue | None = None) -> HybridModel:
         """The model saved in `directory`; ModelError (or DataError for its arrays) naming the
-        file for anything unreadable, non-finite, missing or of the wrong shape."""
+        file for anything unreadable, non-finite, missing or of the wrong shape.
+
+        Parameters
+        ----------
+        directory : the model directory (hybrid.json, hybrid.npz, gp/).
+        catalogue : the effects its names may refer to beyond its own declared ones (a call's
+            `effects.Catalogue`); default `effects.default()`. The model's catalogue is this one
+            with the saved declarations as its own.
+        """
         d = Path(directory)
         meta = read_meta(d / "hybrid.json", FORMAT_VERSION, "model")
         try:
-            return cls._load(d, meta)
+            return cls._load(d, meta, catalogue)
         except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
             raise ModelError(f"{d / 'hybrid.json'}: a missing or malformed entry ({exc!r})") from exc
 
     @classmethod
-    def _load(cls, d: Path, meta: dict) -> HybridModel:
+    def _load(cls, d: Path, meta: dict, base: fx.Catalogue | None) -> HybridModel:
         ref = meta.get("robot")
         try:
-            # The model's declared effects stay its own (not registered in the process).
-            own = {e.name: e for e in map(fx.declared.from_dict, meta.get("declared_effects") or [])}
-            clash = [n for n in own if n in fx.REGISTRY]
-            if clash:
-                raise DataError(f"declared effect(s) {', '.join(clash)} have a catalogue effect's name")
-            catalogue = fx.Catalogue(own) if own else None
-            (catalogue or fx.PROCESS).check_names(meta["effects"])  # a plugin effect whose package is not installed
+            # The model's declared effects are its catalogue's own: it loads without their file.
+            own = [fx.declared.from_dict(e) for e in meta.get("declared_effects") or []]
+            catalogue = (base if base is not None else fx.default()).with_own(own)
+            catalogue.check_names(meta["effects"])  # a plugin effect whose package is not installed
         except (DataError, ConfigError) as exc:
             raise ModelError(f"{d / 'hybrid.json'}: {exc}") from exc
         # Models saved before GPOptions carry only the overridden options as "gp_kw".
@@ -647,16 +662,17 @@ def unidentified(p: dict) -> str:
     return f"not bounded by the data (profile interval {lo:.4g}..{hi:.4g} {p['unit']}); the model uses the default"
 
 
-def load_map(path: str | Path) -> HybridModel:
+def load_map(path: str | Path, catalogue: fx.Catalogue | None = None) -> HybridModel:
     """An error map as a HybridModel, from any of the places one is saved: a `dt fit` model
     directory, a twin's map directory (TWIN/e_lt), a twin directory (its e_LT map), or a
-    GP-only map of a twin saved before format 2 (TWIN/e_lt.json + .npz)."""
+    GP-only map of a twin saved before format 2 (TWIN/e_lt.json + .npz). `catalogue`: the
+    call's effects (`HybridModel.load`)."""
     p = Path(path)
     if (p / "twin.json").is_file():  # a twin: its e_LT map
         p = p / "e_lt"
     if not (p / "hybrid.json").is_file() and p.with_suffix(".json").is_file():
         return HybridModel.of_gp(MultiOutputGP.load(p))
-    return HybridModel.load(p)  # a ModelError names what is missing
+    return HybridModel.load(p, catalogue)  # a ModelError names what is missing
 
 
 class MapPredictor:

@@ -97,7 +97,7 @@ def profile(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, chain: 
     parameters the inputs cannot inform (the thermal lag without a time column) are left out
     (their defaults apply)."""
     out: dict[str, dict[str, Estimate]] = {}
-    cat = catalogue or fx.PROCESS
+    cat = catalogue if catalogue is not None else fx.default()
     wanted = [e for e in effects if cat.get(e).hyper and inp.has(*cat.get(e).hyper_columns)]
     if not wanted:
         return out

@@ -13,7 +13,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from dt_kernel.config import Frozen
 from dt_kernel.units import AXES, MM_PER_M
@@ -43,8 +43,11 @@ class CalibrationOptions(Frozen):
 
     @field_validator("effects")
     @classmethod
-    def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        fx.check_names(v)
+    def _known(cls, v: tuple[str, ...], info: ValidationInfo) -> tuple[str, ...]:
+        # The call's catalogue (`model_validate(..., context={"catalogue": cat})`, e.g. with
+        # --effects-file's declarations), else the default one.
+        cat = (info.context or {}).get("catalogue") or fx.default()
+        cat.check_names(v)
         return v
 
     @field_validator("gp_inputs")
@@ -75,18 +78,20 @@ class Calibrated:
 
 
 def calibrate(campaign: Campaign, options: CalibrationOptions, robot=None, instruments: dict | None = None,
-              progress: Progress | None = None, lt_model: HybridModel | None = None) -> Calibrated:
+              progress: Progress | None = None, lt_model: HybridModel | None = None,
+              catalogue: fx.Catalogue | None = None) -> Calibrated:
     """Register, fit the maps, compute the budgets and the per-position uncertainty: the twin.
 
     robot: the robot config (path) the joint-space effects and the deployment's inverse
     kinematics use; lt_model: the e_LT map's configuration (e.g. a `dt fit` model's), default
-    `options.effects` + GP."""
+    `options.effects` + GP; catalogue: the effects `options.effects` refer to (e.g. with
+    --effects-file's declarations, which the twin's map keeps), default `effects.default()`."""
     progress = progress or Progress(enabled=False)
     frames = cal.register(campaign.registration)
     doe = cal.doe_errors(campaign.doe, frames)
     seed = options.seed
     cfg = lt_model.unfitted() if lt_model is not None else cal.map_model(
-        options.effects, seed, robot, options.gp_inputs)
+        options.effects, seed, robot, options.gp_inputs, catalogue=catalogue)
     what = f"effects {', '.join(cfg.effects)} + GP" if cfg.effects else "GPR"
     progress.note(f"fitting the error maps e_LT ({what}) and e_MVS-LT (GPR), grouped cross-validation")
     maps = cal.fit_models(doe, options.cv_folds, seed, cfg)

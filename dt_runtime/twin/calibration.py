@@ -112,9 +112,11 @@ class FittedMaps:
 
 
 def map_model(effects: tuple[str, ...] = (), seed: int = 0, robot=None, gp_inputs: str = "tcp_speed",
-              gp_options=None) -> HybridModel:
-    """The e_LT map's configuration (unfitted): the named effects + GP; none: the paper's GPR."""
-    return HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options)
+              gp_options=None, catalogue=None) -> HybridModel:
+    """The e_LT map's configuration (unfitted): the named effects + GP; none: the paper's GPR.
+    `catalogue`: the `effects.Catalogue` the names refer to (default `effects.default()`)."""
+    return HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options,
+                       catalogue=catalogue)
 
 
 def fit_models(doe: DoeErrors, folds: int, seed: int, lt_model: HybridModel | None = None) -> FittedMaps:

@@ -165,16 +165,17 @@ class CalibrationRun:
 
 def calibrate_campaign(files: CampaignFiles, options: CalibrationOptions, out: str | Path,
                        lt_model: HybridModel | None = None, lt_model_dir: str | Path | None = None,
-                       progress: Progress | None = None) -> CalibrationRun:
+                       progress: Progress | None = None, catalogue=None) -> CalibrationRun:
     """`dt calibrate`: read and check the campaign's files, calibrate, validate on the
     validation phase if there is one, and write the twin (OUT, `Twin.load` reads it) with its
-    summary.json. Nothing is written if any input is bad."""
+    summary.json. Nothing is written if any input is bad. `catalogue`: the `effects.Catalogue`
+    that `options.effects` refer to (`calibrate`)."""
     progress = progress or Progress(enabled=False)
     campaign = files.load()
     instruments = load_instruments(files.instruments) if files.instruments else ()
     progress.note(f"campaign: {campaign.registration.n} registration, {campaign.doe.n} DOE"
                   + (f", {campaign.validation.n} validation" if campaign.validation else "") + " positionings")
-    c = calibrate(campaign, options, files.robot, files.drivers, progress, lt_model)
+    c = calibrate(campaign, options, files.robot, files.drivers, progress, lt_model, catalogue)
     temps = np.concatenate([np.asarray(p.temperature, dtype=float)
                             for p in (campaign.registration, campaign.doe, campaign.validation) if p is not None])
     extra = files_under(lt_model_dir) if lt_model_dir is not None else []

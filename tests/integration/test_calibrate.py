@@ -192,3 +192,20 @@ def test_a_map_reading_the_temperature_gets_it_or_refuses(quick_demo, tmp_path, 
     prog.write_text("x,y,z,speed,temperature,q1,q2,q3,q4,q5,q6\n900,0,500,500,21,0,0.4,0.8,0,0.6,0\n")
     out = correct_program(twin, read_program(prog))
     assert np.all(np.isfinite(out[0].command))
+
+
+def test_an_effect_of_your_own_goes_into_the_twin_and_travels_with_it(quick_demo, tmp_path, capsys):
+    """--effects-file in dt calibrate: the e_LT map fits the declared effect and keeps its
+    declaration (the twin loads without the file); the next call without the file does not know it."""
+    own = tmp_path / "own.yaml"
+    own.write_text("effects:\n  - name: stand_creep\n    factor: the tracker's stand creeping over the campaign\n"
+                   "    terms:\n      - {column: t, unit: s}\n")
+    args = ["--campaign", str(quick_demo[2] / "campaign"), "--effects", "stand_creep"]
+    rc, s = _calibrate([*args, "--effects-file", str(own), "--out", str(tmp_path / "twin")], capsys)
+    assert rc == 0, s
+    params = [p for p in s["maps"]["e_lt"]["parameters"] if p["effect"] == "stand_creep"]
+    assert [p["name"] for p in params] == ["t_x", "t_y", "t_z"] and {p["unit"] for p in params} == {"m/s"}
+    own.unlink()
+    assert Twin.load(tmp_path / "twin").e_lt.effects == ("stand_creep",)  # the declaration is the map's
+    rc, s = _calibrate([*args, "--out", str(tmp_path / "t2")], capsys)
+    assert rc == 2 and "unknown effect(s) stand_creep" in s["error"] and not (tmp_path / "t2").exists(), s

@@ -1,7 +1,8 @@
-"""Effects beyond the catalogue (issue 13, part 4b): the user's own effects, declared in YAML as
-regressors built from the data's columns or published by a package under the entry point group
-`cobot_dt.effects`, are tested by `dt diagnose`, estimated by `dt fit` in their declared unit,
-and kept by the saved model.
+"""Effects beyond the catalogue: the user's own effects, declared in YAML as regressors built
+from the data's columns or published by a package under the entry point group `cobot_dt.effects`,
+are tested by `dt diagnose` (its candidates in worker processes, as the command line runs them),
+estimated by `dt fit` in their declared unit, and kept by the saved model. A call's declarations
+are its own (`models.effects.Catalogue`): nothing is registered in the process.
 
 The data (tests/support/humidity_campaign.py, the README's example): a UR10 campaign from
 tests/support/ur10_generator.py (not the project's plant; geometric errors, 15 um tracker noise per axis,
@@ -38,13 +39,11 @@ def data(tmp_path_factory):
             "swelling": campaign(d / "swelling.csv", np.array([0.0, 0.0, -5e-6]))}
 
 
-@pytest.fixture(autouse=True)
-def registry():
-    """Each test starts and ends with the effects it found (the registry is per process)."""
-    before = set(fx.user_effects())
-    yield
-    for name in set(fx.user_effects()) - before:
-        fx.unregister(name)
+@pytest.fixture
+def workers(monkeypatch):
+    """`dt diagnose` as the command line runs it on 2 cores: its candidates in 2 worker processes
+    (analysis.parallel; the suite's default is none), which must get the declared effects."""
+    monkeypatch.setenv("DT_WORKERS", "2")
 
 
 def _run(capsys, *argv) -> tuple[int, dict]:
@@ -63,7 +62,7 @@ def test_the_column_check_flags_humidity_when_no_effect_reads_it(data, capsys):
     assert r["added"] == ["+geometric"] and r["floor_ratio"] > 2
 
 
-def test_declared_humidity_is_added_from_the_papers_model_and_the_error_falls_to_the_floor(data, capsys):
+def test_declared_humidity_is_added_from_the_papers_model_and_the_error_falls_to_the_floor(data, capsys, workers):
     rc, r = _run(capsys, "diagnose", "--auto", "--data", str(data["humidity"]), "--robot", UR10,
                  "--effects-file", HUMIDITY_YAML)
     assert rc == 0, r
@@ -81,13 +80,65 @@ def test_declared_humidity_is_added_from_the_papers_model_and_the_error_falls_to
     assert r["declared_effects"] == {"file": HUMIDITY_YAML, "effects": ["humidity"]}
 
 
-def test_plain_diagnose_ranks_the_declared_effect_and_names_its_factor(data, capsys):
+def test_plain_diagnose_ranks_the_declared_effect_and_names_its_factor(data, capsys, workers):
     rc, r = _run(capsys, "diagnose", "--data", str(data["humidity"]), "--robot", UR10, "--effects", "geometric",
                  "--effects-file", HUMIDITY_YAML)
     assert rc == 0, r
     top = r["ranking"][0]
     assert top["effect"] == "humidity" and top["p_value"] < 0.01 and top["explained_fraction"] > 0.5, top
     assert "The model lacks 'humidity'" in r["verdict"] and "the hall's relative humidity" in r["verdict"]
+
+
+def test_a_call_with_the_file_leaves_nothing_behind_for_the_next(data, tmp_path, capsys):
+    """The declarations belong to the call that read the file: the next call without it does not
+    know `humidity` (in this process, whatever ran before), and a model saved with it still does."""
+    args = ["--data", str(data["humidity"]), "--robot", UR10, "--gp-inputs", "none"]
+    rc, r = _run(capsys, "fit", *args, "--effects", "humidity", "--effects-file", HUMIDITY_YAML,
+                 "--out", str(tmp_path / "m"))
+    assert rc == 0, r
+    assert "humidity" not in fx.names()
+    for argv in (["fit", *args, "--effects", "humidity", "--out", str(tmp_path / "m2")],
+                 ["diagnose", *args, "--candidates", "humidity"],
+                 ["calibrate", "--registration", str(data["humidity"]), "--doe", str(data["humidity"]),
+                  "--effects", "humidity", "--out", str(tmp_path / "t")]):
+        rc, r = _run(capsys, *argv)
+        assert rc == 2 and "unknown effect(s) humidity" in r["error"], (argv[0], r)
+        assert "--effects-file" in r["error"]
+    assert not (tmp_path / "m2").exists() and not (tmp_path / "t").exists()
+    # the saved model carries its declaration: compare and diagnose load it without the file
+    rc, r = _run(capsys, "compare", "--model", str(tmp_path / "m"), "--data", str(data["humidity"]))
+    assert rc == 0 and r["models"][-1]["rmse_mm"] < r["models"][0]["rmse_mm"], r  # humidity alone: a part
+
+
+def test_the_library_example_of_effects_md_fits_the_declared_effect(data, monkeypatch):
+    import re
+
+    from dt_runtime.measurements.dataset import read_table
+
+    root = CONFIGS.parent
+    text = (root / "docs" / "effects.md").read_text(encoding="utf-8")
+    block = next(b for b in re.findall(r"^```python\n(.*?)^```", text, flags=re.S | re.M) if "with_file" in b)
+    monkeypatch.chdir(root)  # the example's paths are the repository's
+    ns = {"ds": read_table(data["humidity"])}
+    exec(block, ns)
+    got = {p["name"]: p["value"] for p in ns["model"].parameters() if p["effect"] == "humidity"}
+    np.testing.assert_allclose(list(got.values()), K_HUMIDITY, atol=1e-6)
+    assert "humidity" not in fx.names()
+
+
+def test_a_catalogue_crosses_a_process_boundary_with_its_declarations():
+    """The pool's workers get the problem's catalogue pickled; a declared effect's class is made
+    per declaration, so it travels as its declaration."""
+    import pickle
+
+    cat = fx.default().with_file(HUMIDITY_YAML)
+    back = pickle.loads(pickle.dumps(cat))
+    assert back.names() == cat.names() and back.names()[-1] == "humidity"
+    assert back.get("humidity").spec == cat.get("humidity").spec
+    assert back.get("humidity").factor == "the hall's relative humidity"
+    inp = fx.Inputs(commanded=np.zeros((3, 3)), extra={"humidity": np.array([40.0, 45.0, 50.0])})
+    np.testing.assert_array_equal(back.build("humidity", inp, None).A, cat.build("humidity", inp, None).A)
+    assert "humidity" not in fx.default().names()  # reading the file registered nothing
 
 
 def test_fit_estimates_the_declared_coefficients_in_their_unit(data, tmp_path, capsys):
@@ -198,9 +249,9 @@ def _twin(data, tmp_path) -> Path:
     from dt_runtime.models.hybrid import HybridModel
     from dt_runtime.twin.twin import Twin, TwinUncertainty
 
-    fx.register_file(HUMIDITY_YAML)
     ds = read_table(data["humidity"])
-    e_lt = HybridModel(("geometric", "humidity"), "tcp_speed", robot=UR10).fit(ds)
+    e_lt = HybridModel(("geometric", "humidity"), "tcp_speed", robot=UR10,
+                       catalogue=fx.default().with_file(HUMIDITY_YAML)).fit(ds)
     e_mvs = HybridModel((), "tcp_speed").fit(ds)
     stated = {"u": [1e-5] * 3, "dof": [50.0] * 3, "k": [2.0] * 3, "U": [2e-5] * 3}
     u = {k: stated for k in TwinUncertainty.KEYS.values()}
@@ -212,8 +263,7 @@ def _twin(data, tmp_path) -> Path:
 def test_dt_correct_reads_the_declared_column_from_the_program_or_refuses(data, tmp_path, capsys):
     from dt_runtime.measurements.dataset import read_table
 
-    twin = _twin(data, tmp_path)
-    fx.unregister("humidity")  # `dt correct` finds the declaration in the twin's map, not in a file
+    twin = _twin(data, tmp_path)  # `dt correct` finds the declaration in the twin's map, not in a file
     ds = read_table(data["humidity"])
     rows = [f"p{i},{','.join(f'{v * 1e3:.4f}' for v in ds.commanded[i])},250,"
             + ",".join(f"{q:.6f}" for q in ds.joints[i - 1]) for i in (5, 17, 40)]

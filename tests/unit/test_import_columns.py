@@ -17,7 +17,6 @@ from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.measurements.dataset import read_table
 from dt_runtime.measurements.importer import ImportMapping, import_file, load_mapping
-from dt_runtime.models import effects as fx
 from tests.support.humidity_campaign import K_HUMIDITY, campaign
 
 UR10 = str(CONFIGS / "robots" / "ur10.yaml")
@@ -88,15 +87,7 @@ def test_rows_the_import_reorders_or_drops_take_their_extra_cells_along(tmp_path
     np.testing.assert_array_equal(ds.extra["Feuchte"], [40.5, 41.5, 42.5, np.nan])
 
 
-@pytest.fixture
-def registry():
-    before = set(fx.user_effects())
-    yield
-    for name in set(fx.user_effects()) - before:
-        fx.unregister(name)
-
-
-def test_a_declared_effect_reads_its_column_from_a_mapped_file(tmp_path, capsys, registry):
+def test_a_declared_effect_reads_its_column_from_a_mapped_file(tmp_path, capsys):
     _, _, data, mapping = _foreign(tmp_path)
     rc = main(["fit", "--data", str(data), "--mapping", str(mapping), "--robot", UR10, "--effects",
                "geometric,humidity", "--effects-file", HUMIDITY_YAML, "--gp-inputs", "none", "--out",

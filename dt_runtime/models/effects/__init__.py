@@ -7,16 +7,23 @@ compliance, gear, backlash, thermal, dynamic, drift. Each `Effect` subclass decl
 the data columns it reads, whether it needs the robot's kinematic chain and the factor the
 diagnose verdict names, and builds its regressor block. Adding an effect: one module with one
 `Effect` subclass, one entry in `REGISTRY`, one test (the simulator's scenario must know the
-same name: tests/unit/test_effects_registry.py). The user's own effects (declared in YAML or from a
-package's entry point, `models.effects.declared`) are registered beside the catalogue.
+same name: tests/unit/test_effects_registry.py).
+
+The user's own effects (declared in YAML or from a package's entry point, `models.effects.declared`)
+are never registered in the process: a `Catalogue` holds the effects one call knows (the
+catalogue, the installed plugins read when it is built, and its own: a file's declarations, a
+saved model's) and is passed down to what needs it (a model, a diagnosis, its worker processes).
 
     from dt_runtime.models import effects
-    effects.get("backlash").build(effects.Inputs.of(dataset), chain)   # a Block
-    effects.available(inputs, chain)                                   # names the data allows
+    cat = effects.default().with_file("configs/effects/humidity.yaml")
+    cat.get("backlash").build(effects.Inputs.of(dataset), chain)       # a Block
+    cat.available(inputs, chain)                                        # names the data allow
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+import importlib
+from collections.abc import Iterable, Mapping
+from pathlib import Path
 from types import MappingProxyType
 
 from dt_kernel.errors import ConfigError, DataError
@@ -34,47 +41,37 @@ from dt_runtime.models.effects.thermal import Thermal
 # name -> effect, in the contract order (the order diagnose tests candidates in).
 REGISTRY: MappingProxyType[str, Effect] = MappingProxyType(
     {e.name: e for e in (Geometric(), Compliance(), Gear(), Backlash(), Thermal(), Dynamic(), Drift())})
-# The user's own effects (models.effects.declared): declared in YAML or from installed packages'
-# entry points; tested by diagnose after the catalogue.
-_USER: dict[str, Effect] = {}
-_SOURCE: dict[str, str] = {}  # name -> where it came from ("entry point x", a YAML file, a saved model)
-_entry_points_loaded = False
 
-__all__ = ["PROCESS", "REGISTRY", "Block", "Catalogue", "Effect", "Inputs", "as_inputs", "available", "build",
-           "check_names", "get", "names", "register", "register_file", "reload_entry_points", "unregister",
-           "user_effects"]
+__all__ = ["REGISTRY", "Block", "Catalogue", "Effect", "Inputs", "as_inputs", "available", "build",
+           "check_names", "default", "get", "names", "plugin_effects", "read_file", "reload_entry_points"]
 
 
-def _load_entry_points() -> None:
-    global _entry_points_loaded
-    if not _entry_points_loaded:
-        # Marked loaded only once every plugin registered: a broken one raises on every call,
-        # rather than once and then being silently left out.
-        for name, effect in declared.entry_point_effects():
-            register(effect, source=f"entry point {name}")
-        _entry_points_loaded = True
+def _definition(effect: Effect) -> object:
+    # A declared effect is its declaration (two reads of one file are the same effect); any
+    # other is its class.
+    return getattr(effect, "spec", type(effect))
 
 
-def register(effect: Effect, source: str = "") -> Effect:
-    """Add the user's effect (a declared or plugin one) to the candidates. A catalogue name, or
-    the same name with another definition, is a DataError; the same declaration again is a no-op."""
-    if effect.name in REGISTRY:
-        raise DataError(f"effect {effect.name!r}{f' ({source})' if source else ''} has a catalogue effect's name; "
-                        f"catalogue: {', '.join(REGISTRY)}")
-    old = _USER.get(effect.name)
-    if old is not None and getattr(old, "spec", old) != getattr(effect, "spec", effect):
-        raise DataError(f"effect {effect.name!r}{f' ({source})' if source else ''} is already defined differently")
-    _USER.setdefault(effect.name, effect)
-    _SOURCE.setdefault(effect.name, source)
-    return _USER[effect.name]
+def plugin_effects() -> dict[str, Effect]:
+    """The installed packages' `cobot_dt.effects` entry points as {effect name: effect}, read now.
+    DataError naming the entry point for a broken plugin, one with a catalogue effect's name, or
+    two plugins defining one name differently."""
+    out: dict[str, Effect] = {}
+    for ep_name, effect in declared.entry_point_effects():
+        where = f"effect plugin {ep_name!r} (entry point group {declared.ENTRY_POINT_GROUP})"
+        if effect.name in REGISTRY:
+            raise DataError(f"{where} has a catalogue effect's name {effect.name!r}; catalogue: {', '.join(REGISTRY)}")
+        old = out.get(effect.name)
+        if old is not None and _definition(old) != _definition(effect):
+            raise DataError(f"{where}: effect {effect.name!r} is already defined differently by another plugin")
+        out.setdefault(effect.name, effect)
+    return out
 
 
-def register_file(path) -> list[str]:
-    """Register the effects a YAML file declares (`--effects-file`, `models.effects.declared`) and
-    return their names. ConfigError naming the file, the key and the value: a bad key or value
-    (pydantic), a catalogue name, a name declared twice, or a name registered already with another
-    definition (a plugin's, a loaded model's)."""
-    _load_entry_points()  # a clash with a plugin is found here, not on first use
+def read_file(path: str | Path) -> list[Effect]:
+    """The effects a YAML file declares (`--effects-file`, `models.effects.declared`), checked on
+    their own: ConfigError naming the file, the key and the value for a bad key or value, a
+    catalogue effect's name, or a name declared twice. Nothing is registered."""
     found = declared.read_file(path)
     seen: set[str] = set()
     for i, effect in enumerate(found):
@@ -85,110 +82,125 @@ def register_file(path) -> list[str]:
         if effect.name in seen:
             raise ConfigError(path, key, effect.name, "each name once in the file")
         seen.add(effect.name)
-        try:
-            register(effect, source=str(path))
-        except DataError as exc:
-            raise ConfigError(path, key, effect.name, f"a name not taken ({exc}; from {_SOURCE.get(effect.name)})"
-                              ) from exc
-    return [e.name for e in found]
-
-
-def unregister(name: str) -> None:
-    """Forget a user effect (tests; a session that declared another file)."""
-    _USER.pop(name, None)
-    _SOURCE.pop(name, None)
-
-
-def reload_entry_points() -> list[str]:
-    """Read the installed packages' `cobot_dt.effects` entry points again and return the plugin
-    effects' names. `names()` reads them once per process (scanning every installed distribution
-    on each call would cost milliseconds per call), so a plugin installed into a running process
-    (a notebook, a test) is seen only after this."""
-    import importlib
-
-    global _entry_points_loaded
-    for name in [n for n, s in _SOURCE.items() if s.startswith("entry point ")]:
-        unregister(name)
-    importlib.invalidate_caches()  # importlib.metadata caches directory listings
-    _entry_points_loaded = False
-    _load_entry_points()
-    return [n for n, s in _SOURCE.items() if s.startswith("entry point ")]
-
-
-def user_effects() -> dict[str, Effect]:
-    """The user's effects registered so far (declared and entry points)."""
-    _load_entry_points()
-    return dict(_USER)
-
-
-def names() -> tuple[str, ...]:
-    """Every effect name: the catalogue in the contract order, then the user's own."""
-    _load_entry_points()
-    return (*REGISTRY, *_USER)
-
-
-def check_names(effects) -> None:
-    """DataError naming every unknown effect in `effects`."""
-    known = names()
-    unknown = [e for e in effects if e not in known]
-    if unknown:
-        raise DataError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(known)} (declare your own "
-                        "with --effects-file, docs/effects.md)")
-
-
-def get(name: str) -> Effect:
-    check_names((name,))
-    return REGISTRY[name] if name in REGISTRY else _USER[name]
-
-
-def build(name: str, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
-    """The regressor block of effect `name` on `inp` (DataError if the inputs do not allow it),
-    with `hyper` the values of its nonlinear parameters (`Effect.hyper`)."""
-    return get(name).build(inp, chain, hyper)
-
-
-def available(inp: Inputs, chain: Chain | None) -> list[str]:
-    """Effects whose regressors the data's columns (and the kinematic model) allow."""
-    return [name for name in names() if get(name).allowed(inp, chain)]
+    return found
 
 
 class Catalogue:
-    """The effects one model or one diagnosis knows: the process's (the catalogue, installed
-    plugins, the --effects-file declarations) and its own (a saved model's declared effects). A
-    loaded model carries its own in its catalogue instead of registering them in the process, so
-    loading a model does not change what another diagnosis tests."""
+    """The effects one call knows: the catalogue (`REGISTRY`), the installed plugins and its own
+    (a YAML file's declarations, a saved model's). Built once per call and passed down (a model's
+    `catalogue`, a diagnosis's `Problem`, which carries it to its worker processes), so what one
+    call declares never changes what another knows.
 
-    def __init__(self, own: Mapping[str, Effect] | None = None):
-        self.own: dict[str, Effect] = dict(own or {})
+    Parameters
+    ----------
+    own : the catalogue's own effects ({name: effect} or effects); one with a catalogue effect's
+        name is a DataError; one with a plugin's name takes its place.
+    plugins : {name: effect} of the plugins; None (default): the installed entry points, read now
+        (`plugin_effects`).
+    """
+
+    def __init__(self, own: Mapping[str, Effect] | Iterable[Effect] | None = None,
+                 plugins: Mapping[str, Effect] | None = None):
+        self.plugins: dict[str, Effect] = dict(plugin_effects() if plugins is None else plugins)
+        effects = own.values() if isinstance(own, Mapping) else (own or ())
+        self.own: dict[str, Effect] = {e.name: e for e in effects}
+        clash = [n for n in self.own if n in REGISTRY]
+        if clash:
+            raise DataError(f"effect(s) {', '.join(clash)} have a catalogue effect's name; catalogue: "
+                            f"{', '.join(REGISTRY)}")
+
+    def __repr__(self) -> str:  # a model's repr (sklearn's) shows what its names refer to
+        return f"Catalogue(own={list(self.own)}, plugins={list(self.plugins)})"
+
+    def with_own(self, effects: Iterable[Effect]) -> Catalogue:
+        """This catalogue with `effects` added to its own (the same plugins, not read again)."""
+        return Catalogue([*self.own.values(), *effects], self.plugins)
+
+    def with_file(self, path: str | Path) -> Catalogue:
+        """This catalogue with the effects the YAML file at `path` declares (`read_file`) as its
+        own. ConfigError naming the file, the key and the value when a name is a plugin's or
+        already this catalogue's own with another definition."""
+        found = read_file(path)
+        for i, effect in enumerate(found):
+            taken = self.own.get(effect.name) or self.plugins.get(effect.name)
+            if taken is not None and _definition(taken) != _definition(effect):
+                where = getattr(taken, "source", "") or "an installed plugin"
+                raise ConfigError(path, f"effects.{i}.name", effect.name,
+                                  f"a name not taken (already defined differently, in {where})")
+        return self.with_own(found)
 
     def names(self) -> tuple[str, ...]:
-        base = names()
-        return (*base, *(n for n in self.own if n not in base))
+        """Every effect name: the catalogue in the contract order, then the plugins', then its own."""
+        return tuple(dict.fromkeys((*REGISTRY, *self.plugins, *self.own)))
 
     def get(self, name: str) -> Effect:
-        if name in self.own:
-            return self.own[name]
-        return get(name)
+        """The effect `name` (its own first); DataError naming the known ones if there is none."""
+        for where in (self.own, self.plugins, REGISTRY):
+            if name in where:
+                return where[name]
+        self.check_names((name,))
+        raise AssertionError(name)  # check_names raised
 
-    def check_names(self, effects) -> None:
-        unknown = [e for e in effects if e not in self.own and e not in names()]
+    def check_names(self, effects: Iterable[str]) -> None:
+        """DataError naming every unknown effect in `effects` and the known ones."""
+        known = self.names()
+        unknown = [e for e in effects if e not in known]
         if unknown:
-            known = self.names()
             raise DataError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(known)} (declare your own "
                             "with --effects-file, docs/effects.md)")
 
     def build(self, name: str, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
+        """The regressor block of effect `name` on `inp` (DataError if the inputs do not allow it),
+        with `hyper` the values of its nonlinear parameters (`Effect.hyper`)."""
         return self.get(name).build(inp, chain, hyper)
 
     def available(self, inp: Inputs, chain: Chain | None) -> list[str]:
+        """Effects whose regressors the data's columns (and the kinematic model) allow."""
         return [n for n in self.names() if self.get(n).allowed(inp, chain)]
 
     def user_effects(self) -> dict[str, Effect]:
-        return user_effects() | self.own
+        """The effects beyond the catalogue: the plugins' and its own."""
+        return self.plugins | self.own
 
-    def declared(self, effects) -> list[declared.DeclaredEffect]:
+    def declared(self, effects: Iterable[str]) -> list[declared.DeclaredEffect]:
         """The declared (YAML) effects among `effects`: what a saved model carries."""
         return [e for e in map(self.get, effects) if isinstance(e, declared.DeclaredEffect)]
 
 
-PROCESS = Catalogue()  # the process's effects, no model's own
+def default() -> Catalogue:
+    """The catalogue and the installed plugins (read now), no declared effects."""
+    return Catalogue()
+
+
+def reload_entry_points() -> list[str]:
+    """The plugin effects' names after a package was installed or removed in this process (a
+    notebook, a test): importlib's caches of directory listings are dropped first. Catalogues
+    built before keep the plugins they read."""
+    importlib.invalidate_caches()
+    return list(plugin_effects())
+
+
+# The default catalogue, for a look from a shell or a test; code that has a call's catalogue uses it.
+def names() -> tuple[str, ...]:
+    """Every effect name of the default catalogue: the catalogue in the contract order, then the plugins'."""
+    return default().names()
+
+
+def check_names(effects: Iterable[str]) -> None:
+    """DataError naming every effect in `effects` the default catalogue does not know."""
+    default().check_names(effects)
+
+
+def get(name: str) -> Effect:
+    """Effect `name` of the default catalogue."""
+    return default().get(name)
+
+
+def build(name: str, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
+    """The regressor block of the default catalogue's effect `name` (`Catalogue.build`)."""
+    return default().build(name, inp, chain, hyper)
+
+
+def available(inp: Inputs, chain: Chain | None) -> list[str]:
+    """The default catalogue's effects that the data's columns (and the kinematic model) allow."""
+    return default().available(inp, chain)

@@ -1,4 +1,4 @@
-"""Effects of the user's own, beyond the catalogue, without editing the project (issue 13):
+"""Effects of the user's own, beyond the catalogue, without editing the project:
 
 - declared in YAML as regressors built from the data's columns (`--effects-file`):
 
@@ -17,8 +17,10 @@
 
   A fitted model keeps the declaration (hybrid.json), so it loads without the file.
 - written in Python: an `Effect` subclass published by any installed package under the entry
-  point group `cobot_dt.effects` (name = the effect's name, value = "module:Class");
-  `load_entry_points` registers them (every `names()` call sees them).
+  point group `cobot_dt.effects` (name = the effect's name, value = "module:Class"); a
+  `models.effects.Catalogue` reads them when it is built.
+
+Nothing here is registered in the process: the effects go into the `Catalogue` of one call.
 """
 from __future__ import annotations
 
@@ -77,6 +79,11 @@ class DeclaredEffect(Effect):
 
     spec: EffectSpec
     source: str = ""  # where it was declared (the YAML file, a saved model), for the errors
+
+    def __reduce__(self):
+        # Its class is made per declaration (`declare`) and cannot be found by name in another
+        # process: a diagnosis's worker rebuilds it from the declaration.
+        return declare, (self.spec, self.source)
 
     def _where(self) -> str:
         return f" (declared in {self.source})" if self.source else ""
