@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
             robots=",".join(ROBOTS), orientations=",".join(ORIENTATIONS), starts="paper", seed=1, clean_seeds=3,
             points=60, passes=4, quick=False)
     if a.quick:
-        a.points, a.passes, a.clean_seeds = 40, 3, 1
+        a.points, a.passes, a.clean_seeds = 40, 4, 1
     t0 = time.perf_counter()
     cases = []
     with tempfile.TemporaryDirectory() as where:

@@ -27,11 +27,17 @@ def paired_gain(base: CvResult, res: CvResult) -> tuple[float, float]:
     """One-sided p-value that `res` lowers the per-group held-out error of `base` (Wilcoxon
     signed rank on the paired per-group mean squared residuals), and the held-out 3D RMS of res."""
     d = base.group_mse - res.group_mse
+    d = d[np.isfinite(d)]  # a forecast never predicts its first block's points
     # Differences at round-off level (a candidate whose regressors are all zero, e.g.
     # thermal at constant temperature) are no evidence either way.
-    if np.all(np.abs(d) <= 1e-9 * np.mean(base.group_mse)):
-        return 1.0, rms3(res.residual)
-    return float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue), rms3(res.residual)
+    if not len(d) or np.all(np.abs(d) <= 1e-9 * np.nanmean(base.group_mse)):
+        return 1.0, _rms(res.residual)
+    return float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue), _rms(res.residual)
+
+
+def _rms(r: np.ndarray) -> float:
+    """3D RMS over the rows a scheme predicted."""
+    return rms3(r[np.all(np.isfinite(r), axis=1)])
 
 
 def gain(kind: str, candidate: str, base: CvResult, res: CvResult, alpha: float = ALPHA) -> Gain:

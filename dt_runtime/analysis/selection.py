@@ -65,6 +65,7 @@ class Step:
     follows: str | None = None  # what the residual followed, for an added effect (Effect.factor)
     rejected: list[dict] = field(default_factory=list)
     head_to_head: list[dict] = field(default_factory=list)
+    together: dict | None = None  # a change vetoed alone, taken with the next one (`_pair`)
 
     def to_dict(self) -> dict:
         return jsonable(self.__dict__)
@@ -128,10 +129,14 @@ def _verdict(p_b_beyond_a: float, p_a_beyond_b: float, level: float) -> str:
 
 
 def _duel(ev: Evaluator, cfg: Config, a: str, b: str, factor: str, level: float) -> dict:
-    """Two rivals not yet in `cfg`, in both orders: the model with both against each with one, by
-    point (does b explain what a leaves? does a explain what b leaves?), and each alone on the
-    deployment scheme. The data prefer the one the other adds nothing to; when the points cannot
-    tell ('both' real or 'neither' separable), the lower deployment RMS decides which goes first."""
+    """Two rivals not yet in `cfg`, in both orders: the model with both against each with one,
+    paired per held-out point (does b explain what a leaves? does a explain what b leaves?), and
+    each alone on the deployment scheme. The data prefer the one the other adds nothing to; when
+    the points cannot tell ('both' real or 'neither' separable), the lower deployment RMS decides.
+    The points decide first: on held-out regions a rival can extrapolate better only because a
+    third effect is still missing (backlash against dynamic before geometric is in: dynamic 0.182,
+    backlash 0.208 mm on regions, while by point backlash explains what dynamic leaves and not the
+    reverse); each later step drops the one the model no longer needs (`_removable`)."""
     ca, cb = cfg.plus(a), cfg.plus(b)
     cva, cvb = ev.cv(ca, ev.points), ev.cv(cb, ev.points)
     both = ev.cv(ca.plus(b), ev.points, starts=cva.log_hypers)
@@ -197,11 +202,12 @@ def _removable(ev: Evaluator, start: Config, cfg: Config, alpha: float, protect:
 
 
 def _choose(ev: Evaluator, cfg: Config, base, tested: list[Gain], level: float, min_explained: float,
-            step: Step) -> Gain | None:
+            step: Step, vetoed: list[Gain]) -> Gain | None:
     """The change a step takes among `tested`: the one explaining most held-out variance whose p is
     below `level`, that explains at least `min_explained` and lowers the RMS by point, after rival
     effects met head to head, and that also lowers the RMS on its deployment scheme (a session term,
-    never deployed, needs only the points). Records rejections and head-to-head tests on `step`."""
+    never deployed, needs only the points). Records rejections and head-to-head tests on `step`;
+    the qualifying changes the deployment scheme vetoed are appended to `vetoed`."""
     ok = sorted([g for g in tested if g.p_value < level and g.explained_fraction >= min_explained
                  and g.rmse_after_mm < g.rmse_before_mm], key=lambda g: -g.explained_fraction)
     ok, h2h = head_to_head(ev, cfg, ok, level, tested)
@@ -215,11 +221,49 @@ def _choose(ev: Evaluator, cfg: Config, base, tested: list[Gain], level: float, 
         deployment_figures(ev, cfg, g)
         if g.deploys:
             return g
+        vetoed.append(g)
         step.rejected.append({"change": _change(g), "reason": "deployment", "p_value": g.p_value,
                               "explained_fraction": g.explained_fraction, "deploy_kind": g.deploy_kind,
                               "deploy_rmse_before_mm": g.deploy_rmse_before_mm,
                               "deploy_rmse_after_mm": g.deploy_rmse_after_mm})
     return None
+
+
+def _pair(ev: Evaluator, cfg: Config, base, vetoed: list[Gain], tested: Sequence[Gain], level: float,
+          step: Step) -> tuple[Gain, Gain] | None:
+    """When every qualifying effect was vetoed on the deployment scheme: one of them may hold only
+    together with another effect (a geometric term fitted while backlash is left out bends to it and
+    extrapolates badly; with backlash it holds). Each vetoed effect g is tried with each other tested
+    effect h: the pair is taken when h lowers the error of cfg + g significantly by point and
+    cfg + g + h lowers the deployment RMS below cfg's. The best such pair by the deployment RMS, as
+    (g, h's gain beyond cfg + g), or None. Recorded on `step` (`together`)."""
+    effects = [g.candidate for g in tested if g.kind == "effect"]
+    pairs = [(g.candidate, h) for g in vetoed if g.kind == "effect" for h in effects if h != g.candidate]
+    if not pairs:
+        return None
+    jobs = [(cfg.plus(a).plus(b), ev.points, base.log_hypers) for a, b in pairs]
+    jobs += [(cfg.plus(a).plus(b), _scheme(ev, a, b), base.log_hypers) for a, b in pairs]
+    ev.cv_many(jobs)
+    best = None
+    for a, b in pairs:
+        one, two = ev.cv(cfg.plus(a), ev.points), ev.cv(cfg.plus(a).plus(b), ev.points)
+        p_b, after = paired_gain(one, two)
+        scheme = _scheme(ev, a, b)
+        dep_before, dep_after = ev.rms_mm(cfg, scheme), ev.rms_mm(cfg.plus(a).plus(b), scheme)
+        if p_b < level and dep_after < dep_before and (best is None or dep_after < best[2]):
+            before = rms3(one.residual)
+            gain_b = Gain("effect", b, float(1 - (after / before) ** 2), p_b, before * 1e3, after * 1e3, True)
+            gain_b.factor = ev.problem.catalogue.get(b).factor
+            gain_b.deploy_kind, gain_b.deploy_rmse_before_mm = scheme.kind, dep_before
+            gain_b.deploy_rmse_after_mm = dep_after
+            best = (a, gain_b, dep_after)
+    if best is None:
+        return None
+    g = next(x for x in vetoed if x.candidate == best[0])
+    step.together = {"first": _change(g), "with": _change(best[1]), "p_with": best[1].p_value,
+                     "deploy_kind": best[1].deploy_kind, "deploy_rmse_before_mm": best[1].deploy_rmse_before_mm,
+                     "deploy_rmse_after_mm": best[1].deploy_rmse_after_mm}
+    return g, best[1]
 
 
 def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alpha: float = ALPHA,
@@ -242,6 +286,7 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
         terms = [t for t in available_terms(ev) if t not in cfg.nuisance]
     stop = "max steps"
     just_added: str | None = None
+    forced: Gain | None = None
     for k in range(max_steps + 1):
         if progress:
             progress.note(f"diagnose --auto: step {len(steps) + 1}: {cfg.label()}")
@@ -256,7 +301,7 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
         if k == max_steps:
             break
         # What the last change made redundant goes first (a rival that now explains nothing more)
-        if k and (gone := _removable(ev, start, cfg, alpha, protect=just_added)) is not None:
+        if k and forced is None and (gone := _removable(ev, start, cfg, alpha, protect=just_added)) is not None:
             effect, without, p_rm = gone
             _removal(ev, step, cfg, without, effect, p_rm)
             cfg, just_added = without, None
@@ -269,12 +314,18 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
         step.alpha = level
         # Physical terms first: the GP's inputs change only when no effect or session term passes
         # (the GP is the catch-all; an effect is physics that holds beyond the data).
-        eff, _, sess = rank(ev, cfg, todo, [], progress, session_terms=sess_todo)
-        session_gains = sess or session_gains
-        chosen = _choose(ev, cfg, base, eff + sess, level, min_explained, step)
-        if chosen is None and alts:
-            _, gps, _ = rank(ev, cfg, [], alts, progress)
-            chosen = _choose(ev, cfg, base, gps, level, min_explained, step)
+        if forced is not None:  # the second of a pair that holds only together (`_pair`)
+            chosen, forced = forced, None
+        else:
+            eff, _, sess = rank(ev, cfg, todo, [], progress, session_terms=sess_todo)
+            session_gains = sess or session_gains
+            vetoed: list[Gain] = []
+            chosen = _choose(ev, cfg, base, eff + sess, level, min_explained, step, vetoed)
+            if chosen is None and (pair := _pair(ev, cfg, base, vetoed, eff, level, step)) is not None:
+                chosen, forced = pair
+            if chosen is None and alts:
+                _, gps, _ = rank(ev, cfg, [], alts, progress)
+                chosen = _choose(ev, cfg, base, gps, level, min_explained, step, [])
         if chosen is None:
             stop = "nothing passes"
             break

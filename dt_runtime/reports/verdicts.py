@@ -223,7 +223,8 @@ def auto_verdict(d: dict) -> str:
         text = (f"{'Changed' if any(a.startswith('-') for a in d['added']) else 'Added'} {', '.join(d['added'])}: "
                 f"the 3D RMS held out by point fell from {first:.4f} to {final:.4f} mm, "
                 f"on {SCHEME[kind]} from {d['steps'][0]['deploy_rmse_mm']:.4f} to {d['final_deploy_rmse_mm']:.4f} mm "
-                f"({why}). Each addition was significant by point and lowered the RMS on {SCHEME[kind]}"
+                f"({why}). Each addition{' (or pair of additions)' if _pairs(d) else ''} "
+                f"was significant by point and lowered the RMS on {SCHEME[kind]}"
                 + (" (a forecast of later times for a time-dependent term)" if kind == "regions" else "")
                 + ("; each removal no longer lowered the error significantly and left that RMS no higher"
                    if any(a.startswith("-") for a in d["added"]) else "") + ".")
@@ -236,6 +237,12 @@ def auto_verdict(d: dict) -> str:
             text += _head_to_head(h)
         for r in s.get("rejected") or []:
             rejected.setdefault(r["change"], []).append(r)
+        if (t := s.get("together")) is not None:  # vetoed alone, taken with the next change
+            rejected.pop(t["first"], None)
+            text += (f" {t['first']} alone raised the RMS on {SCHEME[t['deploy_kind']]}, but with {t['with']} "
+                     f"(beyond it p = {t['p_with']:.2g}) the pair lowers it from {t['deploy_rmse_before_mm']:.4f} to "
+                     f"{t['deploy_rmse_after_mm']:.4f} mm: both taken (the first, fitted without the second, bent to "
+                     "what the second explains).")
     for change, rs in rejected.items():
         r = rs[-1]
         at = f" (at {len(rs)} steps; the last:" if len(rs) > 1 else " ("
@@ -249,6 +256,10 @@ def auto_verdict(d: dict) -> str:
     text += _floor_sentence(d)
     text += _deploy_sentence(d)
     return text
+
+
+def _pairs(d: dict) -> bool:
+    return any(s.get("together") for s in d["steps"])
 
 
 def floor_unknown(d: dict) -> str:
