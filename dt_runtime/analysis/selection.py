@@ -314,6 +314,7 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
         step.alpha = level
         # Physical terms first: the GP's inputs change only when no effect or session term passes
         # (the GP is the catch-all; an effect is physics that holds beyond the data).
+        chosen: Gain | None
         if forced is not None:  # the second of a pair that holds only together (`_pair`)
             chosen, forced = forced, None
         else:
