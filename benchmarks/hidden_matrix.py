@@ -118,7 +118,8 @@ def case(effect: str, start: str, seed: int, points: int = 60, passes: int = 4, 
            "floor_source": (r.get("noise_floor") or {}).get("source"),
            "true_floor_mm": gen.noise_floor_mm(), "floor_ratio": None if not floor else final_mm / floor,
            "heldout_floor_ratio": r.get("floor_ratio"), "tool_offset": r.get("tool_offset"),
-           "seconds": seconds, "truth": truth, "named_ok": ok_named}
+           "seconds": seconds, "truth": truth, "named_ok": ok_named, "verdict": r.get("verdict"),
+           "together": next((s["together"] for s in r["steps"] if s.get("together")), None)}
     out["passed"] = ok_named and (effect == "none" or (out["fall"] >= FALL and out["floor_ratio"] is not None
                                                          and out["floor_ratio"] <= FLOOR))
     return out

@@ -44,3 +44,16 @@ def test_the_whole_matrix_at_full_size(start, tmp_path):
         clean = [hm.case("none", start, seed=s, robot=robot, orientation=orientation, where=tmp_path)["named"] == []
                  for s in range(2, 6)]
         assert sum(clean) >= 3, (start, robot, orientation, clean)
+
+
+def test_an_effect_that_holds_only_with_another_is_taken_as_a_pair(tmp_path):
+    """Backlash with the tool kept pointing down (50 poses x 3 passes): geometric alone, fitted while
+    backlash is left out, bends to it and raises the RMS on held-out regions, and backlash alone is
+    not significant; taken one at a time the loop went GP -> joints, +dynamic (4x the floor). The
+    pair is tried and taken, and the verdict says why."""
+    c = hm.case("backlash", "paper", seed=1, points=50, passes=3, robot="tool", orientation="one", where=tmp_path)
+    _check(c)
+    assert c["added"][:2] == ["+geometric", "+backlash"] and "dynamic" not in c["named"], c
+    assert c["together"] and c["together"]["first"] == "+geometric" and c["together"]["with"] == "+backlash"
+    assert c["together"]["deploy_rmse_after_mm"] < c["together"]["deploy_rmse_before_mm"]
+    assert "+geometric alone raised the RMS on held-out regions of the workspace, but with +backlash" in c["verdict"]
