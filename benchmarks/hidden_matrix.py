@@ -21,7 +21,7 @@ Pass: the hidden effect is named (geometric aside), the test 3D RMS is >= 30 % b
 model's and within 1.3x of the floor estimated from replicates. The clean control passes when nothing
 but geometric is added.
 
-Keys: `cases` (one object per effect, robot, orientation, start and seed: `named`, `final_rmse_mm`
+Keys: `cases` (one object per effect, robot, orientation, start and seed: `hidden`, `named`, `final_rmse_mm`
 (test file), `floor_mm` (estimated), `floor_ratio`, ...), `passed`, `failed`, `clean_nothing_but_geometric`,
 `seconds`. Must be run from the repository's root (the generator is a test fixture)."""
 from __future__ import annotations
@@ -112,7 +112,7 @@ def case(effect: str, start: str, seed: int, points: int = 60, passes: int = 4, 
     floor = r.get("noise_floor_mm")
     named = sorted(set(r["effects"]) - {"geometric"})
     ok_named = named == [] if effect == "none" else effect in named
-    out = {"effect": effect, "robot": robot, "orientation": orientation, "start": start, "seed": seed,
+    out = {"effect": effect, "hidden": effect, "robot": robot, "orientation": orientation, "start": start, "seed": seed,
            "added": r["added"], "named": named, "gp_inputs": r["gp_inputs"], "paper_test_mm": paper_mm,
            "final_rmse_mm": final_mm, "fall": 1 - final_mm / paper_mm, "floor_mm": floor,
            "floor_source": (r.get("noise_floor") or {}).get("source"),
