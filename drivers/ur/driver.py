@@ -230,7 +230,7 @@ class UrRtdeController(Abortable, Lifecycle):
     def counters(self) -> dict[str, int]:
         """The link's and the moves' counters (packages, connects, drops, stale, moves_sent, ...):
         no I/O, for a health report from another thread (`status()` waits for a fresh package)."""
-        link = getattr(self, "_link", None)
+        link = self.link  # None before activate(): the moves' counters alone
         return {**(dict(link.stats) if link is not None else {}), **self.stats}
 
     # --- moving -------------------------------------------------------------------------

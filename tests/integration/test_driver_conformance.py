@@ -193,6 +193,11 @@ def test_robot_close_is_idempotent_from_active(factory):
     conformance.robot_close_is_idempotent_from_active(factory)
 
 
+@pytest.mark.parametrize("factory", _cases("robot") + _cases("tracker") + _cases("camera"))
+def test_counters_answer_in_every_state(factory):
+    conformance.counters_answer_in_every_state(factory)
+
+
 @_tracker
 def test_tracker_satisfies_protocol_and_lifecycle_order(factory):
     conformance.tracker_satisfies_protocol_and_lifecycle_order(factory)

@@ -174,6 +174,24 @@ def robot_close_is_idempotent_from_active(factory):
             drv.read_joint_state()
 
 
+def counters_answer_in_every_state(factory):
+    """A driver that keeps counters (`counters()`: no I/O, read by the health report from another
+    thread) answers in every state, before activate() and after close() included: a report must not
+    depend on the driver's lifecycle."""
+    with factory() as (drv, config):
+        counters = getattr(drv, "counters", None)
+        if counters is None:
+            pytest.skip("this driver keeps no counters")
+        seen = [counters()]
+        drv.configure(config)
+        seen.append(counters())
+        drv.activate()
+        seen.append(counters())
+        drv.close()
+        seen.append(counters())
+        assert all(isinstance(c, dict) and all(isinstance(v, (int, float)) for v in c.values()) for c in seen), seen
+
+
 # --- laser trackers ---------------------------------------------------------------------
 def tracker_satisfies_protocol_and_lifecycle_order(factory):
     with factory() as (drv, config):
