@@ -148,3 +148,24 @@ def test_a_1000_pose_grid_scan_adds_no_time_term_and_each_step_holds_on_new_pose
                 .fit(train).predict(test)) for s in r.steps]
     for before, after in zip(new, new[1:]):
         assert after <= 1.05 * before, new
+
+
+def test_a_forecast_trains_only_on_earlier_rows():
+    from dt_runtime.analysis import validation
+
+    t = np.r_[np.arange(50) * 10.0, 1000 + np.arange(50) * 10.0]
+    s = validation.forward(t, len(t), 5)
+    assert s.kind == "forward" and s.k == 3  # blocks 2, 3, 4 predicted; every model on >= 40 % of the rows
+    for tr, te in zip(s.train, s.folds):
+        assert tr.sum() >= 0.4 * len(t) and not np.any(tr & te)
+        assert t[tr].max() < t[te].min()  # fitted on the earlier part only: never interleaved
+
+
+def test_time_is_testable_only_when_poses_are_revisited_later():
+    from dt_runtime.analysis.confounding import revisits
+
+    t = np.arange(100.0)
+    assert revisits(t, np.arange(100)) == (0, 100)  # a scan
+    assert revisits(t, np.repeat(np.arange(50), 2)) == (0, 50)  # read twice in a row: not a revisit
+    groups = np.r_[np.arange(90), np.arange(10)]  # 10 poses repeated at the end
+    assert revisits(t, groups) == (10, 90)
