@@ -197,7 +197,7 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
     final_mm = sel.steps[-1].rmse_mm
     as_is_mm = rms3(p.error) * 1e3
     r = AutoResult(start=prep.start.label(), start_config=prep.start.to_dict(), steps=sel.steps,
-                   added=[s.change for s in sel.steps if s.change], final_config=final.to_dict(),
+                   added=[s.change.label() for s in sel.steps if s.change], final_config=final.to_dict(),
                    effects=list(final.effects), gp_inputs=final.gp_inputs, session_terms=list(final.nuisance),
                    final_rmse_mm=final_mm, final_deploy_rmse_mm=ev.rms_mm(final, ev.deploy),
                    deploy_kind=ev.deploy.kind, as_is_rmse_mm=as_is_mm, noise_floor_mm=floor,
@@ -224,7 +224,7 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
                             "extrapolates", row["session"], row["name"], dom["rows"], row["rows"],
                             ", ".join(f"{c} {n}" for c, n in dom["columns"].items()))
         r.session_terms_tested = [g.to_dict() for g in sel.session_terms]
-        found = tuple(s.change.split()[-1] for s in sel.steps if s.change and s.change.startswith("+session "))
+        found = tuple(s.change.name for s in sel.steps if s.change and s.change.kind == "session")
         if found:
             r.session_term_values = sessions.term_values(ev, final, prep.session_names, found)
         r.deploy = {"ok": all(s["rmse_mm"] <= s["as_is_rmse_mm"] for s in r.sessions), "by": "sessions"}
