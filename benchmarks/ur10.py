@@ -7,9 +7,10 @@ Per series:
    the registration residual RMS, which *is* the as-is error of the dataset (the error left
    after a rigid registration).
 2. Baseline, the paper's model: a GP on the TCP position only (HybridModel((), "tcp")).
-3. `dt diagnose --auto` from the paper's model (analysis.diagnose.diagnose(..., auto=True)): the
-   same loop a user runs, each step significant by point and better on held-out regions of the
-   workspace, untestable candidates skipped, rival effects tested head to head.
+3. `dt diagnose --auto` from the paper's model (analysis.diagnose.diagnose(data,
+   DiagnoseOptions(auto=True))): the same loop a user runs, each step significant by point and
+   better on held-out regions of the workspace, untestable candidates skipped, rival effects tested
+   head to head.
 4. The final configuration and the baseline scored on all rows: held out by point (5-fold CV
    grouped by target point: all rows of a point on one side, the figure this benchmark has always
    reported) and on held-out regions of the workspace (k-means on the points' TCP: new poses where
@@ -47,7 +48,7 @@ from benchmarks._data import UR10_MAPPING, UR10_ROBOT, point_split
 from dt_runtime.analysis import parallel, validation
 from dt_runtime.analysis.crossval import cross_validate, groups_of
 from dt_runtime.analysis.data import Data, load_data
-from dt_runtime.analysis.diagnose import ALPHA, diagnose, prepare
+from dt_runtime.analysis.diagnose import ALPHA, DiagnoseOptions, diagnose, prepare
 from dt_runtime.analysis.evaluation import Config, Evaluator
 from dt_runtime.analysis.ranking import paired_gain
 from dt_runtime.common.paths import DATA
@@ -121,7 +122,8 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
     data = load_data(path, UR10_MAPPING)
     ds = data.dataset
     reg = data.info["registration"]
-    prep = prepare(data, effects=(), gp_inputs="tcp", robot=chain, gp_options=GP_OPTIONS)  # the facts; all rows
+    start = DiagnoseOptions(effects=(), gp_inputs="tcp", robot=chain, gp_options=GP_OPTIONS)
+    prep = prepare(data, start)  # the facts; all rows
     res: dict = {"file": str(Path(FILES[name])), "n_rows": ds.n, "n_points": int(len(np.unique(prep.problem.groups))),
                  "registration_rms_mm": reg["rms_3d_mm"], "registration_method": reg["method"],
                  "probe_offset_mm": reg["offset_mm"], "as_is_rms_mm": rms3(ds.error) * 1e3,
@@ -132,8 +134,7 @@ def run_series(name: str, chain, refold: bool = False) -> dict:
         res["diagnose_subset"] = info
         log(f"  diagnose loop on the first {info['visits_per_point']} visits of every point ({info['n_rows']} rows)")
     t0 = time.perf_counter()
-    r = diagnose(sub, effects=(), gp_inputs="tcp", robot=chain, gp_options=GP_OPTIONS, folds=FOLDS, seed=SEED,
-                 auto=True, progress=Progress(enabled=True))
+    r = diagnose(sub, replace(start, folds=FOLDS, seed=SEED, auto=True), progress=Progress(enabled=True))
     res["diagnose_seconds"] = time.perf_counter() - t0
     res["loop"] = [s.to_dict() for s in r.steps]
     res["not_testable"] = r.not_testable

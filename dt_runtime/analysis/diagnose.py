@@ -1,11 +1,12 @@
 """`dt diagnose`: which physical effect does the model lack? One entry, two depths:
 
-    r = diagnose("data.csv", effects=("geometric",))             # one step: the candidates ranked
-    r = diagnose("data.csv", auto=True, out="model")             # the whole loop, its final model saved
+    r = diagnose("data.csv", DiagnoseOptions(effects=("geometric",)))     # one step: the candidates ranked
+    r = diagnose("data.csv", DiagnoseOptions(auto=True, out="model"))     # the whole loop, its final model saved
 
-Both prepare the data the same way (`prepare`: the measurement table or a mapped file, the robot's
-kinematic model, the noise floor, the sessions, the traceability record) and judge every candidate
-the way the twin will be used:
+`DiagnoseOptions` (analysis.options) holds every choice of a call. Both depths prepare the data
+the same way (`prepare`: the measurement table or a mapped file, the robot's kinematic model, the
+noise floor, the sessions, the traceability record) and judge every candidate the way the twin
+will be used:
 
 - the significance test holds out whole target points (analysis.ranking: a model cannot win by
   remembering a point; paired one-sided Wilcoxon per point);
@@ -22,18 +23,17 @@ figures and the findings.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from dt_kernel.errors import DataError
 from dt_runtime.analysis import parallel
 from dt_runtime.analysis.columns import column_check, factor_columns, read_columns
 from dt_runtime.analysis.crossval import groups_of
 from dt_runtime.analysis.data import Data, floor_of, load_data, refit_sessions, select_sessions
 from dt_runtime.analysis.evaluation import Config, Evaluator, Problem
+from dt_runtime.analysis.options import DiagnoseOptions
 from dt_runtime.analysis.ranking import ALPHA, deployment_figures, gp_alternatives, rank
 from dt_runtime.analysis.results import AutoResult, DiagnoseResult
 from dt_runtime.analysis.selection import select, testable
@@ -46,10 +46,9 @@ from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models import effects as fx
-from dt_runtime.models.gp import GPOptions
 from dt_runtime.models.hybrid import DEFAULT_RIDGE, HybridModel, load_map, resolve_chain
 
-__all__ = ["ALPHA", "Prepared", "diagnose", "prepare"]
+__all__ = ["ALPHA", "DiagnoseOptions", "Prepared", "diagnose", "prepare"]
 log = logging.getLogger("dt.diagnose")
 
 
@@ -66,34 +65,44 @@ class Prepared:
     provenance: Provenance
 
 
-def prepare(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
-            effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed", robot: str | Path | Chain | None = None,
-            gp_options: GPOptions | None = None, instruments: str | Path | None = None,
-            inputs: Sequence[str | Path] = (), exclude_sessions: Sequence[str | int] = (),
-            reference_session: str | int | None = None, session_terms: tuple[str, ...] = (),
-            catalogue: fx.Catalogue | None = None) -> Prepared:
-    """The data (a `Data`, a `Dataset` or a contract CSV path), the starting configuration (a
-    model, fitted or not, or a saved model's directory; else `effects` + GP on `gp_inputs`), the
-    kinematic model `robot`, the noise floor, the sessions (some excluded, one the reference of the
-    session terms) and the traceability record. `catalogue`: the effects the names refer to and
-    the candidates come from (`effects.Catalogue`, e.g. with --effects-file's declarations; default
-    `effects.default()`); a model's own declared effects are added to it."""
+def prepare(data: Data | Dataset | str | Path, options: DiagnoseOptions) -> Prepared:
+    """A diagnosis's inputs, prepared once for either depth.
+
+    Parameters
+    ----------
+    data : Data, Dataset, str or Path
+        The measurements: a `Data`, a `Dataset` or a contract CSV's path.
+    options : DiagnoseOptions
+        The starting configuration (`model`, else `effects` + GP on `gp_inputs`), the kinematic
+        model `robot`, the sessions (`exclude_sessions`, `reference_session`, `session_terms`), the
+        files of the traceability record (`instruments`, `inputs`) and the `catalogue` (a model's
+        own declared effects are added to it).
+
+    Returns
+    -------
+    Prepared
+        The data, the problem, the starting configuration, the noise floor, the sessions' names and
+        the traceability record.
+    """
+    o = options
+    model, effects, gp_inputs, robot, gp_options = o.model, o.effects, o.gp_inputs, o.robot, o.gp_options
+    session_terms = o.session_terms
     if isinstance(data, (str, Path)):
         data = load_data(data)
     d = data if isinstance(data, Data) else Data(data, {"n": data.n})
     ridge = DEFAULT_RIDGE
-    catalogue = catalogue if catalogue is not None else fx.default()
+    catalogue = o.catalogue if o.catalogue is not None else fx.default()
     if model is not None:
         m = model if isinstance(model, HybridModel) else load_map(model, catalogue)
         effects, gp_inputs, robot, gp_options, ridge = m.effects, m.gp_inputs, m.robot, m.gp_options, m.ridge
         session_terms = session_terms or tuple(getattr(m, "nuisance", ()))
         # the call's effects and the model's own declared ones (a saved model's carry its file's)
         catalogue = catalogue.with_own(m.effects_catalogue().own.values())
-    d, names, ref = select_sessions(d, exclude_sessions, reference_session)
+    d, names, ref = select_sessions(d, o.exclude_sessions, o.reference_session)
     ds = d.dataset
     chain = resolve_chain(robot)
     d.info.update(check_dataset(ds, chain, d.info.get("data")))
-    prov = data_provenance(ds, d.info.get("data"), robot, instruments, inputs,
+    prov = data_provenance(ds, d.info.get("data"), robot, o.instruments, o.inputs,
                            [model] if isinstance(model, (str, Path)) else [])
     session = ds.extra.get("session")
     session = session.astype(int) if session is not None and len(np.unique(session)) > 1 else None
@@ -113,32 +122,36 @@ def _n_joints(p: Problem) -> int:
     return 0 if p.inp.joints is None else int(p.inp.joints.shape[1])
 
 
-def diagnose(data: Data | Dataset | str | Path, model: HybridModel | str | Path | None = None,
-             effects: tuple[str, ...] = (), gp_inputs: str = "tcp_speed",
-             robot: str | Path | Chain | None = None, candidates: tuple[str, ...] | None = None,
-             folds: int = 5, seed: int = 0, gp_options: GPOptions | None = None,
-             progress: Progress | None = None, instruments: str | Path | None = None,
-             inputs: Sequence[str | Path] = (), *, auto: bool = False, alpha: float = ALPHA,
-             min_explained: float = 0.02, max_steps: int = 10, out: str | Path | None = None,
-             exclude_sessions: Sequence[str | int] = (), reference_session: str | int | None = None,
-             session_terms: tuple[str, ...] = (),
-             catalogue: fx.Catalogue | None = None) -> DiagnoseResult | AutoResult:
-    """Which effect does the model lack? `auto`: the whole loop (analysis.selection) and, with
-    `out`, its final model saved there (with `diagnose.json`, the result). The result's
-    `provenance` records the data file, the saved model's files, `inputs` and the `instruments`
-    YAML (hashed), the robot and the instruments. `catalogue`: the effects the names refer to and
-    the candidates come from (`prepare`); it travels with the problem to the worker processes."""
-    prep = prepare(data, model, effects, gp_inputs, robot, gp_options, instruments, inputs, exclude_sessions,
-                   reference_session, session_terms, catalogue)
-    if out is not None and not auto:
-        raise DataError("--out writes the final model of --auto; fit a model with dt fit")
+def diagnose(data: Data | Dataset | str | Path, options: DiagnoseOptions | None = None, *,
+             progress: Progress | None = None) -> DiagnoseResult | AutoResult:
+    """Which effect does the model lack?
+
+    Parameters
+    ----------
+    data : Data, Dataset, str or Path
+        The measurements (`prepare`).
+    options : DiagnoseOptions or None
+        What is asked; None: ``DiagnoseOptions()`` (the paper's model, every candidate, one step).
+        `auto`: the whole loop (analysis.selection) and, with `out`, its final model saved there.
+    progress : Progress or None
+        Where the steps report their progress (stderr); None: silent.
+
+    Returns
+    -------
+    DiagnoseResult or AutoResult
+        One step's ranking, or the loop's steps and verdict figures (`auto`). Its `provenance`
+        records the data file, the saved model's files, `inputs` and the `instruments` YAML
+        (hashed), the robot and the instruments.
+    """
+    o = options if options is not None else DiagnoseOptions()
+    prep = prepare(data, o)
     n = parallel.workers()
-    pool = parallel.Pool(prep.problem, folds, seed, n) if n > 1 else None
+    pool = parallel.Pool(prep.problem, o.folds, o.seed, n) if n > 1 else None
     try:
-        ev = Evaluator(prep.problem, folds, seed, pool)
-        if auto:
-            return _auto(prep, ev, candidates, alpha, min_explained, max_steps, progress, out)
-        return _plain(prep, ev, candidates, alpha, progress)
+        ev = Evaluator(prep.problem, o.folds, o.seed, pool)
+        if o.auto:
+            return _auto(prep, ev, o.candidates, o.alpha, o.min_explained, o.max_steps, progress, o.out)
+        return _plain(prep, ev, o.candidates, o.alpha, progress)
     finally:
         if pool is not None:
             pool.close()
@@ -184,7 +197,7 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
     final_mm = sel.steps[-1].rmse_mm
     as_is_mm = rms3(p.error) * 1e3
     r = AutoResult(start=prep.start.label(), start_config=prep.start.to_dict(), steps=sel.steps,
-                   added=[s.change for s in sel.steps if s.change], final_config=final.to_dict(),
+                   added=[s.change.label() for s in sel.steps if s.change], final_config=final.to_dict(),
                    effects=list(final.effects), gp_inputs=final.gp_inputs, session_terms=list(final.nuisance),
                    final_rmse_mm=final_mm, final_deploy_rmse_mm=ev.rms_mm(final, ev.deploy),
                    deploy_kind=ev.deploy.kind, as_is_rmse_mm=as_is_mm, noise_floor_mm=floor,
@@ -211,7 +224,7 @@ def _auto(prep: Prepared, ev: Evaluator, candidates: tuple[str, ...] | None, alp
                             "extrapolates", row["session"], row["name"], dom["rows"], row["rows"],
                             ", ".join(f"{c} {n}" for c, n in dom["columns"].items()))
         r.session_terms_tested = [g.to_dict() for g in sel.session_terms]
-        found = tuple(s.change.split()[-1] for s in sel.steps if s.change and s.change.startswith("+session "))
+        found = tuple(s.change.name for s in sel.steps if s.change and s.change.kind == "session")
         if found:
             r.session_term_values = sessions.term_values(ev, final, prep.session_names, found)
         r.deploy = {"ok": all(s["rmse_mm"] <= s["as_is_rmse_mm"] for s in r.sessions), "by": "sessions"}

@@ -7,12 +7,10 @@ deficient (dt_runtime.models.effects.geometric): over a given design several par
 the TCP alike (offset_q1 and a rotation of the base about z; with the DOE's fixed tool
 orientation, many more), and the ridge of the fit splits such a combination between them
 arbitrarily, or (a column that is numerically zero, e.g. a rotation about an axis through the
-TCP) gives a meaningless value. `identify` judges this from the geometric block's columns over
-the training joint angles: angles scaled to metres at the TCP by the arm's reach, the rank is the
-number of singular values above `rtol` times the largest; then a basis of that many parameters is
-chosen (first greedily in the order joint offsets, frames 1..n (translations, rotations), tool,
-keeping a column only if at least `ALIAS_TOL` of it lies outside the span of those kept, then by
-pivoted QR for what is left). Every other parameter's column is (numerically) a combination of
+TCP) gives a meaningless value. `models.identifiability.aliasing` judges this from the geometric
+block's columns over the training joint angles (angles scaled to metres at the TCP by the arm's
+reach): the rank, and a basis of that many parameters chosen in the order joint offsets, frames
+1..n, tool. Every other parameter's column is (numerically) a combination of
 the basis columns, so its fitted value is moved onto the basis parameters it aliases (the
 exported value of a basis parameter is the identifiable combination it stands for); it is then
 listed as not identifiable, with what absorbed it, and exported as zero. A parameter whose
@@ -47,7 +45,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 from dt_kernel.errors import ConfigError, DataError, ModelError, TwinError
@@ -63,114 +60,11 @@ from dt_runtime.frames.robot_export import dh_table, urdf_text
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.effects.geometric import Geometric
 from dt_runtime.models.hybrid import HybridModel, resolve_chain
-from dt_runtime.models.identifiability import connected
+from dt_runtime.models.identifiability import ALIAS_RTOL, Aliasing, aliasing
 
 FORMATS = ("urdf", "dh")
-RTOL = 1e-5  # singular values below RTOL x the largest: directions the data cannot see
-ALIAS_TOL = 0.05  # a column kept greedily must have >= 5 % of its norm outside the kept span
-ALIAS_SHOWN = 1e-3  # aliases shown: scaled coefficients above this (all are applied)
 FK_TOL_MM = 0.01
 NO_GEOMETRIC = "fit one with dt fit --effects geometric ..."
-
-
-# --------------------------------------------------------------------------- identifiability
-@dataclass(frozen=True)
-class Identifiability:
-    """Which geometric parameters the design identifies: `basis` (indices into names) spans
-    every identifiable combination; `absorbed[j]` maps a non-basis parameter j to the basis
-    parameters its column is a combination of, {i: d theta_i / d theta_j} (physical units),
-    exactly (every coefficient: `combine` uses them); `aliases[j]` the same without the
-    coefficients below ALIAS_SHOWN (scaled), which the report and `groups` show;
-    `no_effect`: parameters whose column is zero over the data."""
-
-    names: tuple[str, ...]
-    units: tuple[str, ...]
-    rank: int
-    basis: tuple[int, ...]
-    absorbed: dict[int, dict[int, float]]
-    aliases: dict[int, dict[int, float]]
-    no_effect: tuple[int, ...]
-    singular_values: tuple[float, ...]  # relative to the largest, scaled columns
-    length_m: float  # the reach that scales angles to metres at the TCP
-    rtol: float = RTOL
-
-    def combine(self, theta: np.ndarray) -> np.ndarray:
-        """The identifiable part of `theta`: every non-basis value moved onto the basis
-        parameters its column aliases, non-basis parameters zero (same A theta on the data)."""
-        out = np.zeros_like(theta)
-        out[list(self.basis)] = theta[list(self.basis)]
-        for j, coefs in self.absorbed.items():
-            for i, c in coefs.items():
-                out[i] += c * theta[j]
-        return out
-
-    def groups(self) -> list[list[str]]:
-        """Parameters that alias one another (connected through `aliases`), each group sorted
-        in parameter order, basis parameters included; no-effect parameters excluded."""
-        links = [(i, j) for j, coefs in self.aliases.items() for i in coefs]
-        out = []
-        for g in connected(len(self.names), links):
-            kept = [k for k in g if k not in self.no_effect]
-            if any(j in self.aliases for j in g) and len(kept) > 1:
-                out.append([self.names[k] for k in kept])
-        return out
-
-
-def _preferred_order(names: tuple[str, ...]) -> list[int]:
-    def key(i: int) -> tuple[int, int, int]:
-        n = names[i]
-        if n.startswith("offset_q"):
-            return (0, int(n[8:]), 0)
-        if n.startswith("frame"):
-            j, kind = n[5:].split("_")
-            return (1, int(j), "dr".index(kind[0]) * 3 + "xyz".index(kind[1]))
-        return (2, 0, i)
-
-    return sorted(range(len(names)), key=key)
-
-
-def identify(A: np.ndarray, names: tuple[str, ...], units: tuple[str, ...], length_m: float,
-             rtol: float = RTOL) -> Identifiability:
-    """Identifiability of the parameters of the block A (n, 3, p) (module docstring)."""
-    p = A.shape[2]
-    s = np.array([length_m if u == "rad" else 1.0 for u in units])  # theta * s: metres at the TCP
-    M = A.reshape(-1, p) / s / np.sqrt(A.shape[0])
-    sv = np.linalg.svd(M, compute_uv=False)
-    top = float(sv[0]) if sv.size and sv[0] > 0 else 1.0
-    tol = rtol * top
-    rank = int(np.sum(sv > tol))
-    norms = np.linalg.norm(M, axis=0)
-    basis: list[int] = []
-    Q = np.zeros((M.shape[0], 0))
-    for i in _preferred_order(names):
-        if len(basis) == rank:
-            break
-        r = M[:, i] - Q @ (Q.T @ M[:, i])
-        if norms[i] > tol and np.linalg.norm(r) >= max(ALIAS_TOL * norms[i], tol):
-            basis.append(i)
-            Q = np.column_stack([Q, r / np.linalg.norm(r)])
-    rest = [i for i in range(p) if i not in basis]
-    if len(basis) < rank and rest:  # the rest of the rank: the most independent columns left
-        R = M[:, rest] - Q @ (Q.T @ M[:, rest])
-        _, _, piv = scipy.linalg.qr(R, mode="economic", pivoting=True)
-        basis += [rest[k] for k in piv[: rank - len(basis)]]
-    basis.sort()
-    others = [i for i in range(p) if i not in basis]
-    absorbed: dict[int, dict[int, float]] = {}
-    aliases: dict[int, dict[int, float]] = {}
-    no_effect = []
-    if others:
-        C = np.linalg.lstsq(M[:, basis], M[:, others], rcond=None)[0] if basis else np.zeros((0, len(others)))
-        for col, j in enumerate(others):
-            if norms[j] <= tol:
-                no_effect.append(j)
-                continue
-            # physical: theta_i += C_ij s_j / s_i theta_j
-            absorbed[j] = {basis[k]: float(C[k, col] * s[j] / s[basis[k]]) for k in range(len(basis))}
-            big = np.abs(C[:, col]) > ALIAS_SHOWN * max(1.0, float(np.max(np.abs(C[:, col]))))
-            aliases[j] = {basis[k]: absorbed[j][basis[k]] for k in np.flatnonzero(big)}
-    return Identifiability(tuple(names), tuple(units), rank, tuple(basis), absorbed, aliases, tuple(no_effect),
-                           tuple(float(v / top) for v in sv), float(length_m), rtol)
 
 
 # --------------------------------------------------------------------------- the calibrated chain
@@ -340,7 +234,7 @@ def _load_model(model_dir: Path) -> tuple[HybridModel, Chain, Path]:
 
 # --------------------------------------------------------------------------- export
 def export_robot(model_dir: str | Path, fmt: str, out: str | Path, data: str | Path | None = None,
-                 mapping: str | Path | None = None, skip_bad: bool = False, rtol: float = RTOL,
+                 mapping: str | Path | None = None, skip_bad: bool = False, rtol: float = ALIAS_RTOL,
                  name: str | None = None, refine_fit: bool = True) -> ExportResult:
     """Write the calibrated robot of the saved model `model_dir` as `fmt` ('urdf' or 'dh') to
     `out`, load it back and check its FK against the calibrated FK at the training joint
@@ -368,7 +262,7 @@ def export_robot(model_dir: str | Path, fmt: str, out: str | Path, data: str | P
         raise ModelError(f"{model_dir}: the model's geometric parameters do not match its robot config's chain")
     units = tuple(u for _, _, u in geo)
     reach = float(np.sqrt(np.mean(np.sum((chain.fk(q) - chain.frames(q)[0][:, 0]) ** 2, axis=1))))
-    ident = identify(block.A, names, units, max(reach, 1e-3), rtol)
+    ident = aliasing(block.A, names, units, max(reach, 1e-3), rtol)
     theta_x = ident.combine(theta)
     calibrated = chain.fk(q) - np.einsum("nap,p->na", block.A, theta)
     first = calibrated_chain(chain, _values(names, theta_x))
@@ -427,7 +321,7 @@ def export_robot(model_dir: str | Path, fmt: str, out: str | Path, data: str | P
                         list(ident.singular_values), fk, loads, warnings, prov)
 
 
-def _header(model_dir: Path, data_file: Path, ident: Identifiability, names: tuple[str, ...],
+def _header(model_dir: Path, data_file: Path, ident: Aliasing, names: tuple[str, ...],
             theta_x: np.ndarray) -> str:
     basis = ", ".join(f"{names[i]}={theta_x[i]:.6g} {ident.units[i]}" for i in ident.basis)
     not_id = ", ".join(names[j] for j in sorted(ident.absorbed)) or "none"

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dt_runtime.analysis import confounding
+from dt_runtime.analysis.change import Change
 from dt_runtime.analysis.evaluation import Config, Evaluator
 from dt_runtime.analysis.ranking import ALPHA, changed, deployment_figures, gp_alternatives, paired_gain, rank
 from dt_runtime.analysis.results import Gain
@@ -56,7 +57,7 @@ class Step:
     u_rmse_mm: float  # standard uncertainty of that RMS (from the spread over held-out points)
     deploy_rmse_mm: float  # held out on the deployment scheme (deploy_kind)
     deploy_kind: str
-    change: str | None  # "+backlash", "GP -> joints", "+session tool"; None on the last step
+    change: Change | None  # shown as "+backlash", "GP -> joints", "+session tool"; None on the last step
     p_value: float | None
     explained_fraction: float | None
     alpha: float  # the step's significance level (alpha / number of changes tested)
@@ -68,7 +69,8 @@ class Step:
     together: dict | None = None  # a change vetoed alone, taken with the next one (`_pair`)
 
     def to_dict(self) -> dict:
-        return jsonable(self.__dict__)
+        """The step as JSON: the change as its label (the `change` key's strings)."""
+        return jsonable({**self.__dict__, "change": None if self.change is None else self.change.label()})
 
 
 @dataclass
@@ -88,8 +90,8 @@ def _rms_u(res_mse: np.ndarray) -> float:
     return float(np.std(res_mse, ddof=1) / np.sqrt(len(res_mse)) / (2 * np.sqrt(m)))
 
 
-def _change(g: Gain) -> str:
-    return {"effect": f"+{g.candidate}", "session": f"+session {g.candidate}"}.get(g.kind, f"GP -> {g.candidate}")
+def _change(g: Gain) -> Change:
+    return Change("session" if g.kind == "session" else "effect" if g.kind == "effect" else "gp_inputs", g.candidate)
 
 
 def testable(ev: Evaluator, candidates: list[str]) -> tuple[list[str], list[dict]]:
@@ -222,7 +224,7 @@ def _choose(ev: Evaluator, cfg: Config, base, tested: list[Gain], level: float, 
         if g.deploys:
             return g
         vetoed.append(g)
-        step.rejected.append({"change": _change(g), "reason": "deployment", "p_value": g.p_value,
+        step.rejected.append({"change": _change(g).label(), "reason": "deployment", "p_value": g.p_value,
                               "explained_fraction": g.explained_fraction, "deploy_kind": g.deploy_kind,
                               "deploy_rmse_before_mm": g.deploy_rmse_before_mm,
                               "deploy_rmse_after_mm": g.deploy_rmse_after_mm})
@@ -260,7 +262,7 @@ def _pair(ev: Evaluator, cfg: Config, base, vetoed: list[Gain], tested: Sequence
     if best is None:
         return None
     g = next(x for x in vetoed if x.candidate == best[0])
-    step.together = {"first": _change(g), "with": _change(best[1]), "p_with": best[1].p_value,
+    step.together = {"first": _change(g).label(), "with": _change(best[1]).label(), "p_with": best[1].p_value,
                      "deploy_kind": best[1].deploy_kind, "deploy_rmse_before_mm": best[1].deploy_rmse_before_mm,
                      "deploy_rmse_after_mm": best[1].deploy_rmse_after_mm}
     return g, best[1]
@@ -344,7 +346,7 @@ def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alp
 def _removal(ev: Evaluator, step: Step, cfg: Config, without: Config, effect: str, p: float) -> None:
     """Record on `step` (the model `cfg`) the removal of `effect`."""
     scheme = ev.scheme_for(effect)
-    step.change, step.p_value, step.follows = f"-{effect}", p, None
+    step.change, step.p_value, step.follows = Change("remove", effect), p, None
     step.explained_fraction = float(1 - (step.rmse_mm / ev.rms_mm(without, ev.points)) ** 2)
     step.change_deploy_kind = scheme.kind
     step.change_deploy_rmse_mm = (ev.rms_mm(cfg, scheme), ev.rms_mm(without, scheme))

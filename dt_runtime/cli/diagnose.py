@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> Any:
     from pathlib import Path
 
     from dt_kernel.errors import DataError
-    from dt_runtime.analysis.diagnose import diagnose
+    from dt_runtime.analysis.diagnose import DiagnoseOptions, diagnose
     from dt_runtime.analysis.parallel import default_to_cores
     from dt_runtime.analysis.results import AutoResult
     from dt_runtime.cli.common import MODEL_MARKS, data_inputs, robot_of
@@ -91,12 +91,13 @@ def run(args: argparse.Namespace) -> Any:
     # --out: the final model and its verdict written whole or not at all (common.outputs)
     with (staged(args.out, "dt diagnose", marks=MODEL_MARKS, inputs=data_inputs(args)) if args.out is not None
           else contextlib.nullcontext()) as model_dir:
-        r = diagnose(d, args.model, names(args.effects), args.gp_inputs, robot_of(args, d),
-                     names(args.candidates) or None, args.folds, args.seed, progress=progress(args),
-                     instruments=args.instruments, inputs=input_files(args), auto=args.auto, alpha=args.alpha,
-                     min_explained=args.min_explained, out=model_dir, exclude_sessions=names(args.exclude_session),
-                     reference_session=args.reference_session, session_terms=names(args.session_term),
-                     catalogue=cat)
+        options = DiagnoseOptions(
+            model=args.model, effects=names(args.effects), gp_inputs=args.gp_inputs, robot=robot_of(args, d),
+            candidates=names(args.candidates) or None, folds=args.folds, seed=args.seed,
+            instruments=args.instruments, inputs=tuple(input_files(args)), auto=args.auto, alpha=args.alpha,
+            min_explained=args.min_explained, out=model_dir, exclude_sessions=names(args.exclude_session),
+            reference_session=args.reference_session, session_terms=names(args.session_term), catalogue=cat)
+        r = diagnose(d, options, progress=progress(args))
         out = with_verdict(jsonable(r))
         if model_dir is not None:  # the verdict beside the model it chose, and its map of held-out residuals
             (Path(model_dir) / "diagnose.json").write_text(json.dumps(out, indent=2, allow_nan=False),

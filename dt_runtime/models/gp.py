@@ -130,6 +130,39 @@ class Distinct:
         return self._inducing[m]
 
 
+# --- options ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class GPOptions:
+    """The GP's fitting options (GPRegressor's documents each), as one typed, immutable value
+    the hybrid model carries and saves. Its defaults are the one place the GP's default settings
+    are written: GPRegressor's and MultiOutputGP's signatures read them (`DEFAULTS`)."""
+
+    noise_floor: float = 1e-10
+    n_restarts: int = 1
+    max_iter: int = 200
+    sparse_threshold: int = 3000
+    n_inducing: int = 600
+    n_hyper: int = 1000
+    min_length_scale: float = 0.1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> GPOptions:
+        """From a saved dict (every option, or only the overridden ones: the older `gp_kw`)."""
+        d = dict(d or {})
+        unknown = sorted(set(d) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ModelError(f"unknown GP option(s) {', '.join(unknown)}; known: {', '.join(cls.__dataclass_fields__)}")
+        return cls(**d)
+
+
+#: The GP's default fit settings; the estimators' signatures show them (scikit-learn's get_params
+#: reads the signature), so they are read from here rather than written again.
+DEFAULTS = GPOptions()
+
+
 # --- single output ---------------------------------------------------------------------------
 class GPRegressor(Params):
     """One output. Inputs and output are standardised internally; the learned attributes are in
@@ -143,9 +176,10 @@ class GPRegressor(Params):
     n_hyper: hyperparameters are learned on at most this many distinct inputs (seeded subset).
     """
 
-    def __init__(self, *, noise_floor: float = 1e-10, n_restarts: int = 1, seed: int = 0,
-                 max_iter: int = 200, sparse_threshold: int = 3000, n_inducing: int = 600,
-                 n_hyper: int = 1000, min_length_scale: float = 0.1):
+    def __init__(self, *, noise_floor: float = DEFAULTS.noise_floor, n_restarts: int = DEFAULTS.n_restarts,
+                 seed: int = 0, max_iter: int = DEFAULTS.max_iter, sparse_threshold: int = DEFAULTS.sparse_threshold,
+                 n_inducing: int = DEFAULTS.n_inducing, n_hyper: int = DEFAULTS.n_hyper,
+                 min_length_scale: float = DEFAULTS.min_length_scale):
         self.min_length_scale = min_length_scale  # in units of each input's standard deviation
         self.noise_floor = noise_floor
         self.n_restarts = n_restarts
@@ -425,40 +459,15 @@ class GPRegressor(Params):
 
 
 # --- several outputs -------------------------------------------------------------------------
-@dataclass(frozen=True)
-class GPOptions:
-    """The GP's fitting options (GPRegressor's documents each), as one typed, immutable value
-    the hybrid model carries and saves; the defaults are MultiOutputGP's."""
-
-    noise_floor: float = 1e-10
-    n_restarts: int = 1
-    max_iter: int = 200
-    sparse_threshold: int = 3000
-    n_inducing: int = 600
-    n_hyper: int = 1000
-    min_length_scale: float = 0.1
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> GPOptions:
-        """From a saved dict (every option, or only the overridden ones: the older `gp_kw`)."""
-        d = dict(d or {})
-        unknown = sorted(set(d) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise ModelError(f"unknown GP option(s) {', '.join(unknown)}; known: {', '.join(cls.__dataclass_fields__)}")
-        return cls(**d)
-
-
 class MultiOutputGP(Params):
     """One GPRegressor per output column (the paper: one model per axis).
 
     `input_units`/`output_units` are recorded in the saved model (SI inside the code)."""
 
-    def __init__(self, *, noise_floor: float = 1e-10, n_restarts: int = 1, seed: int = 0,
-                 max_iter: int = 200, sparse_threshold: int = 3000, n_inducing: int = 600,
-                 n_hyper: int = 1000, min_length_scale: float = 0.1, input_names=None,
+    def __init__(self, *, noise_floor: float = DEFAULTS.noise_floor, n_restarts: int = DEFAULTS.n_restarts,
+                 seed: int = 0, max_iter: int = DEFAULTS.max_iter, sparse_threshold: int = DEFAULTS.sparse_threshold,
+                 n_inducing: int = DEFAULTS.n_inducing, n_hyper: int = DEFAULTS.n_hyper,
+                 min_length_scale: float = DEFAULTS.min_length_scale, input_names=None,
                  output_names=None, input_units=None, output_units=None):
         self.min_length_scale = min_length_scale
         self.noise_floor = noise_floor

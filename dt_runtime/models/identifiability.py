@@ -1,4 +1,6 @@
-"""Which effect parameters can the data determine? Rank, base parameters, aliased groups.
+"""Which effect parameters can the data determine? Rank, base parameters, aliased groups: the one
+module that judges it, for a fitted model (`analyse`, `Identifiability`) and for the kinematic
+export (`aliasing`, `Aliasing`: at the end).
 
 A linear effect model e = A theta is identifiable in the directions the data excite. On
 standardised columns (each regressor scaled to unit RMS, so units do not matter) the rank r of
@@ -197,3 +199,134 @@ def connected(n: int, links: Iterable[tuple[int, int]]) -> list[list[int]]:
     for i in range(n):
         members.setdefault(root(i), []).append(i)
     return sorted(members.values())
+
+
+ALIAS_RTOL = 1e-5  # singular values below ALIAS_RTOL x the largest: directions the data cannot see
+ALIAS_TOL = 0.05  # a column kept greedily must have >= 5 % of its norm outside the kept span
+ALIAS_SHOWN = 1e-3  # aliases shown: scaled coefficients above this (all are applied)
+
+
+# --------------------------------------------------------------------------- aliasing (the kinematic export)
+@dataclass(frozen=True)
+class Aliasing:
+    """Which geometric parameters the design identifies (`aliasing`): `basis` (indices into names) spans
+    every identifiable combination; `absorbed[j]` maps a non-basis parameter j to the basis
+    parameters its column is a combination of, {i: d theta_i / d theta_j} (physical units),
+    exactly (every coefficient: `combine` uses them); `aliases[j]` the same without the
+    coefficients below ALIAS_SHOWN (scaled), which the report and `groups` show;
+    `no_effect`: parameters whose column is zero over the data."""
+
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    rank: int
+    basis: tuple[int, ...]
+    absorbed: dict[int, dict[int, float]]
+    aliases: dict[int, dict[int, float]]
+    no_effect: tuple[int, ...]
+    singular_values: tuple[float, ...]  # relative to the largest, scaled columns
+    length_m: float  # the reach that scales angles to metres at the TCP
+    rtol: float = ALIAS_RTOL
+
+    def combine(self, theta: np.ndarray) -> np.ndarray:
+        """The identifiable part of `theta`: every non-basis value moved onto the basis
+        parameters its column aliases, non-basis parameters zero (same A theta on the data)."""
+        out = np.zeros_like(theta)
+        out[list(self.basis)] = theta[list(self.basis)]
+        for j, coefs in self.absorbed.items():
+            for i, c in coefs.items():
+                out[i] += c * theta[j]
+        return out
+
+    def groups(self) -> list[list[str]]:
+        """Parameters that alias one another (connected through `aliases`), each group sorted
+        in parameter order, basis parameters included; no-effect parameters excluded."""
+        links = [(i, j) for j, coefs in self.aliases.items() for i in coefs]
+        out = []
+        for g in connected(len(self.names), links):
+            kept = [k for k in g if k not in self.no_effect]
+            if any(j in self.aliases for j in g) and len(kept) > 1:
+                out.append([self.names[k] for k in kept])
+        return out
+
+
+def _preferred_order(names: tuple[str, ...]) -> list[int]:
+    def key(i: int) -> tuple[int, int, int]:
+        n = names[i]
+        if n.startswith("offset_q"):
+            return (0, int(n[8:]), 0)
+        if n.startswith("frame"):
+            j, kind = n[5:].split("_")
+            return (1, int(j), "dr".index(kind[0]) * 3 + "xyz".index(kind[1]))
+        return (2, 0, i)
+
+    return sorted(range(len(names)), key=key)
+
+
+def aliasing(A: np.ndarray, names: tuple[str, ...], units: tuple[str, ...], length_m: float,
+             rtol: float = ALIAS_RTOL) -> Aliasing:
+    """Which parameters of the geometric block A (n, 3, p) the design identifies, for the
+    kinematic export (analysis.export), whose values must be the parameters themselves.
+
+    Angles are scaled to metres at the TCP by `length_m` (the arm's reach); the rank is the number
+    of singular values above `rtol` times the largest; then a basis of that many parameters is
+    chosen, first greedily in the order joint offsets, frames 1..n (translations, rotations), tool,
+    keeping a column only if at least `ALIAS_TOL` of it lies outside the span of those kept, then
+    by pivoted QR for what is left. Every other parameter's column is (numerically) a combination
+    of the basis columns: its coefficients are `absorbed` (all) and `aliases` (those shown). A
+    parameter whose column is zero has no effect on the TCP over these data.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, 3, p)
+        The geometric block's regressors at the training joint angles.
+    names, units : tuple of str
+        The p parameters' names and units ("rad" for an angle).
+    length_m : float
+        The reach that scales angles to metres at the TCP.
+    rtol : float
+        The relative singular-value tolerance of the rank.
+
+    Returns
+    -------
+    Aliasing
+        The basis, what every other parameter aliases, the no-effect parameters.
+    """
+    p = A.shape[2]
+    s = np.array([length_m if u == "rad" else 1.0 for u in units])  # theta * s: metres at the TCP
+    M = A.reshape(-1, p) / s / np.sqrt(A.shape[0])
+    sv = np.linalg.svd(M, compute_uv=False)
+    top = float(sv[0]) if sv.size and sv[0] > 0 else 1.0
+    tol = rtol * top
+    rank = int(np.sum(sv > tol))
+    norms = np.linalg.norm(M, axis=0)
+    basis: list[int] = []
+    Q = np.zeros((M.shape[0], 0))
+    for i in _preferred_order(names):
+        if len(basis) == rank:
+            break
+        r = M[:, i] - Q @ (Q.T @ M[:, i])
+        if norms[i] > tol and np.linalg.norm(r) >= max(ALIAS_TOL * norms[i], tol):
+            basis.append(i)
+            Q = np.column_stack([Q, r / np.linalg.norm(r)])
+    rest = [i for i in range(p) if i not in basis]
+    if len(basis) < rank and rest:  # the rest of the rank: the most independent columns left
+        R = M[:, rest] - Q @ (Q.T @ M[:, rest])
+        _, _, piv = scipy.linalg.qr(R, mode="economic", pivoting=True)
+        basis += [rest[k] for k in piv[: rank - len(basis)]]
+    basis.sort()
+    others = [i for i in range(p) if i not in basis]
+    absorbed: dict[int, dict[int, float]] = {}
+    aliases: dict[int, dict[int, float]] = {}
+    no_effect = []
+    if others:
+        C = np.linalg.lstsq(M[:, basis], M[:, others], rcond=None)[0] if basis else np.zeros((0, len(others)))
+        for col, j in enumerate(others):
+            if norms[j] <= tol:
+                no_effect.append(j)
+                continue
+            # physical: theta_i += C_ij s_j / s_i theta_j
+            absorbed[j] = {basis[k]: float(C[k, col] * s[j] / s[basis[k]]) for k in range(len(basis))}
+            big = np.abs(C[:, col]) > ALIAS_SHOWN * max(1.0, float(np.max(np.abs(C[:, col]))))
+            aliases[j] = {basis[k]: absorbed[j][basis[k]] for k in np.flatnonzero(big)}
+    return Aliasing(tuple(names), tuple(units), rank, tuple(basis), absorbed, aliases, tuple(no_effect),
+                           tuple(float(v / top) for v in sv), float(length_m), rtol)

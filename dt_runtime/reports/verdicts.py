@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from dt_runtime.analysis.change import Change
+
 
 def verdict(result: Any) -> str:
     """The verdict of a diagnosis result (analysis.results.DiagnoseResult or AutoResult, or its
@@ -126,16 +128,16 @@ def ranking_verdict(d: dict) -> str:
 
 
 def _follows(step: dict) -> str:
-    change = step["change"]
-    if change.startswith("+session "):
-        return ": the sessions differ by " + SESSION_TERM[change.split()[-1]]
+    change = Change.parse(step["change"])
+    if change.kind == "session":
+        return ": the sessions differ by " + SESSION_TERM[change.name]
     if step.get("follows"):
         return f": the residual followed {step['follows']}"
     return ""
 
 
 def _why(step: dict) -> str:
-    if step["change"].startswith("-"):  # the backward pass (analysis.selection.prune)
+    if Change.parse(step["change"]).kind == "remove":  # the backward pass (analysis.selection.prune)
         return (f"{step['change']} (in the final model it explained {100 * (step['explained_fraction'] or 0):.1f} % "
                 f"more, p = {step['p_value']:.2g}: no longer needed once the later changes were in)")
     return (f"{step['change']} (explains {100 * (step['explained_fraction'] or 0):.0f} %, p = {step['p_value']:.2g}"
@@ -218,16 +220,18 @@ def auto_verdict(d: dict) -> str:
     steps = [s for s in d["steps"] if s["change"]]
     first, final = d["steps"][0]["rmse_mm"], d["final_rmse_mm"]
     kind = d["deploy_kind"]
+    # the JSON carries each change's label; read back as a typed change (analysis.change)
+    removed = any(Change.parse(a).kind == "remove" for a in d["added"])
     if steps:
         why = "; ".join(_why(s) for s in steps)
-        text = (f"{'Changed' if any(a.startswith('-') for a in d['added']) else 'Added'} {', '.join(d['added'])}: "
+        text = (f"{'Changed' if removed else 'Added'} {', '.join(d['added'])}: "
                 f"the 3D RMS held out by point fell from {first:.4f} to {final:.4f} mm, "
                 f"on {SCHEME[kind]} from {d['steps'][0]['deploy_rmse_mm']:.4f} to {d['final_deploy_rmse_mm']:.4f} mm "
                 f"({why}). Each addition{' (or pair of additions)' if _pairs(d) else ''} "
                 f"was significant by point and lowered the RMS on {SCHEME[kind]}"
                 + (" (a forecast of later times for a time-dependent term)" if kind == "regions" else "")
                 + ("; each removal no longer lowered the error significantly and left that RMS no higher"
-                   if any(a.startswith("-") for a in d["added"]) else "") + ".")
+                   if removed else "") + ".")
     else:
         text = (f"Nothing to add: the 3D RMS stays {final:.4f} mm held out by point, "
                 f"{d['final_deploy_rmse_mm']:.4f} mm on {SCHEME[kind]}.")

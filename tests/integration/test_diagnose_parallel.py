@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.analysis.diagnose import DiagnoseOptions, diagnose
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.reports.verdicts import verdict
 from tests.support import deploy_scenarios as sc
@@ -12,11 +12,12 @@ from tests.support import deploy_scenarios as sc
 
 def test_two_workers_give_what_one_process_gives(monkeypatch):
     train, _ = sc.approach_backlash(seed=2, n_points=20, passes=3, speeds=(0.25,))
-    kw = {"robot": CONFIGS / "robots" / "ur10.yaml", "auto": True, "candidates": ("geometric", "backlash", "drift")}
+    options = DiagnoseOptions(robot=CONFIGS / "robots" / "ur10.yaml", auto=True,
+                              candidates=("geometric", "backlash", "drift"))
     monkeypatch.setenv("DT_WORKERS", "1")
-    one = diagnose(train, **kw)
+    one = diagnose(train, options)
     monkeypatch.setenv("DT_WORKERS", "2")
-    two = diagnose(train, **kw)
+    two = diagnose(train, options)
     assert two.added == one.added and two.effects == one.effects
     assert [s.rmse_mm for s in two.steps] == pytest.approx([s.rmse_mm for s in one.steps], rel=1e-9)
     assert verdict(two) == verdict(one)

@@ -18,7 +18,7 @@ import json
 import numpy as np
 import pytest
 
-from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.analysis.diagnose import DiagnoseOptions, diagnose
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.measurements.dataset import write_table
@@ -32,7 +32,7 @@ UR10 = CONFIGS / "robots" / "ur10.yaml"
 
 def test_a_scan_where_time_is_position_does_not_test_drift_and_says_what_would():
     train, test = sc.grid_scan(seed=1, side=8)
-    r = diagnose(train, robot=UR10, effects=("geometric",), auto=True)
+    r = diagnose(train, DiagnoseOptions(robot=UR10, effects=("geometric",), auto=True))
     assert "drift" not in r.effects
     drift = next(x for x in r.not_testable if x["candidate"] == "drift")
     f = drift["findings"][0]
@@ -99,7 +99,7 @@ def test_a_remounted_smr_is_named_with_its_offset_and_the_deployed_model_beats_n
 def test_backlash_on_linear_moves_is_named_not_dynamic_and_reaches_the_floor_of_the_replicates():
     train, test = sc.approach_backlash(seed=2, n_points=60, speeds=(0.25,))
     assert train.u is None
-    r = diagnose(train, robot=UR10, auto=True)  # from the paper's model: GP(TCP, v)
+    r = diagnose(train, DiagnoseOptions(robot=UR10, auto=True))  # from the paper's model: GP(TCP, v)
     assert "backlash" in r.effects and "dynamic" not in r.effects
     assert r.source["noise_floor"]["source"].startswith("the scatter of replicates: repeated readings of one visit")
     assert r.floor_ratio is not None and r.floor_ratio <= 1.3
@@ -117,7 +117,7 @@ def test_backlash_and_dynamic_tested_head_to_head_when_both_qualify():
     """Speeds vary, so dynamic is testable and qualifies beside backlash (both read the direction of
     travel); the head-to-head test prefers backlash and the loop never adds dynamic."""
     train, _ = sc.approach_backlash(seed=2, n_points=60)
-    r = diagnose(train, robot=UR10, auto=True)
+    r = diagnose(train, DiagnoseOptions(robot=UR10, auto=True))
     assert "backlash" in r.effects and "dynamic" not in r.effects
     assert not any(x["candidate"] == "dynamic" for x in r.not_testable)
     (h,) = [h for s in r.steps for h in s.head_to_head]
@@ -141,7 +141,7 @@ def test_a_1000_pose_grid_scan_adds_no_time_term_and_each_step_holds_on_new_pose
     poses measured after it: no time term is added (time is not testable: no pose revisited), and
     each model the loop takes predicts the new poses no worse than its predecessor."""
     train, test = sc.grid_scan(seed=2, side=10)
-    r = diagnose(train, robot=UR10, effects=("geometric",), auto=True)
+    r = diagnose(train, DiagnoseOptions(robot=UR10, effects=("geometric",), auto=True))
     assert not {"drift", "thermal"} & set(r.effects)
     assert {x["candidate"] for x in r.not_testable} >= {"drift"}
     new = [rms3(test.error - HybridModel(tuple(s.config["effects"]), s.config["gp_inputs"], robot=UR10)

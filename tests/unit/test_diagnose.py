@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.analysis.diagnose import DiagnoseOptions, diagnose
 from dt_runtime.reports.verdicts import with_verdict
 from dt_runtime.analysis.ranking import gp_alternatives
 from dt_runtime.common.paths import CONFIGS
@@ -43,8 +43,8 @@ def chain():
 
 def test_hidden_compliance_is_named_first_and_adding_it_cuts_the_error(chain):
     ds = collect({"compliance": {"enabled": True, "stiffness_nm_per_rad": STIFFNESS}})
-    r = with_verdict(diagnose(ds, effects=("geometric",), gp_inputs="tcp_speed", robot=chain,
-                 candidates=("compliance", "drift", "dynamic"), folds=4))
+    r = with_verdict(diagnose(ds, DiagnoseOptions(effects=("geometric",), gp_inputs="tcp_speed", robot=chain,
+                                                  candidates=("compliance", "drift", "dynamic"), folds=4)))
     top = r["ranking"][0]
     assert top["effect"] == "compliance" and top["p_value"] < 0.01
     assert top["rmse_after_mm"] < 0.7 * top["rmse_before_mm"]
@@ -61,8 +61,8 @@ def test_hybrid_model_reports_the_physical_stiffness(chain):
 
 def test_without_a_hidden_effect_nothing_is_named(chain):
     ds = collect({})
-    r = with_verdict(diagnose(ds, effects=("geometric",), gp_inputs="tcp_speed", robot=chain,
-                 candidates=("compliance", "drift", "dynamic"), folds=4))
+    r = with_verdict(diagnose(ds, DiagnoseOptions(effects=("geometric",), gp_inputs="tcp_speed", robot=chain,
+                                                  candidates=("compliance", "drift", "dynamic"), folds=4)))
     assert all(x["p_value"] >= 0.01 or not x["significant"] for x in r["ranking"])
     assert r["verdict"].startswith("No candidate effect")
 
@@ -88,7 +88,7 @@ def test_an_error_that_follows_the_joints_not_the_tcp_asks_for_the_gp_on_joints(
     E += rng.normal(0, 10e-6, (n, 3))
     ds = Dataset(commanded=rng.uniform(0.2, 0.8, (n, 3)), error=E, joints=q, speed=rng.choice([0.3, 0.6], n),
                  point_id=np.arange(n))
-    r = with_verdict(diagnose(ds, gp_inputs="tcp", candidates=("dynamic",), folds=4))
+    r = with_verdict(diagnose(ds, DiagnoseOptions(gp_inputs="tcp", candidates=("dynamic",), folds=4)))
     g = {x["gp_inputs"]: x for x in r["gp_inputs_ranking"]}
     assert set(g) == {"joints", "tcp_speed"}
     assert g["joints"]["significant"] and g["joints"]["p_value"] < 0.01

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from dt_runtime.analysis.diagnose import diagnose
+from dt_runtime.analysis.diagnose import DiagnoseOptions, diagnose
 from dt_runtime.reports.verdicts import verdict
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
@@ -32,8 +32,8 @@ def test_auto_names_the_hidden_backlash_from_every_start_and_reaches_the_floor(h
     """The same named effects from the paper's model, from geometric and from a GP on the joints
     (the effect terms are estimated jointly with the GP: from the paper's model the ordinary
     fit made backlash look harmful, "explains -117.7 %")."""
-    r = diagnose(hidden["backlash"], effects=effects, gp_inputs=gp_inputs,
-                 robot=CONFIGS / "robots" / "cobot_hc20_like.yaml", auto=True)
+    r = diagnose(hidden["backlash"], DiagnoseOptions(effects=effects, gp_inputs=gp_inputs,
+                                                     robot=CONFIGS / "robots" / "cobot_hc20_like.yaml", auto=True))
     assert "+backlash" in r.added and set(r.effects) == {"geometric", "backlash"}
     assert r.added[0] == "+backlash"  # the biggest step first
     assert r.floor_ratio is not None and r.floor_ratio < 1.3
@@ -75,7 +75,7 @@ def _with_humidity(src, dst, effect_mm: float, seed: int = 3):
 
 
 def test_an_error_driven_by_an_unknown_column_is_flagged(hidden, tmp_path):
-    r = diagnose(_with_humidity(hidden["none"], tmp_path / "h.csv", 0.03), auto=True)
+    r = diagnose(_with_humidity(hidden["none"], tmp_path / "h.csv", 0.03), DiagnoseOptions(auto=True))
     top = r.columns[0]
     assert top["column"] == "humidity" and top["significant"] and top["explained_fraction"] > 0.3
     assert "follows the column 'humidity'" in verdict(r) and "declare an effect of your own" in verdict(r)
@@ -83,7 +83,7 @@ def test_an_error_driven_by_an_unknown_column_is_flagged(hidden, tmp_path):
 
 
 def test_a_column_without_effect_is_not_flagged(hidden, tmp_path):
-    r = diagnose(_with_humidity(hidden["none"], tmp_path / "h0.csv", 0.0), auto=True)
+    r = diagnose(_with_humidity(hidden["none"], tmp_path / "h0.csv", 0.0), DiagnoseOptions(auto=True))
     hum = next(c for c in r.columns if c["column"] == "humidity")
     assert not hum["significant"]
     assert "humidity" not in verdict(r)

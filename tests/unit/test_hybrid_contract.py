@@ -152,7 +152,7 @@ def test_the_library_surface_is_the_analysis_modules_own():
 def test_results_serialise_to_the_contract_keys(tmp_path):
     from dt_runtime.analysis.compare import compare
     from dt_runtime.analysis.data import Data
-    from dt_runtime.analysis.diagnose import diagnose
+    from dt_runtime.analysis.diagnose import DiagnoseOptions, diagnose
     from dt_runtime.analysis.training import fit
     from dt_runtime.common.jsonsafe import dumps
 
@@ -162,7 +162,7 @@ def test_results_serialise_to_the_contract_keys(tmp_path):
     assert f.heldout_rmse_mm is not None
     assert list(f.to_dict())[:8] == ["out", "n", "effects", "gp_inputs", "robot", "fit_seconds", "train_rmse_mm",
                                      "parameters"]
-    r = diagnose(d, effects=(), gp_inputs="none", candidates=("thermal", "dynamic"), folds=3)
+    r = diagnose(d, DiagnoseOptions(effects=(), gp_inputs="none", candidates=("thermal", "dynamic"), folds=3))
     assert r.top is r.ranking[0] and r.to_dict()["data"] == "synthetic"
     top = r.to_dict()["ranking"][0]
     assert {"effect", "explained_fraction", "p_value", "rmse_before_mm", "rmse_after_mm"} <= set(top)
