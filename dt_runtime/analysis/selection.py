@@ -177,7 +177,9 @@ def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float,
     for rival, shared in _rivals(ev, top.candidate, list(pool))[:MAX_RIVALS]:
         rec = _duel(ev, cfg, top.candidate, rival, shared, level)
         records.append(rec)
-        if rec["winner"] == rival:
+        # a rival that did not qualify alone is not taken in its place (its own test failed); when
+        # it is the cause, a later step adds it and drops the top one (`_removable`)
+        if rec["winner"] == rival and any(g.candidate == rival for g in ok):
             ok = [pool[rival]] + [g for g in ok if g.candidate != rival]
             break
     return ok, records
