@@ -130,8 +130,24 @@ def _read_text(path: Path) -> str:
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
-    """The top-level mapping of a YAML file, read within the loader's bounds; ConfigError naming
-    the file for anything else (unreadable, too large, binary, too deep, too many values)."""
+    """The top-level mapping of a YAML file, read within the loader's bounds.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file.
+
+    Returns
+    -------
+    dict
+        The top-level mapping (empty for an empty file).
+
+    Raises
+    ------
+    ConfigError
+        Naming the file for anything else (unreadable, too large, binary, too deep, too
+        many values, not a mapping).
+    """
     path = Path(path)
     text = _read_text(path)
     try:
@@ -150,7 +166,22 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
 
 
 def validate(model: type[M], data: dict[str, Any], source: str | Path = "<config>") -> M:
-    """Validate `data` into `model`; the first problem becomes a ConfigError."""
+    """Validate `data` into `model`; the first problem becomes a ConfigError.
+
+    Parameters
+    ----------
+    model : type
+        The pydantic model.
+    data : dict
+        The parsed mapping.
+    source : str or Path, optional
+        What the error names as the file.
+
+    Returns
+    -------
+    BaseModel
+        An instance of `model`.
+    """
     try:
         return model.model_validate(data)
     except ValidationError as exc:
@@ -166,6 +197,25 @@ def validate(model: type[M], data: dict[str, Any], source: str | Path = "<config
 
 
 def load_yaml(path: str | Path, model: type[M]) -> M:
+    """Read a YAML file and validate it into a frozen model.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file.
+    model : type
+        The pydantic model to validate into.
+
+    Returns
+    -------
+    BaseModel
+        An instance of `model`.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, key, value seen and what is allowed.
+    """
     return validate(model, read_yaml(path), path)
 
 

@@ -8,10 +8,24 @@ from typing import Any
 
 
 def jsonable(obj: Any, finite_only: bool = True) -> Any:
-    """`obj` with numpy scalars and arrays as Python numbers and lists, tuples as lists, dict
-    keys as strings, objects with to_dict() as their dict, and (finite_only) every non-finite
-    float as None, since json.dumps would write NaN. finite_only=False keeps infinity for files
-    this project reads back itself (infinite degrees of freedom)."""
+    """`obj` in types json.dumps writes as strict JSON.
+
+    numpy scalars and arrays become Python numbers and lists, tuples lists, dict keys strings,
+    objects with ``to_dict()`` their dict, and (with `finite_only`) every non-finite float None,
+    since json.dumps would write NaN.
+
+    Parameters
+    ----------
+    obj : Any
+        The value.
+    finite_only : bool, optional
+        False keeps infinity, for files this project reads back itself (infinite degrees of
+        freedom).
+
+    Returns
+    -------
+    Any
+    """
     if isinstance(obj, bool) or obj is None or isinstance(obj, (str, int)):
         return obj
     if isinstance(obj, float):
@@ -28,10 +42,32 @@ def jsonable(obj: Any, finite_only: bool = True) -> Any:
 
 
 def dumps(obj: Any, **kw: Any) -> str:
-    """json.dumps of jsonable(obj); never writes NaN."""
+    """json.dumps of jsonable(obj); never writes NaN.
+
+    Parameters
+    ----------
+    obj : Any
+        The value.
+    **kw
+        Passed to json.dumps.
+
+    Returns
+    -------
+    str
+    """
     return json.dumps(jsonable(obj), allow_nan=False, **kw)
 
 
 def compact(obj: Any) -> str:
-    """dumps without spaces: one store row or bus message."""
+    """dumps without spaces: one store row or bus message.
+
+    Parameters
+    ----------
+    obj : Any
+        The value.
+
+    Returns
+    -------
+    str
+    """
     return dumps(obj, separators=(",", ":"))

@@ -1,23 +1,9 @@
 """Output directories written whole or not at all.
 
-A command that writes a directory (`dt demo --out`, `dt calibrate --out`, `dt campaign --out`,
-`dt fit --out`, `dt diagnose --auto --out`, `dt compare --report`) writes it under a temporary
-sibling, `.NAME.partial-PID`, and only when everything is written swaps it in place of NAME (two
-renames, with SIGINT and SIGTERM held off between them). An interrupted run (Ctrl-C, SIGTERM, an
-exception) removes the partial directory and says on stderr that NAME was left as it was: a
-re-run never leaves the new run's campaign beside the old run's summary, model and report (a
-traceability record that would be false). A directory is replaced whole, so the one replaced
-must be empty or a previous output of the same command (one of its `marks`, e.g. `twin.json`),
-must not hold an input of the run, and must not hold the working directory.
-
-    with staged(args.out, "dt fit", marks=("hybrid.json",)) as out:
-        model.save(out)                      # writes .m.partial-PID/...; m appears at the end
-
-While a run is staged, `final_path` names a file by where it will be (`m/hybrid.json`, not
-`.m.partial-PID/hybrid.json`): the traceability record (`provenance.shown_path`) and every path a
-command writes into its summary go through it. A run killed with SIGKILL leaves its partial
-directory, removed by the next run into the same place; killed between the two renames, it leaves
-the previous output as `.NAME.previous-PID`, which the next run puts back.
+A command that writes a directory (`dt demo --out`, `dt fit --out`, ...) writes it under a
+temporary sibling and swaps it in when everything is written (`staged`); an interrupted run
+leaves the previous output as it was. `final_path` names a staged file where it will end up.
+See docs/cli.md ("Rules every command follows").
 """
 from __future__ import annotations
 
@@ -34,6 +20,11 @@ from typing import Any
 
 from dt_kernel.errors import DataError
 
+# Why whole or not at all: a re-run must never leave the new run's campaign beside the old run's
+# summary, model and report (a traceability record that would be false). A run killed with
+# SIGKILL leaves its `.NAME.partial-PID`, removed by the next run into the same place; killed
+# between the two renames, it leaves the previous output as `.NAME.previous-PID`, which the next
+# run puts back (`_leftovers`).
 PARTIAL, PREVIOUS = "partial", "previous"
 
 # Staged work directory (resolved) -> the directory it becomes (as the caller named it).
@@ -41,7 +32,22 @@ _STAGED: dict[Path, Path] = {}
 
 
 def final_path(path: str | Path) -> Path:
-    """Where `path` will be once its staged directory is swapped in (itself when not staged)."""
+    """Where `path` will be once its staged directory is swapped in.
+
+    While a run is staged, the traceability record (`provenance.shown_path`) and every path a
+    command writes into its summary go through this: ``m/hybrid.json``, not
+    ``.m.partial-PID/hybrid.json``.
+
+    Parameters
+    ----------
+    path : str or Path
+        A path, possibly inside a staged directory.
+
+    Returns
+    -------
+    Path
+        The path where it will be; `path` itself when not staged.
+    """
     p = Path(path)
     resolved = p.resolve()
     for work, target in _STAGED.items():
@@ -142,11 +148,38 @@ def _on_sigterm(signum: int, _frame: Any) -> None:
 @contextmanager
 def staged(target: str | Path, command: str, marks: tuple[str, ...] = (),
            inputs: Iterable[str | Path] = ()) -> Iterator[Path]:
-    """Yield the temporary sibling to write `target`'s content into; swap it in when the block
-    ends normally; on an exception, Ctrl-C or SIGTERM (then exit status 143) remove it and say on
-    stderr that `target` was left as it was. DataError before anything is written when `target`
-    is a file, holds the working directory or one of `inputs`, or is a non-empty directory
-    without any of `marks` (not a previous output of `command`)."""
+    """Stage an output directory: write into a temporary sibling, swap it in at the end.
+
+    Yields the sibling ``.NAME.partial-PID``; when the block ends normally it replaces `target`
+    (two renames, SIGINT and SIGTERM held off between them). On an exception, Ctrl-C or SIGTERM
+    (then exit status 143) the sibling is removed and stderr says that `target` was left as it
+    was. Leftovers of a run killed by SIGKILL are cleaned up first (see `_leftovers`)::
+
+        with staged(args.out, "dt fit", marks=("hybrid.json",)) as out:
+            model.save(out)   # writes .m.partial-PID/...; m appears at the end
+
+    Parameters
+    ----------
+    target : str or Path
+        The output directory.
+    command : str
+        The command's name, for messages (e.g. "dt fit").
+    marks : tuple of str, optional
+        Files of which one marks a previous output of `command` (e.g. "twin.json").
+    inputs : iterable of str or Path, optional
+        The run's inputs, which `target` must not hold.
+
+    Yields
+    ------
+    Path
+        The staged directory to write into.
+
+    Raises
+    ------
+    DataError
+        Before anything is written, when `target` is a file, holds the working directory or one
+        of `inputs`, or is a non-empty directory without any of `marks`.
+    """
     target = Path(target)
     _check_target(target, command, marks, inputs)
     target.parent.mkdir(parents=True, exist_ok=True)

@@ -1,17 +1,11 @@
-"""The traceability record of every model, twin, result and report: which software made it and
-when, from which input files (SHA-256), on which robot config, measured with which instruments
-(certificate and stated uncertainty) and in what environment (temperature of the campaign).
+"""The traceability record of every model, twin, result and report.
+
+Which software made it and when, from which input files (SHA-256), on which robot config,
+measured with which instruments (certificate and stated uncertainty) and in what environment::
 
     rec = build(inputs=["data.csv"], robot="configs/robots/cobot_hc20_like.yaml",
-                instruments=load_instruments("configs/instruments_example.yaml"),
-                temperature=dataset.temperature)
-    meta["provenance"] = rec.to_dict()          # JSON-ready
-    rec = Provenance.from_dict(meta["provenance"])
-
-Instruments and certificates of a real campaign come from a YAML the user writes
-(configs/instruments_example.yaml), validated by `InstrumentsConfig` (errors name the file, the
-key, the value and what is allowed); simulated instruments state what their simulator config
-states (dt_runtime.twin.demo).
+                instruments=load_instruments("configs/instruments_example.yaml"))
+    meta["provenance"] = rec.to_dict()          # JSON-ready; Provenance.from_dict reads it back
 """
 from __future__ import annotations
 
@@ -39,7 +33,17 @@ CHUNK = 1 << 20  # bytes read at a time when hashing: a large file costs no memo
 # --------------------------------------------------------------------------- files
 
 def sha256_file(path: str | Path) -> str:
-    """SHA-256 (hex) of a file, read in chunks."""
+    """SHA-256 (hex) of a file, read in chunks.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    str
+    """
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(CHUNK), b""):
@@ -48,8 +52,20 @@ def sha256_file(path: str | Path) -> str:
 
 
 def shown_path(path: str | Path) -> str:
-    """How a record names a file: relative to the checkout when inside it, else absolute; a file
-    of an output still being written names where it will be (`outputs.final_path`)."""
+    """How a record names a file.
+
+    Relative to the checkout when inside it, else absolute; a file of an output still being
+    written names where it will be (`outputs.final_path`).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    str
+    """
     p = final_path(path).resolve()
     try:
         return str(p.relative_to(ROOT))
@@ -67,6 +83,22 @@ class FileRecord:
 
     @classmethod
     def of(cls, path: str | Path) -> FileRecord:
+        """The record of an existing file (its shown path, SHA-256 and size).
+
+        Parameters
+        ----------
+        path : str or Path
+            The file.
+
+        Returns
+        -------
+        FileRecord
+
+        Raises
+        ------
+        DataError
+            When `path` is not a file.
+        """
         p = Path(path)
         if not p.is_file():
             raise DataError(f"{p}: no such file to record")
@@ -74,18 +106,41 @@ class FileRecord:
 
     @property
     def short(self) -> str:
+        """The first 12 hex digits of the SHA-256, for display."""
         return self.sha256[:12]
 
     def to_dict(self) -> dict[str, Any]:
+        """The record as a JSON-ready dict."""
         return {"path": self.path, "sha256": self.sha256, "size_bytes": self.size_bytes}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> FileRecord:
+        """The record `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        FileRecord
+        """
         return cls(str(d["path"]), str(d["sha256"]), int(d["size_bytes"]))
 
 
 def files_under(directory: str | Path) -> list[Path]:
-    """Every regular file under a directory (e.g. a saved model), sorted: the files to hash."""
+    """Every regular file under a directory (e.g. a saved model), sorted: the files to hash.
+
+    Parameters
+    ----------
+    directory : str or Path
+        The directory.
+
+    Returns
+    -------
+    list of Path
+    """
     return sorted(p for p in Path(directory).rglob("*") if p.is_file())
 
 
@@ -93,15 +148,28 @@ def files_under(directory: str | Path) -> list[Path]:
 
 @dataclass(frozen=True)
 class Software:
+    """The software that made a record: distribution name, version and git commit."""
     name: str
     version: str
     commit: str | None  # None outside a git checkout; "-dirty" when files differed
 
     def to_dict(self) -> dict[str, Any]:
+        """The record as a JSON-ready dict."""
         return {"name": self.name, "version": self.version, "commit": self.commit}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Software:
+        """The record `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        Software
+        """
         return cls(str(d["name"]), str(d["version"]), d.get("commit"))
 
 
@@ -115,13 +183,28 @@ class RobotRecord:
     sha256: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        """The record as a JSON-ready dict."""
         return {"name": self.name, "path": self.path, "sha256": self.sha256}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RobotRecord:
+        """The record `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        RobotRecord
+        """
         return cls(d.get("name"), d.get("path"), d.get("sha256"))
 
 
+# Instruments and certificates of a real campaign come from a YAML the user writes
+# (configs/instruments_example.yaml), validated by `InstrumentsConfig`; simulated instruments
+# state what their simulator config states (dt_runtime.twin.demo).
 @dataclass(frozen=True)
 class Instrument:
     """One instrument of the campaign. uncertainty: the stated uncertainty as the certificate
@@ -139,6 +222,7 @@ class Instrument:
     uncertainty: Mapping[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        """The record as a JSON-ready dict."""
         return {"role": self.role, "kind": self.kind, "driver": self.driver, "model": self.model,
                 "serial": self.serial, "certificate": self.certificate, "calibration_date": self.calibration_date,
                 "valid_until": self.valid_until,
@@ -146,6 +230,17 @@ class Instrument:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Instrument:
+        """The record `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        Instrument
+        """
         return cls(str(d["role"]), d.get("kind"), d.get("driver"), d.get("model"), d.get("serial"),
                    d.get("certificate"), d.get("calibration_date"), d.get("valid_until"), d.get("uncertainty"))
 
@@ -161,7 +256,18 @@ class Environment:
 
     @classmethod
     def of(cls, temperature: np.ndarray | Sequence[float] | None) -> Environment | None:
-        """From a temperature column; None without one or without a finite value."""
+        """The environment of a temperature column.
+
+        Parameters
+        ----------
+        temperature : array-like or None
+            Temperatures in deg C; non-finite values are ignored.
+
+        Returns
+        -------
+        Environment or None
+            None without a column or without a finite value.
+        """
         if temperature is None:
             return None
         t = np.asarray(temperature, dtype=float).ravel()
@@ -171,11 +277,23 @@ class Environment:
         return cls(float(t.min()), float(t.max()), float(t.mean()), int(t.size))
 
     def to_dict(self) -> dict[str, Any]:
+        """The record as a JSON-ready dict (``{"temperature_c": {min, max, mean, n}}``)."""
         return {"temperature_c": {"min": self.temperature_min_c, "max": self.temperature_max_c,
                                   "mean": self.temperature_mean_c, "n": self.n}}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Environment:
+        """The record `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        Environment
+        """
         t = d["temperature_c"]
         return cls(float(t["min"]), float(t["max"]), float(t["mean"]), int(t["n"]))
 
@@ -197,6 +315,7 @@ class Provenance:
     schema: int = SCHEMA
 
     def to_dict(self) -> dict[str, Any]:
+        """The record as a JSON-ready dict."""
         return {"schema": self.schema, "software": self.software.to_dict(), "created": self.created,
                 "python": self.python, "inputs": [f.to_dict() for f in self.inputs],
                 "robot": self.robot.to_dict() if self.robot else None,
@@ -205,7 +324,22 @@ class Provenance:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Provenance:
-        """The record `to_dict` wrote; DataError names what is missing or malformed."""
+        """The record `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        Provenance
+
+        Raises
+        ------
+        DataError
+            Naming what is missing or malformed.
+        """
         try:
             return cls(Software.from_dict(d["software"]), str(d["created"]), str(d["python"]),
                        tuple(FileRecord.from_dict(f) for f in d.get("inputs") or ()),
@@ -222,10 +356,22 @@ class Provenance:
 
 
 def software() -> Software:
+    """This software: distribution name, installed version and git commit.
+
+    Returns
+    -------
+    Software
+    """
     return Software(DIST, version(), git_commit())
 
 
 def now_utc() -> str:
+    """The current time, UTC, ISO 8601 to the second.
+
+    Returns
+    -------
+    str
+    """
     return datetime.now(UTC).isoformat(timespec="seconds")
 
 
@@ -233,9 +379,27 @@ def build(inputs: Iterable[str | Path | FileRecord] = (), robot: str | Path | No
           robot_name: str | None = None, instruments: Iterable[Instrument] = (),
           temperature: np.ndarray | Sequence[float] | None = None,
           environment: Environment | None = None) -> Provenance:
-    """The record for now: inputs are hashed (existing files only; the same file once), robot is
-    a robot config file (hashed) and robot_name the robot's name (e.g. the chain's, when it came
-    from memory); the environment from `temperature` unless given."""
+    """The traceability record for now.
+
+    Parameters
+    ----------
+    inputs : iterable of str, Path or FileRecord, optional
+        Input files, hashed (existing files only; the same file once).
+    robot : str or Path, optional
+        A robot config file (hashed when it exists).
+    robot_name : str, optional
+        The robot's name (e.g. the chain's, when it came from memory).
+    instruments : iterable of Instrument, optional
+        The campaign's instruments.
+    temperature : array-like, optional
+        Temperature column the environment is taken from, unless `environment` is given.
+    environment : Environment, optional
+        The environment, as is.
+
+    Returns
+    -------
+    Provenance
+    """
     files: list[FileRecord] = []
     for f in inputs:
         rec = f if isinstance(f, FileRecord) else FileRecord.of(f) if Path(f).is_file() else None
@@ -258,6 +422,7 @@ Unit = Literal["m", "mm", "um", "nm", "m/m", "mm/m", "um/m", "ppm", "px", "rad",
 
 
 class QuantityConfig(Frozen):
+    """A value with its unit, e.g. ``{value: 15, unit: um}``."""
     value: float = Field(allow_inf_nan=False)
     unit: Unit
 
@@ -281,6 +446,9 @@ class UncertaintyConfig(Frozen):
 
 
 class InstrumentConfig(Frozen):
+    """One instrument entry of an instruments YAML: role, kind, identity, certificate and dates,
+    the driver that reads it and its stated uncertainty.
+    """
     role: str = Field(pattern=r"^[a-z][a-z0-9_]*$")  # tracker, camera, robot, thermometer, ...
     kind: str = Field(min_length=1)
     model: str | None = None
@@ -314,6 +482,12 @@ class InstrumentsConfig(Frozen):
         return self
 
     def records(self) -> tuple[Instrument, ...]:
+        """The entries as provenance records (dates as ISO text).
+
+        Returns
+        -------
+        tuple of Instrument
+        """
         out = []
         for c in self.instruments:
             u = c.uncertainty
@@ -326,5 +500,20 @@ class InstrumentsConfig(Frozen):
 
 
 def load_instruments(path: str | Path) -> tuple[Instrument, ...]:
-    """The instrument records of an instruments YAML (ConfigError names file, key, value, allowed)."""
+    """The instrument records of an instruments YAML.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file (e.g. ``configs/instruments_example.yaml``).
+
+    Returns
+    -------
+    tuple of Instrument
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, key, value and what is allowed.
+    """
     return load_yaml(path, InstrumentsConfig).records()  # the kernel turns an impossible date into ConfigError

@@ -1,16 +1,8 @@
 """How many threads the linear algebra may use.
 
-The twin's matrices are small (a DOE has ~200 distinct inputs; the effect regressors a few
-thousand rows by tens of columns) or factorised block by block (the sparse GP). OpenBLAS's
-threaded kernels synchronise at every block: on 2 cores they are slower than one thread even on
-an idle machine, and while another process holds a core they crawl (`dt diagnose` on 372 rows:
-25 s with two threads, 6 s with one; a 186-input GP fit: 149 s instead of 0.5 s). So:
-
-- every entry point (the `dt` command line, the benchmarks, the test suite) runs BLAS on one
-  thread for the whole process (`limit_blas_threads`), unless DT_BLAS_THREADS says otherwise;
-- the library limits itself: its fits, cross-validations and predictions run inside
-  `blas_limited` (the same number), which restores the caller's setting when they return, so a
-  user's script or notebook gets the fast path without touching its environment.
+Every entry point runs BLAS on one thread unless DT_BLAS_THREADS says otherwise
+(`limit_blas_threads`); the library's fits, cross-validations and predictions run inside
+`blas_limited`, which restores the caller's setting on the way out.
 """
 from __future__ import annotations
 
@@ -22,10 +14,27 @@ from collections.abc import Callable
 
 from dt_kernel.errors import ConfigError
 
+# Why one thread: the twin's matrices are small (a DOE has ~200 distinct inputs; the effect
+# regressors a few thousand rows by tens of columns) or factorised block by block (the sparse
+# GP). OpenBLAS's threaded kernels synchronise at every block: on 2 cores they are slower than
+# one thread even on an idle machine, and while another process holds a core they crawl
+# (`dt diagnose` on 372 rows: 25 s with two threads, 6 s with one; a 186-input GP fit: 149 s
+# instead of 0.5 s).
 ENV = "DT_BLAS_THREADS"
 
 
 def blas_threads() -> int:
+    """The BLAS thread count to use: $DT_BLAS_THREADS, else 1.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ConfigError
+        When the variable is not a whole number >= 1.
+    """
     raw = os.environ.get(ENV, "1")
     try:
         n = int(raw)
@@ -44,7 +53,18 @@ def _load_blas() -> None:
 
 
 def limit_blas_threads(n: int | None = None):
-    """Limit BLAS to n threads (default: $DT_BLAS_THREADS, else 1) for the rest of the process."""
+    """Limit BLAS to `n` threads for the rest of the process.
+
+    Parameters
+    ----------
+    n : int, optional
+        Thread count; default $DT_BLAS_THREADS, else 1.
+
+    Returns
+    -------
+    threadpoolctl.threadpool_limits
+        The limit object (it can be used to restore the previous setting).
+    """
     _load_blas()
     from threadpoolctl import threadpool_limits  # installed with scikit-learn
 

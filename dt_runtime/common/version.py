@@ -13,6 +13,12 @@ DIST = "cobot-dt"
 
 @lru_cache(maxsize=1)
 def version() -> str:
+    """The installed version of the distribution, or "0+unknown" when it is not installed.
+
+    Returns
+    -------
+    str
+    """
     try:
         return metadata.version(DIST)
     except metadata.PackageNotFoundError:
@@ -33,5 +39,11 @@ def git_commit() -> str | None:
 
 
 def version_string() -> str:
+    """The version with the git commit when there is one, e.g. "0.4.0 (commit abc...)".
+
+    Returns
+    -------
+    str
+    """
     c = git_commit()
     return version() + (f" (commit {c})" if c else "")
