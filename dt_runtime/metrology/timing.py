@@ -1,16 +1,9 @@
 """A moving arm measured at a time: the commanded path at the reading's mid-exposure, and the
-uncertainty the timing adds (issue 23, item 6).
+uncertainty the timing adds.
 
-A camera reading of a moving TCP is compared with the commanded path *at its mid-exposure time*
-t (interpolated between the timed set-points the arm was sent), not with the last command. An
-error u_t in that time moves the compared point by v u_t, v the path's velocity there, so timing
-adds a Type B component u_timing = |v| u_t per axis (GUM 5.1.3: sensitivity coefficient v of
-the time), root-sum-squared with the reading's own uncertainty before Eq. 17. Where the timing
-term dominates (u_timing > `max_timing_ratio` x u_reading on an axis) the reading says more about
-the clock than about the arm: it is refused, with the reason, and counted; at rest (v = 0) nothing
-is added and nothing refused, so a path and a point program are tested alike.
-
-Units: SI (m, s, m/s).
+A camera reading of a moving TCP is compared with the commanded path at its mid-exposure time
+(interpolated between the timed set-points the arm was sent), not with the last command
+(`compare_at`). See docs/streaming.md. Units: SI (m, s, m/s).
 """
 from __future__ import annotations
 
@@ -42,8 +35,25 @@ class TimedPath:
         object.__setattr__(self, "p", p)
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """The commanded position and velocity at time t (linear between set-points, the velocity
-        of that segment); DataError outside [t_0, t_n]."""
+        """The commanded position and velocity at time `t`.
+
+        Linear between set-points; the velocity is that of the segment.
+
+        Parameters
+        ----------
+        t : float
+            Time, s, within [t_0, t_n].
+
+        Returns
+        -------
+        position, velocity : ndarray
+            Each (3,), m and m/s.
+
+        Raises
+        ------
+        DataError
+            Outside [t_0, t_n].
+        """
         if not self.t[0] <= t <= self.t[-1]:
             raise DataError(f"time {t:.6f} s is outside the path ({self.t[0]:.6f} .. {self.t[-1]:.6f} s)")
         k = int(np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, self.t.size - 2))
@@ -52,13 +62,36 @@ class TimedPath:
         return self.p[k] + v * (t - self.t[k]), v
 
     def shifted(self, tau_s: float) -> TimedPath:
-        """The same times, each sent the position the path has tau_s later (the last one held):
-        a feed-forward that makes a follower lagging by tau_s arrive on time (twin.lag)."""
+        """The same times, each sent the position the path has `tau_s` later (the last one held).
+
+        A feed-forward that makes a follower lagging by tau_s arrive on time (twin.lag).
+
+        Parameters
+        ----------
+        tau_s : float
+            The lag, s.
+
+        Returns
+        -------
+        TimedPath
+        """
         return TimedPath(self.t, self.sample(self.p, np.clip(self.t + tau_s, self.t[0], self.t[-1])))
 
     def sample(self, values: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """`values` (n, k) given at the set-points (the positions, or their derivatives), linear
-        between them at times `t` (m,), held beyond the ends: (m, k)."""
+        """Values given at the set-points, linear between them, held beyond the ends.
+
+        Parameters
+        ----------
+        values : ndarray
+            (n, k) at the set-points (the positions, or their derivatives).
+        t : ndarray
+            (m,) times, s.
+
+        Returns
+        -------
+        ndarray
+            (m, k).
+        """
         return np.column_stack([np.interp(t, self.t, values[:, j]) for j in range(values.shape[1])])
 
 
@@ -74,15 +107,43 @@ class MovingComparison:
 
     @property
     def ok(self) -> bool:
+        """True when the reading is tested (not refused)."""
         return self.refused is None
 
 
 def compare_at(path: TimedPath, t_mid: float, u_time_s: float, u_reading, max_timing_ratio: float = 1.0
                ) -> MovingComparison:
-    """The path at the reading's mid-exposure `t_mid` (s, the path's clock) known to `u_time_s`
-    (standard uncertainty of that time, s), and the reading's standard uncertainty `u_reading`
-    (per axis, m) widened by the timing term. Refused when the reading is outside the path's time
-    span or its timing term exceeds `max_timing_ratio` x u_reading on an axis."""
+    """Set a reading of the moving arm against the path at its mid-exposure time.
+
+    An error u_t in the reading's time moves the compared point by v u_t, v the path's velocity
+    there, so timing adds a Type B component u_timing = |v| u_t per axis (GUM 5.1.3: sensitivity
+    coefficient v of the time), root-sum-squared with the reading's own uncertainty before Eq. 17.
+    Where the timing term dominates the reading says more about the clock than about the arm: it
+    is refused, with the reason. At rest (v = 0) nothing is added and nothing refused.
+
+    Parameters
+    ----------
+    path : TimedPath
+        The commanded path's timed set-points.
+    t_mid : float
+        The reading's mid-exposure time, s, on the path's clock.
+    u_time_s : float
+        Standard uncertainty of that time, s.
+    u_reading : float or array-like
+        The reading's standard uncertainty per axis, m.
+    max_timing_ratio : float, optional
+        Refuse when u_timing exceeds this times u_reading on an axis.
+
+    Returns
+    -------
+    MovingComparison
+        Refused (with the reason) outside the path's time span or where timing dominates.
+
+    Raises
+    ------
+    DataError
+        When `u_time_s` is not a finite time >= 0.
+    """
     if not (np.isfinite(u_time_s) and u_time_s >= 0):
         raise DataError(f"u_time_s must be a finite time >= 0, got {u_time_s}")
     u_r = np.abs(np.asarray(u_reading, dtype=float)) * np.ones(3)

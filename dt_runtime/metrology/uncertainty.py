@@ -1,4 +1,4 @@
-"""GUM uncertainty budgets of the paper (Sect. 2.5, Eqs. 11-17), per axis.
+"""GUM uncertainty budgets of the paper (Sect. 2.5, Eqs. 11-17), per axis (docs/architecture.md).
 
 Every component carries its label (the paper's symbol), type, distribution, degrees of
 freedom and equation, so the budget table falls out of the computation. Combination is the
@@ -19,6 +19,9 @@ INF = float("inf")
 
 @dataclass(frozen=True)
 class Component:
+    """One labelled component of a budget: standard uncertainty per axis (m), degrees of freedom,
+    type ('A' or 'B'), distribution ('normal' or 'uniform') and a note (the equation).
+    """
     label: str
     u: np.ndarray  # (3,) standard uncertainty per axis, m
     dof: float
@@ -28,21 +31,86 @@ class Component:
 
     @classmethod
     def type_a(cls, label: str, s, dof: float, note: str = "") -> Component:
+        """A Type A component from a standard deviation.
+
+        Parameters
+        ----------
+        label : str
+            The paper's symbol.
+        s : float or array-like
+            Standard uncertainty, scalar or per axis, m.
+        dof : float
+            Degrees of freedom.
+        note : str, optional
+            The equation it belongs to.
+
+        Returns
+        -------
+        Component
+        """
         return cls(label, np.abs(np.asarray(s, dtype=float)) * np.ones(3), float(dof), "A", "normal", note)
 
     @classmethod
     def uniform_from_bias(cls, label: str, mean, note: str = "") -> Component:
-        """A mean error left uncorrected, as a uniform distribution of half-width |mean|:
-        u^2 = mean^2 / 3 (the paper's e_bar^2 / 3 terms)."""
+        """A mean error left uncorrected, as a uniform distribution of half-width |mean|.
+
+        u^2 = mean^2 / 3 (the paper's e_bar^2 / 3 terms).
+
+        Parameters
+        ----------
+        label : str
+            The paper's symbol.
+        mean : float or array-like
+            The mean error, m.
+        note : str, optional
+            The equation it belongs to.
+
+        Returns
+        -------
+        Component
+        """
         return cls(label, np.abs(np.asarray(mean, dtype=float)) * np.ones(3) / np.sqrt(3), INF, "B", "uniform", note)
 
     @classmethod
     def uniform_from_resolution(cls, label: str, resol, note: str = "") -> Component:
-        """Resolution as the paper writes it: u^2 = resol^2 / 3."""
+        """Resolution as the paper writes it: u^2 = resol^2 / 3.
+
+        Parameters
+        ----------
+        label : str
+            The paper's symbol.
+        resol : float or array-like
+            The resolution, m.
+        note : str, optional
+            The equation it belongs to.
+
+        Returns
+        -------
+        Component
+        """
         return cls(label, np.abs(np.asarray(resol, dtype=float)) * np.ones(3) / np.sqrt(3), INF, "B", "uniform", note)
 
     @classmethod
     def from_std(cls, label: str, u, dof: float = INF, note: str = "", kind: str = "B") -> Component:
+        """A normal component from a stated standard uncertainty.
+
+        Parameters
+        ----------
+        label : str
+            The paper's symbol.
+        u : float or array-like
+            Standard uncertainty, m.
+        dof : float, optional
+            Degrees of freedom (infinite by default).
+        note : str, optional
+            The equation it belongs to.
+        kind : str, optional
+            'A' or 'B'.
+
+        Returns
+        -------
+        Component
+        """
         return cls(label, np.abs(np.asarray(u, dtype=float)) * np.ones(3), float(dof), kind, "normal", note)
 
     def to_dict(self) -> dict[str, Any]:
@@ -53,12 +121,36 @@ class Component:
 
     @classmethod
     def from_dict(cls, d: Any) -> Component:
+        """The component `to_dict` wrote (a null dof is infinite).
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        Component
+        """
         dof = d.get("dof")
         return cls(str(d["label"]), np.asarray(d["u"], dtype=float) * np.ones(3), INF if dof is None else float(dof),
                    str(d.get("kind", "B")), str(d.get("distribution", "normal")), str(d.get("note", "")))
 
 
 def coverage_factor(dof, p: float = 0.95) -> np.ndarray:
+    """Coverage factor for a level of confidence: Student t for finite dof, normal for infinite.
+
+    Parameters
+    ----------
+    dof : float or array-like
+        Degrees of freedom (values below 1 are taken as 1).
+    p : float, optional
+        Level of confidence.
+
+    Returns
+    -------
+    ndarray
+    """
     dof = np.asarray(dof, dtype=float)
     q = 0.5 + p / 2
     # scipy.special's quantiles are what stats.t.ppf / stats.norm.ppf compute, without the
@@ -68,7 +160,20 @@ def coverage_factor(dof, p: float = 0.95) -> np.ndarray:
 
 
 def welch_satterthwaite(us: np.ndarray, dofs: np.ndarray) -> np.ndarray:
-    """nu_eff = u_c^4 / sum(u_i^4 / nu_i), per axis; us (m, 3), dofs (m,) or (m, 3)."""
+    """Effective degrees of freedom, nu_eff = u_c^4 / sum(u_i^4 / nu_i), per axis.
+
+    Parameters
+    ----------
+    us : ndarray
+        (m, 3) standard uncertainties.
+    dofs : ndarray
+        (m,) or (m, 3) degrees of freedom (infinite terms add nothing).
+
+    Returns
+    -------
+    ndarray
+        (3,); infinite when every term is.
+    """
     us = np.asarray(us, dtype=float)
     dofs = np.asarray(dofs, dtype=float)
     dofs = np.broadcast_to(dofs[:, None] if dofs.ndim == 1 else dofs, us.shape)
@@ -81,6 +186,7 @@ def welch_satterthwaite(us: np.ndarray, dofs: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Budget:
+    """A named set of components, combined with unit sensitivities (root sum of squares)."""
     name: str
     components: tuple[Component, ...] = field(default_factory=tuple)
 
@@ -88,22 +194,84 @@ class Budget:
         return np.array([c.u for c in self.components])
 
     def combined(self) -> np.ndarray:
+        """Combined standard uncertainty per axis, m.
+
+        Returns
+        -------
+        ndarray
+            (3,).
+        """
         return np.sqrt(np.sum(self._u() ** 2, axis=0))
 
     def effective_dof(self) -> np.ndarray:
+        """Welch-Satterthwaite effective degrees of freedom per axis.
+
+        Returns
+        -------
+        ndarray
+            (3,).
+        """
         return welch_satterthwaite(self._u(), np.array([c.dof for c in self.components]))
 
     def coverage_factor(self, p: float = 0.95) -> np.ndarray:
+        """Coverage factor per axis for the effective degrees of freedom.
+
+        Parameters
+        ----------
+        p : float, optional
+            Level of confidence.
+
+        Returns
+        -------
+        ndarray
+            (3,).
+        """
         return coverage_factor(self.effective_dof(), p)
 
     def expanded(self, p: float = 0.95) -> np.ndarray:
+        """Expanded uncertainty per axis, k times the combined, m.
+
+        Parameters
+        ----------
+        p : float, optional
+            Level of confidence.
+
+        Returns
+        -------
+        ndarray
+            (3,).
+        """
         return self.coverage_factor(p) * self.combined()
 
     def extend(self, name: str, more) -> Budget:
+        """A new budget with more components.
+
+        Parameters
+        ----------
+        name : str
+            The new budget's name.
+        more : Budget or iterable of Component
+            The components to add.
+
+        Returns
+        -------
+        Budget
+        """
         extra = more.components if isinstance(more, Budget) else tuple(more)
         return Budget(name, self.components + extra)
 
     def table(self, unit: str = "mm") -> list[dict]:
+        """The budget as table rows: one per component, then the combined row (dof, k, U).
+
+        Parameters
+        ----------
+        unit : str, optional
+            "mm" (default) or the metres the budget holds.
+
+        Returns
+        -------
+        list of dict
+        """
         f = 1e3 if unit == "mm" else 1.0
         uc2 = self.combined() ** 2
         rows: list[dict[str, Any]] = []
@@ -125,7 +293,18 @@ class Budget:
 
 
 def lt_standard_uncertainty(L_m: float) -> float:
-    """Laser tracker calibration standard uncertainty: 10 um + 0.02 um/m * L (Sect. 2.5)."""
+    """Laser tracker calibration standard uncertainty: 10 um + 0.02 um/m * L (Sect. 2.5).
+
+    Parameters
+    ----------
+    L_m : float
+        Distance from the tracker, m.
+
+    Returns
+    -------
+    float
+        Standard uncertainty, m.
+    """
     return 10e-6 + 0.02e-6 * float(L_m)
 
 
@@ -168,14 +347,34 @@ def _reg_pair(sym: str, st: tuple, eq: str, mode: str) -> tuple[Component, Compo
 
 
 def budget_e_lt_hat(inp: MetrologyInputs) -> Budget:
-    """Eq. 13: registration of LT to GL, LT traceability, GPR residuals of e_LT."""
+    """Eq. 13: registration of LT to GL, LT traceability, GPR residuals of e_LT.
+
+    Parameters
+    ----------
+    inp : MetrologyInputs
+        The per-axis statistics.
+
+    Returns
+    -------
+    Budget
+    """
     return Budget("u(e_LT_hat)", (*_reg_pair("e_LT,GL", inp.reg_lt, "Eq. 13", inp.registration_term),
                                   Component.from_std("u_LT", inp.u_lt, note="Eq. 13, LT calibration"),
                                   *_stat_pair("r_LT", inp.res_lt, "Eq. 13")))
 
 
 def budget_tcp_corrected(inp: MetrologyInputs) -> Budget:
-    """Eq. 11: the corrected TCP, u(TCP_c) = robot reproducibility and resolution + Eq. 13."""
+    """Eq. 11: the corrected TCP, u(TCP_c) = robot reproducibility and resolution + Eq. 13.
+
+    Parameters
+    ----------
+    inp : MetrologyInputs
+        The per-axis statistics.
+
+    Returns
+    -------
+    Budget
+    """
     return Budget("u(TCP_c)", (Component.type_a("reprod_TCP", inp.reprod_tcp, inp.reprod_tcp_dof, "Eqs. 11-12"),
                                Component.uniform_from_resolution("resol_TCP", inp.resol_tcp, "Eq. 11"))
                   + budget_e_lt_hat(inp).components)
@@ -186,11 +385,29 @@ MODEL_TERM = "s(r_LT)"  # Eq. 11's model component: the held-out spread of the e
 
 def budget_tcp_corrected_at(rest: Budget, u_model: np.ndarray, model_dof: float,
                             u_extrapolation: np.ndarray, extrapolation_dof: float) -> Budget:
-    """Eq. 11 at one corrected position: the position-independent components (`rest`: Eq. 11
-    without its global model spread s(r_LT)), the model's standard uncertainty *at that
-    position*, u_model = lambda sigma_GP(c) (the GP's latent standard deviation scaled by its
-    held-out calibration), and, outside the calibrated hull, u_extrapolation = kappa d(c)
-    (see `twin.calibration`)."""
+    """Eq. 11 at one corrected position.
+
+    The model's standard uncertainty at that position is u_model = lambda sigma_GP(c) (the GP's
+    latent standard deviation scaled by its held-out calibration); outside the calibrated hull,
+    u_extrapolation = kappa d(c) (see `twin.calibration`).
+
+    Parameters
+    ----------
+    rest : Budget
+        The position-independent components (Eq. 11 without its global model spread s(r_LT)).
+    u_model : ndarray
+        (3,) the model's standard uncertainty at the position, m.
+    model_dof : float
+        Its degrees of freedom.
+    u_extrapolation : ndarray
+        (3,) the extrapolation term, m.
+    extrapolation_dof : float
+        Its degrees of freedom.
+
+    Returns
+    -------
+    Budget
+    """
     return rest.extend("u(TCP_c) at c", (
         Component.type_a("lambda sigma_GP(c)", u_model, model_dof, "Eq. 11, the e_LT model at the position"),
         Component.type_a("kappa d(c)", u_extrapolation, extrapolation_dof,
@@ -204,17 +421,47 @@ def _mvs_components(inp: MetrologyInputs) -> tuple[Component, ...]:
 
 
 def budget_e_mvs(inp: MetrologyInputs) -> Budget:
-    """Eq. 15: an MVS measurement in GL."""
+    """Eq. 15: an MVS measurement in GL.
+
+    Parameters
+    ----------
+    inp : MetrologyInputs
+        The per-axis statistics.
+
+    Returns
+    -------
+    Budget
+    """
     return Budget("u(e_MVS)", _mvs_components(inp))
 
 
 def budget_elt_minus_emvs(inp: MetrologyInputs) -> Budget:
-    """Eq. 14: u(e_LT_hat - e_MVS) = Eq. 13 combined with Eq. 15."""
+    """Eq. 14: u(e_LT_hat - e_MVS) = Eq. 13 combined with Eq. 15.
+
+    Parameters
+    ----------
+    inp : MetrologyInputs
+        The per-axis statistics.
+
+    Returns
+    -------
+    Budget
+    """
     return budget_e_lt_hat(inp).extend("u(e_LT_hat - e_MVS)", _mvs_components(inp))
 
 
 def budget_e_mvs_lt_hat(inp: MetrologyInputs) -> Budget:
-    """Eq. 16: the predicted MVS-LT error."""
+    """Eq. 16: the predicted MVS-LT error.
+
+    Parameters
+    ----------
+    inp : MetrologyInputs
+        The per-axis statistics.
+
+    Returns
+    -------
+    Budget
+    """
     return Budget("u(e_MVS-LT_hat)", (*_reg_pair("e_LT,GL", inp.reg_lt, "Eq. 16", inp.registration_term),
                                       *_reg_pair("e_MVS,GL", inp.reg_mvs, "Eq. 16", inp.registration_term),
                                       *_stat_pair("r_MVS-LT", inp.res_mvs_lt, "Eq. 16"),
@@ -225,6 +472,7 @@ def budget_e_mvs_lt_hat(inp: MetrologyInputs) -> Budget:
 
 @dataclass(frozen=True)
 class TTest:
+    """Eq. 17 results: t, dof, two-sided p-value and critical t per axis, and whether each passed."""
     t: np.ndarray  # (n,3)
     dof: np.ndarray  # (3,)
     p_value: np.ndarray  # (n,3), two-sided
@@ -233,6 +481,7 @@ class TTest:
 
     @property
     def passed_all(self) -> np.ndarray:
+        """Per row, whether all three axes passed."""
         return np.all(self.passed, axis=1)
 
 
@@ -249,6 +498,21 @@ class TTestPlan:
 
     @classmethod
     def of(cls, u_diff, u_pred, dof_diff, dof_pred, alpha: float = 0.05) -> TTestPlan:
+        """The plan for fixed uncertainties.
+
+        Parameters
+        ----------
+        u_diff, u_pred : float or array-like
+            Standard uncertainties of the measured difference and of the prediction, m.
+        dof_diff, dof_pred : float or array-like
+            Their degrees of freedom.
+        alpha : float, optional
+            Two-sided significance level.
+
+        Returns
+        -------
+        TTestPlan
+        """
         u_diff, u_pred = np.asarray(u_diff, dtype=float), np.asarray(u_pred, dtype=float)
         u = np.sqrt(u_diff ** 2 + u_pred ** 2)
         dof = welch_satterthwaite(np.array([u_diff * np.ones(3), u_pred * np.ones(3)]),
@@ -264,13 +528,45 @@ class TTestPlan:
 
 
 def t_test(diff, predicted, u_diff, u_pred, dof_diff, dof_pred, alpha: float = 0.05) -> TTest:
-    """Eq. 17: t = ((e_LT_hat - e_MVS) - e_MVS-LT_hat) / sqrt(u^2(diff) + u^2(pred)), per axis,
-    two-sided at level alpha, dof by Welch-Satterthwaite of the two uncertainties."""
+    """Eq. 17: t = ((e_LT_hat - e_MVS) - e_MVS-LT_hat) / sqrt(u^2(diff) + u^2(pred)), per axis.
+
+    Two-sided at level alpha, dof by Welch-Satterthwaite of the two uncertainties.
+
+    Parameters
+    ----------
+    diff : array-like
+        (n, 3) or (3,) measured differences e_LT_hat - e_MVS, m.
+    predicted : array-like
+        The predicted e_MVS-LT_hat, same shape.
+    u_diff, u_pred : float or array-like
+        Their standard uncertainties, m.
+    dof_diff, dof_pred : float or array-like
+        Their degrees of freedom.
+    alpha : float, optional
+        Significance level.
+
+    Returns
+    -------
+    TTest
+    """
     return TTestPlan.of(u_diff, u_pred, dof_diff, dof_pred, alpha)(diff, predicted)
 
 
 def precision_figures(s_e_mvs_doe: np.ndarray, budget_pred: Budget) -> dict:
-    """Sect. 3.3: precision as is, 2 s(e_MVS,DOE), against U(e_MVS-LT_hat) (Eq. 22)."""
+    """Sect. 3.3: precision as is, 2 s(e_MVS,DOE), against U(e_MVS-LT_hat) (Eq. 22).
+
+    Parameters
+    ----------
+    s_e_mvs_doe : ndarray
+        (3,) standard deviation of e_MVS over the DOE, m.
+    budget_pred : Budget
+        The Eq. 16 budget.
+
+    Returns
+    -------
+    dict
+        Before and after per axis and averaged (mm), and the improvement (%).
+    """
     before = 2 * np.asarray(s_e_mvs_doe)
     after = budget_pred.expanded()
     b, a = float(before.mean() * 1e3), float(after.mean() * 1e3)
