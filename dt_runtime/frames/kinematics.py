@@ -46,6 +46,7 @@ class Chain:
 
     @property
     def dof(self) -> int:
+        """Number of joints."""
         return len(self.axes)
 
     @property
@@ -55,15 +56,40 @@ class Chain:
         return float(sum(np.linalg.norm(o[:3, 3]) for o in self.origins) + np.linalg.norm(self.tool[:3, 3]))
 
     def with_tool(self, offset) -> Chain:
-        """This chain with the TCP moved by `offset` (m, in the current tool frame): the tool offset
-        that `frames.tool_fit` fitted on a chain whose tool is its flange."""
+        """This chain with the TCP moved by `offset` (m, in the current tool frame).
+
+        The tool offset that `frames.tool_fit` fitted on a chain whose tool is its flange.
+
+        Parameters
+        ----------
+        offset : array-like
+            (3,), m.
+
+        Returns
+        -------
+        Chain
+        """
         T = np.eye(4)
         T[:3, 3] = np.asarray(offset, dtype=float)
         return replace(self, tool=self.tool @ T, tool_given=True)
 
     def frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Joint frames for a batch q (n, dof): origins (n, dof, 3) and orientations
-        (n, dof, 3, 3) of every joint frame before its rotation, and the TCP transform (n, 4, 4)."""
+        """Joint frames for a batch of joint vectors.
+
+        Parameters
+        ----------
+        q : ndarray
+            (n, dof) or (dof,), rad.
+
+        Returns
+        -------
+        origins : ndarray
+            (n, dof, 3) of every joint frame before its rotation.
+        orientations : ndarray
+            (n, dof, 3, 3).
+        tcp : ndarray
+            (n, 4, 4) TCP transforms.
+        """
         q = np.atleast_2d(q)
         n = len(q)
         T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
@@ -77,37 +103,105 @@ class Chain:
         return pos, rot, T @ self.tool
 
     def segments(self, q: np.ndarray) -> np.ndarray:
-        """The links as vectors in the world (n, dof + 1, 3), summing to the TCP: link 0 from the
-        robot frame's origin to joint 1's frame, link j from joint j's frame to joint j + 1's,
-        link dof from the last joint's frame to the TCP (the tool included)."""
+        """The links as vectors in the world, summing to the TCP.
+
+        Link 0 runs from the robot frame's origin to joint 1's frame, link j from joint j's frame to
+        joint j + 1's, link dof from the last joint's frame to the TCP (the tool included).
+
+        Parameters
+        ----------
+        q : ndarray
+            (n, dof), rad.
+
+        Returns
+        -------
+        ndarray
+            (n, dof + 1, 3), m.
+        """
         pos, _, T = self.frames(q)
         ends = np.concatenate([pos, T[:, None, :3, 3]], axis=1)
         return np.diff(ends, axis=1, prepend=np.zeros((len(ends), 1, 3)))
 
     def world_axes(self, rot: np.ndarray) -> np.ndarray:
-        """Joint axes in the world (n, dof, 3) from frame orientations."""
+        """Joint axes in the world from frame orientations.
+
+        Parameters
+        ----------
+        rot : ndarray
+            (n, dof, 3, 3), from `frames`.
+
+        Returns
+        -------
+        ndarray
+            (n, dof, 3).
+        """
         return np.einsum("njab,jb->nja", rot, np.array(self.axes))
 
     def fk(self, q: np.ndarray) -> np.ndarray:
-        """TCP positions (n, 3) in metres."""
+        """TCP positions in metres.
+
+        Parameters
+        ----------
+        q : ndarray
+            (n, dof), rad.
+
+        Returns
+        -------
+        ndarray
+            (n, 3).
+        """
         return self.frames(q)[2][:, :3, 3]
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        """Positional Jacobian dTCP/dq (n, 3, dof): axis_j x (p_tcp - p_j)."""
+        """Positional Jacobian dTCP/dq: axis_j x (p_tcp - p_j).
+
+        Parameters
+        ----------
+        q : ndarray
+            (n, dof), rad.
+
+        Returns
+        -------
+        ndarray
+            (n, 3, dof).
+        """
         pos, rot, T = self.frames(q)
         p = T[:, None, :3, 3]
         return np.cross(self.world_axes(rot), p - pos).transpose(0, 2, 1)
 
     def jacobian6(self, q: np.ndarray) -> np.ndarray:
-        """Geometric Jacobian (n, 6, dof): TCP linear velocity (rows 0-2) and angular velocity
-        (rows 3-5) per joint rate."""
+        """Geometric Jacobian: TCP linear velocity (rows 0-2) and angular velocity (rows 3-5) per joint rate.
+
+        Parameters
+        ----------
+        q : ndarray
+            (n, dof), rad.
+
+        Returns
+        -------
+        ndarray
+            (n, 6, dof).
+        """
         pos, rot, T = self.frames(q)
         ax = self.world_axes(rot)
         lin = np.cross(ax, T[:, None, :3, 3] - pos)
         return np.concatenate([lin, ax], axis=2).transpose(0, 2, 1)
 
     def pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """TCP position (3,) and orientation (3, 3) for one joint vector."""
+        """TCP position and orientation for one joint vector.
+
+        Parameters
+        ----------
+        q : ndarray
+            (dof,), rad.
+
+        Returns
+        -------
+        position : ndarray
+            (3,), m.
+        orientation : ndarray
+            (3, 3).
+        """
         T = self.frames(np.asarray(q, dtype=float)[None, :])[2][0]
         return T[:3, 3], T[:3, :3]
 

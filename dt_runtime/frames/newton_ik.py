@@ -1,26 +1,8 @@
 """Fast inverse kinematics of one pose, warm-started: the per-set-point IK of a corrected path.
 
-`Chain.ik` solves the same problem (TCP at a target position, the tool's orientation held) with
-general-purpose batched calls (numpy forward kinematics, scipy's rotation vector, `lstsq`): ~0.5-1 ms
-per call. A path's set-points lie a fraction of a millimetre apart, so the previous set-point's
-joints are an excellent start and one or two Newton steps converge; what costs is the overhead of
-each step, which for a 6-joint chain is far larger in numpy's small-array calls than the
-arithmetic itself. `NewtonIK` therefore works on plain floats:
-
-- the chain is rewritten once so that every joint turns about its own z axis (joint j's fixed part
-  O_j followed by a rotation A_j taking z to its axis: O_j R_a(q) = (O_j A_j) Rz(q) A_j^T, the A_j^T
-  folded into the next fixed part), so a joint's rotation mixes two columns;
-- the forward kinematics keeps each joint's position and world axis: the analytic geometric
-  Jacobian, rows axis_j x (p - p_j) and axis_j;
-- a damped least-squares step, dq = J^T (J J^T + lambda^2 I)^-1 e, with lambda^2 = |e|^2 +
-  LAMBDA0^2 (Levenberg-Marquardt after Sugihara, "Solvability-unconcerned inverse kinematics by
-  the Levenberg-Marquardt method", IEEE T-RO 27(5), 2011: quadratic convergence near the
-  solution, bounded steps near a singularity), solved by a 6x6 Cholesky factorisation;
-- the forward kinematics of the last solution is kept: the next set-point starts there.
-
-It converges to the same solution as `Chain.ik` (the same pose, the same branch from the same
-seed; for a 6-axis arm the solution is locally unique, so the joints agree to ~1e-12 rad), with the
-same tolerances and the same UnreachableError when it does not.
+`NewtonIK` solves what `Chain.ik` solves (TCP at a target position, the tool's orientation held)
+on plain floats, with damped Newton steps from the previous set-point's joints; it reaches the
+same solution with the same tolerances. See docs/cli.md ("Path programs").
 """
 from __future__ import annotations
 
@@ -37,7 +19,18 @@ Affine = tuple[float, ...]  # 3x4 row-major: r00 r01 r02 px r10 r11 r12 py r20 r
 
 
 def rotvec(M: np.ndarray) -> np.ndarray:
-    """The rotation vector (axis * angle, rad) of rotation matrix M (the log map)."""
+    """The rotation vector (axis * angle, rad) of rotation matrix M (the log map).
+
+    Parameters
+    ----------
+    M : ndarray
+        (3, 3) rotation matrix.
+
+    Returns
+    -------
+    ndarray
+        (3,).
+    """
     return np.array(_log(tuple(float(x) for x in np.asarray(M, dtype=float).ravel())))
 
 
@@ -84,7 +77,35 @@ def _mul(a: Affine, b: Affine) -> Affine:
 
 
 class NewtonIK:
-    """Position IK holding the tool's orientation, for one chain; `solve` per set-point."""
+    """Position IK holding the tool's orientation, for one chain; `solve` per set-point.
+
+    `Chain.ik` solves the same problem with general-purpose batched calls (numpy forward
+    kinematics, scipy's rotation vector, `lstsq`): ~0.5-1 ms per call. A path's set-points lie a
+    fraction of a millimetre apart, so the previous set-point's joints are an excellent start and
+    one or two Newton steps converge; what costs is the overhead of each step, which for a 6-joint
+    chain is far larger in numpy's small-array calls than the arithmetic itself. So this class
+    works on plain floats:
+
+    - the chain is rewritten once so that every joint turns about its own z axis (joint j's fixed
+      part O_j followed by a rotation A_j taking z to its axis: O_j R_a(q) = (O_j A_j) Rz(q) A_j^T,
+      the A_j^T folded into the next fixed part), so a joint's rotation mixes two columns;
+    - the forward kinematics keeps each joint's position and world axis: the analytic geometric
+      Jacobian, rows axis_j x (p - p_j) and axis_j;
+    - a damped least-squares step, dq = J^T (J J^T + lambda^2 I)^-1 e, with lambda^2 = |e|^2 +
+      LAMBDA0^2 (Levenberg-Marquardt after Sugihara, "Solvability-unconcerned inverse kinematics
+      by the Levenberg-Marquardt method", IEEE T-RO 27(5), 2011: quadratic convergence near the
+      solution, bounded steps near a singularity), solved by a 6x6 Cholesky factorisation;
+    - the forward kinematics of the last solution is kept: the next set-point starts there.
+
+    It converges to the same solution as `Chain.ik` (the same pose, the same branch from the same
+    seed; for a 6-axis arm the solution is locally unique, so the joints agree to ~1e-12 rad), with
+    the same tolerances and the same UnreachableError when it does not.
+
+    Parameters
+    ----------
+    chain : Chain
+        The kinematic chain.
+    """
 
     def __init__(self, chain: Chain):
         self.chain = chain
@@ -118,8 +139,20 @@ class NewtonIK:
         return _mul(T, self._tool), joints
 
     def frames(self, q) -> tuple[Affine, list[Affine]]:
-        """The TCP transform (3x4, row-major floats) at q and every joint's frame before its
-        rotation (`Chain.frames`: position and orientation), as 3x4 row-major floats."""
+        """The TCP transform at q and every joint's frame before its rotation (as `Chain.frames`).
+
+        Parameters
+        ----------
+        q : array-like
+            (dof,), rad.
+
+        Returns
+        -------
+        tcp : tuple of float
+            3x4 row-major.
+        frames : list of tuple of float
+            Per joint, 3x4 row-major (position and orientation).
+        """
         T: Affine = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
         out = []
         for B, At, qj in zip(self._fixed, self._At, q):
@@ -135,15 +168,53 @@ class NewtonIK:
         return _mul(T, self._tool), out
 
     def pose(self, q) -> tuple[np.ndarray, np.ndarray]:
-        """TCP position (3,) and orientation (3, 3) at q (as `Chain.pose`)."""
+        """TCP position and orientation at q (as `Chain.pose`).
+
+        Parameters
+        ----------
+        q : array-like
+            (dof,), rad.
+
+        Returns
+        -------
+        position : ndarray
+            (3,), m.
+        orientation : ndarray
+            (3, 3).
+        """
         T, _ = self._fk(tuple(float(x) for x in q))
         return np.array([T[3], T[7], T[11]]), np.array([T[0:3], T[4:7], T[8:11]])
 
     def solve(self, target: np.ndarray, q_seed: np.ndarray, R: np.ndarray | None = None,
               tol: float = 1e-9, max_iter: int = 50) -> np.ndarray:
-        """Joint angles putting the TCP at `target` (m) with orientation R (default: the TCP's at
-        q_seed), from q_seed. UnreachableError naming the target if it does not converge
-        (beyond reach, or a singular pose the damped steps cannot leave)."""
+        """Joint angles putting the TCP at `target` with orientation R, from q_seed.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,), m.
+        q_seed : ndarray
+            (dof,), rad: the start (the previous set-point's joints).
+        R : ndarray, optional
+            (3, 3) orientation; default the TCP's at q_seed.
+        tol : float, optional
+            Convergence tolerance on position (m) and orientation (rad).
+        max_iter : int, optional
+            At most this many Newton steps.
+
+        Returns
+        -------
+        ndarray
+            (dof,), rad.
+
+        Raises
+        ------
+        UnreachableError
+            Naming the target if it does not converge (beyond reach, or a singular pose the damped
+            steps cannot leave).
+        DataError
+            When target or q_seed is not finite or has the wrong length.
+        """
         n = self.chain.dof
         try:  # plain floats from here on (numpy's per-call overhead is the cost at this size)
             g = tuple(map(float, target))

@@ -45,18 +45,45 @@ class RigidTransform:
         object.__setattr__(self, "s", float(self.s))
 
     def apply(self, points: np.ndarray) -> np.ndarray:
-        """Map one point (3,) or many (n, 3)."""
+        """Map one point (3,) or many (n, 3).
+
+        Parameters
+        ----------
+        points : ndarray
+            (3,) or (n, 3).
+
+        Returns
+        -------
+        ndarray
+            The mapped points, same shape.
+        """
         p = np.asarray(points, dtype=float)
         if p.shape[-1:] != (3,) or p.ndim > 2:
             raise DataError(f"apply: expected (3,) or (n, 3) points, got shape {p.shape}")
         return self.s * p @ self.R.T + self.t
 
     def inverse(self) -> RigidTransform:
+        """The inverse map, x -> (R^T (x - t)) / s.
+
+        Returns
+        -------
+        RigidTransform
+        """
         Ri = self.R.T
         return RigidTransform(Ri, -(Ri @ self.t) / self.s, 1.0 / self.s)
 
     def compose(self, other: RigidTransform) -> RigidTransform:
-        """self after other: x -> self(other(x)) (matrix product self.matrix @ other.matrix)."""
+        """self after other: x -> self(other(x)) (matrix product self.matrix @ other.matrix).
+
+        Parameters
+        ----------
+        other : RigidTransform
+            The transform applied first.
+
+        Returns
+        -------
+        RigidTransform
+        """
         return RigidTransform(self.R @ other.R, self.s * self.R @ other.t + self.t, self.s * other.s)
 
     @property
@@ -69,7 +96,24 @@ class RigidTransform:
 
     @classmethod
     def from_matrix(cls, M: np.ndarray, atol: float = 1e-6) -> RigidTransform:
-        """Inverse of `matrix`; refuses a block that is not a scaled rotation."""
+        """Inverse of `matrix`; refuses a block that is not a scaled rotation.
+
+        Parameters
+        ----------
+        M : ndarray
+            Homogeneous 4x4.
+        atol : float, optional
+            Tolerance of the checks.
+
+        Returns
+        -------
+        RigidTransform
+
+        Raises
+        ------
+        DataError
+            When M is not homogeneous or its block is not a scaled rotation.
+        """
         M = np.asarray(M, dtype=float)
         if M.shape != (4, 4) or not np.allclose(M[3], [0, 0, 0, 1], atol=atol):
             raise DataError(f"from_matrix: expected a homogeneous 4x4 matrix, got shape {M.shape}")
@@ -85,19 +129,52 @@ class RigidTransform:
 
     @classmethod
     def identity(cls) -> RigidTransform:
+        """The identity transform.
+
+        Returns
+        -------
+        RigidTransform
+        """
         return cls(np.eye(3), np.zeros(3))
 
     def rotation_angle_to(self, other: RigidTransform) -> float:
-        """Angle (rad) of the rotation between self.R and other.R."""
+        """Angle (rad) of the rotation between self.R and other.R.
+
+        Parameters
+        ----------
+        other : RigidTransform
+            The other transform.
+
+        Returns
+        -------
+        float
+        """
         D = self.R @ other.R.T
         sin = np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2.0
         return float(np.arctan2(sin, (np.trace(D) - 1.0) / 2.0))  # accurate near 0, unlike arccos
 
     def to_dict(self) -> dict:
+        """The transform as a JSON-ready dict {R, t, s}."""
         return {"R": self.R.tolist(), "t": self.t.tolist(), "s": float(self.s)}
 
     @classmethod
     def from_dict(cls, d: dict) -> RigidTransform:
+        """The transform `to_dict` wrote (s defaults to 1).
+
+        Parameters
+        ----------
+        d : dict
+            With keys R (3x3), t (3) and optionally s.
+
+        Returns
+        -------
+        RigidTransform
+
+        Raises
+        ------
+        DataError
+            When a key is missing or malformed.
+        """
         try:
             return cls(np.array(d["R"], dtype=float), np.array(d["t"], dtype=float), float(d.get("s", 1.0)))
         except (KeyError, TypeError, ValueError) as exc:
@@ -225,17 +302,44 @@ class ResidualStats:
 
     @property
     def dof(self) -> int:
+        """Degrees of freedom of the standard deviation, n - 1."""
         return self.n - 1
 
     @classmethod
     def of(cls, e: np.ndarray) -> ResidualStats:
+        """The statistics of (n, 3) residuals.
+
+        Parameters
+        ----------
+        e : ndarray
+            (n, 3), n >= 2.
+
+        Returns
+        -------
+        ResidualStats
+
+        Raises
+        ------
+        DataError
+            With fewer than 2 residuals, or non-finite ones.
+        """
         e = _check(e, "residuals")
         if len(e) < 2:
             raise DataError("residual statistics need at least 2 residuals")
         return cls(np.mean(e, axis=0), np.std(e, axis=0, ddof=1), len(e))
 
     def to_dict(self, unit: str = "mm") -> dict:
-        """{x: {mean_mm, std_mm}, y: ..., z: ..., n, dof} (input assumed in metres)."""
+        """{x: {mean_mm, std_mm}, y: ..., z: ..., n, dof} (input assumed in metres).
+
+        Parameters
+        ----------
+        unit : str, optional
+            'mm', 'm' or 'um'; names the keys and scales the values.
+
+        Returns
+        -------
+        dict
+        """
         f = {"mm": 1e3, "m": 1.0, "um": 1e6}.get(unit)
         if f is None:
             raise ValueError(f"unit must be 'mm', 'm' or 'um', got {unit!r}")
@@ -247,6 +351,19 @@ def reproducibility(values: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray,
     """Eq. 12: per axis sqrt(mean over locations of the replication variance, ddof=1), and dof.
 
     dof = sum(n_i - 1). Locations with a single replication carry no variance and are skipped.
+
+    Parameters
+    ----------
+    values : ndarray
+        (n, 3) repeated measurements.
+    groups : ndarray
+        (n,) location label of each value.
+
+    Returns
+    -------
+    u : ndarray
+        (3,) reproducibility per axis, in the unit of `values`.
+    dof : int
     """
     v = _check(values, "values")
     groups = np.asarray(groups)
@@ -273,18 +390,46 @@ class Registration:
     method: str
 
     def to_dict(self, unit: str = "mm") -> dict:
+        """The registration as a JSON-ready dict: method, transform and residual statistics.
+
+        Parameters
+        ----------
+        unit : str, optional
+            Unit of the residual statistics ('mm', 'm' or 'um').
+
+        Returns
+        -------
+        dict
+        """
         return {"method": self.method, "transform": self.transform.to_dict(),
                 "residuals": self.stats.to_dict(unit)}
 
 
 def register_instrument(points_inst: np.ndarray, points_gl: np.ndarray, method: str = "three_line",
                         axes=None, distances=None, weights=None) -> Registration:
-    """Register one instrument: points_inst (n, 3) measured, points_gl (n, 3) nominal GL.
+    """Register one instrument to GL.
 
-    method='three_line' (the paper's): needs `axes` ('x'|'y'|'z' per point) and `distances`
-    (m, per point); if omitted they are read off points_gl (exactly one non-zero coordinate).
-    method='least_squares': Kabsch on the pairs (Eq. 4), optional `weights`.
     Non-finite measurements (lost tracker beam, occluded marker) are dropped.
+
+    Parameters
+    ----------
+    points_inst : ndarray
+        (n, 3) measured in the instrument's frame.
+    points_gl : ndarray
+        (n, 3) nominal in GL.
+    method : str, optional
+        'three_line' (the paper's) or 'least_squares' (Kabsch on the pairs, Eq. 4).
+    axes : array-like, optional
+        'x'|'y'|'z' per point, for 'three_line'; read off points_gl when omitted (exactly one
+        non-zero coordinate per point).
+    distances : array-like, optional
+        Distance along the axis per point, m, for 'three_line'; read off points_gl when omitted.
+    weights : array-like, optional
+        Per point, for 'least_squares'.
+
+    Returns
+    -------
+    Registration
     """
     p = np.asarray(points_inst, dtype=float)
     q = _check(points_gl, "points_gl")

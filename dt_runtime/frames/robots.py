@@ -76,9 +76,21 @@ class RobotRef:
 
     @property
     def is_urdf(self) -> bool:
+        """Whether the file is a URDF (by its suffix)."""
         return self.file.suffix.lower() in URDF_SUFFIXES
 
     def with_tool(self, offset_m) -> RobotRef:
+        """This reference with a tool offset.
+
+        Parameters
+        ----------
+        offset_m : array-like
+            (3,) tool offset, m.
+
+        Returns
+        -------
+        RobotRef
+        """
         return replace(self, tool_m=tuple(float(v) for v in offset_m))  # type: ignore[arg-type]
 
 
@@ -172,6 +184,7 @@ class Entry:
     file: str
 
     def to_dict(self) -> dict:
+        """The entry as a JSON-ready dict."""
         return {"name": self.name, "dof": self.dof, "vendor": self.vendor, "description": self.description,
                 "sources": self.sources, "file": self.file}
 

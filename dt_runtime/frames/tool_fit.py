@@ -54,6 +54,7 @@ class ToolFit:
     why: str = ""
 
     def to_dict(self) -> dict:
+        """The fit as a JSON-ready dict, in mm, in the flange frame."""
         return {"xyz_mm": [float(v) * MM_PER_M for v in self.offset], "u_mm": [float(v) * MM_PER_M for v in self.u],
                 "residual_rms_mm": self.residual_rms * MM_PER_M, "n": self.n, "from": self.fitted_from,
                 "frame": "flange", "undetermined": list(self.undetermined), "why": self.why}

@@ -20,13 +20,31 @@ from dt_kernel.errors import DataError, ModelError
 
 @dataclass(frozen=True)
 class CalibratedVolume:
+    """The convex hull of the calibration DOE, as facet half-spaces, with a margin."""
     normals: np.ndarray  # (f, 3) outward unit normals of the hull's facets
     offsets: np.ndarray  # (f,) so that normals @ x + offsets <= 0 inside
     margin_m: float = 0.0  # a command this far outside the hull still counts as inside
 
     @classmethod
     def of_points(cls, points: np.ndarray, margin_m: float = 0.0) -> CalibratedVolume:
-        """The hull of `points` (n, 3), m; the DOE must span a volume (not a plane or a line)."""
+        """The hull of `points`; the DOE must span a volume (not a plane or a line).
+
+        Parameters
+        ----------
+        points : ndarray
+            (n, 3), m; non-finite rows are dropped; at least 4 remain.
+        margin_m : float, optional
+            How far outside the hull a command still counts as inside, m.
+
+        Returns
+        -------
+        CalibratedVolume
+
+        Raises
+        ------
+        DataError
+            Too few points, a bad margin, or points that do not span a volume.
+        """
         P = np.asarray(points, dtype=float)
         P = P[np.all(np.isfinite(P), axis=1)] if P.ndim == 2 else P
         if P.ndim != 2 or P.shape[1] != 3 or len(P) < 4:
@@ -41,19 +59,60 @@ class CalibratedVolume:
         return cls(hull.equations[:, :3].copy(), hull.equations[:, 3].copy(), float(margin_m))
 
     def distance(self, points: np.ndarray) -> np.ndarray:
-        """Signed distance (m) of each point to the hull itself (margin not applied): < 0 inside."""
+        """Signed distance (m) of each point to the hull itself (margin not applied): < 0 inside.
+
+        Parameters
+        ----------
+        points : ndarray
+            (3,) or (n, 3), m.
+
+        Returns
+        -------
+        ndarray
+            (n,).
+        """
         P = np.atleast_2d(np.asarray(points, dtype=float))
         return np.max(P @ self.normals.T + self.offsets, axis=1)
 
     def inside(self, points: np.ndarray) -> np.ndarray:
-        """Whether each point lies in the hull widened by the margin."""
+        """Whether each point lies in the hull widened by the margin.
+
+        Parameters
+        ----------
+        points : ndarray
+            (3,) or (n, 3), m.
+
+        Returns
+        -------
+        ndarray
+            (n,) bool.
+        """
         return self.distance(points) <= self.margin_m
 
     def to_dict(self) -> dict[str, Any]:
+        """The volume as a JSON-ready dict {normals, offsets, margin_m}."""
         return {"normals": self.normals.tolist(), "offsets": self.offsets.tolist(), "margin_m": self.margin_m}
 
     @classmethod
     def from_dict(cls, d: Any, where: str = "calibrated volume") -> CalibratedVolume:
+        """The volume `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            A dict from `to_dict`.
+        where : str, optional
+            What the error names.
+
+        Returns
+        -------
+        CalibratedVolume
+
+        Raises
+        ------
+        ModelError
+            When the keys are missing or do not describe a 3D hull.
+        """
         try:
             n = np.asarray(d["normals"], dtype=float)
             b = np.asarray(d["offsets"], dtype=float)
