@@ -1,29 +1,9 @@
 """A calibration campaign's phase files: what `dt demo` writes from its simulated campaign and
-`dt calibrate` reads (docs/campaign-files.md, the user's description of the same format).
+`dt calibrate` reads.
 
-One CSV per phase (UTF-8, comma, header row, one row per positioning, in time order). Columns
-(mm, mm/s, rad, deg C, kg, s; an empty cell of a measurement is NaN: the instrument refused):
-
-| column | required | meaning |
-|---|---|---|
-| `point_id`, `rep` | no (row number from 1, 0) | target point (integer ids read as integers) and replication |
-| `axis`, `distance` | registration only | three-line registration: line (x, y, z) and distance along it (mm) |
-| `tx, ty, tz` | no (= x, y, z) | the commanded target, robot frame |
-| `x, y, z` | yes | the controller's commanded TCP, robot frame |
-| `speed` | yes | commanded linear speed (> 0) |
-| `q1..qN` | no | the controller's joint angles (rad; q1 to qN without a gap) |
-| `temperature`, `payload`, `t` | no (NaN) | cell temperature, carried mass (>= 0), time of the measurement |
-| `lt_x, lt_y, lt_z` | yes | laser tracker point, tracker frame |
-| `mvs_x, mvs_y, mvs_z` | no | camera-system point, MVS frame |
-| `truth_lt_x, ..._z` | no | simulation only: the noise-free truth in the tracker frame (for scoring) |
-
-A missing optional column reads as NaN (`t` too, not the row index: a made-up clock would let the
-`drift` effect fit time it never saw; an effect that needs a missing column refuses when fitted).
-
-Plausibility checks catch the usual unit slips (a DataError names file, column, value and what
-is expected): positions in metres (the largest |x|, |y|, |z| of a file below 10 mm), joint
-angles in degrees (beyond 2 pi), speed <= 0, payload < 0; `check_robot` catches files of another
-robot than the robot config (the joint angles' forward kinematics must give x, y, z).
+One CSV per phase (UTF-8, comma, header row, one row per positioning, in time order); the
+columns, units and plausibility checks are described in docs/campaign-files.md. `check_robot`
+catches files of another robot than the robot config.
 """
 from __future__ import annotations
 

@@ -74,6 +74,24 @@ class ColumnSpec:
 
 
 def parse_number(text: str, decimal: str = ".") -> float:
+    """A number as a file's text cell writes it.
+
+    Parameters
+    ----------
+    text : str
+        The cell's text.
+    decimal : str, optional
+        The decimal mark, "." or ",".
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    CellError
+        When the text is not a number with that decimal mark.
+    """
     s = text.strip()
     if decimal == ",":
         if "." in s:  # '.' is not allowed once ',' is the decimal mark (thousands separators?)
@@ -379,6 +397,19 @@ class _BadRow(Exception):
 
 
 def cell_error(column: str, reason: str) -> CellError:
+    """A CellError naming the column it is about.
+
+    Parameters
+    ----------
+    column : str
+        The column's name.
+    reason : str
+        What is wrong.
+
+    Returns
+    -------
+    CellError
+    """
     exc = CellError(reason)
     exc.column = column  # type: ignore[attr-defined]
     return exc

@@ -75,6 +75,7 @@ class JointCheck:
     robot: str
 
     def to_dict(self) -> dict:
+        """The check as a JSON-ready dict (mm rounded to 0.1 um)."""
         return {"median_mm": round(self.median_mm, 4), "p95_mm": round(self.p95_mm, 4), "rows": self.rows,
                 "robot": self.robot}
 

@@ -134,6 +134,7 @@ class Dataset:
 
     @property
     def n(self) -> int:
+        """Number of rows."""
         return len(self)
 
     @property
@@ -358,6 +359,23 @@ def meta_path(data: str | Path) -> Path:
 
 
 def read_meta_sidecar(data: str | Path) -> dict | None:
+    """The simulation sidecar (`meta_path`) of a data file, if there is one.
+
+    Parameters
+    ----------
+    data : str or Path
+        The data file.
+
+    Returns
+    -------
+    dict or None
+        The sidecar's JSON object; None without a sidecar.
+
+    Raises
+    ------
+    DataError
+        When the sidecar is unreadable or not a JSON object.
+    """
     p = meta_path(data)
     if not p.is_file():
         return None

@@ -1,33 +1,8 @@
 """Import mappings: read foreign measurement files into a `Dataset` without editing them.
 
 A mapping (YAML, validated into the frozen `ImportMapping`) says how a foreign file is laid
-out: separator, decimal mark, which column holds each contract field, the unit of each field,
-the error sign, and whether the measurement is in an instrument frame that needs registration.
-
-Registration (measurement in an instrument frame, e.g. a laser tracker): with the commanded
-flange position p_f, its orientation R_f (when the mapping names orientation columns) and the
-measured point p_m, fit by least squares
-
-    R p_m + t = p_f + R_f o                                   (one 3-vector equation per row)
-
-for the rigid transform instrument -> robot (R, t) and the probe/tool offset o in the flange
-frame (the paper's Eqs. 3-4, with the tool offset as extra unknowns). Start: Kabsch on the
-positions; then Levenberg-Marquardt (scipy least_squares). The commanded TCP is then
-p_f + R_f o, the measured TCP R p_m + t, and the error their difference (Eq. 8 sign). What is
-left is what a rigid registration cannot explain: the robot's own error plus noise.
-
-Time: `seconds` (a numeric column), `timestamp` (a date-time text column, e.g. YYYYmmddHHMMSS,
-t = seconds from the earliest row), or `row_order` (t = row index 0, 1, 2 ...: only the order
-is known; e.g. a spreadsheet mangled the timestamps). A timestamp column that does not parse
-can fall back to row order (`fallback: row_order`), which the report's notes record.
-
-The file is CSV text or a spreadsheet (.xlsx, .xls, .ods; `sheet:` picks the sheet; `cells`, `sheets`):
-a spreadsheet's number cells are numbers (the `decimal:` key applies to its text cells only), its
-date-time cells are timestamps as they are (no `format` needed), a number in a timestamp column
-reads as its digits (20210312101530 with the default format). Uncertainty columns may hold
-expanded uncertainties (`uncertainty: {kind: expanded, k: 2}`), imported as u = U / k. The file's
-numeric columns that the mapping does not name are kept beside the rows (`Dataset.extra`, by
-their names in the file), as `read_table` keeps a contract file's.
+out; a measurement in an instrument frame is registered to the robot (`RegistrationSpec`).
+See docs/measurement-table.md ("Foreign files: import mappings").
 """
 from __future__ import annotations
 
@@ -107,6 +82,7 @@ class Columns(Frozen):
 
 
 class Units(Frozen):
+    """The unit of each field of a mapped file (positions, measurements, uncertainties, angles, speed)."""
     position: LengthUnit = "mm"      # commanded x, y, z
     measurement: LengthUnit = "mm"   # ex.. or mx..
     uncertainty: LengthUnit = "mm"   # ux..
@@ -116,6 +92,13 @@ class Units(Frozen):
 
 
 class TimeSpec(Frozen):
+    """Where `t` comes from.
+
+    `seconds` (a numeric column), `timestamp` (a date-time text column, e.g. YYYYmmddHHMMSS,
+    t = seconds from the earliest row), or `row_order` (t = row index 0, 1, 2 ...: only the order
+    is known; e.g. a spreadsheet mangled the timestamps). A timestamp column that does not parse
+    can fall back to row order (`fallback: row_order`), which the report's notes record.
+    """
     source: Literal["seconds", "timestamp", "row_order"]
     column: str | None = None
     format: str = "%Y%m%d%H%M%S"     # strptime format for source: timestamp
@@ -175,6 +158,20 @@ class UncertaintySpec(Frozen):
 
 
 class RegistrationSpec(Frozen):
+    """How a measurement in an instrument frame (e.g. a laser tracker) is registered to the robot.
+
+    With the commanded flange position p_f, its orientation R_f (when the mapping names
+    orientation columns) and the measured point p_m, the import fits by least squares
+
+        R p_m + t = p_f + R_f o                                   (one 3-vector equation per row)
+
+    for the rigid transform instrument -> robot (R, t) and the probe/tool offset o in the flange
+    frame (the paper's Eqs. 3-4, with the tool offset as extra unknowns). Start: Kabsch on the
+    positions; then Levenberg-Marquardt (scipy least_squares). The commanded TCP is then
+    p_f + R_f o, the measured TCP R p_m + t, and the error their difference (Eq. 8 sign). What is
+    left is what a rigid registration cannot explain: the robot's own error plus noise. A given
+    `transform` replaces the fit.
+    """
     fit_offset: bool = True          # fit the probe/tool offset o on the flange (needs orientation)
     offset_init_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # start, or fixed if not fitted
     loss: Literal["linear", "soft_l1", "huber", "cauchy"] = "linear"
@@ -188,6 +185,15 @@ class RegistrationSpec(Frozen):
 
 
 class ImportMapping(Frozen):
+    """An import mapping: how a foreign file is laid out (docs/measurement-table.md, "Mapping keys").
+
+    Separator, decimal mark, which column holds each contract field, the unit of each field, the
+    error sign, and whether the measurement is in an instrument frame that needs registration.
+    The file is CSV text or a spreadsheet (.xlsx, .xls, .ods; `sheet:` picks the sheet): a
+    spreadsheet's number cells are numbers (`decimal:` applies to its text cells only), its
+    date-time cells are timestamps as they are, a number in a timestamp column reads as its digits.
+    The file's numeric columns the mapping does not name are kept beside the rows (`Dataset.extra`).
+    """
     format_version: Literal[1] = 1
     description: str = ""
     separator: str = Field(",", min_length=1, max_length=1)

@@ -29,6 +29,7 @@ _ANGLE = {"rad": 1.0, "deg": math.pi / 180.0}
 
 
 class KeyJoin(Frozen):
+    """Join a joint table to the measurement file by a key column (instead of by row order)."""
     key: str                       # the key column of the measurement file
     joints_key: str | None = None  # its name in the joint table (default: the same)
 
@@ -59,6 +60,7 @@ class JointsSpec(Frozen):
 
 @dataclass
 class JoinedJoints:
+    """The joint angles joined to a measurement file's rows."""
     q: np.ndarray            # (kept rows, k) rad, one row per kept measurement row
     keep: np.ndarray         # (measurement rows,) bool: False where the joint row was skipped (skip_bad)
     source: Path             # the joint table read

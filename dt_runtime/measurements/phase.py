@@ -31,6 +31,7 @@ class PhaseData:
 
     @property
     def n(self) -> int:
+        """Number of rows."""
         return len(self.point_id)
 
     def rows(self, mask: np.ndarray) -> PhaseData:

@@ -1,19 +1,7 @@
 """The paper's three experiment phases as data (Sect. 2.2), in metres, robot frame.
 
-1. Registration: 12 points x 10 replications at maximum speed: 25/50/75/100 mm along +x, +y
-   and +z from a common origin (the three-line method of Sect. 2.3).
-2. DOE (Fig. 5): 62 targets on three horizontal rectangles 350 mm apart with ascending areas,
-   - R1 (top) 300 x 300 mm: the 3 x 3 grid of its sides at 150 mm, with the diagonals'
-     crossing in the middle: 9 points;
-   - R2 (middle) 600 x 300 mm: its perimeter at 150 mm (12) and the diagonals' crossing: 13;
-   - R3 (bottom) 750 x 600 mm: its perimeter at 150 mm (18) and 4 points on each diagonal
-     (at 1/5 ... 4/5 of its length, about 190 mm apart): 26;
-   - 14 points on the lines joining the vertices: the midpoint of each of the four lines
-     R1 -> R2 (4), two points at thirds on each of the four lines R2 -> R3 (8), and the two
-     midpoints of the vertical line joining the diagonals' crossings of R1, R2 and R3 (2).
-   Speeds 30 / 60 / 90 % of maximum; 9 replications, each in its own random order.
-3. Validation: 14 random points inside the DOE volume (at least 60 mm from any DOE point),
-   5 replications at 80 % and 5 at 40 % of maximum speed, each replication shuffled.
+Registration (three-line method), DOE (62 targets, Fig. 5: `doe_points`) and validation, each
+replication in its own random order (`build_plan`).
 """
 from __future__ import annotations
 
@@ -29,6 +17,7 @@ Speed = Field(gt=0, le=1)
 
 
 class PlanConfig(Frozen):
+    """The plan's geometry, speeds (fractions of the maximum) and counts (plan YAML)."""
     seed: int = 1
     center_m: tuple[float, float, float] = (0.9, 0.0, 0.55)  # middle rectangle's centre
     spacing_m: float = Field(0.15, gt=0, le=0.5)
@@ -62,6 +51,9 @@ class PlanConfig(Frozen):
 
 @dataclass(frozen=True)
 class PlanRow:
+    """One positioning: phase, target point and replication, target (m), speed fraction, and for
+    registration the line and distance along it.
+    """
     phase: str
     point_id: int
     rep: int
@@ -73,6 +65,7 @@ class PlanRow:
 
 @dataclass(frozen=True)
 class Plan:
+    """The three phases' positionings, in order, and the distinct DOE and validation targets."""
     registration: list[PlanRow]
     doe: list[PlanRow]
     validation: list[PlanRow]
@@ -80,10 +73,33 @@ class Plan:
     validation_points: np.ndarray
 
     def all_targets(self) -> np.ndarray:
+        """Every positioning's target, phase by phase.
+
+        Returns
+        -------
+        ndarray
+            (n, 3), m.
+        """
         return np.array([r.target for r in self.registration + self.doe + self.validation])
 
 
 def load_plan(path: str | Path) -> PlanConfig:
+    """Read a plan YAML.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file.
+
+    Returns
+    -------
+    PlanConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, key, value and what is allowed.
+    """
     return load_yaml(path, PlanConfig)
 
 
@@ -95,6 +111,28 @@ def _rect_perimeter(a: float, b: float, s: float) -> list[tuple[float, float]]:
 
 
 def doe_points(cfg: PlanConfig) -> np.ndarray:
+    """The 62 DOE targets (Fig. 5) on three horizontal rectangles with ascending areas.
+
+    With the default spacing s = 150 mm and plane separation 350 mm:
+
+    - R1 (top) 300 x 300 mm: the 3 x 3 grid of its sides, with the diagonals' crossing: 9 points;
+    - R2 (middle) 600 x 300 mm: its perimeter (12) and the diagonals' crossing: 13;
+    - R3 (bottom) 750 x 600 mm: its perimeter (18) and 4 points on each diagonal (at 1/5 ... 4/5
+      of its length, about 190 mm apart): 26;
+    - 14 points on the lines joining the vertices: the midpoint of each of the four lines
+      R1 -> R2 (4), two points at thirds on each of the four lines R2 -> R3 (8), and the two
+      midpoints of the vertical line joining the diagonals' crossings of R1, R2 and R3 (2).
+
+    Parameters
+    ----------
+    cfg : PlanConfig
+        The plan's geometry.
+
+    Returns
+    -------
+    ndarray
+        (62, 3), m.
+    """
     s, h = cfg.spacing_m, cfg.plane_separation_m
     cx, cy, cz = cfg.center_m
     sizes = [(2 * s, 2 * s), (4 * s, 2 * s), (5 * s, 4 * s)]  # R1, R2, R3
@@ -121,6 +159,23 @@ def doe_points(cfg: PlanConfig) -> np.ndarray:
 
 
 def build_plan(cfg: PlanConfig) -> Plan:
+    """The three phases' positionings, each replication in its own random order.
+
+    1. Registration: points at `registration_distances_m` along +x, +y and +z from a common
+       origin (the three-line method of Sect. 2.3), `registration_reps` replications.
+    2. DOE: every target of `doe_points` at every speed, `doe_reps` replications.
+    3. Validation: random points inside the DOE's bounding box at least 60 mm from any DOE point,
+       `validation_reps_per_speed` replications per speed.
+
+    Parameters
+    ----------
+    cfg : PlanConfig
+        The plan (its seed fixes the orders and the validation points).
+
+    Returns
+    -------
+    Plan
+    """
     rng = np.random.default_rng(cfg.seed)
     origin = np.array(cfg.registration_origin_m)
     reg_pts = [(ax, d, origin + d * np.eye(3)[k]) for k, ax in enumerate("xyz") for d in cfg.registration_distances_m]

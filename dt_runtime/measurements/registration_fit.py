@@ -56,6 +56,7 @@ class RegistrationReport:
         return RigidTransform(self.rotation, self.translation)
 
     def to_dict(self) -> dict:
+        """The report as a JSON-ready dict (lengths in mm)."""
         f = lambda a: None if a is None else [float(v) for v in np.ravel(a)]  # noqa: E731
         return {
             "method": self.method, "n": self.n, "n_skipped": self.n_skipped,
@@ -72,6 +73,9 @@ class RegistrationReport:
 
 @dataclass
 class RigidOffsetFit:
+    """The fitted rigid transform instrument -> robot, the tool offset on the flange, the residuals
+    R p_m + t - (p_f + R_f o) and the standard deviations of the fitted values.
+    """
     rotation: np.ndarray
     translation: np.ndarray
     offset: np.ndarray

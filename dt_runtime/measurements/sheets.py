@@ -132,6 +132,17 @@ def _zip_kind(path: Path) -> Kind:
 
 
 def describe(kind: Kind) -> str:
+    """How a message names a kind of file.
+
+    Parameters
+    ----------
+    kind : str
+        "xlsx", "xls", "ods" or "text".
+
+    Returns
+    -------
+    str
+    """
     return {"xlsx": "an Excel workbook", "xls": "an Excel 97-2003 workbook (.xls)",
             "ods": "an OpenDocument spreadsheet (.ods)", "text": "text"}[kind]
 
