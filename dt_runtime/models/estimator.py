@@ -15,9 +15,37 @@ class Params:
         return [p for p in sig.parameters if p != "self"]
 
     def get_params(self, deep: bool = True) -> dict:
+        """The estimator's parameters (its `__init__` arguments).
+
+        Parameters
+        ----------
+        deep : bool, optional
+            Accepted for scikit-learn; there are no nested estimators.
+
+        Returns
+        -------
+        dict
+        """
         return {k: getattr(self, k) for k in self._param_names()}
 
     def set_params(self, **params):
+        """Set parameters by name.
+
+        Parameters
+        ----------
+        **params
+            `__init__` arguments.
+
+        Returns
+        -------
+        Params
+            self.
+
+        Raises
+        ------
+        ValueError
+            For a name that is not an `__init__` argument.
+        """
         for k, v in params.items():
             if k not in self._param_names():
                 raise ValueError(f"invalid parameter {k!r} for {type(self).__name__}")

@@ -1,34 +1,10 @@
-"""Gaussian Process Regression error maps (paper Sect. 3.2): constant mean, ARD squared-
-exponential kernel, white noise; hyperparameters by maximum marginal likelihood (L-BFGS-B on
-log-parameters with the analytic gradient, Cholesky via scipy.linalg).
+"""Gaussian Process Regression error maps (paper Sect. 3.2), one per output (`MultiOutputGP`).
 
-    y = beta + f(x) + eps,   f ~ GP(0, s_f^2 exp(-1/2 sum_k (x_k - x'_k)^2 / l_k^2)),
-    eps ~ N(0, s_n^2)
-
-The constant mean beta is the generalised-least-squares (maximum-likelihood) estimate at the
-current kernel, as MATLAB's fitrgp 'constant' basis does; by the envelope theorem the gradient
-of the profiled likelihood is the partial gradient at that beta.
-
-Exact speed-up for calibration data (not an approximation): the paper's DOE repeats every input
-(62 points x 3 speeds x 9 replications = 1,674 rows, 186 distinct inputs). With n_i replicates
-of input i, mean target ybar_i and within-group sum of squares SS_i, integrating out f_i gives
-
-  log p(y) = log N(ybar | beta, K + s_n^2 diag(1/n_i))
-             + sum_i [ -(n_i - 1)/2 log(2 pi s_n^2) - 1/2 log n_i - SS_i / (2 s_n^2) ]
-
-so the cubic work is on distinct inputs only and the posterior of f is unchanged.
-
-Large sets: when the distinct inputs exceed `sparse_threshold`, the posterior is the sparse
-VFE/DTC projection (Titsias 2009) onto `n_inducing` inducing inputs chosen by farthest-point
-sampling (deterministic, so every output of a MultiOutputGP shares them). Hyperparameters are
-then (and whenever there are more than `n_hyper` distinct inputs) learned by the exact collapsed
-marginal likelihood of a seeded random subset of `n_hyper` distinct inputs with their replicates.
-
-Follows scikit-learn's estimator contract (no sklearn import: get_params/set_params come from
-`dt_runtime.models.estimator`);
-the per-command path is `MultiOutputGP.predictor()`, a `FastPredictor` of plain numpy arrays.
-Returned standard deviations are those of the latent error map f (the model's uncertainty);
-the replication noise variance is `noise_var_`.
+Constant mean, ARD squared-exponential kernel, white noise, hyperparameters by maximum marginal
+likelihood; replicated inputs are collapsed exactly and large sets use a sparse posterior (the
+method: `GPRegressor`). Follows scikit-learn's estimator contract without importing it
+(`dt_runtime.models.estimator`); the per-command path is `MultiOutputGP.predictor()`, a
+`FastPredictor` of plain numpy arrays. See docs/effects.md ("The GP on what is left").
 """
 from __future__ import annotations
 
@@ -146,6 +122,7 @@ class GPOptions:
     min_length_scale: float = 0.1
 
     def to_dict(self) -> dict:
+        """Every option as a dict."""
         return asdict(self)
 
     @classmethod
@@ -165,15 +142,56 @@ DEFAULTS = GPOptions()
 
 # --- single output ---------------------------------------------------------------------------
 class GPRegressor(Params):
-    """One output. Inputs and output are standardised internally; the learned attributes are in
-    input/output units: `length_scales_` (input units), `signal_var_`, `noise_var_` (output
-    units squared), `mean_` (constant mean, output units), `log_marginal_likelihood_`.
+    """One output: a GP error map with constant mean, ARD squared-exponential kernel and white noise.
 
-    noise_floor: lower bound of the noise variance relative to the output variance.
-    n_restarts: seeded random starts of L-BFGS-B in addition to the default start.
-    sparse_threshold: above this many distinct inputs the posterior is sparse (VFE/DTC).
-    n_inducing: inducing inputs of the sparse posterior.
-    n_hyper: hyperparameters are learned on at most this many distinct inputs (seeded subset).
+        y = beta + f(x) + eps,   f ~ GP(0, s_f^2 exp(-1/2 sum_k (x_k - x'_k)^2 / l_k^2)),
+        eps ~ N(0, s_n^2)
+
+    Hyperparameters by maximum marginal likelihood (L-BFGS-B on log-parameters with the analytic
+    gradient, Cholesky via scipy.linalg). The constant mean beta is the generalised-least-squares
+    (maximum-likelihood) estimate at the current kernel, as MATLAB's fitrgp 'constant' basis does;
+    by the envelope theorem the gradient of the profiled likelihood is the partial gradient at
+    that beta.
+
+    Exact speed-up for calibration data (not an approximation): the paper's DOE repeats every input
+    (62 points x 3 speeds x 9 replications = 1,674 rows, 186 distinct inputs). With n_i replicates
+    of input i, mean target ybar_i and within-group sum of squares SS_i, integrating out f_i gives
+
+      log p(y) = log N(ybar | beta, K + s_n^2 diag(1/n_i))
+                 + sum_i [ -(n_i - 1)/2 log(2 pi s_n^2) - 1/2 log n_i - SS_i / (2 s_n^2) ]
+
+    so the cubic work is on distinct inputs only and the posterior of f is unchanged.
+
+    Large sets: when the distinct inputs exceed `sparse_threshold`, the posterior is the sparse
+    VFE/DTC projection (Titsias 2009) onto `n_inducing` inducing inputs chosen by farthest-point
+    sampling (deterministic, so every output of a MultiOutputGP shares them). Hyperparameters are
+    then (and whenever there are more than `n_hyper` distinct inputs) learned by the exact
+    collapsed marginal likelihood of a seeded random subset of `n_hyper` distinct inputs with their
+    replicates.
+
+    Inputs and output are standardised internally; the learned attributes are in input/output
+    units: `length_scales_` (input units), `signal_var_`, `noise_var_` (output units squared),
+    `mean_` (constant mean, output units), `log_marginal_likelihood_`. Returned standard
+    deviations are those of the latent error map f (the model's uncertainty).
+
+    Parameters
+    ----------
+    noise_floor : float
+        Lower bound of the noise variance relative to the output variance.
+    n_restarts : int
+        Seeded random starts of L-BFGS-B in addition to the default start.
+    seed : int
+        Seed of the restarts and of the hyperparameter subset.
+    max_iter : int
+        L-BFGS-B iterations per start.
+    sparse_threshold : int
+        Above this many distinct inputs the posterior is sparse (VFE/DTC).
+    n_inducing : int
+        Inducing inputs of the sparse posterior.
+    n_hyper : int
+        Hyperparameters are learned on at most this many distinct inputs (seeded subset).
+    min_length_scale : float
+        Lower bound of the length scales, in units of each input's standard deviation.
     """
 
     def __init__(self, *, noise_floor: float = DEFAULTS.noise_floor, n_restarts: int = DEFAULTS.n_restarts,
@@ -516,6 +534,7 @@ class MultiOutputGP(Params):
 
     @property
     def thetas_(self) -> list[np.ndarray]:
+        """Per output, a copy of the fitted log-hyperparameters (standardised units)."""
         return [g.theta_.copy() for g in self.models_]
 
     @property
@@ -537,11 +556,34 @@ class MultiOutputGP(Params):
         return np.column_stack([o[0] for o in out]), np.column_stack([o[1] for o in out])
 
     def predictor(self) -> FastPredictor:
+        """A fast predictor of the fitted outputs, for the per-command path.
+
+        Returns
+        -------
+        FastPredictor
+
+        Raises
+        ------
+        ModelError
+            When not fitted.
+        """
         self._check_fitted()
         return FastPredictor(self.models_)
 
     # --- persistence (JSON + NPZ, no pickle) ---------------------------------------------
     def save(self, stem) -> None:
+        """Save as `stem`.json (metadata) and `stem`.npz (arrays); no pickle.
+
+        Parameters
+        ----------
+        stem : str or Path
+            Path without suffix.
+
+        Raises
+        ------
+        ModelError
+            When not fitted, holding non-finite values, or not writable.
+        """
         self._check_fitted()
         stem = Path(stem)
         metas, arrays = [], {}
@@ -567,6 +609,22 @@ class MultiOutputGP(Params):
 
     @classmethod
     def load(cls, stem) -> MultiOutputGP:
+        """Read a model `save` wrote, with bounded reads and checked shapes.
+
+        Parameters
+        ----------
+        stem : str or Path
+            Path without suffix.
+
+        Returns
+        -------
+        MultiOutputGP
+
+        Raises
+        ------
+        ModelError
+            Naming the file for a wrong kind, format version or malformed content.
+        """
         stem = Path(stem)
         jpath, npath = stem.with_suffix(".json"), stem.with_suffix(".npz")
         try:

@@ -56,6 +56,22 @@ def farthest_points(U: np.ndarray, m: int) -> np.ndarray:
 
 
 def se_kernel(A: np.ndarray, B: np.ndarray, ell: np.ndarray, sf2: float) -> np.ndarray:
+    """The squared-exponential kernel sf2 exp(-1/2 sum_k (a_k - b_k)^2 / ell_k^2).
+
+    Parameters
+    ----------
+    A, B : ndarray
+        (n, d) and (m, d) inputs.
+    ell : ndarray
+        (d,) length scales.
+    sf2 : float
+        Signal variance.
+
+    Returns
+    -------
+    ndarray
+        (n, m).
+    """
     return sf2 * np.exp(-0.5 * cdist(A / ell, B / ell, "sqeuclidean"))
 
 
@@ -81,6 +97,25 @@ class Collapsed:
 
     @classmethod
     def of(cls, U: np.ndarray, counts: np.ndarray, ybar: np.ndarray, ss: float, N: int) -> Collapsed:
+        """The fixed quantities of a fit from its distinct inputs.
+
+        Parameters
+        ----------
+        U : ndarray
+            (n, d) standardised distinct inputs.
+        counts : ndarray
+            (n,) replicates per input.
+        ybar : ndarray
+            (n,) mean target per input.
+        ss : float
+            Summed within-replicate squares.
+        N : int
+            Number of rows.
+
+        Returns
+        -------
+        Collapsed
+        """
         n = len(ybar)
         const = 0.5 * n * LOG2PI + 0.5 * (N - n) * LOG2PI + 0.5 * np.log(counts).sum()
         return cls(sq_dists(U), counts, ybar, float(ss), int(N), float(const))

@@ -50,6 +50,25 @@ DEFAULT_RIDGE = 1e-4
 
 
 def gp_features(inp: fx.Inputs, kind: str) -> np.ndarray | None:
+    """The GP's input columns for one choice of inputs.
+
+    Parameters
+    ----------
+    inp : Inputs
+        The data's columns.
+    kind : str
+        One of GP_INPUTS ('tcp_speed' falls back to 'tcp' without a speed column).
+
+    Returns
+    -------
+    ndarray or None
+        (n, d); None for 'none'.
+
+    Raises
+    ------
+    DataError
+        For 'joints' without joint columns, or an unknown kind.
+    """
     if kind == "none":
         return None
     if kind == "joints":
@@ -99,6 +118,17 @@ class Design:
     sessions: tuple[int, ...] = ()
 
     def rows(self, mask) -> Design:
+        """The design on the rows `mask` selects.
+
+        Parameters
+        ----------
+        mask : array-like
+            Boolean mask or indices of rows.
+
+        Returns
+        -------
+        Design
+        """
         return Design(self.A[mask], self.params, self.nonnegative, self.hyper, self.sessions)
 
 

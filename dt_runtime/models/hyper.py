@@ -24,6 +24,9 @@ from dt_runtime.models import effects as fx
 
 @dataclass(frozen=True)
 class Estimate:
+    """A nonlinear parameter's estimate: the value used, its standard uncertainty (None when not
+    identified), its profile interval and unit.
+    """
     value: float  # what the model uses
     u: float | None  # standard uncertainty (None: not identified)
     lo: float  # profile interval (-log L within 1/2 of its minimum)
@@ -32,11 +35,23 @@ class Estimate:
     unit: str
 
     def to_dict(self) -> dict:
+        """The estimate as a JSON-ready dict."""
         return {"value": self.value, "u": self.u, "lo": self.lo, "hi": self.hi, "identified": self.identified,
                 "unit": self.unit}
 
     @classmethod
     def from_dict(cls, d: dict) -> Estimate:
+        """The estimate `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : dict
+            A dict from `to_dict`.
+
+        Returns
+        -------
+        Estimate
+        """
         return cls(float(d["value"]), None if d.get("u") is None else float(d["u"]), float(d["lo"]),
                    float(d["hi"]), bool(d["identified"]), str(d["unit"]))
 

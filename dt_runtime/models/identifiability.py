@@ -1,38 +1,8 @@
-"""Which effect parameters can the data determine? Rank, base parameters, aliased groups: the one
-module that judges it, for a fitted model (`analyse`, `Identifiability`) and for the kinematic
-export (`aliasing`, `Aliasing`: at the end).
+"""Which effect parameters can the data determine? Rank, base parameters, aliased groups.
 
-A linear effect model e = A theta is identifiable in the directions the data excite. On
-standardised columns (each regressor scaled to unit RMS, so units do not matter) the rank r of
-the design As comes from the QR decomposition of the base parameters below, and the singular
-value decomposition As = U S V^T tells which directions the data do not see: those beyond the r
-largest singular values (the complete geometric set is rank deficient on purpose: a base
-rotation and a first-joint offset move the arm alike). A parameter is *identified* when the
-unseen directions leave it alone (its squared loading on them is below `LOADING`); the others
-are grouped by the unseen directions they share (offset_q1 with frame1_rz, say), and for such a
-group only the combinations along the seen directions are determined. A regressor column that
-is zero to round-off (a joint offset that cannot move a TCP lying on its axis) is unseen as a
-whole: its parameter is not identified and never divides by its round-off scale.
-
-The ridge estimate puts the unseen directions at zero, so a value of a non-identified parameter
-is an artefact of the penalty, not a measurement: reports and `dt fit --json` mark it
-(`identified: false`, value withheld) and list its group.
-
-**Base parameters** (Khalil & Dombre's, as FIGAROH computes them: tools/qrdecomposition.py,
-`QR_pivoting`) are what the data do determine, r of them for rank r: a QR decomposition with
-column pivoting of the standardised design, As P = Q R, picks the r most independent columns
-(the pivots; the rank is the number of |R_ii| above `RCOND` x |R_11|, FIGAROH's tolerance on
-the diagonal of R made relative to the standardised columns), and every other column is a
-combination of them, As_d = As_b K with K = R_11^-1 R_12 (FIGAROH's regrouping coefficients
-`beta`). So A theta = A_b beta with beta_b = theta_b + K theta_d: each base parameter is named by
-its leading (pivot) parameter and stands for that combination, here in physical units
-(coefficient of theta_j: unit of the base parameter per unit of theta_j); coefficients below
-`COEF_TOL` are round-off and dropped (FIGAROH's tol_beta). beta is the same for every theta that
-predicts the same errors on these rows, so its value is a measurement, and its uncertainty
-follows from the parameters' covariance, u(beta) = sqrt(diag(C Sigma_theta C^T)). Columns equal
-to round-off decide the pivot by round-off: aliased columns (offset_q1 and frame1_rz on a
-vertical first axis) would lead by chance, so the pivoting sees column k weighted by
-1 - `TIE` k and a tie goes to the parameter listed first (joint offsets before frame errors).
+The one module that judges it, for a fitted model (`analyse`, `Identifiability`; base
+parameters by `base_of`) and for the kinematic export (`aliasing`, `Aliasing`: at the end).
+See docs/effects.md ("Which parameters the data determine").
 """
 from __future__ import annotations
 
@@ -60,6 +30,7 @@ class Base:
 
     @property
     def rank(self) -> int:
+        """Number of base parameters."""
         return len(self.lead)
 
     def absorbed(self, k: int) -> list[int]:
@@ -67,11 +38,30 @@ class Base:
         return [int(j) for j in np.flatnonzero(self.C[k]) if j != self.lead[k]]
 
     def state(self) -> list[dict]:
+        """JSON-ready rows {lead, absorbs, coefficients} (what a saved model keeps).
+
+        Returns
+        -------
+        list of dict
+        """
         return [{"lead": int(i), "absorbs": (js := self.absorbed(k)), "coefficients": [float(self.C[k, j]) for j in js]}
                 for k, i in enumerate(self.lead)]
 
     @classmethod
     def from_state(cls, rows: list[dict], p: int) -> Base:
+        """The base parameters `state` wrote.
+
+        Parameters
+        ----------
+        rows : list of dict
+            From `state`.
+        p : int
+            Number of parameters.
+
+        Returns
+        -------
+        Base
+        """
         C = np.zeros((len(rows), p))
         for k, r in enumerate(rows):
             C[k, int(r["lead"])] = 1.0
@@ -81,6 +71,9 @@ class Base:
 
 @dataclass
 class Identifiability:
+    """What the data determine of a design's parameters: rank, condition number, which parameters are
+    identified, the aliased groups, the base parameters and the columns that have no effect.
+    """
     n_params: int
     rank: int
     condition: float  # largest / smallest singular value among the seen directions
@@ -99,6 +92,17 @@ class Identifiability:
 
     @classmethod
     def from_state(cls, d: dict) -> Identifiability:
+        """The judgement `state` wrote.
+
+        Parameters
+        ----------
+        d : dict
+            From `state`.
+
+        Returns
+        -------
+        Identifiability
+        """
         cond = d.get("condition")
         p = int(d["n_params"])
         return cls(p, int(d["rank"]), float("inf") if cond is None else float(cond),
@@ -106,6 +110,17 @@ class Identifiability:
                    Base.from_state(d["base"], p) if "base" in d else None, [int(i) for i in d.get("no_effect", [])])
 
     def to_dict(self, names: list[str] | None = None) -> dict:
+        """The judgement for a report: rank, condition, the parameters not identified and the groups.
+
+        Parameters
+        ----------
+        names : list of str, optional
+            Parameter names; indices without them.
+
+        Returns
+        -------
+        dict
+        """
         name = (lambda i: names[i]) if names else (lambda i: i)
         return {"n_params": self.n_params, "rank": self.rank,
                 "condition": float(self.condition) if np.isfinite(self.condition) else None,
@@ -122,9 +137,39 @@ def zero_columns(scale: np.ndarray) -> np.ndarray:
 
 
 def base_of(As: np.ndarray, scale: np.ndarray | None = None, zero: np.ndarray | None = None) -> Base:
-    """The base parameters of the standardised design `As` (rows x p; module docstring);
-    `scale`: each column's standardisation (As = A / scale; default 1), which puts the
-    coefficients in physical units; `zero`: columns known to be round-off (never a pivot)."""
+    """The base parameters of the standardised design `As`.
+
+    Base parameters (Khalil & Dombre's, as FIGAROH computes them: tools/qrdecomposition.py,
+    `QR_pivoting`) are what the data do determine, r of them for rank r: a QR decomposition with
+    column pivoting of the standardised design, As P = Q R, picks the r most independent columns
+    (the pivots; the rank is the number of |R_ii| above `RCOND` x |R_11|, FIGAROH's tolerance on
+    the diagonal of R made relative to the standardised columns), and every other column is a
+    combination of them, As_d = As_b K with K = R_11^-1 R_12 (FIGAROH's regrouping coefficients
+    `beta`). So A theta = A_b beta with beta_b = theta_b + K theta_d: each base parameter is named
+    by its leading (pivot) parameter and stands for that combination, here in physical units
+    (coefficient of theta_j: unit of the base parameter per unit of theta_j); coefficients below
+    `COEF_TOL` are round-off and dropped (FIGAROH's tol_beta). beta is the same for every theta
+    that predicts the same errors on these rows, so its value is a measurement, and its
+    uncertainty follows from the parameters' covariance, u(beta) = sqrt(diag(C Sigma_theta C^T)).
+    Columns equal to round-off decide the pivot by round-off: aliased columns (offset_q1 and
+    frame1_rz on a vertical first axis) would lead by chance, so the pivoting sees column k
+    weighted by 1 - `TIE` k and a tie goes to the parameter listed first (joint offsets before
+    frame errors). See docs/effects.md ("Which parameters the data determine").
+
+    Parameters
+    ----------
+    As : ndarray
+        (rows, p) standardised design.
+    scale : ndarray, optional
+        Each column's standardisation (As = A / scale; default 1), which puts the coefficients in
+        physical units.
+    zero : ndarray, optional
+        (p,) bool: columns known to be round-off (never a pivot).
+
+    Returns
+    -------
+    Base
+    """
     p = As.shape[1]
     scale = np.ones(p) if scale is None else np.asarray(scale, float)
     zero = np.zeros(p, bool) if zero is None else np.asarray(zero, bool)
@@ -149,9 +194,34 @@ def base_of(As: np.ndarray, scale: np.ndarray | None = None, zero: np.ndarray | 
 
 
 def analyse(As: np.ndarray, zero: np.ndarray | None = None, scale: np.ndarray | None = None) -> Identifiability:
-    """Identifiability of the parameters of the standardised design `As` (rows x p): rank and
-    base parameters (`base_of`), and which single parameters are identified; `zero`: columns
-    known to be round-off (not identified, each its own group); `scale`: as for `base_of`."""
+    """Identifiability of the parameters of the standardised design `As`.
+
+    A linear effect model e = A theta is identifiable in the directions the data excite. On
+    standardised columns (each regressor scaled to unit RMS, so units do not matter) the rank r
+    of the design comes from `base_of`, and the singular value decomposition As = U S V^T tells
+    which directions the data do not see: those beyond the r largest singular values (the
+    complete geometric set is rank deficient on purpose: a base rotation and a first-joint offset
+    move the arm alike). A parameter is identified when the unseen directions leave it alone (its
+    squared loading on them is below `LOADING`); the others are grouped by the unseen directions
+    they share (offset_q1 with frame1_rz, say). A regressor column that is zero to round-off (a
+    joint offset that cannot move a TCP lying on its axis) is unseen as a whole: its parameter is
+    not identified and never divides by its round-off scale. The ridge estimate puts the unseen
+    directions at zero, so a value of a non-identified parameter is an artefact of the penalty:
+    reports and `dt fit --json` withhold it and list its group.
+
+    Parameters
+    ----------
+    As : ndarray
+        (rows, p) standardised design.
+    zero : ndarray, optional
+        (p,) bool: columns known to be round-off (not identified, each its own group).
+    scale : ndarray, optional
+        As for `base_of`.
+
+    Returns
+    -------
+    Identifiability
+    """
     p = As.shape[1]
     zero = np.zeros(p, bool) if zero is None else np.asarray(zero, bool)
     live = np.flatnonzero(~zero)

@@ -1,23 +1,11 @@
-"""Physical effect terms of the hybrid error model, one class per effect, each linear in
-parameters that mean something physically (joint offsets in rad, stiffness in N m/rad, backlash
-width in rad, expansion coefficient in 1/K, lag in s, drift in rad/h).
+"""Physical effect terms of the hybrid error model, one class per effect (docs/effects.md).
 
-`REGISTRY` is the one place that lists them, in the contract order (docs/effects.md): geometric,
-compliance, gear, backlash, thermal, dynamic, drift. Each `Effect` subclass declares its name,
-the data columns it reads, whether it needs the robot's kinematic chain and the factor the
-diagnose verdict names, and builds its regressor block. Adding an effect: one module with one
-`Effect` subclass, one entry in `REGISTRY`, one test (the simulator's scenario must know the
-same name: tests/unit/test_effects_registry.py).
+`REGISTRY` lists them in the contract order: geometric, compliance, gear, backlash, thermal,
+dynamic, drift; each is linear in parameters with a physical meaning. The user's own effects are
+never registered in the process: a `Catalogue` holds the effects one call knows::
 
-The user's own effects (declared in YAML or from a package's entry point, `models.effects.declared`)
-are never registered in the process: a `Catalogue` holds the effects one call knows (the
-catalogue, the installed plugins read when it is built, and its own: a file's declarations, a
-saved model's) and is passed down to what needs it (a model, a diagnosis, its worker processes).
-
-    from dt_runtime.models import effects
     cat = effects.default().with_file("configs/effects/humidity.yaml")
     cat.get("backlash").build(effects.Inputs.of(dataset), chain)       # a Block
-    cat.available(inputs, chain)                                        # names the data allow
 """
 from __future__ import annotations
 

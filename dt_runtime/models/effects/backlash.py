@@ -122,6 +122,24 @@ class Backlash(Effect):
     hyper_choices = {"moves": MOVES}
 
     def regressors(self, inp: Inputs, chain: Chain, moves: float = 0.0, play_rad: float = 0.0) -> Block:
+        """The block: each joint's width times half its engagement sign, through the Jacobian.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain
+            The robot's kinematic chain.
+        moves : float, optional
+            >= 0.5: the rows were reached by linear TCP moves, else by joint moves (`MOVES`).
+        play_rad : float, optional
+            The play over which the engagement goes from -1 to 1, rad (0: the sign).
+
+        Returns
+        -------
+        Block
+            Parameters width_q1..width_qN, rad, non-negative.
+        """
         q = inp.column("joints")
         J = chain.jacobian(q)
         g = engagement(q, chain, linear=bool(moves >= 0.5), play_rad=play_rad)

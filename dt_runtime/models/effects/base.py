@@ -39,6 +39,7 @@ class Inputs:
 
     @property
     def n(self) -> int:
+        """Number of rows."""
         return len(self.commanded)
 
     @classmethod
@@ -49,6 +50,17 @@ class Inputs:
                    extra=dict(getattr(ds, "extra", {}) or {}) or None)
 
     def subset(self, mask) -> Inputs:
+        """The rows where `mask` selects (every array column, and `extra`).
+
+        Parameters
+        ----------
+        mask : array-like
+            Boolean mask or indices of rows.
+
+        Returns
+        -------
+        Inputs
+        """
         return replace(self, **{f.name: v[mask] for f in fields(self)
                                 if isinstance(v := getattr(self, f.name), np.ndarray)},
                        extra=None if self.extra is None else {k: v[mask] for k, v in self.extra.items()})
@@ -60,6 +72,17 @@ class Inputs:
         return None if self.extra is None else self.extra.get(name)
 
     def has(self, *columns: str) -> bool:
+        """Whether every named column is there.
+
+        Parameters
+        ----------
+        *columns : str
+            Column names (fields of Inputs or the data's own).
+
+        Returns
+        -------
+        bool
+        """
         return all(self.get(c) is not None for c in columns)
 
     def column(self, name: str) -> np.ndarray:
@@ -91,6 +114,9 @@ def as_inputs(X) -> Inputs:
 
 @dataclass(frozen=True)
 class Block:
+    """One effect's regressors: A (n, 3, p) with e = A theta, each parameter's name and unit, how it
+    is reported, and whether physics wants its parameters >= 0.
+    """
     effect: str
     A: np.ndarray  # (n, 3, p)
     names: tuple[str, ...]

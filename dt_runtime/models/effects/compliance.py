@@ -21,6 +21,20 @@ class Compliance(Effect):
     varies_with = ("payload",)
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
+        """The block: each joint's compliance times the payload's gravity torque, through the Jacobian.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        Block
+            Parameters compliance_q1..N, rad/(N m), reported as stiffness (1/x), non-negative.
+        """
         J = chain.jacobian(inp.column("joints"))
         tau = J[:, 2, :] * (inp.column("payload")[:, None] * GRAVITY)  # (n, dof) N m
         A = J * tau[:, None, :]  # e = -J dq = J diag(tau) c

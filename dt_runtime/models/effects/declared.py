@@ -1,26 +1,9 @@
-"""Effects of the user's own, beyond the catalogue, without editing the project:
+"""Effects of the user's own, beyond the catalogue, without editing the project.
 
-- declared in YAML as regressors built from the data's columns (`--effects-file`):
-
-      effects:
-        - name: humidity                      # lower-case, not a catalogue name
-          factor: the hall's relative humidity  # what the diagnosis says the residual follows
-          terms:
-            - column: humidity                # a numeric column of the data file
-              reference: 45.0                 # the regressor is (column - reference)
-              unit: "%"                       # the column's unit: parameters in m/% (or rad/%)
-              space: cartesian                # TCP offset per unit along `axes`
-              axes: [x, y, z]
-            - column: fixture_temp
-              space: joints                   # joint offsets per unit (rad/unit) through the Jacobian
-              joints: [2, 3]                  # 1-based; default every joint
-
-  A fitted model keeps the declaration (hybrid.json), so it loads without the file.
-- written in Python: an `Effect` subclass published by any installed package under the entry
-  point group `cobot_dt.effects` (name = the effect's name, value = "module:Class"); a
-  `models.effects.Catalogue` reads them when it is built.
-
-Nothing here is registered in the process: the effects go into the `Catalogue` of one call.
+Declared in YAML as regressors built from the data's columns (`--effects-file`; a fitted model
+keeps the declaration), or written in Python as an `Effect` subclass published under the entry
+point group `cobot_dt.effects`. Nothing here is registered in the process: the effects go into
+the `Catalogue` of one call. See docs/effects.md ("Your own effects").
 """
 from __future__ import annotations
 
@@ -42,6 +25,9 @@ _NAME = re.compile(r"^[a-z][a-z0-9_]{0,39}$")
 
 
 class TermSpec(Frozen):
+    """One term of a declared effect: a column minus its reference, as a TCP offset along `axes`
+    (cartesian) or as joint offsets through the Jacobian (joints).
+    """
     column: str = Field(min_length=1)
     reference: float = 0.0
     unit: str = "1"
@@ -58,6 +44,7 @@ class TermSpec(Frozen):
 
 
 class EffectSpec(Frozen):
+    """One declared effect: its name, the factor the diagnosis names, its terms."""
     name: str
     factor: str = Field(min_length=3)
     terms: tuple[TermSpec, ...] = Field(min_length=1)
@@ -71,6 +58,7 @@ class EffectSpec(Frozen):
 
 
 class EffectsFile(Frozen):
+    """An effects YAML (`--effects-file`): one or more declared effects."""
     effects: tuple[EffectSpec, ...] = Field(min_length=1)
 
 
@@ -89,6 +77,26 @@ class DeclaredEffect(Effect):
         return f" (declared in {self.source})" if self.source else ""
 
     def build(self, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
+        """The regressor block; a missing column names the declaring file and the data's columns.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain or None
+            The robot's kinematic chain (needed for joint-space terms).
+        hyper : dict, optional
+            Not used (a declared effect has no nonlinear parameters).
+
+        Returns
+        -------
+        Block
+
+        Raises
+        ------
+        DataError
+            When the data lack a column the declaration reads.
+        """
         # The catalogue's message names the missing column; a declared one may be a typo in the
         # user's file, so name the file and the columns the data do have.
         missing = [c for c in self.columns if inp.get(c) is None]
@@ -98,6 +106,19 @@ class DeclaredEffect(Effect):
         return super().build(inp, chain, hyper)
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
+        """The block: one regressor per term and axis (cartesian) or joint (joints).
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        Block
+        """
         cols, names, units = [], [], []
         J = chain.jacobian(inp.column("joints")) if self.needs_chain else None
         for i, term in enumerate(self.spec.terms):

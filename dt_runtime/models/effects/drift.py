@@ -16,6 +16,20 @@ class Drift(Effect):
     varies_with = ("time",)
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
+        """The block: each joint's drift rate times the hours since the time origin, through the Jacobian.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        Block
+            Parameters rate_q1..N, rad/h.
+        """
         J = chain.jacobian(inp.column("joints"))
         t = inp.column("t")
         t0 = inp.t_origin if inp.t_origin is not None else t[0]

@@ -18,6 +18,20 @@ class Dynamic(Effect):
     varies_with = ("speed", "direction")
 
     def regressors(self, inp: Inputs, chain: Chain | None = None) -> Block:
+        """The block: a lag along the direction of travel and a sag in z, each proportional to speed.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns (commanded TCP in time order, speed).
+        chain : Chain, optional
+            Not used.
+
+        Returns
+        -------
+        Block
+            Parameters lag and sag, s.
+        """
         d = approach(inp.commanded)
         norm = np.linalg.norm(d, axis=1, keepdims=True)
         u = np.divide(d, norm, out=np.zeros_like(d), where=norm > 0)

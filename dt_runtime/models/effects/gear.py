@@ -17,6 +17,20 @@ class Gear(Effect):
     varies_with = ()
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
+        """The block: sin and cos of each candidate harmonic of each joint angle, through the Jacobian.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        Block
+            Parameters q<j>_sin<h>, q<j>_cos<h>, rad.
+        """
         J = chain.jacobian(inp.column("joints"))
         q = inp.column("joints")
         cols, names = [], []

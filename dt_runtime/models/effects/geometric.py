@@ -27,6 +27,20 @@ class Geometric(Effect):
     varies_with = ()
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:
+        """The block: joint offsets, each joint frame's translation and rotation errors, the tool offset.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        Block
+            Parameters offset_q<j> (rad), frame<j>_d{x,y,z} (m), frame<j>_r{x,y,z} (rad), tool_d{x,y,z} (m).
+        """
         pos, rot, T = chain.frames(inp.column("joints"))
         J = np.cross(chain.world_axes(rot), T[:, None, :3, 3] - pos).transpose(0, 2, 1)  # Chain.jacobian, same frames
         dof = J.shape[2]

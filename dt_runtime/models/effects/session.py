@@ -46,6 +46,18 @@ def term_regressors(term: str, inp: Inputs, chain: Chain | None) -> tuple[np.nda
 
 
 def session_column(inp: Inputs) -> np.ndarray | None:
+    """The data's session number per row, or None without a session column.
+
+    Parameters
+    ----------
+    inp : Inputs
+        The data's columns.
+
+    Returns
+    -------
+    ndarray or None
+        (n,) int.
+    """
     s = inp.get("session")
     return None if s is None else np.asarray(s).astype(int)
 

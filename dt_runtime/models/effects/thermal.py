@@ -59,10 +59,37 @@ class Thermal(Effect):
     hyper_columns = ("t",)
 
     def reads(self, chain: Chain | None) -> tuple[str, ...]:
+        """The columns it reads: with the chain's thermal links, the joint angles too.
+
+        Parameters
+        ----------
+        chain : Chain or None
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        tuple of str
+        """
         # per link, the links' directions come from the joint angles
         return self.columns + ("joints",) if chain is not None and chain.thermal_links else self.columns
 
     def regressors(self, inp: Inputs, chain: Chain | None = None, lag_s: float = 0.0) -> Block:
+        """The block: expansion with the (lagged) structure temperature, uniform or per link.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain, optional
+            With `thermal_links`, one coefficient per link group.
+        lag_s : float, optional
+            Lag of the structure's temperature behind the logged one, s.
+
+        Returns
+        -------
+        Block
+            Parameters alpha (1/K), or one per link group.
+        """
         T = self.structure_temperature(inp, lag_s)
         dT = T - REFERENCE_TEMPERATURE_C
         if chain is None or not chain.thermal_links:
