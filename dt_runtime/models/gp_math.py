@@ -1,6 +1,6 @@
 """The numerical core of the GP (dt_runtime.models.gp): the squared-exponential kernel, the
 replicate collapse and the exact collapsed log marginal likelihood with its analytic gradient
-(the collapse is derived in gp.py's module docstring, the gradient in `collapsed_nll`),
+(the collapse is derived in `gp.GPRegressor`'s docstring, the gradient in `collapsed_nll`),
 farthest-point inducing inputs."""
 from __future__ import annotations
 
@@ -146,7 +146,7 @@ def collapsed_factor(theta: np.ndarray, st: Collapsed):
     alpha = Ki[:, 1] - beta * Ki[:, 0]
     r = st.ybar - beta
     nll = 0.5 * r @ alpha + np.log(np.diagonal(L)).sum() + st.const
-    # Within-replicate part (gp.py's module docstring).
+    # Within-replicate part (`gp.GPRegressor`'s docstring).
     nll += 0.5 * (st.N - len(st.ybar)) * np.log(sn2) + st.ss / (2 * sn2)
     if not np.isfinite(nll):
         return None
