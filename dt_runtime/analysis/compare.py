@@ -1,23 +1,10 @@
-"""`dt compare`: error models against measurements, side by side.
-
-For every model (and "as is", no model: e_hat = 0, always the first column) the residual
-r = e - e_hat of each measured row (e = commanded - measured, paper Eq. 8) gives the 3D and
-per-axis figures, the Eq. 17 t-test of every row against the model's stated uncertainty, and
-the residual broken down by factor (workspace region, speed, payload, temperature, time, joint
-configuration), so a user sees where a model fails and which factor the failure follows.
+"""`dt compare`: error models against measurements, side by side (docs/cli.md, "dt compare").
 
     result, arrays = compare(["models/v1", "models/v2"], read_table("held_out.csv"))
     compare_report.write_compare_report(result.to_dict(), arrays, "out/")
 
-`result` is a `CompareResult` (dt_runtime.analysis.results); its `to_dict()` is the JSON object
-(mm), where the primary model (the last one given) is also at the top level, so `n`, `rmse_mm`,
-`mae_mm`, `max_mm`, `per_axis`, `failures` are top-level keys (docs/cli.md, contract). `arrays` holds the
-SI arrays the report plots.
-
-Data of several sessions (several files of one campaign: a `session` column, `sessions()`) are
-also scored session by session: every column gets a `sessions` list with each session's figures,
-and, for a session whose registration was fitted on its own points, the same figures after that
-registration is fitted again to the corrected commanded points (`reregister`).
+`result` is a `CompareResult` (dt_runtime.analysis.results) whose `to_dict()` is the JSON object
+(mm); `arrays` holds the SI arrays the report plots.
 """
 from __future__ import annotations
 
@@ -110,6 +97,17 @@ def load_models(models: Sequence, names: Sequence[str] | None = None,
 
 
 def describe(model: HybridModel) -> str:
+    """A model's configuration in words, e.g. "geometric+thermal, GP on tcp_speed".
+
+    Parameters
+    ----------
+    model : HybridModel
+        The model.
+
+    Returns
+    -------
+    str
+    """
     fx = "+".join(model.effects) or "no effects"
     return f"{fx}, GP on {model.gp_inputs}" if model.gp_inputs != "none" else f"{fx}, no GP"
 
@@ -276,6 +274,24 @@ def breakdown(r: np.ndarray, cells: dict) -> dict:
 
 
 def worst_cells(bd: dict, overall_mm: float, k: int = N_WORST, min_n: int = MIN_CELL) -> list[dict]:
+    """The factor cells with the largest residual RMS.
+
+    Parameters
+    ----------
+    bd : dict
+        The breakdown: factor -> its cells ({cell, n, rmse_mm, mean_mm}).
+    overall_mm : float
+        The overall RMS, mm (for each cell's ratio).
+    k : int, optional
+        How many cells.
+    min_n : int, optional
+        Cells with fewer rows are not named.
+
+    Returns
+    -------
+    list of dict
+        {factor, cell, n, rmse_mm, ratio, mean_mm}, worst first.
+    """
     cand = [{"factor": f, "cell": c["cell"], "n": c["n"], "rmse_mm": c["rmse_mm"],
              "ratio": c["rmse_mm"] / overall_mm if overall_mm > 0 else None, "mean_mm": c["mean_mm"]}
             for f, cells in bd.items() for c in cells if c["n"] >= min_n]
@@ -387,6 +403,15 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             catalogue: Catalogue | None = None) -> tuple[CompareResult, dict]:
     """Compare models (HybridModel instances or model directories, oldest first) with the
     measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
+
+    For every model (and "as is", no model: e_hat = 0) the residual r = e - e_hat of each
+    measured row (e = commanded - measured, paper Eq. 8) gives the 3D and per-axis figures, the
+    Eq. 17 t-test of every row against the model's stated uncertainty, and the residual broken
+    down by factor (workspace region, speed, payload, temperature, time, joint configuration), so
+    a user sees where a model fails and which factor the failure follows. The primary model (the
+    last one given) is also at the top level of the JSON (`n`, `rmse_mm`, `mae_mm`, `max_mm`,
+    `per_axis`, `failures`: the contract of docs/cli.md). Data of several sessions are also
+    scored session by session.
 
     noise_floor_m: the measurement noise floor (m) if known from elsewhere (e.g. a simulation
     sidecar); default: 3D RMS of the dataset's ux..uz, if stated.

@@ -49,6 +49,7 @@ class Finding:
     points: int | None = None
 
     def to_dict(self) -> dict:
+        """The finding as a JSON-ready dict."""
         out = {"candidate": self.candidate, "factor": self.factor, "against": self.against,
                "r2": None if self.r2 is None else float(self.r2), "testable": self.testable}
         if self.revisited is not None:

@@ -26,6 +26,9 @@ if TYPE_CHECKING:  # only a type here: the twin's calibration imports this modul
 
 @dataclass
 class CvResult:
+    """One cross-validation: held-out residuals, the per-group mean squares, the fold models' stated
+    uncertainties and the GP hyperparameters used.
+    """
     residual: np.ndarray  # (n,3) held-out residuals (NaN for rows in no fold)
     group_mse: np.ndarray  # (g,) per-group mean squared 3D residual, groups in np.unique order
     std: np.ndarray | None  # (n,3) the fold models' stated standard uncertainty (return_std)

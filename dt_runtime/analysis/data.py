@@ -25,6 +25,9 @@ DEFAULT_ROBOT = CONFIGS / "robots" / "cobot_hc20_like.yaml"
 
 @dataclass
 class Data:
+    """A loaded measurement set and the facts about it (source, rows, skipped rows, registration
+    report of an import, sidecar facts).
+    """
     dataset: Dataset
     info: dict  # source, rows, skipped rows, registration report (import), sidecar facts
 

@@ -3,22 +3,8 @@
     r = diagnose("data.csv", DiagnoseOptions(effects=("geometric",)))     # one step: the candidates ranked
     r = diagnose("data.csv", DiagnoseOptions(auto=True, out="model"))     # the whole loop, its final model saved
 
-`DiagnoseOptions` (analysis.options) holds every choice of a call. Both depths prepare the data
-the same way (`prepare`: the measurement table or a mapped file, the robot's kinematic model, the
-noise floor, the sessions, the traceability record) and judge every candidate the way the twin
-will be used:
-
-- the significance test holds out whole target points (analysis.ranking: a model cannot win by
-  remembering a point; paired one-sided Wilcoxon per point);
-- the decision also needs a lower held-out RMS on the deployment scheme (analysis.validation:
-  held-out regions of the workspace, held-out sessions when there are several, a forecast of later times
-  for a time-dependent term), and both figures are reported side by side;
-- a candidate the campaign cannot separate from the pose is not tested (analysis.confounding);
-- several sessions: held out one at a time, and their disagreement tested against the session
-  terms (analysis.sessions).
-
-The words of the verdict are the reports' (dt_runtime.reports.verdicts); the results here carry the
-figures and the findings.
+How a candidate is judged: `diagnose`; the verdict's words are the reports'
+(dt_runtime.reports.verdicts). See docs/cli.md ("dt diagnose") and docs/effects.md.
 """
 from __future__ import annotations
 
@@ -125,6 +111,19 @@ def _n_joints(p: Problem) -> int:
 def diagnose(data: Data | Dataset | str | Path, options: DiagnoseOptions | None = None, *,
              progress: Progress | None = None) -> DiagnoseResult | AutoResult:
     """Which effect does the model lack?
+
+    Both depths prepare the data the same way (`prepare`: the measurement table or a mapped file,
+    the robot's kinematic model, the noise floor, the sessions, the traceability record) and
+    judge every candidate the way the twin will be used:
+
+    - the significance test holds out whole target points (analysis.ranking: a model cannot win
+      by remembering a point; paired one-sided Wilcoxon per point);
+    - the decision also needs a lower held-out RMS on the deployment scheme (analysis.validation:
+      held-out regions of the workspace, held-out sessions when there are several, a forecast of
+      later times for a time-dependent term), and both figures are reported side by side;
+    - a candidate the campaign cannot separate from the pose is not tested (analysis.confounding);
+    - several sessions: held out one at a time, and their disagreement tested against the
+      session terms (analysis.sessions).
 
     Parameters
     ----------

@@ -35,14 +35,32 @@ class Config:
     nuisance: tuple[str, ...] = ()
 
     def label(self) -> str:
+        """The configuration in words, e.g. "geometric + GP(TCP, v) [session tool]".
+
+        Returns
+        -------
+        str
+        """
         parts = [*self.effects, GP_LABEL[self.gp_inputs]]
         text = " + ".join(parts)
         return text + (f" [session {', '.join(self.nuisance)}]" if self.nuisance else "")
 
     def plus(self, effect: str) -> Config:
+        """This configuration with one more effect.
+
+        Parameters
+        ----------
+        effect : str
+            The effect's name.
+
+        Returns
+        -------
+        Config
+        """
         return replace(self, effects=(*self.effects, effect))
 
     def to_dict(self) -> dict:
+        """The configuration as a JSON-ready dict (`of` reads it back)."""
         return {"effects": list(self.effects), "gp_inputs": self.gp_inputs, "session_terms": list(self.nuisance)}
 
     @classmethod
@@ -71,6 +89,7 @@ class Problem:
 
     @property
     def n(self) -> int:
+        """Number of rows."""
         return int(self.inp.n)
 
 
@@ -92,9 +111,31 @@ class Evaluator:
         self._log_hypers: dict[Config, list | None] = {}
 
     def scheme(self, kind: str) -> validation.Scheme:
+        """The validation scheme of a kind.
+
+        Parameters
+        ----------
+        kind : str
+            "points", the deployment scheme's kind, or the time scheme's ("forward").
+
+        Returns
+        -------
+        validation.Scheme
+        """
         return {s.kind: s for s in (self.time, self.deploy, self.points)}[kind]
 
     def model(self, cfg: Config) -> HybridModel:
+        """An unfitted model of the configuration on this problem's robot, ridge and GP options.
+
+        Parameters
+        ----------
+        cfg : Config
+            The configuration.
+
+        Returns
+        -------
+        HybridModel
+        """
         p = self.problem
         return HybridModel(cfg.effects, cfg.gp_inputs, ridge=p.ridge, seed=self.seed, robot=p.chain,
                            gp_options=p.gp_options, nuisance=cfg.nuisance, reference_session=p.reference_session,

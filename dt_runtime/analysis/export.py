@@ -1,41 +1,6 @@
-"""Export the calibrated robot: the `geometric` effect of a fitted hybrid model applied to the
-nominal kinematic chain, written as a URDF (joint origins adjusted) or a standard DH table in
-the robot config format (configs/robots/*.yaml), for other tools to load.
-
-**Only identifiable combinations are exported.** The geometric set is complete, hence rank
-deficient (dt_runtime.models.effects.geometric): over a given design several parameters move
-the TCP alike (offset_q1 and a rotation of the base about z; with the DOE's fixed tool
-orientation, many more), and the ridge of the fit splits such a combination between them
-arbitrarily, or (a column that is numerically zero, e.g. a rotation about an axis through the
-TCP) gives a meaningless value. `models.identifiability.aliasing` judges this from the geometric
-block's columns over the training joint angles (angles scaled to metres at the TCP by the arm's
-reach): the rank, and a basis of that many parameters chosen in the order joint offsets, frames
-1..n, tool. Every other parameter's column is (numerically) a combination of
-the basis columns, so its fitted value is moved onto the basis parameters it aliases (the
-exported value of a basis parameter is the identifiable combination it stands for); it is then
-listed as not identifiable, with what absorbed it, and exported as zero. A parameter whose
-column is zero is listed as having no effect on the TCP over these data.
-
-**Why the training data.** Identifiability is a property of the design (which joint
-configurations were measured), which the saved model does not keep; but its traceability
-record names the training data file with its SHA-256. `export_robot` therefore reads the
-joint angles from `data` when given, else from the file the record names, if it is still there
-unchanged (checked by hash) - so a saved model needs no new fields and an export can never
-judge identifiability on other data than the model was fitted on without being told to.
-
-**The check.** The geometric effect is linear in its parameters (first order: e = A theta),
-while the exported chain applies them exactly (a joint offset as a rotation of the joint's
-origin about its axis; a frame's translation d and rotation w as Trans(d) Rot(w) of its
-origin, in its own axes; the tool's translation in the flange axes). The calibrated TCP is
-fk_nominal(q) - A(q) theta (what the hybrid model's geometric block predicts the arm reaches).
-The chain with the first-order values applied differs from it by the model's second-order
-error at the size of the fitted errors: reported as `first_order_max_mm`/`first_order_rms_mm`.
-By default the basis values are then refined (Gauss-Newton, `refine`) so that the exact chain
-reaches the calibrated TCP; `refine_fit=False` writes the first-order values. `export_robot`
-loads the written file back (URDF: `chain_from_urdf`, and `xml.etree`; DH: `load_robot`) and
-compares its TCP with the calibrated one at the training joint configurations: max and RMS of
-the 3D difference in mm, against `FK_TOL_MM` (0.01 mm). What remains is the model's prediction
-along directions the export leaves out (`non_identifiable_part_max_mm`).
+"""Export the calibrated robot: the identifiable combinations of a fitted model's `geometric`
+effect applied to the nominal kinematic chain, written as a URDF or a standard DH table in the
+robot config format, loaded back and checked (`export_robot`). See docs/cli.md ("dt export").
 """
 from __future__ import annotations
 
@@ -152,6 +117,7 @@ class ExportResult:
     provenance: Provenance | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        """The result as the JSON object of `dt export --json` (docs/cli.md)."""
         return jsonable({"out": self.out, "format": self.format, "model": self.model, "robot": self.robot,
                          "data": self.data, "n_points": self.n_points, "n_parameters": self.n_parameters,
                          "rank": self.rank, "n_exported": len(self.exported),
@@ -236,9 +202,61 @@ def _load_model(model_dir: Path) -> tuple[HybridModel, Chain, Path]:
 def export_robot(model_dir: str | Path, fmt: str, out: str | Path, data: str | Path | None = None,
                  mapping: str | Path | None = None, skip_bad: bool = False, rtol: float = ALIAS_RTOL,
                  name: str | None = None, refine_fit: bool = True) -> ExportResult:
-    """Write the calibrated robot of the saved model `model_dir` as `fmt` ('urdf' or 'dh') to
-    `out`, load it back and check its FK against the calibrated FK at the training joint
-    configurations (`data`, default the training file the model's provenance names)."""
+    """Write the calibrated robot of a saved model, load it back and check it.
+
+    Only identifiable combinations are exported. The geometric set is complete, hence rank
+    deficient (dt_runtime.models.effects.geometric): over a given design several parameters move
+    the TCP alike, and the ridge of the fit splits such a combination between them arbitrarily, or
+    (a column that is numerically zero) gives a meaningless value. `models.identifiability.aliasing`
+    judges this from the geometric block's columns over the training joint angles (angles scaled
+    to metres at the TCP by the arm's reach): the rank, and a basis of that many parameters chosen
+    in the order joint offsets, frames 1..n, tool. Every other parameter's fitted value is moved
+    onto the basis parameters it aliases; it is then listed as not identifiable, with what
+    absorbed it, and exported as zero. A parameter whose column is zero is listed as having no
+    effect on the TCP over these data.
+
+    Why the training data: identifiability is a property of the design (which joint configurations
+    were measured), which the saved model does not keep; but its traceability record names the
+    training data file with its SHA-256. So the joint angles come from `data` when given, else from
+    the file the record names if it is still there unchanged (checked by hash): an export never
+    judges identifiability on other data than the model was fitted on without being told to.
+
+    The check: the geometric effect is linear in its parameters (e = A theta), while the exported
+    chain applies them exactly (a joint offset as a rotation of the joint's origin about its axis;
+    a frame's translation d and rotation w as Trans(d) Rot(w) of its origin, in its own axes; the
+    tool's translation in the flange axes). The calibrated TCP is fk_nominal(q) - A(q) theta; the chain with
+    the first-order values differs from it by the model's second-order error
+    (`first_order_max_mm`/`first_order_rms_mm`). By default the basis values are refined
+    (Gauss-Newton, `refine`) so that the exact chain reaches the calibrated TCP. The written file
+    is loaded back and its TCP compared with the calibrated one at the training joint
+    configurations, against `FK_TOL_MM`; what remains is the model's prediction along directions
+    the export leaves out (`non_identifiable_part_max_mm`).
+
+    Parameters
+    ----------
+    model_dir : str or Path
+        A saved model whose effects include `geometric`.
+    fmt : str
+        'urdf' or 'dh'.
+    out : str or Path
+        The file to write.
+    data : str or Path, optional
+        The training measurements; default the file the model's provenance names.
+    mapping : str or Path, optional
+        Import mapping for a foreign `data` file.
+    skip_bad : bool, optional
+        Skip bad rows of the data instead of stopping.
+    rtol : float, optional
+        Relative singular value below which a direction is not identifiable.
+    name : str, optional
+        The exported robot's name.
+    refine_fit : bool, optional
+        False writes the first-order values.
+
+    Returns
+    -------
+    ExportResult
+    """
     if fmt not in FORMATS:
         raise DataError(f"unknown export format {fmt!r}; allowed: {', '.join(FORMATS)}")
     model_dir = Path(model_dir)

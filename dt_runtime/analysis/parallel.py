@@ -78,4 +78,5 @@ class Pool:
         return [f.result() for f in futures]
 
     def close(self) -> None:
+        """Shut the worker processes down, cancelling what has not started."""
         self._ex.shutdown(wait=True, cancel_futures=True)

@@ -41,6 +41,25 @@ def _rms(r: np.ndarray) -> float:
 
 
 def gain(kind: str, candidate: str, base: CvResult, res: CvResult, alpha: float = ALPHA) -> Gain:
+    """The held-out gain of one change over the base configuration.
+
+    Parameters
+    ----------
+    kind : str
+        "effect", "gp_inputs" or "session".
+    candidate : str
+        What was changed.
+    base, res : CvResult
+        The base's and the changed configuration's cross-validation (same scheme).
+    alpha : float, optional
+        Significance level.
+
+    Returns
+    -------
+    Gain
+        Explained fraction of the held-out variance, one-sided p-value, RMS before and after (mm),
+        and whether it is significant and lowers the RMS.
+    """
     p, after = paired_gain(base, res)
     before = rms3(base.residual)
     return Gain(kind, candidate, float(1 - (after / before) ** 2), p, before * 1e3, after * 1e3,

@@ -60,6 +60,7 @@ class ReplicateFloor:
         return f"the scatter of replicates: {self.definition}; {self.dof} dof in {self.cells} groups"
 
     def to_dict(self) -> dict:
+        """The floor as a JSON-ready dict (mm, dof, groups, definition)."""
         return {"mm": self.value_m / M_PER_MM, "dof": self.dof, "cells": self.cells, "groups": self.cells,
                 "definition": self.definition,
                 "pooled": "within-group variance per axis pooled with its degrees of freedom (rows minus "

@@ -35,6 +35,7 @@ class FitResult:
     base_parameters: dict | None = None  # what the data determine (HybridModel.base_parameters)
 
     def to_dict(self) -> dict:
+        """The result as the JSON object of `dt fit --json`."""
         d: dict[str, Any] = {"out": self.out, "n": self.n, "effects": self.effects, "gp_inputs": self.gp_inputs,
                              "robot": self.robot, "fit_seconds": self.fit_seconds,
                              "train_rmse_mm": self.train_rmse_mm, "parameters": self.parameters,
@@ -73,6 +74,7 @@ class Gain:
         return self.deploy_rmse_after_mm < self.deploy_rmse_before_mm
 
     def to_dict(self) -> dict:
+        """The gain as a JSON-ready dict, keyed by its kind."""
         d = {self.kind: self.candidate, "explained_fraction": self.explained_fraction,
              "p_value": self.p_value, "rmse_before_mm": self.rmse_before_mm,
              "rmse_after_mm": self.rmse_after_mm, "significant": self.significant}
@@ -111,9 +113,11 @@ class DiagnoseResult:
 
     @property
     def top(self) -> Gain | None:
+        """The best-ranked candidate, or None."""
         return self.ranking[0] if self.ranking else None
 
     def to_dict(self) -> dict:
+        """The result as the JSON object of `dt diagnose --json`."""
         return jsonable({"base_effects": self.base_effects, "gp_inputs": self.gp_inputs, "n": self.n,
                          "n_groups": self.n_groups, "folds": self.folds, "rmse_base_mm": self.rmse_base_mm,
                          "noise_floor_mm": self.noise_floor_mm, "ranking": self.ranking,
@@ -169,6 +173,7 @@ class AutoResult:
     heldout_rows: dict | None = None
 
     def to_dict(self) -> dict:
+        """The result as the JSON object of `dt diagnose --auto --json`."""
         d = {k: v for k, v in self.__dict__.items() if k not in ("steps", "source", "evaluator", "heldout_rows")}
         return jsonable(d | {"steps": [s.to_dict() for s in self.steps]} | self.source)
 
@@ -192,9 +197,11 @@ class ModelScore:
 
     @property
     def rmse_mm(self) -> float:
+        """3D RMS of the residuals, mm."""
         return self.metrics["rmse_mm"]
 
     def to_dict(self) -> dict:
+        """The column as a JSON-ready dict."""
         return jsonable({"name": self.name, "kind": self.kind, "n": self.n, **self.metrics,
                          "failures": self.failures, "breakdown": self.breakdown,
                          "worst_cells": self.worst_cells, "description": self.description, **(self.model or {}),
@@ -218,9 +225,11 @@ class CompareResult:
 
     @property
     def primary(self) -> ModelScore:
+        """The primary model: the last one given."""
         return self.models[-1]
 
     def to_dict(self) -> dict:
+        """The result as the JSON object of `dt compare --json` (the primary model's figures on top)."""
         top = {k: v for k, v in self.primary.to_dict().items() if k not in ("name", "kind")}
         return jsonable({**top, "primary": self.primary.name, "dataset": self.dataset,
                          "noise_floor_mm": self.noise_floor_mm, "heldout": self.heldout, "t_test": self.t_test,

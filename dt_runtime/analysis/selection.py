@@ -1,30 +1,5 @@
 """`dt diagnose --auto`: forward selection over the effects, the session terms and the GP's
-inputs, judged the way the twin will be used.
-
-Each step:
-1. Candidates the campaign cannot separate from the pose are not tested (analysis.confounding:
-   a time-dependent effect in a scan, one speed for a speed effect, ...); they are reported with
-   what would make them testable.
-2. Every effect and session term not yet in the model is held out by point (analysis.ranking):
-   it qualifies when its one-sided p is below alpha / m (m: every change the step may test, the
-   GP's inputs included; Bonferroni), it explains at least `min_explained` of the held-out
-   variance and lowers the held-out RMS.
-3. The best qualifying effect meets every tested effect that reads the same factor (backlash and
-   dynamic both read the direction of travel; thermal and drift when the temperature followed
-   time) head to head, in both orders: the model with both against each with one, by point, and
-   each alone on the deployment scheme; the one the data prefer goes first (`_duel`).
-4. The best qualifying change is taken only if it also lowers the held-out RMS on the deployment
-   scheme (held-out regions of the workspace, held-out sessions, or a forecast of later times for a
-   time-dependent term: analysis.validation); otherwise the next qualifying one is tried. So the
-   final model is never worse than its predecessor on the deployment figures. A session term is
-   a nuisance (never deployed): the points decide it.
-5. Only when no effect or session term passes are the GP's other inputs tested (the same rules):
-   physics first, the GP, which takes up anything, last (UR10 Series D: switching first left
-   backlash out, 0.280 instead of 0.276 mm).
-Before adding, each step drops an effect an earlier step added that the model no longer needs (a
-rival added later explains it: `_removable`). The loop stops when the held-out residual is at the
-noise floor, or when no change passes; a backward pass (`prune`) then removes what the final model
-no longer needs.
+inputs, judged the way the twin will be used (`select`; docs/cli.md, "dt diagnose").
 """
 from __future__ import annotations
 
@@ -75,6 +50,9 @@ class Step:
 
 @dataclass
 class Selection:
+    """The loop's steps, the final configuration, why it stopped, the candidates it could not test
+    and the session terms found.
+    """
     steps: list[Step]
     final: Config
     stop_reason: str  # "floor", "nothing passes", "max steps"
@@ -273,6 +251,58 @@ def _pair(ev: Evaluator, cfg: Config, base, vetoed: list[Gain], tested: Sequence
 def select(ev: Evaluator, start: Config, candidates: tuple[str, ...] | None, alpha: float = ALPHA,
            min_explained: float = 0.02, max_steps: int = 10, floor_m: float | None = None,
            progress: Progress | None = None) -> Selection:
+    """Forward selection from `start`, judged the way the twin will be used.
+
+    Each step:
+
+    1. Candidates the campaign cannot separate from the pose are not tested (analysis.confounding:
+       a time-dependent effect in a scan, one speed for a speed effect, ...); they are reported
+       with what would make them testable.
+    2. Every effect and session term not yet in the model is held out by point (analysis.ranking):
+       it qualifies when its one-sided p is below alpha / m (m: every change the step may test, the
+       GP's inputs included; Bonferroni), it explains at least `min_explained` of the held-out
+       variance and lowers the held-out RMS.
+    3. The best qualifying effect meets every tested effect that reads the same factor (backlash
+       and dynamic both read the direction of travel; thermal and drift when the temperature
+       followed time) head to head, in both orders: the model with both against each with one, by
+       point, and each alone on the deployment scheme; the one the data prefer goes first (`_duel`).
+    4. The best qualifying change is taken only if it also lowers the held-out RMS on the
+       deployment scheme (held-out regions, held-out sessions, or a forecast of later times for a
+       time-dependent term: analysis.validation); otherwise the next qualifying one is tried. So the
+       final model is never worse than its predecessor on the deployment figures. A session term
+       is a nuisance (never deployed): the points decide it.
+    5. Only when no effect or session term passes are the GP's other inputs tested (the same
+       rules): physics first, the GP, which takes up anything, last (UR10 Series D: switching first
+       left backlash out, 0.280 instead of 0.276 mm).
+
+    Before adding, each step drops an effect an earlier step added that the model no longer needs
+    (a rival added later explains it: `_removable`). The loop stops when the held-out residual is
+    at the noise floor, or when no change passes; a backward pass (`prune`) then removes what the
+    final model no longer needs.
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    start : Config
+        The starting configuration.
+    candidates : tuple of str or None
+        The effects to try; None: every effect of the problem's catalogue.
+    alpha : float, optional
+        Family-wise significance level of a step.
+    min_explained : float, optional
+        Least fraction of the held-out variance a change must explain.
+    max_steps : int, optional
+        At most this many steps.
+    floor_m : float, optional
+        The noise floor, m: the loop stops when the held-out residual reaches it.
+    progress : Progress, optional
+        Where the steps report their progress.
+
+    Returns
+    -------
+    Selection
+    """
     p = ev.problem
     cfg = start
     steps: list[Step] = []

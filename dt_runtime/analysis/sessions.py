@@ -1,15 +1,7 @@
-"""Sessions that disagree are a finding (issue 21): a campaign of several sessions (files, each
-with its own set-up) is held out one session at a time, and the difference between sessions is
-tested against the session terms (models.effects.session: a re-mounted tool or SMR, the set-up's
-rigid part, changed joint zeros).
-
-- `held_out`: each session predicted by the configuration fitted on the others, beside the session
-  as is (no correction), both scored the way a new session is: after re-registration where the
-  session's registration was fitted on its own points (6 dof), and after measuring again whatever
-  session term the model carries as a nuisance (its dof); and the rows outside the others' domain.
-- `term_values`: the session terms the diagnosis found (a candidate change of each step, tested
-  like an effect: analysis.selection), every session's parameters against the reference session
-  with their expanded uncertainty.
+"""Sessions that disagree are a finding: a campaign of several sessions (files, each with its own
+set-up) is held out one session at a time (`held_out`), and the difference between sessions is
+tested against the session terms (`term_values`; models.effects.session: a re-mounted tool or
+SMR, the set-up's rigid part, changed joint zeros). See docs/campaigns.md ("Sessions that disagree").
 """
 from __future__ import annotations
 
@@ -90,8 +82,27 @@ def absorbed(ev: Evaluator, cfg: Config, residual: np.ndarray) -> tuple[np.ndarr
 
 
 def held_out(ev: Evaluator, cfg: Config, names: dict[int, str]) -> list[dict]:
-    """Each session predicted by `cfg` fitted on the others, beside the session as is; both scored
-    the way a new session is (`absorbed`)."""
+    """Each session predicted by `cfg` fitted on the others, beside the session as is.
+
+    Both are scored the way a new session is (`absorbed`): after re-registration where the
+    session's registration was fitted on its own points (6 dof), and after measuring again
+    whatever session term the model carries as a nuisance (its dof); and the rows outside the
+    others' domain are counted.
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem (several sessions, deployment scheme by session).
+    cfg : Config
+        The configuration.
+    names : dict
+        Session index -> name.
+
+    Returns
+    -------
+    list of dict
+        One row per session.
+    """
     p = ev.problem
     assert p.session is not None and ev.deploy.kind == "sessions"
     raw = ev.cv(cfg, ev.deploy).residual

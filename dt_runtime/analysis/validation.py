@@ -43,13 +43,30 @@ class Scheme:
 
     @property
     def k(self) -> int:
+        """Number of folds."""
         return len(self.folds)
 
     def to_dict(self) -> dict:
+        """The scheme as a JSON-ready dict: kind, folds and rows per fold."""
         return {"kind": self.kind, "folds": self.k, "rows_per_fold": [int(f.sum()) for f in self.folds]}
 
 
 def points(groups: np.ndarray, k: int, seed: int) -> Scheme:
+    """Whole target points held out, k folds (seeded).
+
+    Parameters
+    ----------
+    groups : ndarray
+        (n,) target point of each row.
+    k : int
+        Number of folds.
+    seed : int
+        Seed of the assignment.
+
+    Returns
+    -------
+    Scheme
+    """
     return Scheme("points", tuple(folds_of(groups, k, seed)))
 
 
@@ -90,6 +107,17 @@ def forward(t: np.ndarray | None, n: int, k: int) -> Scheme:
 
 
 def sessions(session: np.ndarray) -> Scheme:
+    """One session held out at a time.
+
+    Parameters
+    ----------
+    session : ndarray
+        (n,) session index of each row.
+
+    Returns
+    -------
+    Scheme
+    """
     return Scheme("sessions", tuple(session == s for s in np.unique(session)))
 
 
