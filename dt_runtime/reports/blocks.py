@@ -24,6 +24,24 @@ class Missing(Exception):
 
 
 def summary_value(d: dict, *keys):
+    """The value at a key path of a summary.
+
+    Parameters
+    ----------
+    d : dict
+        The summary.
+    *keys : str
+        The path, e.g. ("validation", "n").
+
+    Returns
+    -------
+    Any
+
+    Raises
+    ------
+    Missing
+        When a key is absent or None.
+    """
     cur: Any = d
     for k in keys:
         if not isinstance(cur, dict) or k not in cur or cur[k] is None:
@@ -62,6 +80,19 @@ def array(arrays: dict, key: str, cols: int | None = None, required: bool = True
 
 
 def fixed(v, nd: int = 3) -> str:
+    """A number with `nd` decimals for a table ("–" when not a number, "∞", "NaN"; never "-0.000").
+
+    Parameters
+    ----------
+    v : Any
+        The value.
+    nd : int, optional
+        Decimals.
+
+    Returns
+    -------
+    str
+    """
     try:
         x = float(v)
     except (TypeError, ValueError):
@@ -85,6 +116,19 @@ def levels(v: np.ndarray, max_levels: int = 12, bins: int = 6) -> tuple[np.ndarr
 
 
 def unique_in_order(p: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """The distinct rows of `p` (equal within `tol`), in the order of their first appearance.
+
+    Parameters
+    ----------
+    p : ndarray
+        (n, d).
+    tol : float, optional
+        Rows equal after rounding to this step are one.
+
+    Returns
+    -------
+    ndarray
+    """
     key = np.round(p / tol).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
     return p[np.sort(first)]
@@ -94,6 +138,21 @@ Block = Callable[[dict, dict], str]
 
 
 def run_block(fn: Block, s: dict, a: dict) -> str:
+    """One block's HTML; missing data or a failure becomes a note instead (a report never sinks the run).
+
+    Parameters
+    ----------
+    fn : Block
+        The block, fn(summary, arrays) -> HTML.
+    s : dict
+        The summary.
+    a : dict
+        The arrays.
+
+    Returns
+    -------
+    str
+    """
     try:
         return fn(s, a)
     except Missing as exc:

@@ -387,6 +387,19 @@ def _fig_normal(s: dict, a: dict) -> str:
 # --------------------------------------------------------------------------- assembly
 
 def compare_sections(result: dict, arrays: dict) -> list[Section]:
+    """The compare report's sections, each from its blocks.
+
+    Parameters
+    ----------
+    result : dict
+        `CompareResult.to_dict()`.
+    arrays : dict
+        The SI arrays `compare` returned.
+
+    Returns
+    -------
+    list of Section
+    """
     plan = [("Key figures", "key", [_banner, _headline]),
             ("Models side by side", "summary", [_table_summary, _fig_steps]),
             *([("Session by session", "sessions", [_table_sessions])] if result.get("sessions") else []),
@@ -402,6 +415,19 @@ def compare_sections(result: dict, arrays: dict) -> list[Section]:
 
 
 def build_compare_report(result: dict, arrays: dict) -> str:
+    """The compare report as one self-contained HTML page.
+
+    Parameters
+    ----------
+    result : dict
+        `CompareResult.to_dict()`.
+    arrays : dict
+        The SI arrays `compare` returned.
+
+    Returns
+    -------
+    str
+    """
     names = ", ".join(m["name"] for m in result.get("models", []))
     return html_page("Cobot digital twin: model against measurements", compare_sections(result, arrays),
                      subtitle=f"{result.get('n', '?')} rows of {result.get('dataset', '?')}; columns: {names}. "

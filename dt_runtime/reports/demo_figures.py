@@ -76,6 +76,25 @@ NAME = {"rdk": "robot encoders", "lt": "laser tracker", "mvs": "camera system"}
 
 
 def fig_registration(s: dict, a: dict) -> str:
+    """Registration residuals per instrument and axis (phase 1).
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     res = a.get("reg_residuals")
     if not isinstance(res, dict) or not res:
         raise Missing("array 'reg_residuals' not available")
@@ -113,6 +132,25 @@ def fig_registration(s: dict, a: dict) -> str:
 
 
 def fig_error_map(s: dict, a: dict) -> str:
+    """The laser-tracker error over the DOE positions, mean per position (phase 2).
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     X = array(a, "doe_X", 3)
     e = array(a, "e_lt", 3)
     ok = finite_rows(X[:, :3], e)
@@ -143,6 +181,25 @@ def fig_error_map(s: dict, a: dict) -> str:
 
 
 def fig_asis_series(s: dict, a: dict) -> str:
+    """The as-is errors e_LT, e_MVS and e_MVS-LT row by row, per axis (phase 2).
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     given = [(n, a.get(n)) for n in ("e_lt", "e_mvs", "e_mvs_lt")]
     series = [(n, np.asarray(v, float) * MM_PER_M) for n, v in given if v is not None]
     if not series:
@@ -168,6 +225,25 @@ def fig_asis_series(s: dict, a: dict) -> str:
 
 
 def fig_main_effects(s: dict, a: dict) -> str:
+    """Main effects on e_LT: mean per level of each factor with its 95 % interval (Fig. 11 style).
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     X = array(a, "doe_X", 4)
     e = array(a, "e_lt", 3)
     ok = finite_rows(X[:, :4], e)
@@ -203,6 +279,33 @@ def fig_main_effects(s: dict, a: dict) -> str:
 
 def fig_gpr(s: dict, a: dict, ekey: str = "e_lt", rkey: str = "r_lt", label: str = "e_LT",
              fig_ref: str = "Fig. 13", ukey: str = "eq19_e_lt_hat") -> str:
+    """The GPR's fit of an error map: residuals per axis and their normal probability plot.
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+    ekey, rkey : str, optional
+        Keys of the errors and the GPR's residuals.
+    label : str, optional
+        The error's symbol.
+    fig_ref : str, optional
+        The paper's figure it mirrors.
+    ukey : str, optional
+        Key of the expanded uncertainty drawn, under the summary's `expanded_uncertainty_95`.
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     from scipy import stats
 
     e = array(a, ekey, 3)
@@ -253,6 +356,25 @@ def fig_gpr(s: dict, a: dict, ekey: str = "e_lt", rkey: str = "r_lt", label: str
 
 
 def fig_gpr_mvs(s: dict, a: dict) -> str:
+    """`fig_gpr` for e_MVS-LT (Fig. 14).
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     return fig_gpr(s, a, "e_mvs_lt", "r_mvs_lt", "e_MVS-LT", "Fig. 14", "eq22_e_mvs_lt_hat")
 
 
@@ -264,6 +386,25 @@ def _band(axp, n: int, U: np.ndarray, c: int, color: str, label: str):
 
 
 def fig_validation(s: dict, a: dict) -> str:
+    """Validation: the true error of the corrected (and plain) commands against the stated U.
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     ep = array(a, "val_true_err_plain", 3, required=False)
     ec = array(a, "val_true_err_corr", 3)
     U = array(a, "U_tcp_c")
@@ -310,6 +451,25 @@ def fig_validation(s: dict, a: dict) -> str:
 
 
 def fig_eq17(s: dict, a: dict) -> str:
+    """The Eq. 17 t-test of every validation reading, per axis.
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     diff = array(a, "val_diff", 3)
     pred = array(a, "val_pred", 3)
     if diff.shape != pred.shape:
@@ -368,6 +528,25 @@ def _box_faces(c: np.ndarray, h: np.ndarray) -> list[np.ndarray]:
 
 
 def fig_envelope(s: dict, a: dict) -> str:
+    """The validation targets as a path with their uncertainty boxes, magnified (Fig. 15 style).
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (SI).
+
+    Returns
+    -------
+    str
+        The HTML figure block.
+
+    Raises
+    ------
+    Missing
+        When an array it plots is absent.
+    """
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     tgt = array(a, "val_target", 3)

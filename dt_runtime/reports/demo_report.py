@@ -505,6 +505,17 @@ def _next_steps(s: dict, a: dict) -> str:
 
 
 def demo_sections(result) -> list[Section]:
+    """The demo or calibration report's sections, each from its blocks.
+
+    Parameters
+    ----------
+    result : DemoResult or calibration
+        Anything with `summary` and `arrays`.
+
+    Returns
+    -------
+    list of Section
+    """
     s = getattr(result, "summary", None) or {}
     a = getattr(result, "arrays", None) or {}
     truth = array(a, "val_true_err_corr", 3, required=False) is not None or "true_rms_corrected_mm" in s
@@ -542,6 +553,19 @@ def _left_out(why: str) -> Block:
 
 
 def build_demo_report(result, title: str = "Traceable digital twin of the cobot: demo report") -> str:
+    """The demo or calibration report as one self-contained HTML page.
+
+    Parameters
+    ----------
+    result : DemoResult or calibration
+        Anything with `summary` and `arrays`.
+    title : str, optional
+        The page's title.
+
+    Returns
+    -------
+    str
+    """
     s = getattr(result, "summary", None) or {}
     origin = (f"Campaign {s['campaign']}" if _is_calibration(s) and s.get("campaign")
               else f"Scenario {s.get('scenario', '?')}, seed {s.get('seed', '?')}")

@@ -129,6 +129,17 @@ def html_table(rows: Iterable[dict], columns: Sequence[str] | None = None, *,
 
 
 def paragraph(text: str) -> str:
+    """A paragraph of escaped text.
+
+    Parameters
+    ----------
+    text : str
+        Plain text.
+
+    Returns
+    -------
+    str
+    """
     return f"<p>{esc(text)}</p>"
 
 

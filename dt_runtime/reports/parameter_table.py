@@ -90,6 +90,9 @@ class Line:
 
 @dataclass
 class ParameterTable:
+    """A model's parameters for a report: grids (one row per joint frame), lines, how to read the
+    cells, and notes.
+    """
     grids: list[Grid]
     lines: list[Line]
     legend: str  # how to read the cells

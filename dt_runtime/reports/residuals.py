@@ -1,13 +1,8 @@
-"""The residual of every row, per model, as a table beside the compare report (`residuals.csv`):
-what the report's residual maps aggregate, for a reader that explores them (the dashboard's
-metrologist's view, a spreadsheet). Millimetres, as every file the project writes.
+"""The residual of every row, per model, as a table beside the compare report (`residuals.csv`).
 
-Columns: `line` (the data file's line of the row), `point_id` and `session` where the data have
-them, the commanded TCP `x, y, z` (mm, robot frame), `speed` (mm/s) where given, `approach_q1` ...
-(the direction from which each joint approached the row: -1, 0 still, +1; analysis.points) where
-the joints are given, then for each model in the order compared ('as is' first) `r_x:<name>`,
-`r_y:<name>`, `r_z:<name>` (r = e - e_hat, mm) and `fails:<name>` (1 when the row fails the
-Eq. 17 t-test in any axis, 0 when it passes, empty without a t-test).
+What the report's residual maps aggregate, for a reader that explores them (the dashboard's
+metrologist's view, a spreadsheet); millimetres, as every file the project writes. The columns:
+`write_residuals`.
 """
 from __future__ import annotations
 
@@ -53,6 +48,27 @@ def columns(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
 
 
 def write_residuals(arrays: dict[str, Any], out_dir: str | Path) -> Path:
+    """Write `residuals.csv` into `out_dir`: the residual of every row, per model.
+
+    Columns: `line` (the data file's line of the row), `point_id` and `session` where the data
+    have them, the commanded TCP `x, y, z` (mm, robot frame), `speed` (mm/s) where given,
+    `approach_q1` ... (the direction from which each joint approached the row: -1, 0 still, +1;
+    analysis.points) where the joints are given, then for each model in the order compared ('as
+    is' first) `r_x:<name>`, `r_y:<name>`, `r_z:<name>` (r = e - e_hat, mm) and `fails:<name>`
+    (1 when the row fails the Eq. 17 t-test in any axis, 0 when it passes, empty without a t-test).
+
+    Parameters
+    ----------
+    arrays : dict
+        The SI arrays `compare` returned.
+    out_dir : str or Path
+        The directory.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
     path = Path(out_dir) / NAME
     cols = columns(arrays)
     with path.open("w", newline="", encoding="utf-8") as f:

@@ -44,6 +44,17 @@ def _factor(f: str) -> str:
 
 
 def not_testable_sentences(items: list[dict]) -> str:
+    """Sentences for the candidates the campaign could not separate from the pose.
+
+    Parameters
+    ----------
+    items : list of dict
+        The result's `not_testable` entries.
+
+    Returns
+    -------
+    str
+    """
     out = []
     for it in items:
         if it.get("reason") != "confounded":
@@ -176,6 +187,18 @@ def _vector(params: list[dict], unit: str) -> str:
 
 
 def session_sentences(d: dict) -> str:
+    """Sentences on the sessions: how each fares held out, and the session terms found.
+
+    Parameters
+    ----------
+    d : dict
+        The result's JSON object.
+
+    Returns
+    -------
+    str
+        Empty for one session.
+    """
     rows = d.get("sessions") or []
     if not rows:
         return ""
@@ -217,6 +240,18 @@ def session_sentences(d: dict) -> str:
 
 
 def auto_verdict(d: dict) -> str:
+    """The verdict of `dt diagnose --auto` in words: what was added or removed, the figures before
+    and after on the deployment scheme, and what is left.
+
+    Parameters
+    ----------
+    d : dict
+        `AutoResult.to_dict()`.
+
+    Returns
+    -------
+    str
+    """
     steps = [s for s in d["steps"] if s["change"]]
     first, final = d["steps"][0]["rmse_mm"], d["final_rmse_mm"]
     kind = d["deploy_kind"]
