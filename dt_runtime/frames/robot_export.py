@@ -1,19 +1,8 @@
-"""A kinematic chain written for other tools: URDF text, and a standard DH table in the robot
-config format (configs/robots/*.yaml, read back by `kinematics.load_robot`).
+"""A kinematic chain written for other tools: URDF text (`urdf_text`), and a standard DH table in
+the robot config format (`dh_table`; configs/robots/*.yaml, read back by `kinematics.load_robot`).
 
-Both are exact representations of a revolute `Chain`'s TCP position kinematics, not fits:
-
-- **URDF**: one revolute joint per chain joint, its `<origin>` the chain's fixed transform
-  from the parent (xyz, fixed-axis rpy as URDF defines them), its `<axis>` the chain's axis,
-  then a fixed joint to the TCP link holding the tool transform.
-- **DH** (T_i = Rz(q_i + theta_offset) Tz(d) Tx(a) Rx(alpha), as `chain_from_dh`): computed
-  from the joint axes as lines in space at the zero pose (the common normal of consecutive
-  axes), with the base pose (`base_xyz_m`, `base_rpy_rad`) placing DH frame 0 on the first
-  axis and `tool_xyz_m` the TCP in the last frame. Any serial revolute chain has such a
-  table, but standard DH is singular for parallel axes: two nominally parallel axes tilted
-  towards each other by a small angle eps meet a distance ~ L / eps away, which becomes d. The
-  table is still exact (double precision keeps the TCP to ~1e-12 m), but a tool may find such
-  a d odd; `dh_table` reports every row whose |d| or |a| exceeds ten times the arm's reach.
+Both are exact representations of a revolute `Chain`'s TCP position kinematics, not fits.
+See docs/robots.md and docs/cli.md ("dt export").
 """
 from __future__ import annotations
 
@@ -41,7 +30,12 @@ def urdf_text(chain: Chain, name: str | None = None, comment: str = "",
               joint_limit_rad: float = 2 * np.pi) -> str:
     """The chain as a URDF: links base_link, link1..linkN, tcp; revolute joints j1..jN with the
     chain's origins and axes; a fixed joint `tcp_fixed` with the tool transform. Limits are
-    +/- joint_limit_rad (the chain does not know the arm's limits; URDF requires some)."""
+    +/- joint_limit_rad (the chain does not know the arm's limits; URDF requires some).
+
+    One revolute joint per chain joint, its `<origin>` the chain's fixed transform from the parent
+    (xyz, fixed-axis rpy as URDF defines them), its `<axis>` the chain's axis, then a fixed joint to
+    the TCP link holding the tool transform.
+    """
     name = name or chain.name
     out = ['<?xml version="1.0"?>']
     if comment:
@@ -115,7 +109,17 @@ def _angle(u: np.ndarray, v: np.ndarray, about: np.ndarray) -> float:
 
 
 def dh_table(chain: Chain) -> DHTable:
-    """The chain's standard DH table (exact for the TCP position): see the module docstring."""
+    """The chain's standard DH table (exact for the TCP position).
+
+    T_i = Rz(q_i + theta_offset) Tz(d) Tx(a) Rx(alpha), as `chain_from_dh`: computed from the
+    joint axes as lines in space at the zero pose (the common normal of consecutive axes), with
+    the base pose (`base_xyz_m`, `base_rpy_rad`) placing DH frame 0 on the first axis and
+    `tool_xyz_m` the TCP in the last frame. Any serial revolute chain has such a table, but
+    standard DH is singular for parallel axes: two nominally parallel axes tilted towards each
+    other by a small angle eps meet a distance ~ L / eps away, which becomes d. The table is
+    still exact (double precision keeps the TCP to ~1e-12 m), but a tool may find such a d odd;
+    every row whose |d| or |a| exceeds ten times the arm's reach is reported.
+    """
     pos, rot, T = chain.frames(np.zeros((1, chain.dof)))
     points = pos[0]
     z_axes = [_unit(rot[0, j] @ np.asarray(chain.axes[j], dtype=float)) for j in range(chain.dof)]

@@ -1,17 +1,9 @@
 """Which robot: one reference text for a catalogue arm, a robot config YAML or a URDF, and the
 catalogue of nominal kinematics (configs/robots/catalogue/, each entry citing its source).
 
-    ur5e                              a catalogue arm (configs/robots/catalogue/ur5e.yaml)
-    robots/ur10.yaml                  a robot config (saved relative to configs/ when shipped there)
-    /data/arm.urdf#tool0              a vendor's URDF, the chain ending at link tool0 (default: the
-                                      URDF's last link)
-    ur5e?tool_mm=0.5,-1.2,101.3       any of these with a tool offset (mm, flange frame) appended:
-                                      how a tool offset fitted from the data (`frames.tool_fit`)
-                                      travels with a saved model
-
-`resolve` turns what a user wrote (relative to some directories, else to configs/) into a
-`RobotRef`; its `text` is the stable form a saved model, a campaign manifest or a result keeps, and
-`load` gives the chain of any such text (parsed once per process).
+`resolve` turns what a user wrote into a `RobotRef`, whose `text` is the stable form a saved
+model, a campaign manifest or a result keeps; `load` gives the chain of any such text (parsed
+once per process). See docs/robots.md.
 """
 from __future__ import annotations
 
@@ -50,7 +42,18 @@ def catalogue_file(name: str, where: str | Path = "--robot") -> Path:
 @dataclass(frozen=True)
 class RobotRef:
     """A resolved robot reference: the file it reads (absolute), the catalogue name if it is one,
-    the URDF link the chain ends at, and a tool offset (m, flange frame) appended to the chain."""
+    the URDF link the chain ends at, and a tool offset (m, flange frame) appended to the chain.
+
+    Its text, for example::
+
+        ur5e                              a catalogue arm (configs/robots/catalogue/ur5e.yaml)
+        robots/ur10.yaml                  a robot config (saved relative to configs/ when shipped there)
+        /data/arm.urdf#tool0              a vendor's URDF, the chain ending at link tool0 (default: the
+                                          URDF's last link)
+        ur5e?tool_mm=0.5,-1.2,101.3       any of these with a tool offset (mm, flange frame) appended:
+                                          how a tool offset fitted from the data (`frames.tool_fit`)
+                                          travels with a saved model
+    """
 
     file: Path
     catalogue: str | None = None
@@ -159,7 +162,7 @@ def record(ref: str | Path | None) -> tuple[Path | None, str | None]:
 
 
 def load(ref: str | Path | RobotRef, bases: Sequence[Path] = ()) -> Chain:
-    """The kinematic chain of a robot reference (see the module docstring)."""
+    """The kinematic chain of a robot reference (the forms: `RobotRef`), parsed once per process."""
     r = resolve(ref, bases)
     if not r.file.is_file():  # the cache must not hide a file removed since
         raise DataError(f"robot {r.text}: no such file {r.file}")

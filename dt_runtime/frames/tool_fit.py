@@ -1,21 +1,8 @@
 """The tool (SMR) offset in the flange frame, fitted from the data when the robot config gives none.
 
-A catalogue arm or a bare URDF ends at the flange; the laser tracker measures the reflector on the
-tool. With joint angles q_i and TCP positions p_i in the robot frame, the flange's nominal position
-p_f and orientation R_f, the offset o solves, by linear least squares (docs/robots.md, "Tool offset"):
-
-    p_i = p_f(q_i) + R_f(q_i) o + t [+ G(q_i) theta]
-
-- t, a constant shift, is always a possibility (the base or the instrument's frame): the part of
-  o along a flange direction that the poses never turn (the tool kept one orientation) is the same
-  for these poses as t, so it cannot be determined. Such components keep the config's value (zero:
-  the config gives none) and `ToolFit.undetermined` names them with why and what to do.
-- theta, the arm's first-order geometric error (`_geometric`, as models.effects.geometric), only
-  for *measured* positions: a commanded TCP is the controller's nominal kinematics and carries no
-  arm error. theta is rank deficient; the minimum-norm solution with o's columns weighted up sends
-  what the data cannot tell from a tool offset (a shift of the last frame along its axis) to o.
-
-Standard uncertainties from the covariance of the retained singular directions, s from the residual.
+A catalogue arm or a bare URDF ends at the flange; the laser tracker measures the reflector on
+the tool. `fit_tool` solves for the offset by linear least squares (the method: its docstring;
+docs/robots.md, "The tool offset, fitted when not given").
 """
 from __future__ import annotations
 
@@ -132,7 +119,27 @@ def fit_tool(chain: Chain, q: np.ndarray, p: np.ndarray, fitted_from: str = "mea
     """The tool offset of `chain` (whose tool is its flange) from joint angles q (n, dof) and TCP
     positions p (n, 3) in the robot frame (m); rows with a non-finite value are left out.
     `fitted_from`: 'measured' (the arm's geometric error fitted alongside) or 'commanded' (the
-    controller's nominal TCP: the offset and a constant shift only)."""
+    controller's nominal TCP: the offset and a constant shift only).
+
+    With joint angles q_i and TCP positions p_i in the robot frame, the flange's nominal position
+    p_f and orientation R_f, the offset o solves, by linear least squares:
+
+        p_i = p_f(q_i) + R_f(q_i) o + t [+ G(q_i) theta]
+
+    - t, a constant shift, is always a possibility (the base or the instrument's frame): the part
+      of o along a flange direction that the poses never turn (the tool kept one orientation) is
+      the same for these poses as t, so it cannot be determined. Such components keep the config's
+      value (zero: the config gives none) and `ToolFit.undetermined` names them with why and what
+      to do.
+    - theta, the arm's first-order geometric error (`_geometric`, as models.effects.geometric),
+      only for *measured* positions: a commanded TCP is the controller's nominal kinematics and
+      carries no arm error. theta is rank deficient; the minimum-norm solution with o's columns
+      weighted up sends what the data cannot tell from a tool offset (a shift of the last frame
+      along its axis) to o.
+
+    Standard uncertainties from the covariance of the retained singular directions, s from the
+    residual.
+    """
     q = np.asarray(q, dtype=float)
     p = np.asarray(p, dtype=float)
     if q.ndim != 2 or q.shape[1] != chain.dof or p.shape != (len(q), 3):

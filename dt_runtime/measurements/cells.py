@@ -1,16 +1,8 @@
-"""Cells and rows of a measurement file: the one row parser behind the contract table
-(`dataset.read_table`) and the import mappings (`importer`). Each column spec turns one cell into
-a number; a failure names file, line, column and value (`DataError`), or with skip_bad becomes a
-`SkippedRow`.
+"""Cells and rows of a measurement file: the one row parser (`parse_rows`) behind the contract
+table (`dataset.read_table`) and the import mappings (`importer`).
 
-A file is CSV text, or, where the caller names a sheet (an import mapping's `sheet:`), a
-spreadsheet (`sheets`: .xlsx, .xls, .ods), whose typed cells go through the same specs: a number
-cell is taken as it is, a text cell is parsed like a CSV cell, and the "line" of a message is the
-spreadsheet's row number. The header is the first non-blank row: blank lines (and a sheet's
-empty rows) are ignored wherever they are, leading ones too.
-
-Lines are read bounded: a header line over MAX_HEADER_CHARS or any line over MAX_LINE_CHARS is a
-DataError naming the line (a file without line breaks is not read whole).
+Each column spec turns one cell into a number; a failure names file, line, column and value
+(`DataError`), or with skip_bad becomes a `SkippedRow`. See docs/measurement-table.md.
 """
 from __future__ import annotations
 
@@ -337,6 +329,14 @@ def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[C
     Returns (values per key, source line per kept row, skipped rows, header). A bad row
     raises DataError '<file>: line N: column C: value V: reason' unless skip_bad. `row_check`
     sees each parsed row (a dict key -> value) and may raise CellError with `.column` set.
+
+    A file is CSV text, or, where the caller names a sheet (an import mapping's `sheet:`), a
+    spreadsheet (`sheets`: .xlsx, .xls, .ods), whose typed cells go through the same specs: a number
+    cell is taken as it is, a text cell is parsed like a CSV cell, and the "line" of a message is
+    the spreadsheet's row number. The header is the first non-blank row: blank lines (and a sheet's
+    empty rows) are ignored wherever they are, leading ones too. Lines are read bounded: a header
+    line over MAX_HEADER_CHARS or any line over MAX_LINE_CHARS is a DataError naming the line (a
+    file without line breaks is not read whole).
     """
     path = Path(path)
     table = _open(path, separator, encoding, sheet)

@@ -2,20 +2,9 @@
 
 A wrong unit passes every format check (a number is a number) and then spoils the analysis
 silently: joint angles in degrees hide a joint-space effect, positions in metres shrink every
-error a thousandfold. Two checks catch them and say which unit is likely wrong:
-
-- `joints_vs_commanded`: with a robot config, the forward kinematics of the joint columns must
-  reproduce the commanded TCP. A mismatch is reported (median over the rows); beyond `refuse_m`
-  it is a DataError that names the likely cause, found by trying the usual mistakes: the joints
-  in degrees, the positions in metres, a tool offset the config does not give (a constant offset
-  explains it), the joints of another robot (count, or nothing fits).
-- `plausible_ranges`: speed > 0 and at most 10 m/s, payload in [0, 1000] kg, temperature in
-  [-50, 150] deg C, commanded positions within 5 m of the base: a value outside names its column,
-  its row and the allowed range.
-
-Two need no robot config and run on every table, campaign file and program: `positions_in_mm`
-(a robot's positions span more than MIN_SPAN_MM: a file whose largest |x|, |y|, |z| is smaller
-holds metres) and `joints_in_radians` (no joint angle beyond a turn and a bit, MAX_JOINT_RAD).
+error a thousandfold. `joints_vs_commanded` (with a robot config) and `plausible_ranges` catch
+them and say which unit is likely wrong; `positions_in_mm` and `joints_in_radians` need no robot
+config and run on every table, campaign file and program. See docs/cli.md (data checks).
 """
 from __future__ import annotations
 
@@ -44,7 +33,11 @@ DEGREES_HINT = "joint angles are in rad (|q| <= 2 pi); this looks like degrees"
 def positions_in_mm(groups: dict[str, np.ndarray], where: str,
                     expected: str = "the file holds positions in mm") -> None:
     """DataError when a group of positions (SI, read from a file in mm) looks like metres: its
-    largest |value| is below MIN_SPAN_MM. `groups`: the columns' names ("x, y, z") -> (n, 3) m."""
+    largest |value| is below MIN_SPAN_MM. `groups`: the columns' names ("x, y, z") -> (n, 3) m.
+
+    A robot's positions span more than MIN_SPAN_MM: a file whose largest |x|, |y|, |z| is
+    smaller holds metres.
+    """
     for name, P in groups.items():
         P = np.asarray(P, dtype=float)
         ok = P[np.all(np.isfinite(P), axis=1)]
@@ -111,7 +104,14 @@ def joints_vs_commanded(q: np.ndarray | None, commanded: np.ndarray, chain: Chai
     likely cause when its median exceeds `refuse_m`: units, a tool offset the config does not give,
     or another robot / joint order. None when there are no joint columns. `free_tool`: the chain
     ends at the flange and its tool is still to be fitted: the mismatch is measured after the best
-    constant tool offset and shift (the nominal chain's check before any fit)."""
+    constant tool offset and shift (the nominal chain's check before any fit).
+
+    The forward kinematics of the joint columns must reproduce the commanded TCP. A mismatch is
+    reported (median over the rows); beyond `refuse_m` it is a DataError that names the likely
+    cause, found by trying the usual mistakes: the joints in degrees, the positions in metres, a
+    tool offset the config does not give (a constant offset explains it), the joints of another
+    robot (count, or nothing fits).
+    """
     if q is None:
         return None
     q = np.asarray(q, dtype=float)
@@ -163,7 +163,11 @@ def joints_vs_commanded(q: np.ndarray | None, commanded: np.ndarray, chain: Chai
 
 def plausible_ranges(columns: dict[str, np.ndarray | None], commanded: np.ndarray, where: str) -> None:
     """DataError for the first implausible value: column, 1-based data row, value, allowed range.
-    `columns`: SI arrays by column name (speed m/s, payload kg, temperature deg C)."""
+    `columns`: SI arrays by column name (speed m/s, payload kg, temperature deg C).
+
+    Speed > 0 and at most 10 m/s, payload in [0, 1000] kg, temperature in [-50, 150] deg C,
+    commanded positions within 5 m of the base.
+    """
     for name, values in columns.items():
         if values is None or name not in RANGES:
             continue
