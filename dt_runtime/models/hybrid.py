@@ -1,22 +1,12 @@
-"""Hybrid error model: error = sum of physical effect terms + GP on what is left.
+"""Hybrid error model: error = sum of physical effect terms + GP on what is left (`HybridModel`).
 
-The effect parameters (dt_runtime.models.effects) are estimated jointly by ridge-regularised
-least squares on standardised columns (the complete geometric set is rank deficient on purpose),
-with their standard uncertainties from the residual scatter. A GP (dt_runtime.models.gp) then
-models the residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed),
-'tcp', 'joints', or 'none'; with a GP, the effect parameters are estimated again by generalised
-least squares under its covariance (universal kriging, `_gls`) and the GP refitted on what they
-leave, its hyperparameters kept. What the data determine is reported as base parameters (the
-identifiable combinations, `base_parameters`), what they cannot per parameter
-(`models.identifiability`); widths and compliances are kept >= 0.
-
-Follows scikit-learn's estimator contract (it is a scikit-learn regressor: sklearn.base.clone
-and cross_val_score work): `__init__` only stores its arguments, `fit` validates them and
-returns self, learned attributes end in `_`.
+A scikit-learn regressor (sklearn.base.clone and cross_val_score work)::
 
     model = HybridModel(effects=("geometric", "backlash"), robot="configs/robots/cobot_hc20_like.yaml")
     model.fit(dataset)                      # y defaults to dataset.error (rows in time order)
     e_hat, u = model.predict(dataset, return_std=True)
+
+See docs/library.md and docs/effects.md.
 """
 from __future__ import annotations
 
@@ -134,6 +124,18 @@ class Design:
 
 class HybridModel(RegressorMixin, BaseEstimator):
     """error = sum of effect terms (dt_runtime.models.effects) + GP on what is left.
+
+    The effect parameters are estimated jointly by ridge-regularised least squares on
+    standardised columns (the complete geometric set is rank deficient on purpose), with their
+    standard uncertainties from the residual scatter. A GP (dt_runtime.models.gp) then models the
+    residual on configurable inputs: 'tcp_speed' (the paper's Cartesian TCP and speed), 'tcp',
+    'joints', or 'none'; with a GP, the effect parameters are estimated again by generalised
+    least squares under its covariance (universal kriging, `_gls`) and the GP refitted on what
+    they leave, its hyperparameters kept. What the data determine is reported as base parameters
+    (the identifiable combinations, `base_parameters`), what they cannot per parameter
+    (`models.identifiability`); widths and compliances are kept >= 0. scikit-learn's estimator
+    contract: `__init__` only stores its arguments, `fit` validates them and returns self,
+    learned attributes end in `_`.
 
     effects: effect names (`effects.names()`); gp_inputs: one of GP_INPUTS; ridge: penalty on
     the standardised effect parameters; seed: the GP's optimiser starts; robot: a robot reference

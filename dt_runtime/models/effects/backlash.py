@@ -1,18 +1,8 @@
 """`backlash`: play in the joints, against the direction from which each joint arrived.
 
-A joint with play w rests, once it has moved at least w in one direction, w/2 behind its command
-(against that direction). After a reversal it moves the play across first: having travelled tau
-since the reversal, its output lags by w/2 - tau (tau < w), so a joint whose motion reversed just
-before the end of a move still rests near the side it came from. For each row and joint this is
-the engagement g in [-1, 1] (the sign of the arrival direction times clip(2 tau / w - 1, -1, 1)),
-and the error is J_j (w_j / 2) g_j.
-
-How each joint arrived depends on the move: joint moves (joints interpolated) arrive in the sign
-of their change; linear TCP moves (the TCP on a straight line, the orientation turning at a constant
-rate: a controller's movel) arrive in the sign of the joint velocity at the end of the line,
-J6(q)^+ [dp; dtheta], and a joint may reverse during the move (its travel since then from the
-velocity and acceleration at the end). Which moves the data came from (`moves`) and the play that
-shapes the partial engagement (`play_rad`, 0: always fully engaged) are chosen by profile likelihood.
+The error is J_j (w_j / 2) g_j, g_j in [-1, 1] the engagement of joint j (`engagement`); how
+each joint arrived depends on the move (joint or linear TCP moves), and which moves and what
+play are chosen by profile likelihood. The model: `Backlash`; docs/effects.md ("backlash").
 """
 from __future__ import annotations
 
@@ -102,7 +92,7 @@ def _accumulate(sign: np.ndarray, travel: np.ndarray, inside: np.ndarray, since:
 
 
 def engagement(q: np.ndarray, chain: Chain, linear: bool, play_rad: float) -> np.ndarray:
-    """The engagement g (n, dof) in [-1, 1] of every joint (module docstring); play 0: the sign."""
+    """The engagement g (n, dof) in [-1, 1] of every joint (`Backlash`); play 0: the sign."""
     sign, tau = arrivals(q, chain, linear)
     if play_rad <= 0:
         return sign
@@ -110,8 +100,24 @@ def engagement(q: np.ndarray, chain: Chain, linear: bool, play_rad: float) -> np
 
 
 class Backlash(Effect):
-    """Half the play against the direction of approach, dq_j = -(w_j / 2) g_j (module docstring),
-    the direction read from the previous row (rows in time order)."""
+    """Half the play against the direction of approach, dq_j = -(w_j / 2) g_j, the direction read
+    from the previous row (rows in time order).
+
+    A joint with play w rests, once it has moved at least w in one direction, w/2 behind its
+    command (against that direction). After a reversal it moves the play across first: having
+    travelled tau since the reversal, its output lags by w/2 - tau (tau < w), so a joint whose
+    motion reversed just before the end of a move still rests near the side it came from. For
+    each row and joint this is the engagement g in [-1, 1] (the sign of the arrival direction
+    times clip(2 tau / w - 1, -1, 1)), and the error is J_j (w_j / 2) g_j.
+
+    How each joint arrived depends on the move: joint moves (joints interpolated) arrive in the
+    sign of their change; linear TCP moves (the TCP on a straight line, the orientation turning
+    at a constant rate: a controller's movel) arrive in the sign of the joint velocity at the end
+    of the line, J6(q)^+ [dp; dtheta], and a joint may reverse during the move (its travel since
+    then from the velocity and acceleration at the end). Which moves the data came from (`moves`)
+    and the play that shapes the partial engagement (`play_rad`, 0: always fully engaged) are
+    chosen by profile likelihood.
+    """
 
     name = "backlash"
     columns = ("joints",)

@@ -1,18 +1,9 @@
 """Session terms: what can differ between the sessions of one campaign (each file measured with
-its own set-up) without being the robot's error. They are *nuisance* terms: fitted so that sessions
-that disagree do not corrupt the error map, never deployed (a command has no session; the model
-predicts the reference session's robot).
+its own set-up) without being the robot's error (`tool`, `base`, `joints`: `term_regressors`).
 
-- `tool`: the SMR or probe re-mounted: a constant offset d_s in the flange frame,
-  e = -R_tcp(q) d_s (the measured point moves with the tool's orientation, so a rigid registration
-  cannot take it up).
-- `base`: the set-up's rigid part (the registration realised differently): e = -t_s + [p]x w_s,
-  a translation and a small rotation of the whole session.
-- `joints`: the joint zeros changed between sessions (re-homing, an encoder slipped):
-  e = -J(q) dq_s.
-
-Each session other than the reference gets its own parameters (regressors times its indicator);
-rows of the reference session, of an unseen session or without a session column get none.
+They are nuisance terms: fitted so that sessions that disagree do not corrupt the error map,
+never deployed (a command has no session; the model predicts the reference session's robot).
+See docs/campaigns.md ("Sessions that disagree").
 """
 from __future__ import annotations
 
@@ -28,7 +19,20 @@ EFFECT = "session_{}"  # the effect name of a term's parameters (Design.params)
 
 
 def term_regressors(term: str, inp: Inputs, chain: Chain | None) -> tuple[np.ndarray, tuple[str, ...], tuple[str, ...]]:
-    """The term's regressors on every row (n, 3, p), its parameter names and units."""
+    """The term's regressors on every row (n, 3, p), its parameter names and units.
+
+    - `tool`: the SMR or probe re-mounted: a constant offset d_s in the flange frame,
+      e = -R_tcp(q) d_s (the measured point moves with the tool's orientation, so a rigid
+      registration cannot take it up).
+    - `base`: the set-up's rigid part (the registration realised differently):
+      e = -t_s + [p]x w_s, a translation and a small rotation of the whole session.
+    - `joints`: the joint zeros changed between sessions (re-homing, an encoder slipped):
+      e = -J(q) dq_s.
+
+    Each session other than the reference gets its own parameters (regressors times its indicator,
+    `block`); rows of the reference session, of an unseen session or without a session column get
+    none.
+    """
     if term == "base":
         p = inp.commanded
         A = np.concatenate([-np.broadcast_to(np.eye(3), (len(p), 3, 3)), skew(p)], axis=2)
