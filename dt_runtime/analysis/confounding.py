@@ -1,19 +1,8 @@
-"""Can the campaign separate a candidate effect at all? Checked before the effect is tested.
+"""Can the campaign separate a candidate effect at all? Checked before the effect is tested (`check`).
 
-An effect is testable only where its driving factor (time, temperature, speed, the direction of
-approach, the payload, a column of the data) varies *independently of the pose*: a GP on the pose
-takes up whatever the factor does when the factor is itself a function of the pose, and a term
-fitted to it then wins on held-out points of the same campaign and fails on the next one. The
-classic case is a scan: every pose measured once, in order, so time *is* position, and a drift
-term (linear in time) is a second, stiffer map of the position.
-
-A factor is *confounded with the pose* when the poses measured near a row (in other points,
-k nearest in joint space, else TCP) predict its value there: R^2 of that leave-the-point-out
-nearest-neighbour prediction above R2_MAX. A factor that does not vary (one speed, one payload)
-cannot be tested either. Two factors are confounded with each other (temperature and time) when
-one is a linear function of the other (R^2 above R2_MAX): their effects then compete for the same
-residual (the diagnosis tests them head to head). Each finding carries a code the report turns
-into words and the measurement that would make the effect testable.
+An effect is testable only where its driving factor varies independently of the pose: a GP on
+the pose takes up whatever the factor does when the factor is itself a function of the pose
+(the classic case is a scan, where time is position). See docs/effects.md ("How a diagnosis reads").
 """
 from __future__ import annotations
 
@@ -112,7 +101,20 @@ def check(candidates: list[str], inp: fx.Inputs, groups: np.ndarray,
           catalogue: fx.Catalogue | None = None) -> list[Finding]:
     """The confounding findings of every candidate factor (not the pose itself); a candidate with a
     finding whose `testable` is False is not tested. The names refer to `catalogue` (default
-    `effects.default()`)."""
+    `effects.default()`).
+
+    A term fitted to a factor that is a function of the pose wins on held-out points of the same
+    campaign and fails on the next one: in a scan every pose is measured once, in order, so time
+    *is* position, and a drift term (linear in time) is a second, stiffer map of the position.
+
+    A factor is *confounded with the pose* when the poses measured near a row (in other points, k
+    nearest in joint space, else TCP) predict its value there: R^2 of that leave-the-point-out
+    nearest-neighbour prediction above R2_MAX (`pose_r2`). A factor that does not vary (one speed,
+    one payload) cannot be tested either. Two factors are confounded with each other (temperature
+    and time) when one is a linear function of the other (R^2 above R2_MAX): their effects then
+    compete for the same residual (the diagnosis tests them head to head). Each finding carries a
+    code the report turns into words and the measurement that would make the effect testable.
+    """
     catalogue = catalogue if catalogue is not None else fx.default()
     pose = inp.joints if inp.joints is not None else inp.commanded
     cache: dict[str, Finding] = {}

@@ -1,20 +1,7 @@
 """Re-registration after correction: scoring a model fairly on a session whose registration was
-fitted on that session's own data.
+fitted on that session's own data (`reregistered`, `by_session`).
 
-A session's tracker -> robot registration was fitted to its points against the *uncorrected*
-commanded TCP, so it absorbed the rigid part (a constant offset and rotation: 6 dof) of the
-robot's error in that session. A model trained on other sessions predicts the error including
-such a rigid part, which this session's data no longer show: scored as is, the model would be
-charged with a difference no campaign could see. So the registration is fitted again with the
-model's correction applied: the measured points (robot frame) against the corrected commanded
-points c - e_hat, and the residual after that fit is the model's score
-
-    T* = argmin_T sum |(c_i - e_hat_i) - T(m_i)|^2,   r_i = (c_i - e_hat_i) - T*(m_i)
-
-With the held-out residual r0 = e - e_hat = c - m - e_hat, the target c - e_hat is m + r0. The
-figure is "after re-registration": 6 dof absorbed per session (the same the session's own fit
-absorbed from the uncorrected error), and it can only be lower than or equal to r0's RMS (T = 1
-is one candidate).
+See docs/campaigns.md ("Re-registration after correction").
 """
 from __future__ import annotations
 
@@ -27,7 +14,21 @@ DOF = 6  # a rigid transform: 3 rotations, 3 translations
 
 def reregistered(measured: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, RigidTransform]:
     """Residual after refitting the rigid registration of `measured` (n, 3; robot frame) to the
-    corrected commanded points measured + residual (= c - e_hat). Returns (residual, the refit T)."""
+    corrected commanded points measured + residual (= c - e_hat). Returns (residual, the refit T).
+
+    A session's tracker -> robot registration was fitted to its points against the *uncorrected*
+    commanded TCP, so it absorbed the rigid part (6 dof) of the robot's error in that session. A
+    model trained on other sessions predicts the error including such a rigid part, which this
+    session's data do not show: scored as is, the model would be charged with a difference no
+    campaign could see. So the registration is fitted again with the model's correction applied,
+    and the residual after that fit is the model's score:
+
+        T* = argmin_T sum |(c_i - e_hat_i) - T(m_i)|^2,   r_i = (c_i - e_hat_i) - T*(m_i)
+
+    With the held-out residual r0 = e - e_hat = c - m - e_hat, the target c - e_hat is m + r0. The
+    figure absorbs 6 dof per session (the same the session's own fit absorbed from the uncorrected
+    error), and it can only be lower than or equal to r0's RMS (T = 1 is one candidate).
+    """
     m = np.asarray(measured, dtype=float)
     target = m + np.asarray(residual, dtype=float)
     T = fit_rigid(m, target)

@@ -1,19 +1,7 @@
 """How a model is held out: the fold schemes of the diagnosis, each the form in which deployment
-brings new measurements.
+brings new measurements (`points`, `regions`, `forward`, `sessions`).
 
-- `points`: whole target points held out (analysis.crossval.folds_of): the sensitive figure the
-  significance tests use (many independent groups), but a held-out point has measured neighbours.
-- `regions`: regions of the workspace held out in turn (k-means on the points' commanded TCP):
-  new poses in a part of the workspace the model has not seen, as a new program brings them.
-- `forward`: a forecast: the campaign cut into k blocks in time order, each block from the second
-  on predicted by a model fitted on the blocks before it only, the form a time-dependent term is
-  used in (a drift or a warm-up continues after the campaign). Never interleaved blocks: a middle
-  block would be interpolated in time.
-- `sessions`: one session (a file of the campaign, its own set-up) held out at a time: the next
-  campaign or task.
-
-`deployment(...)` picks the scheme a step of the diagnosis is judged on: sessions when the campaign
-has several, else regions; time forward (later times) for a time-dependent term on a single session.
+`deployment` picks the scheme a step of the diagnosis is judged on. See docs/cli.md ("dt diagnose").
 """
 from __future__ import annotations
 
@@ -31,7 +19,19 @@ MIN_GROUPS_PER_REGION = 3  # fewer distinct points than this per region: hold ou
 @dataclass(frozen=True)
 class Scheme:
     """One way of holding data out: `kind` (KINDS), its test masks, how many folds and, for a
-    forecast, each fold's training masks (else a fold trains on every row it does not test)."""
+    forecast, each fold's training masks (else a fold trains on every row it does not test).
+
+    - `points`: whole target points held out (analysis.crossval.folds_of): the sensitive figure the
+      significance tests use (many independent groups), but a held-out point has measured neighbours.
+    - `regions`: regions of the workspace held out in turn (k-means on the points' commanded TCP):
+      new poses in a part of the workspace the model has not seen, as a new program brings them.
+    - `forward`: a forecast: the campaign cut into k blocks in time order, later blocks predicted by
+      a model fitted on the blocks before them only, the form a time-dependent term is used in (a
+      drift or a warm-up continues after the campaign). Never interleaved blocks: a middle block
+      would be interpolated in time.
+    - `sessions`: one session (a file of the campaign, its own set-up) held out at a time: the next
+      campaign or task.
+    """
 
     kind: str
     folds: tuple[np.ndarray, ...]

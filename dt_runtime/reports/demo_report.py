@@ -1,17 +1,8 @@
 """The `dt demo` and `dt calibrate` report: one self-contained HTML file a metrologist reads in
-one pass.
+one pass (`write_demo_report`; the figures: `demo_figures`).
 
-`write_demo_report(result, path)` renders a `DemoResult` or a calibration (summary dict in mm,
-arrays in SI: metres and m/s; errors e = commanded - measured in the global frame GL, paper Eq. 8).
-Its first screen says whether the figures may be trusted (the summary's `validity`,
-`twin.validity`), then the key figures with the definition of the one U they state; then the
-paper's Tables 2-4, the error model with its effects and their fitted physical parameters, the
-GUM budgets and Eqs. 18-22, the validation (against the simulator's truth in the demo, the
-laser tracker in a campaign's validation phase), Figs. 8-18 style plots (`demo_figures`), the
-traceability record and, last, where the twin is and what to do next. A section is chosen by
-what the result holds (a calibration has no truth; a campaign may have no validation phase): one
-that does not apply is left out with one line saying why. A block that fails on damaged data
-becomes a note instead of sinking the run (`blocks.run_block`).
+Its first screen says whether the figures may be trusted, then the key figures; a section that
+does not apply is left out with one line saying why. See docs/cli.md ("dt demo", "dt calibrate").
 """
 from __future__ import annotations
 
@@ -576,7 +567,19 @@ def build_demo_report(result, title: str = "Traceable digital twin of the cobot:
 
 def write_demo_report(result, path, title: str | None = None) -> Path:
     """Write the self-contained HTML report of a `DemoResult` (or of a calibration: its summary
-    and arrays; its sections are those a campaign without truth gives) to `path`."""
+    and arrays; its sections are those a campaign without truth gives) to `path`.
+
+    The summary dict is in mm, the arrays in SI (metres and m/s; errors e = commanded - measured
+    in the global frame GL, paper Eq. 8). The report's first screen says whether the figures may be
+    trusted (the summary's `validity`, `twin.validity`), then the key figures with the definition of
+    the one U they state; then the paper's Tables 2-4, the error model with its effects and their
+    fitted physical parameters, the GUM budgets and Eqs. 18-22, the validation (against the
+    simulator's truth in the demo, the laser tracker in a campaign's validation phase), Figs. 8-18
+    style plots (`demo_figures`), the traceability record and, last, where the twin is and what to
+    do next. A section is chosen by what the result holds (a calibration has no truth; a campaign
+    may have no validation phase): one that does not apply is left out with one line saying why. A
+    block that fails on damaged data becomes a note instead of sinking the run (`blocks.run_block`).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(build_demo_report(result, *(() if title is None else (title,))), encoding="utf-8")
