@@ -35,12 +35,34 @@ _brief = _Brief()
 
 
 def brief(value: Any) -> str:
-    """repr(value) for a message, bounded in length whatever the value holds."""
+    """repr(value) for a message, bounded in length whatever the value holds.
+
+    Parameters
+    ----------
+    value : Any
+        The value to show.
+
+    Returns
+    -------
+    str
+    """
     return _brief.repr(value)
 
 
 def cut(message: str, limit: int = MAX_MESSAGE_CHARS) -> str:
-    """`message` at most `limit` characters: the head, and how much was left out."""
+    """`message` at most `limit` characters: the head, and how much was left out.
+
+    Parameters
+    ----------
+    message : str
+        The text.
+    limit : int, optional
+        Most characters kept.
+
+    Returns
+    -------
+    str
+    """
     if len(message) <= limit:
         return message
     return f"{message[:limit]} ... [{len(message) - limit} more characters not shown]"

@@ -6,7 +6,18 @@ import numpy as np
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """Skew-symmetric matrices [v]x (..., 3, 3) of vectors (..., 3): skew(a) @ b = a x b."""
+    """Skew-symmetric matrices [v]x of vectors: skew(a) @ b = a x b.
+
+    Parameters
+    ----------
+    v : ndarray
+        (..., 3).
+
+    Returns
+    -------
+    ndarray
+        (..., 3, 3).
+    """
     S = np.zeros(v.shape[:-1] + (3, 3))
     S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
     S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
@@ -15,5 +26,20 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def spherical_to_cartesian(d: float, az: float, el: float) -> np.ndarray:
-    """A tracker's (distance m, azimuth rad, elevation rad) as a point in its own frame (m)."""
+    """A tracker's spherical reading as a point in its own frame.
+
+    Parameters
+    ----------
+    d : float
+        Distance, m.
+    az : float
+        Azimuth, rad.
+    el : float
+        Elevation, rad.
+
+    Returns
+    -------
+    ndarray
+        (3,), m.
+    """
     return np.array([d * np.cos(el) * np.cos(az), d * np.cos(el) * np.sin(az), d * np.sin(el)])

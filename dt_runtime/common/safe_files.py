@@ -18,8 +18,27 @@ _KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"), (
 
 
 def open_regular(path: str | Path, max_bytes: int, what: str) -> BinaryIO:
-    """`path` opened for binary reading; DataError naming the file and `what` it should be when
-    it cannot be opened, is not a regular file (after symlinks) or holds more than `max_bytes`."""
+    """`path` opened for binary reading, if it is a regular file of at most `max_bytes`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (symlinks followed).
+    max_bytes : int
+        Largest size accepted.
+    what : str
+        What the file should be, for the error.
+
+    Returns
+    -------
+    BinaryIO
+
+    Raises
+    ------
+    DataError
+        Naming the file and `what` it should be when it cannot be opened, is not a regular file
+        or holds more than `max_bytes`.
+    """
     path = Path(path)
     try:
         # O_NONBLOCK: opening a FIFO must not wait for a writer; it is refused below
@@ -39,7 +58,21 @@ def open_regular(path: str | Path, max_bytes: int, what: str) -> BinaryIO:
 
 
 def read_regular(path: str | Path, max_bytes: int, what: str) -> bytes:
-    """The bytes of `path` (open_regular's checks), at most `max_bytes` of them."""
+    """The bytes of `path` (`open_regular`'s checks), at most `max_bytes` of them.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    max_bytes : int
+        Largest size accepted.
+    what : str
+        What the file should be, for the error.
+
+    Returns
+    -------
+    bytes
+    """
     with open_regular(path, max_bytes, what) as f:
         try:
             raw = f.read(max_bytes + 1)

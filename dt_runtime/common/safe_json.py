@@ -43,10 +43,32 @@ def _int(text: str) -> int:
 
 def loads(raw: bytes | str, where: str, *, max_bytes: int, max_depth: int = MAX_DEPTH,
           infinite_ok: tuple[str, ...] = ()) -> Any:
-    """The JSON value of `raw`; DataError naming `where` for more than `max_bytes`, text that is
-    not UTF-8 or not JSON, an integer of more than MAX_INT_DIGITS digits, nesting deeper than
-    `max_depth`, or a NaN or infinite number (+infinity is allowed under a key whose name ends
-    with one of `infinite_ok`)."""
+    """The JSON value of `raw`, bounded and checked.
+
+    Parameters
+    ----------
+    raw : bytes or str
+        The JSON text.
+    where : str
+        What the error names (a file).
+    max_bytes : int
+        Most bytes accepted.
+    max_depth : int, optional
+        Deepest nesting accepted.
+    infinite_ok : tuple of str, optional
+        +infinity is allowed under a key whose name ends with one of these.
+
+    Returns
+    -------
+    Any
+
+    Raises
+    ------
+    DataError
+        Naming `where` for more than `max_bytes`, text that is not UTF-8 or not JSON, an integer of
+        more than MAX_INT_DIGITS digits, nesting deeper than `max_depth`, or a NaN or infinite
+        number.
+    """
     if len(raw) > max_bytes:
         raise DataError(f"{where}: {len(raw)} bytes, more than the {max_bytes} allowed")
     try:
@@ -83,7 +105,32 @@ def _check(value: Any, where: str, max_depth: int, infinite_ok: tuple[str, ...])
 
 def read_json(path: str | Path, what: str, *, max_bytes: int = MAX_FILE_BYTES, max_depth: int = MAX_DEPTH,
               infinite_ok: tuple[str, ...] = ()) -> Any:
-    """The JSON value of the regular file `path` (`safe_files.read_regular`: not a device or a
-    FIFO, size checked before reading), with `loads`' checks; DataError naming the file."""
+    """The JSON value of a regular file, with `loads`' checks.
+
+    The file is read by `safe_files.read_regular` (not a device or a FIFO, size checked before
+    reading).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    what : str
+        What the file should be, for the error.
+    max_bytes : int, optional
+        Most bytes accepted.
+    max_depth : int, optional
+        Deepest nesting accepted.
+    infinite_ok : tuple of str, optional
+        As for `loads`.
+
+    Returns
+    -------
+    Any
+
+    Raises
+    ------
+    DataError
+        Naming the file.
+    """
     return loads(read_regular(path, max_bytes, what), str(path), max_bytes=max_bytes, max_depth=max_depth,
                  infinite_ok=infinite_ok)

@@ -30,10 +30,28 @@ _ZIP_SLACK = 2 ** 20  # zip and .npy headers around the arrays
 
 def load_npz(path: str | Path, expected: Iterable[str] | None = None,
              max_bytes: int = DEFAULT_MAX_BYTES) -> dict[str, np.ndarray]:
-    """The arrays of `path` by name. DataError naming file and member for an unexpected member
-    (when `expected` is given: the allowed names, a subset may be present), a non-numeric dtype,
-    a total size over `max_bytes`, a member that is truncated or unreadable, or a NaN or infinite
-    value; DataError naming the file when it is not a regular file or larger than `max_bytes`."""
+    """The arrays of an NPZ file by name, sizes and values checked before they are trusted.
+
+    Parameters
+    ----------
+    path : str or Path
+        The NPZ file.
+    expected : iterable of str, optional
+        The allowed member names (a subset may be present).
+    max_bytes : int, optional
+        Most bytes of arrays accepted.
+
+    Returns
+    -------
+    dict of str to ndarray
+
+    Raises
+    ------
+    DataError
+        Naming file and member for an unexpected member, a non-numeric dtype, a total size over
+        `max_bytes`, a member that is truncated or unreadable, or a NaN or infinite value; naming
+        the file when it is not a regular file or larger than `max_bytes`.
+    """
     path = Path(path)
     allowed = None if expected is None else set(expected)
     out: dict[str, np.ndarray] = {}
