@@ -210,7 +210,33 @@ class Chain:
         """Joint angles putting the TCP at `target` (m) with orientation R (default: the TCP's
         at q_seed: a linear move keeps the tool's orientation). Gauss-Newton on the 6-D pose
         error with the geometric Jacobian (rows: axis_j x (p - p_j); axis_j), from q_seed, so the
-        solution stays on the seed's branch. UnreachableError if it does not converge."""
+        solution stays on the seed's branch. UnreachableError if it does not converge.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,), m.
+        q_seed : ndarray
+            (dof,), rad: the start, whose branch the solution keeps.
+        R : ndarray, optional
+            (3, 3) orientation; default the TCP's at q_seed.
+        tol : float, optional
+            Convergence tolerance on position (m) and orientation (rad).
+        max_iter : int, optional
+            At most this many steps.
+
+        Returns
+        -------
+        ndarray
+            (dof,), rad.
+
+        Raises
+        ------
+        UnreachableError
+            When it does not converge.
+        DataError
+            When target or q_seed is not finite or has the wrong length.
+        """
         target = np.asarray(target, dtype=float)
         q = np.array(q_seed, dtype=float)
         finite = bool(np.all(np.isfinite(target)) and np.all(np.isfinite(q)))
@@ -318,7 +344,19 @@ def _read_urdf(path: Path):
 def chain_from_urdf(path: str | Path, tool_link: str | None = None) -> Chain:
     """Chain from the root link to `tool_link` (default: the last link) of a URDF, parsed by
     yourdfpy. Revolute and continuous joints turn; fixed joints fold into the next transform;
-    any other joint type on the way (prismatic, floating, mimic) is a ConfigError."""
+    any other joint type on the way (prismatic, floating, mimic) is a ConfigError.
+
+    Parameters
+    ----------
+    path : str or Path
+        The URDF file.
+    tool_link : str, optional
+        The link the chain ends at.
+
+    Returns
+    -------
+    Chain
+    """
     path = Path(path)
     robot = _read_urdf(path)
     links = [lk.name for lk in robot.links]
@@ -423,7 +461,21 @@ KINEMATICS = ("urdf", "dh", "mdh", "joint_origins", "arm")
 
 
 def chain_from_dh(rows: list[DHRow], tool_xyz=(0.0, 0.0, 0.0), name="robot") -> Chain:
-    """Standard DH: T_i = Rz(theta_i + offset) Tz(d) Tx(a) Rx(alpha); joints rotate about z."""
+    """Standard DH: T_i = Rz(theta_i + offset) Tz(d) Tx(a) Rx(alpha); joints rotate about z.
+
+    Parameters
+    ----------
+    rows : list of DHRow
+        One per joint.
+    tool_xyz : tuple of float, optional
+        The TCP in the last frame, m.
+    name : str, optional
+        The chain's name.
+
+    Returns
+    -------
+    Chain
+    """
     origins, axes = [], []
     prev = np.eye(4)
     for r in rows:
@@ -443,7 +495,19 @@ def chain_from_dh(rows: list[DHRow], tool_xyz=(0.0, 0.0, 0.0), name="robot") -> 
 
 def chain_from_mdh(rows: list[DHRow], name="robot") -> Chain:
     """Modified DH (Craig): T_i = Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(theta_i + offset) Tz(d_i); joint i
-    rotates about z of frame i. The chain's tool is frame n (the flange follows, `RobotModel`)."""
+    rotates about z of frame i. The chain's tool is frame n (the flange follows, `RobotModel`).
+
+    Parameters
+    ----------
+    rows : list of DHRow
+        One per joint (Craig's a_{i-1}, alpha_{i-1} in the row of joint i).
+    name : str, optional
+        The chain's name.
+
+    Returns
+    -------
+    Chain
+    """
     origins, axes = [], []
     prev = np.eye(4)
     for r in rows:
@@ -457,14 +521,43 @@ def chain_from_mdh(rows: list[DHRow], name="robot") -> Chain:
 
 def chain_from_joint_origins(rows: list[JointOrigin], name="robot", path: str | Path = "<robot>") -> Chain:
     """A URDF-style table: joint i's frame is its origin (xyz, rpy) in joint i-1's frame after i-1's
-    rotation; it turns about its axis. The chain's tool is the last joint's frame."""
+    rotation; it turns about its axis. The chain's tool is the last joint's frame.
+
+    Parameters
+    ----------
+    rows : list of JointOrigin
+        One per joint.
+    name : str, optional
+        The chain's name.
+    path : str or Path, optional
+        The file the table came from, for errors.
+
+    Returns
+    -------
+    Chain
+    """
     origins = tuple(_transform(r.xyz_m, r.rpy_rad) for r in rows)
     axes = tuple(_unit_axis(r.axis, f"joint_origins.{i}.axis", path) for i, r in enumerate(rows))
     return Chain(origins, axes, np.eye(4), name=name)
 
 
 def load_robot(path: str | Path) -> Chain:
-    """The chain of a robot config YAML (configs/robots/*.yaml, the catalogue's entries among them)."""
+    """The chain of a robot config YAML (configs/robots/*.yaml, the catalogue's entries among them).
+
+    Parameters
+    ----------
+    path : str or Path
+        The robot config YAML.
+
+    Returns
+    -------
+    Chain
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, key, value and what is allowed.
+    """
     path = Path(path)
     m = load_yaml(path, RobotModel)
     given = [k for k in KINEMATICS if getattr(m, k) is not None]

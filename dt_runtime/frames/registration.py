@@ -196,6 +196,19 @@ def fit_rigid(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
 
     Kabsch (Umeyama 1991 when scale=True). The sign correction D keeps det(R) = +1, so
     mirrored data give the best proper rotation, never a reflection.
+
+    Parameters
+    ----------
+    source, target : ndarray
+        (n, 3) paired points.
+    weights : ndarray, optional
+        (n,) weight per pair.
+    scale : bool, optional
+        Fit a scale factor too.
+
+    Returns
+    -------
+    RigidTransform
     """
     P, Q = _check(source, "source"), _check(target, "target")
     if len(P) != len(Q):
@@ -241,6 +254,20 @@ def three_line_frame(points_x, points_y, points_z, distances_x, distances_y, dis
     directions of motion (x; y made orthogonal to x; z = x cross y, checked against the
     measured z line: cosine >= min_cos) and its origin the common start point, fitted by least
     squares so that every point sits at its nominal GL position d * unit_k.
+
+    Parameters
+    ----------
+    points_x, points_y, points_z : ndarray
+        (n_k, 3) instrument coordinates along each line.
+    distances_x, distances_y, distances_z : ndarray
+        (n_k,) distance of each point from the start, m.
+    min_cos : float, optional
+        Least cosine between the constructed and the measured z direction.
+
+    Returns
+    -------
+    RigidTransform
+        Instrument frame -> GL.
     """
     sets = []
     for p, d, a in ((points_x, distances_x, "x"), (points_y, distances_y, "y"), (points_z, distances_z, "z")):
@@ -271,7 +298,20 @@ def three_line_frame(points_x, points_y, points_z, distances_x, distances_y, dis
 
 
 def gl_nominal(axes, distances) -> np.ndarray:
-    """Nominal GL coordinates of registration points: d * unit_k, (n, 3)."""
+    """Nominal GL coordinates of registration points: d * unit_k, (n, 3).
+
+    Parameters
+    ----------
+    axes : array-like
+        (n,) 'x', 'y' or 'z'.
+    distances : array-like
+        (n,) distance along the axis.
+
+    Returns
+    -------
+    ndarray
+        (n, 3).
+    """
     axes = np.asarray(axes)
     d = np.asarray(distances, dtype=float)
     out = np.zeros((len(d), 3))
@@ -285,7 +325,22 @@ def gl_nominal(axes, distances) -> np.ndarray:
 
 def registration_residuals(T: RigidTransform, points_instrument: np.ndarray,
                            points_gl: np.ndarray) -> np.ndarray:
-    """Eqs. 5-7: e = T p_instrument - p_GL, (n, 3)."""
+    """Eqs. 5-7: e = T p_instrument - p_GL, (n, 3).
+
+    Parameters
+    ----------
+    T : RigidTransform
+        Instrument -> GL.
+    points_instrument : ndarray
+        (n, 3).
+    points_gl : ndarray
+        (n, 3) nominal.
+
+    Returns
+    -------
+    ndarray
+        (n, 3).
+    """
     p, q = _check(points_instrument, "points"), _check(points_gl, "points_gl")
     if len(p) != len(q):
         raise DataError(f"points has {len(p)} rows, points_gl {len(q)}")

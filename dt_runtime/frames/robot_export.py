@@ -35,6 +35,21 @@ def urdf_text(chain: Chain, name: str | None = None, comment: str = "",
     One revolute joint per chain joint, its `<origin>` the chain's fixed transform from the parent
     (xyz, fixed-axis rpy as URDF defines them), its `<axis>` the chain's axis, then a fixed joint to
     the TCP link holding the tool transform.
+
+    Parameters
+    ----------
+    chain : Chain
+        The chain.
+    name : str, optional
+        The robot's name (default the chain's).
+    comment : str, optional
+        A comment written at the top.
+    joint_limit_rad : float, optional
+        The joints' limits, +/-.
+
+    Returns
+    -------
+    str
     """
     name = name or chain.name
     out = ['<?xml version="1.0"?>']
@@ -75,7 +90,21 @@ class DHTable:
     long_rows: tuple[int, ...] = ()  # 1-based rows with |d| or |a| > 10 x reach (nearly parallel axes)
 
     def yaml_text(self, name: str, gear_harmonics: tuple[int, ...] = (), comment: str = "") -> str:
-        """The robot config YAML (configs/robots/*.yaml format; `load_robot` reads it)."""
+        """The robot config YAML (configs/robots/*.yaml format; `load_robot` reads it).
+
+        Parameters
+        ----------
+        name : str
+            The robot's name.
+        gear_harmonics : tuple of int, optional
+            The config's candidate gear harmonics.
+        comment : str, optional
+            A comment written at the top.
+
+        Returns
+        -------
+        str
+        """
         out = [f"# {line}" if line else "#" for line in comment.splitlines()]
         out.append(f"name: {name}")
         out.append("dh:")
@@ -119,6 +148,15 @@ def dh_table(chain: Chain) -> DHTable:
     other by a small angle eps meet a distance ~ L / eps away, which becomes d. The table is
     still exact (double precision keeps the TCP to ~1e-12 m), but a tool may find such a d odd;
     every row whose |d| or |a| exceeds ten times the arm's reach is reported.
+
+    Parameters
+    ----------
+    chain : Chain
+        A serial revolute chain.
+
+    Returns
+    -------
+    DHTable
     """
     pos, rot, T = chain.frames(np.zeros((1, chain.dof)))
     points = pos[0]

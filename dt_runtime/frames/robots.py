@@ -31,7 +31,19 @@ def names() -> list[str]:
 
 
 def catalogue_file(name: str, where: str | Path = "--robot") -> Path:
-    """The catalogue entry of `name`; an unknown name is a ConfigError listing the catalogue."""
+    """The catalogue entry of `name`; an unknown name is a ConfigError listing the catalogue.
+
+    Parameters
+    ----------
+    name : str
+        The catalogue name, e.g. "ur5e".
+    where : str or Path, optional
+        What the error names as the source.
+
+    Returns
+    -------
+    Path
+    """
     p = CATALOGUE / f"{name}.yaml"
     if not NAME.match(name) or not p.is_file():
         raise ConfigError(where, "robot", name, "a catalogue arm (" + ", ".join(names()) + "; `dt robots` lists "
@@ -118,7 +130,19 @@ def _split(text: str) -> tuple[str, str | None, tuple[float, float, float] | Non
 def resolve(ref: str | Path | RobotRef, bases: Sequence[Path] = ()) -> RobotRef:
     """What a user wrote (--robot, a mapping's or a manifest's `robot:`, a saved model's reference)
     as a RobotRef: a catalogue name, else a YAML or URDF file relative to each of `bases` in turn,
-    else to the working directory, else to configs/ (absolute paths as they are). DataError if no file is found."""
+    else to the working directory, else to configs/ (absolute paths as they are). DataError if no file is found.
+
+    Parameters
+    ----------
+    ref : str, Path or RobotRef
+        The reference as written.
+    bases : sequence of Path, optional
+        Directories a relative path is looked for in first.
+
+    Returns
+    -------
+    RobotRef
+    """
     if isinstance(ref, RobotRef):
         return ref
     base, link, tool = _split(str(ref))
@@ -145,13 +169,36 @@ def resolve(ref: str | Path | RobotRef, bases: Sequence[Path] = ()) -> RobotRef:
 
 def reference(ref: str | Path | RobotRef | None, bases: Sequence[Path] | None = None) -> str | None:
     """The stable text of a robot reference (None stays None); a relative path is looked for in
-    `bases` (default: the working directory), then in configs/."""
+    `bases` (default: the working directory), then in configs/.
+
+    Parameters
+    ----------
+    ref : str, Path, RobotRef or None
+        The reference as written.
+    bases : sequence of Path, optional
+        Directories a relative path is looked for in.
+
+    Returns
+    -------
+    str or None
+    """
     return None if ref is None else resolve(ref, [Path.cwd()] if bases is None else bases).text
 
 
 def record(ref: str | Path | None) -> tuple[Path | None, str | None]:
     """What a traceability record keeps of a robot reference: the file it reads (to hash) and the
-    reference's text (None, None without a robot; the text alone if it no longer resolves)."""
+    reference's text (None, None without a robot; the text alone if it no longer resolves).
+
+    Parameters
+    ----------
+    ref : str, Path or None
+        The reference.
+
+    Returns
+    -------
+    file : Path or None
+    text : str or None
+    """
     if ref is None:
         return None, None
     try:
@@ -162,7 +209,19 @@ def record(ref: str | Path | None) -> tuple[Path | None, str | None]:
 
 
 def load(ref: str | Path | RobotRef, bases: Sequence[Path] = ()) -> Chain:
-    """The kinematic chain of a robot reference (the forms: `RobotRef`), parsed once per process."""
+    """The kinematic chain of a robot reference (the forms: `RobotRef`), parsed once per process.
+
+    Parameters
+    ----------
+    ref : str, Path or RobotRef
+        The reference.
+    bases : sequence of Path, optional
+        Directories a relative path is looked for in first.
+
+    Returns
+    -------
+    Chain
+    """
     r = resolve(ref, bases)
     if not r.file.is_file():  # the cache must not hide a file removed since
         raise DataError(f"robot {r.text}: no such file {r.file}")

@@ -77,7 +77,20 @@ def _names(E: np.ndarray) -> tuple[str, ...]:
 def spread(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The flange directions (3, 3, columns) and the RMS angle (rad) by which the poses turn each:
     the right singular vectors of the stacked deviations R_i - mean(R); a direction e with spread ~0
-    has R_i e the same for every pose."""
+    has R_i e the same for every pose.
+
+    Parameters
+    ----------
+    R : ndarray
+        (n, 3, 3) flange orientations.
+
+    Returns
+    -------
+    directions : ndarray
+        (3, 3), one per column.
+    rms_angle : ndarray
+        (3,), rad.
+    """
     D = (R - R.mean(axis=0)).reshape(-1, 3)
     _, sv, Vt = np.linalg.svd(D, full_matrices=True)
     s = np.zeros(3)
@@ -139,6 +152,21 @@ def fit_tool(chain: Chain, q: np.ndarray, p: np.ndarray, fitted_from: str = "mea
 
     Standard uncertainties from the covariance of the retained singular directions, s from the
     residual.
+
+    Parameters
+    ----------
+    chain : Chain
+        A chain whose tool is its flange.
+    q : ndarray
+        (n, dof) joint angles, rad.
+    p : ndarray
+        (n, 3) TCP positions in the robot frame, m.
+    fitted_from : str, optional
+        'measured' or 'commanded'.
+
+    Returns
+    -------
+    ToolFit
     """
     q = np.asarray(q, dtype=float)
     p = np.asarray(p, dtype=float)
