@@ -63,7 +63,28 @@ def array(arrays: dict, key: str, cols: int | None = None, *, required: bool) ->
 
 
 def array(arrays: dict, key: str, cols: int | None = None, required: bool = True) -> np.ndarray | None:
-    """`arrays[key]` as a float array (n, >= cols); None only when not `required` and absent."""
+    """`arrays[key]` as a float array (n, >= cols); None only when not `required` and absent.
+
+    Parameters
+    ----------
+    arrays : dict
+        The arrays by key.
+    key : str
+        The array's key.
+    cols : int, optional
+        Least number of columns (a 1D array of exactly that size is accepted as is).
+    required : bool, optional
+        False returns None for an absent array.
+
+    Returns
+    -------
+    ndarray or None
+
+    Raises
+    ------
+    Missing
+        When required and absent, empty or of the wrong shape.
+    """
     v = arrays.get(key) if isinstance(arrays, dict) else None
     if v is None:
         if required:
@@ -104,7 +125,24 @@ def fixed(v, nd: int = 3) -> str:
 
 
 def levels(v: np.ndarray, max_levels: int = 12, bins: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """Level index per sample and level centres: the factor's own levels if few, else quantile bins."""
+    """Level index per sample and level centres: the factor's own levels if few, else quantile bins.
+
+    Parameters
+    ----------
+    v : ndarray
+        (n,) the factor's values.
+    max_levels : int, optional
+        Most distinct values kept as levels.
+    bins : int, optional
+        Quantile bins otherwise.
+
+    Returns
+    -------
+    index : ndarray
+        (n,) level of each sample.
+    centres : ndarray
+        The levels' values (bins: their means).
+    """
     r = np.round(v, 6)
     uniq = np.unique(r)
     if len(uniq) <= max_levels:

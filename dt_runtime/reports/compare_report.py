@@ -436,7 +436,21 @@ def build_compare_report(result: dict, arrays: dict) -> str:
 
 def write_compare_report(result: dict, arrays: dict, out_dir) -> Path:
     """Write out_dir/report.html, out_dir/compare.json and out_dir/residuals.csv (every row's
-    residual per model: reports.residuals); return the HTML path."""
+    residual per model: reports.residuals); return the HTML path.
+
+    Parameters
+    ----------
+    result : dict
+        `CompareResult.to_dict()`.
+    arrays : dict
+        The SI arrays `compare` returned.
+    out_dir : str or Path
+        The directory (made if needed).
+
+    Returns
+    -------
+    Path
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "compare.json").write_text(json.dumps(result, indent=2, ensure_ascii=False), encoding="utf-8")

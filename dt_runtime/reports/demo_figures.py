@@ -53,8 +53,25 @@ def _xyz_labels(axp) -> None:
 
 
 def t_crit_and_flags(s: dict, a: dict):
-    """Eq. 17: t-values and the two-sided 95 % critical value per axis, rebuilt exactly as
-    dt_runtime.metrology.uncertainty.t_test does (u = U/k, Welch-Satterthwaite of the two dofs)."""
+    """Eq. 17's two-sided 95 % critical value and its combined standard uncertainty, per axis.
+
+    Rebuilt from the summary exactly as dt_runtime.metrology.uncertainty.t_test does (u = U/k,
+    Welch-Satterthwaite of the two dofs); the normal 1.96 and no u when the summary lacks them.
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+    a : dict
+        Its arrays (not used).
+
+    Returns
+    -------
+    t_crit : ndarray
+        (3,).
+    u : ndarray or None
+        (3,) sqrt(u^2(diff) + u^2(pred)), m.
+    """
     eu = s.get("expanded_uncertainty_95") or {}
     d, p = eu.get("eq20_e_lt_hat_minus_e_mvs"), eu.get("eq22_e_mvs_lt_hat")
     tcrit = np.full(3, 1.959964)

@@ -129,7 +129,17 @@ def _table_asis(s: dict, a: dict) -> str:
 
 
 def model_words(s: dict) -> str:
-    """The e_LT map in words: 'geometric + thermal + GP on the TCP and speed', or the paper's GPR."""
+    """The e_LT map in words: 'geometric + thermal + GP on the TCP and speed', or the paper's GPR.
+
+    Parameters
+    ----------
+    s : dict
+        The run's summary.
+
+    Returns
+    -------
+    str
+    """
     m = (s.get("maps") or {}).get("e_lt") or {}
     effects = list(m.get("effects") or [])
     gp = m.get("gp_inputs", "tcp_speed")
@@ -579,6 +589,19 @@ def write_demo_report(result, path, title: str | None = None) -> Path:
     do next. A section is chosen by what the result holds (a calibration has no truth; a campaign
     may have no validation phase): one that does not apply is left out with one line saying why. A
     block that fails on damaged data becomes a note instead of sinking the run (`blocks.run_block`).
+
+    Parameters
+    ----------
+    result : DemoResult or calibration
+        Anything with `summary` and `arrays`.
+    path : str or Path
+        The HTML file (its directory is made if needed).
+    title : str, optional
+        The page's title.
+
+    Returns
+    -------
+    Path
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

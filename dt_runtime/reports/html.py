@@ -43,13 +43,37 @@ class Section:
 
 
 def esc(text: Any) -> str:
-    """Escape any value for HTML text or attribute context."""
+    """Escape any value for HTML text or attribute context.
+
+    Parameters
+    ----------
+    text : Any
+        The value (converted with str).
+
+    Returns
+    -------
+    str
+    """
     return html.escape(str(text), quote=True)
 
 
 def fmt_value(v: Any, digits: int = 4, none: str = NONE_MARK) -> str:
     """Plain-text rendering of a table cell: numbers with `digits` significant figures,
-    NaN as 'NaN', infinities as '∞', None as `none`, sequences joined with ', '."""
+    NaN as 'NaN', infinities as '∞', None as `none`, sequences joined with ', '.
+
+    Parameters
+    ----------
+    v : Any
+        The value.
+    digits : int, optional
+        Significant figures.
+    none : str, optional
+        How None is shown.
+
+    Returns
+    -------
+    str
+    """
     if v is None:
         return none
     if isinstance(v, bool):
@@ -75,7 +99,27 @@ def fmt_value(v: Any, digits: int = 4, none: str = NONE_MARK) -> str:
 
 def fig_to_img_tag(fig, alt: str = "", dpi: int = 80, close: bool = True, width: str | None = None,
                    tight: bool = False) -> str:
-    """Render a matplotlib figure as an inline base64 PNG <img> tag (and close it)."""
+    """Render a matplotlib figure as an inline base64 PNG <img> tag (and close it).
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure.
+    alt : str, optional
+        The image's alternative text.
+    dpi : int, optional
+        Resolution.
+    close : bool, optional
+        Close the figure after rendering.
+    width : str, optional
+        CSS width of the image.
+    tight : bool, optional
+        Crop to the drawn content.
+
+    Returns
+    -------
+    str
+    """
     buf = io.BytesIO()
     try:
         # bbox_inches="tight" costs a second full draw; callers lay out with tight_layout instead
@@ -89,7 +133,19 @@ def fig_to_img_tag(fig, alt: str = "", dpi: int = 80, close: bool = True, width:
 
 
 def figure_block(img_tag: str, caption: str) -> str:
-    """A figure with a plain-text caption (escaped)."""
+    """A figure with a plain-text caption (escaped).
+
+    Parameters
+    ----------
+    img_tag : str
+        The image (`fig_to_img_tag`).
+    caption : str
+        Plain text.
+
+    Returns
+    -------
+    str
+    """
     return f"<figure>{img_tag}<figcaption>{esc(caption)}</figcaption></figure>"
 
 
@@ -99,7 +155,31 @@ def html_table(rows: Iterable[dict], columns: Sequence[str] | None = None, *,
                row_header: str | None = None) -> str:
     """A table from a list of dicts. Columns default to the union of the rows' keys in order of
     first appearance. A None value renders as `none` (e.g. '∞' for dof), a key the row lacks as
-    `missing`. `headers` maps key -> display label. `row_header` names a column rendered as <th>."""
+    `missing`. `headers` maps key -> display label. `row_header` names a column rendered as <th>.
+
+    Parameters
+    ----------
+    rows : iterable of dict
+        One dict per row.
+    columns : sequence of str, optional
+        The keys shown, in order.
+    headers : dict, optional
+        Key -> display label.
+    caption : str, optional
+        The table's caption.
+    digits : int, optional
+        Significant figures of numbers.
+    none : str, optional
+        How None is shown.
+    missing : str, optional
+        How a key the row lacks is shown.
+    row_header : str, optional
+        A column rendered as <th>.
+
+    Returns
+    -------
+    str
+    """
     rows = list(rows)
     if columns is None:
         columns = []
@@ -144,13 +224,39 @@ def paragraph(text: str) -> str:
 
 
 def note(text: str) -> str:
-    """A visually distinct remark (e.g. a section skipped for missing data)."""
+    """A visually distinct remark (e.g. a section skipped for missing data).
+
+    Parameters
+    ----------
+    text : str
+        Plain text.
+
+    Returns
+    -------
+    str
+    """
     return f'<p class="note">{esc(text)}</p>'
 
 
 def headline(label: str, value: str, sentence: str = "", status: str = "") -> str:
     """A key figure card: a label, a value (with its unit and uncertainty) and one plain sentence;
-    `status` ('fail', 'warn', 'ok') colours it when the figure's validity was checked."""
+    `status` ('fail', 'warn', 'ok') colours it when the figure's validity was checked.
+
+    Parameters
+    ----------
+    label : str
+        What the figure is.
+    value : str
+        The figure with its unit and uncertainty.
+    sentence : str, optional
+        One plain sentence.
+    status : str, optional
+        'fail', 'warn', 'ok' or empty.
+
+    Returns
+    -------
+    str
+    """
     cls = f"card {status}" if status in STATUSES else "card"
     return (f'<div class="{cls}"><div class="label">{esc(label)}</div><div class="value">{esc(value)}</div>'
             f'<div class="say">{esc(sentence)}</div></div>')
@@ -162,7 +268,21 @@ STATUSES = ("ok", "warn", "fail", "unchecked")
 def banner(status: str, title: str, items: Sequence[tuple[str, str]] = ()) -> str:
     """A box in the colour of `status` (ok, warn, fail, unchecked): a title, then one entry per
     (label, text) item, the label in bold, each line of the text ('\\n') on its own. Plain text,
-    escaped."""
+    escaped.
+
+    Parameters
+    ----------
+    status : str
+        ok, warn, fail or unchecked.
+    title : str
+        The box's title.
+    items : sequence of (str, str), optional
+        (label, text) entries.
+
+    Returns
+    -------
+    str
+    """
     cls = status if status in STATUSES else "unchecked"
     lines = "".join(f"<li><strong>{esc(k)}</strong> " + "<br>".join(esc(x) for x in v.split("\n")) + "</li>"
                     for k, v in items)
@@ -199,7 +319,23 @@ figcaption{font-size:.88em;color:#444;margin-top:.3em}
 
 def html_page(title: str, sections: Sequence[Section | tuple[str, str]], subtitle: str = "",
               toc: bool = True) -> str:
-    """A complete, self-contained HTML document (inline CSS, no scripts, no external links)."""
+    """A complete, self-contained HTML document (inline CSS, no scripts, no external links).
+
+    Parameters
+    ----------
+    title : str
+        The page's title.
+    sections : sequence of Section or (str, str)
+        The sections, in order.
+    subtitle : str, optional
+        A line under the title.
+    toc : bool, optional
+        Include a table of contents.
+
+    Returns
+    -------
+    str
+    """
     secs = [s if isinstance(s, Section) else Section(*s) for s in sections]
     anchors = [s.anchor or f"s{i + 1}" for i, s in enumerate(secs)]
     parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',

@@ -21,7 +21,20 @@ COMBINED = "*"  # marks a base parameter that stands for a combination of severa
 
 def shown_unit(unit: str) -> tuple[float, str]:
     """The factor and unit a value in `unit` (SI) is shown in: radians as mrad, metres as mm
-    (also per hour, per kelvin, per %), 1/K as ppm/K; anything else as it is."""
+    (also per hour, per kelvin, per %), 1/K as ppm/K; anything else as it is.
+
+    Parameters
+    ----------
+    unit : str
+        The SI unit.
+
+    Returns
+    -------
+    factor : float
+        What a value in `unit` is multiplied by.
+    unit : str
+        The unit shown.
+    """
     if unit == "1/K":
         return 1e6, "ppm/K"
     m = re.fullmatch(r"(rad|m)(/.*)?", unit)
@@ -33,7 +46,21 @@ def shown_unit(unit: str) -> tuple[float, str]:
 def concise(v: float, u: float | None, plus_minus: bool = False) -> str:
     """`v` with its standard uncertainty `u`: u to two significant figures, v rounded to the same
     digit, as 0.0872(90) (GUM 7.2.2) or, with `plus_minus`, 0.0872 ± 0.0090; beyond 1e5 or
-    below 1e-4 with a power of ten in steps of three, 4.8(5.3)e6."""
+    below 1e-4 with a power of ten in steps of three, 4.8(5.3)e6.
+
+    Parameters
+    ----------
+    v : float
+        The value.
+    u : float or None
+        Its standard uncertainty (None: the value alone).
+    plus_minus : bool, optional
+        Write v ± u instead of the parenthesis form.
+
+    Returns
+    -------
+    str
+    """
     if u is None or not math.isfinite(u) or u <= 0 or (v and u < 1e-6 * abs(v)):
         return f"{v:.6g}"
     big = max(abs(v), u)
@@ -101,7 +128,18 @@ class ParameterTable:
 
 def legacy_base(parameters: list[dict]) -> dict:
     """A stand-in for the base parameters of a model saved before they were kept: its identified
-    parameters, each on its own (the others, aliased, are counted as not identified)."""
+    parameters, each on its own (the others, aliased, are counted as not identified).
+
+    Parameters
+    ----------
+    parameters : list of dict
+        The model's parameters (HybridModel.parameters).
+
+    Returns
+    -------
+    dict
+        In the form of HybridModel.base_parameters.
+    """
     linear = [p for p in parameters if p.get("method") != "profile likelihood"]
     shown = [p for p in linear if p["value"] is not None]
     return {"rank": len(shown), "n_params": len(linear), "not_separable": len(linear) - len(shown),
@@ -111,7 +149,21 @@ def legacy_base(parameters: list[dict]) -> dict:
 def parameter_table(parameters: list[dict], base: dict | None, plus_minus: bool = False) -> ParameterTable:
     """The table of a model's `parameters` (HybridModel.parameters: for the nonlinear ones) and its
     `base` (HybridModel.base_parameters; None for a model saved before they were kept:
-    `legacy_base`)."""
+    `legacy_base`).
+
+    Parameters
+    ----------
+    parameters : list of dict
+        HybridModel.parameters.
+    base : dict or None
+        HybridModel.base_parameters.
+    plus_minus : bool, optional
+        Write v ± u instead of the parenthesis form.
+
+    Returns
+    -------
+    ParameterTable
+    """
     base = base if base is not None else legacy_base(parameters)
     grids: list[Grid] = []
     lines: dict[str, Line] = {}
@@ -158,7 +210,19 @@ def parameter_table(parameters: list[dict], base: dict | None, plus_minus: bool 
 
 def text(table: ParameterTable, width: int = 110) -> list[str]:
     """The table as lines of text: each grid with aligned columns, each effect on one line
-    (wrapped at `width`)."""
+    (wrapped at `width`).
+
+    Parameters
+    ----------
+    table : ParameterTable
+        The table.
+    width : int, optional
+        Line width of the wrapped lines.
+
+    Returns
+    -------
+    list of str
+    """
     out = []
     for g in table.grids:
         out.append(f"{g.title}, {table.legend}")
@@ -182,7 +246,19 @@ def text(table: ParameterTable, width: int = 110) -> list[str]:
 
 def html(table: ParameterTable, title: str) -> str:
     """The table as HTML: each grid as a table, the other effects' lines as one table, the notes
-    as paragraphs; `title` heads the captions (e.g. the model's name)."""
+    as paragraphs; `title` heads the captions (e.g. the model's name).
+
+    Parameters
+    ----------
+    table : ParameterTable
+        The table.
+    title : str
+        Heads the captions.
+
+    Returns
+    -------
+    str
+    """
     from dt_runtime.reports.html import html_table, paragraph
 
     out = [html_table([dict(zip(g.header, r)) for r in g.rows], g.header, row_header="",

@@ -20,7 +20,18 @@ NAME = "residuals.csv"
 
 
 def columns(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
-    """Column name -> values, in the order written."""
+    """Column name -> values, in the order written.
+
+    Parameters
+    ----------
+    arrays : dict
+        The SI arrays `compare` returned.
+
+    Returns
+    -------
+    dict of str to ndarray
+        Lengths in mm, speed in mm/s.
+    """
     n = len(arrays["commanded"])
     out: dict[str, np.ndarray] = {}
     for key in ("lines", "point_id", "session"):
@@ -90,7 +101,17 @@ MAX_BYTES = 64 * 1024 * 1024  # a million rows of a dozen models is far more tha
 
 def read_residuals(path: str | Path) -> dict[str, list[str]]:
     """The table as column name -> text per row; DataError naming the file for one that is too
-    big, has no header or rows of another width."""
+    big, has no header or rows of another width.
+
+    Parameters
+    ----------
+    path : str or Path
+        A residuals.csv.
+
+    Returns
+    -------
+    dict of str to list of str
+    """
     path = Path(path)
     try:
         if path.stat().st_size > MAX_BYTES:

@@ -24,7 +24,20 @@ def _uncertainty(u: Any) -> str:
 
 
 def traceability(s: dict, a: dict) -> str:
-    """The block of the `provenance` key of a summary or result (a report block)."""
+    """The block of the `provenance` key of a summary or result (a report block).
+
+    Parameters
+    ----------
+    s : dict
+        The summary or result (`to_dict()`).
+    a : dict
+        Its arrays.
+
+    Returns
+    -------
+    str
+        HTML.
+    """
     p = s.get("provenance") if isinstance(s, dict) else None
     if not isinstance(p, dict):  # a result saved before the record existed
         return note("This result carries no traceability record (key 'provenance'): it was made by a "

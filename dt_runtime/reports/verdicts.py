@@ -12,13 +12,33 @@ from dt_runtime.analysis.change import Change
 
 def verdict(result: Any) -> str:
     """The verdict of a diagnosis result (analysis.results.DiagnoseResult or AutoResult, or its
-    `to_dict()`)."""
+    `to_dict()`).
+
+    Parameters
+    ----------
+    result : DiagnoseResult, AutoResult or dict
+        The result.
+
+    Returns
+    -------
+    str
+    """
     d = result if isinstance(result, dict) else result.to_dict()
     return auto_verdict(d) if "steps" in d else ranking_verdict(d)
 
 
 def with_verdict(result: Any) -> dict:
-    """The result's JSON object with its `verdict` (what `dt diagnose --json` prints)."""
+    """The result's JSON object with its `verdict` (what `dt diagnose --json` prints).
+
+    Parameters
+    ----------
+    result : DiagnoseResult, AutoResult or dict
+        The result.
+
+    Returns
+    -------
+    dict
+    """
     d = result if isinstance(result, dict) else result.to_dict()
     return d | {"verdict": verdict(d)}
 
@@ -92,7 +112,20 @@ def _deploy_clause(g: dict) -> str:
 
 
 def column_sentence(checks: list[dict], model_columns: set[str]) -> str:
-    """'The residual follows column X' for the best significant column the model does not read."""
+    """'The residual follows column X' for the best significant column the model does not read.
+
+    Parameters
+    ----------
+    checks : list of dict
+        The column checks of the held-out residual.
+    model_columns : set of str
+        The columns the model reads.
+
+    Returns
+    -------
+    str
+        Empty when no such column.
+    """
     top = next((c for c in checks if c["significant"] and c["column"] not in model_columns), None)
     if top is None:
         return ""
@@ -114,7 +147,17 @@ def column_sentence(checks: list[dict], model_columns: set[str]) -> str:
 
 
 def ranking_verdict(d: dict) -> str:
-    """The one-step verdict: the effect the model lacks (or none), with the deployment figure."""
+    """The one-step verdict: the effect the model lacks (or none), with the deployment figure.
+
+    Parameters
+    ----------
+    d : dict
+        `DiagnoseResult.to_dict()`.
+
+    Returns
+    -------
+    str
+    """
     ranking, gps = d["ranking"], d.get("gp_inputs_ranking", [])
     top = ranking[0] if ranking else None
     before, floor = d["rmse_base_mm"], d.get("noise_floor_mm")
@@ -303,7 +346,17 @@ def _pairs(d: dict) -> bool:
 
 def floor_unknown(d: dict) -> str:
     """That the noise floor is not known, and what to measure for it (the result's
-    `noise_floor.to_measure`): the sentence of the verdict and of the command's text."""
+    `noise_floor.to_measure`): the sentence of the verdict and of the command's text.
+
+    Parameters
+    ----------
+    d : dict
+        The result's JSON object.
+
+    Returns
+    -------
+    str
+    """
     measure = (d.get("noise_floor") or {}).get("to_measure") or "measure some poses repeatedly"
     return ("The noise floor is not known: the data state no uncertainty ux..uz and hold no replicates (give the "
             f"instrument's MPE with --mpe-mm, or {measure})")
