@@ -35,7 +35,19 @@ def _fmt(v: float) -> str:
 
 
 def write_phase(path: str | Path, data: PhaseData) -> Path:
-    """Write one phase (positions in mm), atomically: a crash leaves no half-written file."""
+    """Write one phase (positions in mm), atomically: a crash leaves no half-written file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    data : PhaseData
+        The phase (SI).
+
+    Returns
+    -------
+    Path
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     nq = data.q.shape[1] if np.ndim(data.q) == 2 else 0
@@ -67,7 +79,21 @@ def write_phase(path: str | Path, data: PhaseData) -> Path:
 
 
 def read_phase(path: str | Path, phase: str, registration: bool = False) -> PhaseData:
-    """Read one phase file (SI inside); DataError naming file, line, column and value."""
+    """Read one phase file (SI inside); DataError naming file, line, column and value.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    phase : str
+        The phase's name.
+    registration : bool, optional
+        A registration phase (needs `axis` and `distance`).
+
+    Returns
+    -------
+    PhaseData
+    """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such campaign file")
@@ -162,5 +188,17 @@ def _ids(cells: list[str]) -> np.ndarray:
 def check_robot(data: PhaseData, chain: Chain, where: str, tol_m: float = 1e-3) -> None:
     """The joint angles' forward kinematics (robot config `chain`) must reproduce the commanded
     TCP: DataError naming the likely cause if the median distance exceeds tol_m (joints in
-    degrees, positions in metres, files of another robot: `measurements.checks`)."""
+    degrees, positions in metres, files of another robot: `measurements.checks`).
+
+    Parameters
+    ----------
+    data : PhaseData
+        The phase.
+    chain : Chain
+        The robot config's chain.
+    where : str
+        What the error names.
+    tol_m : float, optional
+        Largest median distance accepted, m.
+    """
     joints_vs_commanded(data.q, data.p_rdk, chain, where, refuse_m=tol_m)

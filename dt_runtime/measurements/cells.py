@@ -150,7 +150,17 @@ def _parse_typed(cell: Cell, spec: ColumnSpec):
 
 
 def text_encoding(name: str) -> str:
-    """`name` if Python knows the codec (a mapping's `encoding:` key), else ValueError saying what is allowed."""
+    """`name` if Python knows the codec (a mapping's `encoding:` key), else ValueError saying what is allowed.
+
+    Parameters
+    ----------
+    name : str
+        A codec name.
+
+    Returns
+    -------
+    str
+    """
     import codecs
 
     try:
@@ -260,7 +270,21 @@ def _open(path: Path, separator: str, encoding: str, sheet: str | int | None) ->
 
 
 def sheet_hint(path: str | Path, encoding: str = "utf-8-sig", sheet: str | int | None = None) -> str:
-    """'' for a text file, ' (sheet NAME of [...])' for a spreadsheet: for messages about columns."""
+    """'' for a text file, ' (sheet NAME of [...])' for a spreadsheet: for messages about columns.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    encoding : str, optional
+        Its text encoding.
+    sheet : str or int, optional
+        The sheet a mapping names.
+
+    Returns
+    -------
+    str
+    """
     if sheet is None or not _is_sheet(Path(path), encoding, sheet):
         return ""
     return sheet_note(path, sheet)
@@ -272,7 +296,23 @@ def _is_sheet(path: Path, encoding: str, sheet: str | int | None) -> bool:
 
 def read_header(path: str | Path, separator: str, encoding: str = "utf-8-sig",
                 sheet: str | int | None = None) -> list[str]:
-    """The column names of `path` (CSV; with `sheet` also a spreadsheet, by sheet name or index)."""
+    """The column names of `path` (CSV; with `sheet` also a spreadsheet, by sheet name or index).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    separator : str
+        The CSV separator.
+    encoding : str, optional
+        Its text encoding.
+    sheet : str or int, optional
+        A spreadsheet's sheet.
+
+    Returns
+    -------
+    list of str
+    """
     return _open(Path(path), separator, encoding, sheet).header
 
 
@@ -289,7 +329,19 @@ def _folded(name: str) -> str:
 def near_miss(column: str, names: Iterable[str]) -> str | None:
     """The contract name among `names` that `column` most likely misspells, or None: the same
     name but for case and separators ('Speed', 'point id', 'e_x'), or, for names of three
-    characters and more, a difflib ratio of at least NEAR_MISS_RATIO ('sped' -> 'speed')."""
+    characters and more, a difflib ratio of at least NEAR_MISS_RATIO ('sped' -> 'speed').
+
+    Parameters
+    ----------
+    column : str
+        A column name of the file.
+    names : iterable of str
+        The contract names it may misspell.
+
+    Returns
+    -------
+    str or None
+    """
     c = _folded(column)
     best: tuple[float, str] | None = None
     for name in names:
@@ -308,7 +360,24 @@ def near_miss(column: str, names: Iterable[str]) -> str | None:
 def refuse_near_misses(path: str | Path, unknown: Iterable[str], absent: Iterable[str], what: str) -> None:
     """DataError for the first column of `unknown` (not read as a contract column) that misspells
     a contract name of `absent` (one the file lacks): a misspelt `sped` must not pass as a column
-    of the user's own while the speed silently drops out. `what`: where the names are documented."""
+    of the user's own while the speed silently drops out. `what`: where the names are documented.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file, for the message.
+    unknown : iterable of str
+        The file's columns not read as contract columns.
+    absent : iterable of str
+        The contract names the file lacks.
+    what : str
+        Where the names are documented.
+
+    Raises
+    ------
+    DataError
+        For the first misspelt column, naming the contract name.
+    """
     absent = list(absent)
     for col in unknown:
         name = near_miss(col, absent)
@@ -337,6 +406,33 @@ def parse_rows(path: str | Path, separator: str, decimal: str, specs: Sequence[C
     empty rows) are ignored wherever they are, leading ones too. Lines are read bounded: a header
     line over MAX_HEADER_CHARS or any line over MAX_LINE_CHARS is a DataError naming the line (a
     file without line breaks is not read whole).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    separator : str
+        The CSV separator.
+    decimal : str
+        The decimal mark of text cells.
+    specs : sequence of ColumnSpec
+        One per column read.
+    skip_bad : bool, optional
+        Skip bad rows (listed) instead of raising.
+    row_check : callable, optional
+        Called with each parsed row.
+    encoding : str, optional
+        The text encoding.
+    sheet : str or int, optional
+        A spreadsheet's sheet.
+
+    Returns
+    -------
+    values : dict of str to list
+    lines : list of int
+        The source line of each kept row.
+    skipped : list of SkippedRow
+    header : list of str
     """
     path = Path(path)
     table = _open(path, separator, encoding, sheet)
@@ -418,7 +514,23 @@ def cell_error(column: str, reason: str) -> CellError:
 def data_row_lines(path: str | Path, separator: str, encoding: str = "utf-8-sig",
                    sheet: str | int | None = None) -> list[int]:
     """The file line of every data row (blank lines skipped, as `parse_rows` does): a row's index
-    in this list is its position in the file, which a join by row order pairs across two files."""
+    in this list is its position in the file, which a join by row order pairs across two files.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    separator : str
+        The CSV separator.
+    encoding : str, optional
+        The text encoding.
+    sheet : str or int, optional
+        A spreadsheet's sheet.
+
+    Returns
+    -------
+    list of int
+    """
     out: list[int] = []
     for line, row in _open(Path(path), separator, encoding, sheet).records:
         if isinstance(row, _Unreadable):
@@ -433,7 +545,30 @@ def numeric_columns(path: str | Path, names: Sequence[str], lines: Sequence[int]
                     ) -> tuple[dict[str, list[float]], list[str]]:
     """The columns `names` of `path` on the data rows at `lines` (in that order), as numbers (NaN
     where a cell is empty): the file's own columns beside the ones a reader parsed. A column with
-    any cell that is not a number is left out. Returns (values per kept column, the columns left out)."""
+    any cell that is not a number is left out. Returns (values per kept column, the columns left out).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    names : sequence of str
+        The columns wanted.
+    lines : sequence of int
+        The data rows' lines, in the order wanted.
+    separator : str, optional
+        The CSV separator.
+    decimal : str, optional
+        The decimal mark.
+    encoding : str, optional
+        The text encoding.
+    sheet : str or int, optional
+        A spreadsheet's sheet.
+
+    Returns
+    -------
+    values : dict of str to list of float
+    left_out : list of str
+    """
     path = Path(path)
     if not names:
         return {}, []

@@ -37,6 +37,19 @@ def positions_in_mm(groups: dict[str, np.ndarray], where: str,
 
     A robot's positions span more than MIN_SPAN_MM: a file whose largest |x|, |y|, |z| is
     smaller holds metres.
+
+    Parameters
+    ----------
+    groups : dict of str to ndarray
+        The columns' names -> (n, 3) positions, m.
+    where : str
+        What the error names.
+    expected : str, optional
+        What the message says the file should hold.
+
+    Raises
+    ------
+    DataError
     """
     for name, P in groups.items():
         P = np.asarray(P, dtype=float)
@@ -47,7 +60,19 @@ def positions_in_mm(groups: dict[str, np.ndarray], where: str,
 
 
 def joints_in_radians(q: np.ndarray | None, where: str) -> None:
-    """DataError naming the first joint column, row and value beyond MAX_JOINT_RAD (degrees)."""
+    """DataError naming the first joint column, row and value beyond MAX_JOINT_RAD (degrees).
+
+    Parameters
+    ----------
+    q : ndarray or None
+        (n, dof) joint angles, rad; None: nothing to check.
+    where : str
+        What the error names.
+
+    Raises
+    ------
+    DataError
+    """
     if q is None:
         return
     q = np.asarray(q, dtype=float)
@@ -111,6 +136,25 @@ def joints_vs_commanded(q: np.ndarray | None, commanded: np.ndarray, chain: Chai
     cause, found by trying the usual mistakes: the joints in degrees, the positions in metres, a
     tool offset the config does not give (a constant offset explains it), the joints of another
     robot (count, or nothing fits).
+
+    Parameters
+    ----------
+    q : ndarray or None
+        (n, dof) joint angles, rad.
+    commanded : ndarray
+        (n, 3) commanded TCP, m.
+    chain : Chain
+        The robot config's chain.
+    where : str
+        What the error names.
+    refuse_m : float, optional
+        Largest median mismatch accepted, m.
+    free_tool : bool, optional
+        Measure the mismatch after the best constant tool offset and shift.
+
+    Returns
+    -------
+    JointCheck or None
     """
     if q is None:
         return None
@@ -167,6 +211,19 @@ def plausible_ranges(columns: dict[str, np.ndarray | None], commanded: np.ndarra
 
     Speed > 0 and at most 10 m/s, payload in [0, 1000] kg, temperature in [-50, 150] deg C,
     commanded positions within 5 m of the base.
+
+    Parameters
+    ----------
+    columns : dict of str to ndarray or None
+        SI arrays by column name.
+    commanded : ndarray
+        (n, 3) commanded TCP, m.
+    where : str
+        What the error names.
+
+    Raises
+    ------
+    DataError
     """
     for name, values in columns.items():
         if values is None or name not in RANGES:
@@ -192,7 +249,23 @@ def check_dataset(ds, chain: Chain | None, where: str | None = None, refuse_m: f
     """The checks on a Dataset: ranges and units (positions in mm, joints in rad) always; joints
     against the commanded TCP with a robot config and joint columns (first: its message names the
     likely mistake more precisely). Returns the facts for the result's `source` block:
-    {'joint_check': {...}} or {}."""
+    {'joint_check': {...}} or {}.
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data.
+    chain : Chain or None
+        The robot config's chain.
+    where : str, optional
+        What the error names (default the dataset's source).
+    refuse_m : float, optional
+        Largest median joint mismatch accepted, m.
+
+    Returns
+    -------
+    dict
+    """
     where = where or ds.source
     plausible_ranges({"speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature}, ds.commanded, where)
     big = np.flatnonzero(np.abs(np.asarray(ds.error, dtype=float)).max(axis=1) > MAX_ERROR_M)

@@ -125,7 +125,19 @@ class Dataset:
 
     @classmethod
     def from_measured(cls, commanded, measured, **kw) -> Dataset:
-        """Rows from commanded and measured TCP (m); error = commanded - measured (Eq. 8)."""
+        """Rows from commanded and measured TCP (m); error = commanded - measured (Eq. 8).
+
+        Parameters
+        ----------
+        commanded, measured : ndarray
+            (n, 3), m.
+        **kw
+            Other Dataset fields.
+
+        Returns
+        -------
+        Dataset
+        """
         commanded, measured = np.asarray(commanded, float), np.asarray(measured, float)
         return cls(commanded=commanded, error=commanded - measured, measured=measured, **kw)
 
@@ -143,7 +155,17 @@ class Dataset:
         return self.measured if self.measured is not None else self.commanded - self.error
 
     def select(self, index) -> Dataset:
-        """Rows picked by a boolean mask or an index array (skipped rows are carried over)."""
+        """Rows picked by a boolean mask or an index array (skipped rows are carried over).
+
+        Parameters
+        ----------
+        index : array-like
+            Boolean mask or row indices.
+
+        Returns
+        -------
+        Dataset
+        """
         idx = np.asarray(index)
         kw: dict[str, Any] = {}
         for f in ("commanded", "error", "measured", "speed", "joints", "temperature", "payload",
@@ -178,6 +200,17 @@ def read_table(path: str | Path, skip_bad: bool = False) -> Dataset:
     (ignored with a warning if not), but one that misspells a contract column the file lacks
     ('sped', 'Temperature', 'point id') is a DataError naming the contract name. `t` must not
     decrease; a row where it does is a bad row.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    skip_bad : bool, optional
+        Skip bad rows (listed in `skipped`) instead of raising.
+
+    Returns
+    -------
+    Dataset
     """
     path = Path(path)
     header = read_header(path, ",")
@@ -271,7 +304,19 @@ def _fmt(v: float) -> str:
 
 
 def write_table(dataset: Dataset, path: str | Path) -> Path:
-    """Write the contract CSV (mm, mm/s). `flange_rotation`, `lines`, `skipped` are not written."""
+    """Write the contract CSV (mm, mm/s). `flange_rotation`, `lines`, `skipped` are not written.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The data (SI).
+    path : str or Path
+        The CSV file.
+
+    Returns
+    -------
+    Path
+    """
     path = Path(path)
     ds = dataset
     if ds.t is not None and ds.n > 1 and np.any(np.diff(ds.t) < 0):
@@ -311,7 +356,17 @@ def write_table(dataset: Dataset, path: str | Path) -> Path:
 
 
 def concat(datasets: Iterable[Dataset]) -> Dataset:
-    """Rows of several datasets one after the other (a column survives only if all have it)."""
+    """Rows of several datasets one after the other (a column survives only if all have it).
+
+    Parameters
+    ----------
+    datasets : iterable of Dataset
+        In order.
+
+    Returns
+    -------
+    Dataset
+    """
     ds = list(datasets)
     if not ds:
         raise DataError("concat: no datasets")
@@ -331,7 +386,17 @@ def sessions(datasets: Sequence[Dataset]) -> Dataset:
     its own tracker set-up, is another group), the session's index in the `session` column
     (`Dataset.extra`; `dt diagnose --group-by session` holds one out at a time). Columns survive
     only if every session has them. The command line names each session by its file
-    (`session_paths.session_names`, in `Data.info['session_files']`)."""
+    (`session_paths.session_names`, in `Data.info['session_files']`).
+
+    Parameters
+    ----------
+    datasets : sequence of Dataset
+        One per session, in order.
+
+    Returns
+    -------
+    Dataset
+    """
     ds = list(datasets)
     if not ds:
         raise DataError("sessions: no datasets")
@@ -353,7 +418,17 @@ def sessions(datasets: Sequence[Dataset]) -> Dataset:
 
 def meta_path(data: str | Path) -> Path:
     """The sidecar of a data file, `<file>.meta.json` (`dt simulate` writes its scenario, seed,
-    registration residual and noise floor there)."""
+    registration residual and noise floor there).
+
+    Parameters
+    ----------
+    data : str or Path
+        The data file.
+
+    Returns
+    -------
+    Path
+    """
     data = Path(data)
     return data.with_name(data.name + ".meta.json")
 

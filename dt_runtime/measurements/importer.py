@@ -279,7 +279,22 @@ class ImportMapping(Frozen):
 def flange_rotation(m: ImportMapping, o: np.ndarray, path: Path) -> np.ndarray:
     """The commanded flange orientations (n, 3, 3) of the orientation columns `o` (n, 3 or 4):
     Euler angles in the mapping's convention, or a quaternion (normalised; a row far from unit
-    length is refused: a column mix-up or another unit)."""
+    length is refused: a column mix-up or another unit).
+
+    Parameters
+    ----------
+    m : ImportMapping
+        The mapping (its orientation convention and unit).
+    o : ndarray
+        (n, 3) Euler angles or (n, 4) quaternions.
+    path : Path
+        The data file, for errors.
+
+    Returns
+    -------
+    ndarray
+        (n, 3, 3).
+    """
     if m.orientation_convention not in QUATERNIONS:
         if o.shape[1] != 3:
             raise DataError(f"{path}: {o.shape[1]} orientation columns for the Euler sequence "
@@ -297,14 +312,36 @@ def flange_rotation(m: ImportMapping, o: np.ndarray, path: Path) -> np.ndarray:
     return Rotation.from_quat(xyzw / norm[:, None]).as_matrix()
 
 def load_mapping(path: str | Path) -> ImportMapping:
-    """Validate a mapping YAML; a problem raises ConfigError(file, key, value, allowed)."""
+    """Validate a mapping YAML; a problem raises ConfigError(file, key, value, allowed).
+
+    Parameters
+    ----------
+    path : str or Path
+        The mapping YAML.
+
+    Returns
+    -------
+    ImportMapping
+    """
     return load_yaml(path, ImportMapping)
 
 
 def mapping_robot(m: ImportMapping, mapping_path: Path | None) -> str | None:
     """The mapping's `robot:` as a robot reference (`frames.robots`: a catalogue name, or a config
     or URDF file beside the mapping, in the working directory or in the project), or None when
-    the mapping names none."""
+    the mapping names none.
+
+    Parameters
+    ----------
+    m : ImportMapping
+        The mapping.
+    mapping_path : Path or None
+        Where the mapping was read from.
+
+    Returns
+    -------
+    str or None
+    """
     if m.robot is None:
         return None
     bases = ([mapping_path.parent] if mapping_path is not None else []) + [Path.cwd(), ROOT]
@@ -651,6 +688,22 @@ def import_file(path: str | Path, mapping: ImportMapping | str | Path,
     commanded x, y, z: the commanded TCP is then the forward kinematics of the joint angles.
     The stages: the columns to read, the rows (and the joint table), the commanded TCP, the
     registration and error, the time, the points, the stated uncertainty.
+
+    Parameters
+    ----------
+    path : str or Path
+        The foreign file.
+    mapping : ImportMapping, str or Path
+        The mapping or its YAML.
+    skip_bad : bool, optional
+        Skip bad rows instead of raising.
+    robot : Chain, str or Path, optional
+        The robot, for a file without commanded x, y, z.
+
+    Returns
+    -------
+    dataset : Dataset
+    report : RegistrationReport
     """
     started = _time_mod.perf_counter()
     path = Path(path)

@@ -82,7 +82,33 @@ def join_joints(spec: JointsSpec, data: Path, data_lines: Sequence[int], data_ke
                 mapping_file: str = "<mapping>", data_sheet: str | int = 0) -> JoinedJoints:
     """The joint angles (rad) of each kept measurement row (`data_lines`: their file lines;
     `data_keys`: their key cells for a key join; `data_sheet`: the measurement file's sheet, if
-    it is a spreadsheet)."""
+    it is a spreadsheet).
+
+    Parameters
+    ----------
+    spec : JointsSpec
+        The mapping's `joints:` section.
+    data : Path
+        The measurement file.
+    data_lines : sequence of int
+        The kept rows' file lines.
+    data_keys : sequence of str or None
+        Their key cells, for a key join.
+    data_separator, data_encoding : str
+        The measurement file's separator and encoding.
+    mapping_dir : Path or None
+        Where the mapping is (relative joint-table paths).
+    skip_bad : bool, optional
+        Drop rows whose joints are bad instead of raising.
+    mapping_file : str, optional
+        The mapping's name, for messages.
+    data_sheet : str or int, optional
+        The measurement file's sheet.
+
+    Returns
+    -------
+    JoinedJoints
+    """
     path = companion(spec.path, data, mapping_dir, "joints.path", mapping_file)
     specs = [ColumnSpec(f"q{i + 1}", c, scale=_ANGLE[spec.unit]) for i, c in enumerate(spec.columns)]
     if isinstance(spec.join, KeyJoin):

@@ -35,7 +35,17 @@ class PhaseData:
         return len(self.point_id)
 
     def rows(self, mask: np.ndarray) -> PhaseData:
-        """The phase's rows where `mask` is true (its refusals kept whole)."""
+        """The phase's rows where `mask` is true (its refusals kept whole).
+
+        Parameters
+        ----------
+        mask : ndarray
+            (n,) bool.
+
+        Returns
+        -------
+        PhaseData
+        """
         def cut(a):
             return None if a is None else np.asarray(a)[mask]
 

@@ -94,6 +94,27 @@ def fit_rigid_offset(p_meas: np.ndarray, p_flange: np.ndarray, R_flange: np.ndar
 
     Units: any one length unit for all inputs (SI in this project). R_flange None: o = 0.
     The offset is fitted only when the flange orientations vary enough to separate it from t.
+
+    Parameters
+    ----------
+    p_meas : ndarray
+        (n, 3) measured points, instrument frame.
+    p_flange : ndarray
+        (n, 3) commanded flange positions, robot frame.
+    R_flange : ndarray, optional
+        (n, 3, 3) commanded flange orientations.
+    offset_init : ndarray, optional
+        (3,) start of o (or its fixed value).
+    fit_offset : bool, optional
+        Fit o.
+    loss : str, optional
+        scipy least_squares loss.
+    f_scale : float, optional
+        Residual scale of a robust loss.
+
+    Returns
+    -------
+    RigidOffsetFit
     """
     p_meas, p_flange = np.asarray(p_meas, float), np.asarray(p_flange, float)
     n = p_meas.shape[0]
@@ -171,7 +192,24 @@ def read_transform(path, unit: str = "mm", maps: str = "instrument_to_robot") ->
     """A given registration: a 4x4 homogeneous matrix in a text file (16 numbers, whitespace
     separated, row by row, like the UR10 series' Trafo_*.txt), translation in `unit` (mm or m).
     `maps`: instrument_to_robot (p_robot = R p_inst + t) or robot_to_instrument (inverted here).
-    Returns (R, t in m). A block that is not a rotation (a scale, a reflection) is refused."""
+    Returns (R, t in m). A block that is not a rotation (a scale, a reflection) is refused.
+
+    Parameters
+    ----------
+    path : str or Path
+        The matrix file.
+    unit : str, optional
+        Unit of the translation column, "mm" or "m".
+    maps : str, optional
+        "instrument_to_robot" or "robot_to_instrument".
+
+    Returns
+    -------
+    R : ndarray
+        (3, 3).
+    t : ndarray
+        (3,), m.
+    """
     path = Path(path)
     try:
         nums = [float(v) for v in path.read_text(encoding="utf-8-sig").split()]

@@ -23,7 +23,25 @@ from dt_kernel.errors import ConfigError, DataError
 def companion(spec: str | Mapping[str, str], data: Path, mapping_dir: Path | None, key: str,
               mapping_file: str = "<mapping>") -> Path:
     """The companion file of `data` named by `spec` (template or per-file table), which must exist.
-    `key` is the mapping key (for the messages)."""
+    `key` is the mapping key (for the messages).
+
+    Parameters
+    ----------
+    spec : str or Mapping
+        A template ({stem}, {name}) or a table {data file name: file}.
+    data : Path
+        The data file.
+    mapping_dir : Path or None
+        Where the mapping is.
+    key : str
+        The mapping key, for messages.
+    mapping_file : str, optional
+        The mapping's name, for messages.
+
+    Returns
+    -------
+    Path
+    """
     if isinstance(spec, Mapping):
         if data.name not in spec:
             raise ConfigError(mapping_file, key, sorted(spec), f"an entry for the data file '{data.name}'")
@@ -49,7 +67,17 @@ def session_names(files: Sequence[str | Path]) -> list[str]:
     """A name for each file of a campaign, to report its session by: the file's stem where no other
     file has it, else the shortest path suffix that tells it apart (`day1/points`, `day2/points`),
     else its name with the extension (`s1.csv`, `s1.xlsx`), else its whole path; the same file
-    given twice gets its position too (`points (2)`)."""
+    given twice gets its position too (`points (2)`).
+
+    Parameters
+    ----------
+    files : sequence of str or Path
+        The campaign's files, in order.
+
+    Returns
+    -------
+    list of str
+    """
     paths = [Path(os.path.abspath(f)) for f in files]
     unique = list(dict.fromkeys(paths))
 

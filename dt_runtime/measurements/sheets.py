@@ -78,7 +78,20 @@ def _refuse(path: Path, what: str, todo: str = WHAT_TO_DO) -> DataError:
 
 def sniff(path: str | Path, encoding: str = "utf-8-sig") -> Kind:
     """The kind of `path` by its first bytes; DataError (naming what the file looks like and what
-    to do) for a file that is neither text in `encoding` nor a spreadsheet."""
+    to do) for a file that is neither text in `encoding` nor a spreadsheet.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    encoding : str, optional
+        The text encoding expected.
+
+    Returns
+    -------
+    str
+        "xlsx", "xls", "ods" or "text".
+    """
     path = Path(path)
     try:
         with path.open("rb") as f:
@@ -148,7 +161,22 @@ def describe(kind: Kind) -> str:
 
 
 def check_sheet(v: str | int) -> str | int:
-    """A mapping's `sheet:` value: a sheet name, or its index (0 = the first)."""
+    """A mapping's `sheet:` value: a sheet name, or its index (0 = the first).
+
+    Parameters
+    ----------
+    v : str or int
+        The value.
+
+    Returns
+    -------
+    str or int
+
+    Raises
+    ------
+    ValueError
+        For a negative index or an empty name.
+    """
     if isinstance(v, int) and v < 0:
         raise ValueError("a sheet name, or its index: 0 for the first sheet, 1 for the second ...")
     if isinstance(v, str) and not v.strip():
@@ -159,7 +187,21 @@ def check_sheet(v: str | int) -> str | int:
 def read_sheet(path: str | Path, sheet: str | int) -> tuple[str, list[str], Sequence[tuple[int, tuple[Cell, ...]]]]:
     """The rows of one sheet of the spreadsheet `path`: (the sheet's name, the workbook's sheet
     names, [(row number as the spreadsheet shows it, cells from column A)]). DataError when the
-    workbook cannot be read or has no such sheet (the sheets it has named)."""
+    workbook cannot be read or has no such sheet (the sheets it has named).
+
+    Parameters
+    ----------
+    path : str or Path
+        The spreadsheet.
+    sheet : str or int
+        Sheet name or index.
+
+    Returns
+    -------
+    name : str
+    sheets : list of str
+    rows : sequence of (int, tuple of Cell)
+    """
     path = Path(path)
     try:
         st = path.stat()
@@ -200,7 +242,19 @@ def _load(path: str, _mtime: int, _size: int, sheet: str | int):
 
 def sheet_note(path: str | Path, sheet: str | int) -> str:
     """' (sheet NAME of [...])' for messages about a spreadsheet's columns: the wrong sheet is the
-    likeliest reason a column is missing."""
+    likeliest reason a column is missing.
+
+    Parameters
+    ----------
+    path : str or Path
+        The spreadsheet.
+    sheet : str or int
+        Sheet name or index.
+
+    Returns
+    -------
+    str
+    """
     name, names, _ = read_sheet(path, sheet)
     return (f" (sheet {name!r} of {names}: the mapping's `sheet:` picks another)" if len(names) > 1
             else f" (sheet {name!r})")
@@ -208,7 +262,17 @@ def sheet_note(path: str | Path, sheet: str | int) -> str:
 
 def cell_text(cell: Cell) -> str:
     """A cell as text (for header names, key columns and messages): an integral number without
-    '.0', a date-time in ISO 8601."""
+    '.0', a date-time in ISO 8601.
+
+    Parameters
+    ----------
+    cell : Cell
+        A typed cell.
+
+    Returns
+    -------
+    str
+    """
     if isinstance(cell, str):
         return cell.strip()
     if isinstance(cell, bool):
