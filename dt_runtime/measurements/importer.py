@@ -284,7 +284,7 @@ def flange_rotation(m: ImportMapping, o: np.ndarray, path: Path) -> np.ndarray:
     Parameters
     ----------
     m : ImportMapping
-        The mapping (its orientation convention and unit).
+        The mapping (its orientation convention and columns).
     o : ndarray
         (n, 3) Euler angles or (n, 4) quaternions.
     path : Path
