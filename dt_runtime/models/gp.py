@@ -100,7 +100,17 @@ class Distinct:
         self._inducing: dict[int, np.ndarray] = {}
 
     def inducing(self, m: int) -> np.ndarray:
-        """Indices of m inducing inputs in U (farthest-point sampling: deterministic)."""
+        """Indices of m inducing inputs in U (farthest-point sampling: deterministic).
+
+        Parameters
+        ----------
+        m : int
+            How many.
+
+        Returns
+        -------
+        ndarray
+        """
         if m not in self._inducing:
             self._inducing[m] = farthest_points(self.U, m)
         return self._inducing[m]
@@ -127,7 +137,17 @@ class GPOptions:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> GPOptions:
-        """From a saved dict (every option, or only the overridden ones: the older `gp_kw`)."""
+        """From a saved dict (every option, or only the overridden ones: the older `gp_kw`).
+
+        Parameters
+        ----------
+        d : dict or None
+            The saved options.
+
+        Returns
+        -------
+        GPOptions
+        """
         d = dict(d or {})
         unknown = sorted(set(d) - set(cls.__dataclass_fields__))
         if unknown:
@@ -214,7 +234,26 @@ class GPRegressor(Params):
         parameters, see `theta_`) the hyperparameters are kept and only the posterior is built.
         `start`: a warm start of the optimisation, the log hyperparameters in input/output
         units (`log_hyper_` of a GP fitted on a nearby problem); then it is the only start.
-        `inputs`: `Distinct(X)` when the caller already has it (MultiOutputGP, for all outputs)."""
+        `inputs`: `Distinct(X)` when the caller already has it (MultiOutputGP, for all outputs).
+
+        Parameters
+        ----------
+        X : array-like
+            (n, d) inputs.
+        y : array-like
+            (n,) target.
+        theta : ndarray, optional
+            Fixed standardised log-parameters.
+        start : ndarray, optional
+            Warm start, log hyperparameters in input/output units.
+        inputs : Distinct, optional
+            `Distinct(X)`, when already computed.
+
+        Returns
+        -------
+        GPRegressor
+            self.
+        """
         X = _as_2d(X, "GPRegressor.fit X")
         y = np.asarray(y, dtype=float)
         if y.ndim == 2 and y.shape[1] == 1:
@@ -327,7 +366,19 @@ class GPRegressor(Params):
 
     def log_marginal_likelihood(self, theta=None, eval_gradient: bool = False):
         """Exact log marginal likelihood (all training rows, via the collapse) at `theta`
-        (standardised log-parameters; default the learned ones), optionally with its gradient."""
+        (standardised log-parameters; default the learned ones), optionally with its gradient.
+
+        Parameters
+        ----------
+        theta : ndarray, optional
+            Standardised log-parameters.
+        eval_gradient : bool, optional
+            Also return the gradient.
+
+        Returns
+        -------
+        float, or (float, ndarray)
+        """
         self._check_fitted()
         theta = self.theta_ if theta is None else np.asarray(theta, dtype=float)
         st = Collapsed.of(self._U, self._counts, self._ybar, float(self._ss.sum()), self.n_train_)
@@ -418,7 +469,19 @@ class GPRegressor(Params):
 
     @blas_limited
     def predict(self, X, return_std: bool = False):
-        """Mean (n,) and, with return_std, the standard deviation (n,) of the latent error map."""
+        """Mean (n,) and, with return_std, the standard deviation (n,) of the latent error map.
+
+        Parameters
+        ----------
+        X : array-like
+            (n, d) inputs.
+        return_std : bool, optional
+            Also return the standard deviation.
+
+        Returns
+        -------
+        ndarray, or (ndarray, ndarray)
+        """
         self._check_fitted()
         X = _as_2d(X, "GPRegressor.predict X")
         if X.shape[1] != self.n_features_in_:
@@ -438,7 +501,19 @@ class GPRegressor(Params):
         return (mean, std) if std is not None else mean
 
     def score(self, X, y) -> float:
-        """Coefficient of determination R^2 (scikit-learn's regressor convention)."""
+        """Coefficient of determination R^2 (scikit-learn's regressor convention).
+
+        Parameters
+        ----------
+        X : array-like
+            (n, d) inputs.
+        y : array-like
+            (n,) target.
+
+        Returns
+        -------
+        float
+        """
         y = np.asarray(y, dtype=float).ravel()
         res = np.sum((y - self.predict(X)) ** 2)
         return float(1 - res / np.sum((y - y.mean()) ** 2))
@@ -505,7 +580,26 @@ class MultiOutputGP(Params):
     @blas_limited
     def fit(self, X, Y, *, input_names=None, output_names=None, thetas=None, starts=None) -> MultiOutputGP:
         """One GP per column of Y. thetas: fixed standardised hyperparameters per output (only
-        the posterior is built); starts: warm starts per output (`log_hyper_`, GPRegressor.fit)."""
+        the posterior is built); starts: warm starts per output (`log_hyper_`, GPRegressor.fit).
+
+        Parameters
+        ----------
+        X : array-like
+            (n, d) inputs.
+        Y : array-like
+            (n, k) targets.
+        input_names, output_names : list of str, optional
+            Names kept with the model.
+        thetas : list of ndarray, optional
+            Fixed hyperparameters per output.
+        starts : list of ndarray, optional
+            Warm starts per output.
+
+        Returns
+        -------
+        MultiOutputGP
+            self.
+        """
         in_names = input_names or _names(X) or self.input_names
         out_names = output_names or _names(Y) or self.output_names
         X = _as_2d(X, "MultiOutputGP.fit X")
@@ -548,7 +642,19 @@ class MultiOutputGP(Params):
 
     @blas_limited
     def predict(self, X, return_std: bool = False):
-        """(n, k) means and, with return_std, (n, k) latent standard deviations."""
+        """(n, k) means and, with return_std, (n, k) latent standard deviations.
+
+        Parameters
+        ----------
+        X : array-like
+            (n, d) inputs.
+        return_std : bool, optional
+            Also return the standard deviations.
+
+        Returns
+        -------
+        ndarray, or (ndarray, ndarray)
+        """
         self._check_fitted()
         out = [g.predict(X, return_std) for g in self.models_]
         if not return_std:

@@ -15,7 +15,18 @@ LOG2PI = float(np.log(2 * np.pi))
 
 
 def inv_from_chol(L: np.ndarray) -> np.ndarray:
-    """K^-1 from its lower Cholesky factor (LAPACK potri), symmetrised."""
+    """K^-1 from its lower Cholesky factor (LAPACK potri), symmetrised.
+
+    Parameters
+    ----------
+    L : ndarray
+        (n, n) lower Cholesky factor of K.
+
+    Returns
+    -------
+    ndarray
+        (n, n).
+    """
     Kinv, info = lapack.dpotri(L, lower=1)
     if info != 0:
         raise linalg.LinAlgError(f"potri failed ({info})")
@@ -24,20 +35,64 @@ def inv_from_chol(L: np.ndarray) -> np.ndarray:
 
 
 def distinct(X: np.ndarray):
-    """Distinct rows of X, the index of each row's distinct row, and the replicate counts."""
+    """Distinct rows of X, the index of each row's distinct row, and the replicate counts.
+
+    Parameters
+    ----------
+    X : ndarray
+        (N, d).
+
+    Returns
+    -------
+    U : ndarray
+        (n, d) distinct rows.
+    inv : ndarray
+        (N,) index into U.
+    counts : ndarray
+        (n,).
+    """
     U, inv, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
     return U, inv.ravel(), counts.astype(float)
 
 
 def group_stats(inv: np.ndarray, counts: np.ndarray, y: np.ndarray):
-    """Mean target and within-group sum of squares of every distinct input (`distinct`)."""
+    """Mean target and within-group sum of squares of every distinct input (`distinct`).
+
+    Parameters
+    ----------
+    inv : ndarray
+        (N,) index of each row's distinct input.
+    counts : ndarray
+        (n,) replicates per input.
+    y : ndarray
+        (N,) target.
+
+    Returns
+    -------
+    ybar : ndarray
+        (n,).
+    ss : float
+    """
     ybar = np.bincount(inv, weights=y, minlength=len(counts)) / counts
     ss = np.bincount(inv, weights=(y - ybar[inv]) ** 2, minlength=len(counts))
     return ybar, ss
 
 
 def farthest_points(U: np.ndarray, m: int) -> np.ndarray:
-    """Indices of m rows of U by farthest-point sampling, started at the row nearest the centroid."""
+    """Indices of m rows of U by farthest-point sampling, started at the row nearest the centroid.
+
+    Parameters
+    ----------
+    U : ndarray
+        (n, d).
+    m : int
+        How many.
+
+    Returns
+    -------
+    ndarray
+        (m,) indices.
+    """
     m = min(m, len(U))
     idx = np.empty(m, dtype=np.intp)
     idx[0] = int(np.argmin(((U - U.mean(0)) ** 2).sum(1)))
@@ -77,7 +132,17 @@ def se_kernel(A: np.ndarray, B: np.ndarray, ell: np.ndarray, sf2: float) -> np.n
 
 # --- likelihood ------------------------------------------------------------------------------
 def sq_dists(U: np.ndarray) -> np.ndarray:
-    """(d, n, n) per-dimension squared distances of the rows of U."""
+    """(d, n, n) per-dimension squared distances of the rows of U.
+
+    Parameters
+    ----------
+    U : ndarray
+        (n, d).
+
+    Returns
+    -------
+    ndarray
+    """
     return np.stack([(U[:, k, None] - U[None, :, k]) ** 2 for k in range(U.shape[1])])
 
 
@@ -125,7 +190,19 @@ def collapsed_factor(theta: np.ndarray, st: Collapsed):
     """The kernel of the distinct inputs and its Cholesky factor at theta: (nll, beta, alpha, L,
     K), or None where K is not positive definite. K = s_f^2 E + s_n^2 diag(1/n_i) (C order,
     exactly symmetric: LAPACK reads its transpose view, Fortran order, without a copy); L is its
-    lower factor, zero above the diagonal; alpha = K^-1 (ybar - beta)."""
+    lower factor, zero above the diagonal; alpha = K^-1 (ybar - beta).
+
+    Parameters
+    ----------
+    theta : ndarray
+        Standardised log-parameters.
+    st : Collapsed
+        The fit's fixed quantities.
+
+    Returns
+    -------
+    tuple or None
+    """
     d = st.D2.shape[0]
     sf2, sn2 = np.exp(theta[d]), np.exp(theta[d + 1])
     if not (np.all(np.isfinite(theta)) and sf2 > 0 and sn2 > 0):
@@ -167,7 +244,23 @@ def collapsed_nll(theta: np.ndarray, st: Collapsed, want_grad: bool = True):
     (i, j) + (j, i) is 2 W_ij S_ij, and W_ii S_ii on it; D2 is symmetric with a zero diagonal.
     The contraction with D2 sums exact squared distances: a direction the kernel no longer
     sees (a length scale at its bound over an input with a few levels) gets its true, tiny
-    gradient, not the round-off of a difference of large sums (which sent L-BFGS-B elsewhere)."""
+    gradient, not the round-off of a difference of large sums (which sent L-BFGS-B elsewhere).
+
+    Parameters
+    ----------
+    theta : ndarray
+        Standardised log-parameters.
+    st : Collapsed
+        The fit's fixed quantities.
+    want_grad : bool, optional
+        Compute the gradient.
+
+    Returns
+    -------
+    nll : float
+    grad : ndarray or None
+    beta : float
+    """
     f = collapsed_factor(theta, st)
     if f is None:
         return 1e25, np.zeros_like(theta), 0.0

@@ -35,13 +35,37 @@ class FastPredictor:
     def mean_kernel(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The mean (k,) at x (d,) and the kernel vectors (U, k) its std needs (`std_of`): a
         fixed-point correction needs the mean at every step and the std only at its last. The
-        same operations as `__call__`, so the same numbers; shared outputs only, x not checked."""
+        same operations as `__call__`, so the same numbers; shared outputs only, x not checked.
+
+        Parameters
+        ----------
+        x : ndarray
+            (d,) one input.
+
+        Returns
+        -------
+        mean : ndarray
+            (k,).
+        K : ndarray
+            (U, k).
+        """
         diff = self._Xb - (x - self._xm) / self._xs
         K = self._sf2 * np.exp((diff * diff) @ self._neg_half_inv_ell2)
         return self._m0 + self._ys * np.einsum("uk,uk->k", K, self._alpha), K
 
     def std_of(self, K: np.ndarray) -> np.ndarray:
-        """The latent std (k,) where `mean_kernel` gave K."""
+        """The latent std (k,) where `mean_kernel` gave K.
+
+        Parameters
+        ----------
+        K : ndarray
+            From `mean_kernel`.
+
+        Returns
+        -------
+        ndarray
+            (k,).
+        """
         Kt = K.T
         var = self._sf2 - np.einsum("ku,ku->k", Kt, np.matmul(self._Q, Kt[:, :, None])[:, :, 0])
         return self._ys * np.sqrt(np.maximum(var, 0.0))

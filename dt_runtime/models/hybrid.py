@@ -74,17 +74,52 @@ def gp_features(inp: fx.Inputs, kind: str) -> np.ndarray | None:
 
 def robot_ref(robot: str | Path | None) -> str | None:
     """How a saved model names its robot (`frames.robots`): a catalogue name, a config or URDF
-    path (relative to configs/ when shipped there), with its '#link' and '?tool_mm=' if any."""
+    path (relative to configs/ when shipped there), with its '#link' and '?tool_mm=' if any.
+
+    Parameters
+    ----------
+    robot : str, Path or None
+        The robot as given.
+
+    Returns
+    -------
+    str or None
+    """
     return robots.reference(robot)
 
 
 def load_chain(ref: str) -> Chain:
-    """The kinematic chain of a robot reference (robot_ref), parsed once per process."""
+    """The kinematic chain of a robot reference (robot_ref), parsed once per process.
+
+    Parameters
+    ----------
+    ref : str
+        A robot reference.
+
+    Returns
+    -------
+    Chain
+    """
     return robots.load(ref)
 
 
 def resolve_chain(robot: str | Path | Chain | None) -> Chain | None:
-    """The kinematic chain a model's `robot` parameter gives: a robot reference or a Chain."""
+    """The kinematic chain a model's `robot` parameter gives: a robot reference or a Chain.
+
+    Parameters
+    ----------
+    robot : str, Path, Chain or None
+        The model's `robot`.
+
+    Returns
+    -------
+    Chain or None
+
+    Raises
+    ------
+    ModelError
+        When the reference no longer resolves.
+    """
     if robot is None or isinstance(robot, Chain):
         return robot
     try:
@@ -172,12 +207,32 @@ class HybridModel(RegressorMixin, BaseEstimator):
         return fitted if fitted is not None else fx.default()
 
     def effect(self, name: str) -> fx.Effect:
-        """An effect by name from the model's catalogue (`effects_catalogue`)."""
+        """An effect by name from the model's catalogue (`effects_catalogue`).
+
+        Parameters
+        ----------
+        name : str
+            The effect's name.
+
+        Returns
+        -------
+        Effect
+        """
         return self.effects_catalogue().get(name)
 
     def unfitted(self, **changes) -> HybridModel:
         """An unfitted model with this one's parameters, `changes` applied (sklearn.base.clone
-        without the deep copy: the parameters are immutable, a Chain is only read)."""
+        without the deep copy: the parameters are immutable, a Chain is only read).
+
+        Parameters
+        ----------
+        **changes
+            Parameters to change.
+
+        Returns
+        -------
+        HybridModel
+        """
         return type(self)(**(self.get_params(deep=False) | changes))
 
     def _check_params(self) -> GPOptions:
@@ -200,7 +255,21 @@ class HybridModel(RegressorMixin, BaseEstimator):
         fit/predict, so held-out rows keep their true history. The effects' nonlinear parameters
         (the thermal lag): a fitted model's; else estimated on (X, y) by profile likelihood
         (models.hyper) when the error y is given; else their defaults. `chain`: the effects'
-        kinematic chain when the caller has resolved it (`MapPredictor`, once); else resolved here."""
+        kinematic chain when the caller has resolved it (`MapPredictor`, once); else resolved here.
+
+        Parameters
+        ----------
+        X : Dataset, Inputs or ndarray
+            The rows.
+        y : ndarray, optional
+            (n, 3) error, m.
+        chain : Chain, optional
+            The resolved chain.
+
+        Returns
+        -------
+        Design
+        """
         inp = as_inputs(X)
         cat = self.effects_catalogue()
         cat.check_names(self.effects)
@@ -249,7 +318,26 @@ class HybridModel(RegressorMixin, BaseEstimator):
         e = commanded - measured (n, 3) m, default X.error for a Dataset. design: prebuilt
         regressors (design_matrix) of these rows; thetas: fixed GP hyperparameters per axis
         (skips their optimisation); starts: warm starts of that optimisation per axis (a nearby
-        model's `gp_.log_hypers_`, e.g. the model a diagnose candidate extends)."""
+        model's `gp_.log_hypers_`, e.g. the model a diagnose candidate extends).
+
+        Parameters
+        ----------
+        X : Dataset, Inputs or ndarray
+            The rows.
+        y : ndarray, optional
+            (n, 3) error, m.
+        design : Design, optional
+            Prebuilt regressors of these rows.
+        thetas : list, optional
+            Fixed GP hyperparameters per axis.
+        starts : list, optional
+            Warm starts per axis.
+
+        Returns
+        -------
+        HybridModel
+            self.
+        """
         self.catalogue_ = self.catalogue if self.catalogue is not None else fx.default()
         options = self._check_params()
         inp = as_inputs(X)
@@ -397,7 +485,22 @@ class HybridModel(RegressorMixin, BaseEstimator):
     def predict(self, X, return_std: bool = False, *, design: Design | None = None):
         """Predicted error (n, 3) m and, with return_std, its standard uncertainty per axis: the
         GP's latent standard deviation and the effect parameters' covariance propagated through
-        their regressors (u^2 = s_GP^2 + a Sigma_theta a^T for each row's axis regressors a)."""
+        their regressors (u^2 = s_GP^2 + a Sigma_theta a^T for each row's axis regressors a).
+
+        Parameters
+        ----------
+        X : Dataset, Inputs or ndarray
+            The rows.
+        return_std : bool, optional
+            Also return the standard uncertainty.
+        design : Design, optional
+            Prebuilt regressors of these rows.
+
+        Returns
+        -------
+        ndarray, or (ndarray, ndarray)
+            (n, 3), m.
+        """
         self._check_fitted()
         inp = as_inputs(X)
         D = design if design is not None else self.design_matrix(inp)
@@ -416,7 +519,19 @@ class HybridModel(RegressorMixin, BaseEstimator):
     def outside_domain(self, X, margin: float = 0.02) -> dict | None:
         """Rows of X outside the training domain (TCP box or joint ranges, each widened by
         `margin` of its range): {'rows', 'fraction', 'columns': {name: rows}}; None when the
-        model does not know its domain."""
+        model does not know its domain.
+
+        Parameters
+        ----------
+        X : Dataset, Inputs or ndarray
+            The rows.
+        margin : float, optional
+            Widening, as a fraction of each range.
+
+        Returns
+        -------
+        dict or None
+        """
         dom = getattr(self, "domain_", None)
         if not dom:
             return None
@@ -571,7 +686,19 @@ class HybridModel(RegressorMixin, BaseEstimator):
 
     def save(self, directory: str | Path, provenance: Provenance | None = None) -> Path:
         """Write hybrid.json (with the traceability record `provenance`, default
-        `self.provenance()`), hybrid.npz and the GP."""
+        `self.provenance()`), hybrid.npz and the GP.
+
+        Parameters
+        ----------
+        directory : str or Path
+            The model directory.
+        provenance : Provenance, optional
+            The traceability record.
+
+        Returns
+        -------
+        Path
+        """
         self._check_fitted()
         chained = any(self.effect(e).needs_chain or self.effect(e).uses_chain for e in self.effects)
         if isinstance(self.robot, Chain) and (self.nuisance or chained):
@@ -611,7 +738,19 @@ class HybridModel(RegressorMixin, BaseEstimator):
 
     @classmethod
     def of_gp(cls, gp: MultiOutputGP, robot: str | Path | None = None) -> HybridModel:
-        """The paper's map as a fitted hybrid model: no effect terms, a fitted GP(TCP, v)."""
+        """The paper's map as a fitted hybrid model: no effect terms, a fitted GP(TCP, v).
+
+        Parameters
+        ----------
+        gp : MultiOutputGP
+            A fitted GP(TCP, v).
+        robot : str or Path, optional
+            The robot reference.
+
+        Returns
+        -------
+        HybridModel
+        """
         if getattr(gp, "n_features_in_", None) != 4:
             raise ModelError("HybridModel.of_gp: the GP must be fitted on (x, y, z, v)")
         params = gp.get_params()
@@ -687,7 +826,17 @@ class HybridModel(RegressorMixin, BaseEstimator):
 
 
 def unidentified(p: dict) -> str:
-    """Why a parameter (a `HybridModel.parameters` row) has no value."""
+    """Why a parameter (a `HybridModel.parameters` row) has no value.
+
+    Parameters
+    ----------
+    p : dict
+        A parameter row.
+
+    Returns
+    -------
+    str
+    """
     if "group" in p:
         return f"not identified (aliased with {', '.join(p['group'])})"
     lo, hi = p.get("interval", (float("nan"), float("nan")))
@@ -698,7 +847,19 @@ def load_map(path: str | Path, catalogue: fx.Catalogue | None = None) -> HybridM
     """An error map as a HybridModel, from any of the places one is saved: a `dt fit` model
     directory, a twin's map directory (TWIN/e_lt), a twin directory (its e_LT map), or a
     GP-only map of a twin saved before format 2 (TWIN/e_lt.json + .npz). `catalogue`: the
-    call's effects (`HybridModel.load`)."""
+    call's effects (`HybridModel.load`).
+
+    Parameters
+    ----------
+    path : str or Path
+        Where the map is.
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    HybridModel
+    """
     p = Path(path)
     if (p / "twin.json").is_file():  # a twin: its e_LT map
         p = p / "e_lt"
@@ -739,7 +900,17 @@ class MapPredictor:
         return replace(inp, structure_temperature=np.full(inp.n, ts))
 
     def gp_only(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The plain map at x = (x, y, z, v) (m, m/s)."""
+        """The plain map at x = (x, y, z, v) (m, m/s).
+
+        Parameters
+        ----------
+        x : ndarray
+            (4,).
+
+        Returns
+        -------
+        mean, std : ndarray
+        """
         assert self._gp is not None and self.plain
         return self._gp(x)
 

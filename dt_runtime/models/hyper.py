@@ -58,7 +58,21 @@ class Estimate:
 
 def rss_of(A: np.ndarray, y: np.ndarray, ridge: float) -> float:
     """Residual sum of squares of the ridge least squares y ~ A theta on standardised columns
-    (the effect fit's ordinary step, `HybridModel.fit`)."""
+    (the effect fit's ordinary step, `HybridModel.fit`).
+
+    Parameters
+    ----------
+    A : ndarray
+        (N, p) regressors.
+    y : ndarray
+        (N,) target.
+    ridge : float
+        The penalty.
+
+    Returns
+    -------
+    float
+    """
     scale = np.sqrt(np.mean(A ** 2, axis=0))
     keep = scale > 1e-300
     As = A[:, keep] / scale[keep]
@@ -87,7 +101,17 @@ class FixedPart:
         self.lam = ridge * len(y) * 1e-3 / 3
 
     def rss(self, a: np.ndarray) -> float:
-        """RSS of the ridge fit of y on [B, a] (a: (N, q) the changing columns)."""
+        """RSS of the ridge fit of y on [B, a] (a: (N, q) the changing columns).
+
+        Parameters
+        ----------
+        a : ndarray
+            (N, q) the changing columns.
+
+        Returns
+        -------
+        float
+        """
         scale = np.sqrt(np.mean(a ** 2, axis=0))
         keep = scale > 1e-300
         As = a[:, keep] / scale[keep]
@@ -110,7 +134,27 @@ def profile(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, chain: 
     parameters one after the other, each with the ones before it at their estimates and the others'
     at their defaults), {effect: {parameter: Estimate}}. Effects whose
     parameters the inputs cannot inform (the thermal lag without a time column) are left out
-    (their defaults apply)."""
+    (their defaults apply).
+
+    Parameters
+    ----------
+    effects : tuple of str
+        The model's effects.
+    inp : Inputs
+        The data's columns.
+    error : ndarray
+        (n, 3), m.
+    chain : Chain or None
+        The robot's kinematic chain.
+    ridge : float
+        The effect fit's penalty.
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    dict
+    """
     out: dict[str, dict[str, Estimate]] = {}
     cat = catalogue if catalogue is not None else fx.default()
     wanted = [e for e in effects if cat.get(e).hyper and inp.has(*cat.get(e).hyper_columns)]

@@ -34,7 +34,17 @@ class Base:
         return len(self.lead)
 
     def absorbed(self, k: int) -> list[int]:
-        """The parameters the k-th base parameter stands for beside its leading one."""
+        """The parameters the k-th base parameter stands for beside its leading one.
+
+        Parameters
+        ----------
+        k : int
+            The base parameter.
+
+        Returns
+        -------
+        list of int
+        """
         return [int(j) for j in np.flatnonzero(self.C[k]) if j != self.lead[k]]
 
     def state(self) -> list[dict]:
@@ -129,7 +139,18 @@ class Identifiability:
 
 
 def zero_columns(scale: np.ndarray) -> np.ndarray:
-    """Columns whose RMS is round-off next to the largest (bool mask)."""
+    """Columns whose RMS is round-off next to the largest (bool mask).
+
+    Parameters
+    ----------
+    scale : ndarray
+        (p,) each column's RMS.
+
+    Returns
+    -------
+    ndarray
+        (p,) bool.
+    """
     scale = np.asarray(scale, dtype=float)
     if scale.size == 0:
         return np.zeros(0, bool)
@@ -254,7 +275,19 @@ def analyse(As: np.ndarray, zero: np.ndarray | None = None, scale: np.ndarray | 
 
 def connected(n: int, links: Iterable[tuple[int, int]]) -> list[list[int]]:
     """The groups of 0..n-1 that `links` (pairs) connect, each sorted, in order of their smallest
-    member (union-find): the aliased parameters here and in the kinematic export."""
+    member (union-find): the aliased parameters here and in the kinematic export.
+
+    Parameters
+    ----------
+    n : int
+        Number of items.
+    links : iterable of (int, int)
+        Pairs.
+
+    Returns
+    -------
+    list of list of int
+    """
     parent = list(range(n))
 
     def root(i: int) -> int:
@@ -299,7 +332,18 @@ class Aliasing:
 
     def combine(self, theta: np.ndarray) -> np.ndarray:
         """The identifiable part of `theta`: every non-basis value moved onto the basis
-        parameters its column aliases, non-basis parameters zero (same A theta on the data)."""
+        parameters its column aliases, non-basis parameters zero (same A theta on the data).
+
+        Parameters
+        ----------
+        theta : ndarray
+            (p,).
+
+        Returns
+        -------
+        ndarray
+            (p,).
+        """
         out = np.zeros_like(theta)
         out[list(self.basis)] = theta[list(self.basis)]
         for j, coefs in self.absorbed.items():

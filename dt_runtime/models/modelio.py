@@ -11,7 +11,23 @@ def read_meta(path: Path, version: int | tuple[int, ...], what: str, infinite_ok
     """The JSON metadata at `path` (`common.safe_json.read_json`: a regular file, size, depth and
     integers bounded, every number finite but +infinity under a key ending in one of
     `infinite_ok`); ModelError if unreadable, refused or of a format version not in `version`
-    (one, or those this version reads)."""
+    (one, or those this version reads).
+
+    Parameters
+    ----------
+    path : Path
+        The JSON file.
+    version : int or tuple of int
+        The format versions read.
+    what : str
+        What the file should be.
+    infinite_ok : tuple of str, optional
+        Keys under which +infinity is allowed.
+
+    Returns
+    -------
+    dict
+    """
     try:
         meta = read_json(path, f"a {what} file", infinite_ok=infinite_ok)
     except DataError as exc:

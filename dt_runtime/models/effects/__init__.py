@@ -59,7 +59,17 @@ def plugin_effects() -> dict[str, Effect]:
 def read_file(path: str | Path) -> list[Effect]:
     """The effects a YAML file declares (`--effects-file`, `models.effects.declared`), checked on
     their own: ConfigError naming the file, the key and the value for a bad key or value, a
-    catalogue effect's name, or a name declared twice. Nothing is registered."""
+    catalogue effect's name, or a name declared twice. Nothing is registered.
+
+    Parameters
+    ----------
+    path : str or Path
+        The effects YAML.
+
+    Returns
+    -------
+    list of Effect
+    """
     found = declared.read_file(path)
     seen: set[str] = set()
     for i, effect in enumerate(found):
@@ -101,13 +111,33 @@ class Catalogue:
         return f"Catalogue(own={list(self.own)}, plugins={list(self.plugins)})"
 
     def with_own(self, effects: Iterable[Effect]) -> Catalogue:
-        """This catalogue with `effects` added to its own (the same plugins, not read again)."""
+        """This catalogue with `effects` added to its own (the same plugins, not read again).
+
+        Parameters
+        ----------
+        effects : iterable of Effect
+            The effects to add.
+
+        Returns
+        -------
+        Catalogue
+        """
         return Catalogue([*self.own.values(), *effects], self.plugins)
 
     def with_file(self, path: str | Path) -> Catalogue:
         """This catalogue with the effects the YAML file at `path` declares (`read_file`) as its
         own. ConfigError naming the file, the key and the value when a name is a plugin's or
-        already this catalogue's own with another definition."""
+        already this catalogue's own with another definition.
+
+        Parameters
+        ----------
+        path : str or Path
+            The effects YAML.
+
+        Returns
+        -------
+        Catalogue
+        """
         found = read_file(path)
         for i, effect in enumerate(found):
             taken = self.own.get(effect.name) or self.plugins.get(effect.name)
@@ -122,7 +152,17 @@ class Catalogue:
         return tuple(dict.fromkeys((*REGISTRY, *self.plugins, *self.own)))
 
     def get(self, name: str) -> Effect:
-        """The effect `name` (its own first); DataError naming the known ones if there is none."""
+        """The effect `name` (its own first); DataError naming the known ones if there is none.
+
+        Parameters
+        ----------
+        name : str
+            The effect's name.
+
+        Returns
+        -------
+        Effect
+        """
         for where in (self.own, self.plugins, REGISTRY):
             if name in where:
                 return where[name]
@@ -130,7 +170,17 @@ class Catalogue:
         raise AssertionError(name)  # check_names raised
 
     def check_names(self, effects: Iterable[str]) -> None:
-        """DataError naming every unknown effect in `effects` and the known ones."""
+        """DataError naming every unknown effect in `effects` and the known ones.
+
+        Parameters
+        ----------
+        effects : iterable of str
+            Effect names.
+
+        Raises
+        ------
+        DataError
+        """
         known = self.names()
         unknown = [e for e in effects if e not in known]
         if unknown:
@@ -139,11 +189,39 @@ class Catalogue:
 
     def build(self, name: str, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
         """The regressor block of effect `name` on `inp` (DataError if the inputs do not allow it),
-        with `hyper` the values of its nonlinear parameters (`Effect.hyper`)."""
+        with `hyper` the values of its nonlinear parameters (`Effect.hyper`).
+
+        Parameters
+        ----------
+        name : str
+            The effect's name.
+        inp : Inputs
+            The data's columns.
+        chain : Chain or None
+            The robot's kinematic chain.
+        hyper : dict, optional
+            Values of its nonlinear parameters.
+
+        Returns
+        -------
+        Block
+        """
         return self.get(name).build(inp, chain, hyper)
 
     def available(self, inp: Inputs, chain: Chain | None) -> list[str]:
-        """Effects whose regressors the data's columns (and the kinematic model) allow."""
+        """Effects whose regressors the data's columns (and the kinematic model) allow.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain or None
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        list of str
+        """
         return [n for n in self.names() if self.get(n).allowed(inp, chain)]
 
     def user_effects(self) -> dict[str, Effect]:
@@ -151,7 +229,17 @@ class Catalogue:
         return self.plugins | self.own
 
     def declared(self, effects: Iterable[str]) -> list[declared.DeclaredEffect]:
-        """The declared (YAML) effects among `effects`: what a saved model carries."""
+        """The declared (YAML) effects among `effects`: what a saved model carries.
+
+        Parameters
+        ----------
+        effects : iterable of str
+            Effect names.
+
+        Returns
+        -------
+        list of DeclaredEffect
+        """
         return [e for e in map(self.get, effects) if isinstance(e, declared.DeclaredEffect)]
 
 
@@ -175,20 +263,68 @@ def names() -> tuple[str, ...]:
 
 
 def check_names(effects: Iterable[str]) -> None:
-    """DataError naming every effect in `effects` the default catalogue does not know."""
+    """DataError naming every effect in `effects` the default catalogue does not know.
+
+    Parameters
+    ----------
+    effects : iterable of str
+        Effect names.
+
+    Raises
+    ------
+    DataError
+    """
     default().check_names(effects)
 
 
 def get(name: str) -> Effect:
-    """Effect `name` of the default catalogue."""
+    """Effect `name` of the default catalogue.
+
+    Parameters
+    ----------
+    name : str
+        The effect's name.
+
+    Returns
+    -------
+    Effect
+    """
     return default().get(name)
 
 
 def build(name: str, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
-    """The regressor block of the default catalogue's effect `name` (`Catalogue.build`)."""
+    """The regressor block of the default catalogue's effect `name` (`Catalogue.build`).
+
+    Parameters
+    ----------
+    name : str
+        The effect's name.
+    inp : Inputs
+        The data's columns.
+    chain : Chain or None
+        The robot's kinematic chain.
+    hyper : dict, optional
+        Values of its nonlinear parameters.
+
+    Returns
+    -------
+    Block
+    """
     return default().build(name, inp, chain, hyper)
 
 
 def available(inp: Inputs, chain: Chain | None) -> list[str]:
-    """The default catalogue's effects that the data's columns (and the kinematic model) allow."""
+    """The default catalogue's effects that the data's columns (and the kinematic model) allow.
+
+    Parameters
+    ----------
+    inp : Inputs
+        The data's columns.
+    chain : Chain or None
+        The robot's kinematic chain.
+
+    Returns
+    -------
+    list of str
+    """
     return default().available(inp, chain)

@@ -24,7 +24,24 @@ _CACHE: OrderedDict = OrderedDict()  # arrivals of recent joint tables (profile 
 
 def arrivals(q: np.ndarray, chain: Chain, linear: bool) -> tuple[np.ndarray, np.ndarray]:
     """Per row and joint: the sign of the motion as the joint arrived (n, dof) and its travel since
-    it last reversed (rad; inf where unknown: fully engaged). A joint that did not move keeps both."""
+    it last reversed (rad; inf where unknown: fully engaged). A joint that did not move keeps both.
+
+    Parameters
+    ----------
+    q : ndarray
+        (n, dof) joint angles, rows in time order, rad.
+    chain : Chain
+        The robot's kinematic chain.
+    linear : bool
+        The rows were reached by linear TCP moves (else joint moves).
+
+    Returns
+    -------
+    sign : ndarray
+        (n, dof).
+    travel : ndarray
+        (n, dof), rad.
+    """
     key = (hashlib.sha1(np.ascontiguousarray(q, dtype=float).tobytes()).hexdigest(), id(chain), chain.dof, linear)
     if key in _CACHE:
         _CACHE.move_to_end(key)
@@ -39,7 +56,18 @@ def arrivals(q: np.ndarray, chain: Chain, linear: bool) -> tuple[np.ndarray, np.
 def approach_signs(q: np.ndarray) -> np.ndarray:
     """Per row and joint, the sign of the joint's motion into the pose on a joint move (n, dof): the
     change from the previous row, a joint that did not move keeping its last direction (rows in time
-    order). The side each joint's play rests on; the replicate floor pairs revisits by it."""
+    order). The side each joint's play rests on; the replicate floor pairs revisits by it.
+
+    Parameters
+    ----------
+    q : ndarray
+        (n, dof) joint angles, rows in time order.
+
+    Returns
+    -------
+    ndarray
+        (n, dof) of -1, 0, +1.
+    """
     return np.sign(approach(q, per_column=True))
 
 
@@ -92,7 +120,24 @@ def _accumulate(sign: np.ndarray, travel: np.ndarray, inside: np.ndarray, since:
 
 
 def engagement(q: np.ndarray, chain: Chain, linear: bool, play_rad: float) -> np.ndarray:
-    """The engagement g (n, dof) in [-1, 1] of every joint (`Backlash`); play 0: the sign."""
+    """The engagement g (n, dof) in [-1, 1] of every joint (`Backlash`); play 0: the sign.
+
+    Parameters
+    ----------
+    q : ndarray
+        (n, dof) joint angles, rows in time order, rad.
+    chain : Chain
+        The robot's kinematic chain.
+    linear : bool
+        The rows were reached by linear TCP moves (else joint moves).
+    play_rad : float
+        The play, rad.
+
+    Returns
+    -------
+    ndarray
+        (n, dof).
+    """
     sign, tau = arrivals(q, chain, linear)
     if play_rad <= 0:
         return sign

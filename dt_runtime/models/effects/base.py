@@ -44,7 +44,17 @@ class Inputs:
 
     @classmethod
     def of(cls, ds) -> Inputs:
-        """The columns of a `dt_runtime.measurements.dataset.Dataset` the effect terms may use."""
+        """The columns of a `dt_runtime.measurements.dataset.Dataset` the effect terms may use.
+
+        Parameters
+        ----------
+        ds : Dataset
+            The measurements.
+
+        Returns
+        -------
+        Inputs
+        """
         return cls(**{f.name: getattr(ds, f.name) for f in fields(cls)
                       if f.name not in ("t_origin", "structure_temperature", "extra")},
                    extra=dict(getattr(ds, "extra", {}) or {}) or None)
@@ -66,7 +76,17 @@ class Inputs:
                        extra=None if self.extra is None else {k: v[mask] for k, v in self.extra.items()})
 
     def get(self, name: str) -> np.ndarray | None:
-        """A column by name: a field of Inputs, else one of the data's own (`extra`), else None."""
+        """A column by name: a field of Inputs, else one of the data's own (`extra`), else None.
+
+        Parameters
+        ----------
+        name : str
+            The column's name.
+
+        Returns
+        -------
+        ndarray or None
+        """
         if name in _FIELDS:
             return getattr(self, name)
         return None if self.extra is None else self.extra.get(name)
@@ -86,7 +106,22 @@ class Inputs:
         return all(self.get(c) is not None for c in columns)
 
     def column(self, name: str) -> np.ndarray:
-        """An optional column that must be there (an effect declared it: `Effect.build` checks)."""
+        """An optional column that must be there (an effect declared it: `Effect.build` checks).
+
+        Parameters
+        ----------
+        name : str
+            The column's name.
+
+        Returns
+        -------
+        ndarray
+
+        Raises
+        ------
+        DataError
+            When the data have no such column.
+        """
         v = self.get(name)
         if v is None:
             raise DataError(f"the data has no column {name!r}")
@@ -100,7 +135,17 @@ _FACTOR_OF = {"time": "t", "temperature": "temperature", "speed": "speed", "payl
 
 def as_inputs(X) -> Inputs:
     """The effect terms' inputs of X: an `effects.Inputs`, a measurement `Dataset`, or an
-    (n, 3) array of commanded TCP positions (m)."""
+    (n, 3) array of commanded TCP positions (m).
+
+    Parameters
+    ----------
+    X : Inputs, Dataset or ndarray
+        The data.
+
+    Returns
+    -------
+    Inputs
+    """
     if isinstance(X, Inputs):
         return X
     if hasattr(X, "commanded"):
@@ -131,7 +176,20 @@ def approach(x: np.ndarray, per_column: bool = False) -> np.ndarray:
     """Direction of approach of each row from the previous row (first row: from the second). A
     row that did not move (a repeated reading of the same pose) keeps the direction of the last
     move: the arm still rests where that move left it. per_column: each column on its own (a joint
-    that did not move while others did keeps its own last direction, as the plant's play does)."""
+    that did not move while others did keeps its own last direction, as the plant's play does).
+
+    Parameters
+    ----------
+    x : ndarray
+        (n, k) positions or joint angles, rows in time order.
+    per_column : bool, optional
+        Each column on its own.
+
+    Returns
+    -------
+    ndarray
+        (n, k) the differences to the previous row.
+    """
     x = np.asarray(x, dtype=float)
     d = np.zeros_like(x)
     if len(x) < 2:
@@ -143,7 +201,22 @@ def approach(x: np.ndarray, per_column: bool = False) -> np.ndarray:
 
 def carry_forward(d: np.ndarray, still: np.ndarray, per_column: bool = False) -> np.ndarray:
     """`d` with every `still` entry replaced by the last entry before it that was not still (its
-    column's first such entry before any); per_column False: a row is still only when all of it is."""
+    column's first such entry before any); per_column False: a row is still only when all of it is.
+
+    Parameters
+    ----------
+    d : ndarray
+        (n, k).
+    still : ndarray
+        (n, k) bool.
+    per_column : bool, optional
+        Each column on its own.
+
+    Returns
+    -------
+    ndarray
+        (n, k).
+    """
     if not per_column:
         still = np.broadcast_to(np.all(still, axis=1, keepdims=True), d.shape)
     if not still.any():
@@ -195,16 +268,57 @@ class Effect:
         return tuple(named.get(c, c) for c in self.columns if c not in ("joints", "commanded"))
 
     def reads(self, chain: Chain | None) -> tuple[str, ...]:
-        """The columns its regressors read with this chain (default: `columns`)."""
+        """The columns its regressors read with this chain (default: `columns`).
+
+        Parameters
+        ----------
+        chain : Chain or None
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        tuple of str
+        """
         return self.columns
 
     def allowed(self, inp: Inputs, chain: Chain | None) -> bool:
-        """Whether the data's columns (and the kinematic chain, if needed) allow this effect."""
+        """Whether the data's columns (and the kinematic chain, if needed) allow this effect.
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain or None
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        bool
+        """
         return inp.has(*self.reads(chain)) and (chain is not None or not self.needs_chain)
 
     def build(self, inp: Inputs, chain: Chain | None, hyper: dict[str, float] | None = None) -> Block:
         """The regressor block, after checking that the inputs allow it; `hyper`: values of the
-        nonlinear parameters (default: each one's `regressors` default)."""
+        nonlinear parameters (default: each one's `regressors` default).
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain or None
+            The robot's kinematic chain.
+        hyper : dict, optional
+            Values of the nonlinear parameters.
+
+        Returns
+        -------
+        Block
+
+        Raises
+        ------
+        DataError
+            When a column, the chain or a named nonlinear parameter is missing or unknown.
+        """
         missing = [c for c in self.reads(chain) if inp.get(c) is None]
         if missing:
             raise DataError(f"effect '{self.name}' needs the column(s) {', '.join(missing)}, "
@@ -217,7 +331,19 @@ class Effect:
         return self.regressors(inp, cast(Chain, chain), **(hyper or {}))  # None only where needs_chain is False
 
     def regressors(self, inp: Inputs, chain: Chain) -> Block:  # pragma: no cover - abstract
-        """The block; `build` has checked the columns (and the chain, where needed)."""
+        """The block; `build` has checked the columns (and the chain, where needed).
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        chain : Chain
+            The robot's kinematic chain.
+
+        Returns
+        -------
+        Block
+        """
         raise NotImplementedError
 
     def __repr__(self) -> str:

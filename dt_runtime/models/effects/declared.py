@@ -145,7 +145,17 @@ class DeclaredEffect(Effect):
 
 
 def columns_of(inp: Inputs) -> list[str]:
-    """The data's columns by their file names (q1..qk for the joints), for error messages."""
+    """The data's columns by their file names (q1..qk for the joints), for error messages.
+
+    Parameters
+    ----------
+    inp : Inputs
+        The data's columns.
+
+    Returns
+    -------
+    list of str
+    """
     out = [c for c in ("speed", "temperature", "payload", "t") if inp.get(c) is not None]
     if inp.joints is not None:
         out += [f"q{j + 1}" for j in range(inp.joints.shape[1])]
@@ -153,7 +163,19 @@ def columns_of(inp: Inputs) -> list[str]:
 
 
 def declare(spec: EffectSpec, source: str = "") -> Effect:
-    """The effect a declaration describes (a class of its own, so it has its name and columns)."""
+    """The effect a declaration describes (a class of its own, so it has its name and columns).
+
+    Parameters
+    ----------
+    spec : EffectSpec
+        The declaration.
+    source : str, optional
+        Where it was declared, for errors.
+
+    Returns
+    -------
+    Effect
+    """
     joints = any(t.space == "joints" for t in spec.terms)
     columns = tuple(dict.fromkeys((["joints"] if joints else []) + [t.column for t in spec.terms]))
     cls = type(f"Declared_{spec.name}", (DeclaredEffect,),
@@ -163,12 +185,32 @@ def declare(spec: EffectSpec, source: str = "") -> Effect:
 
 
 def read_file(path: str | Path) -> list[Effect]:
-    """The effects declared in a YAML file (ConfigError names the key, the value and what is allowed)."""
+    """The effects declared in a YAML file (ConfigError names the key, the value and what is allowed).
+
+    Parameters
+    ----------
+    path : str or Path
+        The effects YAML.
+
+    Returns
+    -------
+    list of Effect
+    """
     return [declare(s, str(path)) for s in load_yaml(path, EffectsFile).effects]
 
 
 def from_dict(d: dict) -> Effect:
-    """A declaration kept in a saved model (`EffectSpec` as a dict)."""
+    """A declaration kept in a saved model (`EffectSpec` as a dict).
+
+    Parameters
+    ----------
+    d : dict
+        The declaration.
+
+    Returns
+    -------
+    Effect
+    """
     return declare(validate(EffectSpec, d, "<saved model>"), "a saved model")
 
 

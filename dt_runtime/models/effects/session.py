@@ -32,6 +32,21 @@ def term_regressors(term: str, inp: Inputs, chain: Chain | None) -> tuple[np.nda
     Each session other than the reference gets its own parameters (regressors times its indicator,
     `block`); rows of the reference session, of an unseen session or without a session column get
     none.
+
+    Parameters
+    ----------
+    term : str
+        'tool', 'base' or 'joints'.
+    inp : Inputs
+        The data's columns.
+    chain : Chain or None
+        The robot's kinematic chain.
+
+    Returns
+    -------
+    A : ndarray
+        (n, 3, p).
+    names, units : tuple of str
     """
     if term == "base":
         p = inp.commanded
@@ -69,7 +84,23 @@ def session_column(inp: Inputs) -> np.ndarray | None:
 def block(term: str, inp: Inputs, chain: Chain | None, sessions: tuple[int, ...]) -> Block:
     """The term's block for `sessions` (the non-reference sessions of the training data): one set
     of parameters per session, zero on every other row (a deployed command has no session: the
-    regressors are not even built, so it needs none of their inputs)."""
+    regressors are not even built, so it needs none of their inputs).
+
+    Parameters
+    ----------
+    term : str
+        'tool', 'base' or 'joints'.
+    inp : Inputs
+        The data's columns.
+    chain : Chain or None
+        The robot's kinematic chain.
+    sessions : tuple of int
+        The sessions with parameters.
+
+    Returns
+    -------
+    Block
+    """
     s = session_column(inp)
     ind = [np.zeros(inp.n) if s is None else (s == sid).astype(float) for sid in sessions]
     _, names, units = _shape(term, chain, inp)
@@ -97,7 +128,25 @@ def _shape(term: str, chain: Chain | None, inp: Inputs) -> tuple[int, tuple[str,
 def absorb(term: str, inp: Inputs, chain: Chain | None, residual: np.ndarray) -> tuple[np.ndarray, int]:
     """`residual` with the term's part fitted to it by least squares and removed (a held-out
     session scored after its own tool offset, set-up or joint zeros are measured again, as its
-    registration is): the residual and the degrees of freedom absorbed."""
+    registration is): the residual and the degrees of freedom absorbed.
+
+    Parameters
+    ----------
+    term : str
+        'tool', 'base' or 'joints'.
+    inp : Inputs
+        The data's columns.
+    chain : Chain or None
+        The robot's kinematic chain.
+    residual : ndarray
+        (n, 3), m.
+
+    Returns
+    -------
+    residual : ndarray
+        (n, 3), m.
+    dof : int
+    """
     A, names, _ = term_regressors(term, inp, chain)
     M = A.reshape(-1, A.shape[2])
     theta, *_ = np.linalg.lstsq(M, residual.ravel(), rcond=None)

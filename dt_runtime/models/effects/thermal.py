@@ -19,7 +19,24 @@ def lagged(t: np.ndarray, temperature: np.ndarray, tau: float, start: float | No
 
         T_s(t1) = T1 - s tau + (T_s(t0) - T0 + s tau) exp(-(t1 - t0) / tau),  s = (T1 - T0)/(t1 - t0)
 
-    starting at `start` (default: in equilibrium with the first row). tau = 0: T_s = T."""
+    starting at `start` (default: in equilibrium with the first row). tau = 0: T_s = T.
+
+    Parameters
+    ----------
+    t : ndarray
+        (n,) time, s, in order.
+    temperature : ndarray
+        (n,) logged temperature.
+    tau : float
+        Time constant, s.
+    start : float, optional
+        T_s at the first row.
+
+    Returns
+    -------
+    ndarray
+        (n,).
+    """
     T = np.asarray(temperature, dtype=float)
     if tau <= 0 or len(T) == 0:
         return T.copy()
@@ -107,7 +124,20 @@ class Thermal(Effect):
     @staticmethod
     def structure_temperature(inp: Inputs, lag_s: float) -> np.ndarray:
         """The structure's temperature of each row: given (`Inputs.structure_temperature`, a
-        deployed twin's running state), else the logged temperature lagged by lag_s (needs t)."""
+        deployed twin's running state), else the logged temperature lagged by lag_s (needs t).
+
+        Parameters
+        ----------
+        inp : Inputs
+            The data's columns.
+        lag_s : float
+            The lag, s.
+
+        Returns
+        -------
+        ndarray
+            (n,), deg C.
+        """
         if inp.structure_temperature is not None:
             return inp.structure_temperature
         T = inp.column("temperature")
