@@ -54,7 +54,17 @@ class Change:
     @classmethod
     def parse(cls, label: str) -> Change:
         """The change a label names (`label` of a change: a saved diagnose.json's `change` and
-        `added`); ValueError for any other text."""
+        `added`); ValueError for any other text.
+
+        Parameters
+        ----------
+        label : str
+            The label.
+
+        Returns
+        -------
+        Change
+        """
         # the longest prefixes first: "+session tool" is a session term, not the effect "session tool"
         for kind in sorted(_PREFIX, key=lambda k: -len(_PREFIX[k])):
             if label.startswith(_PREFIX[kind]) and len(label) > len(_PREFIX[kind]):

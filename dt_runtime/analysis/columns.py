@@ -15,7 +15,17 @@ ALPHA = 0.01
 
 def factor_columns(ds: Dataset) -> dict[str, np.ndarray]:
     """Every numeric column of the data a residual could follow: the contract's (speed,
-    temperature, payload, t, q1..qk) and the file's own (`Dataset.extra`), by name (speed m/s)."""
+    temperature, payload, t, q1..qk) and the file's own (`Dataset.extra`), by name (speed m/s).
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data.
+
+    Returns
+    -------
+    dict of str to ndarray
+    """
     cols: dict[str, np.ndarray] = {}
     for name in ("speed", "temperature", "payload", "t"):
         v = getattr(ds, name)
@@ -35,7 +45,27 @@ def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np
     not rows, are the independent units), the fraction of the residual's variance it explains
     and the F-test p-value; significant below alpha / number of columns (Bonferroni). Best first.
     `catalogue`: the call's effects (default `effects.default()`), whose own effects reading a
-    column are named in its `read_by`."""
+    column are named in its `read_by`.
+
+    Parameters
+    ----------
+    residual : ndarray
+        (n, 3) held-out residual, m.
+    groups : ndarray
+        (n,) target point of each row.
+    columns : dict of str to ndarray
+        The columns (`factor_columns`).
+    alpha : float, optional
+        Family-wise significance level.
+    catalogue : Catalogue, optional
+        The call's effects.
+    pose : ndarray, optional
+        Pose coordinates per row.
+
+    Returns
+    -------
+    list of dict
+    """
     catalogue = catalogue if catalogue is not None else fx.default()
     ok = np.all(np.isfinite(residual), axis=1)
     out: list[dict] = []
@@ -84,7 +114,23 @@ def column_check(residual: np.ndarray, groups: np.ndarray, columns: dict[str, np
 def read_columns(effects: Sequence[str], gp_inputs: str, n_joints: int,
                  catalogue: fx.Catalogue | None = None) -> set[str]:
     """The columns a model with these effects and GP inputs reads (joints as q1..qk); the names
-    refer to `catalogue` (default `effects.default()`)."""
+    refer to `catalogue` (default `effects.default()`).
+
+    Parameters
+    ----------
+    effects : sequence of str
+        The model's effects.
+    gp_inputs : str
+        The GP's inputs.
+    n_joints : int
+        Number of joints.
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    set of str
+    """
     catalogue = catalogue if catalogue is not None else fx.default()
     cols = {c for e in effects for c in catalogue.get(e).columns}
     cols |= {"tcp_speed": {"speed"}, "joints": {"joints"}}.get(gp_inputs, set())

@@ -47,7 +47,20 @@ SIGN = ("-", "0", "+")
 
 def trained_on(fitted: Sequence[tuple[str, HybridModel]], ds: Dataset | str | Path) -> list[str]:
     """The models whose training data was this dataset's file, or this file (same SHA-256 in their
-    provenance)."""
+    provenance).
+
+    Parameters
+    ----------
+    fitted : sequence of (str, HybridModel)
+        The models by name.
+    ds : Dataset, str or Path
+        The data or its file.
+
+    Returns
+    -------
+    list of str
+        The models' names.
+    """
     src = Path(ds.source if isinstance(ds, Dataset) else ds)
     if not src.is_file():
         return []
@@ -66,7 +79,21 @@ def trained_on(fitted: Sequence[tuple[str, HybridModel]], ds: Dataset | str | Pa
 def load_models(models: Sequence, names: Sequence[str] | None = None,
                 catalogue: Catalogue | None = None) -> list[tuple[str, HybridModel]]:
     """(name, model) per entry; entries are HybridModel instances or model directories, loaded
-    with `catalogue` (the call's effects, `HybridModel.load`) beside their own declared ones."""
+    with `catalogue` (the call's effects, `HybridModel.load`) beside their own declared ones.
+
+    Parameters
+    ----------
+    models : sequence
+        HybridModel instances or model directories.
+    names : sequence of str, optional
+        Their names (default: each directory's).
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    list of (str, HybridModel)
+    """
     if names is not None and len(names) != len(models):
         raise DataError(f"compare: {len(names)} names for {len(models)} models")
     out: list[tuple[str, HybridModel]] = []
@@ -130,7 +157,17 @@ def _model_dof(model: HybridModel) -> np.ndarray:
 # --------------------------------------------------------------------------- figures of merit
 
 def metrics(r: np.ndarray) -> dict:
-    """3D and per-axis figures of residuals r (n,3) m, in mm."""
+    """3D and per-axis figures of residuals r (n,3) m, in mm.
+
+    Parameters
+    ----------
+    r : ndarray
+        (n, 3), m.
+
+    Returns
+    -------
+    dict
+    """
     norm = np.linalg.norm(r, axis=1)
     _, U, _ = rms_with_U(r)  # only its 95 % uncertainty; the RMS itself is rms3
     return {"rmse_mm": rms3(r) * MM_PER_M, "rmse_U95_mm": U * MM_PER_M if math.isfinite(U) else None,
@@ -173,7 +210,33 @@ def _u_meas(ds: Dataset, fitted: list[tuple[str, HybridModel]]):
 
 def failures(e, pred, std, dof_model, u_meas, dof_meas, lines=None):
     """Eq. 17 per row and axis: t = (e - e_hat) / sqrt(u_meas^2 + u_model^2), two-sided 95 %,
-    dof by Welch-Satterthwaite (dt_runtime.metrology.uncertainty.t_test). Returns (summary, TTest)."""
+    dof by Welch-Satterthwaite (dt_runtime.metrology.uncertainty.t_test).
+
+    Parameters
+    ----------
+    e : ndarray
+        (n, 3) measured error, m.
+    pred : ndarray
+        (n, 3) the model's prediction, m.
+    std : ndarray
+        (n, 3) its standard uncertainty, m.
+    dof_model : ndarray
+        Its degrees of freedom per axis.
+    u_meas : ndarray
+        The measurement's standard uncertainty, m.
+    dof_meas : float
+        Its degrees of freedom.
+    lines : sequence of int, optional
+        The rows' file lines, for the worst rows named.
+
+    Returns
+    -------
+    summary : dict
+        Fraction and count of failing rows, per axis, and what a consistent model would give.
+    test : TTest
+    fail : ndarray
+        (n, 3) bool: the row fails on that axis (a NaN t passes).
+    """
     n = len(e)
     with np.errstate(divide="ignore", invalid="ignore"):
         tt = t_test(e, pred, u_meas, std, np.broadcast_to(dof_meas, (n, 3)),
@@ -227,7 +290,18 @@ def _region(P: np.ndarray):
 
 def configuration(q: np.ndarray) -> np.ndarray:
     """The joint configuration of each row: the sign of the elbow (q3: up/down) and the wrist (q5:
-    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints)."""
+    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints).
+
+    Parameters
+    ----------
+    q : ndarray
+        (n, dof) joint angles, rad.
+
+    Returns
+    -------
+    ndarray
+        (n,) labels.
+    """
     cols = [j for j in (2, 4) if j < q.shape[1]]
     return np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
 
@@ -240,7 +314,17 @@ def _configuration(q: np.ndarray):
 
 
 def factor_cells(ds: Dataset) -> dict[str, tuple[np.ndarray, list[str]]]:
-    """Factor name -> (cell label per row, cells in order); missing or constant factors skipped."""
+    """Factor name -> (cell label per row, cells in order); missing or constant factors skipped.
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data.
+
+    Returns
+    -------
+    dict
+    """
     out = {"region": _region(ds.commanded)}
     for name, v, unit, fmt in (("speed", ds.speed, "mm/s", ".4g"), ("payload", ds.payload, "kg", ".3g"),
                                ("temperature", ds.temperature, "°C", ".3g"),
@@ -260,7 +344,19 @@ def factor_cells(ds: Dataset) -> dict[str, tuple[np.ndarray, list[str]]]:
 
 
 def breakdown(r: np.ndarray, cells: dict) -> dict:
-    """3D RMS (mm), n and mean residual vector (mm) of r (n,3) m per cell of each factor."""
+    """3D RMS (mm), n and mean residual vector (mm) of r (n,3) m per cell of each factor.
+
+    Parameters
+    ----------
+    r : ndarray
+        (n, 3), m.
+    cells : dict
+        From `factor_cells`.
+
+    Returns
+    -------
+    dict
+    """
     out = {}
     for factor, (lab, names) in cells.items():
         rows = []
@@ -401,8 +497,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             inputs: Sequence[str | Path] = (), refit_sessions: np.ndarray | None = None,
             sessions: Sequence[dict] | None = None,
             catalogue: Catalogue | None = None) -> tuple[CompareResult, dict]:
-    """Compare models (HybridModel instances or model directories, oldest first) with the
-    measured errors of `dataset` (a Dataset or a contract CSV). "as is" is added first.
+    """Compare models with the measured errors of `dataset`; "as is" is added first.
 
     For every model (and "as is", no model: e_hat = 0) the residual r = e - e_hat of each
     measured row (e = commanded - measured, paper Eq. 8) gives the 3D and per-axis figures, the
@@ -413,23 +508,50 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     `per_axis`, `failures`: the contract of docs/cli.md). Data of several sessions are also
     scored session by session.
 
-    noise_floor_m: the measurement noise floor (m) if known from elsewhere (e.g. a simulation
-    sidecar); default: 3D RMS of the dataset's ux..uz, if stated.
-    cv_folds: 0 compares the models as saved (use data they were not trained on); K > 1 predicts
-    every row by each model's configuration refitted on the other K-1 folds, grouped by target
-    point (`dt_runtime.analysis.crossval.cross_validate`): held-out figures from the training file.
-    instruments, inputs: the campaign's instruments YAML and other input files (e.g. an import
-    mapping) for the result's traceability record (`provenance`), beside the data file and the
-    model directories' files.
-    refit_sessions: per row, the session whose registration was fitted on its own points (-1:
-    given or none); each model then also gets its figure after re-registration
-    (`after_reregistration`, dt_runtime.analysis.reregister).
-    sessions: for data of several sessions (`dataset.extra['session']`), what each one is
-    ({'file', 'name'} by session index: `Data.info['session_files']`); every column then has its
-    figures per session (`ModelScore.sessions`), after re-registration where `refit_sessions` says.
-    catalogue: the effects a saved model's names may refer to beyond its own declared ones (e.g.
-    --effects-file's); default `effects.default()`.
-    Returns (result, arrays: SI arrays for the report); `result.to_dict()` is the JSON (mm)."""
+    Parameters
+    ----------
+    models : sequence
+        HybridModel instances or model directories, oldest first.
+    dataset : Dataset, str or Path
+        The measurements, or a contract CSV.
+    names : sequence of str, optional
+        The models' names.
+    noise_floor_m : float, optional
+        The measurement noise floor (m) if known from elsewhere (e.g. a simulation sidecar);
+        default: 3D RMS of the dataset's ux..uz, if stated.
+    cv_folds : int, optional
+        0 compares the models as saved (use data they were not trained on); K > 1 predicts every
+        row by each model's configuration refitted on the other K-1 folds, grouped by target
+        point (`dt_runtime.analysis.crossval.cross_validate`): held-out figures from the training
+        file.
+    seed : int, optional
+        Seed of the folds.
+    progress : Progress, optional
+        Where progress is reported.
+    instruments : str or Path, optional
+        The campaign's instruments YAML, for the traceability record (`provenance`).
+    inputs : sequence of str or Path, optional
+        Other input files (e.g. an import mapping) for the record, beside the data file and the
+        model directories' files.
+    refit_sessions : ndarray, optional
+        Per row, the session whose registration was fitted on its own points (-1: given or
+        none); each model then also gets its figure after re-registration
+        (`after_reregistration`, dt_runtime.analysis.reregister).
+    sessions : sequence of dict, optional
+        For data of several sessions (`dataset.extra['session']`), what each one is ({'file',
+        'name'} by session index: `Data.info['session_files']`); every column then has its
+        figures per session (`ModelScore.sessions`).
+    catalogue : Catalogue, optional
+        The effects a saved model's names may refer to beyond its own declared ones (e.g.
+        --effects-file's); default `effects.default()`.
+
+    Returns
+    -------
+    result : CompareResult
+        `result.to_dict()` is the JSON (mm).
+    arrays : dict
+        SI arrays for the report.
+    """
     ds = dataset if isinstance(dataset, Dataset) else read_table(dataset)
     if ds.n == 0:
         raise DataError(f"{ds.source}: no data rows to compare with")

@@ -48,7 +48,19 @@ class Finding:
 
 def factor_values(factor: str, inp: fx.Inputs) -> np.ndarray | None:
     """The values of a factor on every row, (n, k): the direction of approach as the sign of each
-    joint's last move (the Cartesian unit direction without joints)."""
+    joint's last move (the Cartesian unit direction without joints).
+
+    Parameters
+    ----------
+    factor : str
+        The factor's name.
+    inp : Inputs
+        The data's columns.
+
+    Returns
+    -------
+    ndarray or None
+    """
     if factor == "direction":
         if inp.joints is not None:
             return np.sign(approach(inp.joints, per_column=True))
@@ -59,7 +71,17 @@ def factor_values(factor: str, inp: fx.Inputs) -> np.ndarray | None:
 
 
 def varies(v: np.ndarray) -> bool:
-    """More than one value in some column (beyond round-off)."""
+    """More than one value in some column (beyond round-off).
+
+    Parameters
+    ----------
+    v : ndarray
+        (n,) or (n, k).
+
+    Returns
+    -------
+    bool
+    """
     span = np.ptp(v, axis=0)
     return bool(np.any(span > 1e-9 * np.maximum(1.0, np.abs(v).max(axis=0))))
 
@@ -67,7 +89,23 @@ def varies(v: np.ndarray) -> bool:
 def pose_r2(values: np.ndarray, pose: np.ndarray, groups: np.ndarray, k: int = NEIGHBOURS) -> float:
     """Share of the variance of `values` (n, c) that the mean over the k nearest rows of *other*
     points (standardised `pose` coordinates) predicts: 1 when the factor is a function of the pose,
-    ~0 when the same poses were measured at other values of it."""
+    ~0 when the same poses were measured at other values of it.
+
+    Parameters
+    ----------
+    values : ndarray
+        (n, c) the factor.
+    pose : ndarray
+        (n, d) pose coordinates.
+    groups : ndarray
+        (n,) target point of each row.
+    k : int, optional
+        Neighbours.
+
+    Returns
+    -------
+    float
+    """
     v = np.asarray(values, float)
     ss_tot = float(np.sum((v - v.mean(axis=0)) ** 2))
     if ss_tot <= 0 or len(v) < k + 2:
@@ -90,7 +128,19 @@ def pose_r2(values: np.ndarray, pose: np.ndarray, groups: np.ndarray, k: int = N
 
 
 def linear_r2(a: np.ndarray, b: np.ndarray) -> float:
-    """R^2 of a (n, c) regressed linearly on b (n, d) with an intercept."""
+    """R^2 of a (n, c) regressed linearly on b (n, d) with an intercept.
+
+    Parameters
+    ----------
+    a : ndarray
+        (n, c).
+    b : ndarray
+        (n, d).
+
+    Returns
+    -------
+    float
+    """
     X = np.column_stack([np.ones(len(b)), b])
     coef, *_ = np.linalg.lstsq(X, a, rcond=None)
     ss_tot = float(np.sum((a - a.mean(axis=0)) ** 2))
@@ -114,6 +164,21 @@ def check(candidates: list[str], inp: fx.Inputs, groups: np.ndarray,
     and time) when one is a linear function of the other (R^2 above R2_MAX): their effects then
     compete for the same residual (the diagnosis tests them head to head). Each finding carries a
     code the report turns into words and the measurement that would make the effect testable.
+
+    Parameters
+    ----------
+    candidates : list of str
+        Effect names.
+    inp : Inputs
+        The data's columns.
+    groups : ndarray
+        (n,) target point of each row.
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    list of Finding
     """
     catalogue = catalogue if catalogue is not None else fx.default()
     pose = inp.joints if inp.joints is not None else inp.commanded
@@ -145,7 +210,19 @@ def _factor(factor: str, inp: fx.Inputs, pose: np.ndarray, groups: np.ndarray) -
 def revisits(t: np.ndarray, groups: np.ndarray) -> tuple[int, int]:
     """How many points (groups) were measured again at least REVISIT_GAP of the campaign's time
     after they were first measured, and how many points there are. Repeated readings in one visit
-    are not revisits: they say nothing of what time does at a pose."""
+    are not revisits: they say nothing of what time does at a pose.
+
+    Parameters
+    ----------
+    t : ndarray
+        (n,) time, s.
+    groups : ndarray
+        (n,) target point of each row.
+
+    Returns
+    -------
+    revisited, points : int
+    """
     t = np.asarray(t, float)
     span = float(np.ptp(t)) if len(t) else 0.0
     ids, inv = np.unique(groups, return_inverse=True)
@@ -160,7 +237,21 @@ def revisits(t: np.ndarray, groups: np.ndarray) -> tuple[int, int]:
 def competing(a: str, b: str, inp: fx.Inputs, catalogue: fx.Catalogue | None = None) -> str | None:
     """The factor two candidates share, or the pair of factors that follow each other (temperature
     and time, R^2 above R2_MAX): they explain the same residual and are tested head to head. The
-    names refer to `catalogue` (default `effects.default()`)."""
+    names refer to `catalogue` (default `effects.default()`).
+
+    Parameters
+    ----------
+    a, b : str
+        Effect names.
+    inp : Inputs
+        The data's columns.
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    str or None
+    """
     catalogue = catalogue if catalogue is not None else fx.default()
     fa, fb = set(catalogue.get(a).drives()), set(catalogue.get(b).drives())
     shared = sorted(fa & fb)

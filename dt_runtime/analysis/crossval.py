@@ -42,7 +42,18 @@ class CvResult:
 
 def groups_of(ds) -> np.ndarray:
     """Cross-validation groups of a Dataset: the target point; rows of unknown point get a group
-    each only if their commanded positions differ (a model must not win by remembering a point)."""
+    each only if their commanded positions differ (a model must not win by remembering a point).
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data.
+
+    Returns
+    -------
+    ndarray
+        (n,).
+    """
     if ds.point_id is not None:
         return ds.point_id
     _, inv = np.unique(np.round(ds.commanded / 1e-6).astype(np.int64), axis=0, return_inverse=True)
@@ -50,7 +61,21 @@ def groups_of(ds) -> np.ndarray:
 
 
 def folds_of(groups: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
-    """k boolean test masks (at most one per group), each holding whole groups."""
+    """k boolean test masks (at most one per group), each holding whole groups.
+
+    Parameters
+    ----------
+    groups : ndarray
+        (n,) group of each row.
+    k : int
+        Number of folds.
+    seed : int
+        Seed of the assignment.
+
+    Returns
+    -------
+    list of ndarray
+    """
     ids = np.unique(groups)
     rng = np.random.default_rng(seed)
     rng.shuffle(ids)
@@ -62,7 +87,24 @@ def heldout(Y: np.ndarray, folds: list[np.ndarray], predict_fold: Callable, retu
     """Held-out residuals Y - prediction, each test mask predicted by `predict_fold(train, test)`
     (boolean masks; it returns the prediction, or (prediction, std) with return_std). A fold is a
     test mask (trained on the other rows) or a (train, test) pair (a forecast trains on the earlier
-    rows only). Rows in no fold stay NaN. Returns (residual, std or None)."""
+    rows only). Rows in no fold stay NaN. Returns (residual, std or None).
+
+    Parameters
+    ----------
+    Y : ndarray
+        (n, k) target.
+    folds : list
+        Test masks or (train, test) pairs.
+    predict_fold : callable
+        predict_fold(train, test) -> prediction (or (prediction, std)).
+    return_std : bool, optional
+        Also collect the std.
+
+    Returns
+    -------
+    residual : ndarray
+    std : ndarray or None
+    """
     resid = np.full_like(Y, np.nan, dtype=float)
     std = np.zeros_like(Y, dtype=float) if return_std else None
     for fold in folds:
@@ -77,7 +119,25 @@ def heldout(Y: np.ndarray, folds: list[np.ndarray], predict_fold: Callable, retu
 def grouped_residuals(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, folds: int, seed: int,
                       fit_predict: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
     """Held-out residuals r = Y - Y_hat of any regressor, each group predicted by
-    `fit_predict(X_train, Y_train, X_test)` fitted without it (`folds` folds, `folds_of`)."""
+    `fit_predict(X_train, Y_train, X_test)` fitted without it (`folds` folds, `folds_of`).
+
+    Parameters
+    ----------
+    X, Y : ndarray
+        Inputs and targets.
+    groups : ndarray
+        (n,) group of each row.
+    folds : int
+        Number of folds.
+    seed : int
+        Seed of the assignment.
+    fit_predict : callable
+        fit_predict(X_train, Y_train, X_test) -> Y_hat.
+
+    Returns
+    -------
+    ndarray
+    """
     X, Y = np.asarray(X), np.asarray(Y, dtype=float)
     return heldout(Y, folds_of(groups, folds, seed),
                    lambda tr, te: fit_predict(X[tr], Y[tr], X[te]))[0]
@@ -85,7 +145,19 @@ def grouped_residuals(X: np.ndarray, Y: np.ndarray, groups: np.ndarray, folds: i
 
 def group_mse(residual: np.ndarray, groups: np.ndarray) -> np.ndarray:
     """Mean squared 3D residual per group (np.unique order), over the group's held-out rows (NaN
-    for a group a forecast never predicts)."""
+    for a group a forecast never predicts).
+
+    Parameters
+    ----------
+    residual : ndarray
+        (n, 3), m.
+    groups : ndarray
+        (n,) group of each row.
+
+    Returns
+    -------
+    ndarray
+    """
     sq = np.sum(residual ** 2, axis=1)
     out = np.full(len(np.unique(groups)), np.nan)
     for i, g in enumerate(np.unique(groups)):
@@ -106,7 +178,33 @@ def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, fol
     fitted once on all rows (below), or with hyper_per_fold inside every fold (strict, slower).
     return_std: also the fold models' stated standard uncertainty of each prediction (its
     variance costs more than the mean). starts: warm starts of the hyperparameter fit on all rows
-    (`CvResult.log_hypers` of a nearby model; ignored when the GP inputs differ)."""
+    (`CvResult.log_hypers` of a nearby model; ignored when the GP inputs differ).
+
+    Parameters
+    ----------
+    model : HybridModel
+        The configuration.
+    X : Dataset, Inputs or ndarray
+        The rows.
+    y : ndarray
+        (n, 3) error, m.
+    groups : ndarray
+        (n,) target point of each row.
+    folds : list
+        Test masks or (train, test) pairs.
+    thetas : list, optional
+        Fixed GP hyperparameters.
+    return_std : bool, optional
+        Also the stated standard uncertainty.
+    hyper_per_fold : bool, optional
+        Fit the GP hyperparameters inside every fold.
+    starts : list, optional
+        Warm starts.
+
+    Returns
+    -------
+    CvResult
+    """
     inp = as_inputs(X)
     y = np.asarray(y, dtype=float)
     # Regressors that look at the previous row (approach direction) are built on the full,

@@ -36,7 +36,23 @@ def load_data(path: str | Path, mapping: str | Path | None = None, skip_bad: boo
               robot: str | Path | None = None) -> Data:
     """The contract CSV, or a foreign file read through `mapping` (registered if needed; `robot`,
     else the mapping's `robot:`, gives the commanded TCP of a file that has only joint angles).
-    `info['robot']`: the mapping's robot config, which the analysis uses when no --robot is given."""
+    `info['robot']`: the mapping's robot config, which the analysis uses when no --robot is given.
+
+    Parameters
+    ----------
+    path : str or Path
+        The data file.
+    mapping : str or Path, optional
+        An import mapping.
+    skip_bad : bool, optional
+        Skip bad rows instead of raising.
+    robot : str or Path, optional
+        The robot, for a file with only joint angles.
+
+    Returns
+    -------
+    Data
+    """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such data file")
@@ -61,7 +77,17 @@ def load_data(path: str | Path, mapping: str | Path | None = None, skip_bad: boo
 
 
 def noise_floor(u: np.ndarray | None) -> float | None:
-    """3D RMS of the stated measurement standard uncertainty (m), if the data states it."""
+    """3D RMS of the stated measurement standard uncertainty (m), if the data states it.
+
+    Parameters
+    ----------
+    u : ndarray or None
+        (n, 3) stated standard uncertainty, m.
+
+    Returns
+    -------
+    float or None
+    """
     if u is None or not np.all(np.isfinite(u)):
         return None
     return rms3(u)
@@ -74,7 +100,17 @@ def floor_of(d: Data) -> float | None:
     per axis, whose 3D RMS over three axes is the MPE itself; else the scatter of replicates
     (`analysis.replicates.replicate_floor`: repeated readings of one visit, else revisits under the
     same conditions). Where it came from is recorded in `info['noise_floor']`; with none of these,
-    `info['noise_floor']['to_measure']` says what to measure."""
+    `info['noise_floor']['to_measure']` says what to measure.
+
+    Parameters
+    ----------
+    d : Data
+        The data (its info is updated).
+
+    Returns
+    -------
+    float or None
+    """
     sim = d.info.get("simulation")
     rep = replicate_floor(d.dataset)
     found: tuple[float, str] | None = None
@@ -96,7 +132,17 @@ def floor_of(d: Data) -> float | None:
 
 def refit_sessions(d: Data) -> np.ndarray | None:
     """Per row, the session whose registration was fitted on its own points (-1: given or none),
-    or None when no row's was: the rows a model is scored on after re-registration."""
+    or None when no row's was: the rows a model is scored on after re-registration.
+
+    Parameters
+    ----------
+    d : Data
+        The data.
+
+    Returns
+    -------
+    ndarray or None
+    """
     fitted = ("rigid", "rigid+offset")
     files = d.info.get("session_files")
     if files is None:
@@ -110,13 +156,37 @@ def refit_sessions(d: Data) -> np.ndarray | None:
 
 
 def session_names(d: Data) -> dict[int, str]:
-    """Each session's name by index: the import's (`info['session_files'][i]['name']`), else its file's."""
+    """Each session's name by index: the import's (`info['session_files'][i]['name']`), else its file's.
+
+    Parameters
+    ----------
+    d : Data
+        The data.
+
+    Returns
+    -------
+    dict of int to str
+    """
     files = d.info.get("session_files") or []
     return {i: str(f.get("name") or Path(f["file"]).name) for i, f in enumerate(files)}
 
 
 def session_index(value: str | int, names: dict[int, str], what: str) -> int:
-    """A session named on the command line (its index, or its name / file name) as its index."""
+    """A session named on the command line (its index, or its name / file name) as its index.
+
+    Parameters
+    ----------
+    value : str or int
+        As given.
+    names : dict of int to str
+        The sessions' names.
+    what : str
+        The option, for the error.
+
+    Returns
+    -------
+    int
+    """
     for sid, name in names.items():
         if str(value) in (str(sid), name, Path(name).name, Path(name).stem):
             return sid
@@ -128,7 +198,23 @@ def select_sessions(d: Data, exclude: Sequence[str | int] = (),
                     reference: str | int | None = None) -> tuple[Data, dict[int, str], int]:
     """The data without the `exclude`d sessions (`--exclude-session`), the remaining sessions'
     names by index, and the reference session's index (`--reference-session`; default the first):
-    what the session terms are measured against."""
+    what the session terms are measured against.
+
+    Parameters
+    ----------
+    d : Data
+        The data.
+    exclude : sequence of str or int, optional
+        Sessions left out.
+    reference : str or int, optional
+        The reference session.
+
+    Returns
+    -------
+    data : Data
+    names : dict of int to str
+    reference : int
+    """
     names = session_names(d)
     if exclude:
         if not names:

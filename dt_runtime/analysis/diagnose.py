@@ -240,7 +240,21 @@ def heldout_rows(prep: Prepared, ev: Evaluator, first: Config, final: Config) ->
     """The rows and the held-out residuals by point of the `first` model (before any step) and the
     `final` one, as reports.residuals writes them: the cross-validations the steps already ran
     (memoised), nothing refitted. The model names say which is which; one model when nothing
-    was changed."""
+    was changed.
+
+    Parameters
+    ----------
+    prep : Prepared
+        The prepared data.
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    first, final : Config
+        The configurations.
+
+    Returns
+    -------
+    dict
+    """
     ds = prep.data.dataset
     pair = [("first", first), ("final", final)] if first != final else [("first = final", final)]
     return {"commanded": ds.commanded, "speed": ds.speed, "joints": ds.joints, "session": ds.extra.get("session"),
@@ -251,7 +265,25 @@ def heldout_rows(prep: Prepared, ev: Evaluator, first: Config, final: Config) ->
 
 def save_final(prep: Prepared, ev: Evaluator, cfg: Config, out: str | Path, result: AutoResult) -> Path:
     """Fit the final configuration on all rows and save it, ready for dt compare, dt calibrate
-    --model and dt export (`dt diagnose --auto --out` writes the result beside it, diagnose.json)."""
+    --model and dt export (`dt diagnose --auto --out` writes the result beside it, diagnose.json).
+
+    Parameters
+    ----------
+    prep : Prepared
+        The prepared data.
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    cfg : Config
+        The configuration.
+    out : str or Path
+        The model directory.
+    result : AutoResult
+        The loop's result.
+
+    Returns
+    -------
+    Path
+    """
     p = prep.problem
     robot = prep.robot if not isinstance(prep.robot, Chain) else p.chain
     m = HybridModel(cfg.effects, cfg.gp_inputs, ridge=p.ridge, seed=ev.seed, robot=robot,

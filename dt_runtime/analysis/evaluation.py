@@ -65,7 +65,17 @@ class Config:
 
     @classmethod
     def of(cls, d: dict) -> Config:
-        """The configuration of `to_dict`'s dict (a step's `config`)."""
+        """The configuration of `to_dict`'s dict (a step's `config`).
+
+        Parameters
+        ----------
+        d : dict
+            From `to_dict`.
+
+        Returns
+        -------
+        Config
+        """
         return cls(tuple(d["effects"]), d["gp_inputs"], tuple(d["session_terms"]))
 
 
@@ -143,7 +153,17 @@ class Evaluator:
 
     def scheme_for(self, change: str | None) -> validation.Scheme:
         """The deployment scheme a change is judged on: a forecast (later times) for a time-dependent
-        effect."""
+        effect.
+
+        Parameters
+        ----------
+        change : str or None
+            The changed effect's name.
+
+        Returns
+        -------
+        validation.Scheme
+        """
         cat = self.problem.catalogue
         if change and change in cat.names() and ({"time", "temperature"} & set(cat.get(change).drives())):
             return self.time
@@ -151,7 +171,23 @@ class Evaluator:
 
     def compute(self, cfg: Config, scheme: validation.Scheme, starts=None, thetas=None) -> CvResult:
         """One cross-validation, not memoised: `thetas` fixed GP hyperparameters, else fitted on all
-        rows from `starts`."""
+        rows from `starts`.
+
+        Parameters
+        ----------
+        cfg : Config
+            The configuration.
+        scheme : validation.Scheme
+            The folds.
+        starts : list, optional
+            Warm starts.
+        thetas : list, optional
+            Fixed GP hyperparameters.
+
+        Returns
+        -------
+        CvResult
+        """
         p = self.problem
         return cross_validate(self.model(cfg), p.inp, p.error, p.groups, scheme.splits(), thetas=thetas,
                               starts=None if thetas is not None else starts)
@@ -165,7 +201,21 @@ class Evaluator:
 
     def cv(self, cfg: Config, scheme: validation.Scheme, starts=None) -> CvResult:
         """`cfg` held out on `scheme` (memoised). `starts`: warm starts of its GP hyperparameter fit
-        (the log hyperparameters of the configuration it extends), used by its first cross-validation."""
+        (the log hyperparameters of the configuration it extends), used by its first cross-validation.
+
+        Parameters
+        ----------
+        cfg : Config
+            The configuration.
+        scheme : validation.Scheme
+            The folds.
+        starts : list, optional
+            Warm starts.
+
+        Returns
+        -------
+        CvResult
+        """
         key = (cfg, scheme.kind)
         if key not in self._cv:
             fixed = self._thetas.get(cfg)
@@ -174,7 +224,17 @@ class Evaluator:
 
     def cv_many(self, jobs: list[tuple[Config, validation.Scheme, list | None]]) -> list[CvResult]:
         """Several cross-validations (cfg, scheme, starts), the missing ones at once in the pool's
-        workers when there is a pool."""
+        workers when there is a pool.
+
+        Parameters
+        ----------
+        jobs : list of (Config, Scheme, list or None)
+            The cross-validations.
+
+        Returns
+        -------
+        list of CvResult
+        """
         todo = list(dict.fromkeys((cfg, scheme.kind) for cfg, scheme, _ in jobs if (cfg, scheme.kind) not in self._cv))
         if self.pool is not None and len(todo) > 1:
             starts = {(cfg, scheme.kind): st for cfg, scheme, st in jobs}
@@ -185,7 +245,20 @@ class Evaluator:
 
     def residual(self, cfg: Config, scheme: validation.Scheme) -> np.ndarray:
         """`cfg`'s held-out residual on `scheme`; held-out sessions scored the way a new session
-        is (re-registered where fitted, its session terms measured again: analysis.sessions)."""
+        is (re-registered where fitted, its session terms measured again: analysis.sessions).
+
+        Parameters
+        ----------
+        cfg : Config
+            The configuration.
+        scheme : validation.Scheme
+            The folds.
+
+        Returns
+        -------
+        ndarray
+            (n, 3), m.
+        """
         res = self.cv(cfg, scheme).residual
         if scheme.kind == "sessions" and (self.problem.refit_sessions or cfg.nuisance):
             from dt_runtime.analysis.sessions import absorbed
@@ -195,6 +268,18 @@ class Evaluator:
 
     def rms_mm(self, cfg: Config, scheme: validation.Scheme) -> float:
         """The held-out 3D RMS (mm) over the rows the scheme predicts (a forecast never predicts
-        its first block)."""
+        its first block).
+
+        Parameters
+        ----------
+        cfg : Config
+            The configuration.
+        scheme : validation.Scheme
+            The folds.
+
+        Returns
+        -------
+        float
+        """
         r = self.residual(cfg, scheme)
         return rms3(r[np.all(np.isfinite(r), axis=1)]) * 1e3

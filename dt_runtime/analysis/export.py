@@ -47,7 +47,19 @@ def _trans_T(d: np.ndarray) -> np.ndarray:
 
 def calibrated_chain(chain: Chain, values: dict[str, float]) -> Chain:
     """The chain with the geometric parameters (name -> value, SI) applied exactly: joint j's
-    origin becomes origin_j Trans(d_j) Rot(w_j) Rot(axis_j, offset_j), the tool tool Trans(d_tool)."""
+    origin becomes origin_j Trans(d_j) Rot(w_j) Rot(axis_j, offset_j), the tool tool Trans(d_tool).
+
+    Parameters
+    ----------
+    chain : Chain
+        The nominal chain.
+    values : dict of str to float
+        Geometric parameters, SI.
+
+    Returns
+    -------
+    Chain
+    """
     dof = chain.dof
     d = np.zeros((dof, 3))
     w = np.zeros((dof, 3))
@@ -76,7 +88,32 @@ def refine(chain: Chain, names: tuple[str, ...], theta: np.ndarray, basis: tuple
            target: np.ndarray, iterations: int = 8, tol_m: float = 1e-10) -> np.ndarray:
     """The basis parameters adjusted (Gauss-Newton, from `theta`) so that the chain with them
     applied exactly reaches `target` (n, 3) at q: what the first-order model predicts, without
-    its second-order error at large parameters. Non-basis parameters stay zero."""
+    its second-order error at large parameters. Non-basis parameters stay zero.
+
+    Parameters
+    ----------
+    chain : Chain
+        The nominal chain.
+    names : tuple of str
+        The geometric parameters' names.
+    theta : ndarray
+        (p,) start.
+    basis : tuple of int
+        The parameters adjusted.
+    q : ndarray
+        (n, dof) joint angles, rad.
+    target : ndarray
+        (n, 3), m.
+    iterations : int, optional
+        At most this many steps.
+    tol_m : float, optional
+        Stop when the step's RMS change is below this, m.
+
+    Returns
+    -------
+    ndarray
+        (p,).
+    """
     theta = theta.copy()
     cols = list(basis)
     if not cols:
@@ -131,7 +168,17 @@ class ExportResult:
 
 # --------------------------------------------------------------------------- inputs
 def model_of_twin(twin: str | Path) -> Path:
-    """The directory of a hybrid model with a geometric effect inside a twin directory."""
+    """The directory of a hybrid model with a geometric effect inside a twin directory.
+
+    Parameters
+    ----------
+    twin : str or Path
+        The twin directory.
+
+    Returns
+    -------
+    Path
+    """
     d = Path(twin)
     if not d.is_dir():
         raise DataError(f"{d}: no such twin directory")
@@ -160,7 +207,22 @@ def _recorded(f: FileRecord) -> Path:
 def training_data(model: HybridModel, model_dir: Path, skip_bad: bool = False) -> tuple[Path, Data]:
     """The training data the model's provenance names (hash checked): the first recorded file
     that is not a YAML or a sidecar, read as a measurement table, else through each recorded
-    YAML in turn as an import mapping (dt fit records the --mapping it used)."""
+    YAML in turn as an import mapping (dt fit records the --mapping it used).
+
+    Parameters
+    ----------
+    model : HybridModel
+        The saved model.
+    model_dir : Path
+        Its directory.
+    skip_bad : bool, optional
+        Skip bad rows instead of raising.
+
+    Returns
+    -------
+    path : Path
+    data : Data
+    """
     rec: Provenance | None = getattr(model, "provenance_", None)
     files = list(rec.inputs) if rec is not None else []
     data = [f for f in files if not f.path.endswith((".meta.json", ".yaml", ".yml"))]

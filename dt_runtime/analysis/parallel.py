@@ -67,13 +67,35 @@ class Pool:
                                        initargs=(problem, folds, seed))
 
     def map(self, jobs: list[tuple]) -> list:
-        """Cross-validate each (cfg, scheme kind, starts, thetas); results in order."""
+        """Cross-validate each (cfg, scheme kind, starts, thetas); results in order.
+
+        Parameters
+        ----------
+        jobs : list of tuple
+            (cfg, scheme kind, starts, thetas) each.
+
+        Returns
+        -------
+        list of CvResult
+        """
         futures = [self._ex.submit(_task, *job) for job in jobs]
         return [f.result() for f in futures]
 
     def call(self, fn, jobs: list[tuple]) -> list:
         """`fn(evaluator, *args)` for each args tuple of `jobs` in the workers (fn a module-level
-        function, sent by name); results in order."""
+        function, sent by name); results in order.
+
+        Parameters
+        ----------
+        fn : callable
+            A module-level function fn(evaluator, *args).
+        jobs : list of tuple
+            Its arguments, one tuple per call.
+
+        Returns
+        -------
+        list
+        """
         futures = [self._ex.submit(_call, fn, args) for args in jobs]
         return [f.result() for f in futures]
 

@@ -25,7 +25,19 @@ ALPHA = 0.01
 
 def paired_gain(base: CvResult, res: CvResult) -> tuple[float, float]:
     """One-sided p-value that `res` lowers the per-group held-out error of `base` (Wilcoxon
-    signed rank on the paired per-group mean squared residuals), and the held-out 3D RMS of res."""
+    signed rank on the paired per-group mean squared residuals), and the held-out 3D RMS of res.
+
+    Parameters
+    ----------
+    base, res : CvResult
+        Cross-validations on the same scheme.
+
+    Returns
+    -------
+    p_value : float
+    rms : float
+        m.
+    """
     d = base.group_mse - res.group_mse
     d = d[np.isfinite(d)]  # a forecast never predicts its first block's points
     # Differences at round-off level (a candidate whose regressors are all zero, e.g.
@@ -67,7 +79,19 @@ def gain(kind: str, candidate: str, base: CvResult, res: CvResult, alpha: float 
 
 
 def gp_alternatives(inp: fx.Inputs, gp_inputs: str) -> list[str]:
-    """The other GP inputs worth testing: the paper's Cartesian TCP (+ speed) and the joint angles."""
+    """The other GP inputs worth testing: the paper's Cartesian TCP (+ speed) and the joint angles.
+
+    Parameters
+    ----------
+    inp : Inputs
+        The data's columns.
+    gp_inputs : str
+        The current GP inputs.
+
+    Returns
+    -------
+    list of str
+    """
     have = {"tcp_speed" if inp.speed is not None else "tcp"} | ({"joints"} if inp.joints is not None else set())
     same = {gp_inputs} | ({"tcp", "tcp_speed"} if gp_inputs in ("tcp", "tcp_speed") and inp.speed is None else set())
     return sorted(have - same)
@@ -75,7 +99,21 @@ def gp_alternatives(inp: fx.Inputs, gp_inputs: str) -> list[str]:
 
 def changed(cfg: Config, kind: str, candidate: str) -> Config:
     """The configuration after a change: an effect added, the GP on other inputs, or a session
-    term added as a nuisance."""
+    term added as a nuisance.
+
+    Parameters
+    ----------
+    cfg : Config
+        The configuration.
+    kind : str
+        "effect", "gp_inputs" or "session".
+    candidate : str
+        What changes.
+
+    Returns
+    -------
+    Config
+    """
     if kind == "effect":
         return cfg.plus(candidate)
     if kind == "session":
@@ -91,7 +129,29 @@ def rank(ev: Evaluator, cfg: Config, candidates: list[str], gp_inputs: list[str]
     from `cfg`'s (it adds one block to that model, so the GP sees nearly the same residual); a
     switch of the GP's inputs starts cold (warm starts from a model with other inputs, and from
     one with the same inputs but other effects, led the 6-D joint GP to a poorer optimum: UR10
-    Series D 0.317 instead of 0.276 mm, the switch no longer significant)."""
+    Series D 0.317 instead of 0.276 mm, the switch no longer significant).
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    cfg : Config
+        The configuration.
+    candidates : list of str
+        Effects to test.
+    gp_inputs : list of str
+        GP inputs to test.
+    progress : Progress, optional
+        Where progress is reported.
+    alpha : float, optional
+        Significance level of each test.
+    session_terms : sequence of str, optional
+        Session terms to test.
+
+    Returns
+    -------
+    effects, gp_inputs, session_terms : list of Gain
+    """
     base = ev.cv(cfg, ev.points)
     steps = ([("effect", c) for c in candidates] + [("gp_inputs", g) for g in gp_inputs]
              + [("session", t) for t in session_terms])
@@ -111,7 +171,21 @@ def rank(ev: Evaluator, cfg: Config, candidates: list[str], gp_inputs: list[str]
 
 
 def deployment_figures(ev: Evaluator, cfg: Config, g: Gain) -> Gain:
-    """`g` with the held-out RMS before and after on the scheme its change is judged on."""
+    """`g` with the held-out RMS before and after on the scheme its change is judged on.
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    cfg : Config
+        The configuration.
+    g : Gain
+        The change's gain.
+
+    Returns
+    -------
+    Gain
+    """
     scheme = ev.scheme_for(g.candidate if g.kind == "effect" else None)
     g.deploy_kind = scheme.kind
     g.deploy_rmse_before_mm = ev.rms_mm(cfg, scheme)

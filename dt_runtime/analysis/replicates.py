@@ -72,7 +72,19 @@ def replicate_floor(ds: Dataset, min_dof: int = MIN_DOF) -> ReplicateFloor | Non
     when they give `min_dof` degrees of freedom (the cleanest: only the instrument differs), else
     revisits under the same conditions (`revisit_groups`; their scatter also holds the arm's
     repeatability from one approach to the next, which no effect term can explain either). None
-    when neither reaches `min_dof`."""
+    when neither reaches `min_dof`.
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data.
+    min_dof : int, optional
+        Least degrees of freedom.
+
+    Returns
+    -------
+    ReplicateFloor or None
+    """
     for definition, labels in ((VISIT, visit_groups(ds)), (REVISIT, revisit_groups(ds))):
         found = pooled_floor(ds.error, labels, min_dof)
         if found is not None:
@@ -83,7 +95,21 @@ def replicate_floor(ds: Dataset, min_dof: int = MIN_DOF) -> ReplicateFloor | Non
 def pooled_floor(error: np.ndarray, labels: np.ndarray, min_dof: int = MIN_DOF) -> tuple[float, int, int] | None:
     """(3D RMS of the pooled within-group standard deviation (m), dof, groups) of the rows with a
     group label >= 0 in groups of two or more; None below `min_dof`. Per axis
-    s^2 = sum (e - group mean)^2 / (rows - groups); the floor is sqrt(s_x^2 + s_y^2 + s_z^2)."""
+    s^2 = sum (e - group mean)^2 / (rows - groups); the floor is sqrt(s_x^2 + s_y^2 + s_z^2).
+
+    Parameters
+    ----------
+    error : ndarray
+        (n, 3), m.
+    labels : ndarray
+        (n,) group label (-1: none).
+    min_dof : int, optional
+        Least degrees of freedom.
+
+    Returns
+    -------
+    tuple or None
+    """
     labels = np.asarray(labels, dtype=np.int64)
     mask = labels >= 0
     if not mask.any():
@@ -106,7 +132,18 @@ def pooled_floor(error: np.ndarray, labels: np.ndarray, min_dof: int = MIN_DOF) 
 
 def visit_groups(ds: Dataset) -> np.ndarray:
     """Per row, its visit: a run of consecutive rows of one target at the same speed, payload and
-    joint angles (repeated readings; the arm has not moved, so no effect term tells them apart)."""
+    joint angles (repeated readings; the arm has not moved, so no effect term tells them apart).
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data, rows in time order.
+
+    Returns
+    -------
+    ndarray
+        (n,) labels.
+    """
     from dt_runtime.analysis.crossval import groups_of
 
     if ds.n == 0:
@@ -123,7 +160,17 @@ def visit_groups(ds: Dataset) -> np.ndarray:
 def conditions(catalogue: fx.Catalogue | None = None) -> tuple[str, ...]:
     """What the effect terms of `catalogue` (default `effects.default()`) vary with beyond the pose
     (`Effect.drives`: 'direction', 'speed', 'payload', 'temperature', 'time' or a data column): the
-    rows of a revisit group must agree in all of them."""
+    rows of a revisit group must agree in all of them.
+
+    Parameters
+    ----------
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    tuple of str
+    """
     cat = catalogue if catalogue is not None else fx.default()
     return tuple(dict.fromkeys(c for name in cat.names() for c in cat.get(name).drives()))
 
@@ -143,7 +190,20 @@ def revisit_groups(ds: Dataset, drives: tuple[str, ...] | None = None) -> np.nda
     order (the direction of approach is read from the previous row); the first row, whose approach
     is unknown, and rows with an empty cell in a checked column are in no group. Groups grow in
     row order: a row joins the latest of the recent groups (OPEN_GROUPS) whose every row it agrees with,
-    else starts a new one."""
+    else starts a new one.
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data, rows in time order.
+    drives : tuple of str, optional
+        The conditions checked.
+
+    Returns
+    -------
+    ndarray
+        (n,) labels.
+    """
     drives = conditions() if drives is None else drives
     n = ds.n
     keys, ok = _exact_keys(ds, drives)

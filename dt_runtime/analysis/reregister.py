@@ -28,6 +28,19 @@ def reregistered(measured: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray
     With the held-out residual r0 = e - e_hat = c - m - e_hat, the target c - e_hat is m + r0. The
     figure absorbs 6 dof per session (the same the session's own fit absorbed from the uncorrected
     error), and it can only be lower than or equal to r0's RMS (T = 1 is one candidate).
+
+    Parameters
+    ----------
+    measured : ndarray
+        (n, 3) measured points, robot frame, m.
+    residual : ndarray
+        (n, 3) held-out residual, m.
+
+    Returns
+    -------
+    residual : ndarray
+        (n, 3), m.
+    T : RigidTransform
     """
     m = np.asarray(measured, dtype=float)
     target = m + np.asarray(residual, dtype=float)
@@ -37,7 +50,23 @@ def reregistered(measured: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray
 
 def by_session(measured: np.ndarray, residual: np.ndarray, session: np.ndarray,
                refit: set[int] | None = None) -> np.ndarray:
-    """`residual` with the rows of every session in `refit` (default all) re-registered on their own."""
+    """`residual` with the rows of every session in `refit` (default all) re-registered on their own.
+
+    Parameters
+    ----------
+    measured : ndarray
+        (n, 3), m.
+    residual : ndarray
+        (n, 3), m.
+    session : ndarray
+        (n,) session index.
+    refit : set of int, optional
+        The sessions re-registered.
+
+    Returns
+    -------
+    ndarray
+    """
     out = np.array(residual, dtype=float, copy=True)
     for s in np.unique(session):
         if refit is not None and int(s) not in refit:

@@ -73,7 +73,20 @@ def _change(g: Gain) -> Change:
 
 
 def testable(ev: Evaluator, candidates: list[str]) -> tuple[list[str], list[dict]]:
-    """The candidates the data allow and can separate from the pose, and the others with why."""
+    """The candidates the data allow and can separate from the pose, and the others with why.
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    candidates : list of str
+        Effect names.
+
+    Returns
+    -------
+    testable : list of str
+    not_testable : list of dict
+    """
     p = ev.problem
     cat = p.catalogue
     allowed = cat.available(p.inp, p.chain)
@@ -146,7 +159,26 @@ def head_to_head(ev: Evaluator, cfg: Config, ok: list[Gain], level: float,
                  tested: Sequence[Gain] = ()) -> tuple[list[Gain], list[dict]]:
     """The best qualifying effect met by every tested effect that reads the same factor (qualifying
     or not: a rival that explains the residual only partly alone may still be the cause), in both
-    orders (`_duel`). Returns the qualifying list with the preferred one first, and the duels."""
+    orders (`_duel`). Returns the qualifying list with the preferred one first, and the duels.
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    cfg : Config
+        The configuration.
+    ok : list of Gain
+        The qualifying gains, best first.
+    level : float
+        The step's significance level.
+    tested : sequence of Gain, optional
+        Every gain tested in the step.
+
+    Returns
+    -------
+    ok : list of Gain
+    duels : list of dict
+    """
     if not ok or ok[0].kind != "effect":
         return ok, []
     top = ok[0]
@@ -388,7 +420,25 @@ def prune(ev: Evaluator, start: Config, cfg: Config, steps: list[Step], alpha: f
     """The backward pass: an effect the loop added can be redundant once later changes are in (a
     thermal term taken before the GP moved to the joint angles, which then carry the same error; a
     rival of an effect added later). Each added effect is tested again against the final model
-    without it (`_removable`); removals are steps too ("-thermal"), one at a time, weakest first."""
+    without it (`_removable`); removals are steps too ("-thermal"), one at a time, weakest first.
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    start : Config
+        The loop's start.
+    cfg : Config
+        The configuration.
+    steps : list of Step
+        The steps so far (removals are appended).
+    alpha : float
+        Significance level.
+
+    Returns
+    -------
+    Config
+    """
     while (gone := _removable(ev, start, cfg, alpha)) is not None:
         effect, without, p = gone
         _removal(ev, steps[-1], cfg, without, effect, p)

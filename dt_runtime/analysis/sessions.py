@@ -18,7 +18,17 @@ UNIT_SCALE = {"m": (1e3, "mm"), "rad": (1e3, "mrad")}
 
 
 def available_terms(ev: Evaluator) -> list[str]:
-    """The session terms the data allow (tool and joint zeros need the joints and the robot's model)."""
+    """The session terms the data allow (tool and joint zeros need the joints and the robot's model).
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+
+    Returns
+    -------
+    list of str
+    """
     p = ev.problem
     joints = p.inp.joints is not None and p.chain is not None
     return [t for t in terms.TERMS if t == "base" or joints]
@@ -27,7 +37,23 @@ def available_terms(ev: Evaluator) -> list[str]:
 def term_values(ev: Evaluator, cfg: Config, names: dict[int, str], which: tuple[str, ...]) -> list[dict]:
     """The fitted nuisance parameters of the session terms `which` of `cfg`, per session against the
     reference session, in mm or mrad with the expanded uncertainty (95 %, k from the residual's
-    degrees of freedom), and whether the session differs at all (chi^2 of its parameters against 0)."""
+    degrees of freedom), and whether the session differs at all (chi^2 of its parameters against 0).
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    cfg : Config
+        The configuration.
+    names : dict of int to str
+        Session names.
+    which : tuple of str
+        The session terms.
+
+    Returns
+    -------
+    list of dict
+    """
     p = ev.problem
     m = ev.model(cfg).fit(p.inp, p.error)
     dof = max(3 * p.n - len(m.theta_), 1)
@@ -57,7 +83,22 @@ def term_values(ev: Evaluator, cfg: Config, names: dict[int, str], which: tuple[
 def absorbed(ev: Evaluator, cfg: Config, residual: np.ndarray) -> tuple[np.ndarray, dict[int, tuple[int, list]]]:
     """`residual` (held out by session) scored the way a new session is: re-registered where the
     session's registration was fitted on its own points (6 dof), and with `cfg`'s session terms
-    measured again on the session. Returns it and, per session, (dof absorbed, what was absorbed)."""
+    measured again on the session. Returns it and, per session, (dof absorbed, what was absorbed).
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The problem and its memoised cross-validations.
+    cfg : Config
+        The configuration.
+    residual : ndarray
+        (n, 3), m.
+
+    Returns
+    -------
+    residual : ndarray
+    info : dict
+    """
     p = ev.problem
     assert p.session is not None
     out = np.array(residual, dtype=float, copy=True)
@@ -122,7 +163,21 @@ def held_out(ev: Evaluator, cfg: Config, names: dict[int, str]) -> list[dict]:
 
 def outside_others(inp: fx.Inputs, test: np.ndarray, margin: float = 0.02) -> dict:
     """Rows of the `test` mask outside the range of the other rows (TCP box, joint ranges; each
-    widened by `margin` of its range, as HybridModel.outside_domain): {'rows', 'columns': {name: rows}}."""
+    widened by `margin` of its range, as HybridModel.outside_domain): {'rows', 'columns': {name: rows}}.
+
+    Parameters
+    ----------
+    inp : Inputs
+        The data's columns.
+    test : ndarray
+        (n,) bool.
+    margin : float, optional
+        Widening, as a fraction of each range.
+
+    Returns
+    -------
+    dict
+    """
     outside = np.zeros(int(test.sum()), bool)
     cols: dict[str, int] = {}
     blocks: list[tuple[np.ndarray, tuple[str, ...]]] = [(inp.commanded, ("x", "y", "z"))]

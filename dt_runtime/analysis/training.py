@@ -34,7 +34,45 @@ def fit(d: Data, effects: tuple[str, ...], gp_inputs: str, robot: str | Path | N
     instruments of the `instruments` YAML and the temperature range of the data. Several sessions:
     `session_terms` fitted as nuisance (never deployed; against `reference_session`), and
     `exclude_sessions` left out. `catalogue`: the effects the names refer to (e.g. with
-    --effects-file's declarations, which the saved model keeps); default `effects.default()`."""
+    --effects-file's declarations, which the saved model keeps); default `effects.default()`.
+
+    Parameters
+    ----------
+    d : Data
+        The data.
+    effects : tuple of str
+        The effects.
+    gp_inputs : str
+        The GP's inputs.
+    robot : str or Path or None
+        The robot reference.
+    out : str or Path
+        The model directory.
+    seed : int, optional
+        Seed of the GP's starts and the folds.
+    cv_folds : int, optional
+        > 1: also the held-out RMS.
+    gp_options : GPOptions, optional
+        The GP's options.
+    progress : Progress, optional
+        Where progress is reported.
+    instruments : str or Path, optional
+        The instruments YAML.
+    inputs : sequence of str or Path, optional
+        Other input files to record.
+    session_terms : tuple of str, optional
+        Session terms fitted as nuisance.
+    exclude_sessions : sequence, optional
+        Sessions left out.
+    reference_session : str or int, optional
+        The reference session.
+    catalogue : Catalogue, optional
+        The call's effects.
+
+    Returns
+    -------
+    FitResult
+    """
     progress = progress or Progress(enabled=False)
     cat = catalogue if catalogue is not None else fx.default()
     cat.check_names(effects)
@@ -74,7 +112,27 @@ def data_provenance(ds: Dataset, data_file: str | Path | Sequence[str | Path] | 
     """The traceability record of a command on measured data: the data file (default the
     dataset's source) and its simulation sidecar, `inputs` (e.g. an import mapping), the files of
     the saved `models` (directories; fitted objects have none) and the `instruments` YAML, hashed;
-    the robot config (a path) or its name (a Chain); the instruments; the data's temperature."""
+    the robot config (a path) or its name (a Chain); the instruments; the data's temperature.
+
+    Parameters
+    ----------
+    ds : Dataset
+        The data.
+    data_file : str, Path or sequence, optional
+        The data file(s).
+    robot : object, optional
+        A robot config path or a Chain.
+    instruments : str or Path, optional
+        The instruments YAML.
+    inputs : sequence of str or Path, optional
+        Other input files.
+    models : sequence, optional
+        Model directories or fitted models.
+
+    Returns
+    -------
+    Provenance
+    """
     srcs: list[str | Path] = ([Path(f) for f in data_file] if isinstance(data_file, (list, tuple))
                               else [Path(data_file) if isinstance(data_file, (str, Path)) else ds.source])
     files: list[str | Path] = [f for src in srcs if src and Path(src).is_file() for f in (src, meta_path(src))]

@@ -72,7 +72,23 @@ def points(groups: np.ndarray, k: int, seed: int) -> Scheme:
 
 def regions(commanded: np.ndarray, groups: np.ndarray, k: int, seed: int) -> Scheme:
     """k regions of the workspace (k-means++ on each point's mean commanded TCP, seeded); every row
-    of a point in its point's region. Falls back to points when there are too few points."""
+    of a point in its point's region. Falls back to points when there are too few points.
+
+    Parameters
+    ----------
+    commanded : ndarray
+        (n, 3), m.
+    groups : ndarray
+        (n,) target point of each row.
+    k : int
+        Number of regions.
+    seed : int
+        Seed of k-means++.
+
+    Returns
+    -------
+    Scheme
+    """
     ids, inv = np.unique(groups, return_inverse=True)
     inv = inv.ravel()
     if len(ids) < MIN_GROUPS_PER_REGION * k:
@@ -92,7 +108,21 @@ def forward(t: np.ndarray | None, n: int, k: int) -> Scheme:
     predicted by a model fitted on blocks 0..j-1 only, for j from k // 2 on (every model fitted on
     at least 40 % of the campaign, as a deployed one is on all of it; a term fitted on its first
     fifth alone extrapolates from a sliver of the time range); the earlier blocks are never
-    predicted."""
+    predicted.
+
+    Parameters
+    ----------
+    t : ndarray or None
+        (n,) time (None: the row order).
+    n : int
+        Number of rows.
+    k : int
+        Number of blocks.
+
+    Returns
+    -------
+    Scheme
+    """
     order = np.argsort(np.asarray(t, float), kind="stable") if t is not None else np.arange(n)
     k = max(k, 2)
     edges = np.linspace(0, n, k + 1).round().astype(int)
@@ -122,7 +152,17 @@ def sessions(session: np.ndarray) -> Scheme:
 
 
 def session_of(extra: dict | None) -> np.ndarray | None:
-    """The session index of every row (`Dataset.extra['session']`), or None for one session."""
+    """The session index of every row (`Dataset.extra['session']`), or None for one session.
+
+    Parameters
+    ----------
+    extra : dict or None
+        The data's own columns.
+
+    Returns
+    -------
+    ndarray or None
+    """
     s = None if extra is None else extra.get("session")
     if s is None:
         return None
@@ -133,7 +173,29 @@ def session_of(extra: dict | None) -> np.ndarray | None:
 def deployment(commanded: np.ndarray, groups: np.ndarray, session: np.ndarray | None, k: int, seed: int,
                t: np.ndarray | None = None, time_dependent: bool = False) -> Scheme:
     """The scheme a step is judged on: held-out sessions when there are several; else a forecast
-    (`forward`) for a time-dependent term, held-out regions for any other."""
+    (`forward`) for a time-dependent term, held-out regions for any other.
+
+    Parameters
+    ----------
+    commanded : ndarray
+        (n, 3), m.
+    groups : ndarray
+        (n,) target point of each row.
+    session : ndarray or None
+        (n,) session index.
+    k : int
+        Number of folds.
+    seed : int
+        Seed of the assignment.
+    t : ndarray, optional
+        (n,) time.
+    time_dependent : bool, optional
+        The term under test depends on time.
+
+    Returns
+    -------
+    Scheme
+    """
     if session is not None:
         return sessions(session)
     if time_dependent:
