@@ -1,14 +1,8 @@
 """Load YAML into frozen pydantic models, turning validation errors into ConfigError.
 
 Config is validated once, at the boundary; the error names the file, the key path, the value
-seen and what is allowed.
-
-Every YAML file of the project (runtime, bus, robot, scenario, plan, import mapping, declared
-effects, instruments) is read here, and bounded before anything downstream sees it: at most
-MAX_YAML_BYTES read, text (UTF-8, no NUL bytes), nesting at most MAX_YAML_DEPTH deep, and at most
-MAX_YAML_NODES nodes with every alias counted as the whole node it repeats. Aliases stay
-usable; an alias bomb (nine aliases of nine aliases ..., a few hundred bytes that expand to
-10^8 values) is refused while it is read, not after pydantic has walked the expansion.
+seen and what is allowed. Every YAML file of the project is read here (`read_yaml`), bounded
+before anything downstream sees it. See docs/cli.md ("Bounded parsing").
 """
 from __future__ import annotations
 
@@ -147,6 +141,15 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     ConfigError
         Naming the file for anything else (unreadable, too large, binary, too deep, too
         many values, not a mapping).
+
+    Notes
+    -----
+    Every YAML file of the project (runtime, bus, robot, scenario, plan, import mapping, declared
+    effects, instruments) is read here: at most MAX_YAML_BYTES read, text (UTF-8, no NUL bytes),
+    nesting at most MAX_YAML_DEPTH deep, and at most MAX_YAML_NODES nodes with every alias counted
+    as the whole node it repeats. Aliases stay usable; an alias bomb (nine aliases of nine aliases
+    ..., a few hundred bytes that expand to 10^8 values) is refused while it is read, not after
+    pydantic has walked the expansion.
     """
     path = Path(path)
     text = _read_text(path)

@@ -1,13 +1,9 @@
 """JSON from a file or a message without trusting it: the one reader of model and twin files
 (hybrid.json, gp.json, twin.json) and of request payloads on the bus.
 
-`json.loads` takes anything: 200,000 nested brackets end in RecursionError (a traceback), a
-5,000-digit integer in a ValueError that is not a JSONDecodeError (the bus `correct` service went
-silent), NaN and Infinity are accepted (a model holding them started with exit 0), and the size
-is whatever was sent. Here the size is checked before parsing, the text must be UTF-8, integers
-have at most MAX_INT_DIGITS digits, nesting is at most `max_depth` deep, and every number is
-finite, except infinity where the caller allows it by key (degrees of freedom: GUM's infinite
-dof). Every refusal is a DataError naming the source and, for a value, its key path.
+Size, encoding, integer length, nesting and finite numbers are checked (`loads`, `read_json`);
+every refusal is a DataError naming the source and, for a value, its key path. See docs/cli.md
+("Bounded parsing").
 """
 from __future__ import annotations
 
@@ -68,6 +64,15 @@ def loads(raw: bytes | str, where: str, *, max_bytes: int, max_depth: int = MAX_
         Naming `where` for more than `max_bytes`, text that is not UTF-8 or not JSON, an integer of
         more than MAX_INT_DIGITS digits, nesting deeper than `max_depth`, or a NaN or infinite
         number.
+
+    Notes
+    -----
+    `json.loads` takes anything: deep nesting ends in RecursionError (a traceback), a
+    thousands-digit integer in a ValueError that is not a JSONDecodeError, NaN and Infinity are
+    accepted, and the size is whatever was sent. Here the size is checked before parsing, the text
+    must be UTF-8, integers have at most MAX_INT_DIGITS digits, nesting is at most `max_depth`
+    deep, and every number is finite, except infinity where the caller allows it by key (degrees
+    of freedom: GUM's infinite dof).
     """
     if len(raw) > max_bytes:
         raise DataError(f"{where}: {len(raw)} bytes, more than the {max_bytes} allowed")

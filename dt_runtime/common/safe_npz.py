@@ -1,13 +1,5 @@
-"""Loading a user's NPZ file without trusting it: names, sizes and dtypes checked before reading.
-
-`np.load` on an NPZ decompresses whatever member is asked for, as large as its header says: a
-2.9 MB file with an extra compressed member took 2.1 GB to load. `load_npz` opens the archive
-with `zipfile`, refuses members that are not expected, reads each member's .npy header (shape,
-dtype) from the stream and refuses before allocating anything when the total would exceed
-`max_bytes` or a dtype is not a plain number; only then does it read the arrays. No pickle.
-The archive itself must be a regular file no larger than `max_bytes` plus its headers (a member
-symlinked to /dev/zero was read for ever), and every float array must be finite (a model holding
-inf in `Q_1` started with exit 0): a refusal names the file and the member.
+"""Loading a user's NPZ file without trusting it: names, sizes and dtypes checked before reading
+(`load_npz`; no pickle). See docs/cli.md ("Bounded parsing").
 """
 from __future__ import annotations
 
@@ -51,6 +43,17 @@ def load_npz(path: str | Path, expected: Iterable[str] | None = None,
         Naming file and member for an unexpected member, a non-numeric dtype, a total size over
         `max_bytes`, a member that is truncated or unreadable, or a NaN or infinite value; naming
         the file when it is not a regular file or larger than `max_bytes`.
+
+    Notes
+    -----
+    `np.load` on an NPZ decompresses whatever member is asked for, as large as its header says: a
+    small file with an extra compressed member can take gigabytes to load. This opens the archive
+    with `zipfile`, refuses members that are not expected, reads each member's .npy header (shape,
+    dtype) from the stream and refuses before allocating anything when the total would exceed
+    `max_bytes` or a dtype is not a plain number; only then does it read the arrays. The archive
+    itself must be a regular file no larger than `max_bytes` plus its headers (a member symlinked
+    to /dev/zero would be read for ever), and every float array must be finite (a model holding
+    inf must not load as if it were sound).
     """
     path = Path(path)
     allowed = None if expected is None else set(expected)
