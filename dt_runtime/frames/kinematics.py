@@ -1,12 +1,9 @@
 """The robot's nominal kinematic model on the twin side: forward kinematics, Jacobians and the
 inverse kinematics of a position (the joint angles a deployed twin's joint-space effects read).
 
-Read from a robot config YAML (`load_robot`): a URDF (parsed by yourdfpy; our simulated cobot
-ships one), a standard DH table (configs/robots/ur10.yaml), a modified (Craig) DH table (Franka's
-published one), a URDF-style joint table, or a catalogue arm (configs/robots/catalogue/, by name:
-`frames.robots`). Any number of revolute joints (6- and 7-axis arms). Vectorised numpy: the
-effect regressors of the hybrid model need the TCP and its sensitivity to every joint for
-thousands of rows at once.
+Read from a robot config YAML (`load_robot`): a URDF, a standard or modified (Craig) DH table,
+a URDF-style joint table, or a catalogue arm (`frames.robots`); any number of revolute joints.
+Vectorised numpy: the effect regressors need thousands of rows at once. See docs/robots.md.
 """
 from __future__ import annotations
 

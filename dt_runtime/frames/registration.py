@@ -1,13 +1,8 @@
 """Rigid registration of instrument frames to the global frame GL (paper Sect. 2.3).
 
-- `RigidTransform`: p_b = s R p_a + t, the homogeneous matrix of Eq. 3 (s = 1: rigid).
-- `fit_rigid`: least squares over point pairs minimising the SSE of Eq. 4 (Kabsch; Umeyama
-  with scale), never returning a reflection.
-- `three_line_frame`: the paper's three-point method: the TCP moves 100 mm along three
-  orthogonal lines from a common origin; each instrument's view of those lines defines GL.
-- `registration_residuals` (Eqs. 5-7), `ResidualStats` (Table 2), `reproducibility` (Eq. 12).
-- `register_instrument`: all of the above for one instrument in one call.
-
+`RigidTransform` (Eq. 3), `fit_rigid` (Eq. 4, never a reflection), `three_line_frame` (the
+paper's three-line method), `registration_residuals` (Eqs. 5-7), `ResidualStats` (Table 2),
+`reproducibility` (Eq. 12) and `register_instrument`, all of them for one instrument.
 Units: whatever the caller passes (SI, metres, inside the code); `to_dict(unit="mm")` converts.
 """
 from __future__ import annotations

@@ -1,15 +1,10 @@
 """The measurement table (docs/measurement-table.md, **contract**) in memory and on disk.
 
-`Dataset` holds one row per measured positioning as SI numpy arrays (metres, rad, s, kg,
-m/s; temperature in deg C). The file form is the contract CSV: UTF-8, comma separated, header
-row, positions and errors in mm, speed in mm/s. Error sign (paper Eq. 8):
-`error = commanded - measured`.
-
-`read_table` / `write_table` read and write exactly that table. Foreign files go through
-`dt_runtime.measurements.importer` (an import mapping), which reuses the row parser
-(`cells`) so a bad cell is
-reported the same way: a `DataError` naming file, line, column and value, or, with
-`skip_bad=True`, a `SkippedRow` in `Dataset.skipped`.
+`Dataset` holds one row per measured positioning as SI numpy arrays (metres, rad, s, kg, m/s;
+temperature in deg C); `read_table` / `write_table` read and write the contract CSV (mm, mm/s).
+Error sign (paper Eq. 8): `error = commanded - measured`. Foreign files go through
+`dt_runtime.measurements.importer`, which reuses the row parser (`cells`), so a bad cell is
+reported the same way.
 """
 from __future__ import annotations
 

@@ -1,12 +1,8 @@
 """A joint-angle table joined to a measurement file (the import mapping's `joints:` section).
 
 A tracker exports points; the robot's joint angles come from the controller, often as a
-spreadsheet-exported CSV (`;`, decimal comma, degrees). The two are paired either by row order
-(`join: row`: row i of one is row i of the other, so both must have the same number of data rows)
-or by a key column present in both (`join: {key: Punkt}`): a point measured twice takes the same
-joint row, but a key the joint table lists twice is ambiguous and a key it lacks has no joints,
-both refused with the keys named. The table is CSV (`separator`, `decimal`, `encoding`) or a
-spreadsheet as the controller's software saved it (.xlsx, .xls, .ods; `sheet` picks the sheet).
+spreadsheet-exported CSV. The two are paired by row order or by a key column (`join_joints`).
+See docs/campaigns.md ("`joints:`, a joint-angle table joined to the measurement file").
 """
 from __future__ import annotations
 
@@ -35,7 +31,15 @@ class KeyJoin(Frozen):
 
 
 class JointsSpec(Frozen):
-    """The `joints:` section of an import mapping."""
+    """The `joints:` section of an import mapping.
+
+    The two files are paired either by row order (`join: row`: row i of one is row i of the other,
+    so both must have the same number of data rows) or by a key column present in both
+    (`join: {key: Punkt}`): a point measured twice takes the same joint row, but a key the joint
+    table lists twice is ambiguous and a key it lacks has no joints, both refused with the keys
+    named. The table is CSV (`separator`, `decimal`, `encoding`) or a spreadsheet as the
+    controller's software saved it (.xlsx, .xls, .ods; `sheet` picks the sheet).
+    """
 
     # file name (placeholders {stem}, {name} of the data file) or {data file name: joint table}
     path: str | dict[str, str]

@@ -1,15 +1,6 @@
 """Where a session's companion files are: the joint-angle table and the given registration of a
-measurement file, named in the import mapping once for every session of a campaign.
-
-A name may hold `{stem}` (the data file's name without its extension) or `{name}` (with it), so
-one mapping serves `s1.csv`, `s2.csv`, ... with `s1_joints.csv`, `s2_joints.csv`, ...; or the
-mapping gives a table `{data file name: companion}` (for names that follow no pattern). A relative
-name is looked up beside the data file first (a campaign folder holds its sessions' files), then
-beside the mapping (a mapping shipped with fixed companions).
-
-A campaign's sessions are reported by name (`session_names`): the file's stem, or, where several
-files share one (`day1/points.csv`, `day2/points.csv`), the shortest path suffix that tells them
-apart.
+measurement file, named in the import mapping once for every session of a campaign
+(`companion`); and the name each session is reported by (`session_names`).
 """
 from __future__ import annotations
 
@@ -41,6 +32,14 @@ def companion(spec: str | Mapping[str, str], data: Path, mapping_dir: Path | Non
     Returns
     -------
     Path
+
+    Notes
+    -----
+    A name may hold `{stem}` (the data file's name without its extension) or `{name}` (with it),
+    so one mapping serves `s1.csv`, `s2.csv`, ... with `s1_joints.csv`, `s2_joints.csv`, ...; or the
+    mapping gives a table `{data file name: companion}` (for names that follow no pattern). A
+    relative name is looked up beside the data file first (a campaign folder holds its sessions'
+    files), then beside the mapping (a mapping shipped with fixed companions).
     """
     if isinstance(spec, Mapping):
         if data.name not in spec:

@@ -1,14 +1,8 @@
-"""What a data file is (text, a spreadsheet, or something else), and a spreadsheet's cells.
+"""What a data file is (text, a spreadsheet, or something else: `sniff`), and a spreadsheet's cells
+(`read_sheet`).
 
-A measurement file or a joint-angle table arrives as the instrument or a spreadsheet left it:
-CSV text, an Excel workbook (`.xlsx`, `.xlsm`, `.xlsb`, the older `.xls`) or an OpenDocument
-spreadsheet (`.ods`). The kind is told by the file's first bytes, not its name (a workbook saved
-as `points.csv` is still a workbook). Spreadsheets are read through python-calamine (Rust's
-calamine: one reader for all of them); their cells keep their types: numbers as floats (no
-decimal-comma question), dates and times as `datetime` / `date` / `time` / `timedelta`, text as
-`str`, an empty cell as ''. Any other binary file (a PDF, a zip archive, Parquet, an image, UTF-16
-text without a byte-order mark ...) is refused with what it looks like and what to do, never with
-advice about a text encoding it does not have.
+Spreadsheets (.xlsx, .xlsm, .xlsb, .xls, .ods) are read through python-calamine; their cells keep
+their types. See docs/measurement-table.md and docs/campaigns.md.
 """
 from __future__ import annotations
 
@@ -91,6 +85,13 @@ def sniff(path: str | Path, encoding: str = "utf-8-sig") -> Kind:
     -------
     str
         "xlsx", "xls", "ods" or "text".
+
+    Notes
+    -----
+    The kind is told by the file's first bytes, not its name (a workbook saved as `points.csv` is
+    still a workbook). Any other binary file (a PDF, a zip archive, Parquet, an image, UTF-16 text
+    without a byte-order mark ...) is refused with what it looks like and what to do, never with
+    advice about a text encoding it does not have.
     """
     path = Path(path)
     try:
@@ -201,6 +202,12 @@ def read_sheet(path: str | Path, sheet: str | int) -> tuple[str, list[str], Sequ
     name : str
     sheets : list of str
     rows : sequence of (int, tuple of Cell)
+
+    Notes
+    -----
+    Read through python-calamine (Rust's calamine: one reader for all formats); cells keep their
+    types: numbers as floats (no decimal-comma question), dates and times as `datetime` / `date` /
+    `time` / `timedelta`, text as `str`, an empty cell as ''.
     """
     path = Path(path)
     try:
