@@ -1,13 +1,10 @@
 """Grouped cross-validation, the one implementation: groups (the target point), fold assignment,
-the held-out loop, and the hybrid model's held-out residuals.
-
-Every row of a group is on the same side of a split, so a model cannot win by remembering a
-point. Folds: the distinct group ids, shuffled with `default_rng(seed)`, fold f = ids[f::k].
+the held-out loop, and the hybrid model's held-out residuals. Every row of a group is on the
+same side of a split, so a model cannot win by remembering a point.
 
     groups = groups_of(dataset)
     folds = folds_of(groups, 5, seed=0)
     cv = cross_validate(HybridModel(("geometric",), robot=chain), dataset, dataset.error, groups, folds)
-    r = grouped_residuals(X, Y, groups, 5, seed, lambda Xtr, Ytr, Xte: ...)   # any regressor
 """
 from __future__ import annotations
 
@@ -75,6 +72,10 @@ def folds_of(groups: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
     Returns
     -------
     list of ndarray
+
+    Notes
+    -----
+    The distinct group ids, shuffled with `default_rng(seed)`; fold f = ids[f::k].
     """
     ids = np.unique(groups)
     rng = np.random.default_rng(seed)

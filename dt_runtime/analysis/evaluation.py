@@ -1,13 +1,9 @@
 """One diagnosis's cross-validations: each model configuration held out once per scheme, reused
-by every step that needs it (the loop's next step starts from the chosen candidate's figures).
+by every step that needs it (`Evaluator`).
 
     ev = Evaluator(problem, folds=5, seed=0)
     cv = ev.cv(Config(("geometric",), "joints"), ev.points)      # a CvResult, memoised
     ev.rms_mm(cfg, ev.deploy)                                        # its held-out 3D RMS
-
-The GP hyperparameters of a configuration are fitted once on all rows (its first cross-validation,
-warm-started from the configuration it extends) and kept fixed in every fold of every scheme: a
-few smoothness and noise numbers see the held-out rows, no row's error does.
 """
 from __future__ import annotations
 
@@ -105,7 +101,12 @@ class Problem:
 
 class Evaluator:
     """Cross-validations of configurations on the problem's schemes, memoised; with a `pool`
-    (analysis.parallel), `cv_many` runs the missing ones in its worker processes."""
+    (analysis.parallel), `cv_many` runs the missing ones in its worker processes.
+
+    The GP hyperparameters of a configuration are fitted once on all rows (its first
+    cross-validation, warm-started from the configuration it extends) and kept fixed in every fold
+    of every scheme: a few smoothness and noise numbers see the held-out rows, no row's error does.
+    """
 
     def __init__(self, problem: Problem, folds: int = 5, seed: int = 0, pool=None):
         self.problem = problem

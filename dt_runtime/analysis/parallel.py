@@ -1,11 +1,5 @@
-"""The cross-validations of one diagnosis step in worker processes: the candidates of a step are
-independent (each is its own model held out on the same folds), so on 2 cores two run at once.
-
-A pool lives for one diagnosis. Its workers are started fresh (spawn: no state of the parent's
-threads, bus sessions or locks is inherited), each builds the diagnosis's `Evaluator` once from the
-problem (its schemes are seeded, so the folds are the parent's), runs BLAS on one thread, and
-cross-validates what it is sent: a configuration, a scheme and the hyperparameter start or fixed
-hyperparameters the parent knows. Results are the same as in one process.
+"""The cross-validations of one diagnosis step in worker processes (`Pool`): the candidates of a
+step are independent, so on 2 cores two run at once. Results are the same as in one process.
 
 How many workers: `DT_WORKERS` (the command line and the benchmarks default it to the machine's
 cores); the library defaults to 1 (no pool) so that a caller's process stays as it is.
@@ -59,7 +53,14 @@ def _call(fn, args: tuple):
 
 
 class Pool:
-    """Worker processes holding one diagnosis's problem."""
+    """Worker processes holding one diagnosis's problem.
+
+    A pool lives for one diagnosis. Its workers are started fresh (spawn: no state of the parent's
+    threads, bus sessions or locks is inherited), each builds the diagnosis's `Evaluator` once from
+    the problem (its schemes are seeded, so the folds are the parent's), runs BLAS on one thread,
+    and cross-validates what it is sent: a configuration, a scheme and the hyperparameter start or
+    fixed hyperparameters the parent knows.
+    """
 
     def __init__(self, problem, folds: int, seed: int, n: int):
         self.n = n

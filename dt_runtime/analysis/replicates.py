@@ -1,15 +1,8 @@
 """The measurement noise floor from the data's own replicates (docs/cli.md, "The noise floor").
 
-Two definitions, tried in this order:
-
-1. repeated readings of one visit: consecutive rows of one target at the same speed, payload and
-   joint angles (the arm has not moved between them);
-2. revisits with the same approach direction, speed, payload and temperature: the same pose
-   measured again later, grouped so that nothing any effect term reads differs between the rows
-   of a group (`revisit_groups`).
-
-Per axis the within-group variances are pooled with their degrees of freedom; the floor is the 3D
-RMS sqrt(sum of the three), like the simulator's and the stated uncertainty's.
+Repeated readings of one visit (`visit_groups`), else revisits under the same conditions
+(`revisit_groups`); per axis the within-group variances are pooled with their degrees of freedom
+(`pooled_floor`) and the floor is their 3D RMS, like the simulator's and the stated uncertainty's.
 """
 from __future__ import annotations
 

@@ -1,12 +1,10 @@
 """Hybrid error model: error = sum of physical effect terms + GP on what is left (`HybridModel`).
 
-A scikit-learn regressor (sklearn.base.clone and cross_val_score work)::
+A scikit-learn regressor (docs/library.md, docs/effects.md)::
 
     model = HybridModel(effects=("geometric", "backlash"), robot="configs/robots/cobot_hc20_like.yaml")
     model.fit(dataset)                      # y defaults to dataset.error (rows in time order)
     e_hat, u = model.predict(dataset, return_std=True)
-
-See docs/library.md and docs/effects.md.
 """
 from __future__ import annotations
 

@@ -1,14 +1,5 @@
 """The effect terms' nonlinear parameters (`Effect.hyper`, e.g. the structure's thermal time
-constant), estimated by profile likelihood: for each value on the effect's grid, the linear
-parameters of every effect are fitted by least squares and the residual sum of squares kept;
-the estimate minimises it (refined between grid neighbours), and its standard uncertainty is
-half the width of the interval where the profile log-likelihood is within 1/2 of its maximum
-(Gaussian errors: -log L = N/2 log RSS + const, N the number of scalar residuals; rows that
-repeat a point are not independent, so the interval is a lower bound on the uncertainty).
-
-A value whose interval reaches the end of the grid is not identified: the data do not bound it
-(`Estimate.identified` False; e.g. a temperature that hardly changed, or a lag longer than the
-data). The model then uses the grid's first value (0 s: the air temperature as logged).
+constant), estimated by profile likelihood (`profile`; the method: its docstring).
 """
 from __future__ import annotations
 
@@ -154,6 +145,19 @@ def profile(effects: tuple[str, ...], inp: fx.Inputs, error: np.ndarray, chain: 
     Returns
     -------
     dict
+
+    Notes
+    -----
+    For each value on the effect's grid, the linear parameters of every effect are fitted by least
+    squares and the residual sum of squares kept; the estimate minimises it (refined between grid
+    neighbours), and its standard uncertainty is half the width of the interval where the profile
+    log-likelihood is within 1/2 of its maximum (Gaussian errors: -log L = N/2 log RSS + const, N
+    the number of scalar residuals; rows that repeat a point are not independent, so the interval
+    is a lower bound on the uncertainty).
+
+    A value whose interval reaches the end of the grid is not identified: the data do not bound it
+    (`Estimate.identified` False; e.g. a temperature that hardly changed, or a lag longer than the
+    data). The model then uses the grid's first value (0 s: the air temperature as logged).
     """
     out: dict[str, dict[str, Estimate]] = {}
     cat = catalogue if catalogue is not None else fx.default()
