@@ -1,12 +1,5 @@
-"""The `dt compare` report: one self-contained HTML page and the JSON beside it.
-
-`write_compare_report(result, arrays, out_dir)` renders what `dt_runtime.compare.compare`
-returns: the models side by side, the "watch the error fall" plot, where the primary model
-(the last one) fails (residual maps, the worst cells), every model's residual against each factor
-(numeric factors by level, the direction of approach and the joint configuration as categories), whether
-its residuals look normal, and each model's effect parameters (the short base-parameter table,
-reports.parameter_table). The HTML helpers and the per-block
-fallback (a block that cannot be drawn becomes a note) are those of the demo report.
+"""The `dt compare` report: one self-contained HTML page and the JSON beside it
+(`write_compare_report`; docs/cli.md, "dt compare").
 """
 from __future__ import annotations
 
@@ -450,6 +443,15 @@ def write_compare_report(result: dict, arrays: dict, out_dir) -> Path:
     Returns
     -------
     Path
+
+    Notes
+    -----
+    The page shows the models side by side, the "watch the error fall" plot, where the primary
+    model (the last one) fails (residual maps, the worst cells), every model's residual against each
+    factor (numeric factors by level, the direction of approach and the joint configuration as
+    categories), whether its residuals look normal, and each model's effect parameters (the short
+    base-parameter table, reports.parameter_table). A block that cannot be drawn becomes a note, as
+    in the demo report.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

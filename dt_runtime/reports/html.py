@@ -1,11 +1,9 @@
 """Small, generic building blocks for self-contained HTML reports.
 
-Every report of the twin (`dt demo`, `dt compare`, ...) is ONE file: figures are inline
-base64 PNGs, the style sheet is inline, nothing is fetched from the network. All text that
-reaches the page goes through `esc` (html.escape); callers pass plain text, never markup,
-except for the `body` of a section, which is already-built HTML from these helpers.
+Every report of the twin is ONE file: figures are inline base64 PNGs, the style sheet is inline,
+nothing is fetched from the network. All text that reaches the page goes through `esc`; callers
+pass plain text, never markup, except for the `body` of a section (HTML from these helpers):
 
-    from dt_runtime.reports.html import fig_to_img_tag, html_table, html_page, Section
     body = html_table(rows, caption="Budget (mm)") + fig_to_img_tag(fig, alt="...")
     Path("report.html").write_text(html_page("My report", [Section("Results", body)]))
 """

@@ -1,13 +1,6 @@
 """The effect parameters as one short table: what `dt fit` and `dt compare` print and the compare
-report shows. The rows are the base parameters (`HybridModel.base_parameters`: the combinations
-the data determine), not the full rank-deficient set: the geometric effect as a grid, one row per
-joint frame (its offset, translation and rotation errors) plus the tool, the other effects one
-line each, and what the data cannot separate as one count. The per-parameter list (with the
-aliased groups) stays in the JSON.
-
-Values are shown in mrad and mm (radians and metres inside), with their standard uncertainty in
-the concise notation of the GUM (JCGM 100, 7.2.2): 0.087(9) mrad is 0.087 mrad with u = 0.009
-mrad, the uncertainty to two significant figures and the value rounded to the same digit.
+report shows (`parameter_table`, `text`, `html`). See docs/effects.md ("Which parameters the data
+determine").
 """
 from __future__ import annotations
 
@@ -163,6 +156,16 @@ def parameter_table(parameters: list[dict], base: dict | None, plus_minus: bool 
     Returns
     -------
     ParameterTable
+
+    Notes
+    -----
+    The rows are the base parameters (the combinations the data determine), not the full
+    rank-deficient set: the geometric effect as a grid, one row per joint frame (its offset,
+    translation and rotation errors) plus the tool, the other effects one line each, and what the
+    data cannot separate as one count; the per-parameter list (with the aliased groups) stays in the
+    JSON. Values are shown in mrad and mm (radians and metres inside), with their standard
+    uncertainty in the concise notation of the GUM (JCGM 100, 7.2.2): 0.087(9) mrad is 0.087 mrad
+    with u = 0.009 mrad (`concise`).
     """
     base = base if base is not None else legacy_base(parameters)
     grids: list[Grid] = []
