@@ -1,5 +1,6 @@
-"""Docstrings for the reader: short module docstrings, every public name documented, no work
-history (issue numbers belong in commits). The counting is docs/tools/docstring_stats.py's."""
+"""Docstrings for the reader: short module docstrings, every public name documented (with a
+Parameters section where it takes any), no work history (issue numbers belong in commits). The
+counting is docs/tools/docstring_stats.py's."""
 from __future__ import annotations
 
 import importlib.util
@@ -47,6 +48,12 @@ def test_module_docstrings_are_short(stats):
 def test_public_functions_and_classes_have_docstrings(stats):
     missing = [m for s in stats.values() for m in s.undocumented]
     assert not missing, "public names without a docstring: " + ", ".join(missing)
+
+
+def test_public_functions_with_parameters_document_them(stats):
+    missing = [m for s in stats.values() for m in s.no_parameters]
+    assert not missing, "public functions with parameters but no numpydoc 'Parameters' section: " + \
+        ", ".join(missing)
 
 
 def test_docstrings_name_no_issue(stats):
