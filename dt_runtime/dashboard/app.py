@@ -60,8 +60,8 @@ class Dashboard:
                 self._closers.append(self.plant.close)
             self.server = DashboardServer((host, port), self.hub, self.scene, self.feed, self.operators, max_rate_hz,
                                           results, self.plant, tls=(cert, key))
-            self.server.start()
             self._closers.append(self.server.stop)
+            self.server.start()
         except BaseException:
             self.close()
             raise

@@ -142,7 +142,9 @@ class HeadTimeoutProtocol(H11Protocol):
         self._head_timer = self.loop.call_later(HEAD_TIMEOUT_S, self._head_late, self.cycle)
 
     def _head_late(self, cycle: object) -> None:
-        if self.cycle is cycle and not self.transport.is_closing():  # no new request since the timer was armed
+        # no new request head since the timer was armed (a pipelined one may already be in progress: kept)
+        idle = cycle is None or getattr(cycle, "response_complete", True)
+        if self.cycle is cycle and idle and not self.transport.is_closing():
             log.debug("dashboard: %s sent no request head within %.0f s: closed", self.client, HEAD_TIMEOUT_S)
             self.transport.close()
 

@@ -107,3 +107,38 @@ def test_tls_serves_https_and_a_bad_certificate_is_the_command_lines_error(tmp_p
         Dashboard(None, None, port=0, results=tmp_path / "r", tls=(str(key), str(key)))
     with pytest.raises(ConfigError, match="both, or neither"):
         Dashboard(None, None, port=0, results=tmp_path / "r", tls=(str(cert), None))
+
+
+def test_a_silent_connection_is_closed_but_a_pipelined_stream_is_kept(tmp_path, monkeypatch):
+    """The request-head deadline (HEAD_TIMEOUT_S, shortened here) closes a connection that sent
+    nothing or half a request line, never one whose request is being answered (a stream asked for
+    right behind another request on the same connection)."""
+    import socket
+    import time
+
+    from dt_runtime.dashboard import server
+
+    monkeypatch.setattr(server, "HEAD_TIMEOUT_S", 0.5)
+    (tmp_path / "r").mkdir()
+    with Dashboard(None, None, port=0, results=tmp_path / "r") as d:
+        port = d.server.port
+        silent = socket.create_connection(("127.0.0.1", port), timeout=30)
+        half = socket.create_connection(("127.0.0.1", port), timeout=30)
+        half.sendall(b"GET /api/snap")
+        assert silent.recv(1) == b"" and half.recv(1) == b""  # closed by the server
+        ask = f"GET /api/snapshot HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n" \
+              f"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n"
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
+            s.sendall(ask.encode())
+            got = b""
+            while b"event: snapshot" not in got:
+                got += s.recv(65536)
+            time.sleep(2.0)  # four deadlines
+            assert d.server.streams == 1
+            s.setblocking(False)
+            try:
+                assert s.recv(1) != b""  # not closed (a keep-alive or nothing yet)
+            except BlockingIOError:
+                pass
+        silent.close()
+        half.close()
