@@ -1,13 +1,11 @@
 """`Dashboard`: the parts of `dt dashboard` put together and started (the twin's scene, the hub,
-the bus feed, the web server in its own thread); `close()` stops them in reverse. Tests and the
+the bus feed, the web server: uvicorn in its own thread); `close()` stops them in reverse. Tests and the
 benchmark start it in process; `dt dashboard` wraps it. Without a runtime config it serves the
 metrologist's page only (`results`: no bus, no twin of a cell); with a plant config (`plant`), the
 plant page (/plant: every cell on the fabric, plant.PlantWatch)."""
 from __future__ import annotations
 
 import logging
-import ssl
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -61,11 +59,12 @@ class Dashboard:
                 self.plant = PlantWatch(plant, plant_period_s)
                 self._closers.append(self.plant.close)
             self.server = DashboardServer((host, port), self.hub, self.scene, self.feed, self.operators, max_rate_hz,
-                                          results, self.plant)
+                                          results, self.plant, tls=(cert, key))
+            self._closers.append(self.server.stop)
+            self.server.start()
         except BaseException:
             self.close()
             raise
-        self._serve(cert, key)
 
     def _join(self, cfg: RuntimeConfig, config_path: Path, bus: BusConfig | None, group: str) -> None:
         """The live cell: the twin's scene and the bus feed."""
@@ -84,27 +83,6 @@ class Dashboard:
         self.scene = Scene(twin if twin.is_absolute() else config_path.parent / twin, cfg.alpha)
         self.feed = BusFeed(bus_cfg, self.hub, self.scene, signer, group)
         self._closers.append(self.feed.close)
-
-    def _serve(self, cert: str | None, key: str | None) -> None:
-        try:
-            self._closers.append(self.server.server_close)
-            if cert is not None:
-                ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-                ctx.minimum_version = ssl.TLSVersion.TLSv1_2
-                try:
-                    ctx.load_cert_chain(cert, key)
-                except (OSError, ssl.SSLError) as exc:
-                    raise ConfigError(str(cert), "--tls-cert/--tls-key", str(exc), "a PEM certificate chain and "
-                                      "its private key") from exc
-                self.server.socket = ctx.wrap_socket(self.server.socket, server_side=True)
-                self.server.scheme = "https"
-            self._thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.2},
-                                            name="dashboard-http", daemon=True)
-            self._thread.start()
-            self._closers[-1] = self.server.stop
-        except BaseException:
-            self.close()
-            raise
 
     @property
     def url(self) -> str:

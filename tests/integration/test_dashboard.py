@@ -244,3 +244,37 @@ def test_dt_dashboard_refuses_plain_http_beyond_loopback(cell, tmp_path, capsys)
     cfg.write_text(json.dumps(cell[1].model_dump(mode="json")))  # JSON is YAML
     assert main(["dashboard", "--config", str(cfg), "--host", "0.0.0.0", "--port", "0", "--json"]) == 2
     assert "--tls-cert" in json.loads(capsys.readouterr().out)["error"]
+
+
+def test_a_page_refused_when_too_many_are_open_tries_again_and_goes_live(dash, page):
+    """With every event stream taken (503 + Retry-After), a new page shows 'reconnecting', then
+    goes live by itself once a slot is free (its EventSource gives up on a 503; the page retries)."""
+    import socket
+
+    from dt_runtime.dashboard.server import MAX_STREAMS
+
+    port = dash.server.port
+    held = []
+    try:
+        assert wait_until(lambda: dash.server.streams >= 1, 10)  # the module's page
+        for _ in range(MAX_STREAMS - dash.server.streams):
+            s = socket.create_connection(("127.0.0.1", port), timeout=30)
+            s.sendall(f"GET /api/events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
+            assert s.recv(64).startswith(b"HTTP/1.1 200")
+            held.append(s)
+        ctx = page.context.browser.new_context(bypass_csp=True)  # the module's browser: a second page
+        try:
+            pg = ctx.new_page()
+            pg.goto(dash.url)
+            pg.wait_for_function("document.getElementById('link').textContent === 'reconnecting'", timeout=30_000)
+            assert dash.server.refused_streams >= 1
+            for s in held:
+                s.close()
+            held.clear()
+            pg.wait_for_function("window.dtStats && dtStats.connected && dtStats.messages > 0", timeout=60_000)
+            assert pg.text_content("#link") == "live"
+        finally:
+            ctx.close()
+    finally:
+        for s in held:
+            s.close()

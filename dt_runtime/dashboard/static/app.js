@@ -28,7 +28,11 @@ function connect() {
   es.addEventListener("snapshot", (e) => applySnapshot(JSON.parse(e.data)));
   es.onmessage = (e) => applyBatch(JSON.parse(e.data));
   es.onopen = () => setLink(true);
-  es.onerror = () => setLink(false);  // EventSource reconnects by itself and gets a new snapshot
+  es.onerror = () => {  // EventSource reconnects by itself and gets a new snapshot,
+    setLink(false);
+    // except after a reply that is not a stream (the server's 503 when too many pages are open: Retry-After 10 s)
+    if (es.readyState === EventSource.CLOSED) setTimeout(connect, 10000);
+  };
 }
 function setLink(on) {
   stats.connected = on;
