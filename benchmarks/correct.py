@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._common import cli, emit
-from dt_runtime.service.bus import BusConfig, CorrectionServer, request_correction
-from dt_runtime.service.bus.session import close_session, open_session
+from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.session import close_session, open_session
 from dt_runtime.service.correction import Corrector, Limits
+from dt_runtime.service.correction_server import CorrectionServer, request_correction
 from dt_runtime.twin.twin import Twin
 
 

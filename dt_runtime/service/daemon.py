@@ -74,16 +74,17 @@ import numpy as np
 from drivers import registry
 from drivers.base import read_exposed_after
 from dt_kernel.errors import ConfigError, DriverError, TwinError
+from dt_runtime.fabric.queries import QueryServer
 from dt_runtime.service import sdnotify
 from dt_runtime.service.answers import answers
-from dt_runtime.service.bus import Bus, CorrectionServer
-from dt_runtime.service.bus.queries import QueryServer
 from dt_runtime.service.cell import Cell, open_cell
 from dt_runtime.service.correction import Corrected, CorrectionFault, Corrector, Monitor
+from dt_runtime.service.correction_server import CorrectionServer
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.housekeeping import Housekeeper
 from dt_runtime.service.paging import Paging
 from dt_runtime.service.path_run import PathStreamer, check_streaming_robot, plan_path
+from dt_runtime.service.publisher import Bus
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow, shown_time
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,

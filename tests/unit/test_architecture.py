@@ -6,11 +6,16 @@ lazy imports inside functions included):
 - emulators import dt_kernel, sim and drivers (the protocol codecs); nothing else imports them;
 - inside dt_runtime nothing imports upward: each subpackage may import its own and lower
   layers only (LAYERS, lowest first; reports and the command line at the top). The package's
-  __init__ is the public facade and may name anything.
+  __init__ is the public facade and may name anything;
+- a few layers also keep apart from some lower ones (APART): the fabric, the Zenoh client every
+  part of a plant uses, sits below the daemon and imports neither the twin nor its models, so that
+  a plant's router, inbox or dashboard loads no GP; the plant uses the fabric, not the daemon.
 """
 from __future__ import annotations
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,8 +28,12 @@ ALLOWED = {"dt_kernel": {"dt_kernel"}, "sim": {"dt_kernel", "sim"},
            "drivers": {"dt_kernel", "sim", "drivers"},
            "emulators": {"dt_kernel", "sim", "drivers", "emulators"},
            "dt_runtime": {"dt_kernel", "sim", "drivers", "dt_runtime"}}
-LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "service", "plant",
-          "reports", "dashboard", "cli")
+LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "fabric", "service",
+          "plant", "reports", "dashboard", "cli")
+# Lower layers a layer must not import all the same (the floors are a partial order: the fabric
+# sits beside the twin, not on it; the plant talks to its cells through the fabric, never through
+# the daemon's modules).
+APART = {"fabric": ("models", "analysis", "twin"), "plant": ("models", "analysis", "twin", "service")}
 
 
 def module_name(path: Path) -> str:
@@ -82,6 +91,8 @@ def violations(module: str, source: str, is_package: bool = False) -> list[str]:
             continue
         if mine is not None and theirs is not None and theirs > mine:
             bad.append(f"{where}: {LAYERS[mine]} must not import {LAYERS[theirs]} (a higher layer)")
+        elif mine is not None and theirs is not None and LAYERS[theirs] in APART.get(LAYERS[mine], ()):
+            bad.append(f"{where}: {LAYERS[mine]} must not import {LAYERS[theirs]} (kept apart)")
     return bad
 
 
@@ -118,6 +129,10 @@ def test_dt_runtime_modules_live_in_a_layer():
     ("drivers.registry", "def f():\n    from emulators.serial import ControllerEmulator\n"),
     ("dt_runtime.service.daemon", "from emulators.emulated_cell import EmulatedCell"),
     ("emulators.ur.controller", "from dt_runtime.models import effects"),
+    ("dt_runtime.fabric.config", "from dt_runtime.service.store import StoreError"),  # the daemon
+    ("dt_runtime.fabric.session", "def f():\n    from dt_runtime.twin.twin import Twin\n"),  # kept apart
+    ("dt_runtime.fabric.auth", "from dt_runtime.models.gp import GPRegressor"),
+    ("dt_runtime.plant.history", "from dt_runtime.service.store import StoreError"),
 ])
 def test_the_checker_catches_each_kind_of_breach(module, source):
     assert violations(module, source, is_package=module.count(".") == 1)
@@ -128,6 +143,8 @@ def test_the_checker_catches_each_kind_of_breach(module, source):
     ("drivers.simulated.devices", "from sim.cell import SimCell"),
     ("dt_runtime.service.daemon", "from dt_runtime.twin.campaign import Instruments\nfrom drivers import registry"),
     ("dt_runtime.cli.compare", "from dt_runtime.reports.compare_report import write_compare_report"),
+    ("dt_runtime.fabric.auth", "from dt_runtime.common import private_files\nfrom dt_kernel.errors import StoreError"),
+    ("dt_runtime.service.publisher", "from dt_runtime.fabric.session import encode"),
     ("dt_runtime", "from dt_runtime.models.hybrid import HybridModel"),  # the facade
     ("emulators.ur.controller", "from drivers.ur import protocol as rp\nfrom sim.kinematics import TOOL_DOWN"),
     ("emulators.emulated_cell.cell", "from emulators.ur import UrEmulator\nfrom drivers.simulated.devices import SimWorld"),
@@ -154,3 +171,13 @@ def test_tests_and_benchmarks_share_only_the_support_package():
                 bad.append(f"{module}:{line} imports {name}: the product does not import tests")
     assert not bad, "\n".join(bad)
     assert {p.name for p in (ROOT / "tests").glob("test_*.py")} == set(), "tests go in tests/unit or tests/integration"
+
+
+def test_a_plants_config_loads_neither_the_twin_nor_the_gp():
+    """What every cell of a plant needs (its bus config, through the fabric) imports no twin, no
+    model and no scikit-learn: a router or a dashboard starts without the GP."""
+    code = ("import dt_runtime.plant.config, sys; print(sorted(m for m in sys.modules if m.startswith("
+            "('sklearn', 'dt_runtime.twin', 'dt_runtime.models'))))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
