@@ -33,7 +33,7 @@ def _free_port() -> int:
 def _twin(path: str) -> tuple[Twin, tempfile.TemporaryDirectory | None]:
     if path:
         return Twin.load(path), None
-    from dt_runtime.twin.demo import run_demo
+    from dt_runtime.workflows.demo import run_demo
 
     tmp = tempfile.TemporaryDirectory()
     with contextlib.redirect_stdout(io.StringIO()):

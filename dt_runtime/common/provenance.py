@@ -11,7 +11,7 @@ when, from which input files (SHA-256), on which robot config, measured with whi
 Instruments and certificates of a real campaign come from a YAML the user writes
 (configs/instruments_example.yaml), validated by `InstrumentsConfig` (errors name the file, the
 key, the value and what is allowed); simulated instruments state what their simulator config
-states (dt_runtime.twin.demo).
+states (dt_runtime.workflows.demo).
 """
 from __future__ import annotations
 

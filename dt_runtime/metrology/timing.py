@@ -53,7 +53,7 @@ class TimedPath:
 
     def shifted(self, tau_s: float) -> TimedPath:
         """The same times, each sent the position the path has tau_s later (the last one held):
-        a feed-forward that makes a follower lagging by tau_s arrive on time (twin.lag)."""
+        a feed-forward that makes a follower lagging by tau_s arrive on time (programs.lag)."""
         return TimedPath(self.t, self.sample(self.p, np.clip(self.t + tau_s, self.t[0], self.t[-1])))
 
     def sample(self, values: np.ndarray, t: np.ndarray) -> np.ndarray:

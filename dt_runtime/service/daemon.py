@@ -75,6 +75,7 @@ from drivers import registry
 from drivers.base import read_exposed_after
 from dt_kernel.errors import ConfigError, DriverError, TwinError
 from dt_runtime.fabric.queries import QueryServer
+from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
 from dt_runtime.service.answers import answers
 from dt_runtime.service.cell import Cell, open_cell
@@ -99,7 +100,6 @@ from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.service.targets import probe_point, targets_for
 from dt_runtime.twin.conditions import Conditions
-from dt_runtime.twin.program import read_program
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")

@@ -28,12 +28,13 @@ ALLOWED = {"dt_kernel": {"dt_kernel"}, "sim": {"dt_kernel", "sim"},
            "drivers": {"dt_kernel", "sim", "drivers"},
            "emulators": {"dt_kernel", "sim", "drivers", "emulators"},
            "dt_runtime": {"dt_kernel", "sim", "drivers", "dt_runtime"}}
-LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "fabric", "service",
-          "plant", "reports", "dashboard", "cli")
+LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "programs", "workflows",
+          "fabric", "service", "plant", "reports", "dashboard", "cli")
 # Lower layers a layer must not import all the same (the floors are a partial order: the fabric
 # sits beside the twin, not on it; the plant talks to its cells through the fabric, never through
 # the daemon's modules).
-APART = {"fabric": ("models", "analysis", "twin"), "plant": ("models", "analysis", "twin", "service")}
+_MODEL_SIDE = ("models", "analysis", "twin", "programs", "workflows")
+APART = {"fabric": _MODEL_SIDE, "plant": (*_MODEL_SIDE, "service")}
 
 
 def module_name(path: Path) -> str:
@@ -123,7 +124,7 @@ def test_dt_runtime_modules_live_in_a_layer():
     ("dt_runtime.analysis.compare", "from dt_runtime.reports.demo_report import rms_with_U"),  # upward
     ("dt_runtime.analysis.compare", "from dt_runtime.cli.fit import run"),
     ("dt_runtime.models.hybrid", "def f():\n    from dt_runtime.analysis import diagnose\n"),  # lazy
-    ("dt_runtime.twin.demo", "from dt_runtime import HybridModel"),  # through the facade
+    ("dt_runtime.workflows.demo", "from dt_runtime import HybridModel"),  # through the facade
     ("dt_runtime.models", "from ..analysis import crossval"),  # relative, upward
     ("drivers.ur.driver", "from emulators.ur import UrEmulator"),  # a driver importing its emulator
     ("drivers.registry", "def f():\n    from emulators.serial import ControllerEmulator\n"),
@@ -133,6 +134,10 @@ def test_dt_runtime_modules_live_in_a_layer():
     ("dt_runtime.fabric.session", "def f():\n    from dt_runtime.twin.twin import Twin\n"),  # kept apart
     ("dt_runtime.fabric.auth", "from dt_runtime.models.gp import GPRegressor"),
     ("dt_runtime.plant.history", "from dt_runtime.service.store import StoreError"),
+    ("dt_runtime.twin.twin", "from dt_runtime.workflows.campaign import Instruments"),  # the twin holds the twin only
+    ("dt_runtime.twin.setpoint", "from dt_runtime.programs.path import Path"),
+    ("dt_runtime.programs.program", "from dt_runtime.workflows.demo import run_demo"),
+    ("dt_runtime.fabric.queries", "from dt_runtime.programs.program import read_program"),
 ])
 def test_the_checker_catches_each_kind_of_breach(module, source):
     assert violations(module, source, is_package=module.count(".") == 1)
@@ -141,10 +146,12 @@ def test_the_checker_catches_each_kind_of_breach(module, source):
 @pytest.mark.parametrize("module, source", [
     ("drivers.serial.tracker", "from dt_kernel.geometry import spherical_to_cartesian"),
     ("drivers.simulated.devices", "from sim.cell import SimCell"),
-    ("dt_runtime.service.daemon", "from dt_runtime.twin.campaign import Instruments\nfrom drivers import registry"),
+    ("dt_runtime.service.daemon", "from dt_runtime.workflows.campaign import Instruments\nfrom drivers import registry"),
     ("dt_runtime.cli.compare", "from dt_runtime.reports.compare_report import write_compare_report"),
     ("dt_runtime.fabric.auth", "from dt_runtime.common import private_files\nfrom dt_kernel.errors import StoreError"),
     ("dt_runtime.service.publisher", "from dt_runtime.fabric.session import encode"),
+    ("dt_runtime.workflows.demo", "from dt_runtime.programs.path import Path\nfrom dt_runtime.twin.twin import Twin"),
+    ("dt_runtime.programs.path_correct", "from dt_runtime.twin.setpoint import SetpointCorrector"),
     ("dt_runtime", "from dt_runtime.models.hybrid import HybridModel"),  # the facade
     ("emulators.ur.controller", "from drivers.ur import protocol as rp\nfrom sim.kinematics import TOOL_DOWN"),
     ("emulators.emulated_cell.cell", "from emulators.ur import UrEmulator\nfrom drivers.simulated.devices import SimWorld"),
