@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._common import cli, emit
-from dt_runtime.service.bus import BusConfig, CorrectionServer, request_correction
-from dt_runtime.service.bus.session import close_session, open_session
+from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.session import close_session, open_session
 from dt_runtime.service.correction import Corrector, Limits
+from dt_runtime.service.correction_server import CorrectionServer, request_correction
 from dt_runtime.twin.twin import Twin
 
 
@@ -32,7 +33,7 @@ def _free_port() -> int:
 def _twin(path: str) -> tuple[Twin, tempfile.TemporaryDirectory | None]:
     if path:
         return Twin.load(path), None
-    from dt_runtime.twin.demo import run_demo
+    from dt_runtime.workflows.demo import run_demo
 
     tmp = tempfile.TemporaryDirectory()
     with contextlib.redirect_stdout(io.StringIO()):

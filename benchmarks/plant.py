@@ -71,7 +71,7 @@ def _raise_fd_limit() -> None:
 
 
 def _client(port: int, cell: str, robot: str):
-    from dt_runtime.service.bus import BusConfig
+    from dt_runtime.fabric import BusConfig
 
     return BusConfig(cell=cell, robot=robot, mode="client", connect=[f"tcp/127.0.0.1:{port}"], extra=NO_SHM)
 
@@ -83,8 +83,8 @@ def consumer(port: int, out: str, history: str) -> None:
     figures to `out`."""
     import zenoh
 
+    from dt_runtime.fabric.session import close_session, open_session
     from dt_runtime.plant.inbox import PlantInbox
-    from dt_runtime.service.bus.session import close_session, open_session
 
     latencies: list[float] = []
     counts = {"health": 0, "telemetry": 0}
@@ -123,8 +123,8 @@ def fleet(port: int, out: str, first: int, count: int, seconds: float, drain: fl
     """`count` light cells from index `first` (module docstring); figures to `out`."""
     import zenoh
 
-    from dt_runtime.service.bus.auth import Signer
-    from dt_runtime.service.bus.session import close_session, encode, open_session
+    from dt_runtime.fabric.auth import Signer
+    from dt_runtime.fabric.session import close_session, encode, open_session
 
     _raise_fd_limit()
     rng = random.Random(seed + first)

@@ -64,7 +64,7 @@ def _timed(fn, args: list[tuple]) -> tuple[list, list[float]]:
 def twins(tmp: Path) -> tuple[Path, Path]:
     """The quick demo's twin and its campaign calibrated with the geometric effect."""
     from dt_runtime.cli.main import main
-    from dt_runtime.twin.demo import run_demo
+    from dt_runtime.workflows.demo import run_demo
 
     with contextlib.redirect_stdout(io.StringIO()):
         run_demo(tmp / "demo", quick=True)
@@ -76,7 +76,7 @@ def twins(tmp: Path) -> tuple[Path, Path]:
 
 
 def _setpoints(rate: float, tmp: Path):
-    from dt_runtime.twin.path import interpolate, read_path
+    from dt_runtime.programs.path import interpolate, read_path
 
     (tmp / "seam.yaml").write_text(SEAM)
     path = read_path(tmp / "seam.yaml")

@@ -12,17 +12,17 @@ when allowed, `realtime` says whether it got it): the child loads the twin, buil
 and seed) and moves the arm to where the path starts (its nominal start, corrected in the
 corrected passes) before streaming: a feed-forward's first command is a step away from it.
 
-The path (`PATH`, `dt correct --path`'s format, twin.path): a straight line, a half circle of
+The path (`PATH`, `dt correct --path`'s format, programs.path): a straight line, a half circle of
 75 mm radius and a straight line back (tangent-continuous, 496 mm) inside the quick demo's
 calibrated volume, at 100, 250 and 500 mm/s (acceleration 4000 mm/s^2), interpolated at the
 controller's rate. Three passes per speed:
 - `uncorrected`: the nominal set-points streamed as they are;
 - `corrected`: each set-point corrected by the twin in the loop (`SetpointCorrector`, the quick
   demo's twin: a GP of TCP and speed, the programmed speed as its speed input);
-- `lag_compensated`: the servo lag estimated by `twin.lag.estimate_lag` from the corrected pass
+- `lag_compensated`: the servo lag estimated by `programs.lag.estimate_lag` from the corrected pass
   (its truth stands in for a tracker or camera measuring that pass: the measured positions are the
   plant's true TCP at each set-point's time, without instrument noise), then the path shifted by it
-  (`twin.lag.compensate`), corrected again and streamed.
+  (`programs.lag.compensate`), corrected again and streamed.
 The true path error at set-point k: where the plant's arm really is once the controller has taken
 that set-point (the cycle that first took it, for the UR; the set-point's step, for `sim`) minus the
 programmed path at k's time t_k, both in the global frame GL as the demo scores its static error
@@ -225,7 +225,7 @@ class _UrCell:
 
 # --- the benchmark ------------------------------------------------------------------------------
 def _path(speed_mm_s: float, rate_hz: float, tmp: Path):
-    from dt_runtime.twin.path import interpolate, read_path
+    from dt_runtime.programs.path import interpolate, read_path
 
     f = tmp / f"path_{speed_mm_s:g}.yaml"
     f.write_text(PATH.format(speed=speed_mm_s))
@@ -302,7 +302,7 @@ def _rate_entry(reports: list, corrected: list) -> dict:
 def run(quick: bool = False, twin: str = "", progress=None) -> dict:
     from dt_runtime.metrology.stats import rms3
     from dt_runtime.metrology.timing import TimedPath
-    from dt_runtime.twin.lag import compensate, estimate_lag
+    from dt_runtime.programs.lag import compensate, estimate_lag
     from dt_runtime.twin.twin import Twin
 
     say = progress or (lambda msg: None)
@@ -313,7 +313,7 @@ def run(quick: bool = False, twin: str = "", progress=None) -> dict:
         if twin:
             twin_dir = Path(twin)
         else:
-            from dt_runtime.twin.demo import run_demo
+            from dt_runtime.workflows.demo import run_demo
 
             say("dt demo --quick (the twin) ...")
             with contextlib.redirect_stdout(io.StringIO()):

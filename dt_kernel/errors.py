@@ -103,3 +103,7 @@ class UnreachableError(TwinError):
 
 class ModelError(TwinError):
     """An error model cannot be fitted, loaded or evaluated."""
+
+
+class StoreError(TwinError):
+    """The store could not read or write (disk full, I/O error, corrupt or locked file)."""

@@ -8,7 +8,7 @@ from dt_runtime.common.threads import limit_blas_threads
 limit_blas_threads()
 os.environ.setdefault("DT_WORKERS", "1")
 
-# The bus key (dt_runtime.service.bus.auth) lives in the user's config directory: the suite gets
+# The bus key (dt_runtime.fabric.auth) lives in the user's config directory: the suite gets
 # its own (daemons, consumers and `dt` subprocesses share it, as the service's user would), and
 # never reads or writes the developer's ~/.config/cobot-dt.
 import atexit  # noqa: E402

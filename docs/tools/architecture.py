@@ -129,8 +129,8 @@ def _layers() -> tuple[str, ...]:
                 return tuple(ast.literal_eval(n.value))
     except (OSError, SyntaxError, ValueError):
         pass
-    return ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "service",
-            "reports", "dashboard", "cli")
+    return ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "programs",
+            "workflows", "fabric", "service", "plant", "reports", "dashboard", "cli")
 
 
 def reduction(nodes: list[str], edges: set[tuple[str, str]]) -> set[tuple[str, str]]:

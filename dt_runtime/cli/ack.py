@@ -95,10 +95,10 @@ def _via_store(args: argparse.Namespace) -> dict[str, Any]:
 def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
     import threading
 
-    from dt_runtime.service.bus import load_bus_config
-    from dt_runtime.service.bus.auth import Signer
-    from dt_runtime.service.bus.consumer import publish_done
-    from dt_runtime.service.bus.session import close_session, open_session, zenoh_errors
+    from dt_runtime.fabric import load_bus_config
+    from dt_runtime.fabric.auth import Signer
+    from dt_runtime.fabric.consumer import publish_done
+    from dt_runtime.fabric.session import close_session, open_session, zenoh_errors
 
     if args.request is None or not args.uid:
         raise TwinError("--bus needs --request ID and --uid UID of the request (as `dt consume` printed them)")

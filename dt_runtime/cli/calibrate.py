@@ -63,7 +63,7 @@ def files_of(args: argparse.Namespace):
     from dataclasses import replace
 
     from dt_kernel.errors import DataError
-    from dt_runtime.twin.campaign_dir import CampaignFiles, read_manifest, resolve_robot
+    from dt_runtime.workflows.campaign_dir import CampaignFiles, read_manifest, resolve_robot
 
     def path(p: str | None) -> Path | None:
         if p is None:
@@ -96,8 +96,8 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.common.outputs import staged
     from dt_runtime.models.hybrid import load_map
     from dt_runtime.reports.demo_report import write_demo_report  # matplotlib only when reporting
-    from dt_runtime.twin.calibrate import CalibrationOptions
-    from dt_runtime.twin.campaign_dir import calibrate_campaign
+    from dt_runtime.workflows.calibrate import CalibrationOptions
+    from dt_runtime.workflows.campaign_dir import calibrate_campaign
 
     files = files_of(args)
     cat = effects_catalogue(args)  # --effects may name --effects-file's effects

@@ -56,9 +56,9 @@ def run(args: argparse.Namespace) -> Any:
 def _measure_and_calibrate(args, cfg, config: Path, plan, plan_cfg, doe: list, names: dict, out: Path, prog) -> dict:
     """Phases 1 and 2 through the runtime YAML's drivers, written as OUT/campaign; the twin in OUT/model."""
     from dt_runtime.common.outputs import final_path
-    from dt_runtime.twin.calibrate import CalibrationOptions, Campaign
-    from dt_runtime.twin.campaign import Instruments, run_rows
-    from dt_runtime.twin.campaign_dir import calibrate_campaign, write_campaign
+    from dt_runtime.workflows.calibrate import CalibrationOptions, Campaign
+    from dt_runtime.workflows.campaign import Instruments, run_rows
+    from dt_runtime.workflows.campaign_dir import calibrate_campaign, write_campaign
 
     world = _world(cfg, config.parent)
     try:
@@ -104,7 +104,7 @@ def _world(cfg, base: Path):
     if not any(registry.needs_world(k, n) for k, n, _ in cfg.drivers.chosen()):
         return None
     from drivers.simulated.devices import SimWorld
-    from dt_runtime.twin.simulate import load_scenario_file
+    from dt_runtime.workflows.simulate import load_scenario_file
 
     p = lambda rel: Path(rel) if Path(rel).is_absolute() else base / rel  # noqa: E731
     scenario, _ = load_scenario_file(p(cfg.sim.scenario))

@@ -47,10 +47,10 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    from dt_runtime.fabric import MaintenanceConsumer
+    from dt_runtime.fabric.config import keyexpr_ok
     from dt_runtime.plant.config import history_url, load_plant_config
     from dt_runtime.plant.inbox import PlantInbox
-    from dt_runtime.service.bus import MaintenanceConsumer
-    from dt_runtime.service.bus.config import keyexpr_ok
 
     cfg = load_plant_config(args.bus)
     try:

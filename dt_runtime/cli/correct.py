@@ -3,8 +3,8 @@
 For every target of a program file (x, y, z in mm, speed in mm/s, optional point_id), the twin's
 corrected command, the expanded uncertainty (95 %) of the position it reaches and whether it
 lies in the calibrated volume (the DOE's hull plus its margin). A path program (`--path`: lines
-and arcs, or timed poses, `twin.path`) is interpolated at `--rate` and every set-point corrected
-the same way (`twin.path_correct`).
+and arcs, or timed poses, `programs.path`) is interpolated at `--rate` and every set-point corrected
+the same way (`programs.path_correct`).
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> Any:
     import numpy as np
 
     from dt_kernel.errors import DataError
-    from dt_runtime.twin.program import correct_program, read_program, write_corrected
+    from dt_runtime.programs.program import correct_program, read_program, write_corrected
     from dt_runtime.twin.twin import Twin
 
     twin = Twin.load(args.twin)
@@ -58,8 +58,8 @@ def _run_path(args: argparse.Namespace, twin) -> dict:
     import numpy as np
 
     from dt_kernel.errors import DataError
-    from dt_runtime.twin.path import interpolate, read_path
-    from dt_runtime.twin.path_correct import correct_path, label, write_setpoints
+    from dt_runtime.programs.path import interpolate, read_path
+    from dt_runtime.programs.path_correct import correct_path, label, write_setpoints
 
     path = read_path(args.path)
     sp = interpolate(path, args.rate)

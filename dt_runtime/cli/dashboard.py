@@ -78,8 +78,8 @@ def _port(text: str) -> int:
 def run(args: argparse.Namespace) -> Any:
     from dt_kernel.errors import ConfigError
     from dt_runtime.dashboard.app import Dashboard
+    from dt_runtime.fabric import load_bus_config
     from dt_runtime.plant.config import load_plant_config
-    from dt_runtime.service.bus import load_bus_config
     from dt_runtime.service.runtime_config import load_runtime_config
 
     if not 0.2 <= args.plant_period <= 600:

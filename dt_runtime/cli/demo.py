@@ -31,7 +31,7 @@ def add_arguments(d: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> Any:
     from dt_runtime.reports.demo_report import write_demo_report  # matplotlib only when reporting
-    from dt_runtime.twin.demo import run_demo
+    from dt_runtime.workflows.demo import run_demo
 
     prog = progress(args)
     # written whole or not at all (common.outputs)

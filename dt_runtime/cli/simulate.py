@@ -22,7 +22,7 @@ def add_arguments(sm: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
-    from dt_runtime.twin.simulate import simulate
+    from dt_runtime.workflows.simulate import simulate
 
     return simulate(args.scenario, args.out, seed=args.seed, progress=progress(args))
 

@@ -204,7 +204,7 @@ class RobotRecord:
 
 # Instruments and certificates of a real campaign come from a YAML the user writes
 # (configs/instruments_example.yaml), validated by `InstrumentsConfig`; simulated instruments
-# state what their simulator config states (dt_runtime.twin.demo).
+# state what their simulator config states (dt_runtime.workflows.demo).
 @dataclass(frozen=True)
 class Instrument:
     """One instrument of the campaign. uncertainty: the stated uncertainty as the certificate

@@ -17,9 +17,9 @@ from dt_runtime.dashboard.plant import PERIOD_S, PlantWatch
 from dt_runtime.dashboard.results import find_results
 from dt_runtime.dashboard.scene import Scene
 from dt_runtime.dashboard.server import DashboardServer, is_loopback
+from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.auth import Signer
 from dt_runtime.plant.config import PlantConfig
-from dt_runtime.service.bus import BusConfig
-from dt_runtime.service.bus.auth import Signer
 from dt_runtime.service.runtime_config import RuntimeConfig
 
 log = logging.getLogger("dt.dashboard")

@@ -2,7 +2,7 @@
 the daemon publishes for robot `dt/<cell>/<robot>` (telemetry, health, state, maintenance
 requests: docs/bus.md) into the Hub, and publishes the operators' acknowledgements and
 confirmations, signed with the service's key as `dt consume` and `dt ack --bus` do
-(`service.bus.consumer.publish_ack` / `publish_done`).
+(`fabric.consumer.publish_ack` / `publish_done`).
 
 The same bus section as `dt run` (`joining`): the dashboard connects to the daemon's listen
 endpoints and its connects (the plant's routers), with the same TLS and access-control settings,
@@ -25,10 +25,10 @@ from dt_kernel.errors import ConfigError, DataError
 from dt_runtime.common.safe_json import loads
 from dt_runtime.dashboard.hub import Hub
 from dt_runtime.dashboard.scene import Scene
-from dt_runtime.service.bus.auth import Signer
-from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, BusConfig
-from dt_runtime.service.bus.consumer import publish_ack, publish_done
-from dt_runtime.service.bus.session import (
+from dt_runtime.fabric.auth import Signer
+from dt_runtime.fabric.config import MAX_MESSAGE_BYTES, BusConfig
+from dt_runtime.fabric.consumer import publish_ack, publish_done
+from dt_runtime.fabric.session import (
     BusError,
     close_session,
     open_session,

@@ -7,7 +7,7 @@ the server finds the operator by it (constant-time comparison, `hmac.compare_dig
 the ack or 'done' with the bus key under that operator's name, so the daemon records who it was.
 
 The file must be readable by its owner only (0600), as the bus key must: a token others can read
-may have been copied, so a looser file is refused (dt_runtime.service.private_files), not
+may have been copied, so a looser file is refused (dt_runtime.common.private_files), not
 tightened. Errors name the file, the line and what is allowed (ConfigError: `dt dashboard`
 exits 2).
 """
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dt_kernel.errors import ConfigError
-from dt_runtime.service import private_files
+from dt_runtime.common import private_files
 
 MIN_TOKEN_CHARS = 16
 MAX_FILE_BYTES = 64 * 1024

@@ -21,10 +21,10 @@ import threading
 import time
 from typing import Any
 
+from dt_runtime.fabric.config import MAX_MESSAGE_BYTES
+from dt_runtime.fabric.session import BusError, close_session, open_session, zenoh_errors
 from dt_runtime.plant.config import PlantConfig
 from dt_runtime.plant.status import collect
-from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES
-from dt_runtime.service.bus.session import BusError, close_session, open_session, zenoh_errors
 
 log = logging.getLogger("dt.dashboard")
 PERIOD_S = 3.0  # between two plant queries

@@ -36,8 +36,8 @@ from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.campaign_files import read_phase
 from dt_runtime.service.correction import Monitor
 from dt_runtime.twin.calibration import phase_inputs
-from dt_runtime.twin.campaign_dir import read_manifest
 from dt_runtime.twin.twin import Twin
+from dt_runtime.workflows.campaign_dir import read_manifest
 
 log = logging.getLogger("dt.dashboard")
 

@@ -64,7 +64,7 @@ class TimedPath:
     def shifted(self, tau_s: float) -> TimedPath:
         """The same times, each sent the position the path has `tau_s` later (the last one held).
 
-        A feed-forward that makes a follower lagging by tau_s arrive on time (twin.lag).
+        A feed-forward that makes a follower lagging by tau_s arrive on time (programs.lag).
 
         Parameters
         ----------

@@ -5,7 +5,7 @@
       connect: []      # other routers (a router per hall joins the plant's router)
       max_sessions: 10000   # zenoh's default, 1000, would refuse the 1001st cell
       shared_memory: false  # zenoh's per-session shared memory refuses sessions near 350 on one host
-      tls: ...         # as the bus's (service.bus.config.TlsConfig)
+      tls: ...         # as the bus's (fabric.config.TlsConfig)
       access_control: ...  # as the bus's: what each cell may publish (docs/plant.md)
     bus:               # how the plant's tools (dt status --bus, dt consume) join: a BusConfig
       mode: client
@@ -27,7 +27,7 @@ from typing import Any
 from pydantic import Field, field_validator, model_validator
 
 from dt_kernel.config import Frozen, read_yaml, validate
-from dt_runtime.service.bus.config import (
+from dt_runtime.fabric.config import (
     AccessControlConfig,
     BusConfig,
     TlsConfig,

@@ -23,8 +23,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from dt_kernel.errors import StoreError
 from dt_runtime.plant.config import POSTGRES_SCHEMES
-from dt_runtime.service.store import StoreError
 
 COLUMNS = ("cell", "robot", "uid", "grp", "request_id", "kind", "episode", "state", "reason", "created", "received",
            "attempt", "payload")

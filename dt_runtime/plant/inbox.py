@@ -1,6 +1,6 @@
 """The plant's maintenance inbox: every cell's requests, through the fabric, into one history.
 
-A `MaintenanceConsumer` (service.bus: the signed requests of every cell on `dt/**/maintenance/
+A `MaintenanceConsumer` (fabric: the signed requests of every cell on `dt/**/maintenance/
 request`, its consumer group's copies, de-duplicated by (cell, robot, uid), every copy acked)
 whose new requests are committed to the plant history (`history`) BEFORE they are acknowledged:
 if the commit fails, the request is neither acked nor remembered, and the cell's next
@@ -14,9 +14,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from dt_runtime.fabric.config import BusConfig
+from dt_runtime.fabric.consumer import MaintenanceConsumer
 from dt_runtime.plant.history import History, open_history
-from dt_runtime.service.bus.config import BusConfig
-from dt_runtime.service.bus.consumer import MaintenanceConsumer
 
 
 class PlantInbox:

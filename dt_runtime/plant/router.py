@@ -16,8 +16,8 @@ from typing import Any
 
 import zenoh
 
+from dt_runtime.fabric.session import BusError, close_session, zenoh_errors
 from dt_runtime.plant.config import RouterConfig
-from dt_runtime.service.bus.session import BusError, close_session, zenoh_errors
 
 log = logging.getLogger("dt.router")
 

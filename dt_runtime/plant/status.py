@@ -15,9 +15,9 @@ from typing import Any
 import zenoh
 
 from dt_kernel.errors import DataError
-from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, keyexpr_ok
-from dt_runtime.service.bus.queries import KINDS
-from dt_runtime.service.bus.session import zenoh_errors
+from dt_runtime.fabric.config import MAX_MESSAGE_BYTES, keyexpr_ok
+from dt_runtime.fabric.queries import KINDS
+from dt_runtime.fabric.session import zenoh_errors
 
 
 def query_key(selector: str, kind: str) -> str:
@@ -71,7 +71,7 @@ def collect(session: zenoh.Session, selector: str = "dt/*/*", kind: str = "statu
 
 def plant_status(cfg, selector: str = "dt/*/*", kind: str = "status", timeout_s: float = 3.0) -> dict[str, Any]:
     """`collect` on a session of the plant config's bus (opened and closed here)."""
-    from dt_runtime.service.bus.session import close_session, open_session
+    from dt_runtime.fabric.session import close_session, open_session
 
     session = open_session(cfg.bus)
     try:

@@ -1,4 +1,4 @@
-"""What a daemon answers on `dt/<cell>/<robot>/<kind>` (service.bus.queries; docs/plant.md).
+"""What a daemon answers on `dt/<cell>/<robot>/<kind>` (fabric.queries; docs/plant.md).
 
 - `status`: the one line of a plant table: running / degraded / halted and why, the escalation
   state and episode, ticks and the last tick (epoch s), Eq. 17 failures, open requests (not

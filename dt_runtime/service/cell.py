@@ -21,10 +21,10 @@ import numpy as np
 
 from drivers import registry
 from dt_runtime.service.runtime_config import Fault, RuntimeConfig
-from dt_runtime.twin.campaign import Instruments
 from dt_runtime.twin.conditions import Conditions
-from dt_runtime.twin.simulate import load_scenario_file
 from dt_runtime.twin.twin import Twin
+from dt_runtime.workflows.campaign import Instruments
+from dt_runtime.workflows.simulate import load_scenario_file
 
 log = logging.getLogger("dt.run")
 

@@ -74,16 +74,18 @@ import numpy as np
 from drivers import registry
 from drivers.base import read_exposed_after
 from dt_kernel.errors import ConfigError, DriverError, TwinError
+from dt_runtime.fabric.queries import QueryServer
+from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
 from dt_runtime.service.answers import answers
-from dt_runtime.service.bus import Bus, CorrectionServer
-from dt_runtime.service.bus.queries import QueryServer
 from dt_runtime.service.cell import Cell, open_cell
 from dt_runtime.service.correction import Corrected, CorrectionFault, Corrector, Monitor
+from dt_runtime.service.correction_server import CorrectionServer
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.housekeeping import Housekeeper
 from dt_runtime.service.paging import Paging
 from dt_runtime.service.path_run import PathStreamer, check_streaming_robot, plan_path
+from dt_runtime.service.publisher import Bus
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow, shown_time
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,
@@ -98,7 +100,6 @@ from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.service.targets import probe_point, targets_for
 from dt_runtime.twin.conditions import Conditions
-from dt_runtime.twin.program import read_program
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")

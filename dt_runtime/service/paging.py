@@ -23,9 +23,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from dt_runtime.service.bus import BusConfig
-from dt_runtime.service.bus.publisher import Bus, new_requests
+from dt_runtime.fabric import BusConfig
 from dt_runtime.service.escalation import PAGING, EscalationConfig, Escalator
+from dt_runtime.service.publisher import Bus, new_requests
 from dt_runtime.service.store import OperatorAction, Store
 
 log = logging.getLogger("dt.run")

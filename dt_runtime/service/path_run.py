@@ -2,8 +2,8 @@
 every set-point corrected in the loop, the moving arm tested against the path, stops resumed by
 the operator.
 
-The plan (`plan_path`, at start-up, before anything moves): the path file (twin.path) interpolated
-at `rate_hz`, every set-point corrected offline (`twin.path_correct.correct_path`, the loop's own
+The plan (`plan_path`, at start-up, before anything moves): the path file (programs.path) interpolated
+at `rate_hz`, every set-point corrected offline (`programs.path_correct.correct_path`, the loop's own
 numbers) and held to the bounded-correction rules (`correction.check_path_bounds`): a path the
 daemon would refuse in the middle is refused before its first set-point.
 
@@ -25,14 +25,14 @@ and the timing's Type B term |v| u_t, `stream.u_time_s`), refused and counted wh
 dominates, else tested by Eq. 17 with that term added (`Monitor`'s `u_extra`) and fed to the
 escalation exactly as a point program's readings are.
 
-The servo lag (twin.lag). What the arm lags behind a streamed path is not in the static error map;
+The servo lag (programs.lag). What the arm lags behind a streamed path is not in the static error map;
 tested against the path it would fail every reading at speed. With `stream.lag: learn` (default)
 the first pass is a learning pass: its readings are compared, not tested; their Eq. 17 residuals
 fit `estimate_lag` (e = a c' + b c''), and every later pass streams the path compensated by it
 (`compensate`), tested against the uncompensated corrected path (where the arm should now be),
 with what the fit left unexplained (its residual RMS per axis, `u_lag`) as one more Type B
 component of Eq. 17's denominator. Readings in the servo's transient after a step of the path's
-acceleration (`twin.lag.settled`) are neither learnt from nor tested: counted.
+acceleration (`programs.lag.settled`) are neither learnt from nor tested: counted.
 `lag: none` streams and tests the path as it is (slow paths, or a controller that compensates).
 
 Stops and resume (item 7). A pass that ends early (protective stop, the controller's watchdog,
@@ -61,13 +61,13 @@ from drivers import registry
 from drivers.base import RigReading
 from dt_kernel.errors import ConfigError, DataError
 from dt_runtime.metrology.timing import TimedPath, compare_at
+from dt_runtime.programs.lag import SETTLE_S, LagEstimate, compensate, estimate_lag, settled
+from dt_runtime.programs.path import Setpoints, interpolate, read_path
+from dt_runtime.programs.path_correct import correct_path
 from dt_runtime.service.correction import Limits, check_path_bounds
 from dt_runtime.service.runtime_config import StreamSection
 from dt_runtime.service.stream import StreamProcess, StreamReport, run_stream
 from dt_runtime.twin.conditions import Conditions
-from dt_runtime.twin.lag import SETTLE_S, LagEstimate, compensate, estimate_lag, settled
-from dt_runtime.twin.path import Setpoints, interpolate, read_path
-from dt_runtime.twin.path_correct import correct_path
 from dt_runtime.twin.setpoint import SetpointCorrector
 from dt_runtime.twin.twin import Twin
 

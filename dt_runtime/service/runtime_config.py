@@ -17,7 +17,7 @@ from pydantic import Field, field_validator, model_validator
 from drivers import registry
 from drivers.base import GAIN_RANGE, LOOKAHEAD_RANGE_S
 from dt_kernel.config import Frozen, load_yaml
-from dt_runtime.service.bus import BusConfig
+from dt_runtime.fabric import BusConfig
 from dt_runtime.service.correction import Limits
 from dt_runtime.service.escalation import EscalationConfig
 

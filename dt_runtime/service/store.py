@@ -2,7 +2,7 @@
 
 What it holds (one table each): `commands`, `corrections`, `measurements`, `t_stats` (the
 high-rate path), `transitions` (escalation state changes with their evidence), `outbox`
-(maintenance requests that must reach a consumer; see dt_runtime.service.bus), `state` (one row:
+(maintenance requests that must reach a consumer; see dt_runtime.fabric), `state` (one row:
 the escalation machine's snapshot, so a restarted daemon resumes where it stopped) and
 `operator_actions` (an operator's or a maintenance system's "delivered" / "done", who and why,
 and when the daemon applied it).
@@ -24,7 +24,7 @@ readers (`dt status`, `dt ack`) do not take it.
 
 Only the service's user reads or writes it: the file and its lock are created 0600 (SQLite gives
 its -wal and -shm files the database's mode), and an existing one that others could read or write
-is made 0600 with a warning on open (`service.private_files`): writing an operator action into the
+is made 0600 with a warning on open (`common.private_files`): writing an operator action into the
 store is how `dt ack --store` clears a request, so write access is the credential.
 
 Durability choices (why):
@@ -70,9 +70,9 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from dt_kernel.errors import TwinError
+from dt_kernel.errors import StoreError
+from dt_runtime.common import private_files
 from dt_runtime.common.jsonsafe import compact
-from dt_runtime.service import private_files
 from dt_runtime.service.rows import ROW_TYPES, Row
 
 log = logging.getLogger("dt.store")
@@ -117,10 +117,6 @@ CREATE INDEX IF NOT EXISTS operator_pending ON operator_actions(applied_at, id);
 #: Operator actions: 'delivered' (the request reached maintenance: stop republishing it) and
 #: 'done' (maintenance was done: leave maintenance_requested / halted).
 ACTION_KINDS = ("delivered", "done")
-
-
-class StoreError(TwinError):
-    """The store could not read or write (disk full, I/O error, corrupt or locked file)."""
 
 
 @contextmanager

@@ -13,8 +13,8 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from dt_runtime.programs.program import Program
 from dt_runtime.service.runtime_config import PathConfig
-from dt_runtime.twin.program import Program
 
 
 class Target(NamedTuple):

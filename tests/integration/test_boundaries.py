@@ -11,15 +11,15 @@ import pytest
 import zenoh
 
 from dt_kernel.errors import DriverError, TwinError
-from dt_runtime.service.bus import BusConfig, BusError
-from dt_runtime.service.bus.session import zenoh_errors
+from dt_runtime.fabric import BusConfig, BusError
+from dt_runtime.fabric.session import zenoh_errors
 from dt_runtime.service.store import Store, StoreError
 
 ROOT = Path(__file__).resolve().parents[2]
 # boundary -> (names whose exceptions it converts, the one module allowed to catch them)
 BOUNDARIES = {"sqlite": (("sqlite3",), "dt_runtime/service/store.py"),
               "serial": (("serial", "SerialException"), "drivers/serial/link.py"),
-              "zenoh": (("zenoh", "ZError"), "dt_runtime/service/bus/session.py")}
+              "zenoh": (("zenoh", "ZError"), "dt_runtime/fabric/session.py")}
 
 
 def handlers_naming(names: tuple[str, ...]) -> list[str]:

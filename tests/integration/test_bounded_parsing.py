@@ -273,10 +273,10 @@ def test_a_model_member_that_never_ends_is_refused_within_seconds(twin_dir, tmp_
 @pytest.fixture(scope="module")
 def correct_service(twin_dir):
     """A CorrectionServer and a client on Zenoh over loopback (as tests/integration/test_bus_correct.py)."""
-    from dt_runtime.service.bus import BusConfig
-    from dt_runtime.service.bus.correct import CorrectionServer
-    from dt_runtime.service.bus.session import close_session, open_session
+    from dt_runtime.fabric import BusConfig
+    from dt_runtime.fabric.session import close_session, open_session
     from dt_runtime.service.correction import Corrector, Limits
+    from dt_runtime.service.correction_server import CorrectionServer
     from tests.support.loopback import free_port
 
     port = free_port()

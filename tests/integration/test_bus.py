@@ -9,7 +9,8 @@ import pytest
 
 from dt_kernel.config import validate
 from dt_kernel.errors import ConfigError, StateError
-from dt_runtime.service.bus import Bus, BusConfig, MaintenanceConsumer, _open, load_bus_config
+from dt_runtime.fabric import BusConfig, MaintenanceConsumer, _open, load_bus_config
+from dt_runtime.service.publisher import Bus
 from dt_runtime.service.store import Store
 from tests.support.loopback import free_port, wait_until
 

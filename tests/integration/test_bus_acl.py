@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from dt_runtime.common.paths import CONFIGS
-from dt_runtime.service.bus import Bus, BusConfig, MaintenanceConsumer, load_bus_config
+from dt_runtime.fabric import BusConfig, MaintenanceConsumer, load_bus_config
+from dt_runtime.service.publisher import Bus
 from dt_runtime.service.store import Store
 from tests.support.loopback import free_port as _free_port
 from tests.support.loopback import wait_until as _wait

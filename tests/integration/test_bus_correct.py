@@ -4,10 +4,10 @@ twin for a corrected command and gets the command, its U and the calibrated-volu
 import numpy as np
 import pytest
 
-from dt_runtime.service.bus import BusConfig
-from dt_runtime.service.bus.correct import CorrectionServer, request_correction
-from dt_runtime.service.bus.session import close_session, open_session
+from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.session import close_session, open_session
 from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
+from dt_runtime.service.correction_server import CorrectionServer, request_correction
 from dt_runtime.twin.twin import Twin
 from tests.support.loopback import free_port
 

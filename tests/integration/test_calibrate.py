@@ -164,10 +164,10 @@ def test_calibrate_needs_its_files(tmp_path, capsys):
 def test_a_map_reading_the_temperature_gets_it_or_refuses(quick_demo, tmp_path, capsys):
     """The bounded correction refuses (robot not moved) when a condition its map reads is missing;
     a bus request may carry it; a program file's column gives it offline."""
-    from dt_runtime.service.bus.correct import _request
+    from dt_runtime.programs.program import correct_program, read_program
     from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
+    from dt_runtime.service.correction_server import _request
     from dt_runtime.twin.conditions import Conditions
-    from dt_runtime.twin.program import correct_program, read_program
 
     rc, s = _calibrate(["--campaign", str(quick_demo[2] / "campaign"), "--effects", "geometric,thermal",
                         "--out", str(tmp_path / "twin")], capsys)

@@ -10,7 +10,7 @@ from drivers.simulated.devices import SimWorld
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.twin import calibration as cal
-from dt_runtime.twin.campaign import Instruments, run_rows
+from dt_runtime.workflows.campaign import Instruments, run_rows
 from emulators.serial import ControllerEmulator, TrackerEmulator
 
 

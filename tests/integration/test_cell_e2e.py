@@ -90,8 +90,8 @@ def _same_errors_as_the_simulated_drivers(out: dict) -> None:
     from dt_runtime.cli.campaign import spread
     from dt_runtime.common.paths import CONFIGS
     from dt_runtime.measurements.plans import build_plan, load_plan
-    from dt_runtime.twin.campaign import Instruments, run_rows
-    from dt_runtime.twin.campaign_dir import read_manifest
+    from dt_runtime.workflows.campaign import Instruments, run_rows
+    from dt_runtime.workflows.campaign_dir import read_manifest
 
     c = read_manifest(out["campaign"]).load()
     e1 = _e_lt(c.registration, c.doe)

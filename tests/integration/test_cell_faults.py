@@ -12,8 +12,8 @@ import threading
 
 import pytest
 
-from dt_runtime.service.bus import BusConfig
-from dt_runtime.service.bus.session import close_session, open_session
+from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.session import close_session, open_session
 from dt_runtime.service.daemon import Daemon
 from dt_runtime.service.runtime_config import load_runtime_config
 from tests.support.emulated_cell_process import runtime_yaml

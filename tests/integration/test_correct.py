@@ -94,7 +94,7 @@ def test_targets_in_another_unit_or_outside_the_workspace_are_refused(quick_demo
 
 def test_a_twin_without_its_robot_config_bounds_the_workspace_by_its_volume(quick_demo, tmp_path):
     from dt_kernel.errors import DataError
-    from dt_runtime.twin.program import FAR_OUTSIDE_M, check_workspace, read_program
+    from dt_runtime.programs.program import FAR_OUTSIDE_M, check_workspace, read_program
 
     twin = Twin.load(quick_demo[2] / "model")
     twin.e_lt.robot = None  # an older twin, or one whose robot config is gone

@@ -25,8 +25,8 @@ import pytest
 from dt_kernel.errors import TwinError
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
-from dt_runtime.service.bus import BusConfig, MaintenanceConsumer
-from dt_runtime.service.bus.session import close_session, open_session
+from dt_runtime.fabric import BusConfig, MaintenanceConsumer
+from dt_runtime.fabric.session import close_session, open_session
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from dt_runtime.service.store import Store, StoreError
 from tests.support.loopback import free_port, wait_until

@@ -21,9 +21,9 @@ import pytest
 
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.dashboard.app import Dashboard
-from dt_runtime.service.bus import BusConfig
-from dt_runtime.service.bus.auth import Signer
-from dt_runtime.service.bus.session import close_session, open_session, put_json
+from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.auth import Signer
+from dt_runtime.fabric.session import close_session, open_session, put_json
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from tests.support import browser
 from tests.support.loopback import free_port, wait_until

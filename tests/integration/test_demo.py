@@ -121,7 +121,7 @@ def test_seed_2_passes_and_its_coverage_check_states_what_it_reached(tmp_path, c
 
 def test_a_negative_seed_is_refused_with_a_message(tmp_path, capsys):
     from dt_kernel.errors import ConfigError
-    from dt_runtime.twin.demo import run_demo
+    from dt_runtime.workflows.demo import run_demo
 
     with pytest.raises(SystemExit) as exc:
         main(["demo", "--quick", "--seed", "-1", "--out", str(tmp_path)])

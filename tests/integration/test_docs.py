@@ -190,7 +190,7 @@ def test_the_worked_ur10_mapping_is_the_shipped_one(tmp_path):
 
 
 def test_the_tls_acl_example_in_bus_md_is_the_shipped_one(tmp_path):
-    from dt_runtime.service.bus import load_bus_config
+    from dt_runtime.fabric import load_bus_config
 
     (tmp_path / "bus.yaml").write_text(_blocks("bus.md", "yaml")[0], encoding="utf-8")
     assert load_bus_config(tmp_path / "bus.yaml") == load_bus_config(ROOT / "configs" / "bus_tls_acl_example.yaml")

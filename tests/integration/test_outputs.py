@@ -187,10 +187,10 @@ def test_every_command_that_writes_a_directory_leaves_the_old_one_when_interrupt
             "diagnose": "hybrid.json", "compare": "compare.json"}[command]
     before = _old(out, mark)
     if command == "demo":
-        monkeypatch.setattr("dt_runtime.twin.demo.run_demo", lambda out, **k: _interrupt(out=out))
+        monkeypatch.setattr("dt_runtime.workflows.demo.run_demo", lambda out, **k: _interrupt(out=out))
         argv = ["demo", "--quick", "--out", str(out)]
     elif command == "calibrate":
-        monkeypatch.setattr("dt_runtime.twin.campaign_dir.calibrate_campaign",
+        monkeypatch.setattr("dt_runtime.workflows.campaign_dir.calibrate_campaign",
                             lambda f, o, out, *a: _interrupt(out=out))
         argv = ["calibrate", "--registration", str(data), "--doe", str(data), "--out", str(out)]
     elif command == "campaign":

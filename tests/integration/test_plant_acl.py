@@ -10,11 +10,12 @@ import shutil
 import pytest
 
 from dt_runtime.common.paths import CONFIGS
+from dt_runtime.fabric import BusConfig, MaintenanceConsumer
+from dt_runtime.fabric.queries import QueryServer
 from dt_runtime.plant.config import PlantConfig, load_plant_config
 from dt_runtime.plant.router import Router
 from dt_runtime.plant.status import plant_status
-from dt_runtime.service.bus import Bus, BusConfig, MaintenanceConsumer
-from dt_runtime.service.bus.queries import QueryServer
+from dt_runtime.service.publisher import Bus
 from dt_runtime.service.store import Store
 from tests.support.loopback import free_port, wait_until
 from tests.support.tls_certs import make_certs

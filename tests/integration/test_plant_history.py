@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import pytest
 
+from dt_runtime.fabric import BusConfig
 from dt_runtime.plant.config import RouterConfig
 from dt_runtime.plant.history import SCHEMA, open_history
 from dt_runtime.plant.inbox import PlantInbox
 from dt_runtime.plant.router import Router
-from dt_runtime.service.bus import Bus, BusConfig
+from dt_runtime.service.publisher import Bus
 from dt_runtime.service.store import Store, StoreError
 from tests.support.loopback import free_port, wait_until
 from tests.support.postgres import postgres_server

@@ -30,7 +30,7 @@ from dt_runtime.common.version import git_commit, version
 from dt_runtime.measurements.dataset import Dataset, write_table
 from dt_runtime.models.hybrid import HybridModel
 from dt_runtime.reports.demo_report import build_demo_report
-from dt_runtime.twin.demo import DemoResult
+from dt_runtime.workflows.demo import DemoResult
 
 ROBOT = CONFIGS / "robots" / "cobot_hc20_like.yaml"
 EXAMPLE = CONFIGS / "instruments_example.yaml"
@@ -173,7 +173,7 @@ def test_compare_and_diagnose_json_carry_the_record(fitted, data_csv, tmp_path):
 
 @pytest.fixture(scope="module")
 def quick_demo(tmp_path_factory):
-    from dt_runtime.twin.demo import run_demo
+    from dt_runtime.workflows.demo import run_demo
 
     return run_demo(tmp_path_factory.mktemp("demo"), quick=True)
 

@@ -6,7 +6,7 @@ import pytest
 
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
-from dt_runtime.service.bus import BusConfig, MaintenanceConsumer
+from dt_runtime.fabric import BusConfig, MaintenanceConsumer
 from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from dt_runtime.service.runtime_config import DriverChoice

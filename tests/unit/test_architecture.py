@@ -6,11 +6,16 @@ lazy imports inside functions included):
 - emulators import dt_kernel, sim and drivers (the protocol codecs); nothing else imports them;
 - inside dt_runtime nothing imports upward: each subpackage may import its own and lower
   layers only (LAYERS, lowest first; reports and the command line at the top). The package's
-  __init__ is the public facade and may name anything.
+  __init__ is the public facade and may name anything;
+- a few layers also keep apart from some lower ones (APART): the fabric, the Zenoh client every
+  part of a plant uses, sits below the daemon and imports neither the twin nor its models, so that
+  a plant's router, inbox or dashboard loads no GP; the plant uses the fabric, not the daemon.
 """
 from __future__ import annotations
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,8 +28,13 @@ ALLOWED = {"dt_kernel": {"dt_kernel"}, "sim": {"dt_kernel", "sim"},
            "drivers": {"dt_kernel", "sim", "drivers"},
            "emulators": {"dt_kernel", "sim", "drivers", "emulators"},
            "dt_runtime": {"dt_kernel", "sim", "drivers", "dt_runtime"}}
-LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "service", "plant",
-          "reports", "dashboard", "cli")
+LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis", "twin", "programs", "workflows",
+          "fabric", "service", "plant", "reports", "dashboard", "cli")
+# Lower layers a layer must not import all the same (the floors are a partial order: the fabric
+# sits beside the twin, not on it; the plant talks to its cells through the fabric, never through
+# the daemon's modules).
+_MODEL_SIDE = ("models", "analysis", "twin", "programs", "workflows")
+APART = {"fabric": _MODEL_SIDE, "plant": (*_MODEL_SIDE, "service")}
 
 
 def module_name(path: Path) -> str:
@@ -82,6 +92,8 @@ def violations(module: str, source: str, is_package: bool = False) -> list[str]:
             continue
         if mine is not None and theirs is not None and theirs > mine:
             bad.append(f"{where}: {LAYERS[mine]} must not import {LAYERS[theirs]} (a higher layer)")
+        elif mine is not None and theirs is not None and LAYERS[theirs] in APART.get(LAYERS[mine], ()):
+            bad.append(f"{where}: {LAYERS[mine]} must not import {LAYERS[theirs]} (kept apart)")
     return bad
 
 
@@ -112,12 +124,20 @@ def test_dt_runtime_modules_live_in_a_layer():
     ("dt_runtime.analysis.compare", "from dt_runtime.reports.demo_report import rms_with_U"),  # upward
     ("dt_runtime.analysis.compare", "from dt_runtime.cli.fit import run"),
     ("dt_runtime.models.hybrid", "def f():\n    from dt_runtime.analysis import diagnose\n"),  # lazy
-    ("dt_runtime.twin.demo", "from dt_runtime import HybridModel"),  # through the facade
+    ("dt_runtime.workflows.demo", "from dt_runtime import HybridModel"),  # through the facade
     ("dt_runtime.models", "from ..analysis import crossval"),  # relative, upward
     ("drivers.ur.driver", "from emulators.ur import UrEmulator"),  # a driver importing its emulator
     ("drivers.registry", "def f():\n    from emulators.serial import ControllerEmulator\n"),
     ("dt_runtime.service.daemon", "from emulators.emulated_cell import EmulatedCell"),
     ("emulators.ur.controller", "from dt_runtime.models import effects"),
+    ("dt_runtime.fabric.config", "from dt_runtime.service.store import StoreError"),  # the daemon
+    ("dt_runtime.fabric.session", "def f():\n    from dt_runtime.twin.twin import Twin\n"),  # kept apart
+    ("dt_runtime.fabric.auth", "from dt_runtime.models.gp import GPRegressor"),
+    ("dt_runtime.plant.history", "from dt_runtime.service.store import StoreError"),
+    ("dt_runtime.twin.twin", "from dt_runtime.workflows.campaign import Instruments"),  # the twin holds the twin only
+    ("dt_runtime.twin.setpoint", "from dt_runtime.programs.path import Path"),
+    ("dt_runtime.programs.program", "from dt_runtime.workflows.demo import run_demo"),
+    ("dt_runtime.fabric.queries", "from dt_runtime.programs.program import read_program"),
 ])
 def test_the_checker_catches_each_kind_of_breach(module, source):
     assert violations(module, source, is_package=module.count(".") == 1)
@@ -126,8 +146,12 @@ def test_the_checker_catches_each_kind_of_breach(module, source):
 @pytest.mark.parametrize("module, source", [
     ("drivers.serial.tracker", "from dt_kernel.geometry import spherical_to_cartesian"),
     ("drivers.simulated.devices", "from sim.cell import SimCell"),
-    ("dt_runtime.service.daemon", "from dt_runtime.twin.campaign import Instruments\nfrom drivers import registry"),
+    ("dt_runtime.service.daemon", "from dt_runtime.workflows.campaign import Instruments\nfrom drivers import registry"),
     ("dt_runtime.cli.compare", "from dt_runtime.reports.compare_report import write_compare_report"),
+    ("dt_runtime.fabric.auth", "from dt_runtime.common import private_files\nfrom dt_kernel.errors import StoreError"),
+    ("dt_runtime.service.publisher", "from dt_runtime.fabric.session import encode"),
+    ("dt_runtime.workflows.demo", "from dt_runtime.programs.path import Path\nfrom dt_runtime.twin.twin import Twin"),
+    ("dt_runtime.programs.path_correct", "from dt_runtime.twin.setpoint import SetpointCorrector"),
     ("dt_runtime", "from dt_runtime.models.hybrid import HybridModel"),  # the facade
     ("emulators.ur.controller", "from drivers.ur import protocol as rp\nfrom sim.kinematics import TOOL_DOWN"),
     ("emulators.emulated_cell.cell", "from emulators.ur import UrEmulator\nfrom drivers.simulated.devices import SimWorld"),
@@ -154,3 +178,13 @@ def test_tests_and_benchmarks_share_only_the_support_package():
                 bad.append(f"{module}:{line} imports {name}: the product does not import tests")
     assert not bad, "\n".join(bad)
     assert {p.name for p in (ROOT / "tests").glob("test_*.py")} == set(), "tests go in tests/unit or tests/integration"
+
+
+def test_a_plants_config_loads_neither_the_twin_nor_the_gp():
+    """What every cell of a plant needs (its bus config, through the fabric) imports no twin, no
+    model and no scikit-learn: a router or a dashboard starts without the GP."""
+    code = ("import dt_runtime.plant.config, sys; print(sorted(m for m in sys.modules if m.startswith("
+            "('sklearn', 'dt_runtime.twin', 'dt_runtime.models'))))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

@@ -2,10 +2,10 @@
 counters that `.../health` and the summary read."""
 import numpy as np
 
+from dt_runtime.programs.program import Program
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.runtime_config import PathConfig
 from dt_runtime.service.targets import CircleTargets, ProgramTargets, RandomTargets, probe_point, targets_for
-from dt_runtime.twin.program import Program
 
 
 def _program() -> Program:

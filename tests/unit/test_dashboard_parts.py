@@ -12,8 +12,8 @@ from dt_runtime.dashboard.feed import joining
 from dt_runtime.dashboard.hub import Hub
 from dt_runtime.dashboard.operators import load_operators
 from dt_runtime.dashboard.scene import volume_edges
+from dt_runtime.fabric import BusConfig
 from dt_runtime.frames.volume import CalibratedVolume
-from dt_runtime.service.bus import BusConfig
 
 
 def _private(path, text: str):

@@ -27,7 +27,7 @@ from dt_runtime.frames.robot_export import dh_table, urdf_text
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.effects.geometric import Geometric
 from dt_runtime.models.hybrid import HybridModel
-from dt_runtime.twin.simulate import simulate
+from dt_runtime.workflows.simulate import simulate
 
 SCENARIO = CONFIGS / "scenarios" / "hidden" / "none.yaml"
 

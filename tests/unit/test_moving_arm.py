@@ -1,5 +1,5 @@
 """A moving arm: readings compared with the path at their mid-exposure time, the timing term of
-their uncertainty (metrology.timing), and the servo lag learnt and removed (twin.lag)."""
+their uncertainty (metrology.timing), and the servo lag learnt and removed (programs.lag)."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 
 from dt_kernel.errors import DataError
 from dt_runtime.metrology.timing import TimedPath, compare_at
-from dt_runtime.twin.lag import compensate, estimate_lag
+from dt_runtime.programs.lag import compensate, estimate_lag
 
 RATE = 500.0  # Hz
 
@@ -144,7 +144,7 @@ def test_estimate_lag_refuses_too_little_data():
 def test_settled_marks_the_transient_after_each_step_of_the_acceleration():
     """A trapezoid along x: accelerate for 0.1 s, cruise 1 s, decelerate 0.1 s; the readings in
     the 0.2 s after each of the four steps of its acceleration are in the servo's transient."""
-    from dt_runtime.twin.lag import SETTLE_S, settled
+    from dt_runtime.programs.lag import SETTLE_S, settled
 
     t = np.arange(0.0, 1.6, 1.0 / RATE)
     a, v = 1.0, 0.1
@@ -161,7 +161,7 @@ def test_settled_marks_the_transient_after_each_step_of_the_acceleration():
 
 
 def test_a_stored_lag_estimate_reads_back_the_same():
-    from dt_runtime.twin.lag import LagEstimate
+    from dt_runtime.programs.lag import LagEstimate
 
     e = LagEstimate(0.0303, 3e-5, 7.9e-4, 3e-5, 278, 3.03e-3, 8.4e-5)
     back = LagEstimate.from_dict(e.to_dict())

@@ -1,4 +1,4 @@
-"""Path programs (twin.path): the file format (good and bad files, errors naming file, key and
+"""Path programs (programs.path): the file format (good and bad files, errors naming file, key and
 value), and the interpolation (rate, limits honoured, continuity, circular arcs exact)."""
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dt_kernel.errors import ConfigError, DataError
-from dt_runtime.twin.path import interpolate, read_path
+from dt_runtime.programs.path import interpolate, read_path
 
 SEAM = """path: 1
 start: [900, 0, 550]

@@ -1,8 +1,8 @@
 """`dt demo`: the paper's whole experiment on the simulated cell, end to end.
 
 The campaign runs through the drivers: registration (phase 1) and DOE (phase 2), written as
-campaign files (DIR/campaign, `twin.campaign_dir`); the twin is calibrated from those files by
-the code `dt calibrate` runs (`twin.calibrate`); then validation (phase 3) with uncorrected and
+campaign files (DIR/campaign, `workflows.campaign_dir`); the twin is calibrated from those files by
+the code `dt calibrate` runs (`workflows.calibrate`); then validation (phase 3) with uncorrected and
 corrected commands, the Eq. 17 t-test, the coverage checks and scoring against the simulator's
 truth. Writes DIR/summary.json and the twin (DIR/model); the command line adds DIR/report.html
 (reports sit above the twin layer).
@@ -34,14 +34,22 @@ from dt_runtime.metrology.stats import rms3
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import robot_ref
 from dt_runtime.twin import validity
-from dt_runtime.twin.calibrate import Calibrated, CalibrationOptions, Campaign, calibrate, eq17, eq17_summary, figures
-from dt_runtime.twin.calibrate import arrays as arrays_of
-from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
-from dt_runtime.twin.campaign_dir import resolve_robot, write_campaign
 from dt_runtime.twin.conditions import Conditions
-from dt_runtime.twin.coverage_check import CoverageCheck, run_check, sample_targets
-from dt_runtime.twin.simulate import load_scenario_file
 from dt_runtime.twin.twin import Correction
+from dt_runtime.workflows.calibrate import (
+    Calibrated,
+    CalibrationOptions,
+    Campaign,
+    calibrate,
+    eq17,
+    eq17_summary,
+    figures,
+)
+from dt_runtime.workflows.calibrate import arrays as arrays_of
+from dt_runtime.workflows.campaign import Instruments, check_reachable, run_rows
+from dt_runtime.workflows.campaign_dir import resolve_robot, write_campaign
+from dt_runtime.workflows.coverage_check import CoverageCheck, run_check, sample_targets
+from dt_runtime.workflows.simulate import load_scenario_file
 
 
 class DriversConfig(Frozen):

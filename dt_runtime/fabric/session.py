@@ -17,9 +17,9 @@ from dt_kernel.errors import DriverError, TwinError
 from dt_runtime.common.jsonsafe import dumps
 
 if TYPE_CHECKING:
-    from dt_runtime.service.bus.config import BusConfig
+    from dt_runtime.fabric.config import BusConfig
 
-log = logging.getLogger("dt_runtime.service.bus")
+log = logging.getLogger("dt_runtime.service.bus")  # the log channel keeps its name (filters name it)
 
 
 class BusError(DriverError):

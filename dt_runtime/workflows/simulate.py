@@ -34,7 +34,7 @@ from dt_runtime.frames.kinematics import load_robot
 from dt_runtime.measurements.dataset import Dataset, meta_path, write_table
 from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology.stats import rms3
-from dt_runtime.twin.campaign import Instruments, check_reachable, run_rows
+from dt_runtime.workflows.campaign import Instruments, check_reachable, run_rows
 
 Phase = Literal["doe", "validation"]
 # Validation point ids follow the DOE ids so that one file can hold both phases.

@@ -30,8 +30,8 @@ import zenoh
 from pydantic import Field, field_validator, model_validator
 
 from dt_kernel.config import Frozen, load_yaml
-from dt_runtime.service.bus.auth import AuthConfig
-from dt_runtime.service.bus.session import BusError, zenoh_errors
+from dt_runtime.fabric.auth import AuthConfig
+from dt_runtime.fabric.session import BusError, zenoh_errors
 
 #: The largest maintenance request, ack or done taken off the bus (they are a few hundred bytes):
 #: a bigger one is refused as malformed before it is parsed.

@@ -32,7 +32,7 @@ from dt_runtime.frames.kinematics import Chain
 from dt_runtime.measurements.campaign_files import check_robot, read_phase, write_phase
 from dt_runtime.measurements.phase import PhaseData
 from dt_runtime.models.hybrid import HybridModel
-from dt_runtime.twin.calibrate import (
+from dt_runtime.workflows.calibrate import (
     Calibrated,
     CalibrationOptions,
     Campaign,

@@ -26,10 +26,10 @@ from typing import Any
 import zenoh
 
 from dt_kernel.errors import TwinError, cut
-from dt_runtime.service.bus.config import BusConfig
-from dt_runtime.service.bus.session import BusError, encode, serve_tasks, zenoh_errors
+from dt_runtime.fabric.config import BusConfig
+from dt_runtime.fabric.session import BusError, encode, serve_tasks, zenoh_errors
 
-log = logging.getLogger("dt_runtime.service.bus")
+log = logging.getLogger("dt_runtime.service.bus")  # the log channel keeps its name (filters name it)
 
 KINDS = ("status", "health", "requests", "tests", "provenance")
 

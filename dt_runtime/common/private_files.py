@@ -6,7 +6,7 @@ kind (docs/bus.md, "Files"):
 - the store and its lock (`tighten`): made 0600 with a warning naming the file and its old mode.
   Their content is a record, not a secret; what matters is that from now on only the service's
   user can write it, and refusing to start would stop a running cell over a file mode.
-- a key (`looser_than_private`, checked by dt_runtime.service.bus.auth): refused. A key others
+- a key (`looser_than_private`, checked by dt_runtime.fabric.auth): refused. A key others
   could read may have been copied; tightening it would hide that. The operator makes a new one
   (or, knowing nobody read it, chmods it).
 """

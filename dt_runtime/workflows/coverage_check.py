@@ -19,8 +19,8 @@ from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.plans import PlanRow
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models.effects import Inputs
-from dt_runtime.twin.campaign import Instruments, run_rows
 from dt_runtime.twin.twin import Correction, Twin
+from dt_runtime.workflows.campaign import Instruments, run_rows
 
 
 @dataclass(frozen=True)

@@ -33,9 +33,9 @@ import zenoh
 from dt_kernel.errors import DataError, TwinError, brief, cut
 from dt_kernel.units import M_PER_MM, MM_PER_M
 from dt_runtime.common.safe_json import loads
+from dt_runtime.fabric.config import BusConfig
+from dt_runtime.fabric.session import BusError, close_session, encode, open_session, zenoh_errors
 from dt_runtime.measurements.checks import RANGES
-from dt_runtime.service.bus.config import BusConfig
-from dt_runtime.service.bus.session import BusError, close_session, encode, open_session, zenoh_errors
 from dt_runtime.service.correction import CorrectionFault, Corrector
 from dt_runtime.twin.conditions import Conditions
 

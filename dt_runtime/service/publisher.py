@@ -16,9 +16,9 @@ import zenoh
 
 from dt_kernel.errors import DataError, StateError
 from dt_runtime.common.safe_json import loads
-from dt_runtime.service.bus.auth import Signer
-from dt_runtime.service.bus.config import MAX_MESSAGE_BYTES, BusConfig
-from dt_runtime.service.bus.session import (
+from dt_runtime.fabric.auth import Signer
+from dt_runtime.fabric.config import MAX_MESSAGE_BYTES, BusConfig
+from dt_runtime.fabric.session import (
     BusError,
     close_session,
     encode,
@@ -29,7 +29,7 @@ from dt_runtime.service.bus.session import (
 )
 from dt_runtime.service.store import Store, StoreError
 
-log = logging.getLogger("dt_runtime.service.bus")
+log = logging.getLogger("dt_runtime.service.bus")  # the log channel keeps its name (filters name it)
 
 _CC, _P, _R = zenoh.CongestionControl, zenoh.Priority, zenoh.Reliability
 # kind -> (congestion control, priority, reliability)

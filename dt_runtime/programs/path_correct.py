@@ -1,6 +1,6 @@
 """A path program corrected offline (`dt correct --path`): every interpolated set-point gets the
 twin's corrected command and the expanded uncertainty (95 %) of the position it reaches, with the
-refusals of point programs (`twin.program`): conditions the maps need and the path lacks, set-points
+refusals of point programs (`programs.program`): conditions the maps need and the path lacks, set-points
 beyond the workspace, a map that gives no finite correction.
 
 The set-point table (CSV, UTF-8, comma, header row; mm, mm/s, s, the robot base frame): `t` (s from
@@ -22,9 +22,9 @@ import numpy as np
 
 from dt_kernel.errors import DataError
 from dt_kernel.units import MM_PER_M
+from dt_runtime.programs.path import PathProgram, Setpoints
+from dt_runtime.programs.program import Program, check_workspace, mm_cells
 from dt_runtime.twin.conditions import Conditions, missing
-from dt_runtime.twin.path import PathProgram, Setpoints
-from dt_runtime.twin.program import Program, check_workspace, mm_cells
 from dt_runtime.twin.setpoint import Setpoint, SetpointCorrector
 from dt_runtime.twin.twin import Twin
 

@@ -1,4 +1,8 @@
-"""Zenoh bus of the twin daemon: telemetry, corrections, state and durable maintenance requests.
+"""The fabric: the Zenoh client every part of a plant uses (a cell's daemon, the plant's router,
+inbox and status, the dashboard, `dt ack` / `dt consume`). It imports nothing of the daemon
+(service/), the twin or its models: opening a session or reading a bus config loads no GP.
+
+The bus it speaks: telemetry, corrections, state and durable maintenance requests.
 
 Key expressions (payloads are UTF-8 JSON objects, encoding application/json)::
 
@@ -33,12 +37,15 @@ counted in `dropped` (maintenance requests are never lost: they live in the outb
 Modules: `config` (BusConfig: endpoints, TLS and access control, validated once, and their
 zenoh mapping), `session` (the one place where zenoh errors become BusError, session open and
 bounded close, JSON payloads), `auth` (the service's key: requests, acks and dones are signed,
-unsigned ones refused), `publisher` (Bus: the daemon side), `consumer` (MaintenanceConsumer).
+unsigned ones refused), `consumer` (MaintenanceConsumer), `queries` (QueryServer: the
+request-reply answers a cell serves). The daemon's own sides live with the daemon:
+`service.publisher` (Bus, over the store's outbox) and `service.correction_server`
+(CorrectionServer and request_correction, over the twin's corrector).
 TLS and access control: configs/bus_tls_acl_example.yaml. Who can do what: docs/bus.md.
 """
 from __future__ import annotations
 
-from dt_runtime.service.bus.config import (
+from dt_runtime.fabric.config import (
     AccessControlConfig,
     AclPolicy,
     AclRule,
@@ -47,13 +54,10 @@ from dt_runtime.service.bus.config import (
     TlsConfig,
     load_bus_config,
 )
-from dt_runtime.service.bus.consumer import MaintenanceConsumer
-from dt_runtime.service.bus.correct import CorrectionServer, request_correction
-from dt_runtime.service.bus.publisher import Bus
-from dt_runtime.service.bus.session import BusError, close_session, open_session
+from dt_runtime.fabric.consumer import MaintenanceConsumer
+from dt_runtime.fabric.session import BusError, close_session, open_session
 
 _open = open_session  # the name tests and older callers use
 
-__all__ = ["AccessControlConfig", "AclPolicy", "AclRule", "AclSubject", "Bus", "BusConfig", "BusError",
-           "CorrectionServer", "request_correction",
+__all__ = ["AccessControlConfig", "AclPolicy", "AclRule", "AclSubject", "BusConfig", "BusError",
            "MaintenanceConsumer", "TlsConfig", "close_session", "load_bus_config", "open_session"]

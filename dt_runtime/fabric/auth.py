@@ -25,7 +25,7 @@ until acknowledged, for hours if a consumer is away); consumers de-duplicate it 
 The key: `auth.key_file`, default `$XDG_CONFIG_HOME/cobot-dt/bus.key` (`~/.config/cobot-dt/bus.key`)
 of the user the service runs as, 64 random hex digits. The daemon (`Bus`) and the consumer
 create it 0600 (in a 0700 directory) when it does not exist; `dt ack --bus` needs it to exist. A
-key file that the group or others may read is refused (service.private_files): it may have been
+key file that the group or others may read is refused (common.private_files): it may have been
 copied. Who can do what: docs/bus.md.
 """
 from __future__ import annotations
@@ -45,8 +45,8 @@ from pydantic import Field
 
 from dt_kernel.config import Frozen
 from dt_kernel.errors import ConfigError
-from dt_runtime.service import private_files
-from dt_runtime.service.bus.session import encode
+from dt_runtime.common import private_files
+from dt_runtime.fabric.session import encode
 
 SIG = "sig"  # the payload key that carries the signature
 _SCHEME = "hmac-sha256:"
