@@ -200,7 +200,7 @@ def test_every_command_that_writes_a_directory_leaves_the_old_one_when_interrupt
         monkeypatch.setattr("dt_runtime.analysis.training.fit", lambda *a, **k: _interrupt(out=a[4]))
         argv = ["fit", "--data", str(data), "--out", str(out)]
     elif command == "diagnose":
-        monkeypatch.setattr("dt_runtime.analysis.diagnose.diagnose", lambda *a, **k: _interrupt(out=k["out"]))
+        monkeypatch.setattr("dt_runtime.analysis.diagnose.diagnose", lambda data, options, **k: _interrupt(out=options.out))
         argv = ["diagnose", "--data", str(data), "--auto", "--out", str(out)]
     else:
         monkeypatch.setattr("dt_runtime.analysis.compare.compare", lambda *a, **k: ({}, {}))
