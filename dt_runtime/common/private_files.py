@@ -1,14 +1,7 @@
 """Files only the service's user may read or write (mode 0600): the store, its lock, the bus key.
 
-Created 0600 from the start (`os.open` with the mode, not a chmod afterwards: there is no moment
-when another user could open it). An existing file that others may read or write is treated by
-kind (docs/bus.md, "Files"):
-- the store and its lock (`tighten`): made 0600 with a warning naming the file and its old mode.
-  Their content is a record, not a secret; what matters is that from now on only the service's
-  user can write it, and refusing to start would stop a running cell over a file mode.
-- a key (`looser_than_private`, checked by dt_runtime.fabric.auth): refused. A key others
-  could read may have been copied; tightening it would hide that. The operator makes a new one
-  (or, knowing nobody read it, chmods it).
+Created 0600 from the start (no moment when another user could open them); an existing file that
+others may access is tightened (the store, its lock) or refused (a key): docs/bus.md, "Files".
 """
 from __future__ import annotations
 
@@ -24,12 +17,34 @@ _OTHERS = stat.S_IRWXG | stat.S_IRWXO  # any bit for the group or others
 
 
 def mode_of(path: Path) -> int:
+    """The permission bits of `path`.
+
+    Parameters
+    ----------
+    path : Path
+        An existing file.
+
+    Returns
+    -------
+    int
+        Its mode's permission bits (e.g. 0o600); OSError as `stat` raises it.
+    """
     return stat.S_IMODE(path.stat().st_mode)
 
 
 def create_private(path: Path) -> bool:
-    """Create `path` empty with mode 0600 unless it exists; True if this call created it.
-    OSError as the file system raises it."""
+    """Create `path` empty with mode 0600 unless it exists.
+
+    Parameters
+    ----------
+    path : Path
+        The file to create.
+
+    Returns
+    -------
+    bool
+        True if this call created it; OSError as the file system raises it.
+    """
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE)
     except FileExistsError:
@@ -39,7 +54,22 @@ def create_private(path: Path) -> bool:
 
 
 def open_private(path: Path, what: str = "file", flags: int = os.O_RDWR | os.O_CREAT) -> int:
-    """`os.open` of `path` creating it 0600, then `tighten`ed: a file descriptor."""
+    """`os.open` of `path`, creating it 0600, then `tighten`ed.
+
+    Parameters
+    ----------
+    path : Path
+        The file.
+    what : str
+        What it is, for the warning (`tighten`).
+    flags : int
+        `os.open` flags.
+
+    Returns
+    -------
+    int
+        The file descriptor.
+    """
     fd = os.open(path, flags, PRIVATE)
     try:
         tighten(path, what)
@@ -50,9 +80,23 @@ def open_private(path: Path, what: str = "file", flags: int = os.O_RDWR | os.O_C
 
 
 def tighten(path: Path, what: str = "file") -> bool:
-    """Make an existing `path` 0600 if the group or others have any access, warning with its old
-    mode; True if it was changed. A missing file is left alone; OSError if the mode cannot be
-    changed (the file belongs to another user)."""
+    """Make an existing `path` 0600 if the group or others have any access, warning with its old mode.
+
+    A record, not a secret: from now on only the service's user can write it, and refusing to start
+    would stop a running cell over a file mode.
+
+    Parameters
+    ----------
+    path : Path
+        The file; a missing one is left alone.
+    what : str
+        What it is, for the warning.
+
+    Returns
+    -------
+    bool
+        True if its mode was changed; OSError if it cannot be (the file belongs to another user).
+    """
     try:
         mode = mode_of(path)
     except FileNotFoundError:
@@ -65,6 +109,20 @@ def tighten(path: Path, what: str = "file") -> bool:
 
 
 def looser_than_private(path: Path) -> int | None:
-    """The mode of `path` if the group or others have any access to it, else None."""
+    """The mode of `path` if the group or others have any access to it, else None.
+
+    A key is refused rather than tightened (dt_runtime.fabric.auth): one others could read may
+    have been copied, and tightening it would hide that.
+
+    Parameters
+    ----------
+    path : Path
+        An existing file.
+
+    Returns
+    -------
+    int or None
+        Its permission bits when too open, else None.
+    """
     mode = mode_of(path)
     return mode if mode & _OTHERS else None
