@@ -14,7 +14,7 @@ import numpy as np
 from dt_runtime.analysis import validation
 from dt_runtime.analysis.crossval import CvResult, cross_validate
 from dt_runtime.frames.kinematics import Chain
-from dt_runtime.metrology.stats import rms3
+from dt_runtime.metrology.stats import finite_rows, rms3
 from dt_runtime.models import effects as fx
 from dt_runtime.models.gp import GPOptions
 from dt_runtime.models.hybrid import DEFAULT_RIDGE, HybridModel
@@ -283,4 +283,4 @@ class Evaluator:
         float
         """
         r = self.residual(cfg, scheme)
-        return rms3(r[np.all(np.isfinite(r), axis=1)]) * 1e3
+        return rms3(r[finite_rows(r)]) * 1e3

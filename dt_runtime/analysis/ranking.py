@@ -17,7 +17,7 @@ from dt_runtime.analysis.crossval import CvResult
 from dt_runtime.analysis.evaluation import Config, Evaluator
 from dt_runtime.analysis.results import Gain
 from dt_runtime.common.progress import Progress
-from dt_runtime.metrology.stats import rms3
+from dt_runtime.metrology.stats import finite_rows, rms3
 from dt_runtime.models import effects as fx
 
 ALPHA = 0.01
@@ -42,14 +42,10 @@ def paired_gain(base: CvResult, res: CvResult) -> tuple[float, float]:
     d = d[np.isfinite(d)]  # a forecast never predicts its first block's points
     # Differences at round-off level (a candidate whose regressors are all zero, e.g.
     # thermal at constant temperature) are no evidence either way.
+    after = rms3(res.residual[finite_rows(res.residual)])  # over the rows the scheme predicted
     if not len(d) or np.all(np.abs(d) <= 1e-9 * np.nanmean(base.group_mse)):
-        return 1.0, _rms(res.residual)
-    return float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue), _rms(res.residual)
-
-
-def _rms(r: np.ndarray) -> float:
-    """3D RMS over the rows a scheme predicted."""
-    return rms3(r[np.all(np.isfinite(r), axis=1)])
+        return 1.0, after
+    return float(stats.wilcoxon(d, alternative="greater", zero_method="zsplit").pvalue), after
 
 
 def gain(kind: str, candidate: str, base: CvResult, res: CvResult, alpha: float = ALPHA) -> Gain:
