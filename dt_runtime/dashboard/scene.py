@@ -34,8 +34,8 @@ from dt_runtime.analysis.points import per_point
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.campaign_files import read_phase
-from dt_runtime.service.correction import Monitor
 from dt_runtime.twin.calibration import phase_inputs
+from dt_runtime.twin.monitor import Monitor
 from dt_runtime.twin.twin import Twin
 from dt_runtime.workflows.campaign_dir import read_manifest
 

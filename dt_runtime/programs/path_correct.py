@@ -25,7 +25,7 @@ from dt_kernel.units import MM_PER_M
 from dt_runtime.programs.path import PathProgram, Setpoints
 from dt_runtime.programs.program import Program, check_workspace, mm_cells
 from dt_runtime.twin.conditions import Conditions, missing
-from dt_runtime.twin.setpoint import Setpoint, SetpointCorrector
+from dt_runtime.twin.corrector import Corrector, Setpoint
 from dt_runtime.twin.twin import Twin
 
 COLUMNS = ("t", "segment", "x", "y", "z", "speed", "cx", "cy", "cz", "Ux", "Uy", "Uz", "inside", "distance_mm")
@@ -52,7 +52,7 @@ def correct_path(twin: Twin, path: PathProgram, sp: Setpoints) -> list[Setpoint]
                         f"{chain.dof} joints")
     check_workspace(twin, Program(sp.p, sp.programmed, [label(sp, k) for k in range(sp.n)],
                                   [0] * sp.n, source=path.source, labels=True), path.source)
-    corrector = SetpointCorrector(twin)
+    corrector = Corrector(twin)  # its own: a thermal map's history is this path's
     out: list[Setpoint] = []
     q, prev = path.joints, None
     for k in range(sp.n):

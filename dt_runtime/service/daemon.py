@@ -1,7 +1,7 @@
 """`dt run`: the long-running twin daemon.
 
 Every tick: take the next target from the target source (`service.targets`: the program, or a
-simulation stand-in), apply the bounded correction with the twin's maps (service.correction)
+simulation stand-in), apply the bounded correction with the twin's maps (twin.bounds around twin.corrector)
 under the cell's conditions when the maps read them (joint angles from the controller,
 temperature and payload from the program's columns or the simulated cell's sensors, the clock:
 `twin.conditions`), move the robot, read the MVS, test the measurement against the prediction
@@ -79,7 +79,6 @@ from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
 from dt_runtime.service.answers import answers
 from dt_runtime.service.cell import Cell, open_cell
-from dt_runtime.service.correction import Corrected, CorrectionFault, Corrector, Monitor
 from dt_runtime.service.correction_server import CorrectionServer
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.housekeeping import Housekeeper
@@ -99,7 +98,10 @@ from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the
 )
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.service.targets import probe_point, targets_for
+from dt_runtime.twin.bounds import Corrected, CorrectionFault, Guard
 from dt_runtime.twin.conditions import Conditions
+from dt_runtime.twin.corrector import Corrector
+from dt_runtime.twin.monitor import Monitor
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
@@ -136,7 +138,7 @@ class Daemon:
             self._plan = plan_path(self.twin, file, cfg.rate_hz, cfg.limits, self.source)
         self._check_condition_sources()
         self._check_model()
-        self.corrector = Corrector(self.twin, cfg.limits)
+        self.corrector = Guard(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
         self.counters = Counters()
         self._stop = threading.Event()
@@ -156,11 +158,12 @@ class Daemon:
         if self.bus:
             self._closers.append(self.bus.close)
         self.paging.bus = self.bus
-        # The cell's program may ask for corrections on `.../correct` (its own Corrector: the
-        # step bound follows the program's sequence of requests, not the daemon's path).
+        # The cell's program may ask for corrections on `.../correct` (its own Guard and corrector:
+        # the step bound follows the program's requests, and zenoh's thread shares no state with the tick).
         self._cond: Conditions | None = None  # the cell's latest conditions (the correct service reads them)
-        self.correct_server = (CorrectionServer(Corrector(self.twin, cfg.limits), cfg.bus, self.bus.session,
-                                                conditions=lambda: self._cond) if self.bus else None)
+        served = Guard(self.twin, cfg.limits, Corrector(self.twin))
+        self.correct_server = (CorrectionServer(served, cfg.bus, self.bus.session, conditions=lambda: self._cond)
+                               if self.bus else None)
         if self.correct_server:
             self._closers.append(self.correct_server.close)
         self.cell: Cell = open_cell(cfg, self.base, self.source, world, self.twin, self._closers)

@@ -16,6 +16,7 @@ data as twin.json holds it (format_version 1: `u.eq11_tcp_c.{u, dof, U, k}`, ...
 """
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -198,23 +199,33 @@ class Twin:
         chain = self._chain or (self.e_mvs_lt.chain() if "joints" in self._p_mvs_lt.needs else None)
         return self._p_mvs_lt(command_inputs(c, v, self._p_mvs_lt.needs, cond, chain)[0])
 
-    def corrected_command(self, target: np.ndarray, v: float, cond: Conditions | None = None,
-                          iters: int = 6, tol: float = 1e-8) -> np.ndarray:
-        """Solve c - e_hat(c, v) = target (fixed point; the map contracts as grad e << 1)."""
-        return self._solve(np.asarray(target, dtype=float), v, cond, iters, tol)[0]
+    @functools.cached_property
+    def corrector(self):
+        """The twin's correction law (`twin.corrector.Corrector`), built on first use; it shares
+        this twin's e_LT predictor (a thermal map's structure temperature is carried across
+        `correct`, `corrected_command` and `e_lt_hat`)."""
+        from dt_runtime.twin.corrector import Corrector  # it builds on this module
 
-    def _solve(self, target: np.ndarray, v: float, cond: Conditions | None, iters: int = 6, tol: float = 1e-8):
-        """The corrected command, e_LT_hat's std there (GL axes) and its joint angles (or None)."""
-        m, s, q = self._lt(target, v, cond)
-        c = target + self._Rt @ m
-        for _ in range(iters):
-            m, s, q = self._lt(c, v, cond, q)  # the IK starts from the last solution
-            c_new = target + self._Rt @ m
-            done = np.max(np.abs(c_new - c)) < tol
-            c = c_new
-            if done:
-                break
-        return c, s, q
+        return Corrector(self, predictor=self._p_lt)
+
+    def corrected_command(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> np.ndarray:
+        """The command that reaches `target` (m, robot frame) at speed v (m/s): `correct`'s command.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        ndarray
+            (3,) m, robot frame.
+        """
+        return self.corrector.correct(target, v, cond).command
 
     def distance(self, c: np.ndarray) -> float:
         """Signed distance (m) of command c to the DOE hull (< 0 inside); NaN for an older twin."""
@@ -235,16 +246,25 @@ class Twin:
         return self.position_u.budget_at(s, d if np.isfinite(d) else 0.0)
 
     def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> Correction:
-        """The corrected command for `target` at speed v under `cond`, the expanded
-        uncertainty of the position it reaches, and whether the command lies in the calibrated
-        volume."""
-        target = np.asarray(target, dtype=float)
-        c, s, _ = self._solve(target, v, cond)
-        dist = self.distance(c)  # once per command: the budget and the flag share it
-        b = self.tcp_budget(c, v, dist, sigma=s)
-        U = b.expanded() if b is not None else self.uncertainty.tcp_c.U
-        inside = self.volume is None or dist <= self.volume.margin_m
-        return Correction(target, c, U, bool(inside), dist, b)
+        """The corrected command for a target, the expanded uncertainty (95 %) of the position it
+        reaches with its labelled Eq. 11 budget, and whether the command lies in the calibrated
+        volume: the one correction law (`corrector`).
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        Correction
+        """
+        sp = self.corrector.correct(target, v, cond)
+        return sp.correction(target, self.corrector.budget(sp))
 
     # --- persistence: JSON + NPZ, no pickle ------------------------------------------------
     def save(self, directory: str | Path) -> Path:

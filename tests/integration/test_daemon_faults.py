@@ -337,7 +337,7 @@ class _Refusing:
         self.uncorrected = real.__self__.uncorrected
 
     def __call__(self, *a):
-        from dt_runtime.service.correction import CorrectionFault
+        from dt_runtime.twin.bounds import CorrectionFault
 
         if self.n > 0:
             self.n -= 1

@@ -202,7 +202,7 @@ def test_a_stop_mid_path_halts_and_the_operators_done_resumes_where_the_arm_stan
 
 
 def test_the_timing_term_widens_eq17_and_keeps_its_degrees_of_freedom(twin_dir):
-    from dt_runtime.service.correction import Monitor
+    from dt_runtime.twin.monitor import Monitor
     from dt_runtime.twin.twin import Twin
 
     tw = Twin.load(twin_dir)
