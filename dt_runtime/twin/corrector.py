@@ -294,7 +294,20 @@ def geometric_row(ik: NewtonIK, q: np.ndarray) -> np.ndarray:
     """The geometric effect's regressors (`models.effects.geometric.Geometric.regressors`) for one
     joint vector (3, 7 dof + 3), on floats: -J (dof columns), per joint frame -R_j (its
     translation) and [lever]x R_j (its rotation), then -R_tcp (the tool's translation); tested
-    equal (tests/unit/test_setpoint.py)."""
+    equal (tests/unit/test_setpoint.py).
+
+    Parameters
+    ----------
+    ik : NewtonIK
+        The solver of the map's chain (its forward kinematics and joint frames).
+    q : ndarray
+        (dof,) rad, the joint angles.
+
+    Returns
+    -------
+    ndarray
+        (3, 7 dof + 3): one row per robot axis.
+    """
     T, frames = ik.frames(q)
     px, py, pz = T[3], T[7], T[11]
     r0: list[float] = []

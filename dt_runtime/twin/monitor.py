@@ -17,6 +17,22 @@ from dt_runtime.twin.twin import Twin
 
 @dataclass(frozen=True)
 class Check:
+    """The Eq. 17 check of one camera measurement.
+
+    Attributes
+    ----------
+    t : ndarray
+        (3,) Eq. 17's t per GL axis.
+    p_value : ndarray
+        (3,) two-sided p-value per axis.
+    passed : bool
+        Every axis passes at the monitor's alpha.
+    diff : ndarray
+        (3,) m, e_LT_hat - e_MVS, GL axes.
+    predicted : ndarray
+        (3,) m, e_MVS-LT_hat, GL axes.
+    """
+
     t: np.ndarray  # (3,) Eq. 17
     p_value: np.ndarray
     passed: bool
@@ -25,7 +41,15 @@ class Check:
 
 
 class Monitor:
-    """Eq. 17 for one MVS measurement of a commanded position, against the twin's prediction."""
+    """Eq. 17 for one MVS measurement of a commanded position, against the twin's prediction.
+
+    Parameters
+    ----------
+    twin : Twin
+        The calibrated twin: its budgets of Eqs. 14 and 16 make the test's denominator.
+    alpha : float
+        Significance level of the two-sided test.
+    """
 
     def __init__(self, twin: Twin, alpha: float = 0.05):
         self.twin, self.alpha = twin, alpha
@@ -47,7 +71,30 @@ class Monitor:
                  u_extra: np.ndarray | None = None) -> Check:
         """Eq. 17 of `p_mvs` (MVS frame) against the arm at `command`; `u_extra` (per axis, m) adds
         a Type B component to the denominator (a moving arm's timing term, metrology.timing), the
-        degrees of freedom kept (an infinite-dof term only raises them: the test stays conservative)."""
+        degrees of freedom kept (an infinite-dof term only raises them: the test stays conservative).
+
+        Parameters
+        ----------
+        command : ndarray
+            (3,) m, the commanded position (robot frame).
+        speed : float
+            m/s.
+        p_mvs : ndarray
+            (3,) m, the camera's measurement (MVS frame).
+        cond : Conditions or None
+            What the maps read beside the command (`Twin.needs`).
+        u_extra : ndarray or None
+            (3,) m, an extra standard uncertainty per axis.
+
+        Returns
+        -------
+        Check
+
+        Raises
+        ------
+        CorrectionFault
+            `p_mvs` is not a finite 3-vector, or the maps give no finite prediction at `command`.
+        """
         p_mvs = np.asarray(p_mvs, dtype=float)
         if p_mvs.shape != (3,) or not np.all(np.isfinite(p_mvs)):
             raise CorrectionFault(f"MVS point {p_mvs!r} is not a finite 3-vector")

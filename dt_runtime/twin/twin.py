@@ -52,6 +52,25 @@ class StatedUncertainty:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], where: str) -> StatedUncertainty:
+        """One equation's entry of twin.json's "u" object, checked.
+
+        Parameters
+        ----------
+        m : Mapping
+            Keys u, dof, k and U, each three values (m; dof and k dimensionless).
+        where : str
+            Where the entry is, for the error message.
+
+        Returns
+        -------
+        StatedUncertainty
+
+        Raises
+        ------
+        ModelError
+            A key is missing, a value is not one number per axis, or not finite and >= 0 (dof
+            must be > 0 and may be infinite).
+        """
         try:
             vals = {f.name: np.asarray(m[f.name], dtype=float) for f in fields(cls)}
         except (KeyError, TypeError, ValueError) as exc:
@@ -86,8 +105,24 @@ class TwinUncertainty:
 
     @classmethod
     def from_mapping(cls, u: Mapping[str, Any], where: str = "twin") -> TwinUncertainty:
-        """From twin.json's "u" object (or the dict calibration builds); ModelError names a
-        missing or malformed entry."""
+        """From twin.json's "u" object (or the dict calibration builds).
+
+        Parameters
+        ----------
+        u : Mapping
+            Key (`KEYS`' values, e.g. 'eq11_tcp_c') -> the entry `StatedUncertainty.from_mapping` reads.
+        where : str
+            Where the object is, for the error message.
+
+        Returns
+        -------
+        TwinUncertainty
+
+        Raises
+        ------
+        ModelError
+            Naming a missing or malformed entry.
+        """
         missing = [k for k in cls.KEYS.values() if k not in u]
         if missing:
             raise ModelError(f"{where}: uncertainty '{missing[0]}' missing; a twin states {sorted(cls.KEYS.values())}")
@@ -107,18 +142,52 @@ class PositionUncertainty:
     extrapolation_dof: float
 
     def budget_at(self, sigma_gp: np.ndarray, distance_m: float) -> Budget:
-        """Eq. 11 where the GP states sigma_gp and the command lies distance_m outside the hull."""
+        """Eq. 11 where the GP states sigma_gp and the command lies distance_m outside the hull.
+
+        Parameters
+        ----------
+        sigma_gp : ndarray
+            (3,) m, the e_LT map's standard uncertainty at the command (GL axes).
+        distance_m : float
+            Signed distance of the command to the DOE hull (m); <= 0 (inside) adds no
+            extrapolation term.
+
+        Returns
+        -------
+        Budget
+            The labelled Eq. 11 budget at the position.
+        """
         return budget_tcp_corrected_at(self.rest, self.model_scale * np.asarray(sigma_gp), self.model_dof,
                                        self.extrapolation_scale * max(float(distance_m), 0.0),
                                        self.extrapolation_dof)
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON form, twin.json's `position_uncertainty` (an infinite dof is written as null)."""
         return {"rest": [c.to_dict() for c in self.rest.components], "model_scale": self.model_scale.tolist(),
                 "model_dof": self.model_dof, "extrapolation_scale": self.extrapolation_scale.tolist(),
                 "extrapolation_dof": self.extrapolation_dof if np.isfinite(self.extrapolation_dof) else None}
 
     @classmethod
     def from_dict(cls, d: Any, where: str) -> PositionUncertainty:
+        """What `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            twin.json's `position_uncertainty` object.
+        where : str
+            Where it is, for the error message.
+
+        Returns
+        -------
+        PositionUncertainty
+
+        Raises
+        ------
+        ModelError
+            A key is missing or malformed, a scale is not one value per axis, or there are no
+            components.
+        """
         try:
             comps = tuple(Component.from_dict(c) for c in d["rest"])
             scale = np.asarray(d["model_scale"], dtype=float)
@@ -147,6 +216,37 @@ class Correction:
 
 @dataclass
 class Twin:
+    """The calibrated twin: the frames, the error maps e_LT_hat and e_MVS-LT_hat and the stated
+    uncertainties, with the correction law (`correct`). Saved and loaded as a directory
+    (twin.json + the maps' directories; docs/cli.md, `dt calibrate`).
+
+    Parameters
+    ----------
+    T_rdk, T_lt, T_mvs : RigidTransform
+        Robot, laser tracker and camera (MVS) frame -> GL.
+    e_lt : HybridModel
+        e_LT_hat(TCP robot frame m, v m/s, conditions) -> GL axes, m.
+    e_mvs_lt : HybridModel
+        e_MVS-LT_hat(TCP, v, conditions) -> GL axes, m.
+    u : dict
+        The stated uncertainties as twin.json holds them (`TwinUncertainty.KEYS`' values ->
+        u, dof, k, U per axis); read them through `uncertainty`.
+    instruments : dict
+        The drivers it was calibrated with, e.g. the camera.
+    volume : CalibratedVolume or None
+        Where the maps interpolate (the DOE hull); None: not recorded.
+    position_u : PositionUncertainty or None
+        Eq. 11 per position; None: only the global `uncertainty.tcp_c` is stated.
+    provenance : Provenance or None
+        The traceability record (`common.provenance`).
+
+    Raises
+    ------
+    ModelError
+        A stated uncertainty is missing or malformed, or the maps read joint angles and their
+        robot config cannot be read.
+    """
+
     T_rdk: RigidTransform  # robot frame -> GL
     T_lt: RigidTransform  # tracker frame -> GL
     T_mvs: RigidTransform  # MVS frame -> GL
@@ -188,12 +288,54 @@ class Twin:
 
     def e_lt_hat(self, c: np.ndarray, v: float, cond: Conditions | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Predicted LT error at command c (robot frame): mean (robot axes, m) and standard
-        uncertainty (GL axes, m)."""
+        uncertainty (GL axes, m).
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        mean : ndarray
+            (3,) m, robot axes.
+        std : ndarray
+            (3,) m, GL axes.
+
+        Raises
+        ------
+        DataError
+            A condition the map needs is not given (`conditions.command_inputs`).
+        """
         m, s, _ = self._lt(np.asarray(c, dtype=float), v, cond)
         return self._Rt @ m, s
 
     def e_mvs_lt_hat(self, c: np.ndarray, v: float, cond: Conditions | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted e_MVS-LT at command c, GL axes, m."""
+        """Predicted e_MVS-LT at command c, GL axes, m.
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        mean, std : ndarray
+            (3,) m each, GL axes.
+
+        Raises
+        ------
+        DataError
+            A condition the map needs is not given (`conditions.command_inputs`).
+        """
         if self._p_mvs_lt.plain:
             return self._p_mvs_lt.gp_only(np.array([c[0], c[1], c[2], v]))
         chain = self._chain or (self.e_mvs_lt.chain() if "joints" in self._p_mvs_lt.needs else None)
@@ -228,7 +370,18 @@ class Twin:
         return self.corrector.correct(target, v, cond).command
 
     def distance(self, c: np.ndarray) -> float:
-        """Signed distance (m) of command c to the DOE hull (< 0 inside); NaN for an older twin."""
+        """Signed distance (m) of command c to the DOE hull (< 0 inside).
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+
+        Returns
+        -------
+        float
+            NaN for a twin without a calibrated volume.
+        """
         return float(self.volume.distance(np.asarray(c, dtype=float))[0]) if self.volume is not None else float("nan")
 
     def tcp_budget(self, c: np.ndarray, v: float, distance_m: float | None = None,
@@ -236,8 +389,25 @@ class Twin:
         """Eq. 11 at command c (robot frame, m) and speed v: labelled components, the e_LT
         map's term from its standard uncertainty at c (sigma, when the caller has it), and its
         growth outside the calibrated hull (distance_m: c's `distance`, when the caller has it).
-        None for a twin without it (older format: then only the global `uncertainty.tcp_c` is
-        known)."""
+        None for a twin without `position_u` (then only the global `uncertainty.tcp_c` is known).
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+        v : float
+            Speed, m/s.
+        distance_m : float or None
+            c's signed distance to the hull (m); None: computed.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+        sigma : ndarray or None
+            (3,) m, the e_LT map's standard uncertainty at c; None: predicted.
+
+        Returns
+        -------
+        Budget or None
+        """
         if self.position_u is None:
             return None
         c = np.asarray(c, dtype=float)
@@ -268,6 +438,19 @@ class Twin:
 
     # --- persistence: JSON + NPZ, no pickle ------------------------------------------------
     def save(self, directory: str | Path) -> Path:
+        """Write the twin: `directory`/twin.json (frames, stated uncertainties, volume, Eq. 11
+        per position, provenance; SI units) and the maps' directories e_lt/ and e_mvs_lt/.
+
+        Parameters
+        ----------
+        directory : str or Path
+            Created if missing; files in it are overwritten.
+
+        Returns
+        -------
+        Path
+            The directory.
+        """
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
         self.e_lt.save(d / "e_lt", self.provenance)
@@ -290,6 +473,23 @@ class Twin:
 
     @classmethod
     def load(cls, directory: str | Path) -> Twin:
+        """Read a twin `save` wrote (format versions `READS`).
+
+        Parameters
+        ----------
+        directory : str or Path
+            The twin's directory.
+
+        Returns
+        -------
+        Twin
+
+        Raises
+        ------
+        ModelError
+            twin.json is unreadable, of another format version, or has a missing or malformed
+            entry; or a map cannot be loaded.
+        """
         d = Path(directory)
         # Infinite degrees of freedom are written as Infinity (jsonable(u, finite_only=False));
         # any other non-finite number is refused by the reader.
