@@ -23,6 +23,7 @@ PACKAGES = (
     "dt_runtime/reports",
     "dt_runtime/twin",
     "dt_runtime/programs",
+    "dt_runtime/workflows",
 )
 
 
