@@ -22,6 +22,7 @@ from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import noise_floor
 from dt_runtime.analysis.results import CompareResult, ModelScore
 from dt_runtime.analysis.training import data_provenance
+from dt_runtime.analysis.validity import configuration
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import FileRecord
 from dt_runtime.measurements.checks import check_dataset
@@ -286,24 +287,6 @@ def _region(P: np.ndarray):
     lab = np.array([f"x{SIGN[i]},y{SIGN[j]},z{SIGN[k]}" for i, j, k in idx], dtype=object)
     order = sorted(set(lab), key=lambda s: [SIGN.index(s[p]) for p in (1, 4, 7)])
     return lab, order
-
-
-def configuration(q: np.ndarray) -> np.ndarray:
-    """The joint configuration of each row: the sign of the elbow (q3: up/down) and the wrist (q5:
-    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints).
-
-    Parameters
-    ----------
-    q : ndarray
-        (n, dof) joint angles, rad.
-
-    Returns
-    -------
-    ndarray
-        (n,) labels.
-    """
-    cols = [j for j in (2, 4) if j < q.shape[1]]
-    return np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
 
 
 def _configuration(q: np.ndarray):

@@ -581,7 +581,7 @@ def write_demo_report(result, path, title: str | None = None) -> Path:
 
     The summary dict is in mm, the arrays in SI (metres and m/s; errors e = commanded - measured
     in the global frame GL, paper Eq. 8). The report's first screen says whether the figures may be
-    trusted (the summary's `validity`, `twin.validity`), then the key figures with the definition of
+    trusted (the summary's `validity`, `analysis.validity`), then the key figures with the definition of
     the one U they state; then the paper's Tables 2-4, the error model with its effects and their
     fitted physical parameters, the GUM budgets and Eqs. 18-22, the validation (against the
     simulator's truth in the demo, the laser tracker in a campaign's validation phase), Figs. 8-18

@@ -17,6 +17,7 @@ from pydantic import Field, ValidationInfo, field_validator
 
 from dt_kernel.config import Frozen
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.analysis import validity
 from dt_runtime.common.progress import Progress
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.phase import PhaseData
@@ -26,7 +27,6 @@ from dt_runtime.models import effects as fx
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import GP_INPUTS, HybridModel
 from dt_runtime.twin import calibration as cal
-from dt_runtime.twin import validity
 from dt_runtime.twin.twin import Twin
 
 
@@ -377,7 +377,7 @@ def validation(c: Calibrated, phase: PhaseData) -> Validation:
 
 
 def validity_of(c: Calibrated, v: Validation | None, campaign: str | None) -> dict:
-    """The `validity` block of a calibration (`twin.validity`): the validation phase's coverage and
+    """The `validity` block of a calibration (`analysis.validity`): the validation phase's coverage and
     Eq. 17 on it; without a validation phase, nothing tests the stated uncertainty and it says so.
 
     Parameters
@@ -392,7 +392,7 @@ def validity_of(c: Calibrated, v: Validation | None, campaign: str | None) -> di
     Returns
     -------
     dict
-        The block `twin.validity.assess` returns.
+        The block `analysis.validity.assess` returns.
     """
     if v is None:
         return validity.assess([], unchecked="the campaign has no validation phase, so nothing tests the stated "

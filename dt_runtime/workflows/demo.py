@@ -22,6 +22,7 @@ from drivers.simulated.devices import SimWorld
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import ConfigError
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.analysis import validity
 from dt_runtime.common.outputs import final_path
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
@@ -33,7 +34,6 @@ from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import robot_ref
-from dt_runtime.twin import validity
 from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.twin import Correction
 from dt_runtime.workflows.calibrate import (
@@ -346,7 +346,7 @@ def _coverage_checks(inst, twin, doe, speed_fracs, n, seed, world, progress) -> 
 
 def _validity(c: Calibrated, checks: dict[str, CoverageCheck], val_corr: PhaseData, ok: np.ndarray, e_corr: np.ndarray,
               U_tcp: np.ndarray, t17, campaign: str | None) -> dict:
-    """The summary's `validity` block (`twin.validity`): the coverage checks against the truth,
+    """The summary's `validity` block (`analysis.validity`): the coverage checks against the truth,
     the validation phase's coverage and Eq. 17 on the same positionings."""
     where = {"inside": ("random targets inside the DOE hull, commanded corrected", False),
              "outside": (f"random targets {OUTSIDE_BAND_M[0] * 1e3:.0f}-{OUTSIDE_BAND_M[1] * 1e3:.0f} mm outside the "

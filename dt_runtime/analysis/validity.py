@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
-from dt_runtime.analysis.compare import configuration
 from dt_runtime.metrology.stats import wilson_interval
 from dt_runtime.models.effects import Inputs
 
@@ -25,6 +24,24 @@ BIAS_SHARE = 0.5  # mean^2 / (mean^2 + variance) above which the misses share a 
 UNSEEN_SHARE = 0.1  # share of positions in a joint configuration the DOE lacks that can explain misses
 DELTA_T_C = 0.5  # deg C: a temperature this far beyond the DOE's range is a changed condition
 GENERIC_CAUSE = "an effect the model does not learn from the position and speed (e.g. the direction of approach)"
+
+
+def configuration(q: np.ndarray) -> np.ndarray:
+    """The joint configuration of each row: the sign of the elbow (q3: up/down) and the wrist (q5:
+    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints).
+
+    Parameters
+    ----------
+    q : ndarray
+        (n, dof) joint angles, rad.
+
+    Returns
+    -------
+    ndarray
+        (n,) labels.
+    """
+    cols = [j for j in (2, 4) if j < q.shape[1]]
+    return np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
 
 
 @dataclass(frozen=True)
