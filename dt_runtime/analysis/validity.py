@@ -56,6 +56,7 @@ class Sample:
     conditions: Inputs  # the commanded targets (distinct ones counted) and, where known, joints, time, temperature
     requested: int | None = None  # the number of targets asked for, when fewer were reached
     outside_hull: bool = False  # the positions lie beyond the calibrated volume (extrapolation)
+    stated: str = "U(TCP_c)"  # the stated uncertainty in words
 
 
 @dataclass(frozen=True)
@@ -159,23 +160,23 @@ def coverage_check(s: Sample, ref: Inputs | None, campaign: str | None) -> dict:
                         for ax in shown))
     band = f"the band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %"
     if status == "fail":
-        finding = f"the stated U(TCP_c) is too small: it covers {figs(low)} of {where}, below {band}{tell}"
+        finding = f"the stated {s.stated} is too small: it covers {figs(low)} of {where}, below {band}{tell}"
     elif low:
-        finding = (f"the stated U(TCP_c) may be too small: it covers {figs(low)} of {where}, below {band}, though "
+        finding = (f"the stated {s.stated} may be too small: it covers {figs(low)} of {where}, below {band}, though "
                    f"{n_eff} targets cannot establish it{tell}")
     elif high:
-        finding = (f"the stated U(TCP_c) is larger than the errors need: it covers {figs(high)} of {where}, above "
+        finding = (f"the stated {s.stated} is larger than the errors need: it covers {figs(high)} of {where}, above "
                    f"{band}{tell}")
     else:
-        finding = f"the stated U(TCP_c) covers {figs(AXES)} of {where}, within {band}"
+        finding = f"the stated {s.stated} covers {figs(AXES)} of {where}, within {band}"
         over = [ax for ax, a in axes.items() if a["coverage"] > BAND[1]]
         if over:
             finding += (f" ({', '.join(over)} above it, but within what {n_eff} targets can tell: the 95 % interval "
                         "reaches the band)")
-    short = f"U(TCP_c) covers {figs(shown, counts=False)} of {where} (band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %)"
-    out: dict[str, Any] = {"check": f"coverage_{s.key}", "what": f"coverage of U(TCP_c) at {s.what}",
-                           "truth": s.truth, "band": list(BAND), "n": n, "n_distinct": n_eff, "axes": axes,
-                           "status": status, "finding": finding, "short": short}
+    short = f"{s.stated} covers {figs(shown, counts=False)} of {where} (band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %)"
+    out: dict[str, Any] = {"check": f"coverage_{s.key}", "what": f"coverage of {s.stated} at {s.what}",
+                           "stated": s.stated, "truth": s.truth, "band": list(BAND), "n": n, "n_distinct": n_eff,
+                           "axes": axes, "status": status, "finding": finding, "short": short}
     if s.requested is not None and n < s.requested:
         out["n_requested"] = s.requested
         out["finding"] += (f" ({n} of the {s.requested} positions asked for were reached: the arm could not reach "
@@ -390,7 +391,8 @@ def line(status: str, checks: list[dict]) -> str:
     str
     """
     if status == "ok":
-        return (f"validity: {SYMBOL['ok']}: the stated U(TCP_c) covers the errors within the band "
+        stated = checks[0].get("stated", "U(TCP_c)")
+        return (f"validity: {SYMBOL['ok']}: the stated {stated} covers the errors within the band "
                 f"{100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} % in every check ({len(checks)})")
     first = next(c for c in checks if c["status"] == status)
     text = f"validity: {SYMBOL[status]}: {first['short']}"
