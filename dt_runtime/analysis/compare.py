@@ -690,9 +690,15 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                           i, len(fitted))
         if m.gp_ is not None and m.gp_.n_features_in_ == 4 and ds.speed is None:  # GP on TCP + speed
             raise DataError(f"model '{name}' was trained on TCP and speed; {ds.source} has no speed column")
+        trained_s = _trained_sessions(name, m, ds, split)
+        time_note = None
         try:
-            pred, std = (_predict_cv(m, ds, folds, groups) if cv_folds > 1
-                         else m.predict(ds, return_std=True))
+            if cv_folds > 1:
+                pred, std = _predict_cv(m, ds, folds, groups)
+            else:
+                label = ds.extra["session"].astype(int) if "session" in ds.extra else np.zeros(ds.n, dtype=int)
+                design, time_note = deployment.time_terms(m, ds, ~np.isin(label, sorted(trained_s)))
+                pred, std = m.predict(ds, return_std=True, design=design)
         except (DataError, ModelError) as exc:
             raise type(exc)(f"model '{name}' cannot predict the rows of {ds.source}: {exc}") from exc
         dom = m.outside_domain(ds)
@@ -704,7 +710,10 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                  "base_parameters": m.base_parameters()}
         if refit_sessions is not None:
             about["after_reregistration"] = _after_reregistration(ds, pred, refit_sessions)
-        plan = _to_register(ds, reference, refit_sessions, sessions, _trained_sessions(name, m, ds, split))
+        if time_note is not None:
+            about["time_terms"] = time_note
+            log.warning("model '%s': %s", name, time_note["text"])
+        plan = _to_register(ds, reference, refit_sessions, sessions, trained_s)
         reg = _after_registration(ds, pred, std, _model_dof(m), um, dm, plan)
         scored = None
         if reg is not None:

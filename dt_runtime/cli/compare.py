@@ -105,6 +105,8 @@ def human(result: dict) -> str:
             lines.append(f"  {'':<24} after re-registration ({rr['dof_absorbed']} dof absorbed): 3D RMS "
                          f"{rr['rmse_mm']:.4f} mm")
         lines += _registration_lines(m.get("after_registration"))
+        if m.get("time_terms"):
+            lines.append(f"  {'':<24} {m['time_terms']['text']}")
     lines += _session_lines(result["models"])
     for c in result.get("worst_cells") or []:
         lines.append(f"  worst: {c['factor']} {c['cell']}: {c['rmse_mm']:.4f} mm ({c['n']} rows)")

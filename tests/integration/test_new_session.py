@@ -67,3 +67,57 @@ def test_a_training_session_is_in_sample_and_its_validity_unchecked(deployed, ca
     d, files, mapping = deployed
     rc, r = _compare(capsys, d, files[0], mapping)
     assert r["validity"]["status"] == "unchecked" and "in-sample" in r["validity"]["finding"]
+
+
+@pytest.fixture(scope="module")
+def drift_model():
+    from dt_runtime.common.paths import CONFIGS
+    from dt_runtime.models.hybrid import HybridModel
+    from tests.support.ur10_generator import generate
+
+    train = generate("drift", 3, n_points=40, passes=3)  # the joints drift during this session
+    m = HybridModel(("geometric", "drift"), "none", robot=CONFIGS / "robots" / "ur10.yaml").fit(train)
+    assert m.time_effects() == ("drift",)
+    return train, m
+
+
+def test_a_drift_found_in_one_session_is_not_carried_into_another_without_a_clock(drift_model):
+    from dataclasses import replace
+
+    import numpy as np
+
+    from dt_runtime.analysis.compare import compare
+    from tests.support.ur10_generator import generate
+
+    _, m = drift_model
+    new = generate("none", 53, n_points=30, passes=1, arm_seed=3)  # another day: its own t from 0
+    r, arrays = compare([m], new, reference=10)
+    block = r.to_dict()["models"][-1]
+    assert block["time_terms"]["applied"].startswith("not applied") and "no absolute time" in block["time_terms"]["text"]
+    # the prediction is the map without its drift there, not the drift evaluated at the file's own clock
+    D = m.design_matrix(replace(new, t=np.zeros(new.n)))
+    keep = np.array([e != "drift" for e, _, _, _ in D.params])
+    expected = np.einsum("nap,p->na", D.A[:, :, keep], m.theta_[keep])
+    assert arrays["models"][-1]["predicted"] == pytest.approx(expected, abs=1e-12)
+    ar = block["after_registration"]
+    assert all(0.9 <= c <= 1.0 for c in ar["coverage_95"].values()) and r.validity["status"] == "ok"
+
+
+def test_with_unix_time_in_both_files_the_drift_is_carried_and_extrapolation_is_counted(drift_model):
+    from dataclasses import replace
+
+    from dt_runtime.analysis.compare import compare
+    from dt_runtime.common.paths import CONFIGS
+    from dt_runtime.models.hybrid import HybridModel
+    from tests.support.ur10_generator import generate
+
+    train, _ = drift_model
+    epoch = 1.7e9  # 2023-11-14
+    m = HybridModel(("geometric", "drift"), "none", robot=CONFIGS / "robots" / "ur10.yaml").fit(
+        replace(train, t=train.t + epoch))
+    new = generate("none", 53, n_points=30, passes=1, arm_seed=3)
+    later = replace(new, t=new.t + epoch + train.t.max() + 3600.0)  # an hour after the training ended
+    r, _ = compare([m], later, reference=10)
+    note = r.to_dict()["models"][-1]["time_terms"]
+    assert note["applied"] == "absolute time" and note["rows_beyond_training"] == 30
+    assert note["hours_beyond_training"] == pytest.approx((new.t.max() + 3600.0) / 3600.0)
