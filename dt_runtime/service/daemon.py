@@ -161,11 +161,10 @@ class Daemon:
         # The cell's program may ask for corrections on `.../correct` (its own Guard and corrector:
         # the step bound follows the program's requests, and zenoh's thread shares no state with the tick).
         self._cond: Conditions | None = None  # the cell's latest conditions (the correct service reads them)
-        served = Guard(self.twin, cfg.limits, Corrector(self.twin))
-        self.correct_server = (CorrectionServer(served, cfg.bus, self.bus.session, conditions=lambda: self._cond)
-                               if self.bus else None)
-        if self.correct_server:
-            self._closers.append(self.correct_server.close)
+        # Served on the bus's session now, or once a client's router comes (closed with the bus).
+        if self.bus:
+            served = Guard(self.twin, cfg.limits, Corrector(self.twin))
+            self.bus.serve(lambda s: CorrectionServer(served, cfg.bus, s, conditions=lambda: self._cond))
         self.cell: Cell = open_cell(cfg, self.base, self.source, world, self.twin, self._closers)
         self.world, self.inst = self.cell.world, self.cell.inst
         self.targets = None if self._plan else targets_for(cfg.path, self._program, self.inst.max_speed, cfg.rate_hz)
@@ -185,10 +184,10 @@ class Daemon:
         self._status_mark = (time.monotonic(), 0)  # (when, ticks) of the last status line: its rate
         self._health_key: tuple | None = None
         # The plant asks every cell on `dt/<cell>/<robot>/<kind>` (docs/plant.md): served once the daemon is whole.
-        self.queries = (QueryServer(cfg.bus, self.bus.session, answers(self, self._p(cfg.twin)),
-                                    sign=self.bus.signer.sign) if self.bus else None)
-        if self.queries:
-            self._closers.append(self.queries.close)
+        if self.bus:
+            bus = self.bus
+            bus.serve(lambda s: QueryServer(cfg.bus, s, answers(self, self._p(cfg.twin)), sign=bus.signer.sign))
+            bus.serve(lambda _s: self.housekeeper.health_due())  # connected: say so at once (returns None)
         self.paging.reconcile(self._now())
         self.housekeeper.start()
         self._closers.append(self.housekeeper.stop)
@@ -317,6 +316,7 @@ class Daemon:
                 # acks and 'done's on the bus without the service's signature: refused, not recorded
                 "bus_refused": self.bus.refused if self.bus else 0,
                 "bus_last_refused": self.bus.last_refused if self.bus else None,
+                "bus": self.bus.state if self.bus else "off",  # connecting (no router yet), connected
                 "pid": os.getpid(), "t": time.time(),
                 **({"stream": self.path.state.to_dict()} if self.path is not None else {})}
 
@@ -330,10 +330,12 @@ class Daemon:
         rate = (ticks - before) / (now - then) if now > then else 0.0
         status, reason = self._status()
         failures = self.counters.failures
+        bus = self.bus.state if self.bus else "off"
         f: dict[str, Any] = {"ticks": ticks, "rate_hz": round(rate, 2), "status": status, "reason": reason,
-                             "escalation": self.escalator.state, "t_test_failures": failures}
+                             "escalation": self.escalator.state, "t_test_failures": failures, "bus": bus}
         text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
-            f", escalation {self.escalator.state}, Eq. 17 failed {failures}"
+            f", escalation {self.escalator.state}, Eq. 17 failed {failures}" + \
+            (f", bus {bus}" if bus == "connecting" else "")
         if self.path is not None:  # a path: where the stream is, not a last command
             st = self.path.state
             f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}
