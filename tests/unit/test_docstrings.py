@@ -21,6 +21,7 @@ PACKAGES = (
     "dt_runtime/models",
     "dt_runtime/analysis",
     "dt_runtime/reports",
+    "drivers",
 )
 
 
