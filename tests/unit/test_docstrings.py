@@ -22,6 +22,7 @@ PACKAGES = (
     "dt_runtime/analysis",
     "dt_runtime/reports",
     "drivers",
+    "sim",
 )
 
 
