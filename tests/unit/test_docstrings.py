@@ -23,6 +23,7 @@ PACKAGES = (
     "dt_runtime/reports",
     "drivers",
     "sim",
+    "emulators",
 )
 
 
