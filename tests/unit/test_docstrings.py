@@ -24,6 +24,7 @@ PACKAGES = (
     "drivers",
     "sim",
     "emulators",
+    "dt_runtime/plant",
 )
 
 
