@@ -25,6 +25,7 @@ PACKAGES = (
     "sim",
     "emulators",
     "dt_runtime/plant",
+    "dt_runtime/dashboard",
 )
 
 
