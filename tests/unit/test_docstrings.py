@@ -26,6 +26,7 @@ PACKAGES = (
     "emulators",
     "dt_runtime/plant",
     "dt_runtime/dashboard",
+    "dt_runtime/cli",
 )
 
 
