@@ -27,6 +27,13 @@ from dt_runtime.cli.common import (
 
 
 def add_arguments(cp: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt compare`` (docs/cli.md, ``dt compare``).
+
+    Parameters
+    ----------
+    cp : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     add_data_args(cp, kinematics=False)
     cp.add_argument("--model", required=True, action="append", metavar="MODEL",
                     help="model directory from `dt fit`; repeat for a side-by-side comparison (oldest first)")
@@ -63,6 +70,23 @@ def _reference(text: str) -> int:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Evaluate 'as is' and every ``--model`` on the data, side by side, and write the report when asked.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     import contextlib
     from pathlib import Path
 
@@ -93,6 +117,17 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt compare`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     lines = [f"{result['n']} rows of {result['dataset']}"
              + (f"; held out by {result['heldout']['folds']}-fold grouped CV" if result.get("heldout") else "")
              + (f"; noise floor {result['noise_floor_mm']:.4f} mm" if result.get("noise_floor_mm") else "")]

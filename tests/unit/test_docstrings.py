@@ -24,6 +24,12 @@ PACKAGES = (
     "dt_runtime/twin",
     "dt_runtime/programs",
     "dt_runtime/workflows",
+    "drivers",
+    "sim",
+    "emulators",
+    "dt_runtime/plant",
+    "dt_runtime/dashboard",
+    "dt_runtime/cli",
 )
 
 
