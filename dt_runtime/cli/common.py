@@ -100,12 +100,7 @@ def add_strict_arg(q: argparse.ArgumentParser) -> None:
 
 
 def validity_exit(args: argparse.Namespace, summary: dict) -> int:
-<<<<<<< HEAD
-    """The exit code of a command whose summary carries a `validity` block (analysis.validity): 0,
-    or STRICT_EXIT with --strict when its status is 'fail'. With --json the block's line also goes
-    to stderr (stdout holds only the JSON object)."""
-=======
-    """The exit code of a command whose summary carries a ``validity`` block (twin.validity).
+    """The exit code of a command whose summary carries a ``validity`` block (analysis.validity).
 
     0, or STRICT_EXIT with ``--strict`` when its status is 'fail'. With ``--json`` the block's line
     also goes to stderr (stdout holds only the JSON object).
@@ -121,7 +116,6 @@ def validity_exit(args: argparse.Namespace, summary: dict) -> int:
     -------
     int
     """
->>>>>>> docstrings
     import logging
 
     v = summary.get("validity") or {}

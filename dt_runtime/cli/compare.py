@@ -206,5 +206,17 @@ def _session_lines(models: list[dict]) -> list[str]:
 
 
 def exit_code(args: argparse.Namespace, result: dict) -> int:
-    """0, or with --strict the strict status when the validity check fails (cli.common.validity_exit)."""
+    """0, or with --strict the strict status when the validity check fails (cli.common.validity_exit).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+    result : dict
+        The comparison's JSON object.
+
+    Returns
+    -------
+    int
+    """
     return validity_exit(args, result)
