@@ -117,17 +117,18 @@ class MaintenanceConsumer:
             ident = (prefix, uid)
             new = ident not in self._seen
             if new:
-                self._seen.add(ident)
+                self._seen.add(ident)  # a concurrent copy is not taken twice while this one is recorded
+        if new:
+            if self.on_request is not None:
+                try:
+                    self.on_request(req | {"key": key})
+                except BaseException:
+                    with self._cond:  # not taken: the next copy is new again, and nothing is acked now
+                        self._seen.discard(ident)
+                    raise
+            with self._cond:  # taken only once recorded: `requests` never shows one the record refused
                 self.requests.append(req | {"key": key})
                 self._cond.notify_all()
-        if new and self.on_request is not None:
-            try:
-                self.on_request(req | {"key": key})
-            except BaseException:
-                with self._cond:  # not taken: the next copy is new again, and nothing is acked now
-                    self._seen.discard(ident)
-                    self.requests = [r for r in self.requests if not (r["key"] == key and str(r["uid"]) == uid)]
-                raise
         if self.auto_ack:
             self.ack(prefix, oid, uid)
 
