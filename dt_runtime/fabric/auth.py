@@ -1,32 +1,11 @@
 """Signed maintenance messages: only a holder of the service's key can ack, clear or raise a request.
 
-Why signatures and not Zenoh's own authentication. On the default bus (a peer on loopback) any
-local process can connect, read a request's `uid` and publish `.../maintenance/done/<id>`: the
-black-box probe cleared a request "by mallory" that way. Zenoh's user/password authentication
-works per link: every reader (a dashboard, `dt status` over the bus) would need a password,
-anyone holding one could still publish anything unless access-control rules by user name were
-added, and behind a router the daemon sees the router, not who wrote the message. A signature
-travels with the message, end to end, through any router, and is checked where the action is
-applied; readers need nothing; and it adds to, never replaces, the TLS and access control of a
-plant network (configs/bus_tls_acl_example.yaml).
-
-What is signed: every maintenance message that changes something, i.e. the daemon's requests,
-and the consumers' acknowledgements (`.../maintenance/ack/<id>`) and confirmations
-(`.../maintenance/done/<id>`); the daemon's reliable messages (state, health, correction) too,
-so `dt ack` can trust the state it waits for. The MAC is HMAC-SHA256 (RFC 2104) with the key of
-`auth.key_file` over the message's key expression, a newline and the canonical JSON of the
-payload without `sig` (keys sorted, no spaces: `canonical`), written as `"sig": "hmac-sha256:<hex>"`.
-The key expression binds the message to its robot, kind and request id: a signed ack is not a
-signed 'done', and a 'done' for robot r1 does not clear robot r2. Acks and dones carry `t`
-(epoch s) and are refused when more than `auth.max_age_s` (300 s) away from the receiver's clock:
-a recorded message cannot be replayed later. A request is not time-checked (it is republished
-until acknowledged, for hours if a consumer is away); consumers de-duplicate it on its uid.
-
-The key: `auth.key_file`, default `$XDG_CONFIG_HOME/cobot-dt/bus.key` (`~/.config/cobot-dt/bus.key`)
-of the user the service runs as, 64 random hex digits. The daemon (`Bus`) and the consumer
-create it 0600 (in a 0700 directory) when it does not exist; `dt ack --bus` needs it to exist. A
-key file that the group or others may read is refused (common.private_files): it may have been
-copied. Who can do what: docs/bus.md.
+The MAC is HMAC-SHA256 with the key of `bus.auth.key_file` over the message's key expression, a
+newline and the canonical JSON of the payload without `sig` (`canonical`), carried in the payload
+as `"sig": "hmac-sha256:<hex>"`. Acks and dones are refused when their `t` is further than
+`bus.auth.max_age_s` from the receiver's clock; requests are not time-checked. What is signed,
+why signatures rather than Zenoh's authentication, where the key lives and who holds it:
+docs/bus.md ("Who can do what").
 """
 from __future__ import annotations
 
@@ -54,7 +33,12 @@ _MIN_KEY_BYTES = 16
 
 
 class AuthConfig(Frozen):
-    """`bus.auth`: where the service's key is, and how old a signed ack or 'done' may be."""
+    """`bus.auth`: where the service's key is, and how old a signed ack or 'done' may be.
+
+    `key_file`: the key's path (None: `default_key_file()`; `~` is expanded, a relative path is
+    taken from the working directory). `max_age_s`: s, how far an ack's or a done's `t` may lie from
+    the receiver's clock, in (0, 86400].
+    """
 
     key_file: str | None = None  # None: default_key_file(); `~` is expanded, relative to the working directory
     max_age_s: float = Field(300.0, gt=0, le=86_400)
@@ -67,11 +51,34 @@ def default_key_file() -> Path:
 
 
 def key_path(cfg: AuthConfig) -> Path:
+    """The key file `cfg` names: `key_file` with `~` expanded, else `default_key_file()`.
+
+    Parameters
+    ----------
+    cfg : AuthConfig
+        The `bus.auth` section.
+
+    Returns
+    -------
+    Path
+        The path (relative ones stay relative to the working directory); not checked to exist.
+    """
     return Path(os.path.expanduser(cfg.key_file)) if cfg.key_file else default_key_file()
 
 
 def canonical(payload: Mapping[str, Any]) -> bytes:
-    """The bytes a signature covers: sorted keys, no spaces, the payload without `sig`."""
+    """The bytes a signature covers: sorted keys, no spaces, the payload without `sig`.
+
+    Parameters
+    ----------
+    payload : mapping of str to JSON values
+        A message as decoded from the bus; its `sig`, if any, is left out.
+
+    Returns
+    -------
+    bytes
+        ASCII JSON (non-ASCII characters escaped).
+    """
     body = {k: v for k, v in payload.items() if k != SIG}
     return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()
 
@@ -128,8 +135,23 @@ def _create_key(path: Path) -> None:
 class Signer:
     """Signs and checks maintenance messages with the key of `cfg` (module docstring).
 
-    `create`: write a new key if there is none (the daemon and the consumer; `dt ack` does not).
-    Raises ConfigError naming the file when the key is missing, unreadable or readable by others."""
+    The key is read once, in the constructor; `path` is the file it came from.
+
+    Parameters
+    ----------
+    cfg : AuthConfig
+        The `bus.auth` section: the key file and the largest age of an ack or done.
+    create : bool
+        Write a new key (64 random hex digits, 0600, its directory made 0700 if missing) when there
+        is none: the daemon and the consumer do; `dt ack` does not (a new key could not be the
+        service's).
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, when the key is missing (and not created), cannot be created or read,
+        gives the group or others any access, or is shorter than 16 bytes.
+    """
 
     def __init__(self, cfg: AuthConfig, *, create: bool = True):
         self.cfg = cfg
@@ -137,12 +159,39 @@ class Signer:
         self._key = _load_key(self.path, create)
 
     def mac(self, key_expr: str, payload: Mapping[str, Any]) -> str:
+        """The signature of `payload` on `key_expr`, as carried in `sig`.
+
+        Parameters
+        ----------
+        key_expr : str
+            The key the message is put on (`dt/<cell>/<robot>/...`): it is signed too.
+        payload : mapping of str to JSON values
+            The message; its `sig`, if any, is not covered.
+
+        Returns
+        -------
+        str
+            `hmac-sha256:` followed by 64 hex digits.
+        """
         digest = hmac.new(self._key, key_expr.encode() + b"\n" + canonical(payload), hashlib.sha256)
         return _SCHEME + digest.hexdigest()
 
     def sign(self, key_expr: str, payload: Mapping[str, Any]) -> bytes:
         """The encoded message with its signature: signed as the receiver will decode it (the
-        JSON round trip turns numpy values, tuples and NaN into what the receiver sees)."""
+        JSON round trip turns numpy values, tuples and NaN into what the receiver sees).
+
+        Parameters
+        ----------
+        key_expr : str
+            The key the message will be put on.
+        payload : mapping of str to any
+            The message; a `sig` it carries is replaced.
+
+        Returns
+        -------
+        bytes
+            Compact UTF-8 JSON (`session.encode`) with `sig` added.
+        """
         body = json.loads(encode(payload))
         body.pop(SIG, None)
         body[SIG] = self.mac(key_expr, body)
@@ -150,7 +199,24 @@ class Signer:
 
     def check(self, key_expr: str, msg: Mapping[str, Any], *, fresh: bool) -> str | None:
         """None if `msg` (received on `key_expr`) is signed with this key (and, when `fresh`,
-        its `t` is within max_age_s of now); else why not, in words."""
+        its `t` is within max_age_s of now); else why not, in words.
+
+        Parameters
+        ----------
+        key_expr : str
+            The key the message arrived on.
+        msg : mapping of str to JSON values
+            The decoded message, with its `sig`.
+        fresh : bool
+            Also require a finite `t` (epoch s) within `cfg.max_age_s` of this host's clock (acks
+            and dones; not requests, which are republished for hours).
+
+        Returns
+        -------
+        str or None
+            None when the message is accepted; else the reason (not signed, signature does not
+            match, no time, too old or in the future), for the log.
+        """
         sig = msg.get(SIG)
         if not isinstance(sig, str):
             return "not signed (no 'sig': the sender does not hold the service's key)"

@@ -1,24 +1,9 @@
-"""Bus configuration: endpoints, TLS and access control, validated once; their zenoh mapping.
+"""Bus configuration (`BusConfig`, configs/bus.yaml): endpoints, TLS, access control and the
+signing key, validated once, and the zenoh configuration they map onto (`zenoh_config`).
 
-Config (`BusConfig`, configs/bus.yaml) maps onto the zenoh JSON5 config as:
-    mode                  -> mode ("peer" | "client")
-    listen, connect       -> listen/endpoints, connect/endpoints
-    multicast_scouting    -> scouting/multicast/enabled (default false: loopback tests stay local)
-    gossip_scouting       -> scouting/gossip/enabled
-    tls.root_ca_certificate, listen_certificate, listen_private_key, connect_certificate,
-    connect_private_key, enable_mtls, verify_name_on_connect
-                          -> transport/link/tls/<same name>   (endpoints must use tls/ or quic/)
-    access_control.enabled, default_permission, rules[], subjects[], policies[]
-                          -> access_control/<same name> (zenoh 1.x ACL schema: rules have id,
-                             messages, flows, permission, key_exprs; subjects id plus
-                             interfaces / cert_common_names / usernames / zids; policies
-                             reference rule and subject ids, checked here)
-    extra                 -> any further zenoh key path -> JSON value (escape hatch)
-    auth.key_file, auth.max_age_s
-                          -> not zenoh's: the key that signs maintenance messages (bus.auth)
-configs/bus_tls_acl_example.yaml shows TLS + ACL.
-Invalid values raise ConfigError through dt_kernel.config (naming the key); a value zenoh
-itself rejects raises BusError.
+The keys, their defaults and their zenoh paths: docs/bus.md ("Configuration"; TLS and access
+control: configs/bus_tls_acl_example.yaml). An invalid value raises ConfigError through
+dt_kernel.config, naming the key; a value zenoh itself rejects raises BusError.
 """
 from __future__ import annotations
 
@@ -42,7 +27,23 @@ ACL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declar
 
 
 def keyexpr_ok(k: str) -> str:
-    """`k` if zenoh accepts it as a key expression; ValueError (for the validators) if not."""
+    """`k` if zenoh accepts it as a key expression; ValueError (for the validators) if not.
+
+    Parameters
+    ----------
+    k : str
+        A key expression, e.g. `dt/*/*/maintenance/**`.
+
+    Returns
+    -------
+    str
+        `k`, unchanged.
+
+    Raises
+    ------
+    ValueError
+        Zenoh refuses `k` (its message).
+    """
     try:
         with zenoh_errors(f"invalid zenoh key expression {k!r}"):
             zenoh.KeyExpr(k)
@@ -52,6 +53,25 @@ def keyexpr_ok(k: str) -> str:
 
 
 def check_endpoint(e: str) -> str:
+    """`e` if it looks like a zenoh endpoint `<protocol>/<address>`; ValueError (for the validators)
+    if not. Only the form is checked: zenoh parses the address when the session opens.
+
+    Parameters
+    ----------
+    e : str
+        An endpoint, e.g. `tcp/127.0.0.1:7447`; protocols tcp, udp, tls, quic, ws,
+        unixsock-stream.
+
+    Returns
+    -------
+    str
+        `e`, unchanged.
+
+    Raises
+    ------
+    ValueError
+        No protocol, another protocol, or nothing after the `/`.
+    """
     proto, sep, rest = e.partition("/")
     if not sep or not rest or proto not in ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream"):
         raise ValueError(f"endpoint {e!r} must look like tcp/127.0.0.1:7447 "
@@ -60,6 +80,15 @@ def check_endpoint(e: str) -> str:
 
 
 class TlsConfig(Frozen):
+    """`bus.tls`: zenoh's `transport/link/tls/*`, one key each (docs/bus.md, "Beyond loopback").
+
+    `root_ca_certificate`: the plant CA's certificate (PEM path). `listen_certificate`,
+    `listen_private_key`: what this node shows to peers connecting to it; `connect_certificate`,
+    `connect_private_key`: what it shows when it connects (each pair given together or not at all).
+    `enable_mtls`: require peers' certificates (needs the connect pair). `verify_name_on_connect`:
+    check the peer's certificate names the host connected to.
+    """
+
     root_ca_certificate: str
     listen_certificate: str | None = None
     listen_private_key: str | None = None
@@ -80,6 +109,10 @@ class TlsConfig(Frozen):
 
 
 class AclRule(Frozen):
+    """One rule of zenoh 1.x access control: `id`; the `messages` it covers (`ACL_MESSAGES`);
+    `flows` (ingress, egress; default both); `permission` (allow or deny); `key_exprs` (checked
+    to be valid key expressions), which must include a message's key for the rule to apply."""
+
     id: str
     messages: list[Literal[ACL_MESSAGES]]  # type: ignore[valid-type]
     flows: list[Literal["ingress", "egress"]] = ["ingress", "egress"]
@@ -93,6 +126,9 @@ class AclRule(Frozen):
 
 
 class AclSubject(Frozen):
+    """Who a policy applies to: `id`, and any of `interfaces`, `cert_common_names` (TLS
+    certificates' CN), `usernames`, `zids` (zenoh ids)."""
+
     id: str
     interfaces: list[str] | None = None
     cert_common_names: list[str] | None = None
@@ -101,12 +137,21 @@ class AclSubject(Frozen):
 
 
 class AclPolicy(Frozen):
+    """Applies the `rules` (ids) to the `subjects` (ids); `id` is optional."""
+
     id: str | None = None
     rules: list[str]
     subjects: list[str]
 
 
 class AccessControlConfig(Frozen):
+    """`bus.access_control`: zenoh 1.x's `access_control`, one key each.
+
+    `enabled` (default true); `default_permission` for messages no rule covers (default deny);
+    `rules`, `subjects` and `policies`. A policy naming a rule or subject that is not defined is
+    refused when the config is loaded.
+    """
+
     enabled: bool = True
     default_permission: Literal["allow", "deny"] = "deny"
     rules: list[AclRule] = []
@@ -128,6 +173,18 @@ class AccessControlConfig(Frozen):
 
 
 class BusConfig(Frozen):
+    """The `bus:` section of the runtime config, or configs/bus.yaml (docs/bus.md, "Configuration").
+
+    `cell`, `robot`: the key prefix `dt/<cell>/<robot>` (one key chunk each: no `/ * $ ? #`).
+    `mode`: peer or client (a client needs `connect`, a router). `listen`, `connect`: endpoints
+    (`listen` is used in peer mode only). `multicast_scouting`, `gossip_scouting`: zenoh
+    discovery. `consumer_groups`: 1 to 16 distinct groups, each receiving its own copy of every
+    maintenance request. `health_period_s`, `republish_period_s`, `close_timeout_s`: s.
+    `send_queue`: reliable messages waiting for the worker. `tls`, `access_control`: see their
+    classes (TLS needs a `tls/` or `quic/` endpoint). `auth`: the signing key (`AuthConfig`).
+    `extra`: further zenoh config paths -> JSON values, applied last.
+    """
+
     cell: str = "cell1"
     robot: str = "r1"
     mode: Literal["peer", "client"] = "peer"
@@ -182,10 +239,28 @@ class BusConfig(Frozen):
         return self
 
     def key(self, kind: str) -> str:
+        """The key expression of this robot's `kind`.
+
+        Parameters
+        ----------
+        kind : str
+            What follows the prefix, e.g. `health`, `correct` or `maintenance/request`.
+
+        Returns
+        -------
+        str
+            `dt/<cell>/<robot>/<kind>`.
+        """
         return f"dt/{self.cell}/{self.robot}/{kind}"
 
     def zenoh_config(self) -> zenoh.Config:
-        """The zenoh.Config this maps to (see the module docstring)."""
+        """The zenoh.Config this maps to (docs/bus.md, "Configuration"): `listen` only in peer mode.
+
+        Raises
+        ------
+        BusError
+            Zenoh rejects a value.
+        """
         return zenoh_config(self.mode, self.listen if self.mode == "peer" else [], self.connect,
                             self.multicast_scouting, self.gossip_scouting, self.tls, self.access_control, self.extra)
 
@@ -193,7 +268,32 @@ class BusConfig(Frozen):
 def zenoh_config(mode: str, listen: list[str], connect: list[str], multicast_scouting: bool, gossip_scouting: bool,
                  tls: TlsConfig | None, access_control: AccessControlConfig | None,
                  extra: dict[str, Any]) -> zenoh.Config:
-    """The zenoh.Config of a node (a bus peer or client, or the plant's router: dt_runtime.plant)."""
+    """The zenoh.Config of a node (a bus peer or client, or the plant's router: dt_runtime.plant).
+
+    Parameters
+    ----------
+    mode : str
+        Zenoh's `mode`: `peer`, `client` or `router`.
+    listen, connect : list of str
+        Endpoints (`listen/endpoints`, `connect/endpoints`).
+    multicast_scouting, gossip_scouting : bool
+        `scouting/multicast/enabled`, `scouting/gossip/enabled`.
+    tls : TlsConfig or None
+        Each key given goes to `transport/link/tls/<key>`.
+    access_control : AccessControlConfig or None
+        Goes to `access_control`.
+    extra : dict of str to JSON values
+        Further zenoh config paths, inserted last (they override the above).
+
+    Returns
+    -------
+    zenoh.Config
+
+    Raises
+    ------
+    BusError
+        Zenoh rejects a value.
+    """
     with zenoh_errors("zenoh rejected the bus config"):
         c = zenoh.Config()
         c.insert_json5("mode", json.dumps(mode))
@@ -212,4 +312,20 @@ def zenoh_config(mode: str, listen: list[str], connect: list[str], multicast_sco
 
 
 def load_bus_config(path: str | Path) -> BusConfig:
+    """Read and validate a bus config file.
+
+    Parameters
+    ----------
+    path : str or Path
+        A YAML file of `BusConfig`'s keys, e.g. configs/bus.yaml.
+
+    Returns
+    -------
+    BusConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and key, when the file cannot be read or a value is invalid.
+    """
     return load_yaml(path, BusConfig)

@@ -1,5 +1,7 @@
 """`MaintenanceConsumer`: receives maintenance requests from every cell and robot on the bus,
-records, de-duplicates and acknowledges them (tests and the `dt` CLI use it)."""
+records, de-duplicates and acknowledges them (tests, `dt consume` and the plant's inbox use it);
+`publish_ack` and `publish_done` for the callers without one (`dt ack --bus`, the dashboard).
+The protocol: docs/bus.md ("Maintenance request and acknowledgement")."""
 from __future__ import annotations
 
 import logging
@@ -30,7 +32,33 @@ log = logging.getLogger("dt_runtime.service.bus")  # the log channel keeps its n
 
 def publish_ack(session: zenoh.Session, signer: Signer, prefix: str, oid: int, uid: str, group: str) -> str:
     """Acknowledge delivery of `group`'s copy `oid` (uid `uid`) of a request of `prefix`
-    (= 'dt/<cell>/<robot>'), signed and time-stamped now; the key it was put on."""
+    (= 'dt/<cell>/<robot>'), signed and time-stamped now; the key it was put on.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        An open session on the bus.
+    signer : Signer
+        Holds the service's key.
+    prefix : str
+        `dt/<cell>/<robot>` of the request.
+    oid : int
+        The request's `id` (its outbox row, one per group).
+    uid : str
+        The request's `uid`.
+    group : str
+        The consumer group whose copy this is.
+
+    Returns
+    -------
+    str
+        `<prefix>/maintenance/ack/<oid>`.
+
+    Raises
+    ------
+    BusError
+        The put failed.
+    """
     key = f"{prefix}/maintenance/ack/{oid}"
     put_json(session, key, signer.sign(key, {"id": oid, "uid": uid, "group": group, "t": time.time()}))
     return key
@@ -39,7 +67,35 @@ def publish_ack(session: zenoh.Session, signer: Signer, prefix: str, oid: int, u
 def publish_done(session: zenoh.Session, signer: Signer, prefix: str, oid: int, uid: str, by: str, note: str) -> str:
     """Tell the twin of `prefix` that the maintenance asked for by request `oid` (uid `uid`) was
     done, by whom and why (stored with the transition back to nominal), signed and time-stamped
-    now (it must reach the twin within bus.auth.max_age_s); the key it was put on."""
+    now (it must reach the twin within bus.auth.max_age_s); the key it was put on.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        An open session on the bus.
+    signer : Signer
+        Holds the service's key.
+    prefix : str
+        `dt/<cell>/<robot>` of the request.
+    oid : int
+        The request's `id`.
+    uid : str
+        The request's `uid` (the twin applies the done only if it matches).
+    by : str
+        Who did the maintenance.
+    note : str
+        What was done, or why.
+
+    Returns
+    -------
+    str
+        `<prefix>/maintenance/done/<oid>`.
+
+    Raises
+    ------
+    BusError
+        The put failed.
+    """
     key = f"{prefix}/maintenance/done/{oid}"
     put_json(session, key, signer.sign(key, {"id": oid, "uid": uid, "by": by, "note": note, "t": time.time()}))
     return key
@@ -48,19 +104,44 @@ def publish_done(session: zenoh.Session, signer: Signer, prefix: str, oid: int, 
 class MaintenanceConsumer:
     """Receives maintenance requests from every cell/robot, records and acks them.
 
-    Requests are de-duplicated on (cell, robot, uid); every copy is acked (the first ack may
-    have been lost). A consumer belongs to one consumer `group` and takes only its group's copy
-    of each request (the twin sends one per configured group; a copy without a group, from an
-    older twin, is everybody's). `on_request(request)` is called once per new request from the
-    worker thread; if it raises, the request is neither acked nor remembered, so the twin's next
-    republication brings it again (a plant inbox acks only what its history committed).
-    `seen`: (dt/<cell>/<robot>, uid) pairs taken before (a restarted consumer's history): their
-    copies are acked, not passed on again. `done(...)` tells the twin that maintenance was done.
-    Used by tests, `dt consume` and the plant's inbox (dt_runtime.plant.inbox).
+    Requests are de-duplicated on (dt/<cell>/<robot>, uid); every copy is acked (the first ack
+    may have been lost). A consumer belongs to one consumer `group` and takes only its group's
+    copy of each request (the twin sends one per configured group; a copy without a `group` is
+    taken by every group). `done(...)` tells the twin that maintenance was done. Malformed
+    messages (more than MAX_MESSAGE_BYTES, not JSON, no `id`/`uid`) are logged and ignored.
 
     Signed both ways (bus.auth): a request without the service's signature is not taken (a
     forged one: logged, counted in `refused`, `last_refused`, not acked); acks and dones leave
     signed with the same key (`config.auth.key_file`, created 0600 if missing).
+
+    Threads: zenoh's callback only enqueues; one worker thread handles the requests, calls
+    `on_request` and acks. `requests`, `copies`, `refused` and `last_refused` are updated under
+    a lock; `wait_for` waits on it from any thread.
+
+    Parameters
+    ----------
+    config : BusConfig
+        The bus to join (and `auth`, the key).
+    key_expr : str
+        The requests subscribed to (default every cell's and robot's).
+    on_request : callable or None
+        Called once per new request (its payload plus `key`, the key it came on), in the
+        worker thread. If it raises, the request is neither acked nor remembered, so the twin's
+        next republication brings it again (a plant inbox acks only what its history committed).
+    auto_ack : bool
+        Ack every copy taken (default); False leaves acking to the caller (`ack`).
+    group : str
+        The consumer group.
+    seen : iterable of (str, str)
+        (dt/<cell>/<robot>, uid) pairs taken before (a restarted consumer's history): their
+        copies are acked, not passed on again.
+
+    Raises
+    ------
+    ConfigError
+        The key cannot be created or read, or others may access it (`auth.Signer`).
+    BusError
+        The session cannot open or the subscription cannot be declared.
     """
 
     def __init__(self, config: BusConfig, *, key_expr: str = "dt/**/maintenance/request",
@@ -133,24 +214,83 @@ class MaintenanceConsumer:
             self.ack(prefix, oid, uid)
 
     def ack(self, prefix: str, oid: int, uid: str) -> None:
-        """Publish the ack for request `oid` of `prefix` (= 'dt/<cell>/<robot>')."""
+        """Publish the ack for request `oid` of `prefix` (= 'dt/<cell>/<robot>'); nothing once closed.
+
+        Parameters
+        ----------
+        prefix : str
+            `dt/<cell>/<robot>` of the request.
+        oid : int
+            The request's `id`.
+        uid : str
+            The request's `uid`.
+
+        Raises
+        ------
+        BusError
+            The put failed.
+        """
         if self._closed:
             return
         publish_ack(self._session, self.signer, prefix, oid, uid, self.group)
 
     def done(self, prefix: str, oid: int, uid: str, by: str, note: str) -> None:
         """Tell the twin of `prefix` (= 'dt/<cell>/<robot>') that the maintenance asked for by
-        request `oid` was done: who and why are stored with the transition back to nominal."""
+        request `oid` was done: who and why are stored with the transition back to nominal.
+
+        Parameters
+        ----------
+        prefix : str
+            `dt/<cell>/<robot>` of the request.
+        oid : int
+            The request's `id`.
+        uid : str
+            The request's `uid`.
+        by : str
+            Who did the maintenance.
+        note : str
+            What was done, or why.
+
+        Raises
+        ------
+        BusError
+            The consumer is closed, or the put failed.
+        """
         if self._closed:
             raise BusError("consumer is closed")
         publish_done(self._session, self.signer, prefix, oid, uid, by, note)
 
     def wait_for(self, n: int, timeout: float) -> bool:
-        """Wait until at least n distinct requests arrived; False on time-out."""
+        """Wait until at least n distinct requests arrived; False on time-out.
+
+        Parameters
+        ----------
+        n : int
+            How many distinct requests (`len(requests)`).
+        timeout : float
+            s.
+
+        Returns
+        -------
+        bool
+            True once `n` have arrived, False if `timeout` passed first.
+        """
         with self._cond:
             return self._cond.wait_for(lambda: len(self.requests) >= n, timeout)
 
     def close(self, timeout: float | None = None) -> bool:
+        """Stop the worker and close the session; a second call does nothing.
+
+        Parameters
+        ----------
+        timeout : float or None
+            s for both; None: `config.close_timeout_s`.
+
+        Returns
+        -------
+        bool
+            True if the worker ended and the session closed in time (also when already closed).
+        """
         if self._closed:
             return True
         self._closed = True

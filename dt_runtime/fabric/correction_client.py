@@ -44,7 +44,7 @@ def request_correction(session: zenoh.Session, key: str, target_mm, speed_mm_s: 
     CorrectionFault
         The twin refused the request (its reason).
     BusError
-        No reply within timeout_s.
+        No reply within timeout_s, or zenoh refused the query.
     """
     req: dict[str, Any] = {"id": request_id, "target_mm": [float(x) for x in target_mm],
                            "speed_mm_s": float(speed_mm_s)}

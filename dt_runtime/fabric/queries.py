@@ -8,7 +8,7 @@ asks every cell for its status, `dt/c1/r1/health` one cell's health) and gets on
 it intersects, on `dt/<cell>/<robot>/<kind>`,
 signed like the daemon's other messages (bus.auth: readers may ignore `sig`). The kinds and what
 they answer are the caller's (`answers`: kind -> a function returning a JSON object); the daemon's
-are `service.answers` (status, health, requests, provenance).
+are `service.answers` (status, health, requests, tests, provenance).
 
 Zenoh callbacks only enqueue (they never block and never touch SQLite: an answer may read the
 store); one worker thread answers and then drops the query, so the asker sees the end of the
@@ -36,8 +36,32 @@ KINDS = ("status", "health", "requests", "tests", "provenance")
 
 class QueryServer:
     """Answers `dt/<cell>/<robot>/<kind>` queries with `answers[kind]()` on `session` (the
-    daemon's bus session: one listen endpoint per process). `sign(key, payload) -> bytes`
-    encodes a reply (the Bus's signer; default: plain JSON)."""
+    daemon's bus session: one listen endpoint per process).
+
+    Each reply is `{"cell", "robot", "kind", **answers[kind]()}`; an answer that raises a
+    TwinError gives `{..., "error", "type"}` instead, any other exception the same with
+    "internal error" (logged); both are counted in `failed`. `served` counts replies sent,
+    `overflow` the queries refused because `max_queued` were waiting. The answers run in the
+    server's worker thread, one query at a time.
+
+    Parameters
+    ----------
+    config : BusConfig
+        The cell's bus config (`cell`, `robot`, `close_timeout_s`).
+    session : zenoh.Session
+        The open session the queryables are declared on; not closed by `close`.
+    answers : mapping of str to callable
+        Kind -> a function of no argument returning a JSON object (a dict).
+    sign : callable or None
+        `sign(key, payload) -> bytes` encodes a reply (the Bus's signer); None: plain JSON.
+    max_queued : int
+        Queries waiting for the worker beyond which a query gets an error reply (`Busy`).
+
+    Raises
+    ------
+    BusError
+        A queryable cannot be declared.
+    """
 
     def __init__(self, config: BusConfig, session: zenoh.Session, answers: Mapping[str, Callable[[], Any]],
                  sign: Callable[[str, Mapping[str, Any]], bytes] | None = None, max_queued: int = 64):
@@ -97,6 +121,14 @@ class QueryServer:
             self.served += 1
 
     def close(self, timeout: float | None = None) -> None:
+        """Undeclare the queryables (failures logged) and stop the worker; the session stays open.
+
+        Parameters
+        ----------
+        timeout : float or None
+            s to wait for the worker (it first answers the queries already waiting); None:
+            `config.close_timeout_s`.
+        """
         for q in self._queryables:
             try:
                 with zenoh_errors(f"undeclare {q.key_expr}"):

@@ -34,6 +34,17 @@ def zenoh_errors(what: str) -> Iterator[None]:
 
     zenoh-python raises ZError, and its Rust bindings TypeError/ValueError/RuntimeError for
     values they refuse, so everything but the project's own errors is converted.
+
+    Parameters
+    ----------
+    what : str
+        What was being done, the start of the BusError's message.
+
+    Raises
+    ------
+    BusError
+        `what: <the error>`, with the original as `__cause__`; a TwinError (the project's own)
+        passes unchanged.
     """
     try:
         yield
@@ -44,6 +55,23 @@ def zenoh_errors(what: str) -> Iterator[None]:
 
 
 def open_session(cfg: BusConfig) -> zenoh.Session:
+    """Open the zenoh session of `cfg` now (a client whose router is down fails: `SessionOpener`).
+
+    Parameters
+    ----------
+    cfg : BusConfig
+        The node's bus config (mode, endpoints, TLS, access control).
+
+    Returns
+    -------
+    zenoh.Session
+        Open; the caller closes it (`close_session`).
+
+    Raises
+    ------
+    BusError
+        Zenoh rejects the config or cannot open the session (naming mode and endpoints).
+    """
     config = cfg.zenoh_config()
     with zenoh_errors(f"cannot open zenoh session ({cfg.mode}, listen={cfg.listen}, connect={cfg.connect})"):
         return zenoh.open(config)
@@ -65,6 +93,7 @@ class SessionOpener:
 
     Once open, zenoh itself reconnects a client to its router; `state` says `connecting` while a
     client session has no router (the router restarting) and `connected` when it has one again.
+    `attempts` counts the attempts to open, `last_error` holds the last one's failure.
 
     Parameters
     ----------
@@ -125,7 +154,18 @@ class SessionOpener:
         return self._session
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Wait until the session is open; True if it is."""
+        """Wait until the session is open; True if it is.
+
+        Parameters
+        ----------
+        timeout : float or None
+            s; None waits until it opens.
+
+        Returns
+        -------
+        bool
+            True once the session has opened (also if it has been closed since), False on time-out.
+        """
         return self._opened.wait(timeout)
 
     def _connected(self, session: zenoh.Session) -> None:
@@ -161,7 +201,18 @@ class SessionOpener:
 
     def close(self, timeout: float | None = None) -> bool:
         """Stop connecting and close the session, within `timeout` s (the config's close
-        time-out by default); True if all is down."""
+        time-out by default); True if all is down.
+
+        Parameters
+        ----------
+        timeout : float or None
+            s, for both the background attempts and the close; None: `cfg.close_timeout_s`.
+
+        Returns
+        -------
+        bool
+            True if the background attempts ended and the session (if any) closed in time.
+        """
         timeout = self.cfg.close_timeout_s if timeout is None else timeout
         deadline = time.monotonic() + timeout
         done = self.cancel(timeout)
@@ -173,7 +224,18 @@ class SessionOpener:
 
     def cancel(self, timeout: float) -> bool:
         """Stop connecting (a session already open stays open until `close`); True if the
-        background attempts have ended within `timeout` s."""
+        background attempts have ended within `timeout` s.
+
+        Parameters
+        ----------
+        timeout : float
+            s to wait for the background thread, if there is one.
+
+        Returns
+        -------
+        bool
+            True if no background attempt is under way any more.
+        """
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
@@ -181,7 +243,23 @@ class SessionOpener:
 
 
 def close_session(session: zenoh.Session, timeout: float) -> bool:
-    """Close in a helper thread so a wedged close cannot hang the daemon; True if it finished."""
+    """Close in a helper thread so a wedged close cannot hang the daemon; True if it finished.
+
+    A failing close is logged, not raised (closing is best effort); a close still running after
+    `timeout` is abandoned (the helper is a daemon thread) with a warning.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        The session to close.
+    timeout : float
+        s to wait for the close.
+
+    Returns
+    -------
+    bool
+        True if the close finished within `timeout`.
+    """
     def run() -> None:
         try:
             with zenoh_errors("zenoh close failed"):
@@ -199,12 +277,41 @@ def close_session(session: zenoh.Session, timeout: float) -> bool:
 
 
 def encode(payload: Mapping[str, Any]) -> bytes:
-    """One message: compact UTF-8 JSON (numpy as lists, NaN as null, other objects as text)."""
+    """One message: compact UTF-8 JSON (numpy as lists, NaN as null, other objects as text).
+
+    Parameters
+    ----------
+    payload : mapping of str to any
+        The message.
+
+    Returns
+    -------
+    bytes
+        UTF-8 JSON without spaces.
+    """
     return dumps(payload, separators=(",", ":"), default=str).encode()
 
 
 def put_json(session: zenoh.Session, key: str, payload: Mapping[str, Any] | bytes) -> None:
-    """A reliable, high-priority JSON put on any key (acks, requests of another robot name)."""
+    """A reliable, high-priority JSON put on any key (acks, requests of another robot name).
+
+    Congestion control BLOCK, priority INTERACTIVE_HIGH, encoding application/json: the put may
+    block while the network is congested, so a control loop does not call it.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        An open session.
+    key : str
+        The key expression put on.
+    payload : mapping or bytes
+        The message; a mapping is `encode`d, bytes (e.g. `Signer.sign`'s) are sent as they are.
+
+    Raises
+    ------
+    BusError
+        Zenoh refuses the put.
+    """
     data = payload if isinstance(payload, bytes) else encode(payload)
     with zenoh_errors(f"put on {key}"):
         session.put(key, data, encoding=zenoh.Encoding.APPLICATION_JSON,
@@ -214,7 +321,24 @@ def put_json(session: zenoh.Session, key: str, payload: Mapping[str, Any] | byte
 
 def shut_down(session: zenoh.Session, worker: threading.Thread, wake: Callable[[], None], timeout: float) -> bool:
     """Wake `worker` (its stop signal), join it and close `session`, all within `timeout` s; True
-    when both are down."""
+    when both are down.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        The session to close once the worker has stopped (or its share of `timeout` has passed).
+    worker : threading.Thread
+        The bus worker thread.
+    wake : callable
+        Tells the worker to stop, e.g. puts None on its queue.
+    timeout : float
+        s for the whole (the close gets at least 0.1 s).
+
+    Returns
+    -------
+    bool
+        True if the worker ended and the session closed in time.
+    """
     deadline = time.monotonic() + timeout
     wake()
     worker.join(max(0.0, deadline - time.monotonic()))
@@ -225,7 +349,19 @@ def serve_tasks(tasks: queue.Queue, handle: Callable[[Any], None], failed: Calla
                 logger: logging.Logger = log) -> None:
     """A bus worker thread's loop (zenoh's callbacks only enqueue): `handle` each task until a None
     comes; a task that raises is logged with `failed(task)` and the worker goes on (one bad
-    message must not stop it)."""
+    message must not stop it).
+
+    Parameters
+    ----------
+    tasks : queue.Queue
+        The tasks, in order; None ends the loop.
+    handle : callable
+        Called with each task, in this thread.
+    failed : callable
+        The log message for a task whose `handle` raised an Exception.
+    logger : logging.Logger
+        Where failures are logged (default: the bus's log channel).
+    """
     while True:
         task = tasks.get()
         if task is None:

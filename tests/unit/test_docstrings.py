@@ -30,6 +30,7 @@ PACKAGES = (
     "dt_runtime/plant",
     "dt_runtime/dashboard",
     "dt_runtime/cli",
+    "dt_runtime/fabric",
 )
 
 
