@@ -193,3 +193,102 @@ def time_terms(m: HybridModel, ds: Dataset, new: np.ndarray) -> tuple[Design | N
             "files to carry it across)")
     return replace(D, A=A), {"effects": list(effects), "applied": "not applied: a nuisance of the training session",
                             "rows": int(new.sum()), "text": text}
+
+
+@dataclass(frozen=True)
+class Shift:
+    """Whether failing readings are one rigid shift of the session (the instrument's set-up moved),
+    not a change of the arm (`rigid_shift`).
+
+    Attributes
+    ----------
+    rigid : bool
+        A rigid transform explains the differences (its residual is consistent with u) and they
+        were significant without it: re-reference the session instead of maintaining the arm.
+    translation_mm : ndarray
+        (3,) the fitted shift at the frame's origin, mm.
+    rotation_mrad : ndarray
+        (3,) the fitted small rotation, mrad.
+    p_before, p_after : float
+        chi^2 p-values of the differences against u before and after the rigid fit.
+    n : int
+        Readings used.
+    text : str
+        The verdict in words.
+    """
+
+    rigid: bool
+    translation_mm: np.ndarray
+    rotation_mrad: np.ndarray
+    p_before: float
+    p_after: float
+    n: int
+    text: str
+
+
+MIN_SHIFT_READINGS = 6  # 3 n >= 2 x the 6 parameters of a rigid shift
+P_SHIFT = 0.01  # significance of "the differences are there" and of "a rigid fit leaves more than u"
+
+
+def rigid_shift(points: np.ndarray, diffs: np.ndarray, u: np.ndarray) -> Shift:
+    """Are the differences d_i (measured minus predicted, m) at the points p_i one rigid shift,
+    d_i = omega x p_i + dt (6 parameters, weighted least squares by 1/u), within their standard
+    uncertainty u? A set-up that moved (a camera knocked, a tracker set up anew) shifts every
+    reading rigidly; a changed arm (a joint offset of joints 2 to 6, a worn gear) does not. A
+    rotation about the base's vertical axis through its origin is also what a first joint's zero
+    offset does: the two cannot be told apart from positions alone (the text says so).
+
+    Parameters
+    ----------
+    points : ndarray
+        (n, 3) the readings' positions, m (the frame the differences are in).
+    diffs : ndarray
+        (n, 3) the differences, m.
+    u : ndarray
+        (n, 3) or (3,) their standard uncertainty, m.
+
+    Returns
+    -------
+    Shift
+
+    Raises
+    ------
+    DataError
+        Fewer than MIN_SHIFT_READINGS readings, or a non-positive u.
+    """
+    from scipy import stats
+
+    P, d = np.asarray(points, dtype=float).reshape(-1, 3), np.asarray(diffs, dtype=float).reshape(-1, 3)
+    n = len(P)
+    if n < MIN_SHIFT_READINGS or d.shape != P.shape:
+        raise DataError(f"a rigid shift needs at least {MIN_SHIFT_READINGS} readings with 3 differences each, "
+                        f"got {n}")
+    w = 1.0 / np.broadcast_to(np.asarray(u, dtype=float), P.shape)
+    if not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise DataError("the readings' uncertainty must be finite and positive")
+    J = np.zeros((n, 3, 6))
+    x, y, z = P[:, 0], P[:, 1], P[:, 2]
+    J[:, 0, 1], J[:, 0, 2] = z, -y
+    J[:, 1, 0], J[:, 1, 2] = -z, x
+    J[:, 2, 0], J[:, 2, 1] = y, -x
+    J[:, :, 3:] = np.eye(3)
+    A = (J * w[:, :, None]).reshape(-1, 6)
+    b = (d * w).reshape(-1)
+    theta, *_ = np.linalg.lstsq(A, b, rcond=None)
+    chi_before, chi_after = float(b @ b), float(np.sum((b - A @ theta) ** 2))
+    p_before = float(stats.chi2.sf(chi_before, 3 * n))
+    p_after = float(stats.chi2.sf(chi_after, 3 * n - 6))
+    rigid = p_before < P_SHIFT and p_after >= P_SHIFT
+    rot, tr = theta[:3] * 1e3, theta[3:] * 1e3
+    if rigid:
+        text = (f"the {n} failing readings are one rigid shift of the set-up ({', '.join(f'{v:+.3f}' for v in tr)} mm, "
+                f"{', '.join(f'{v:+.3f}' for v in rot)} mrad; what remains is within u): re-reference the session "
+                "(a few reference poses) before asking for maintenance"
+                + ("; a rotation about the vertical axis is also what a first-joint zero offset gives"
+                   if abs(rot[2]) > 3 * max(abs(rot[0]), abs(rot[1]), 1e-9) else ""))
+    elif p_before >= P_SHIFT:
+        text = f"the {n} readings agree with the prediction within u: no shift"
+    else:
+        text = (f"the {n} failing readings are not one rigid shift (after the best one chi^2 p = {p_after:.2g}): "
+                "the arm changed, not the set-up")
+    return Shift(rigid, tr, rot, p_before, p_after, n, text)

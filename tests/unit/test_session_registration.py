@@ -69,3 +69,42 @@ def test_the_effect_parameters_covariance_is_eq17s_u_model_without_a_gp():
     expected = np.sqrt(np.einsum("nap,pq,naq->na", A, m.theta_cov_, A))
     assert np.all(std > 0) and std == pytest.approx(expected, rel=1e-9)
     assert "Sigma_theta" in result.t_test["u_model"]
+
+
+def _readings(n=20, seed=4):
+    rng = np.random.default_rng(seed)
+    return rng.uniform([0.6, -0.4, 0.2], [1.2, 0.4, 0.9], (n, 3)), rng
+
+
+def test_a_moved_set_up_is_one_rigid_shift():
+    P, rng = _readings()
+    moved = RigidTransform(Rotation.from_rotvec([2e-4, -1e-4, 3e-4]).as_matrix(), np.array([4e-4, -2e-4, 1e-4]))
+    d = moved.apply(P) - P + rng.normal(0, 2e-5, P.shape)
+    s = deployment.rigid_shift(P, d, np.full(3, 2e-5))
+    assert s.rigid and s.p_before < 1e-6 and s.p_after > 0.01 and "re-reference" in s.text
+    assert s.rotation_mrad == pytest.approx([0.2, -0.1, 0.3], abs=0.1)
+
+
+def test_a_changed_arm_is_not_a_rigid_shift():
+    """A joint's zero offset of the arm (the forearm's, as the sim's fault) gives differences that
+    change with the pose: not a set-up that moved."""
+    from dt_runtime.common.paths import CONFIGS
+    from dt_runtime.frames.kinematics import load_robot
+
+    chain = load_robot(CONFIGS / "robots" / "ur10.yaml")
+    rng = np.random.default_rng(9)
+    q = rng.uniform([-1.0, -2.0, -2.0, -2.0, 0.8, -1.0], [1.0, -1.0, -0.8, -0.8, 2.2, 1.0], (20, 6))
+    dq = np.zeros(6)
+    dq[2] = 5e-4  # 0.5 mrad on joint 3
+    P = chain.fk(q)
+    d = chain.fk(q + dq) - P + rng.normal(0, 2e-5, P.shape)
+    s = deployment.rigid_shift(P, d, np.full(3, 2e-5))
+    assert not s.rigid and s.p_before < 1e-6 and "the arm changed" in s.text
+
+
+def test_readings_within_u_are_no_shift_and_too_few_are_refused():
+    P, rng = _readings()
+    s = deployment.rigid_shift(P, rng.normal(0, 2e-5, P.shape), np.full(3, 2e-5))
+    assert not s.rigid and "no shift" in s.text
+    with pytest.raises(DataError, match="at least 6"):
+        deployment.rigid_shift(P[:5], P[:5] * 0, np.full(3, 2e-5))
