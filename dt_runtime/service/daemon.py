@@ -12,16 +12,16 @@ its truth and fault injection too) is built by `open_cell`, every driver by
 `drivers.registry.create` from `drivers.<kind>` (`kind` and the driver's options, checked before
 anything opens), the same way whatever their name.
 
-Module layout: this module is the composition root: `Daemon._start` builds every part in one
-place and registers what it opens on one `Parts` stack (closed newest first by `close()`, and
-when the start fails half way); it holds the two loops (`Daemon.tick`: target -> correct -> move
--> read -> test -> record; `Daemon._run_path`), pacing, start and stop. The parts: `targets` the
-target sources; `cell` the cell; `supervisor` the halt / trust / camera policy both loops ask;
-`paging` the escalation's records, maintenance requests and operator actions; `events` the
-typed events (a recorded transition, a request queued, health due) its parts subscribe to;
-`health` the `.../health` reporter and the status view the queries (`answers`) read; `counters`
-the one set of counters that `.../health`, the summary and the status line read; `housekeeping`
-the thread that is never the loop.
+Module layout: this module is the composition root: `Daemon._start` builds every part in one place
+and registers what it opens on one `Parts` stack (closed newest first by `close()`, and when the
+start fails half way); it holds the two loops (`Daemon.tick`: target -> correct -> move -> read ->
+test -> record; `Daemon._run_path`), pacing, start and stop. The parts: `preflight` the checks
+before anything opens; `targets` the target sources; `cell` the cell; `supervisor` the halt /
+trust / camera policy both loops ask; `paging` the escalation's records, maintenance requests and
+operator actions; `events` the typed events (a recorded transition, a request queued, health due)
+its parts subscribe to; `health` the `.../health` reporter and the status view the queries
+(`answers`) read; `counters` the one set of counters that `.../health`, the summary and the status
+line read; `housekeeping` the thread that is never the loop.
 
 Measurements and clocks. Every reading carries the device's time stamp (`t`) and the host's
 monotonic receive time (`host_time`, drivers.base). The MVS reading tested against a command is
@@ -29,20 +29,21 @@ one received after the command arrived (the move returned) or at most `max_measu
 before it; an older one saw the arm elsewhere and is refused, counted (`stale_measurements` in
 the summary and on `.../health`), and not tested.
 
-Escalation and paging (`service.paging`). Every transition of the machine is one store
-transaction with its snapshot and, on entering `maintenance_requested` or `halted`, that
-episode's maintenance requests; only then is it published and the bus woken to deliver the
-requests. At start-up a paging state without requests gets them, and the escalation statistics
-resume from the store (staged with every batch of rows).
+Escalation and paging (`service.paging`). Every transition of the machine is one store transaction
+with its snapshot and, on entering `maintenance_requested` or `halted`, that episode's maintenance
+requests; only then is it emitted (`service.events.Transition`): the bus publishes it and delivers
+the requests, the health reporter marks `.../health` due. At start-up a paging state without
+requests gets them, and the escalation statistics resume from the store (staged with every batch
+of rows).
 
-Halts (`service.supervisor`). Every command refused for `halt.after_refused` ticks, `halt.after_driver_faults` driver
-faults in a row, no MVS reading tested for `halt.after_camera_refused_s` (refused by the camera
-driver, too old, or rejected), or `out_of_control` under `halt.on_untrusted: halt`, put the
-machine in `halted` with the reason: stored, paged and published on `.../health`; the first two
-resume by themselves when a command goes through again; a camera halt stops the arm (it would
-move unmonitored), reads the camera once a tick and resumes at the first accepted reading. In
-`out_of_control` and `maintenance_requested` the correction is not trusted: by default the
-daemon commands the targets uncorrected.
+Halts (`service.supervisor`). Every command refused for `halt.after_refused` ticks,
+`halt.after_driver_faults` driver faults in a row, no MVS reading tested for
+`halt.after_camera_refused_s` (refused by the camera driver, too old, or rejected), or
+`out_of_control` under `halt.on_untrusted: halt`, put the machine in `halted` with the reason:
+stored, paged and published on `.../health`; the first two resume by themselves when a command
+goes through again; a camera halt stops the arm (it would move unmonitored), reads the camera once
+a tick and resumes at the first accepted reading. In `out_of_control` and `maintenance_requested`
+the correction is not trusted: by default the daemon commands the targets uncorrected.
 
 Operator. `dt ack` (or a signed `.../maintenance/done/<id>` on the bus) stores an operator
 action; the housekeeping thread picks it up and the loop applies it (`service.paging`).
@@ -77,9 +78,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers import registry
 from drivers.base import RigReading, read_exposed_after
-from dt_kernel.errors import ConfigError, DriverError, TwinError
+from dt_kernel.errors import DriverError, TwinError
 from dt_runtime.fabric.queries import QueryServer
 from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
@@ -89,7 +89,7 @@ from dt_runtime.service.correction import Check, Corrected, CorrectionFault, Cor
 from dt_runtime.service.correction_server import CorrectionServer
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.events import ActionQueued, Events, RequestsQueued, Transition
-from dt_runtime.service.health import CellStatus, HealthReporter
+from dt_runtime.service.health import CellStatus, HealthReporter, StatusLine
 from dt_runtime.service.housekeeping import Housekeeper
 from dt_runtime.service.paging import Paging
 from dt_runtime.service.path_run import (
@@ -101,8 +101,9 @@ from dt_runtime.service.path_run import (
     check_streaming_robot,
     plan_path,
 )
+from dt_runtime.service.preflight import check_camera, check_condition_sources, check_model
 from dt_runtime.service.publisher import Bus
-from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow, shown_time
+from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,
     Fault,
@@ -140,6 +141,9 @@ def _close_quietly(close: Callable[..., Any], *args: Any, **kwds: Any) -> None:
 
 
 class Daemon:
+    """The twin daemon of one cell (module docstring): built whole or not at all, then `run`,
+    `stop`, `close`."""
+
     def __init__(self, cfg: RuntimeConfig, base: Path, world=None, source: str = "<runtime config>",
                  status_every_s: float | None = None):
         self.cfg, self.base, self.source = cfg, base, source  # source: names the runtime YAML in errors
@@ -156,8 +160,9 @@ class Daemon:
         `self._parts` as soon as it is open."""
         cfg, parts = self.cfg, self._parts
         cfg.drivers.check(self.source)  # an unknown driver or a bad option: nothing is opened yet
-        self.twin = Twin.load(self._p(cfg.twin))
-        self._check_instruments()
+        twin_dir = self._p(cfg.twin)
+        self.twin = Twin.load(twin_dir)
+        check_camera(self.twin, twin_dir, cfg.drivers.camera.kind)
         # Read before anything is opened: a bad program stops the start with nothing to close.
         file = self._p(cfg.path.program) if cfg.path.program is not None else None
         self._program = read_program(file) if file is not None and cfg.path.kind == "program" else None
@@ -165,8 +170,9 @@ class Daemon:
         if file is not None and cfg.path.kind == "path":
             check_streaming_robot(cfg.drivers.robot.kind, self.source)
             self._plan = plan_path(self.twin, file, cfg.rate_hz, cfg.limits, self.source)
-        self._check_condition_sources()
-        self._check_model()
+        check_condition_sources(self.twin, twin_dir, cfg.drivers, self._program)
+        check_model(self.twin, twin_dir, self._plan.sp.p[0] if self._plan is not None
+                    else probe_point(cfg.path, self._program), 0.5 * cfg.limits.max_speed_m_s)
         self.corrector = Corrector(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
         self.counters = Counters()
@@ -198,6 +204,7 @@ class Daemon:
         self.reporter = HealthReporter(self.supervisor.status, self.escalator, self.counters, self.store, self._now,
                                        self.inst, self.bus, self.events,
                                        stream=stream.to_dict if stream is not None else lambda: None)
+        self.status_line = StatusLine(self.supervisor.status, self.counters, self.escalator, self.path)
         self.housekeeper = Housekeeper(
             self._stop, self.events, take_actions=self.paging.take_actions, send_health=self.reporter.send,
             prune=self.prune, status_line=self.status_line, last_tick_mono=lambda: self.counters.last_tick_mono,
@@ -206,8 +213,6 @@ class Daemon:
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
         self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
         self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
-        self._last_corrected: tuple[float, Corrected] | None = None  # (t, the last command sent), for status_line
-        self._status_mark = (time.monotonic(), 0)  # (when, ticks) of the last status line: its rate
         # The plant asks every cell on `dt/<cell>/<robot>/<kind>` (docs/plant.md): served once the daemon is whole.
         view = CellStatus(self.reporter, self.store, self.counters, self.escalator)
         twin = twin_identity(self.twin, self._p(cfg.twin))
@@ -243,45 +248,6 @@ class Daemon:
         ps.restore(self.paging.saved_extra.get("path"))
         return ps
 
-    def _check_instruments(self) -> None:
-        """A twin is valid only with the camera driver it was calibrated with."""
-        trained, kind = self.twin.instruments.get("camera"), self.cfg.drivers.camera.kind
-        if trained and trained != kind:
-            raise ConfigError(str(self._p(self.cfg.twin) / "twin.json"), "instruments.camera", trained,
-                              f"the daemon's camera driver '{kind}': a twin is valid only "
-                              "with the instruments (and frames) it was calibrated with")
-
-    def _check_condition_sources(self) -> None:
-        """Every condition the twin's maps read must have a source, or the start fails (not every
-        command later): joint angles from the controller, the clock always; temperature and
-        payload from the program's columns or the simulated cell (a real cell's sensor driver:
-        not yet available)."""
-        sim = any(registry.needs_world(k, n) for k, n, _ in self.cfg.drivers.chosen())
-        for need in self.twin.needs:
-            if need in ("temperature", "payload") and not sim and getattr(self._program, need, None) is None:
-                raise ConfigError(str(self._p(self.cfg.twin) / "twin.json"), "e_lt effects", need,
-                                  f"a source of {need}: a program (path.kind program) with a {need} column, or "
-                                  "the simulated cell's drivers")
-
-    def _check_model(self) -> None:
-        """The twin's maps must predict finite errors: a model file with NaN in it stops the
-        start (exit non-zero, nothing opened) instead of refusing every command later. Probed at
-        the path's first target (a map that also reads conditions is checked command by command:
-        a NaN there is refused, counted and, repeated, halts)."""
-        if self.twin.needs:
-            return
-        probe = self._plan.sp.p[0] if self._plan is not None else probe_point(self.cfg.path, self._program)
-        v = 0.5 * self.cfg.limits.max_speed_m_s
-        try:
-            e = np.concatenate([np.ravel(self.twin.e_lt_hat(probe, v)[0]),
-                                np.ravel(self.twin.e_mvs_lt_hat(probe, v)[0])])
-        except (TwinError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            raise ConfigError(str(self._p(self.cfg.twin)), "e_lt", "unusable",
-                              f"a model that predicts ({exc})") from exc
-        if not np.all(np.isfinite(e)):
-            raise ConfigError(str(self._p(self.cfg.twin)), "e_lt", f"prediction {e.tolist()} m",
-                              "finite predictions: the model file holds NaN or inf (refit it)")
-
     def _conditions(self, step: int | None) -> Conditions | None:
         """The conditions of the next command, when the twin's maps read any (else None: the
         paper's map needs none and the loop reads nothing more)."""
@@ -303,34 +269,6 @@ class Daemon:
     def health(self) -> dict[str, Any]:
         """What `.../health` carries (`service.health.HealthReporter`)."""
         return self.reporter.health()
-
-    def status_line(self) -> tuple[str, dict[str, Any]]:
-        """The operator's one line (`dt run` logs it every `status_every_s`): ticks and their rate
-        since the last line, status and escalation state, the time of the last command and the
-        expanded uncertainty (95 %) of the position it reached; and the same as fields."""
-        now, ticks = time.monotonic(), self.counters.ticks
-        then, before = self._status_mark
-        self._status_mark = (now, ticks)
-        rate = (ticks - before) / (now - then) if now > then else 0.0
-        status, reason = self.supervisor.status()
-        failures = self.counters.failures
-        f: dict[str, Any] = {"ticks": ticks, "rate_hz": round(rate, 2), "status": status, "reason": reason,
-                             "escalation": self.escalator.state, "t_test_failures": failures}
-        text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
-            f", escalation {self.escalator.state}, Eq. 17 failed {failures}"
-        if self.path is not None:  # a path: where the stream is, not a last command
-            st = self.path.state
-            f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}
-            return text + f", path {st.state}, pass {st.pass_started}, at {self.path.plan.where(st.next)}", f
-        last = self._last_corrected
-        if last is None:
-            return text + ", no command yet", f
-        t, corr = last
-        U = [round(float(u) * 1e3, 4) for u in corr.U_tcp] if np.all(np.isfinite(corr.U_tcp)) else None
-        f |= {"last_t": t, "U95_mm": U, "inside": corr.inside}
-        return (text + f", last command {shown_time(t)}, U95 "
-                + ("x/y/z " + "/".join(f"{u:.3f}" for u in U) + " mm" if U else "none (sent uncorrected)")
-                + ("" if corr.inside else " (outside the calibrated volume)")), f
 
     def prune(self) -> int:
         """Apply the retention policy to the store's high-rate rows; returns rows deleted."""
@@ -424,7 +362,7 @@ class Daemon:
         x, y, z = corr.target
         self.store.put(CommandRow(t, x, y, z, speed=v))
         self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
-        self._last_corrected = (t, corr)
+        self.status_line.last = (t, corr)
         return arrived, t
 
     def _read(self, arrived: float) -> RigReading | None:

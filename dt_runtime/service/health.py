@@ -5,6 +5,8 @@ counters, the outbox, each driver's own counters, the bus's refusals, a path's s
 marks it due on a change (`changed`, no I/O: the loop calls it every tick; a recorded
 `Transition` forces it) by emitting `HealthDue`, and sends it (`send`, from the housekeeping
 thread). `CellStatus` is what `service.answers` reads: health, requests, tests, nothing else.
+`StatusLine` is the operator's one line (`dt run --status-every`), written by the housekeeping
+thread.
 """
 from __future__ import annotations
 
@@ -14,10 +16,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
+from dt_runtime.service.correction import Corrected
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.escalation import Escalator
 from dt_runtime.service.events import Events, HealthDue, Transition
+from dt_runtime.service.path_run import PathStreamer
 from dt_runtime.service.publisher import Bus
+from dt_runtime.service.rows import shown_time
 from dt_runtime.service.store import OutboxItem, Store, StoreError
 
 
@@ -131,3 +138,52 @@ class CellStatus:
     def escalation(self) -> str:
         """The escalation's state."""
         return self.escalator.state
+
+
+class StatusLine:
+    """The operator's one line: ticks and their rate since the last line, status and escalation
+    state, then where a path's stream is, or the time of the last command (`last`, set by the
+    loop) and the expanded uncertainty (95 %) of the position it reached.
+
+    Parameters
+    ----------
+    status : callable
+        (running | degraded | halted, why), no I/O (`Supervisor.status`).
+    counters : Counters
+        The daemon's counters.
+    escalator : Escalator
+        The machine (its state).
+    path : PathStreamer or None
+        A path program's streamer (its state), None for a point program.
+    """
+
+    def __init__(self, status: Callable[[], tuple[str, str | None]], counters: Counters, escalator: Escalator,
+                 path: PathStreamer | None):
+        self.status, self.counters, self.escalator, self.path = status, counters, escalator, path
+        self.last: tuple[float, Corrected] | None = None  # (t, the last command sent)
+        self._mark = (time.monotonic(), 0)  # (when, ticks) of the last line: its rate
+
+    def __call__(self) -> tuple[str, dict[str, Any]]:
+        """The line now, and the same as fields (the log's JSON)."""
+        now, ticks = time.monotonic(), self.counters.ticks
+        then, before = self._mark
+        self._mark = (now, ticks)
+        rate = (ticks - before) / (now - then) if now > then else 0.0
+        status, reason = self.status()
+        failures, state = self.counters.failures, self.escalator.state
+        f: dict[str, Any] = {"ticks": ticks, "rate_hz": round(rate, 2), "status": status, "reason": reason,
+                             "escalation": state, "t_test_failures": failures}
+        text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
+            f", escalation {state}, Eq. 17 failed {failures}"
+        if self.path is not None:  # a path: where the stream is, not a last command
+            st = self.path.state
+            f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}
+            return text + f", path {st.state}, pass {st.pass_started}, at {self.path.plan.where(st.next)}", f
+        if self.last is None:
+            return text + ", no command yet", f
+        t, corr = self.last
+        U = [round(float(u) * 1e3, 4) for u in corr.U_tcp] if np.all(np.isfinite(corr.U_tcp)) else None
+        f |= {"last_t": t, "U95_mm": U, "inside": corr.inside}
+        return (text + f", last command {shown_time(t)}, U95 "
+                + ("x/y/z " + "/".join(f"{u:.3f}" for u in U) + " mm" if U else "none (sent uncorrected)")
+                + ("" if corr.inside else " (outside the calibrated volume)")), f
