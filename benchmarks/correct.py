@@ -18,9 +18,10 @@ import numpy as np
 
 from benchmarks._common import cli, emit
 from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.correction_client import request_correction
 from dt_runtime.fabric.session import close_session, open_session
-from dt_runtime.service.correction import Corrector, Limits
-from dt_runtime.service.correction_server import CorrectionServer, request_correction
+from dt_runtime.service.correction_server import CorrectionServer
+from dt_runtime.twin.bounds import Guard, Limits
 from dt_runtime.twin.twin import Twin
 
 
@@ -47,7 +48,7 @@ def run(n: int = 500, twin_dir: str = "") -> dict:
     # Targets along a path inside the DOE volume (the Corrector bounds the step between commands).
     s = np.linspace(0, 2 * np.pi, n)
     targets = np.column_stack([0.9 + 0.1 * np.cos(s), 0.1 * np.sin(s), 0.55 + 0.02 * rng.standard_normal(n)])
-    inproc = Corrector(twin, Limits())
+    inproc = Guard(twin, Limits())
     t_in = []
     for x in targets:
         t0 = time.perf_counter()
@@ -55,7 +56,7 @@ def run(n: int = 500, twin_dir: str = "") -> dict:
         t_in.append(time.perf_counter() - t0)
     port = _free_port()
     cfg = BusConfig(cell="bench", robot="r1", listen=[f"tcp/127.0.0.1:{port}"])
-    server = CorrectionServer(Corrector(twin, Limits()), cfg)
+    server = CorrectionServer(Guard(twin, Limits()), cfg)
     client = open_session(BusConfig(cell="bench", robot="prog", listen=[f"tcp/127.0.0.1:{_free_port()}"],
                                     connect=[f"tcp/127.0.0.1:{port}"]))
     key = cfg.key("correct")

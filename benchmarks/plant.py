@@ -24,6 +24,13 @@ Keys: `cells`, `duration_s`, `offered_msgs_per_s` (what the fleet was asked to p
 fleet's publishing slots that started more than a period late), `saturated` and `saturated_by`
 (delivered_ratio < 0.95, a request lost, the fleet late in > 5 % of slots, the consumer or the
 router above 90 % of a core, p99 latency > 1 s). `--quick`: 5 cells, 3 s (the test's run).
+
+`--netns [--delay-ms 5-20]` (root, `ip`, `tc`): the same workload first on loopback (the
+reference), then with the router, the inbox and each fleet process (4 by default) in network
+namespaces of their own, joined by links of a seeded latency in that range each way
+(tests.support.netns: `tc netem`, or a delay relay where the kernel has no netem). Extra keys:
+`netns` {`namespaces`, `links`, `delay_mode`, `link_delay_ms` {`min`, `max`}}, `loopback` (the
+reference's delivery, requests, `lost` and latency) and `p99_vs_loopback`.
 """
 from __future__ import annotations
 
@@ -70,15 +77,15 @@ def _raise_fd_limit() -> None:
     resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
 
 
-def _client(port: int, cell: str, robot: str):
+def _client(endpoint: str, cell: str, robot: str):
     from dt_runtime.fabric import BusConfig
 
-    return BusConfig(cell=cell, robot=robot, mode="client", connect=[f"tcp/127.0.0.1:{port}"], extra=NO_SHM)
+    return BusConfig(cell=cell, robot=robot, mode="client", connect=[endpoint], extra=NO_SHM)
 
 
 # --------------------------------------------------------------------------- the consumer process
 
-def consumer(port: int, out: str, history: str) -> None:
+def consumer(endpoint: str, out: str, history: str) -> None:
     """The plant's inbox and a monitor of health and telemetry until a line arrives on stdin; its
     figures to `out`."""
     import zenoh
@@ -99,9 +106,9 @@ def consumer(port: int, out: str, history: str) -> None:
                 counts[kind] += 1
         return cb
 
-    monitor = open_session(_client(port, "plant", "monitor"))
+    monitor = open_session(_client(endpoint, "plant", "monitor"))
     subs = [monitor.declare_subscriber(f"dt/*/*/{k}", count(k)) for k in counts]
-    inbox = PlantInbox(_client(port, "plant", "inbox"), history, on_request=on_request)
+    inbox = PlantInbox(_client(endpoint, "plant", "inbox"), history, on_request=on_request)
     print("ready", flush=True)
     c0, t0 = time.process_time(), time.monotonic()
     sys.stdin.readline()
@@ -118,7 +125,7 @@ def consumer(port: int, out: str, history: str) -> None:
 
 # --------------------------------------------------------------------------- the fleet process
 
-def fleet(port: int, out: str, first: int, count: int, seconds: float, drain: float, rate_hz: float,
+def fleet(endpoint: str, out: str, first: int, count: int, seconds: float, drain: float, rate_hz: float,
           request_period: float, seed: int) -> None:
     """`count` light cells from index `first` (module docstring); figures to `out`."""
     import zenoh
@@ -129,7 +136,7 @@ def fleet(port: int, out: str, first: int, count: int, seconds: float, drain: fl
     _raise_fd_limit()
     rng = random.Random(seed + first)
     cells = [f"cell{first + i:04d}" for i in range(count)]
-    signer = Signer(_client(port, cells[0], "r1").auth, create=True)
+    signer = Signer(_client(endpoint, cells[0], "r1").auth, create=True)
     sessions, pubs, subs = [], [], []
     pending: dict[tuple[str, str], dict] = {}  # (cell, uid) -> request body (with id, attempt)
     lock = threading.Lock()
@@ -147,7 +154,7 @@ def fleet(port: int, out: str, first: int, count: int, seconds: float, drain: fl
                 acked += 1
 
     for c in cells:
-        s = open_session(_client(port, c, "r1"))
+        s = open_session(_client(endpoint, c, "r1"))
         sessions.append(s)
         pubs.append({k: s.declare_publisher(f"dt/{c}/r1/{k}", encoding=zenoh.Encoding.APPLICATION_JSON,
                                             congestion_control=cc, priority=prio)
@@ -263,22 +270,63 @@ def _free_port() -> int:
 
 
 def run(cells: int = 10, duration: float = 20.0, rate_hz: float = 10.0, request_period: float = 30.0,
-        drain: float = 20.0, fleet_procs: int = 0, seed: int = 0) -> dict[str, Any]:
+        drain: float = 20.0, fleet_procs: int = 0, seed: int = 0, netns: bool = False,
+        delay_ms: str = "5-20") -> dict[str, Any]:
+    """The plant on loopback; with `netns`, across network namespaces (module docstring), after the
+    same workload on loopback as the reference."""
+    if not netns:
+        return _run(cells, duration, rate_hz, request_period, drain, fleet_procs or max(1, math.ceil(cells / 500)),
+                    seed)
+    from tests.support.netns import netns_links, unavailable
+
+    why = unavailable()
+    if why:
+        raise RuntimeError(f"--netns: {why}")
+    lo, _, hi = delay_ms.partition("-")
+    span = (float(lo), float(hi or lo))
+    n_fleet = min(cells, fleet_procs or 4)
+    ref = _run(cells, duration, rate_hz, request_period, drain, n_fleet, seed)
+    with netns_links(["inbox", *(f"fleet{k}" for k in range(n_fleet))], span, seed) as links:
+        res = _run(cells, duration, rate_hz, request_period, drain, n_fleet, seed, links)
+        delays = list(links.delay_ms.values())
+        res["netns"] = {"namespaces": len(delays) + 1, "links": len(delays), "delay_mode": links.mode,
+                        "link_delay_ms": {"min": min(delays), "max": max(delays)}}
+    p99, ref_p99 = res["request_latency_ms"]["p99"], ref["request_latency_ms"]["p99"]
+    res["loopback"] = {k: ref[k] for k in ("msgs_per_s", "delivered_ratio", "requests", "lost", "request_latency_ms",
+                                           "saturated")}
+    res["p99_vs_loopback"] = round(p99 / ref_p99, 2) if p99 and ref_p99 else None
+    return res
+
+
+def _run(cells: int, duration: float, rate_hz: float, request_period: float, drain: float, fleet_procs: int,
+         seed: int, links=None) -> dict[str, Any]:
+    """One run; `links` (tests.support.netns.Links): the router, the inbox and each fleet process in
+    namespaces of their own (nodes `router`, `inbox`, `fleet<k>`)."""
     from dt_runtime.common.paths import ROOT
 
-    n_fleet = min(cells, fleet_procs or max(1, math.ceil(cells / 500)))
+    n_fleet = min(cells, fleet_procs)
     procs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory(prefix="dt-plant-bench-") as tmp_s:
         tmp = Path(tmp_s)
         env = dict(os.environ, XDG_CONFIG_HOME=str(tmp / "config"))  # the service's key, shared by all
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-        port = _free_port()
+        loopback = f"tcp/127.0.0.1:{_free_port()}"
+
+        def spawn(node: str, args: list[str], log: Path, stdin: bool = False) -> subprocess.Popen:
+            if links is None:
+                return _spawn(args, log, env, stdin)
+            return links.popen(node, [sys.executable, *args], log, env=env, stdout=subprocess.PIPE,
+                               stdin=subprocess.PIPE if stdin else subprocess.DEVNULL)
+
+        def endpoint(node: str) -> str:
+            return loopback if links is None else links.endpoint(node)
+
         cfg = tmp / "plant.yaml"
         # the router's defaults: max_sessions 10000, shared memory off (dt_runtime.plant.config)
-        cfg.write_text(json.dumps({"router": {"listen": [f"tcp/127.0.0.1:{port}"]}}))
+        cfg.write_text(json.dumps({"router": {"listen": [loopback if links is None else links.router_listen]}}))
         try:
             rlog = tmp / "router.log"
-            router = _spawn(["-m", "dt_runtime.cli.main", "router", "--config", str(cfg)], rlog, env)
+            router = spawn("router", ["-m", "dt_runtime.cli.main", "router", "--config", str(cfg)], rlog)
             procs.append(router)
             end = time.monotonic() + 120
             while "dt router: listening" not in rlog.read_text() and router.poll() is None and time.monotonic() < end:
@@ -286,20 +334,20 @@ def run(cells: int = 10, duration: float = 20.0, rate_hz: float = 10.0, request_
             if router.poll() is not None or "dt router: listening" not in rlog.read_text():
                 raise RuntimeError(f"the router did not start: {rlog.read_text()[-2000:]}")
             clog = tmp / "consumer.log"
-            cons = _spawn(["-m", "benchmarks.plant", "consumer", json.dumps(
-                {"port": port, "out": str(tmp / "consumer.json"), "history": str(tmp / "history.sqlite")})],
-                clog, env, stdin=True)
+            cons = spawn("inbox", ["-m", "benchmarks.plant", "consumer", json.dumps(
+                {"endpoint": endpoint("inbox"), "out": str(tmp / "consumer.json"),
+                 "history": str(tmp / "history.sqlite")})], clog, stdin=True)
             procs.append(cons)
             _ready(cons, clog)
             fleets = []
-            per = math.ceil(cells / n_fleet)
             for k in range(n_fleet):
-                first, count = k * per, min(per, cells - k * per)
+                first = k * cells // n_fleet  # the cells split evenly over the fleet processes
+                count = (k + 1) * cells // n_fleet - first
                 log = tmp / f"fleet{k}.log"
-                f = _spawn(["-m", "benchmarks.plant", "fleet", json.dumps(
-                    {"port": port, "out": str(tmp / f"fleet{k}.json"), "first": first, "count": count,
-                     "seconds": duration, "drain": drain, "rate_hz": rate_hz, "request_period": request_period,
-                     "seed": seed})], log, env)
+                f = spawn(f"fleet{k}", ["-m", "benchmarks.plant", "fleet", json.dumps(
+                    {"endpoint": endpoint(f"fleet{k}"), "out": str(tmp / f"fleet{k}.json"), "first": first,
+                     "count": count, "seconds": duration, "drain": drain, "rate_hz": rate_hz,
+                     "request_period": request_period, "seed": seed})], log)
                 procs.append(f)
                 fleets.append((f, log))
             for f, log in fleets:
@@ -376,11 +424,12 @@ def main(argv: list[str] | None = None) -> int:
         (consumer if role == "consumer" else fleet)(**params)
         return 0
     a = cli(__doc__.splitlines()[0], argv, cells=10, duration=20.0, rate_hz=10.0, request_period=30.0,
-            drain=20.0, fleet_procs=0, seed=0, quick=False)
+            drain=20.0, fleet_procs=0, seed=0, quick=False, netns=False, delay_ms="5-20")
     if a.quick:
         a.cells, a.duration, a.drain = 5, 3.0, 15.0
-    emit(run(a.cells, a.duration, a.rate_hz, a.request_period, a.drain, a.fleet_procs, a.seed), a.json,
-         f"plant: {a.cells} light cells through a router on loopback")
+    where = f"across network namespaces, links of {a.delay_ms} ms" if a.netns else "on loopback"
+    emit(run(a.cells, a.duration, a.rate_hz, a.request_period, a.drain, a.fleet_procs, a.seed, a.netns, a.delay_ms),
+         a.json, f"plant: {a.cells} light cells through a router {where}")
     return 0
 
 

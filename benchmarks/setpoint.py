@@ -1,13 +1,15 @@
 """`python -m benchmarks.setpoint [--json]`: the per-set-point cost of a corrected path at the
-controller's rate (issue 23, item 4), against the per-command code in the same run.
+controller's rate, against the correction law written plainly, measured in the same run.
 
 A weld seam (lines and an arc, 250 mm/s, `dt correct --path`'s format) interpolated at --rate Hz;
 on every set-point, CPU time (time.process_time, one BLAS thread) per call of
 - the inverse kinematics: `frames.newton_ik` warm-started from the previous set-point's joints vs
   `Chain.ik` from the same seed (the baseline);
 - the whole correction (GP mean + std, the effect terms, the IK where the map reads joints, Eq. 11's
-  U and the volume flag): `twin.setpoint.SetpointCorrector` vs `Twin.correct` under the same
-  conditions (the baseline), and the largest difference of their commands and U (mm);
+  U and the volume flag): `twin.corrector.Corrector` (the one law every correction runs through)
+  vs the law written plainly (tests/support/reference_correction.py: the map's own Inputs,
+  `Chain.ik`, the labelled Eq. 11 budget) under the same conditions (the baseline), and the largest
+  difference of their commands and U (mm);
 on the quick demo's twin (the paper's map: GP of TCP and speed) and on the same campaign calibrated
 with the geometric effect (a joint-space map). The twins are trained into a temporary directory
 (~1 min) unless --twin / --geometric-twin name them.
@@ -108,10 +110,11 @@ def _ik(chain, path, sp) -> dict:
 
 def _correction(twin_dir: Path, path, sp) -> dict:
     from dt_runtime.twin.conditions import Conditions
-    from dt_runtime.twin.setpoint import SetpointCorrector
+    from dt_runtime.twin.corrector import Corrector
     from dt_runtime.twin.twin import Twin
+    from tests.support.reference_correction import ReferenceCorrector
 
-    twin, fast = Twin.load(twin_dir), SetpointCorrector(Twin.load(twin_dir))
+    twin, fast = Twin.load(twin_dir), Corrector(Twin.load(twin_dir))
     joints = "joints" in twin.needs
     conds, got, us_fast = [], [], []
     q, prev = (path.joints if joints else None), None
@@ -125,11 +128,11 @@ def _correction(twin_dir: Path, path, sp) -> dict:
         got.append(r)
         q, prev = (r.joints if joints else None), r.command
     # warm: the fixed point started from the previous set-point's correction (what the loop does)
-    warm_fast = SetpointCorrector(Twin.load(twin_dir))
+    warm_fast = Corrector(Twin.load(twin_dir))
     warm_args = [(sp.p[k], float(sp.programmed[k]), conds[k], None if k == 0 else got[k - 1].command - sp.p[k - 1])
                  for k in range(sp.n)]
     warm, us_warm = _timed(warm_fast.correct, warm_args)
-    ref, us_base = _timed(twin.correct, [(sp.p[k], float(sp.programmed[k]), conds[k]) for k in range(sp.n)])
+    ref, us_base = _timed(ReferenceCorrector(twin).correct, [(sp.p[k], float(sp.programmed[k]), conds[k]) for k in range(sp.n)])
     f, w, b = _stats(us_fast), _stats(us_warm), _stats(us_base)
     diff = max(max(np.abs(g.command - r.command).max(), np.abs(g.U - r.U).max()) for g, r in zip(got, ref))
     diff_w = max(max(np.abs(g.command - r.command).max(), np.abs(g.U - r.U).max()) for g, r in zip(warm, ref))
@@ -167,7 +170,7 @@ def main() -> None:
         c = t["correction_us"]
         print(f"  correction, {name} twin (needs {', '.join(t['needs']) or 'nothing'}): fast {c['fast']['mean']} us "
               f"(p99 {c['fast']['p99']}), warm-started {c['warm']['mean']} us (p99 {c['warm']['p99']}), "
-              f"Twin.correct {c['baseline']['mean']} us (p99 {c['baseline']['p99']}), "
+              f"plain law {c['baseline']['mean']} us (p99 {c['baseline']['p99']}), "
               f"x{c['speedup']}, max difference {t['max_diff_mm']:.1e} mm; target <= {TARGETS_US['correction']} us")
 
 

@@ -17,7 +17,7 @@ The path (`PATH`, `dt correct --path`'s format, programs.path): a straight line,
 calibrated volume, at 100, 250 and 500 mm/s (acceleration 4000 mm/s^2), interpolated at the
 controller's rate. Three passes per speed:
 - `uncorrected`: the nominal set-points streamed as they are;
-- `corrected`: each set-point corrected by the twin in the loop (`SetpointCorrector`, the quick
+- `corrected`: each set-point corrected by the twin in the loop (`Corrector.follow`, the quick
   demo's twin: a GP of TCP and speed, the programmed speed as its speed input);
 - `lag_compensated`: the servo lag estimated by `programs.lag.estimate_lag` from the corrected pass
   (its truth stands in for a tracker or camera measuring that pass: the measured positions are the

@@ -28,7 +28,24 @@ UNCONFIGURED, INACTIVE, ACTIVE, CLOSED = "unconfigured", "inactive", "active", "
 
 def reject_keys(config: Mapping[str, Any], source: str, allowed: tuple[str, ...] = (),
                 what: str = "this driver") -> None:
-    """ConfigError naming the first key of `config` that is not in `allowed`."""
+    """Refuse a driver config that holds a key the driver does not know.
+
+    Parameters
+    ----------
+    config : Mapping
+        The driver's options as given.
+    source : str
+        Names the config in the error (e.g. the YAML file).
+    allowed : tuple of str
+        The keys the driver knows (none by default).
+    what : str
+        Names the driver in the error's hint.
+
+    Raises
+    ------
+    ConfigError
+        Naming the first unknown key (in sorted order) and listing the allowed ones.
+    """
     unknown = sorted(set(config) - set(allowed))
     if unknown:
         known = ", ".join(allowed) if allowed else "none"
@@ -53,8 +70,28 @@ class Lifecycle:
     @classmethod
     def from_config(cls, config: Mapping[str, Any] | None = None, *, world: Any = None,
                     source: str = "<driver config>"):
-        """The one way to build any driver: `cls(world=world, source=source)`, configured with
-        `config` when one is given (state `inactive`), else left `unconfigured`."""
+        """The one way to build any driver: ``cls(world=world, source=source)``, then configured.
+
+        Parameters
+        ----------
+        config : Mapping or None
+            The driver's options; given, the driver is configured (state ``inactive``); None leaves
+            it ``unconfigured``.
+        world : object, optional
+            The simulated cell, for drivers with ``needs_world = True``; others ignore it.
+        source : str
+            Names the config in errors.
+
+        Returns
+        -------
+        Lifecycle
+            The driver, of class ``cls``.
+
+        Raises
+        ------
+        ConfigError
+            When ``configure`` refuses the options.
+        """
         drv = cls(world=world, source=source)
         if config is not None:
             drv.configure(config)
@@ -62,6 +99,7 @@ class Lifecycle:
 
     @property
     def state(self) -> str:
+        """The lifecycle state: ``unconfigured``, ``inactive``, ``active`` or ``closed``."""
         return self._state
 
     def _require(self, *states: str) -> None:
@@ -72,21 +110,50 @@ class Lifecycle:
             )
 
     def configure(self, config: Mapping[str, Any] | None = None) -> None:
+        """Check and apply the driver's options (from ``unconfigured`` or ``inactive``; ends ``inactive``).
+
+        Parameters
+        ----------
+        config : Mapping or None
+            The driver's options; None is an empty mapping.
+
+        Raises
+        ------
+        StateError
+            When the driver is ``active`` or ``closed``.
+        ConfigError
+            When the driver refuses an option.
+        """
         self._require(UNCONFIGURED, INACTIVE)
         self._on_configure(dict(config or {}))
         self._state = INACTIVE
 
     def activate(self) -> None:
+        """Open the device (from ``inactive``; ends ``active``).
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``inactive``.
+        """
         self._require(INACTIVE)
         self._on_activate()
         self._state = ACTIVE
 
     def deactivate(self) -> None:
+        """Release the device (from ``active``; ends ``inactive``).
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        """
         self._require(ACTIVE)
         self._on_deactivate()
         self._state = INACTIVE
 
     def close(self) -> None:
+        """Close the driver for good (deactivating it first when ``active``); closing twice does nothing."""
         if self._state == CLOSED:
             return
         if self._state == ACTIVE:
@@ -118,16 +185,27 @@ class Abortable:
 
     @property
     def abort_event(self) -> threading.Event:
+        """The Event ``abort`` sets (created on first use); a driver's waits poll it."""
         ev = self.__dict__.get("_abort_ev")
         if ev is None:
             ev = self.__dict__.setdefault("_abort_ev", threading.Event())
         return ev
 
     def abort(self, reason: str = "stopping") -> None:
+        """Make a move or request in flight end with DriverError and refuse later ones until ``clear_abort``.
+
+        Only sets an Event: safe from any thread or a signal handler.
+
+        Parameters
+        ----------
+        reason : str
+            Stated in the DriverError.
+        """
         self._abort_reason = str(reason)
         self.abort_event.set()
 
     def clear_abort(self) -> None:
+        """Accept moves and requests again after ``abort``."""
         self.abort_event.clear()
 
     def _check_abort(self) -> None:
@@ -152,6 +230,9 @@ class _Stamped:
 
 @dataclass(frozen=True)
 class JointState(_Stamped):
+    """Joint positions read from the controller: ``q`` (rad, encoders), ``t`` (s, device clock),
+    ``host_time`` (s, host monotonic clock at receipt).
+    """
     q: np.ndarray  # rad, encoder reading
     t: float  # s, device clock
     host_time: float = field(default_factory=time.monotonic)  # s, host monotonic clock at receipt
@@ -159,6 +240,10 @@ class JointState(_Stamped):
 
 @dataclass(frozen=True)
 class TrackerReading(_Stamped):
+    """One laser-tracker measurement: ``point`` (3,) m in the tracker frame, ``spherical``
+    (distance m, azimuth rad, elevation rad), ``t`` (s, device clock), ``status`` ("ok" or a reason
+    such as "beam_broken") and ``host_time`` (s, host monotonic clock at receipt).
+    """
     point: np.ndarray  # (3,) m, tracker frame (cartesian from d, azimuth, elevation)
     spherical: tuple[float, float, float]  # (d m, azimuth rad, elevation rad)
     t: float  # s, device clock
@@ -167,11 +252,17 @@ class TrackerReading(_Stamped):
 
     @property
     def ok(self) -> bool:
+        """True when the tracker measured (``status == "ok"``)."""
         return self.status == "ok"
 
 
 @dataclass(frozen=True)
 class RigReading(_Stamped):
+    """One camera-rig measurement of the TCP point: ``point`` (3,) m in the MVS frame (None
+    when refused), ``t`` (s, device clock, the exposure), ``cov`` (3, 3) m^2 when known, ``quality``
+    (markers_used, cameras_used, reproj_rms_px, ...), ``refused`` (the reason, when no point is
+    reported) and ``host_time`` (s, host monotonic clock at receipt of the frames).
+    """
     point: np.ndarray | None  # (3,) m, MVS frame; None when refused
     t: float  # s, device clock (the frame's exposure)
     cov: np.ndarray | None = None  # (3,3) m^2 propagated from pixel noise, if known
@@ -181,31 +272,76 @@ class RigReading(_Stamped):
 
     @property
     def ok(self) -> bool:
+        """True when a point was measured (not refused)."""
         return self.refused is None and self.point is not None
 
 
 @runtime_checkable
 class RobotController(Protocol):
+    """What every robot-controller driver offers: the lifecycle, linear moves, joint and TCP reads, abort."""
     state: str
 
-    def configure(self, config: Mapping[str, Any] | None = None) -> None: ...
-    def activate(self) -> None: ...
-    def deactivate(self) -> None: ...
-    def close(self) -> None: ...
+    def configure(self, config: Mapping[str, Any] | None = None) -> None:
+        """Check and apply the driver's options (see ``Lifecycle.configure``).
+
+        Parameters
+        ----------
+        config : Mapping or None
+            The driver's options.
+        """
+        ...
+    def activate(self) -> None:
+        """Connect to the controller (see ``Lifecycle.activate``)."""
+        ...
+    def deactivate(self) -> None:
+        """Disconnect from the controller (see ``Lifecycle.deactivate``)."""
+        ...
+    def close(self) -> None:
+        """Close the driver for good (see ``Lifecycle.close``)."""
+        ...
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
-        """Linear move of the TCP to `target` (m, robot frame) at `speed` (m/s); returns when settled."""
+        """Linear move of the TCP; returns when settled.
 
-    def read_joint_state(self) -> JointState: ...
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        speed : float
+            m/s.
+
+        Raises
+        ------
+        DriverError
+            When the arguments are out of range, the move fails or is aborted.
+        """
+
+    def read_joint_state(self) -> JointState:
+        """The joint positions from the encoders.
+
+        Returns
+        -------
+        JointState
+        """
+        ...
 
     def read_commanded_tcp(self) -> np.ndarray:
         """The controller's own TCP (m, robot frame) from its encoders and nominal kinematics."""
 
     def abort(self, reason: str = "stopping") -> None:
-        """End a move in flight promptly (DriverError) and refuse moves until `clear_abort`;
-        callable from any thread or a signal handler (`Abortable`)."""
+        """End a move in flight promptly (DriverError) and refuse moves until ``clear_abort``.
 
-    def clear_abort(self) -> None: ...
+        Callable from any thread or a signal handler (``Abortable``).
+
+        Parameters
+        ----------
+        reason : str
+            Stated in the DriverError.
+        """
+
+    def clear_abort(self) -> None:
+        """Accept moves again after ``abort``."""
+        ...
 
 
 # Streaming set-points is a capability a robot driver declares by implementing SetpointStreamer
@@ -246,19 +382,91 @@ class SetpointStreamer(Protocol):
     where the stream left it). If the host stops calling `stream` for the controller's watchdog
     time, the controller stops the arm by itself."""
 
-    def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None: ...
-    def stream(self, target: np.ndarray, t: float) -> None: ...
-    def stop_stream(self) -> None: ...
-    def stream_status(self) -> StreamStatus: ...
+    def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None:
+        """Make the controller follow set-points.
+
+        Parameters
+        ----------
+        rate_hz : float
+            One set-point expected every 1/``rate_hz`` s.
+        lookahead_s : float
+            The servo's look-ahead time (s), within ``LOOKAHEAD_RANGE_S``.
+        gain : float
+            The servo's proportional gain, within ``GAIN_RANGE``.
+
+        Raises
+        ------
+        DriverError
+            When a parameter is out of range or the controller refuses.
+        """
+        ...
+    def stream(self, target: np.ndarray, t: float) -> None:
+        """Hand over one set-point and return at once (never waits for the arm).
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        t : float
+            s, the caller's clock (increasing): the time the set-point is meant for.
+
+        Raises
+        ------
+        DriverError
+            When the controller refuses it (protective stop, stopped by the watchdog), naming the reason.
+        """
+        ...
+    def stop_stream(self) -> None:
+        """End the stream; the arm stops where the stream left it."""
+        ...
+    def stream_status(self) -> StreamStatus:
+        """What the driver knows of its stream.
+
+        Returns
+        -------
+        StreamStatus
+        """
+        ...
 
 
 def streams(driver: Any) -> bool:
-    """True when the driver declares the streaming capability (implements SetpointStreamer)."""
+    """True when the driver declares the streaming capability (implements SetpointStreamer).
+
+    Parameters
+    ----------
+    driver : object
+        A robot driver.
+
+    Returns
+    -------
+    bool
+    """
     return isinstance(driver, SetpointStreamer)
 
 
 def check_stream_params(rate_hz: Any, lookahead_s: Any, gain: Any, max_rate_hz: float) -> tuple[float, float, float]:
-    """A stream's rate (Hz), look-ahead (s) and gain as floats, or DriverError saying what is allowed."""
+    """A stream's rate, look-ahead and gain as floats, checked.
+
+    Parameters
+    ----------
+    rate_hz : object
+        Hz; 0 < rate <= ``max_rate_hz``.
+    lookahead_s : object
+        s; within ``LOOKAHEAD_RANGE_S``.
+    gain : object
+        Within ``GAIN_RANGE``.
+    max_rate_hz : float
+        The controller's loop rate (Hz).
+
+    Returns
+    -------
+    rate_hz, lookahead_s, gain : float
+
+    Raises
+    ------
+    DriverError
+        Saying what is allowed, when one is out of range or not finite.
+    """
     rate, la, g = float(rate_hz), float(lookahead_s), float(gain)
     if not (math.isfinite(rate) and 0.0 < rate <= max_rate_hz):
         raise DriverError(f"invalid stream rate {rate_hz!r} Hz: need 0 < rate <= {max_rate_hz} Hz "
@@ -274,32 +482,93 @@ def check_stream_params(rate_hz: Any, lookahead_s: Any, gain: Any, max_rate_hz: 
 
 @runtime_checkable
 class LaserTracker(Protocol):
+    """What every laser-tracker driver offers: the lifecycle and ``measure``."""
     state: str
 
-    def configure(self, config: Mapping[str, Any] | None = None) -> None: ...
-    def activate(self) -> None: ...
-    def deactivate(self) -> None: ...
-    def close(self) -> None: ...
+    def configure(self, config: Mapping[str, Any] | None = None) -> None:
+        """Check and apply the driver's options (see ``Lifecycle.configure``).
 
-    def measure(self) -> TrackerReading: ...
+        Parameters
+        ----------
+        config : Mapping or None
+            The driver's options.
+        """
+        ...
+    def activate(self) -> None:
+        """Connect to the tracker (see ``Lifecycle.activate``)."""
+        ...
+    def deactivate(self) -> None:
+        """Disconnect from the tracker (see ``Lifecycle.deactivate``)."""
+        ...
+    def close(self) -> None:
+        """Close the driver for good (see ``Lifecycle.close``)."""
+        ...
+
+    def measure(self) -> TrackerReading:
+        """Measure the SMR (m, tracker frame).
+
+        Returns
+        -------
+        TrackerReading
+            ``status`` says why when the tracker could not measure.
+        """
+        ...
 
 
 @runtime_checkable
 class CameraRig(Protocol):
+    """What every camera-rig driver offers: the lifecycle and ``read``."""
     state: str
 
-    def configure(self, config: Mapping[str, Any] | None = None) -> None: ...
-    def activate(self) -> None: ...
-    def deactivate(self) -> None: ...
-    def close(self) -> None: ...
+    def configure(self, config: Mapping[str, Any] | None = None) -> None:
+        """Check and apply the driver's options (see ``Lifecycle.configure``).
+
+        Parameters
+        ----------
+        config : Mapping or None
+            The driver's options.
+        """
+        ...
+    def activate(self) -> None:
+        """Open the rig (see ``Lifecycle.activate``)."""
+        ...
+    def deactivate(self) -> None:
+        """Release the rig (see ``Lifecycle.deactivate``)."""
+        ...
+    def close(self) -> None:
+        """Close the driver for good (see ``Lifecycle.close``)."""
+        ...
 
     def read(self) -> RigReading:
         """Measure the TCP/SMR point from the marker cluster (m, MVS frame)."""
 
 
 def check_move(target: Any, speed: Any, tcp_abs_m: float, max_speed_m_s: float) -> tuple[np.ndarray, float]:
-    """A controller's move arguments as (3,) m and m/s, or DriverError saying what is allowed
-    (a real controller's drivers check them before anything is sent)."""
+    """A controller's move arguments, checked (as a real controller's driver does before sending).
+
+    Parameters
+    ----------
+    target : object
+        (3,) m; every coordinate finite and within ±``tcp_abs_m``.
+    speed : object
+        m/s; 0 < speed <= ``max_speed_m_s``.
+    tcp_abs_m : float
+        The largest coordinate allowed (m).
+    max_speed_m_s : float
+        The fastest speed allowed (m/s).
+
+    Returns
+    -------
+    target : ndarray
+        (3,) m.
+    speed : float
+        m/s.
+
+    Raises
+    ------
+    DriverError
+        Saying what is allowed.
+    """
     target = np.asarray(target, dtype=float)
     if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(np.abs(target) > tcp_abs_m):
         raise DriverError(f"invalid move target {target!r}: need 3 finite coordinates within ±{tcp_abs_m} m")
@@ -310,13 +579,27 @@ def check_move(target: Any, speed: Any, tcp_abs_m: float, max_speed_m_s: float) 
 
 
 def read_exposed_after(camera: CameraRig, t_host: float, tries: int = 3) -> RigReading:
-    """The camera's reading exposed after host time `t_host` (e.g. the move's arrival).
+    """The camera's reading exposed after host time ``t_host`` (e.g. the move's arrival).
 
     A streaming camera hands out its newest frame, which may have been exposed while the arm was
     still settling: when the reading states its mid-exposure on the host clock
-    (`quality["mid_exposure_host_s"]`, NatNet) and that precedes `t_host`, the next frame is
-    read, at most `tries` times in all. A reading without that stamp (a polled camera, exposed
-    when asked) is returned as it is, and so is the last one tried."""
+    (``quality["mid_exposure_host_s"]``, NatNet) and that precedes ``t_host``, the next frame is
+    read, at most ``tries`` times in all. A reading without that stamp (a polled camera, exposed
+    when asked) is returned as it is, and so is the last one tried.
+
+    Parameters
+    ----------
+    camera : CameraRig
+        An active camera rig.
+    t_host : float
+        s, host monotonic clock.
+    tries : int
+        Reads at most.
+
+    Returns
+    -------
+    RigReading
+    """
     reading = camera.read()
     for _ in range(tries - 1):
         mid = reading.quality.get("mid_exposure_host_s") if reading.ok else None

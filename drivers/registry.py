@@ -1,36 +1,7 @@
-"""Drivers by name, found through Python entry points: one group per kind of driver,
-`cobot_dt.drivers.robot`, `cobot_dt.drivers.tracker` and `cobot_dt.drivers.camera`; an entry's
-name is the driver's name in the runtime YAML and its value the class ("module:Class", a
-drivers.base.Lifecycle subclass). The built-in drivers are entry points of this project
-(pyproject.toml), so an out-of-tree package adds a driver the same way, without editing ours::
-
-    [project.entry-points."cobot_dt.drivers.tracker"]
-    my_tracker = "my_package.tracker:MyTracker"
-
-Every driver is built the same way, whatever its name::
-
-    create(kind, name, config=None, *, world=None, source="<config>", key=None)
-
-which calls the class's `from_config(config, world=world, source=source)` (drivers.base.Lifecycle):
-the driver is constructed from the context (`world`: the simulated cell, for drivers that run on
-it; others ignore it) and, when `config` is given, configured with it (state `inactive`); with
-`config=None` it is returned unconfigured. `source` names the config file in errors and `key`
-where the driver's section sits in it (`drivers.tracker`): a bad option is reported as
-`drivers.tracker.url`. `check(kind, name, config, ...)` validates the options against the class's
-`config_model` without building anything (the runtime checks every driver before it opens one).
-Callers never branch on a driver's name: `needs_world(kind, name)` says whether a simulated
-world must exist.
-
-Entry points are read once per process (scanning every installed distribution costs
-milliseconds); `reload()` reads them again (a plugin installed into a running process, a test).
-A class is imported only when its driver is chosen, so a plugin that does not import fails only
-then, with a ConfigError naming the plugin, its package and the import error. Two packages
-giving one name to different classes is a ConfigError naming both when that name is used.
-
-`BUILTIN` mirrors pyproject.toml's entry points (tests/integration/test_registry.py checks they agree): an
-editable checkout whose installed metadata predates them (entry points are installed metadata:
-`pip install -e .` writes them) still finds its own drivers.
-"""
+"""Drivers by name, found through Python entry points (one group per kind: robot, tracker,
+camera): `create(kind, name, config, world=..., source=..., key=...)` builds any driver the same
+way, `check` validates its options without building it. The plugin rules and the built-in
+drivers are in docs/drivers.md ("Driver plugins")."""
 from __future__ import annotations
 
 import importlib
@@ -71,7 +42,18 @@ _classes: dict[tuple[str, str], type[Lifecycle]] = {}
 
 
 def group(kind: str) -> str:
-    """The entry-point group of a kind of driver."""
+    """The entry-point group of a kind of driver.
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+
+    Returns
+    -------
+    str
+        E.g. ``cobot_dt.drivers.tracker``.
+    """
     return GROUP_PREFIX + kind
 
 
@@ -100,7 +82,13 @@ def _table() -> dict[str, dict[str, Entry]]:
 
 
 def reload() -> dict[str, list[str]]:
-    """Read the installed entry points again; returns the known names of every kind."""
+    """Read the installed entry points again (a plugin installed into a running process, a test).
+
+    Returns
+    -------
+    dict
+        kind -> the known driver names of that kind, sorted.
+    """
     global _entries
     importlib.invalidate_caches()  # importlib.metadata caches directory listings
     _entries = None
@@ -109,19 +97,65 @@ def reload() -> dict[str, list[str]]:
 
 
 def register(kind: str, name: str, target: str) -> None:
-    """Add a driver in process (a notebook, a test): `target` is "module:Class", a Lifecycle
-    subclass. Packages register through entry points instead (module docstring)."""
+    """Add a driver in process (a notebook, a test); packages register through entry points instead.
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+    name : str
+        The driver's name in the runtime YAML.
+    target : str
+        ``"module:Class"``, a ``drivers.base.Lifecycle`` subclass (imported when chosen).
+
+    Raises
+    ------
+    ConfigError
+        When ``kind`` is not a known kind.
+    """
     _check_kind(kind)
     _add(_table(), kind, name, Entry(target, "registry.register()"))
 
 
 def known(kind: str) -> list[str]:
+    """The names of the drivers of a kind, sorted.
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+
+    Returns
+    -------
+    list of str
+
+    Raises
+    ------
+    ConfigError
+        When ``kind`` is not a known kind.
+    """
     _check_kind(kind)
     return sorted(_table()[kind])
 
 
 def entries(kind: str) -> dict[str, Entry]:
-    """name -> Entry (class and package) of every driver of a kind."""
+    """Every registered driver of a kind.
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+
+    Returns
+    -------
+    dict
+        name -> Entry (class and package).
+
+    Raises
+    ------
+    ConfigError
+        When ``kind`` is not a known kind.
+    """
     _check_kind(kind)
     return dict(_table()[kind])
 
@@ -132,8 +166,31 @@ def _check_kind(kind: str, source: str = "<config>") -> None:
 
 
 def driver_class(kind: str, name: str, source: str = "<config>", key: str | None = None) -> type[Lifecycle]:
-    """The class registered under (kind, name); ConfigError at `key` (default `drivers.<kind>`)
-    listing the known names otherwise, or naming the plugin that does not load."""
+    """The class registered under (kind, name), imported on first use and cached.
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+    name : str
+        The driver's name.
+    source : str
+        Names the config file in errors.
+    key : str or None
+        Where the name sits in the file (default ``drivers.<kind>``).
+
+    Returns
+    -------
+    type
+        A ``drivers.base.Lifecycle`` subclass.
+
+    Raises
+    ------
+    ConfigError
+        At ``key``: listing the known names when ``name`` is unknown; naming both packages when two
+        register it; naming the plugin and its import error when it does not load; or when the
+        target is not a Lifecycle subclass.
+    """
     _check_kind(kind, source)
     key = key or f"drivers.{kind}"
     cached = _classes.get((kind, name))
@@ -162,7 +219,26 @@ def driver_class(kind: str, name: str, source: str = "<config>", key: str | None
 
 
 def needs_world(kind: str, name: str, source: str = "<config>") -> bool:
-    """True if the driver runs on a simulated world (drivers.simulated.SimWorld)."""
+    """True if the driver runs on a simulated world (drivers.simulated.SimWorld).
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+    name : str
+        The driver's name.
+    source : str
+        Names the config file in errors.
+
+    Returns
+    -------
+    bool
+
+    Raises
+    ------
+    ConfigError
+        As ``driver_class``.
+    """
     return bool(getattr(driver_class(kind, name, source), "needs_world", False))
 
 
@@ -173,9 +249,30 @@ def _rekeyed(exc: ConfigError, key: str) -> ConfigError:
 
 def check(kind: str, name: str, config: Mapping[str, Any] | None, *, source: str = "<config>",
           key: str | None = None) -> None:
-    """Validate a driver's options without building it: the class must load, and the options
-    must fit its `config_model` when it declares one (a driver without one checks them in
-    `configure`)."""
+    """Validate a driver's options without building it.
+
+    The class must load, and the options must fit its ``config_model`` when it declares one (a
+    driver without one checks them in ``configure``).
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+    name : str
+        The driver's name.
+    config : Mapping or None
+        The driver's options.
+    source : str
+        Names the config file in errors.
+    key : str or None
+        Where the driver's section sits in the file (e.g. ``drivers.tracker``); given, a bad option
+        is reported at ``drivers.tracker.<option>``.
+
+    Raises
+    ------
+    ConfigError
+        When the class does not load or an option does not fit.
+    """
     cls = driver_class(kind, name, source, f"{key}.kind" if key else None)
     model = getattr(cls, "config_model", None)
     if model is not None:
@@ -189,7 +286,35 @@ def check(kind: str, name: str, config: Mapping[str, Any] | None, *, source: str
 
 def create(kind: str, name: str, config: Mapping[str, Any] | None = None, *, world: Any = None,
            source: str = "<config>", key: str | None = None):
-    """Build the driver (kind, name); see the module docstring."""
+    """Build the driver (kind, name) through its class's ``from_config``.
+
+    Parameters
+    ----------
+    kind : str
+        ``robot``, ``tracker`` or ``camera``.
+    name : str
+        The driver's name.
+    config : Mapping or None
+        The driver's options; given, the driver is configured (state ``inactive``), else it is
+        returned unconfigured.
+    world : object, optional
+        The simulated cell, for drivers that run on it (``needs_world``); others ignore it.
+    source : str
+        Names the config file in errors.
+    key : str or None
+        Where the driver's section sits in the file (e.g. ``drivers.tracker``); given, a bad option
+        is reported at ``drivers.tracker.<option>``.
+
+    Returns
+    -------
+    Lifecycle
+        The driver.
+
+    Raises
+    ------
+    ConfigError
+        When the class does not load or the driver refuses its options.
+    """
     cls = driver_class(kind, name, source, f"{key}.kind" if key else None)
     try:
         return cls.from_config(config, world=world, source=source)

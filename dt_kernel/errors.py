@@ -107,3 +107,7 @@ class ModelError(TwinError):
 
 class StoreError(TwinError):
     """The store could not read or write (disk full, I/O error, corrupt or locked file)."""
+
+
+class CorrectionFault(TwinError):
+    """The correction asked for is out of bounds, or an input is invalid; nothing was moved."""

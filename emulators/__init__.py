@@ -7,6 +7,5 @@ demonstrations talk to instead of hardware.
 - `emulated_cell`: all three over one plant, `python -m emulators.emulated_cell`.
 
 Emulators import `dt_kernel`, `sim` and the drivers' protocol codecs (the same bytes as the real
-driver speaks); a driver never imports an emulator or the simulator
-(tests/unit/test_architecture.py checks it).
+driver speaks); a driver never imports an emulator (tests/unit/test_architecture.py checks it).
 """

@@ -9,8 +9,7 @@ dropped cameras, exposure noise). `SimCameraImages.calibration()` gives what a c
 knows: each camera's intrinsics and its extrinsics in the rig's own (MVS) frame, which carries a
 small systematic scale error with respect to the world.
 
-This module knows nothing of the processing side (dt_runtime.mvs).
-"""
+This module knows nothing of the processing side (drivers.mvs)."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -30,6 +29,8 @@ Occluder = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 # ----------------------------------------------------------------------------- config schema
 class Intrinsics(Frozen):
+    """A camera's intrinsics: focal lengths ``fx``, ``fy`` and principal point ``cx``, ``cy`` (px),
+    distortion (k1, k2, p1, p2, k3)."""
     fx: float = Field(gt=0)
     fy: float = Field(gt=0)
     cx: float
@@ -37,10 +38,20 @@ class Intrinsics(Frozen):
     dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     def K(self) -> np.ndarray:
+        """The camera matrix.
+
+        Returns
+        -------
+        ndarray
+            (3, 3) px.
+        """
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
 
 class CameraConfig(Frozen):
+    """One camera's placement: ``position_m`` and ``look_at_m`` (m, world), ``roll_deg`` about the
+    optical axis, and its own intrinsics (None: the rig's shared ones).
+    """
     name: str
     position_m: tuple[float, float, float]
     look_at_m: tuple[float, float, float]
@@ -49,11 +60,13 @@ class CameraConfig(Frozen):
 
 
 class ImageConfig(Frozen):
+    """The image size (px)."""
     width: int = Field(2048, gt=0)
     height: int = Field(1088, gt=0)
 
 
 class MarkerConfig(Frozen):
+    """The marker cluster: ``diameter_m`` (m) and ``positions_m`` (m, tool/TCP frame; at least 3)."""
     diameter_m: float = Field(0.014, gt=0)
     positions_m: tuple[tuple[float, float, float], ...]
 
@@ -65,6 +78,11 @@ class MarkerConfig(Frozen):
 
 
 class RenderConfig(Frozen):
+    """Rendering and its faults: background, read noise and peak (digital numbers), blur and jitter
+    (px), relative exposure noise, spurious blobs per image (and the share near a marker),
+    occlusion and dropout probabilities, markers always occluded (indices), cameras always
+    dropped (names).
+    """
     background_dn: float = Field(6.0, ge=0, le=255)
     read_noise_dn: float = Field(1.5, ge=0)
     peak_dn: float = Field(190.0, gt=0, le=255)
@@ -118,16 +136,64 @@ DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "cameras.y
 
 
 def load_rig_config(path: str | Path = DEFAULT_CONFIG) -> RigConfig:
+    """Read and validate a rig config.
+
+    Parameters
+    ----------
+    path : str or Path
+        configs/cameras.yaml by default.
+
+    Returns
+    -------
+    RigConfig
+
+    Raises
+    ------
+    ConfigError
+        When the file cannot be read or does not validate.
+    """
     return load_yaml(path, RigConfig)
 
 
 def validate_rig(data: dict, source: str = "<config>") -> RigConfig:
-    """Validate a plain mapping into a RigConfig (errors name the key, value and what is allowed)."""
+    """Validate a plain mapping into a RigConfig.
+
+    Parameters
+    ----------
+    data : dict
+    source : str
+        Names the config in errors.
+
+    Returns
+    -------
+    RigConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the key, value and what is allowed.
+    """
     return validate(RigConfig, data, source)
 
 
 def with_render(cfg: RigConfig, **changes) -> RigConfig:
-    """A copy of `cfg` with render settings changed (validated), e.g. spurious_per_image=3."""
+    """A copy of ``cfg`` with render settings changed (validated), e.g. spurious_per_image=3.
+
+    Parameters
+    ----------
+    cfg : RigConfig
+    **changes
+        RenderConfig fields and their new values.
+
+    Returns
+    -------
+    RigConfig
+
+    Raises
+    ------
+    ConfigError
+        When a change does not validate.
+    """
     data = cfg.model_dump()
     data["render"].update(changes)
     return validate_rig(data, "<with_render>")
@@ -146,10 +212,24 @@ class PinholeCamera:
 
     @property
     def center(self) -> np.ndarray:
+        """The camera's centre (m) in the frame its extrinsics are expressed in: -R^T t."""
         return -self.R.T @ self.t
 
     def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distorted pixel coordinates (n,2) of points X (n,3) and their depth (n,)."""
+        """Distorted pixel coordinates of points and their depth.
+
+        Parameters
+        ----------
+        X : ndarray
+            (n, 3) or (3,) m, in the camera's reference frame.
+
+        Returns
+        -------
+        uv : ndarray
+            (n, 2) px.
+        depth : ndarray
+            (n,) m, along the optical axis.
+        """
         X = np.atleast_2d(np.asarray(X, float))
         uv = cv2.projectPoints(X.reshape(-1, 1, 3), self.rvec, self.t, self.K, self.dist)[0]
         return uv.reshape(-1, 2), (X @ self.R.T + self.t)[:, 2]
@@ -161,9 +241,25 @@ class PinholeCamera:
 
 
 def look_at(position, target, roll_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """World->camera (R, t) for a camera at `position` looking at `target`, world z up.
+    """World->camera (R, t) for a camera at ``position`` looking at ``target``, world z up.
 
     Camera axes (OpenCV): z forward along the optical axis, x right, y down in the image.
+
+    Parameters
+    ----------
+    position : array_like
+        (3,) m.
+    target : array_like
+        (3,) m.
+    roll_deg : float
+        Rotation about the optical axis (deg).
+
+    Returns
+    -------
+    R : ndarray
+        (3, 3).
+    t : ndarray
+        (3,) m.
     """
     c, tgt = np.asarray(position, float), np.asarray(target, float)
     z = tgt - c
@@ -181,7 +277,16 @@ def look_at(position, target, roll_deg: float = 0.0) -> tuple[np.ndarray, np.nda
 
 
 def rig_cameras_world(cfg: RigConfig) -> list[PinholeCamera]:
-    """The cameras with extrinsics in the world frame (the simulator's truth)."""
+    """The cameras with extrinsics in the world frame (the simulator's truth).
+
+    Parameters
+    ----------
+    cfg : RigConfig
+
+    Returns
+    -------
+    list of PinholeCamera
+    """
     cams = []
     for c in cfg.cameras:
         intr = c.intrinsics or cfg.intrinsics
@@ -192,7 +297,21 @@ def rig_cameras_world(cfg: RigConfig) -> list[PinholeCamera]:
 
 
 def world_to_mvs(cfg: RigConfig) -> tuple[np.ndarray, np.ndarray, float]:
-    """(R, t, s) of the rig frame: x_mvs = (1 + s) R^T (x_world - t)."""
+    """The rig frame: x_mvs = (1 + s) R^T (x_world - t).
+
+    Parameters
+    ----------
+    cfg : RigConfig
+
+    Returns
+    -------
+    R : ndarray
+        (3, 3).
+    t : ndarray
+        (3,) m.
+    s : float
+        The scale error.
+    """
     R, t = cfg.rig_pose.matrix()
     return R, t, cfg.scale_error
 
@@ -202,6 +321,14 @@ def rig_cameras_mvs(cfg: RigConfig) -> list[PinholeCamera]:
 
     With x_w = R_m x_mvs / (1+s) + t_m, x_cam = R_c x_w + t_c; scaling x_cam by (1+s) leaves
     the projection unchanged, so R' = R_c R_m and t' = (1+s)(R_c t_m + t_c).
+
+    Parameters
+    ----------
+    cfg : RigConfig
+
+    Returns
+    -------
+    list of PinholeCamera
     """
     Rm, tm, s = world_to_mvs(cfg)
     out = []
@@ -266,6 +393,20 @@ class SimCameraImages:
         return rig_cameras_mvs(self.cfg)
 
     def marker_world(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The markers' world positions at a tool pose.
+
+        Parameters
+        ----------
+        R : ndarray
+            (3, 3) tool orientation, world frame.
+        p : ndarray
+            (3,) m, the TCP, world frame.
+
+        Returns
+        -------
+        ndarray
+            (n_markers, 3) m.
+        """
         return np.asarray(p, float) + self.markers @ np.asarray(R, float).T
 
     def _background(self) -> np.ndarray:
@@ -277,9 +418,24 @@ class SimCameraImages:
         return np.ascontiguousarray(img)
 
     def render(self, R: np.ndarray, p: np.ndarray, points: np.ndarray | None = None):
-        """Images of the marker cluster at tool pose (R, p) (world); or of arbitrary `points`.
+        """Images of the marker cluster at tool pose (R, p) (world); or of arbitrary ``points``.
 
-        `points` (n,3) world replaces the cluster (used for calibration boards and wands).
+        Parameters
+        ----------
+        R : ndarray
+            (3, 3) tool orientation, world frame.
+        p : ndarray
+            (3,) m, the TCP, world frame.
+        points : ndarray or None
+            (n, 3) m, world; replaces the cluster (calibration boards and wands).
+
+        Returns
+        -------
+        images : list of ndarray or None
+            One uint8 (H, W) image per camera, None for a camera that delivered no frame.
+        info : dict
+            The truth used: ``uv`` (per camera, (n, 2) px), ``visible`` (per camera, (n,) bool),
+            ``points_world`` ((n, 3) m).
         """
         r, rng = self.cfg.render, self._rng
         X = self.marker_world(R, p) if points is None else np.atleast_2d(np.asarray(points, float))
@@ -332,13 +488,40 @@ class SimCameraImages:
 
 
 def sample_volume(n: int, seed: int, lo=(0.55, -0.45, 0.2), hi=(1.25, 0.45, 0.9)) -> np.ndarray:
-    """`n` uniformly random TCP positions (m, world) in the DOE-like working volume."""
+    """Uniformly random TCP positions in the DOE-like working volume.
+
+    Parameters
+    ----------
+    n : int
+    seed : int
+    lo, hi : array_like
+        (3,) m, the box's corners (world).
+
+    Returns
+    -------
+    ndarray
+        (n, 3) m.
+    """
     return np.random.default_rng([seed, 606]).uniform(lo, hi, (n, 3))
 
 
 def random_tool_rotation(rng: np.random.Generator, base: np.ndarray | None = None,
                          max_deg: float = 15.0) -> np.ndarray:
-    """`base` (default: sim.kinematics TOOL_DOWN) tilted by a random rotation up to `max_deg`."""
+    """``base`` tilted by a random rotation of up to ``max_deg``.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    base : ndarray or None
+        (3, 3); sim.kinematics.TOOL_DOWN when None.
+    max_deg : float
+        deg.
+
+    Returns
+    -------
+    ndarray
+        (3, 3).
+    """
     from scipy.spatial.transform import Rotation
 
     if base is None:

@@ -17,10 +17,32 @@ class CellConfig(Frozen):
 
 
 def load_cell(path: str | Path) -> CellConfig:
+    """Read and validate a cell config (configs/cell.yaml).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    CellConfig
+
+    Raises
+    ------
+    ConfigError
+        When the file cannot be read or does not validate.
+    """
     return load_yaml(path, CellConfig)
 
 
 class SimCell:
+    """One simulated cell: the plant, the laser tracker and the point MVS on one clock.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    cell : CellConfig
+    """
     def __init__(self, scenario: Scenario, cell: CellConfig):
         self.scenario, self.cell = scenario, cell
         self.clock = SimClock()
@@ -31,12 +53,33 @@ class SimCell:
     @classmethod
     def from_files(cls, scenario: str | Path | dict, cell: str | Path, seed: int | None = None,
                    source: str = "<scenario>") -> SimCell:
-        """scenario: a YAML path, or its already-read mapping (`source` names it in errors);
-        seed: overrides the scenario's seed (plant noise, geometric draws, instruments)."""
+        """A cell from a scenario and a cell config.
+
+        Parameters
+        ----------
+        scenario : str, Path or dict
+            A YAML path, or its already-read mapping.
+        cell : str or Path
+            The cell config (YAML).
+        seed : int or None
+            Overrides the scenario's seed (plant noise, geometric draws, instruments).
+        source : str
+            Names a mapping scenario in errors.
+
+        Returns
+        -------
+        SimCell
+
+        Raises
+        ------
+        ConfigError
+            When a file cannot be read or does not validate.
+        """
         scn = validate(Scenario, scenario, source) if isinstance(scenario, dict) else load_scenario(scenario)
         if seed is not None:
             scn = scn.model_copy(update={"seed": int(seed)})
         return cls(scn, load_cell(cell))
 
     def close(self) -> None:
+        """Release the plant's PyBullet clients."""
         self.plant.close()

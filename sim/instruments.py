@@ -20,10 +20,22 @@ class Pose(Frozen):
     rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def matrix(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rotation and translation of the pose (instrument frame -> world).
+
+        Returns
+        -------
+        R : ndarray
+            (3, 3).
+        t : ndarray
+            (3,) m.
+        """
         return Rotation.from_euler("xyz", self.rpy_deg, degrees=True).as_matrix(), np.array(self.position_m)
 
 
 class TrackerConfig(Frozen):
+    """The simulated laser tracker: its pose, the calibration's standard uncertainty u_const_m +
+    u_per_m * L (m, L the distance in m) and the probability a measurement has its beam broken.
+    """
     pose: Pose
     # Calibration standard uncertainty a + b * L (paper Sect. 2.5: 10 um + 0.02 um/m * L).
     u_const_m: float = Field(10e-6, ge=0)
@@ -32,6 +44,9 @@ class TrackerConfig(Frozen):
 
 
 class PointMVSConfig(Frozen):
+    """The point-noise MVS stand-in: its pose, noise per axis (m), scale error, bias (m, MVS frame)
+    and dropout probability.
+    """
     pose: Pose
     noise_m: float = Field(50e-6, ge=0)  # per axis, ~0.09 mm 3-D
     scale_error: float = Field(1.5e-4, ge=-0.01, le=0.01)  # small systematic scale error
@@ -48,6 +63,13 @@ class SimLaserTracker:
         self._rng = np.random.default_rng([seed, 303])
 
     def measure_spherical(self) -> tuple[float, float, float, str]:
+        """Measure the SMR: distance, azimuth, elevation with the tracker's isotropic noise.
+
+        Returns
+        -------
+        tuple
+            (d m, azimuth rad, elevation rad, status); NaNs and ``beam_broken`` when the beam breaks.
+        """
         if self._rng.random() < self.cfg.beam_break_probability:
             return float("nan"), float("nan"), float("nan"), "beam_broken"
         p = self._R.T @ (self._truth() - self._t)
@@ -70,10 +92,23 @@ class SimPointMVS:
         self._bump = np.zeros(3)
 
     def bump(self, shift_m: np.ndarray) -> None:
-        """Fault injection: the rig is knocked, its frame shifts by `shift_m` (world)."""
+        """Fault injection: the rig is knocked, its frame shifts (adds to earlier shifts).
+
+        Parameters
+        ----------
+        shift_m : ndarray
+            (3,) m, world frame.
+        """
         self._bump = self._bump + np.asarray(shift_m, dtype=float)
 
     def measure(self) -> np.ndarray | None:
+        """The TCP in the MVS frame with scale error, bias and noise.
+
+        Returns
+        -------
+        ndarray or None
+            (3,) m; None when the rig drops out.
+        """
         if self._rng.random() < self.cfg.dropout_probability:
             return None
         p = self._R.T @ (self._truth() - self._t - self._bump)

@@ -24,7 +24,26 @@ TOOL_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 
 def perturbed_urdf(joint_xyz: dict[str, np.ndarray], joint_rpy: dict[str, np.ndarray],
                    source: Path = URDF_PATH) -> str:
-    """URDF text with joint origins shifted by `joint_xyz` (m) and `joint_rpy` (rad)."""
+    """URDF text with every joint origin shifted.
+
+    Parameters
+    ----------
+    joint_xyz : dict
+        Joint name -> (3,) m added to the origin's xyz.
+    joint_rpy : dict
+        Joint name -> (3,) rad added to the origin's rpy.
+    source : Path
+        The URDF to perturb.
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    ConfigError
+        When a joint has no name or no <origin>.
+    """
     tree = ET.parse(source)
     for joint in tree.getroot().iter("joint"):
         name = joint.get("name")
@@ -41,7 +60,16 @@ def perturbed_urdf(joint_xyz: dict[str, np.ndarray], joint_rpy: dict[str, np.nda
 
 
 class Arm:
-    """One PyBullet body of the arm. Positions in metres, angles in radians, robot base frame."""
+    """One PyBullet body of the arm (its own DIRECT client). Positions in metres, angles in radians,
+    robot base frame.
+
+    Parameters
+    ----------
+    urdf_text : str or None
+        A URDF to load (e.g. ``perturbed_urdf``'s); None loads ``urdf_path``.
+    urdf_path : Path
+        The URDF file.
+    """
 
     def __init__(self, urdf_text: str | None = None, urdf_path: Path = URDF_PATH,
                  ):
@@ -75,10 +103,16 @@ class Arm:
 
     @property
     def dof(self) -> int:
+        """The number of revolute joints."""
         return len(self.joints)
 
     def set_payload(self, kg: float) -> None:
-        """Payload carried at the TCP (drives the compliance torques)."""
+        """Payload carried at the TCP (drives the compliance torques).
+
+        Parameters
+        ----------
+        kg : float
+        """
         self.payload = float(kg)
 
     def _set(self, q: np.ndarray) -> None:
@@ -92,7 +126,20 @@ class Arm:
         self._q, self._fk = np.array(q, dtype=float), None
 
     def fk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """TCP position (3,) and orientation matrix (3,3) for joint angles q."""
+        """Forward kinematics of the TCP.
+
+        Parameters
+        ----------
+        q : ndarray
+            (dof,) rad.
+
+        Returns
+        -------
+        p : ndarray
+            (3,) m.
+        R : ndarray
+            (3, 3) orientation.
+        """
         self._set(np.asarray(q, dtype=float))
         if self._fk is None:
             s = pb.getLinkState(self.body, self.tcp_link, computeForwardKinematics=True,
@@ -101,14 +148,36 @@ class Arm:
         return self._fk[0].copy(), self._fk[1].copy()
 
     def link_positions(self, q: np.ndarray) -> np.ndarray:
-        """World positions of every link frame (for occlusion geometry and displays)."""
+        """World positions of every link frame (for occlusion geometry and displays).
+
+        Parameters
+        ----------
+        q : ndarray
+            (dof,) rad.
+
+        Returns
+        -------
+        ndarray
+            (n_links, 3) m.
+        """
         self._set(np.asarray(q, dtype=float))
         return np.array([pb.getLinkState(self.body, j, computeForwardKinematics=True,
                                          physicsClientId=self.client)[4]
                          for j in range(self.tcp_link + 1)])
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        """6 x dof geometric Jacobian (linear; angular) of the TCP."""
+        """Geometric Jacobian of the TCP: linear rows (m/rad) over angular rows (rad/rad).
+
+        Parameters
+        ----------
+        q : ndarray
+            (dof,) rad.
+
+        Returns
+        -------
+        ndarray
+            (6, dof).
+        """
         ql = [float(v) for v in q]
         zeros = [0.0] * len(ql)
         self._set(np.asarray(ql))
@@ -117,10 +186,20 @@ class Arm:
         return np.vstack([np.array(lin), np.array(ang)])
 
     def gravity_torque(self, q: np.ndarray) -> np.ndarray:
-        """Static joint torques (N m) holding the arm and payload against gravity.
+        """Static joint torques holding the arm and payload against gravity.
 
-        The arm's own weight comes from PyBullet's inverse dynamics; the payload at the TCP
-        adds J_lin^T (0, 0, m g) (PyBullet's changeDynamics does not reach its inverse dynamics).
+        The arm's own weight comes from PyBullet's inverse dynamics; the payload at the TCP adds
+        J_lin^T (0, 0, m g) (PyBullet's changeDynamics does not reach its inverse dynamics).
+
+        Parameters
+        ----------
+        q : ndarray
+            (dof,) rad.
+
+        Returns
+        -------
+        ndarray
+            (dof,) N m.
         """
         ql = [float(v) for v in q]
         zeros = [0.0] * len(ql)
@@ -132,12 +211,34 @@ class Arm:
 
     def ik(self, target: np.ndarray, R: np.ndarray = TOOL_DOWN, q_seed: np.ndarray | None = None,
            tol: float = 2e-7, max_iter: int = 30) -> np.ndarray:
-        """Joint angles putting the TCP at `target` with orientation `R`.
+        """Joint angles putting the TCP at ``target`` with orientation ``R``.
 
-        PyBullet's damped IK gives a start on the elbow-up branch; Newton steps on the full
-        6-D pose error then converge to `tol` (m and rad; PyBullet reports link poses in
-        single precision, about 0.1 um here, well inside the 1 um resolution). Raises
-        UnreachableError outside reach or joint limits.
+        PyBullet's damped IK gives a start on the elbow-up branch; Newton steps on the full 6-D pose
+        error then converge to ``tol`` (PyBullet reports link poses in single precision, about 0.1 um
+        here, well inside the 1 um resolution). With ``q_seed``, Newton is tried from it first.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m.
+        R : ndarray
+            (3, 3) orientation; tool down by default.
+        q_seed : ndarray or None
+            (dof,) rad, where the arm is.
+        tol : float
+            m (and 5 tol rad for the orientation).
+        max_iter : int
+            Newton steps.
+
+        Returns
+        -------
+        ndarray
+            (dof,) rad, wrapped to [-pi, pi).
+
+        Raises
+        ------
+        UnreachableError
+            Outside reach or joint limits.
         """
         target = np.asarray(target, dtype=float)
         if q_seed is not None:
@@ -187,6 +288,7 @@ class Arm:
         return q
 
     def close(self) -> None:
+        """Disconnect the PyBullet client (once)."""
         if pb.isConnected(self.client):
             pb.disconnect(self.client)
 

@@ -21,10 +21,26 @@ class SimClock:
         self.t = t0
 
     def advance(self, dt: float) -> None:
+        """Advance the clock.
+
+        Parameters
+        ----------
+        dt : float
+            s.
+        """
         self.t += dt
 
 
 class SimulatedCobot:
+    """The simulated arm: a nominal model the controller solves IK on and the actual (perturbed) arm
+    with the scenario's effects and repeatability noise. Positions in m, robot base frame.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    clock : SimClock or None
+        Shared with the instruments; a new one at t = 0 when None.
+    """
     def __init__(self, scenario: Scenario, clock: SimClock | None = None):
         self.scn = scenario
         self.clock = clock or SimClock()
@@ -48,13 +64,42 @@ class SimulatedCobot:
 
     # --- commands -----------------------------------------------------------------------
     def move_linear(self, target: np.ndarray, speed: float) -> None:
-        """Move the TCP to `target` (m, robot frame) at `speed` (m/s) and settle there."""
+        """Move the TCP and settle there; the clock advances by the travel time plus the dwell.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        speed : float
+            m/s, capped at the scenario's limit.
+
+        Raises
+        ------
+        UnreachableError
+            When the nominal IK has no solution.
+        """
         self._go(target, speed, None)
 
     def servo_step(self, target: np.ndarray, speed: float, dt: float) -> None:
-        """One control cycle of a streamed path (sim.servo): the TCP is at `target` (m) moving at
-        `speed` (m/s) after `dt` s. The clock advances `dt`, without the dwell of a positioning;
-        the effects see the speed (dynamic) and the direction of motion (backlash)."""
+        """One control cycle of a streamed path (sim.servo).
+
+        The clock advances ``dt``, without the dwell of a positioning; the effects see the speed
+        (dynamic) and the direction of motion (backlash).
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, where the TCP is at the cycle's end.
+        speed : float
+            m/s, its speed then.
+        dt : float
+            s.
+
+        Raises
+        ------
+        UnreachableError
+            When the nominal IK has no solution.
+        """
         self._go(target, speed, float(dt))
 
     def _go(self, target: np.ndarray, speed: float, dt: float | None) -> None:
@@ -73,7 +118,13 @@ class SimulatedCobot:
         self._settle()
 
     def inject_joint_offset(self, delta_rad: np.ndarray) -> None:
-        """Fault injection: a step in the joint zero offsets (e.g. a slipped encoder)."""
+        """Fault injection: a step in the joint zero offsets (e.g. a slipped encoder).
+
+        Parameters
+        ----------
+        delta_rad : ndarray
+            (n_joints,) rad.
+        """
         self._fault_offsets = self._fault_offsets + np.asarray(delta_rad, dtype=float)
         self._settle()
 
@@ -114,6 +165,7 @@ class SimulatedCobot:
         return np.round(self._target / res) * res
 
     def joint_angles(self) -> np.ndarray:
+        """The commanded joint angles (rad)."""
         return self.q_cmd.copy()
 
     def temperature(self) -> float:
@@ -121,6 +173,18 @@ class SimulatedCobot:
         return self.temperature_at(self.clock.t)
 
     def temperature_at(self, t: float) -> float:
+        """The air temperature at a time: base + ramp t + amplitude sin(2 pi t / period).
+
+        Parameters
+        ----------
+        t : float
+            s, simulated clock.
+
+        Returns
+        -------
+        float
+            deg C.
+        """
         tm = self.scn.temperature
         h = t / 3600.0
         return tm.base_c + tm.ramp_c_per_h * h + tm.amplitude_c * np.sin(2 * np.pi * h / tm.period_h)
@@ -143,10 +207,22 @@ class SimulatedCobot:
         return ts
 
     def payload(self) -> float:
+        """The payload now (kg)."""
         return self.scn.payload_at(self.clock.t)
 
     def check_reachable(self, targets: np.ndarray) -> list[tuple[int, str]]:
-        """Indices and reasons of targets the controller cannot reach (nothing moves)."""
+        """The targets the controller cannot reach, tool down (nothing moves).
+
+        Parameters
+        ----------
+        targets : ndarray
+            (n, 3) or (3,) m, robot frame.
+
+        Returns
+        -------
+        list of (int, str)
+            Index and reason of every unreachable target.
+        """
         bad = []
         for i, tgt in enumerate(np.atleast_2d(targets)):
             try:
@@ -156,5 +232,6 @@ class SimulatedCobot:
         return bad
 
     def close(self) -> None:
+        """Release both arms' PyBullet clients."""
         self.nominal.close()
         self.actual.close()

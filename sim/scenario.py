@@ -19,6 +19,9 @@ Six = Annotated[list[float], Field(min_length=N_JOINTS, max_length=N_JOINTS)]
 
 
 class Geometric(Frozen):
+    """Geometric effect: seeded random shifts of every joint origin (``link_sigma_m``, m), twists
+    (``twist_sigma_rad``, rad) and joint zero offsets (``joint_offset_sigma_rad``, rad).
+    """
     enabled: bool = False
     # Random perturbation of every joint origin (link lengths, offsets) drawn with the seed.
     link_sigma_m: float = Field(3.0e-4, ge=0, le=0.01)
@@ -27,6 +30,7 @@ class Geometric(Frozen):
 
 
 class Compliance(Frozen):
+    """Compliance effect: joint stiffness (N m/rad, six, > 0); deflection = -holding torque / stiffness."""
     enabled: bool = False
     # Joint stiffness (N m / rad): deflection = -holding torque / stiffness.
     stiffness_nm_per_rad: Six = [2.0e6, 1.0e6, 6.0e5, 2.0e5, 2.0e5, 1.0e5]
@@ -40,6 +44,7 @@ class Compliance(Frozen):
 
 
 class Gear(Frozen):
+    """Gear transmission error per joint: ``amplitude_rad * sin(harmonic * q + phase_rad)`` (rad)."""
     enabled: bool = False
     # Transmission error: amplitude * sin(harmonic * q + phase) per joint.
     amplitude_rad: Six = [4e-5, 5e-5, 5e-5, 3e-5, 3e-5, 0.0]
@@ -48,6 +53,7 @@ class Gear(Frozen):
 
 
 class Backlash(Frozen):
+    """Backlash: full width per joint (rad, >= 0); the joint lags by width/2 opposite to its approach."""
     enabled: bool = False
     # Full backlash width (rad): the joint lags by width/2 opposite to its direction of approach.
     width_rad: Six = [6e-5, 8e-5, 8e-5, 4e-5, 4e-5, 0.0]
@@ -61,6 +67,10 @@ class Backlash(Frozen):
 
 
 class Thermal(Frozen):
+    """Thermal expansion of the arm about its base: ``expansion_per_k`` (1/K) of the structure's
+    temperature above ``reference_c`` (deg C), the structure following the air through a first-order
+    lag ``lag_s`` (s; 0: at once).
+    """
     enabled: bool = False
     expansion_per_k: float = Field(2.3e-5, ge=0, le=1e-3)  # aluminium arm
     reference_c: float = 20.0
@@ -70,6 +80,9 @@ class Thermal(Frozen):
 
 
 class Dynamic(Frozen):
+    """Dynamic error at the stop: a following error ``lag_s * v`` along the approach and a sag
+    ``sag_s * v`` along -z (s; v the speed, m/s).
+    """
     enabled: bool = False
     # Residual following error at the stop, along the direction of approach: lag_s * v.
     lag_s: float = Field(1.5e-4, ge=0, le=0.05)
@@ -78,11 +91,13 @@ class Dynamic(Frozen):
 
 
 class Drift(Frozen):
+    """Joint drift: a constant rate per joint (rad/h)."""
     enabled: bool = False
     joint_rate_rad_per_h: Six = [0.0, 2e-5, -2e-5, 0.0, 1e-5, 0.0]
 
 
 class Effects(Frozen):
+    """The seven error effects of a scenario, each switched on by its ``enabled``."""
     geometric: Geometric = Geometric()
     compliance: Compliance = Compliance()
     gear: Gear = Gear()
@@ -92,6 +107,12 @@ class Effects(Frozen):
     drift: Drift = Drift()
 
     def enabled(self) -> list[str]:
+        """The names of the effects switched on, in ``EFFECTS`` order.
+
+        Returns
+        -------
+        list of str
+        """
         return [name for name in EFFECTS if getattr(self, name).enabled]
 
 
@@ -105,11 +126,16 @@ class Temperature(Frozen):
 
 
 class PayloadStep(Frozen):
+    """A payload change: ``kg`` from time ``at_s`` (s) on."""
     at_s: float = Field(ge=0)
     kg: float = Field(ge=0, le=20)
 
 
 class Scenario(Frozen):
+    """A simulated plant's scenario (configs/scenarios/): seed, payload (kg) and its schedule, air
+    temperature, joint repeatability noise (rad), the controller's TCP resolution (m), speed limit
+    (m/s), dwell per positioning (s) and the error effects.
+    """
     name: str = "unnamed"
     seed: int = 0
     payload_kg: float = Field(2.0, ge=0, le=20)  # nominal payload 20 kg
@@ -122,6 +148,18 @@ class Scenario(Frozen):
     effects: Effects = Effects()
 
     def payload_at(self, t: float) -> float:
+        """The payload at a time: the last step at or before ``t``, else ``payload_kg``.
+
+        Parameters
+        ----------
+        t : float
+            s, simulated clock.
+
+        Returns
+        -------
+        float
+            kg.
+        """
         kg = self.payload_kg
         for step in sorted(self.payload_schedule, key=lambda s: s.at_s):
             if t >= step.at_s:
@@ -130,4 +168,19 @@ class Scenario(Frozen):
 
 
 def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario YAML.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Scenario
+
+    Raises
+    ------
+    ConfigError
+        When the file cannot be read or does not validate.
+    """
     return load_yaml(path, Scenario)

@@ -20,14 +20,42 @@ from drivers.mvs.detect import detect_full_frame
 
 
 def board_points(rows: int = 7, cols: int = 9, pitch: float = 0.04) -> np.ndarray:
-    """Dot centres in the board frame (m): the grid row by row, then the key dot (last)."""
+    """Dot centres in the board frame (m): the grid row by row, then the key dot (last).
+
+    Parameters
+    ----------
+    rows, cols : int
+        The grid's size in dots.
+    pitch : float
+        Dot spacing (m).
+
+    Returns
+    -------
+    ndarray
+        (rows*cols + 1, 3) m.
+    """
     g = np.array([[c * pitch, r * pitch, 0.0] for r in range(rows) for c in range(cols)])
     return np.vstack([g, [0.5 * pitch, 0.5 * pitch, 0.0]])
 
 
 def order_grid(uv: np.ndarray, rows: int, cols: int, tol: float = 0.25) -> np.ndarray | None:
-    """Label image blobs (n,2) with grid indices: returns (rows*cols, 2) image points in board
-    order, or None when the grid is not found complete and unambiguous."""
+    """Label image blobs with grid indices, using the four hull corners and the key dot.
+
+    Parameters
+    ----------
+    uv : ndarray
+        (n, 2) px, blob centroids; n must be rows*cols + 1 (the grid and the key dot).
+    rows, cols : int
+        The grid's size in dots.
+    tol : float
+        Largest distance from a grid node or the key dot's position, in grid pitches.
+
+    Returns
+    -------
+    ndarray or None
+        (rows*cols, 2) px in board order, or None when the grid is not found complete and
+        unambiguous.
+    """
     if len(uv) != rows * cols + 1:
         return None
     pts = uv.astype(np.float32)
@@ -63,6 +91,10 @@ def order_grid(uv: np.ndarray, rows: int, cols: int, tol: float = 0.25) -> np.nd
 
 @dataclass(frozen=True)
 class CameraCalibration:
+    """One camera's calibration: ``K`` (3, 3) px, ``dist`` (k1, k2, p1, p2, k3), ``R`` and ``t`` (m)
+    from the calibration frame (the first board pose) to the camera, the reprojection ``rms_px`` and
+    the number of board views used.
+    """
     name: str
     K: np.ndarray
     dist: np.ndarray
@@ -76,7 +108,24 @@ def calibrate_camera(images: list[np.ndarray | None], rows: int, cols: int, pitc
                      name: str = "cam", window_half_px: int = 5) -> CameraCalibration | None:
     """Calibrate one camera from its images of the board (image 0 = the calibration frame).
 
-    Returns None when the board is not found in image 0 or in fewer than 4 images."""
+    Parameters
+    ----------
+    images : list of ndarray or None
+        8-bit images; None for a view the camera did not record.
+    rows, cols : int
+        The grid's size in dots.
+    pitch : float
+        Dot spacing (m).
+    name : str
+        The camera's name.
+    window_half_px : int
+        Half-size of the centroid window (px).
+
+    Returns
+    -------
+    CameraCalibration or None
+        None when the board is not found in image 0 or in fewer than 4 images.
+    """
     obj = board_points(rows, cols, pitch)[:-1].astype(np.float32)
     objs: list[np.ndarray] = []
     imgs: list[np.ndarray] = []

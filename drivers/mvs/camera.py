@@ -19,6 +19,9 @@ from dt_kernel.errors import ConfigError
 
 @dataclass(frozen=True)
 class Camera:
+    """A calibrated camera: ``K`` (3, 3) px, ``dist`` (k1, k2, p1, p2, k3), ``R`` (3, 3) and ``t`` (3,) m
+    from the MVS frame to the camera (x_cam = R X + t), ``size`` (width, height) px.
+    """
     name: str
     K: np.ndarray  # (3,3)
     dist: np.ndarray  # (5,)
@@ -28,6 +31,23 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Camera:
+        """A camera from its calibration as plain data (``K``, ``R``, ``t``, ``size``, optional ``dist``, ``name``).
+
+        Parameters
+        ----------
+        d : Mapping
+            ``K`` 3x3, ``R`` 3x3 (a rotation), ``t`` (3,) m, ``size`` (width, height) px, ``dist`` (5,)
+            (zeros when absent), ``name`` (``cam`` when absent).
+
+        Returns
+        -------
+        Camera
+
+        Raises
+        ------
+        ConfigError
+            When a key is missing or malformed, or ``R`` is not a rotation (det != 1).
+        """
         try:
             K = np.asarray(d["K"], float).reshape(3, 3)
             R = np.asarray(d["R"], float).reshape(3, 3)
@@ -43,21 +63,55 @@ class Camera:
 
     @property
     def center(self) -> np.ndarray:
+        """The camera's centre in the MVS frame (m): -R^T t."""
         return -self.R.T @ self.t
 
     def project_ideal(self, X: np.ndarray) -> np.ndarray:
-        """Ideal (undistorted) pixel coordinates (n,2) of points X (n,3)."""
+        """Ideal (undistorted) pixel coordinates of points: the plain pinhole model.
+
+        Parameters
+        ----------
+        X : ndarray
+            (n, 3) or (3,) m, MVS frame.
+
+        Returns
+        -------
+        ndarray
+            (n, 2) px.
+        """
         Xc = np.atleast_2d(X) @ self.R.T + self.t
         return (Xc[:, :2] / Xc[:, 2:3]) * np.diag(self.K)[:2] + self.K[:2, 2]
 
     def project(self, X: np.ndarray) -> np.ndarray:
-        """Distorted (image) pixel coordinates (n,2) of points X (n,3)."""
+        """Distorted (image) pixel coordinates of points (OpenCV ``projectPoints``).
+
+        Parameters
+        ----------
+        X : ndarray
+            (n, 3) or (3,) m, MVS frame.
+
+        Returns
+        -------
+        ndarray
+            (n, 2) px.
+        """
         X = np.atleast_2d(np.asarray(X, float))
         uv = cv2.projectPoints(X.reshape(-1, 1, 3), cv2.Rodrigues(self.R)[0], self.t, self.K, self.dist)[0]
         return uv.reshape(-1, 2)
 
     def undistort(self, uv: np.ndarray) -> np.ndarray:
-        """Image pixels (n,2) -> ideal pixels (n,2) (OpenCV iterative undistortion)."""
+        """Image pixels to ideal pixels (OpenCV iterative undistortion).
+
+        Parameters
+        ----------
+        uv : ndarray
+            (n, 2) px, image coordinates.
+
+        Returns
+        -------
+        ndarray
+            (n, 2) px, ideal coordinates ((0, 2) when ``uv`` is empty).
+        """
         uv = np.asarray(uv, np.float64).reshape(-1, 1, 2)
         if len(uv) == 0:
             return np.zeros((0, 2))
@@ -80,6 +134,25 @@ class ProcessingParams:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any] | None, source: str = "<processing>") -> ProcessingParams:
+        """The settings from a mapping; absent keys keep their defaults.
+
+        Parameters
+        ----------
+        m : Mapping or None
+            The ``processing`` section; values are converted to each default's type.
+        source : str
+            Names the config in errors.
+
+        Returns
+        -------
+        ProcessingParams
+
+        Raises
+        ------
+        ConfigError
+            For an unknown key, a value that is not a number, or when not centroid_sigma_px > 0,
+            min_markers >= 3, min_cameras >= 2 and min_views >= 2.
+        """
         m = dict(m or {})
         known = set(cls.__dataclass_fields__)
         for k, v in m.items():
@@ -108,6 +181,28 @@ class RigModel:
     @classmethod
     def build(cls, cameras: Sequence[Mapping[str, Any] | Camera], markers, marker_diameter_m: float = 0.014,
               processing: Mapping[str, Any] | ProcessingParams | None = None) -> RigModel:
+        """A rig model from plain data.
+
+        Parameters
+        ----------
+        cameras : sequence of Mapping or Camera
+            The calibrated cameras; mappings go through ``Camera.from_dict``.
+        markers : array_like
+            (m, 3) m, the marker cluster in the tool frame (origin = TCP/SMR); at least 3.
+        marker_diameter_m : float
+            m.
+        processing : Mapping or ProcessingParams or None
+            The processing settings (defaults when None).
+
+        Returns
+        -------
+        RigModel
+
+        Raises
+        ------
+        ConfigError
+            For a malformed camera, fewer than 3 markers or bad processing settings.
+        """
         cams = tuple(c if isinstance(c, Camera) else Camera.from_dict(c) for c in cameras)
         mk = np.asarray(markers, float).reshape(-1, 3)
         if len(mk) < 3:

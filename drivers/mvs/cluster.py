@@ -17,7 +17,24 @@ from dt_kernel.geometry import skew
 
 
 def kabsch(model: np.ndarray, meas: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares rotation and translation with meas ~ R @ model + t."""
+    """Weighted least-squares rotation and translation with meas ~ R @ model + t.
+
+    Parameters
+    ----------
+    model : ndarray
+        (n, 3) points in the model frame.
+    meas : ndarray
+        (n, 3) the same points measured.
+    w : ndarray or None
+        (n,) weights (equal when None).
+
+    Returns
+    -------
+    R : ndarray
+        (3, 3), a proper rotation.
+    t : ndarray
+        (3,), in the unit of ``meas``.
+    """
     w = np.ones(len(model)) if w is None else np.asarray(w, float)
     w = w / w.sum()
     cm, cx = w @ model, w @ meas
@@ -40,8 +57,36 @@ def refine_pose(stack: CameraStack, model: np.ndarray, R: np.ndarray, t: np.ndar
                 sig: np.ndarray, mask: np.ndarray, iters: int = 2):
     """Gauss-Newton pose refinement on the normalised reprojection error of every kept view.
 
-    model (M,3) tool frame; uv, sig, mask (M,C,...) ideal pixels. Perturbation
-    R = exp([w]x) R0, t = t0 + dt. Returns (R, t, cov6 (6,6) [w, t], residuals (M,C,2) normalised)."""
+    The perturbation is R = exp([w]x) R0, t = t0 + dt.
+
+    Parameters
+    ----------
+    stack : CameraStack
+        The cameras.
+    model : ndarray
+        (M, 3) m, marker cluster in the tool frame.
+    R, t : ndarray
+        (3, 3) and (3,) m, the starting pose (tool -> MVS).
+    uv : ndarray
+        (M, C, 2) ideal px, the observations.
+    sig : ndarray
+        (M, C) px, their standard deviations.
+    mask : ndarray
+        (M, C) bool, the observations kept.
+    iters : int
+        Gauss-Newton steps.
+
+    Returns
+    -------
+    R : ndarray
+        (3, 3).
+    t : ndarray
+        (3,) m.
+    cov : ndarray
+        (6, 6) [rotation vector rad, translation m], propagated from the pixel noise.
+    residuals : ndarray
+        (M, C, 2), normalised.
+    """
     s = np.where(mask, sig, 1.0)[..., None]
     m = mask[..., None]
     for it in range(iters + 1):
@@ -65,10 +110,35 @@ def refine_pose(stack: CameraStack, model: np.ndarray, R: np.ndarray, t: np.ndar
 def fit_points(model: np.ndarray, X: np.ndarray, cov: np.ndarray, idx, gate: float, min_markers: int):
     """Rigid fit of the cluster to measured 3-D markers with per-marker outlier rejection.
 
-    model (M,3) tool frame; X (M,3) and cov (M,3,3) measured markers; idx the markers to use.
     Weighted Kabsch, then the marker farthest from the fitted model in Mahalanobis distance is
-    dropped while it exceeds `gate` and more than `min_markers` remain.
-    Returns (R, t, idx kept, refusal or None)."""
+    dropped while it exceeds ``gate`` and more than ``min_markers`` remain.
+
+    Parameters
+    ----------
+    model : ndarray
+        (M, 3) m, tool frame.
+    X : ndarray
+        (M, 3) m, the measured markers (MVS frame).
+    cov : ndarray
+        (M, 3, 3) m^2, their covariances.
+    idx : iterable of int
+        The markers to use.
+    gate : float
+        Mahalanobis distance beyond which a marker is an outlier.
+    min_markers : int
+        Markers that must remain.
+
+    Returns
+    -------
+    R : ndarray
+        (3, 3).
+    t : ndarray
+        (3,) m.
+    kept : list of int
+        The markers kept.
+    refusal : str or None
+        Why the cluster does not fit its geometry, or None.
+    """
     idx = list(idx)
     while True:
         w = 1.0 / np.trace(cov[idx], axis1=1, axis2=2)
@@ -87,8 +157,23 @@ def fit_points(model: np.ndarray, X: np.ndarray, cov: np.ndarray, idx, gate: flo
 def point_fit_cov(model: np.ndarray, R: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """6x6 covariance [rotation vector, translation] of a rigid fit to 3-D markers.
 
-    Linearised as in `refine_pose` (X = exp([w]x) R m + t): J_i = [-[R m_i]x, I], and the
-    covariance is the inverse of sum J_i^T cov_i^-1 J_i over the markers used (model, cov)."""
+    Linearised as in ``refine_pose`` (X = exp([w]x) R m + t): J_i = [-[R m_i]x, I], and the
+    covariance is the inverse of sum J_i^T cov_i^-1 J_i over the markers used.
+
+    Parameters
+    ----------
+    model : ndarray
+        (M, 3) m, the markers used, tool frame.
+    R : ndarray
+        (3, 3), the fitted rotation.
+    cov : ndarray
+        (M, 3, 3) m^2, the measured markers' covariances.
+
+    Returns
+    -------
+    ndarray
+        (6, 6) [rad, m].
+    """
     H = np.zeros((6, 6))
     for m, c in zip(model @ R.T, cov):
         J = np.hstack([-skew(m), np.eye(3)])
@@ -100,9 +185,24 @@ def identify(model: np.ndarray, points: np.ndarray, tol: float = 1e-3):
     """Label unlabeled 3-D points with the cluster's markers by their mutual distances.
 
     For each triple of model markers and each ordered triple of points whose three distances
-    match within `tol`, a Kabsch pose is computed; the pose that brings the most markers within
-    `tol` of a point (then the smallest residual) wins. Returns (R, t, labels (n,) marker index
-    or -1) or None when fewer than 3 markers are found."""
+    match within ``tol``, a Kabsch pose is computed; the pose that brings the most markers within
+    ``tol`` of a point (then the smallest residual) wins.
+
+    Parameters
+    ----------
+    model : ndarray
+        (M, 3) m, tool frame.
+    points : ndarray
+        (n, 3) m, the unlabeled points.
+    tol : float
+        m.
+
+    Returns
+    -------
+    tuple or None
+        (R (3, 3), t (3,) m, labels (n,) marker index or -1), or None when fewer than 3 markers
+        are found.
+    """
     n = len(points)
     if n < 3:
         return None

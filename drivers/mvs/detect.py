@@ -62,9 +62,26 @@ def _centroid_patches(win: np.ndarray, x0: np.ndarray, y0: np.ndarray):
 
 
 def centroid_windows(img: np.ndarray, peaks_xy: np.ndarray, w: int):
-    """Intensity-weighted centroids of the blobs whose peak pixels are `peaks_xy` (n,2) int.
+    """Intensity-weighted centroids of the blobs whose peak pixels are given.
 
-    Returns (uv (n,2) px, sigma_img (n,) px, ok (n,) bool)."""
+    Parameters
+    ----------
+    img : ndarray
+        (H, W) 8-bit image.
+    peaks_xy : ndarray
+        (n, 2) int, the peak pixels (x, y).
+    w : int
+        Half-size of the (2w+1)^2 centroid window (px).
+
+    Returns
+    -------
+    uv : ndarray
+        (n, 2) px.
+    sigma_img : ndarray
+        (n,) px, the image-noise standard deviation of each centroid.
+    ok : ndarray
+        (n,) bool: bright enough and blob-shaped (not merged with a neighbour).
+    """
     if len(peaks_xy) == 0:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool)
     win, x0, y0 = _gather(img, peaks_xy[:, 0].astype(np.int64), peaks_xy[:, 1].astype(np.int64), w)
@@ -72,19 +89,66 @@ def centroid_windows(img: np.ndarray, peaks_xy: np.ndarray, w: int):
 
 
 def detect_in_rois(img: np.ndarray, centres: np.ndarray, roi_half: int, w: int, focus_px: float = 6.0):
-    """One blob per ROI of one image; see `detect_in_rois_multi`."""
+    """One blob per ROI of one image; see ``detect_in_rois_multi``.
+
+    Parameters
+    ----------
+    img : ndarray
+        (H, W) 8-bit image.
+    centres : ndarray
+        (M, 2) px, the predicted marker positions (image pixels).
+    roi_half : int
+        Half-size of the ROI (px).
+    w : int
+        Half-size of the centroid window (px).
+    focus_px : float
+        Standard deviation of the Gaussian focus on the predicted centre (px).
+
+    Returns
+    -------
+    uv : ndarray
+        (M, 2) px.
+    sigma_img : ndarray
+        (M,) px.
+    ok : ndarray
+        (M,) bool.
+    """
     uv, sig, ok = detect_in_rois_multi([img], np.asarray(centres, float)[:, None, :], roi_half, w, focus_px)
     return uv[:, 0], sig[:, 0], ok[:, 0]
 
 
 def detect_in_rois_multi(images, centres: np.ndarray, roi_half: int, w: int, focus_px: float = 6.0):
-    """One blob per ROI, for M predicted centres (M,C,2 image px) in C images (None = no frame).
+    """One blob per ROI, for M predicted centres in C images.
 
     The peak is the argmax, over the (2 roi_half + 1)^2 ROI, of the intensity times a Gaussian
     focus on the predicted centre, so a spurious reflection elsewhere in the ROI does not win
     over the marker; the centroid is then taken in a (2w+1)^2 window around that peak. One
     gather per camera (ROI plus window margin); everything else is one batch over all ROIs of
-    all cameras. Returns (uv (M,C,2), sigma_img (M,C), ok (M,C))."""
+    all cameras.
+
+    Parameters
+    ----------
+    images : sequence of ndarray or None
+        C 8-bit images; None for a camera without a frame.
+    centres : ndarray
+        (M, C, 2) px, the predicted marker positions (image pixels; non-finite: not visible).
+    roi_half : int
+        Half-size of the ROI (px).
+    w : int
+        Half-size of the centroid window (px).
+    focus_px : float
+        Standard deviation of the Gaussian focus (px).
+
+    Returns
+    -------
+    uv : ndarray
+        (M, C, 2) px.
+    sigma_img : ndarray
+        (M, C) px.
+    ok : ndarray
+        (M, C) bool; False where there is no frame, the centre is outside the image or the blob
+        fails the shape check.
+    """
     M, C = centres.shape[:2]
     uv = np.zeros((M, C, 2))
     sig = np.ones((M, C))
@@ -134,7 +198,26 @@ def detect_in_rois_multi(images, centres: np.ndarray, roi_half: int, w: int, foc
 def detect_full_frame(img: np.ndarray, w: int, threshold_dn: float = 40.0, min_area: int = 3):
     """All blobs of a full image: threshold + connected components, then the sub-pixel centroid.
 
-    Returns (uv (n,2), sigma_img (n,), ok (n,))."""
+    Parameters
+    ----------
+    img : ndarray
+        (H, W) 8-bit image.
+    w : int
+        Half-size of the centroid window (px).
+    threshold_dn : float
+        Binary threshold (digital numbers).
+    min_area : int
+        Smallest component kept (px).
+
+    Returns
+    -------
+    uv : ndarray
+        (n, 2) px.
+    sigma_img : ndarray
+        (n,) px.
+    ok : ndarray
+        (n,) bool.
+    """
     _, binary = cv2.threshold(img, threshold_dn, 255, cv2.THRESH_BINARY)
     n, _, stats, cents = cv2.connectedComponentsWithStats(binary, connectivity=8)
     keep = stats[1:, cv2.CC_STAT_AREA] >= min_area
@@ -149,7 +232,22 @@ def detect_full_frame(img: np.ndarray, w: int, threshold_dn: float = 40.0, min_a
 
 
 def baseline_detect(img: np.ndarray, threshold_dn: float = 40.0, min_area: int = 3) -> np.ndarray:
-    """The naive baseline: full-frame threshold + connected components, binary centroids (n,2)."""
+    """The naive baseline: full-frame threshold + connected components, binary centroids.
+
+    Parameters
+    ----------
+    img : ndarray
+        (H, W) 8-bit image.
+    threshold_dn : float
+        Binary threshold (digital numbers).
+    min_area : int
+        Smallest component kept (px).
+
+    Returns
+    -------
+    ndarray
+        (n, 2) px.
+    """
     _, binary = cv2.threshold(img, threshold_dn, 255, cv2.THRESH_BINARY)
     n, _, stats, cents = cv2.connectedComponentsWithStats(binary, connectivity=8)
     return cents[1:][stats[1:, cv2.CC_STAT_AREA] >= min_area]

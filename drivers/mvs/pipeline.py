@@ -13,9 +13,7 @@
    is refined on all kept pixels, views failing the residual gate are dropped, and the 6x6 pose
    covariance is propagated from the pixel noise. The TCP/SMR is the pose translation.
 4. Quality and refusal: too few frames, markers or cameras, or a reprojection error
-   inconsistent with the pixel noise refuse the measurement with the reason. A pose is only
-   reported when every kept observation agrees with it within the gate.
-"""
+   inconsistent with the pixel noise refuse the measurement with the reason."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -33,7 +31,11 @@ from drivers.mvs.triangulate import CameraStack, epipolar_candidates, triangulat
 
 @dataclass(frozen=True)
 class MvsMeasurement:
-    """One measurement of the rig (MVS frame, metres)."""
+    """One measurement of the rig (MVS frame, metres): ``tcp`` (3,) m, ``cov`` (3, 3) m^2
+    propagated from the pixel noise, ``R`` (3, 3) tool orientation, ``pose_cov`` (6, 6) [rotation
+    vector rad, translation m], ``quality`` (markers_used, cameras_used, reproj_rms_px, ...) and
+    ``refused`` (the reason, when no point is reported).
+    """
 
     tcp: np.ndarray | None  # (3,) TCP/SMR point
     cov: np.ndarray | None  # (3,3) m^2 propagated from the pixel noise
@@ -44,6 +46,7 @@ class MvsMeasurement:
 
     @property
     def ok(self) -> bool:
+        """True when a TCP was measured (not refused)."""
         return self.refused is None and self.tcp is not None
 
 
@@ -87,9 +90,28 @@ class MarkerTracker:
 
     # ------------------------------------------------------------------ correspondence
     def observe_predicted(self, images: Sequence[np.ndarray | None], R: np.ndarray, t: np.ndarray):
-        """ROI centroids of every marker in every camera around the predicted pose (MVS frame).
+        """ROI centroids of every marker in every camera around the predicted pose.
 
-        Returns (uv ideal px (M,C,2), sigma px (M,C), mask (M,C))."""
+        Views where two markers are predicted closer than two centroid windows are not used.
+
+        Parameters
+        ----------
+        images : sequence of ndarray or None
+            One 8-bit image or None per camera, in rig order.
+        R : ndarray
+            (3, 3), the tool's predicted orientation in the MVS frame.
+        t : ndarray
+            (3,) m, the tool's (TCP's) predicted position in the MVS frame.
+
+        Returns
+        -------
+        uv : ndarray
+            (M, C, 2) ideal px.
+        sigma : ndarray
+            (M, C) px (centroid repeatability and image noise combined).
+        mask : ndarray
+            (M, C) bool, the views found.
+        """
         M, C = len(self.model.markers), len(self.stack)
         X = self.model.markers @ np.asarray(R).T + np.asarray(t)
         _, Xc = self.stack.project(X)
@@ -110,8 +132,20 @@ class MarkerTracker:
         return uv, sig, mask
 
     def initial_pose_epipolar(self, images: Sequence[np.ndarray | None]):
-        """Pose from unlabeled full-frame blobs (no prediction): epipolar matching, triangulation,
-        identification by the cluster's distances. Returns (R, t) or None."""
+        """Pose from unlabeled full-frame blobs (no prediction).
+
+        Epipolar matching, triangulation, identification by the cluster's distances.
+
+        Parameters
+        ----------
+        images : sequence of ndarray or None
+            One 8-bit image or None per camera, in rig order.
+
+        Returns
+        -------
+        tuple or None
+            (R (3, 3), t (3,) m) of the tool in the MVS frame, or None when the cluster is not found.
+        """
         blobs, sigs = [], []
         for c, img in enumerate(images):
             if img is None:
@@ -134,9 +168,21 @@ class MarkerTracker:
     # ------------------------------------------------------------------ measurement
     def measure(self, images: Sequence[np.ndarray | None],
                 predicted_pose: tuple[np.ndarray, np.ndarray] | None = None) -> MvsMeasurement:
-        """Measure the TCP from one frame set (one image or None per camera, in rig order).
+        """Measure the TCP from one frame set.
 
-        `predicted_pose` = (R, t) of the tool in the MVS frame (the twin's prediction), or None.
+        Parameters
+        ----------
+        images : sequence of ndarray or None
+            One 8-bit image or None per camera, in rig order.
+        predicted_pose : tuple of ndarray or None
+            (R (3, 3), t (3,) m) of the tool in the MVS frame (the twin's prediction); None searches
+            the full frames.
+
+        Returns
+        -------
+        MvsMeasurement
+            Refused, with the reason, when there are too few frames, markers or cameras or the
+            reprojection is inconsistent with the pixel noise.
         """
         if len(images) != len(self.stack):
             return self._refuse(f"expected {len(self.stack)} images, got {len(images)}", {})
@@ -173,7 +219,19 @@ class MarkerTracker:
     def measure_observations(self, uv: np.ndarray, sig: np.ndarray, mask: np.ndarray) -> MvsMeasurement:
         """Triangulate, fit the cluster and propagate the covariance from labelled observations.
 
-        uv (M,C,2) ideal pixels, sig (M,C) px, mask (M,C)."""
+        Parameters
+        ----------
+        uv : ndarray
+            (M, C, 2) ideal px.
+        sig : ndarray
+            (M, C) px.
+        mask : ndarray
+            (M, C) bool, the views found.
+
+        Returns
+        -------
+        MvsMeasurement
+        """
         p, model = self.p, self.model.markers
         X, cov, mask, ok = triangulate(self.stack, uv, sig, mask, gate=p.gate_sigma, min_views=p.min_views)
         q: dict[str, Any] = {"markers_seen": int(ok.sum())}

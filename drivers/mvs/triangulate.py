@@ -31,19 +31,62 @@ class CameraStack:
         return len(self.cameras)
 
     def to_normalised(self, uv: np.ndarray) -> np.ndarray:
-        """Ideal pixels (..., C, 2) -> normalised image coordinates."""
+        """Ideal pixels to normalised image coordinates.
+
+        Parameters
+        ----------
+        uv : ndarray
+            (..., C, 2) ideal px.
+
+        Returns
+        -------
+        ndarray
+            (..., C, 2), dimensionless.
+        """
         return (uv - self.c) / self.f
 
     def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Ideal pixels (M, C, 2) and camera-frame points (M, C, 3) of points X (M, 3)."""
+        """Project points into every camera (pinhole, no distortion).
+
+        Parameters
+        ----------
+        X : ndarray
+            (M, 3) m, MVS frame.
+
+        Returns
+        -------
+        uv : ndarray
+            (M, C, 2) ideal px.
+        Xc : ndarray
+            (M, C, 3) m, the points in each camera's frame.
+        """
         Xc = np.einsum("cij,mj->mci", self.R, X) + self.t[None]
         return Xc[..., :2] / Xc[..., 2:3] * self.f + self.c, Xc
 
     def residuals(self, X: np.ndarray, uv: np.ndarray, s: np.ndarray, m: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Reprojection residuals of points X (M,3) against pixels uv (M,C,2), normalised by s
-        (M,C,1) and masked by m (M,C,1), and their Jacobian d r / d X (M,C,2,3):
-        d proj / d Xc = f/z [[1, 0, -x/z], [0, 1, -y/z]], d Xc / d X = R."""
+        """Normalised reprojection residuals of points and their Jacobian.
+
+        d proj / d Xc = f/z [[1, 0, -x/z], [0, 1, -y/z]], d Xc / d X = R.
+
+        Parameters
+        ----------
+        X : ndarray
+            (M, 3) m.
+        uv : ndarray
+            (M, C, 2) ideal px, the observations.
+        s : ndarray
+            (M, C, 1) px, their standard deviations.
+        m : ndarray
+            (M, C, 1) bool, the views used (others give zero residual and Jacobian).
+
+        Returns
+        -------
+        r : ndarray
+            (M, C, 2), normalised by ``s``.
+        J : ndarray
+            (M, C, 2, 3), d r / d X (1/m).
+        """
         proj, Xc = self.project(X)
         r = np.where(m, (proj - uv) / s, 0.0)
         z = Xc[..., 2:3]
@@ -57,7 +100,24 @@ class CameraStack:
 
 
 def dlt(stack: CameraStack, uv: np.ndarray, sig: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Linear (DLT) triangulation of M points from masked views; rows weighted by f / sigma."""
+    """Linear (DLT) triangulation of M points from masked views; rows weighted by f / sigma.
+
+    Parameters
+    ----------
+    stack : CameraStack
+        The cameras.
+    uv : ndarray
+        (M, C, 2) ideal px.
+    sig : ndarray
+        (M, C) px.
+    mask : ndarray
+        (M, C) bool, the views used.
+
+    Returns
+    -------
+    ndarray
+        (M, 3) m, MVS frame.
+    """
     xn = stack.to_normalised(uv)  # (M,C,2)
     P = stack.P[None]  # (1,C,3,4)
     a1 = xn[..., 0:1] * P[..., 2, :] - P[..., 0, :]
@@ -73,7 +133,30 @@ def refine_points(stack: CameraStack, X: np.ndarray, uv: np.ndarray, sig: np.nda
                   mask: np.ndarray, iters: int = 2):
     """Gauss-Newton on the normalised reprojection error, batched over points.
 
-    Returns (X (M,3), cov (M,3,3) m^2, residuals (M,C,2) normalised by sigma)."""
+    Parameters
+    ----------
+    stack : CameraStack
+        The cameras.
+    X : ndarray
+        (M, 3) m, the starting points.
+    uv : ndarray
+        (M, C, 2) ideal px.
+    sig : ndarray
+        (M, C) px.
+    mask : ndarray
+        (M, C) bool, the views used.
+    iters : int
+        Gauss-Newton steps.
+
+    Returns
+    -------
+    X : ndarray
+        (M, 3) m.
+    cov : ndarray
+        (M, 3, 3) m^2.
+    residuals : ndarray
+        (M, C, 2), normalised by sigma.
+    """
     s = np.where(mask, sig, 1.0)[..., None]
     m = mask[..., None]
     for _ in range(iters + 1):
@@ -89,11 +172,37 @@ def refine_points(stack: CameraStack, X: np.ndarray, uv: np.ndarray, sig: np.nda
 
 def triangulate(stack: CameraStack, uv: np.ndarray, sig: np.ndarray, mask: np.ndarray,
                 gate: float = 5.0, min_views: int = 2):
-    """Triangulate with outlier rejection: drop the worst view of a point while its normalised
-    residual exceeds `gate` and more than `min_views` remain (views with a 2-view point cannot
-    be checked here; the cluster fit checks them).
+    """Triangulate with per-view outlier rejection.
 
-    Returns (X (M,3), cov (M,3,3), mask (M,C) of views kept, ok (M,) enough views)."""
+    The worst view of a point is dropped while its normalised residual exceeds ``gate`` and more
+    than ``min_views`` remain; a point left with a residual above the gate is not ok.
+
+    Parameters
+    ----------
+    stack : CameraStack
+        The cameras.
+    uv : ndarray
+        (M, C, 2) ideal px.
+    sig : ndarray
+        (M, C) px.
+    mask : ndarray
+        (M, C) bool, the views found (not modified).
+    gate : float
+        Normalised residual beyond which a view is an outlier.
+    min_views : int
+        Views a point needs.
+
+    Returns
+    -------
+    X : ndarray
+        (M, 3) m (NaN where a point has too few views).
+    cov : ndarray
+        (M, 3, 3) m^2.
+    mask : ndarray
+        (M, C) bool, the views kept.
+    ok : ndarray
+        (M,) bool, points with enough consistent views.
+    """
     mask = mask.copy()
     M, C = mask.shape
     ok = mask.sum(1) >= min_views
@@ -123,12 +232,36 @@ def triangulate(stack: CameraStack, uv: np.ndarray, sig: np.ndarray, mask: np.nd
 
 def epipolar_candidates(stack: CameraStack, blobs: Sequence[np.ndarray], blob_sig: Sequence[np.ndarray],
                         tol_px: float = 1.0, min_support: int = 3):
-    """3-D candidate points from unlabeled blobs by epipolar matching, supported in >= min_support views.
+    """3-D candidate points from unlabeled blobs by epipolar matching.
 
-    For every camera pair, blob pairs within `tol_px` of each other's epipolar line are
+    For every camera pair, blob pairs within ``tol_px`` of each other's epipolar line are
     triangulated; each candidate is re-projected into all cameras and collects the nearest
-    blob within `tol_px`. Candidates are refined on their support and de-duplicated greedily
-    (most support first; a blob is used once). Returns (X (n,3), uv (n,C,2), sig (n,C), mask (n,C)).
+    blob within twice ``tol_px``. Candidates are refined on their support and de-duplicated greedily
+    (most support first; a blob is used once).
+
+    Parameters
+    ----------
+    stack : CameraStack
+        The cameras.
+    blobs : sequence of ndarray
+        Per camera, (n_c, 2) ideal px.
+    blob_sig : sequence of ndarray
+        Per camera, (n_c,) px.
+    tol_px : float
+        Epipolar distance tolerance (px).
+    min_support : int
+        Views a candidate needs.
+
+    Returns
+    -------
+    X : ndarray
+        (n, 3) m.
+    uv : ndarray
+        (n, C, 2) ideal px.
+    sig : ndarray
+        (n, C) px.
+    mask : ndarray
+        (n, C) bool.
     """
     C = len(stack)
     cand = []

@@ -1,46 +1,9 @@
 """NatNetRig: the OptiTrack camera system behind the CameraRig protocol, over NatNet 4.1.
 
-activate: NAT_CONNECT on the command channel; the NAT_SERVERINFO reply must speak NatNet 4.1
-(another version is refused with the version seen: the frame layout depends on it); then
-NAT_REQUEST_MODELDEF gives the rigid body (by id or name) and, unless the config gives them,
-its marker offsets (rigid-body frame, pivot = TCP). A thread receives frames (unicast: on the
-command socket, kept alive with NAT_KEEPALIVE; multicast: on the data port) and keeps the
-newest, counting frame numbers skipped (lost), frames arriving after a newer one (late) and
-undecodable datagrams (malformed).
-
-Who is listened to. The command socket is bound to one interface (`local_address`, or the one
-the route to the server leaves by: never every interface); in multicast the data socket is bound
-to the group's address and joins the group on that interface. UDP has no sender authentication,
-so every datagram's source is checked before it is decoded: replies only from the server's
-address and command port, frames only from the server's address and one of its two ports (the
-command port, or the data port it announced in NAT_SERVERINFO; Motive streams multicast from its
-data port). Anything else is ignored and counted (`frames_foreign`; the last sender is named in
-a refusal). On a host shared with other users the server must hold both ports (Motive does; the
-emulator binds its data port too) or a local process could bind the free one and send from it.
-
-Frame numbers are a reference, not a promise. A frame whose number is more than `max_frame_jump`
-away from the newest one (ahead or back: a restarted server, a take switched, a corrupt or
-forged number), or any frame after no newer one arrived for `max_age_s` (the counter restarted
-nearby), or a frame numbered back whose transmit stamp stepped by more than `max_age_s` against
-the host clock (a server restarted quickly: a late frame of the same stream keeps its clock),
-becomes the new reference: counted in `frame_resets`, gaps across it are not counted
-lost, and the transit minimum is learnt afresh (a restarted server's clock starts elsewhere).
-So no single datagram can make the real stream "late" for good; a reading is always judged by
-its own time stamps.
-
-read: waits for a frame newer than the last one read, then turns its labelled markers of the
-rigid body into the MVS measurement of the TCP with the image pipeline's cluster fit
-(drivers.mvs.cluster.fit_points: weighted Kabsch, per-marker outlier gate) and the TCP
-covariance propagated from `marker_sigma_m`. Refusals, each naming the frame: stale (age >
-max_age_s), rigid body absent or not tracked (tracking-valid flag off), too few markers, cluster
-not fitting its geometry, residual > max_residual_m.
-
-Frame age = server latency (transmit - camera mid-exposure stamps, the server's clock) + the
-frame's transit beyond the fastest transit seen since activation (host receive time minus the
-transmit stamp, whose minimum fixes the clock offset; a constant network delay is therefore not
-counted, clock drift over a session is neglected) + time since it was received. Every reading
-carries the device timestamps (frame timestamp, mid-exposure) and the host receive time.
-"""
+It connects to Motive (or the emulator), finds the tool's rigid body, receives frames on a
+thread (accepting datagrams only from the server's address and ports) and turns the newest
+frame's labelled markers into the TCP with drivers.mvs.cluster's fit. Config keys, who is
+listened to, frame-number resets, frame age and the refusals: docs/drivers.md ("OptiTrack NatNet")."""
 from __future__ import annotations
 
 import select
@@ -62,6 +25,7 @@ SUPPORTED = {(4, 1)}
 
 
 class NatNetConfig(Frozen):
+    """The ``natnet`` camera driver's options (m, s, ports); the table is in docs/drivers.md."""
     server: str = "127.0.0.1"
     command_port: int = Field(1510, ge=1, le=65535)
     data_port: int = Field(1511, ge=1, le=65535)
@@ -351,6 +315,24 @@ class NatNetRig(Lifecycle):
         return dict(self.stats)
 
     def read(self) -> RigReading:
+        """The TCP from the first frame newer than the last one read (m, the rig's frame).
+
+        Waits up to ``read_timeout_s`` for that frame; ``t`` is the frame's mid-exposure on the server's
+        clock (s), ``host_time`` when it arrived, and ``quality`` holds the frame's stamps, age and the
+        counters (docs/drivers.md).
+
+        Returns
+        -------
+        RigReading
+            Refused, naming the frame, when no new frame came, it is stale (age > ``max_age_s``), the
+            rigid body is absent or not tracked, too few markers are seen, the cluster does not fit or
+            its residual exceeds ``max_residual_m``.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        """
         self._require("active")
         with self._cond:
             self._cond.wait_for(lambda: self._seq > self._last_read_seq, timeout=self.cfg.read_timeout_s)

@@ -76,12 +76,16 @@ class ConnectRequest:
 
 @dataclass(frozen=True)
 class MarkerSet:
+    """A named marker set of a frame: its markers' positions (m, server frame)."""
     name: str
     markers: tuple[Vec3, ...] = ()
 
 
 @dataclass(frozen=True)
 class RigidBody:
+    """A rigid body of a frame (sRigidBodyData): ``pos`` (m, server frame), ``quat`` (qx, qy, qz, qw),
+    ``mean_error`` (m, mean marker error of the solve) and the ``params`` bits.
+    """
     id: int
     pos: Vec3
     quat: Quat  # qx, qy, qz, qw
@@ -90,6 +94,7 @@ class RigidBody:
 
     @property
     def tracking_valid(self) -> bool:
+        """True when the server tracked the body in this frame (RB_TRACKING_VALID)."""
         return bool(self.params & RB_TRACKING_VALID)
 
 
@@ -105,19 +110,34 @@ class LabeledMarker:
 
     @property
     def model_id(self) -> int:
+        """The asset/model id (the id's upper 16 bits)."""
         return self.id >> 16
 
     @property
     def member_id(self) -> int:
+        """The member id within the asset, 1-based (the id's lower 16 bits)."""
         return self.id & 0xFFFF
 
     @property
     def occluded(self) -> bool:
+        """True when the marker was occluded (MARKER_OCCLUDED)."""
         return bool(self.params & MARKER_OCCLUDED)
 
 
 def marker_id(model_id: int, member_id: int) -> int:
-    """The packed labelled-marker id (NatNet_DecodeID's inverse)."""
+    """The packed labelled-marker id (NatNet_DecodeID's inverse).
+
+    Parameters
+    ----------
+    model_id : int
+        The asset/model id (16 bits).
+    member_id : int
+        The member id within the asset, 1-based (16 bits).
+
+    Returns
+    -------
+    int
+    """
     return ((int(model_id) & 0xFFFF) << 16) | (int(member_id) & 0xFFFF)
 
 
@@ -144,12 +164,17 @@ class FrameOfData:
 
 @dataclass(frozen=True)
 class MarkerSetDescription:
+    """A marker set's description (NAT_MODELDEF): its name and its markers' names."""
     name: str
     marker_names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
 class RigidBodyDescription:
+    """A rigid body's description (NAT_MODELDEF): name, id, parent id, ``offset`` (m), its markers'
+    positions (m, rigid-body frame, pivot at the origin), active labels (0 for passive markers) and
+    names.
+    """
     name: str
     id: int
     parent_id: int = -1
@@ -167,14 +192,50 @@ _HEADER = struct.Struct("<HH")
 
 
 def pack_message(msg_id: int, payload: bytes = b"") -> bytes:
+    """One datagram: the header (message id, payload byte count) and the payload.
+
+    Parameters
+    ----------
+    msg_id : int
+        A NAT_* message id.
+    payload : bytes
+        At most MAX_PAYLOAD bytes.
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    NatNetProtocolError
+        When the payload is too long for the uint16 byte count.
+    """
     if len(payload) > MAX_PAYLOAD:
         raise NatNetProtocolError(f"NatNet payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
     return _HEADER.pack(msg_id, len(payload)) + payload
 
 
 def unpack_message(datagram: bytes) -> tuple[int, bytes]:
-    """(message id, payload). Bytes past the stated count are ignored: clients such as the
-    SDK's sample append a NUL after a zero-length request."""
+    """Split a datagram into its message id and payload.
+
+    Bytes past the stated count are ignored: clients such as the SDK's sample append a NUL after a
+    zero-length request.
+
+    Parameters
+    ----------
+    datagram : bytes
+        One UDP datagram.
+
+    Returns
+    -------
+    msg_id : int
+    payload : bytes
+
+    Raises
+    ------
+    NatNetProtocolError
+        When the datagram is shorter than its header or its stated count.
+    """
     if len(datagram) < 4:
         raise NatNetProtocolError(f"NatNet datagram of {len(datagram)} bytes is shorter than its header")
     msg_id, n = _HEADER.unpack_from(datagram)
@@ -232,13 +293,34 @@ def _fixed_name(s: str) -> bytes:
 
 # ----------------------------------------------------------------------------- connect / server info
 def pack_connect(req: ConnectRequest = ConnectRequest()) -> bytes:
+    """The NAT_CONNECT datagram.
+
+    Parameters
+    ----------
+    req : ConnectRequest
+        The client's name, versions and options.
+
+    Returns
+    -------
+    bytes
+    """
     payload = (_fixed_name(req.app_name) + bytes(req.app_version) + bytes(req.natnet_version)
                + struct.pack("<B", int(req.subscribed_only)) + bytes(req.bitstream_version))
     return pack_message(NAT_CONNECT, payload)
 
 
 def unpack_connect(payload: bytes) -> ConnectRequest:
-    """A short payload (older clients send only the name) gives the defaults for the rest."""
+    """Decode a NAT_CONNECT payload; a short payload (older clients send only the name) gives
+    zero versions and no subscription for the rest.
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    ConnectRequest
+    """
     name = payload[:MAX_NAME].split(b"\0", 1)[0].decode("utf-8", "replace")
     ver = tuple(payload[256:260]) if len(payload) >= 260 else (0, 0, 0, 0)
     nn = tuple(payload[260:264]) if len(payload) >= 264 else (0, 0, 0, 0)
@@ -251,12 +333,38 @@ _SERVER_TAIL = struct.Struct("<QHB4B")  # HighResClockFrequency, DataPort, IsMul
 
 
 def pack_server_info(info: ServerInfo) -> bytes:
+    """The NAT_SERVERINFO datagram.
+
+    Parameters
+    ----------
+    info : ServerInfo
+
+    Returns
+    -------
+    bytes
+    """
     payload = (_fixed_name(info.app_name) + bytes(info.app_version) + bytes(info.natnet_version)
                + _SERVER_TAIL.pack(info.clock_hz, info.data_port, int(info.multicast), *info.multicast_group))
     return pack_message(NAT_SERVERINFO, payload)
 
 
 def unpack_server_info(payload: bytes) -> ServerInfo:
+    """Decode a NAT_SERVERINFO payload; a server older than NatNet 3.0 (no clock or ports) gets
+    ``clock_hz`` 0 and the default ports.
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    ServerInfo
+
+    Raises
+    ------
+    NatNetProtocolError
+        When the payload is shorter than the name and versions.
+    """
     if len(payload) < MAX_NAME + 8:
         raise NatNetProtocolError(f"NAT_SERVERINFO of {len(payload)} bytes (needs >= {MAX_NAME + 8})")
     name = payload[:MAX_NAME].split(b"\0", 1)[0].decode("utf-8", "replace")
@@ -269,16 +377,49 @@ def unpack_server_info(payload: bytes) -> ServerInfo:
 
 # ----------------------------------------------------------------------------- requests
 def pack_request(msg_id: int, text: str = "") -> bytes:
-    """NAT_REQUEST (a command string), NAT_REQUEST_MODELDEF, NAT_KEEPALIVE, NAT_DISCONNECT, ..."""
+    """A request datagram: NAT_REQUEST (a command string), NAT_REQUEST_MODELDEF, NAT_KEEPALIVE, ...
+
+    Parameters
+    ----------
+    msg_id : int
+        A NAT_* message id.
+    text : str
+        The command, sent NUL-terminated; empty sends no payload.
+
+    Returns
+    -------
+    bytes
+    """
     return pack_message(msg_id, _cstr(text) if text else b"")
 
 
 def pack_text(msg_id: int, text: str) -> bytes:
-    """NAT_RESPONSE / NAT_MESSAGESTRING carrying a NUL-terminated string."""
+    """NAT_RESPONSE / NAT_MESSAGESTRING carrying a NUL-terminated string.
+
+    Parameters
+    ----------
+    msg_id : int
+        A NAT_* message id.
+    text : str
+
+    Returns
+    -------
+    bytes
+    """
     return pack_message(msg_id, _cstr(text))
 
 
 def unpack_text(payload: bytes) -> str:
+    """The string of a text payload, up to its first NUL (undecodable bytes replaced).
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    str
+    """
     return payload.split(b"\0", 1)[0].decode("utf-8", "replace")
 
 
@@ -295,6 +436,21 @@ _SUFFIX = struct.Struct("<IIdQQQIIh")  # timecode, sub, timestamp, 3 stamps, pre
 
 
 def pack_frame(f: FrameOfData) -> bytes:
+    """The NAT_FRAMEOFDATA datagram (4.1 layout; skeletons, assets, force plates, devices sent empty).
+
+    Parameters
+    ----------
+    f : FrameOfData
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    NatNetProtocolError
+        When a field is out of its wire range or the frame exceeds MAX_PAYLOAD.
+    """
     try:
         return _pack_frame(f)
     except struct.error as exc:  # a field out of its wire range (negative stamp, huge id)
@@ -323,7 +479,23 @@ def _pack_frame(f: FrameOfData) -> bytes:
 
 
 def unpack_frame(payload: bytes) -> FrameOfData:
-    """Decode a 4.1 frame of data; sections this project does not use are skipped by size."""
+    """Decode a 4.1 frame of data; sections this project does not use are skipped by size.
+
+    Parameters
+    ----------
+    payload : bytes
+        A NAT_FRAMEOFDATA payload.
+
+    Returns
+    -------
+    FrameOfData
+        ``skipped`` counts the items of the sections skipped.
+
+    Raises
+    ------
+    NatNetProtocolError
+        When the payload is truncated or a count is out of range.
+    """
     r = _Reader(payload, "NAT_FRAMEOFDATA")
     frame_number = r.one("<i")
     n = r.count("marker set")
@@ -383,12 +555,42 @@ def _pack_description(d: Description) -> bytes:
 
 
 def pack_model_def(descriptions: tuple[Description, ...] | list[Description]) -> bytes:
+    """The NAT_MODELDEF datagram.
+
+    Parameters
+    ----------
+    descriptions : sequence of MarkerSetDescription or RigidBodyDescription
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    NatNetProtocolError
+        When a rigid body's labels or names do not match its markers.
+    """
     return pack_message(NAT_MODELDEF, struct.pack("<i", len(descriptions))
                         + b"".join(_pack_description(d) for d in descriptions))
 
 
 def unpack_model_def(payload: bytes) -> list[Description]:
-    """Marker set and rigid body descriptions; other kinds are skipped by their byte size."""
+    """Marker set and rigid body descriptions; other kinds are skipped by their byte size.
+
+    Parameters
+    ----------
+    payload : bytes
+        A NAT_MODELDEF payload.
+
+    Returns
+    -------
+    list of MarkerSetDescription or RigidBodyDescription
+
+    Raises
+    ------
+    NatNetProtocolError
+        When the payload is truncated or a description overruns its size.
+    """
     r = _Reader(payload, "NAT_MODELDEF")
     out: list[Description] = []
     for _ in range(r.count("description")):

@@ -1,18 +1,6 @@
-"""Robot controller over a serial line (pyserial), speaking `drivers.serial.protocol`.
-
-The same code talks to a real port (`/dev/ttyUSB0`), a pseudo-terminal served by
-`emulators.serial.ControllerEmulator` (`/dev/pts/N`) or a TCP bridge
-(`socket://host:port`), since the port is opened with `serial.serial_for_url`.
-
-`drivers.serial.link.SerialLink` is the host side of the protocol (sequence numbers,
-acknowledgements, retries, stale-reply discard, reconnection); the tracker driver shares it.
-
-Config keys (validated once into frozen objects; errors name key, value and what is allowed):
-those of `drivers.serial.link.LinkConfig` (`url` required, `baudrate`, `timeout_s`,
-`move_timeout_s`, `retries`, `reconnect_after`) and `limits`: `tcp_abs_m` (3.0, |x|,|y|,|z|
-bound for targets and received TCPs), `max_speed_m_s` (2.0), `joint_abs_rad` (2 pi),
-`n_joints` (6).
-"""
+"""Robot controller over a serial line (pyserial), speaking `drivers.serial.protocol`
+through `drivers.serial.link.SerialLink` (shared with the tracker driver). The protocol and
+the config keys: docs/drivers.md ("Serial line protocol")."""
 from __future__ import annotations
 
 import math
@@ -30,6 +18,9 @@ from dt_kernel.config import Frozen
 
 
 class ControllerLimits(Frozen):
+    """Ranges the controller driver checks: ``tcp_abs_m`` (m, bound on |x|, |y|, |z| of targets and
+    received TCPs), ``max_speed_m_s`` (m/s), ``joint_abs_rad`` (rad), ``n_joints``.
+    """
     tcp_abs_m: float = Field(3.0, gt=0)
     max_speed_m_s: float = Field(2.0, gt=0)
     joint_abs_rad: float = Field(2 * math.pi, gt=0)
@@ -37,11 +28,12 @@ class ControllerLimits(Frozen):
 
 
 class ControllerConfig(LinkConfig):
+    """The serial controller's options: the line's (``LinkConfig``) and ``limits``."""
     limits: ControllerLimits = ControllerLimits()
 
 
 class SerialController(SerialDevice[ControllerConfig]):
-    """RobotController over the line protocol (see module docstring for the config keys)."""
+    """RobotController over the serial line protocol (docs/drivers.md, 'Serial line protocol')."""
 
     name = "serial controller"
     config_model = ControllerConfig
@@ -51,17 +43,65 @@ class SerialController(SerialDevice[ControllerConfig]):
         return check_move(target, speed, lim.tcp_abs_m, lim.max_speed_m_s)
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
+        """Linear move of the TCP (MOVL); returns when the controller reports it settled.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        speed : float
+            m/s.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When the arguments are out of the limits, the controller refuses (NAK) or does not answer.
+        UnreachableError
+            When the controller refuses the target as unreachable.
+        """
         self._require("active")
         target, speed = self._check_move(target, speed)
         reply = self._link.request("MOVL", *map(float, target), speed, timeout_s=self._cfg.move_timeout_s)
         ack_fields(self.name, "MOVL", reply, 0)
 
     def stream_setpoint(self, target: np.ndarray, speed: float) -> None:
+        """Send one streamed set-point (SETP); the controller acknowledges at once.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        speed : float
+            m/s.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            As ``move_linear``.
+        """
         self._require("active")
         target, speed = self._check_move(target, speed)
         ack_fields(self.name, "SETP", self._link.request("SETP", *map(float, target), speed), 0)
 
     def read_joint_state(self) -> JointState:
+        """The encoder joint angles (GETJ).
+
+        Returns
+        -------
+        JointState
+            ``q`` (rad), ``t`` (s, controller clock), ``host_time`` at receipt.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When the reply is refused, malformed, or an angle is outside ±``joint_abs_rad``.
+        """
         self._require("active")
         lim = self._cfg.limits
         reply = self._link.request("GETJ")
@@ -73,6 +113,20 @@ class SerialController(SerialDevice[ControllerConfig]):
         return JointState(q=q, t=t, host_time=host_time)
 
     def read_commanded_tcp(self) -> np.ndarray:
+        """The controller's own TCP from its nominal kinematics (GETT).
+
+        Returns
+        -------
+        ndarray
+            (3,) m, robot frame.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When the reply is refused, malformed, or a coordinate is outside ±``tcp_abs_m``.
+        """
         self._require("active")
         b = self._cfg.limits.tcp_abs_m
         f = ack_fields(self.name, "GETT", self._link.request("GETT"), 4)

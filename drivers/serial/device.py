@@ -16,6 +16,10 @@ C = TypeVar("C", bound=LinkConfig)
 
 
 class SerialDevice(Abortable, Lifecycle, Generic[C]):
+    """Base of the serial drivers: configure validates ``config_model`` and builds the SerialLink,
+    activate opens the port and pings (the protocol version must match), deactivate and close
+    close the port. Abortable: ``abort()`` ends the request in flight.
+    """
     name: ClassVar[str]
     config_model: ClassVar[type[LinkConfig]]  # the device's config (a LinkConfig with its limits)
 

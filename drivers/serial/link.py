@@ -1,18 +1,9 @@
-"""Host side of the line protocol (`drivers.serial.protocol`) over pyserial: `SerialLink`.
+"""Host side of the serial line protocol (`drivers.serial.protocol`) over pyserial: `SerialLink`.
 
 One request in flight, sequence numbers, acknowledgements, retries, stale-reply discard and
-reconnection; the controller and tracker drivers both talk through it. The port is opened with
-`serial.serial_for_url`, so a real port (`/dev/ttyUSB0`), a pseudo-terminal served by the
-emulator (`/dev/pts/N`) and a TCP bridge (`socket://host:port`) run the same code.
-
-Config keys (`LinkConfig`): `url` (required), `baudrate` (115200), `timeout_s` (0.5, per
-reply), `move_timeout_s` (30, a MOVL reply comes when the arm has settled), `retries` (3,
-retransmissions after the first try), `reconnect_after` (2, consecutive time-outs before the
-port is closed and reopened).
-
-Errors: pyserial and OS errors are converted to DriverError here and only here
-(`port_errors`), chained with `from`.
-"""
+reconnection; the controller and tracker drivers both talk through it. pyserial and OS errors
+become DriverError here and only here (`port_errors`). The discipline and the options
+(`LinkConfig`): docs/drivers.md ("Serial line protocol")."""
 from __future__ import annotations
 
 import threading
@@ -33,8 +24,22 @@ _POLL_S = 0.02  # pyserial read granularity while waiting for a reply
 
 @contextmanager
 def port_errors(device: str, what: str) -> Iterator[None]:
-    """The serial boundary: a pyserial or OS error (ValueError: a malformed URL or setting)
-    becomes DriverError naming the device and what failed."""
+    """The serial boundary: a pyserial or OS error becomes DriverError naming the device and what failed.
+
+    A context manager; ValueError (a malformed URL or setting) is converted too.
+
+    Parameters
+    ----------
+    device : str
+        Names the device in the error.
+    what : str
+        What was being done (e.g. ``write failed``).
+
+    Raises
+    ------
+    DriverError
+        Chained from the pyserial, OS or value error.
+    """
     try:
         yield
     except (serial.SerialException, OSError, ValueError) as exc:
@@ -42,6 +47,10 @@ def port_errors(device: str, what: str) -> Iterator[None]:
 
 
 class LinkConfig(Frozen):
+    """The line's options: ``url`` (required), ``baudrate``, ``timeout_s`` (s, per reply),
+    ``move_timeout_s`` (s, a MOVL reply), ``retries`` (after the first try), ``reconnect_after``
+    (consecutive time-outs before the port is reopened).
+    """
     url: str = Field(min_length=1)
     baudrate: int = Field(115200, gt=0)
     timeout_s: float = Field(0.5, gt=0, le=60)
@@ -67,9 +76,17 @@ class SerialLink:
     # --- port ---------------------------------------------------------------------------
     @property
     def is_open(self) -> bool:
+        """True while the port is open."""
         return self._port is not None and self._port.is_open
 
     def open(self) -> None:
+        """Open the port (``serial.serial_for_url``) and drop stale input; does nothing when open.
+
+        Raises
+        ------
+        DriverError
+            When the port cannot be opened.
+        """
         if self.is_open:
             return
         with port_errors(self.device, f"cannot open {self.cfg.url!r}"):
@@ -80,6 +97,7 @@ class SerialLink:
         self._lines.clear()
 
     def close(self) -> None:
+        """Close the port; errors closing a dead port are ignored."""
         port, self._port = self._port, None
         self._lines.clear()
         if port is not None:
@@ -90,6 +108,13 @@ class SerialLink:
                 pass  # closing a dead port: nothing left to release
 
     def reconnect(self) -> None:
+        """Close and reopen the port (counted in ``stats["reconnects"]``).
+
+        Raises
+        ------
+        DriverError
+            When the port cannot be opened again.
+        """
         self.stats["reconnects"] += 1
         self.close()
         self.open()
@@ -98,7 +123,27 @@ class SerialLink:
     def request(self, word: str, *fields: Any, timeout_s: float | None = None) -> lp.Frame:
         """Send one request and return its ACK or non-retryable NAK frame.
 
-        Raises DriverError when no valid reply came after `1 + retries` attempts.
+        Time-outs, corrupt replies and retryable NAKs (CRC, BUSY) retransmit the same frame, up to
+        ``retries`` times; the port is reopened after ``reconnect_after`` time-outs in a row.
+
+        Parameters
+        ----------
+        word : str
+            The command.
+        *fields : object
+            Its fields.
+        timeout_s : float or None
+            Wait per attempt (s); ``cfg.timeout_s`` when None.
+
+        Returns
+        -------
+        Frame
+            An ACK, or a NAK whose reason is not retryable.
+
+        Raises
+        ------
+        DriverError
+            When no valid reply came after ``1 + retries`` attempts, or the device's abort was set.
         """
         with self._lock:
             seq, self._seq = self._seq, lp.next_seq(self._seq)
@@ -187,6 +232,22 @@ class SerialLink:
 
 
 def refused(device: str, word: str, reply: lp.Frame) -> DriverError | UnreachableError:
+    """The error for a NAK reply.
+
+    Parameters
+    ----------
+    device : str
+        Names the device.
+    word : str
+        The command refused.
+    reply : Frame
+        The NAK.
+
+    Returns
+    -------
+    DriverError or UnreachableError
+        UnreachableError for NAK UNREACHABLE, DriverError naming the reason otherwise.
+    """
     text = ",".join(reply.fields[1:])
     if reply.nak_reason == lp.NAK_UNREACHABLE:
         return UnreachableError(f"{device}: {word} refused, target unreachable: {text}")
@@ -194,6 +255,28 @@ def refused(device: str, word: str, reply: lp.Frame) -> DriverError | Unreachabl
 
 
 def ack_fields(device: str, word: str, reply: lp.Frame, n: int | None = None) -> tuple[str, ...]:
+    """The fields of an ACK reply.
+
+    Parameters
+    ----------
+    device : str
+        Names the device in errors.
+    word : str
+        The command answered.
+    reply : Frame
+        The reply.
+    n : int or None
+        The number of fields expected (not checked when None).
+
+    Returns
+    -------
+    tuple of str
+
+    Raises
+    ------
+    DriverError or UnreachableError
+        When the reply is a NAK (see ``refused``), or has another number of fields than ``n``.
+    """
     if not reply.is_ack:
         raise refused(device, word, reply)
     if n is not None and len(reply.fields) != n:

@@ -1,56 +1,8 @@
-"""Line protocol spoken by the robot controller and the laser tracker (codec, shared).
+"""Line protocol spoken by the serial robot controller and laser tracker: the codec both sides use.
 
-Both sides use this codec: the emulators in `emulators.serial` serve it, the drivers in
-`drivers.serial.controller` / `drivers.serial.tracker` speak it through `drivers.serial.link`.
-
-Frame
------
-One ASCII line per frame::
-
-    $<seq>,<WORD>[,<field>...]*<CRC>\\n
-
-* `seq` decimal 0..65535; the host numbers its requests and wraps 65535 -> 0. A reply
-  carries the seq of the request it answers.
-* `WORD` is the command in a request (upper case), `ACK` or `NAK` in a reply.
-* fields are printable ASCII without `$ , *` (numbers are Python `repr` of a float, SI units;
-  `nan`/`inf` are syntactically valid and rejected by the receiver's range checks).
-* `CRC` is CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) over the bytes strictly between `$`
-  and `*`, four upper-case hex digits. A trailing `\\r` before `\\n` is tolerated.
-* A receiver resynchronises on the last `$` of a line, so a half-written frame followed by a
-  whole one is survived; lines with no `$...*XXXX` shape are garbage and ignored.
-
-Requests and replies (robot controller)
----------------------------------------
-=====================  ==============================================  =========================
-request                meaning                                         ACK fields
-=====================  ==============================================  =========================
-`PING`                 liveness / handshake                            protocol version, device
-`MOVL,x,y,z,v`         linear move of the TCP, m and m/s               (none) -- sent when settled
-`SETP,x,y,z,v`         streamed set-point                              (none) -- sent at once
-`GETJ`                 encoder joint angles                            t, q1..qn (s, rad)
-`GETT`                 controller TCP (nominal kinematics)             t, x, y, z (s, m)
-`STATUS`               controller state                                state, moves done
-=====================  ==============================================  =========================
-
-Laser tracker: `PING`, `STATUS` as above and `MEAS` -> ACK `t, d, az, el, status` (s, m, rad,
-rad, token such as `ok` or `beam_broken`; when status is not `ok` the numbers may be `nan`).
-
-`NAK,<reason>[,<text>]` reasons: `CRC` (request checksum wrong; retry), `BUSY` (retry),
-`SYNTAX`, `UNKNOWN` (command), `RANGE` (NaN or out-of-range argument), `UNREACHABLE` (target
-outside the workspace), `FAULT` (the device failed).
-
-Host discipline (drivers)
--------------------------
-* one request in flight; wait `timeout_s` for its reply (`move_timeout_s` for MOVL);
-* replies whose seq differs from the request's are stale and discarded; a reply that looks
-  like a frame but fails its CRC triggers an immediate retransmission;
-* on time-out, NAK CRC or NAK BUSY the *same* frame (same seq) is retransmitted, up to
-  `retries` times; the device keeps its last reply and answers a duplicate (same seq and
-  payload) from that cache without executing it again, so a retried MOVL moves once;
-* after `reconnect_after` consecutive time-outs the port is closed and reopened;
-* after the last retry the driver raises `DriverError`; any value received that is NaN or
-  outside the configured limits raises `DriverError` and is never passed on.
-"""
+The emulators in `emulators.serial` serve it; the drivers in `drivers.serial.controller` /
+`drivers.serial.tracker` speak it through `drivers.serial.link`. The frame format, the requests
+and replies, the NAK reasons and the host's discipline: docs/drivers.md ("Serial line protocol")."""
 from __future__ import annotations
 
 import math
@@ -87,25 +39,39 @@ class ChecksumError(FrameError):
 
 @dataclass(frozen=True)
 class Frame:
+    """One decoded frame: ``seq``, ``word`` (the command in a request; ACK or NAK in a reply), ``fields``."""
     seq: int
     word: str  # command in a request; ACK or NAK in a reply
     fields: tuple[str, ...] = ()
 
     @property
     def is_ack(self) -> bool:
+        """True for an ACK reply."""
         return self.word == ACK
 
     @property
     def is_nak(self) -> bool:
+        """True for a NAK reply."""
         return self.word == NAK
 
     @property
     def nak_reason(self) -> str:
+        """A NAK's reason (its first field), or an empty string for any other frame."""
         return self.fields[0] if self.is_nak and self.fields else ""
 
 
 def crc16(data: bytes) -> int:
-    """CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, no reflection, no final xor."""
+    """CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, no reflection, no final xor.
+
+    Parameters
+    ----------
+    data : bytes
+
+    Returns
+    -------
+    int
+        0..0xFFFF.
+    """
     crc = 0xFFFF
     for byte in data:
         crc ^= byte << 8
@@ -116,15 +82,54 @@ def crc16(data: bytes) -> int:
 
 
 def next_seq(seq: int) -> int:
+    """The sequence number after ``seq`` (wraps 65535 -> 0).
+
+    Parameters
+    ----------
+    seq : int
+
+    Returns
+    -------
+    int
+    """
     return (seq + 1) % SEQ_MODULO
 
 
 def fmt_float(x: float) -> str:
-    """Shortest text that round-trips the float exactly."""
+    """Shortest text that round-trips the float exactly (``repr``).
+
+    Parameters
+    ----------
+    x : float
+
+    Returns
+    -------
+    str
+    """
     return repr(float(x))
 
 
 def encode(seq: int, word: str, *fields: object) -> bytes:
+    r"""One frame as the bytes of a line: ``$seq,WORD,fields*CRC\n``.
+
+    Parameters
+    ----------
+    seq : int
+        0..65535.
+    word : str
+        The command, ACK or NAK.
+    *fields : object
+        Floats are written with ``fmt_float``, anything else with ``str``.
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    FrameError
+        When ``seq`` is out of range or a field holds ``$ , *`` or an unprintable character.
+    """
     if not 0 <= int(seq) < SEQ_MODULO:
         raise FrameError(f"seq {seq!r} outside 0..{SEQ_MODULO - 1}")
     parts = [str(int(seq)), str(word)]
@@ -138,13 +143,41 @@ def encode(seq: int, word: str, *fields: object) -> bytes:
 
 
 def sanitize(text: str, limit: int = 80) -> str:
-    """Make free text (an exception message) safe to send as one field."""
+    """Make free text (an exception message) safe to send as one field.
+
+    Parameters
+    ----------
+    text : str
+    limit : int
+        Longest result (characters).
+
+    Returns
+    -------
+    str
+        Reserved and unprintable characters replaced by spaces, cut at ``limit``.
+    """
     out = "".join(c if (" " <= c <= "~" and c not in "$,*") else " " for c in str(text))
     return out[:limit]
 
 
 def decode(line: bytes) -> Frame:
-    """Decode one line (with or without its newline); resynchronises on the last `$`."""
+    """Decode one line (with or without its newline); resynchronises on the last ``$``.
+
+    Parameters
+    ----------
+    line : bytes
+
+    Returns
+    -------
+    Frame
+
+    Raises
+    ------
+    ChecksumError
+        When a frame-shaped line fails its CRC.
+    FrameError
+        When the line is not a frame (no ``$``, wrong shape, non-ASCII, bad seq, no word).
+    """
     line = line.rstrip(b"\r\n")
     start = line.rfind(b"$")
     if start < 0:
@@ -182,6 +215,18 @@ class LineBuffer:
         self._max = max_line
 
     def feed(self, data: bytes) -> list[bytes]:
+        """Add received bytes; return the lines completed (without their newlines).
+
+        Past ``max_line`` bytes without a newline, the buffer keeps only from the last ``$``.
+
+        Parameters
+        ----------
+        data : bytes
+
+        Returns
+        -------
+        list of bytes
+        """
         self._buf.extend(data)
         lines = []
         while True:
@@ -197,12 +242,34 @@ class LineBuffer:
         return lines
 
     def clear(self) -> None:
+        """Drop whatever partial line is buffered."""
         self._buf.clear()
 
 
 def parse_float(text: str, name: str, lo: float = -math.inf, hi: float = math.inf,
                 allow_nan: bool = False) -> float:
-    """Parse a received number; NaN, inf and out-of-range values raise DriverError."""
+    """Parse a received number, checking its range.
+
+    Parameters
+    ----------
+    text : str
+        The field.
+    name : str
+        Names the field in the error.
+    lo, hi : float
+        The range allowed (inclusive).
+    allow_nan : bool
+        Return NaN instead of refusing it.
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    DriverError
+        When the text is not a number, is non-finite (NaN unless allowed) or outside [lo, hi].
+    """
     try:
         x = float(text)
     except ValueError as exc:
@@ -217,6 +284,22 @@ def parse_float(text: str, name: str, lo: float = -math.inf, hi: float = math.in
 
 
 def parse_status(text: str) -> str:
+    """Check a status token (a lower-case identifier of at most 32 characters).
+
+    Parameters
+    ----------
+    text : str
+
+    Returns
+    -------
+    str
+        The token.
+
+    Raises
+    ------
+    DriverError
+        When it is not such a token.
+    """
     if not _STATUS_TOKEN.match(text):
         raise DriverError(f"status token {text!r} is not a lower-case identifier")
     return text

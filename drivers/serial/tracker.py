@@ -1,14 +1,7 @@
-"""Laser tracker adapter over a serial line, speaking `drivers.serial.protocol` (MEAS, STATUS, PING).
-
-Same link as the controller (`drivers.serial.link`: seq, ACK/NAK, retries, reconnection).
-A measurement arrives as spherical `d, azimuth, elevation` (m, rad) with a status token; it is
-converted to a Cartesian point in the tracker frame. A reading whose status is not `ok` (e.g.
-`beam_broken`) is returned with that status and a NaN point, as `drivers.simulated.SimTracker`
-does; with status `ok`, NaN or out-of-range numbers raise DriverError.
-
-Config keys: those of `LinkConfig` (`url`, `baudrate`, `timeout_s`, `retries`,
-`reconnect_after`) and `limits`: `min_distance_m` (0.0), `max_distance_m` (80.0).
-"""
+"""Laser tracker over a serial line, speaking `drivers.serial.protocol` (MEAS, STATUS, PING)
+through the same link as the controller. A measurement arrives as spherical d, azimuth,
+elevation (m, rad) and is converted to a Cartesian point in the tracker frame. The protocol and
+the config keys: docs/drivers.md ("Serial line protocol")."""
 from __future__ import annotations
 
 import math
@@ -26,11 +19,13 @@ from dt_kernel.geometry import spherical_to_cartesian
 
 
 class TrackerLimits(Frozen):
+    """Ranges the tracker driver checks: ``min_distance_m`` and ``max_distance_m`` (m)."""
     min_distance_m: float = Field(0.0, ge=0)
     max_distance_m: float = Field(80.0, gt=0)
 
 
 class TrackerConfig(LinkConfig):
+    """The serial tracker's options: the line's (``LinkConfig``) and ``limits``."""
     limits: TrackerLimits = TrackerLimits()
 
 
@@ -41,6 +36,22 @@ class SerialTracker(SerialDevice[TrackerConfig]):
     config_model = TrackerConfig
 
     def measure(self) -> TrackerReading:
+        """Measure the SMR (MEAS).
+
+        Returns
+        -------
+        TrackerReading
+            ``point`` (3,) m in the tracker frame; when the tracker's status is not ``ok`` (e.g.
+            ``beam_broken``) the reading carries that status and a NaN point.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When the reply is refused or malformed, or, with status ``ok``, a number is NaN or out of
+            range (distance outside the limits, azimuth beyond ±2 pi, elevation beyond ±pi/2 rad).
+        """
         self._require("active")
         reply = self._link.request("MEAS")
         host_time = time.monotonic()  # at receipt, before parsing

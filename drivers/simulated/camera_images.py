@@ -1,13 +1,9 @@
-"""Simulated image-based camera rig behind the CameraRig protocol.
+"""Simulated image-based camera rig behind the CameraRig protocol (driver ``sim_images``).
 
 `SimCameraRig` renders the eight synthetic images of the marker cluster (sim.camera_rig) for the
-ACTUAL tool pose and runs the real processing pipeline (dt_runtime.mvs) on them, returning the
+actual tool pose and runs the real processing pipeline (drivers.mvs) on them, returning the
 TCP/SMR point in the MVS frame (the rig's own frame, with its small scale error) with its
-covariance, quality and, when refused, the reason.
-
-Registration (pyproject.toml, entry point group `cobot_dt.drivers.camera`):
-    sim_images = "drivers.simulated.camera_images:SimCameraRig"
-"""
+covariance, quality and, when refused, the reason."""
 from __future__ import annotations
 
 import time
@@ -104,7 +100,22 @@ class SimCameraRig(Lifecycle):
 
     # ------------------------------------------------------------------ frames
     def world_to_mvs_nominal(self, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A world-frame tool pose in the MVS frame through the rig's nominal placement."""
+        """A world-frame tool pose in the MVS frame through the rig's nominal placement.
+
+        Parameters
+        ----------
+        R : ndarray
+            (3, 3), world frame.
+        p : ndarray
+            (3,) m, world frame.
+
+        Returns
+        -------
+        R : ndarray
+            (3, 3), MVS frame.
+        p : ndarray
+            (3,) m, MVS frame.
+        """
         return self._Rm.T @ np.asarray(R, float), self._Rm.T @ (np.asarray(p, float) - self._tm)
 
     def truth_mvs(self) -> np.ndarray:
@@ -116,6 +127,23 @@ class SimCameraRig(Lifecycle):
         return self._clock() if self._clock is not None else self._frames / self.FRAME_RATE_HZ
 
     def read(self) -> RigReading:
+        """Render the frames for the actual tool pose and measure the TCP from them (m, MVS frame).
+
+        The twin's predicted pose, when given to the rig, seeds the pipeline's ROI search; ``t`` is the
+        rig's clock (s) and ``host_time`` the moment the frames were rendered.
+
+        Returns
+        -------
+        RigReading
+            Refused, with the pipeline's reason, when no measurement is reported.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When the rendering or the processing fails numerically.
+        """
         self._require("active")
         try:
             R, p = self._tool_pose()

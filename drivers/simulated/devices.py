@@ -35,7 +35,19 @@ from sim.servo import ServoFollower
 
 
 class SimWorld:
-    """Handle on one simulated cell, created from a scenario and a cell config."""
+    """Handle on one simulated cell (sim.cell.SimCell), created from a scenario and a cell config.
+
+    Parameters
+    ----------
+    scenario : str, Path or dict
+        The scenario (a YAML file or its mapping).
+    cell : str or Path
+        The cell config (YAML).
+    seed : int or None
+        Overrides the scenario's seed.
+    source : str
+        Names the scenario in errors.
+    """
 
     def __init__(self, scenario: str | Path | dict, cell: str | Path, seed: int | None = None,
                  source: str = "<scenario>"):
@@ -46,14 +58,29 @@ class SimWorld:
 
     @property
     def t(self) -> float:
+        """The simulated clock (s)."""
         return self.cell.clock.t
 
     def idle(self, dt: float) -> None:
-        """Let `dt` seconds of simulated time pass with the arm standing still (a tick that
-        commanded nothing: its clock must still run, or a refusing loop would never end)."""
+        """Let simulated time pass with the arm standing still.
+
+        A tick that commanded nothing: its clock must still run, or a refusing loop would never end.
+
+        Parameters
+        ----------
+        dt : float
+            s.
+        """
         self.cell.clock.advance(float(dt))
 
     def truth_tcp(self) -> np.ndarray:
+        """Where the TCP really is (m, robot base frame): the simulator's truth, for scoring only.
+
+        Returns
+        -------
+        ndarray
+            (3,) m.
+        """
         return self.cell.plant.actual_tcp()
 
     def truth_in_tracker_frame(self) -> np.ndarray:
@@ -66,6 +93,15 @@ class SimWorld:
         return R.T @ (self.truth_tcp() - t)
 
     def tool_pose(self):
+        """The actual tool pose (truth), robot base frame.
+
+        Returns
+        -------
+        R : ndarray
+            (3, 3).
+        p : ndarray
+            (3,) m, the TCP.
+        """
         return self.cell.plant.tool_pose()
 
     def predicted_tool_pose(self):
@@ -74,8 +110,22 @@ class SimWorld:
         return TOOL_DOWN, self.cell.plant.controller_tcp()
 
     def occluded(self, cam_center: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """Markers hidden from a camera by the arm's own links: PyBullet ray tests on the actual
-        arm, from the camera centre to 2 mm short of each marker."""
+        """Markers hidden from a camera by the arm's own links.
+
+        PyBullet ray tests on the actual arm, from the camera centre to 2 mm short of each marker.
+
+        Parameters
+        ----------
+        cam_center : ndarray
+            (3,) m, world frame.
+        points : ndarray
+            (n, 3) m, the markers, world frame.
+
+        Returns
+        -------
+        ndarray
+            (n,) bool, True where the arm blocks the ray.
+        """
         arm = self.cell.plant.actual
         pts = np.atleast_2d(points)
         d = pts - cam_center
@@ -84,13 +134,26 @@ class SimWorld:
         return np.array([h[0] == arm.body for h in hits])
 
     def temperature(self) -> float:
+        """The air temperature the cell logs now (deg C)."""
         return self.cell.plant.temperature()
 
     def payload(self) -> float:
+        """The payload now (kg, from the scenario's schedule)."""
         return self.cell.plant.payload()
 
     def tracker_u(self, distance_m: float) -> float:
-        """The tracker's stated standard uncertainty (m, isotropic) at a distance (m)."""
+        """The tracker's stated standard uncertainty at a distance: u_const + u_per_m * d.
+
+        Parameters
+        ----------
+        distance_m : float
+            m.
+
+        Returns
+        -------
+        float
+            m, isotropic.
+        """
         c = self.cell.cell.laser_tracker
         return c.u_const_m + c.u_per_m * distance_m
 
@@ -99,20 +162,46 @@ class SimWorld:
         return self.cell.scenario.joint_noise_rad
 
     def effects_enabled(self) -> list[str]:
+        """The names of the error effects the scenario switches on."""
         return self.cell.scenario.effects.enabled()
 
     def max_speed(self) -> float:
+        """The scenario's TCP speed limit (m/s)."""
         return self.cell.scenario.max_speed_m_s
 
     def unreachable(self, targets: np.ndarray) -> list[tuple[int, str]]:
+        """The targets the controller cannot reach (nothing moves).
+
+        Parameters
+        ----------
+        targets : ndarray
+            (n, 3) m, robot frame.
+
+        Returns
+        -------
+        list of (int, str)
+            Index and reason of every unreachable target.
+        """
         return self.cell.plant.check_reachable(targets)
 
     def inject_joint_offset(self, delta_rad) -> None:
+        """Fault injection: a step in the joint zero offsets (e.g. a slipped encoder).
+
+        Parameters
+        ----------
+        delta_rad : array_like
+            (n_joints,) rad, added to the offsets.
+        """
         self.cell.plant.inject_joint_offset(np.asarray(delta_rad, dtype=float))
 
     def bump_camera(self, shift_m) -> None:
-        """Fault injection: the camera rig is knocked by `shift_m` (world frame), whichever MVS
-        (point stand-in or image rig) reads it."""
+        """Fault injection: the camera rig is knocked, whichever MVS (point stand-in or image rig) reads it.
+
+        Parameters
+        ----------
+        shift_m : array_like
+            (3,) m, world frame; adds to earlier shifts.
+        """
         self.camera_shift = self.camera_shift + np.asarray(shift_m, dtype=float)
         self.cell.mvs.bump(np.asarray(shift_m, dtype=float))
 
@@ -122,6 +211,7 @@ class SimWorld:
         return R, p - self.camera_shift
 
     def close(self) -> None:
+        """Release the cell (its PyBullet clients)."""
         self.cell.close()
 
 
@@ -158,6 +248,25 @@ class SimRobot(Abortable, _OnWorld):
         return self.world.cell.plant
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
+        """Linear move of the simulated TCP; returns when settled (simulated time advances).
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        speed : float
+            m/s (the scenario's limit caps it).
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When the arguments are not finite (speed <= 0 included), the move is aborted or the
+            simulator fails.
+        UnreachableError
+            When the controller's inverse kinematics has no solution.
+        """
         self._require("active")
         self._check_abort()
         target = np.asarray(target, dtype=float)
@@ -172,10 +281,28 @@ class SimRobot(Abortable, _OnWorld):
 
     # --- streaming (drivers.base.SetpointStreamer) in simulated time ------------------------
     def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None:
-        """The plant follows set-points through the servo model of sim.servo (the UR emulator's),
-        in simulated time: each set-point advances the simulated clock by its time step, so the
-        path's lag and overshoot are in the plant's truth. No watchdog: the simulated controller
-        moves only when it is handed a set-point."""
+        """Make the plant follow set-points through sim.servo's servo model, in simulated time.
+
+        Each set-point advances the simulated clock by its time step, so the path's lag and overshoot
+        are in the plant's truth. No watchdog: the simulated controller moves only when it is handed
+        a set-point.
+
+        Parameters
+        ----------
+        rate_hz : float
+            Set-points per second (<= 1000 Hz); the first set-point's time step is 1/rate_hz.
+        lookahead_s : float
+            The servo's look-ahead time (s).
+        gain : float
+            The servo's proportional gain.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When a parameter is out of range or the driver is aborted.
+        """
         self._require("active")
         self._check_abort()
         rate, la, g = check_stream_params(rate_hz, lookahead_s, gain, 1000.0)
@@ -184,6 +311,25 @@ class SimRobot(Abortable, _OnWorld):
         self._last_t: float | None = None
 
     def stream(self, target: np.ndarray, t: float) -> None:
+        """Step the plant to one set-point; the simulated clock advances by ``t`` minus the last one's.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        t : float
+            s, increasing.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active`` or no stream was started.
+        DriverError
+            When the set-point is not finite, ``t`` does not follow the last one, the driver is aborted
+            or the simulator fails.
+        UnreachableError
+            When the set-point is unreachable.
+        """
         self._require("active")
         self._check_abort()
         follower = getattr(self, "_follower", None)
@@ -207,19 +353,55 @@ class SimRobot(Abortable, _OnWorld):
         self._status = replace(st, sent=st.sent + 1, consumed=st.sent + 1, cycles_quiet=0)
 
     def stop_stream(self) -> None:
+        """End the stream (the status becomes ``idle``); does nothing when none runs.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        """
         self._require("active")
         if getattr(self, "_follower", None) is not None:
             self._follower = None
             self._status = replace(self._status, state="idle")
 
     def stream_status(self) -> StreamStatus:
+        """What the driver knows of its stream (``idle`` before any).
+
+        Returns
+        -------
+        StreamStatus
+        """
         return getattr(self, "_status", StreamStatus("idle"))
 
     def read_joint_state(self) -> JointState:
+        """The commanded joint angles (rad) at the simulated time.
+
+        Returns
+        -------
+        JointState
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        """
         self._require("active")
         return JointState(q=self._plant.joint_angles(), t=self.world.t)
 
     def read_commanded_tcp(self) -> np.ndarray:
+        """The controller's TCP (m, robot frame) at its 1 um resolution.
+
+        Returns
+        -------
+        ndarray
+            (3,) m.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        """
         self._require("active")
         return self._plant.controller_tcp()
 
@@ -234,6 +416,18 @@ class SimTracker(_OnWorld):
         return self.world.cell.tracker
 
     def measure(self) -> TrackerReading:
+        """Measure the SMR with the simulated tracker.
+
+        Returns
+        -------
+        TrackerReading
+            ``point`` (3,) m in the tracker frame, NaN when the status is not ``ok``.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        """
         self._require("active")
         d, az, el, status = self._lt.measure_spherical()
         point = spherical_to_cartesian(d, az, el) if status == "ok" else np.full(3, np.nan)
@@ -250,6 +444,18 @@ class SimPointCamera(_OnWorld):
         return self.world.cell.mvs
 
     def read(self) -> RigReading:
+        """Measure the TCP with the point-noise MVS stand-in (m, MVS frame).
+
+        Returns
+        -------
+        RigReading
+            With an isotropic covariance of the stand-in's noise; refused when the rig drops out.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        """
         self._require("active")
         p = self._mvs.measure()
         if p is None:

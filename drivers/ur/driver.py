@@ -1,54 +1,8 @@
-"""Universal Robots controller: state over RTDE, moves as URScript on the script port.
-
-`UrRtdeController` (registry name `ur_rtde`) implements `drivers.base.RobotController`:
-
-* `activate` connects RTDE (`rtde_port`), negotiates protocol version 2, sets up the output
-  recipe (`OUTPUTS` + `extra_outputs`) at `frequency_hz` and starts the stream; an output the
-  controller does not know (NOT_FOUND) is a ConfigError naming it. A reader thread keeps the
-  newest package and reconnects when the connection drops or goes quiet (`rtde_link`).
-* `move_linear(target, speed)` refuses unless the robot is RUNNING in a NORMAL or REDUCED safety
-  mode, sends one `movel(p[x,y,z,rx,ry,rz], a, v)` to `script_port` (the orientation is the
-  current one, or `tool_rotvec`) and waits on the RTDE stream for arrival: TCP within
-  `arrival_tol_m` of the target, TCP speed below `still_m_s` and the program no longer PLAYING.
-  A protective stop (or any other safety stop) during the move, a script error the controller
-  reports, or no arrival within `move_timeout_s` is a DriverError naming it. A move is sent once
-  and never re-sent: after a dropped RTDE connection the driver waits for the stream to come
-  back and judges arrival from it ("nothing moved twice"). `abort()` ends the wait and sends
-  `stopl`.
-* `read_joint_state` / `read_commanded_tcp` / `read_sample` return the newest package (at most
-  `stale_after_s` old; the call waits up to `timeout_s` for a fresh one): `actual_q`, and
-  `actual_TCP_pose[:3]` (the controller's TCP from its encoders and nominal kinematics, m).
-  `JointState.t` is the controller's `timestamp`; `JointState.host_time` the host's receive time.
-* Streaming (`drivers.base.SetpointStreamer`): `start_stream(rate_hz, lookahead_s, gain)` writes
-  the arm's current pose and sequence number 1 into the RTDE input registers of `stream` and
-  sends the servo program (`urscript.servo_program`: servoj on the controller's IK of the pose in
-  the registers, at period 1/rate_hz, with the look-ahead and gain given, and a watchdog of
-  `stream.watchdog_cycles` control cycles), then waits until the program reports it runs.
-  `stream(target, t)` writes one set-point (pose, next sequence number) as one RTDE input package
-  and returns: it never waits for the arm. It refuses (DriverError naming the reason, nothing
-  sent) when the newest package shows a safety stop, the program stopped by its watchdog or
-  ended, the RTDE connection is down, the times do not increase or the step would exceed
-  `limits.max_speed_m_s`. A refusal stops the stream for good (a set-point after a gap would make
-  the arm jump): the controller's watchdog stops the arm, and `start_stream` starts again from
-  where it stands. `stop_stream()` writes sequence -1: the program stops the arm (`stopj`)
-  and ends. If the host stops writing, the program stops the arm by itself after
-  `watchdog_cycles` cycles without a new sequence number (also after `abort()`, which only sets an
-  event: the next `stream` call fails and the watchdog stops the arm). `move_linear` is refused
-  while a stream runs.
-
-Config keys (validated once into `UrConfig`; errors name key, value and what is allowed):
-`host` (required), `rtde_port` (30004), `script_port` (30002), `frequency_hz` (125, at most 500),
-`timeout_s` (2: connect, each setup reply, waiting for a fresh package), `stale_after_s` (0.5: a
-stream quiet this long is treated as lost), `reconnect_interval_s` (0.2), `move_timeout_s` (60),
-`arrival_tol_m` (1e-4), `still_m_s` (1e-3), `acceleration_m_s2` (1.2, movel's `a`),
-`tool_rotvec` (null: keep the current orientation), `extra_outputs` ([]: more RTDE outputs to
-record), `limits` {`tcp_abs_m` 3.0, `max_speed_m_s` 1.0}, `stream` {`enabled` true (the input
-registers are claimed at activate: IN_USE -> ConfigError), `double_register` 24 (the first of six
-input double registers: x, y, z, rx, ry, rz), `seq_register` 24 (input int register: the
-sequence number), `status_register` 24 (output int registers N and N+1: the program's state and
-the sequence number it took), `watchdog_cycles` 25 (0.2 s at 125 Hz), `stop_deceleration` 4.0
-(rad/s^2, stopj's)}.
-"""
+"""Universal Robots controller (driver ``ur_rtde``): state over RTDE, moves as URScript on the
+script port, set-points streamed through RTDE input registers to a servoj program with a
+watchdog. `UrRtdeController` implements drivers.base.RobotController and SetpointStreamer.
+The config keys, what it reads and sends, the faults it detects and the streaming contract:
+docs/drivers.md ("Universal Robots over RTDE")."""
 from __future__ import annotations
 
 import socket
@@ -73,11 +27,15 @@ _MOVABLE_SAFETY = (rp.SAFETY_NORMAL, rp.SAFETY_REDUCED)
 
 
 class UrLimits(Frozen):
+    """Moves refused before anything is sent: ``tcp_abs_m`` (m, bound on |x|, |y|, |z|), ``max_speed_m_s`` (m/s)."""
     tcp_abs_m: float = Field(3.0, gt=0)
     max_speed_m_s: float = Field(1.0, gt=0, le=5.0)
 
 
 class UrStream(Frozen):
+    """The RTDE registers and watchdog of set-point streaming (docs/drivers.md, the ``stream`` table):
+    register numbers 0-47, ``watchdog_cycles`` (control cycles), ``stop_deceleration`` (rad/s^2).
+    """
     enabled: bool = True
     double_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 6)
     seq_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 1)
@@ -111,6 +69,7 @@ class _Stream:
 
 
 class UrConfig(Frozen):
+    """The ``ur_rtde`` driver's options (ports, Hz, s, m, m/s); the table is in docs/drivers.md."""
     host: str = Field(min_length=1)
     rtde_port: int = Field(30004, ge=1, le=65535)
     script_port: int = Field(30002, ge=1, le=65535)
@@ -178,7 +137,19 @@ class UrRtdeController(Abortable, Lifecycle):
 
     # --- reading ------------------------------------------------------------------------
     def read_sample(self) -> RtdeSample:
-        """The newest data package, at most `stale_after_s` old (waits up to `timeout_s`)."""
+        """The newest data package, at most ``stale_after_s`` old (waits up to ``timeout_s``).
+
+        Returns
+        -------
+        RtdeSample
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active``.
+        DriverError
+            When no fresh package came within ``timeout_s``.
+        """
         self._require("active")
         cfg, link = self._cfg, self._link
         fresh = self._await(lambda s: s if s is not None and time.monotonic() - s.t_host <= cfg.stale_after_s
@@ -212,10 +183,34 @@ class UrRtdeController(Abortable, Lifecycle):
         return [m for m in link.messages[-new:] if m.is_error] if new > 0 else []
 
     def read_joint_state(self) -> JointState:
+        """The joint positions (``actual_q``, rad) of the newest package.
+
+        Returns
+        -------
+        JointState
+            ``t`` the controller's ``timestamp`` (s), ``host_time`` the host's receive time.
+
+        Raises
+        ------
+        StateError, DriverError
+            As ``read_sample``.
+        """
         s = self.read_sample()
         return JointState(q=np.array(s.values["actual_q"], dtype=float), t=s.t_device, host_time=s.t_host)
 
     def read_commanded_tcp(self) -> np.ndarray:
+        """The controller's TCP (``actual_TCP_pose[:3]``: from its encoders and nominal kinematics).
+
+        Returns
+        -------
+        ndarray
+            (3,) m, base frame.
+
+        Raises
+        ------
+        StateError, DriverError
+            As ``read_sample``.
+        """
         return np.array(self.read_sample().values["actual_TCP_pose"][:3], dtype=float)
 
     def status(self) -> dict[str, Any]:
@@ -249,6 +244,28 @@ class UrRtdeController(Abortable, Lifecycle):
             raise DriverError(f"{self.name}: not moving: robot mode {rp.ROBOT_MODES.get(mode, mode)}, needs RUNNING")
 
     def move_linear(self, target: np.ndarray, speed: float) -> None:
+        """Send one ``movel`` and wait on the RTDE stream until the arm has arrived.
+
+        Arrival: TCP within ``arrival_tol_m`` of the target, TCP speed below ``still_m_s`` and the
+        program no longer PLAYING. The orientation is the current one, or ``tool_rotvec``. A move is
+        sent once and never re-sent.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, base frame.
+        speed : float
+            m/s.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active`` or a stream is running.
+        DriverError
+            When the arguments are out of the limits, the robot is not RUNNING in a NORMAL or REDUCED
+            safety mode, a safety stop happens during the move, the controller reports a script error,
+            the move does not arrive within ``move_timeout_s``, or it is aborted (``stopl`` is sent).
+        """
         self._require("active")
         self._check_abort()
         if self._stream is not None and not self._stream.stopped:
@@ -268,6 +285,27 @@ class UrRtdeController(Abortable, Lifecycle):
 
     # --- streaming (drivers.base.SetpointStreamer) ---------------------------------------
     def start_stream(self, rate_hz: float, lookahead_s: float = 0.1, gain: float = 300.0) -> None:
+        """Start following set-points: hold the current pose, send the servo program, wait until it runs.
+
+        Parameters
+        ----------
+        rate_hz : float
+            Set-points per second (<= 500 Hz); the servoj period is 1/rate_hz.
+        lookahead_s : float
+            servoj's look-ahead time (s).
+        gain : float
+            servoj's gain.
+
+        Raises
+        ------
+        ConfigError
+            When ``stream.enabled`` is false.
+        StateError
+            When the driver is not ``active`` or a stream is running.
+        DriverError
+            When a parameter is out of range, the robot cannot move, the driver is aborted, or the
+            controller refuses the program or does not report it running within ``timeout_s``.
+        """
         self._require("active")
         self._check_abort()
         cfg, link = self._cfg, self._link
@@ -346,6 +384,28 @@ class UrRtdeController(Abortable, Lifecycle):
         return ""
 
     def stream(self, target: np.ndarray, t: float) -> None:
+        """Write one set-point (pose and next sequence number) as one RTDE input package; never waits.
+
+        A refusal stops the stream for good: the controller's watchdog stops the arm, and
+        ``start_stream`` starts again from where it stands.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, base frame.
+        t : float
+            s, increasing.
+
+        Raises
+        ------
+        StateError
+            When the driver is not ``active`` or no stream was started.
+        DriverError
+            Naming the reason, nothing sent: the set-point is out of the limits, ``t`` does not
+            increase, the step exceeds ``limits.max_speed_m_s``, the newest package shows a safety stop
+            or the program stopped (watchdog) or ended, the RTDE connection is down, or the driver is
+            aborted.
+        """
         self._require("active")
         self._check_abort()
         stream = self._stream
@@ -405,6 +465,13 @@ class UrRtdeController(Abortable, Lifecycle):
         raise DriverError(f"{self.name}: the servo program did not stop within {cfg.timeout_s} s of the host's stop")
 
     def stream_status(self) -> StreamStatus:
+        """What the driver knows of its stream, from the newest package.
+
+        Returns
+        -------
+        StreamStatus
+            ``idle`` when no stream was started (or it was stopped by the host).
+        """
         stream = self._stream
         if stream is None:
             return StreamStatus("idle")

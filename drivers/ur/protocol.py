@@ -1,32 +1,8 @@
-"""RTDE (Real-Time Data Exchange, Universal Robots, TCP 30004): package codec, pure functions.
+"""RTDE (Real-Time Data Exchange, Universal Robots, TCP 30004): the package codec, pure functions.
 
-Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`emulators.ur`).
-References: Universal Robots, "Real-Time Data Exchange (RTDE) Guide"; checked against UR's own
-Python client (RTDE_Python_Client_Library, `rtde/serialize.py`) and the `ur_rtde` package
-(tests/integration/test_ur_rtde.py connects its receive interface to our emulator).
-
-Package (every direction, big-endian, "network byte order")::
-
-    uint16 size (whole package, header included) | uint8 type | payload
-
-Types and payloads of protocol version 2 (the only one spoken here):
-
-==========================================  ======================================  ==========================
-type                                        request payload                         reply payload
-==========================================  ======================================  ==========================
-RTDE_REQUEST_PROTOCOL_VERSION 'V' (86)      uint16 version                          uint8 accepted
-RTDE_GET_URCONTROL_VERSION 'v' (118)        -                                       uint32 major, minor, bugfix, build
-RTDE_TEXT_MESSAGE 'M' (77)                  uint8 n, n chars message, uint8 m, m chars source, uint8 level
-RTDE_CONTROL_PACKAGE_SETUP_OUTPUTS 'O'(79)  double frequency, names "a,b,c"         uint8 recipe id, types "T1,T2,T3"
-RTDE_CONTROL_PACKAGE_SETUP_INPUTS 'I' (73)  names "a,b,c"                           uint8 recipe id, types
-RTDE_CONTROL_PACKAGE_START 'S' (83)         -                                       uint8 accepted
-RTDE_CONTROL_PACKAGE_PAUSE 'P' (80)         -                                       uint8 accepted
-RTDE_DATA_PACKAGE 'U' (85)                  uint8 recipe id, the recipe's fields packed in order
-==========================================  ======================================  ==========================
-
-A name the controller does not know comes back as the type `NOT_FOUND` (an input already
-written by another client as `IN_USE`); a recipe with any of them is not usable.
-"""
+Both sides use it: the driver (`drivers.ur.driver`) and the emulator (`emulators.ur`). Packages
+are `uint16 size | uint8 type | payload`, big-endian, protocol version 2 only; the types and
+payloads are tabled in docs/drivers.md ("The wire formats: RTDE packages and URScript")."""
 from __future__ import annotations
 
 import math
@@ -111,6 +87,23 @@ class ProtocolError(DriverError):
 
 # --- framing ----------------------------------------------------------------------------
 def pack(ptype: int, payload: bytes = b"") -> bytes:
+    """One package: the header (size, type) and the payload.
+
+    Parameters
+    ----------
+    ptype : int
+        The package type (e.g. ``DATA_PACKAGE``).
+    payload : bytes
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    ProtocolError
+        When the package exceeds the uint16 size field.
+    """
     size = HEADER.size + len(payload)
     if size > MAX_PACKAGE:
         raise ProtocolError(f"RTDE package of {size} bytes exceeds the uint16 size field")
@@ -124,9 +117,27 @@ class PackageReader:
         self._buf = bytearray()
 
     def clear(self) -> None:
+        """Drop any incomplete package buffered."""
         self._buf.clear()
 
     def feed(self, data: bytes) -> Iterator[tuple[int, bytes]]:
+        """Add received bytes; yield every package completed, keeping an incomplete tail.
+
+        Parameters
+        ----------
+        data : bytes
+
+        Yields
+        ------
+        tuple of (int, bytes)
+            The package's type and payload.
+
+        Raises
+        ------
+        ProtocolError
+            When a package states a size smaller than its header (the buffer is cleared: a binary
+            stream cannot be resynchronised).
+        """
         self._buf += data
         while len(self._buf) >= HEADER.size:
             size, ptype = HEADER.unpack_from(self._buf)
@@ -142,30 +153,109 @@ class PackageReader:
 
 # --- requests and replies ---------------------------------------------------------------
 def u8(value: int) -> bytes:
+    """A uint8 payload.
+
+    Parameters
+    ----------
+    value : int
+        0..255.
+
+    Returns
+    -------
+    bytes
+    """
     return struct.pack(">B", int(value))
 
 
 def parse_u8(payload: bytes, what: str) -> int:
+    """The first byte of a payload as an int.
+
+    Parameters
+    ----------
+    payload : bytes
+    what : str
+        Names the package in the error.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ProtocolError
+        When the payload is empty.
+    """
     if len(payload) < 1:
         raise ProtocolError(f"RTDE {what}: empty payload, expected uint8")
     return payload[0]
 
 
 def protocol_version_request(version: int = PROTOCOL_VERSION) -> bytes:
+    """The REQUEST_PROTOCOL_VERSION package.
+
+    Parameters
+    ----------
+    version : int
+
+    Returns
+    -------
+    bytes
+    """
     return pack(REQUEST_PROTOCOL_VERSION, struct.pack(">H", version))
 
 
 def parse_protocol_version_request(payload: bytes) -> int:
+    """The version a REQUEST_PROTOCOL_VERSION payload asks for.
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ProtocolError
+        When the payload is not 2 bytes.
+    """
     if len(payload) != 2:
         raise ProtocolError(f"RTDE REQUEST_PROTOCOL_VERSION: payload of {len(payload)} bytes, expected 2")
     return struct.unpack(">H", payload)[0]
 
 
 def urcontrol_version_reply(major: int, minor: int, bugfix: int, build: int) -> bytes:
+    """The GET_URCONTROL_VERSION reply package.
+
+    Parameters
+    ----------
+    major, minor, bugfix, build : int
+
+    Returns
+    -------
+    bytes
+    """
     return pack(GET_URCONTROL_VERSION, struct.pack(">IIII", major, minor, bugfix, build))
 
 
 def parse_urcontrol_version(payload: bytes) -> tuple[int, int, int, int]:
+    """The controller's version from a GET_URCONTROL_VERSION reply payload.
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    tuple of int
+        (major, minor, bugfix, build).
+
+    Raises
+    ------
+    ProtocolError
+        When the payload is not 16 bytes.
+    """
     if len(payload) != 16:
         raise ProtocolError(f"RTDE GET_URCONTROL_VERSION: payload of {len(payload)} bytes, expected 16")
     major, minor, bugfix, build = struct.unpack(">IIII", payload)
@@ -174,21 +264,51 @@ def parse_urcontrol_version(payload: bytes) -> tuple[int, int, int, int]:
 
 @dataclass(frozen=True)
 class TextMessage:
+    """A TEXT_MESSAGE from the controller: ``message``, ``source`` and ``level`` (EXCEPTION_MESSAGE .. INFO_MESSAGE)."""
     message: str
     source: str
     level: int  # EXCEPTION_MESSAGE .. INFO_MESSAGE
 
     @property
     def is_error(self) -> bool:
+        """True for an exception or error message (level <= ERROR_MESSAGE)."""
         return self.level <= ERROR_MESSAGE
 
 
 def text_message(message: str, source: str, level: int) -> bytes:
+    """A TEXT_MESSAGE package (message and source cut at 255 bytes of UTF-8).
+
+    Parameters
+    ----------
+    message : str
+    source : str
+    level : int
+        EXCEPTION_MESSAGE .. INFO_MESSAGE.
+
+    Returns
+    -------
+    bytes
+    """
     m, s = message.encode("utf-8")[:255], source.encode("utf-8")[:255]
     return pack(TEXT_MESSAGE, u8(len(m)) + m + u8(len(s)) + s + u8(level))
 
 
 def parse_text_message(payload: bytes) -> TextMessage:
+    """Decode a TEXT_MESSAGE payload (undecodable bytes replaced).
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    TextMessage
+
+    Raises
+    ------
+    ProtocolError
+        When the payload is truncated.
+    """
     try:
         n = payload[0]
         msg = payload[1:1 + n]
@@ -201,10 +321,39 @@ def parse_text_message(payload: bytes) -> TextMessage:
 
 
 def setup_outputs_request(names: Sequence[str], frequency_hz: float) -> bytes:
+    """The SETUP_OUTPUTS package: the output recipe's frequency and field names.
+
+    Parameters
+    ----------
+    names : sequence of str
+        RTDE output names.
+    frequency_hz : float
+        Hz.
+
+    Returns
+    -------
+    bytes
+    """
     return pack(SETUP_OUTPUTS, struct.pack(">d", float(frequency_hz)) + ",".join(names).encode("ascii"))
 
 
 def parse_setup_outputs_request(payload: bytes) -> tuple[float, list[str]]:
+    """The frequency and names of a SETUP_OUTPUTS payload.
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    frequency_hz : float
+    names : list of str
+
+    Raises
+    ------
+    ProtocolError
+        When the payload holds no frequency and name.
+    """
     if len(payload) < 9:
         raise ProtocolError("RTDE SETUP_OUTPUTS: expected a double frequency and at least one name")
     (freq,) = struct.unpack_from(">d", payload)
@@ -212,21 +361,72 @@ def parse_setup_outputs_request(payload: bytes) -> tuple[float, list[str]]:
 
 
 def setup_inputs_request(names: Sequence[str]) -> bytes:
+    """The SETUP_INPUTS package: the input recipe's field names.
+
+    Parameters
+    ----------
+    names : sequence of str
+        RTDE input names (e.g. ``input_int_register_24``).
+
+    Returns
+    -------
+    bytes
+    """
     return pack(SETUP_INPUTS, ",".join(names).encode("ascii"))
 
 
 def split_names(raw: bytes) -> list[str]:
     """Comma-separated variable names; a trailing comma is tolerated, as the controller does
-    (the `ur_rtde` client ends its list with one)."""
+    (the ``ur_rtde`` client ends its list with one).
+
+    Parameters
+    ----------
+    raw : bytes
+
+    Returns
+    -------
+    list of str
+    """
     names = raw.decode("ascii", "replace").split(",")
     return names[:-1] if len(names) > 1 and names[-1] == "" else names
 
 
 def setup_reply(ptype: int, recipe_id: int, types: Sequence[str]) -> bytes:
+    """A SETUP_OUTPUTS or SETUP_INPUTS reply package.
+
+    Parameters
+    ----------
+    ptype : int
+        ``SETUP_OUTPUTS`` or ``SETUP_INPUTS``.
+    recipe_id : int
+        0 refuses the recipe.
+    types : sequence of str
+        One type per name asked for (``NOT_FOUND`` / ``IN_USE`` for those refused).
+
+    Returns
+    -------
+    bytes
+    """
     return pack(ptype, u8(recipe_id) + ",".join(types).encode("ascii"))
 
 
 def parse_setup_reply(payload: bytes) -> tuple[int, list[str]]:
+    """The recipe id and field types of a setup reply payload.
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    recipe_id : int
+    types : list of str
+
+    Raises
+    ------
+    ProtocolError
+        When the payload is shorter than a recipe id and one type.
+    """
     if len(payload) < 2:
         raise ProtocolError("RTDE setup reply: expected a recipe id and the variable types")
     return payload[0], payload[1:].decode("ascii", "replace").split(",")
@@ -251,10 +451,28 @@ class Recipe:
 
     @property
     def struct(self) -> struct.Struct:
+        """The struct of a DATA_PACKAGE payload of this recipe (the id, then the fields)."""
         return self.__dict__["_struct"]
 
     def pack(self, values: Sequence[object]) -> bytes:
-        """A DATA_PACKAGE with `values` in recipe order (vectors as sequences)."""
+        """A DATA_PACKAGE with ``values`` in recipe order (vectors as sequences).
+
+        Parameters
+        ----------
+        values : sequence
+            One value per field.
+
+        Returns
+        -------
+        bytes
+
+        Raises
+        ------
+        ProtocolError
+            When a vector has the wrong length or a value does not fit its type.
+        ValueError
+            When there are not as many values as fields.
+        """
         flat: list[object] = [self.id]
         for name, typ, v in zip(self.names, self.types, values, strict=True):
             if typ.startswith("VECTOR"):
@@ -271,7 +489,21 @@ class Recipe:
             raise ProtocolError(f"recipe {self.id}: cannot pack {list(self.names)}: {exc}") from exc
 
     def unpack(self, payload: bytes) -> dict[str, object]:
-        """Field name -> value (a tuple for vectors) of a DATA_PACKAGE payload of this recipe."""
+        """Field name -> value (a tuple for vectors) of a DATA_PACKAGE payload of this recipe.
+
+        Parameters
+        ----------
+        payload : bytes
+
+        Returns
+        -------
+        dict
+
+        Raises
+        ------
+        ProtocolError
+            When the payload's size or recipe id is not this recipe's.
+        """
         if len(payload) != self.struct.size:
             raise ProtocolError(f"RTDE DATA_PACKAGE of recipe {self.id}: {len(payload)} bytes, "
                                 f"expected {self.struct.size} for {','.join(self.types)}")
@@ -293,9 +525,34 @@ class Recipe:
 
 
 def data_recipe_id(payload: bytes) -> int:
+    """The recipe id of a DATA_PACKAGE payload.
+
+    Parameters
+    ----------
+    payload : bytes
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    ProtocolError
+        When the payload is empty.
+    """
     return parse_u8(payload, "DATA_PACKAGE")
 
 
 def check_frequency(freq: float) -> bool:
-    """The guide: 0 < frequency <= 500 Hz (the controller's loop; it sends at most that often)."""
+    """True for an allowed output frequency: 0 < frequency <= 500 Hz (the guide; the controller's loop).
+
+    Parameters
+    ----------
+    freq : float
+        Hz.
+
+    Returns
+    -------
+    bool
+    """
     return math.isfinite(freq) and 0.0 < freq <= MAX_FREQUENCY_HZ

@@ -1,21 +1,8 @@
-"""Host side of RTDE: connect, negotiate protocol version 2, set up the output recipe, start, then
-read data packages in a background thread that reconnects when the stream is lost.
-
-`RtdeLink.open()` does the first connection in the caller's thread, so a wrong host, a refused
-version or an output the controller does not know (NOT_FOUND -> ConfigError naming it) fail the
-driver's `activate`. With `inputs` (names of input registers the host writes), an input recipe is
-set up too, before the start: a register another client or a fieldbus adapter already writes
-comes back IN_USE and is a ConfigError naming it (`input_source_key` names the config key), and
-`write_inputs(values)` sends one data package of that recipe (from any thread; it never waits
-for the controller). After that the reader thread owns the socket: an EOF, a socket error, a
-malformed package or no data package for `stale_after_s` closes the connection, counts a drop
-and reconnects every `reconnect_interval_s` with the same recipe until `close()`.
-
-Every package becomes an `RtdeSample`: the controller's fields, its `timestamp` (the device's
-clock, s since the controller started) and the host's receive time (`time.monotonic()`).
-
-Socket errors are converted to DriverError here and only here, chained with `from`.
-"""
+"""Host side of RTDE: `RtdeLink` connects, negotiates protocol version 2, sets up the output (and
+optionally input) recipe and starts, then reads data packages on a background thread that
+reconnects when the stream is lost. Setup errors of the first connection fail the caller (an
+unknown output or a register IN_USE is a ConfigError naming it); socket errors become DriverError
+here and only here. Behaviour and faults: docs/drivers.md ("Universal Robots over RTDE")."""
 from __future__ import annotations
 
 import select
@@ -41,6 +28,37 @@ class RtdeSample:
 
 
 class RtdeLink:
+    """One RTDE connection to a controller, kept alive by a reader thread.
+
+    The newest package is ``latest`` (an RtdeSample; ``cond`` is notified on every package, text
+    message and (dis)connection), the controller's text messages are ``messages`` (the newest 100),
+    and ``stats`` counts packages, connects, drops, stale streams, messages and input packages sent.
+
+    Parameters
+    ----------
+    host : str
+        The controller's address.
+    port : int
+        The RTDE port (30004).
+    names : sequence of str
+        The output recipe's fields.
+    frequency_hz : float
+        The output frequency (Hz).
+    timeout_s : float
+        Connect and each setup reply (s).
+    stale_after_s : float
+        A stream without a data package this long is dropped and reconnected (s).
+    reconnect_interval_s : float
+        Between reconnection attempts (s).
+    source : str
+        Names the config in ConfigErrors.
+    device : str
+        Names the device in errors.
+    inputs : sequence of str
+        Input registers the host writes (an input recipe is set up when given).
+    input_source_key : str
+        The config key named when an input register is refused.
+    """
     def __init__(self, host: str, port: int, names: Sequence[str], frequency_hz: float, *, timeout_s: float,
                  stale_after_s: float, reconnect_interval_s: float, source: str, device: str = "UR RTDE",
                  inputs: Sequence[str] = (), input_source_key: str = "inputs"):
@@ -67,16 +85,27 @@ class RtdeLink:
 
     @property
     def where(self) -> str:
+        """The device and its address, for messages."""
         return f"{self.device} at {self.host}:{self.port}"
 
     # --- lifecycle ----------------------------------------------------------------------
     def open(self) -> None:
+        """Connect in the caller's thread (so a setup error fails it), then start the reader thread.
+
+        Raises
+        ------
+        DriverError
+            When the controller cannot be reached or refuses the version, a recipe or the start.
+        ConfigError
+            When an output is NOT_FOUND or an input register is IN_USE or NOT_FOUND.
+        """
         self._stop.clear()
         self._connect()
         self._thread = threading.Thread(target=self._run, name="ur-rtde-reader", daemon=True)
         self._thread.start()
 
     def close(self) -> None:
+        """Stop the reader thread and close the connection (not counted as a drop)."""
         self._stop.set()
         self._drop(count=False)
         if self._thread is not None and self._thread is not threading.current_thread():
@@ -146,8 +175,21 @@ class RtdeLink:
         self._input_recipe = rp.Recipe(rid, self.inputs, tuple(types))
 
     def write_inputs(self, values: Sequence[object]) -> None:
-        """One data package of the input recipe (values in `inputs` order). DriverError when not
-        connected (the reader thread reconnects) or the send fails; never waits for a reply."""
+        """Send one data package of the input recipe; never waits for a reply. Callable from any thread.
+
+        Parameters
+        ----------
+        values : sequence
+            One value per input, in ``inputs`` order.
+
+        Raises
+        ------
+        DriverError
+            When no input recipe was set up, the link is not connected (the reader thread reconnects)
+            or the send fails.
+        ProtocolError
+            When a value does not fit its type.
+        """
         recipe = self._input_recipe
         if recipe is None:
             raise DriverError(f"{self.where}: no input recipe set up")

@@ -1,34 +1,9 @@
-"""The few URScript commands the driver sends to the controller's script port, and a strict parser
-of exactly those for the emulator (anything else is refused, as a script error would be).
-
-URScript (Universal Robots, "The URScript Programming Language"): poses are `p[x, y, z, rx, ry,
-rz]` in metres and a rotation vector (axis times angle, rad) in the base frame; joint positions
-are `[q1, ..., q6]` in rad; `a` is the acceleration (m/s^2 for movel, rad/s^2 for movej) and `v`
-the speed (m/s, rad/s). A program sent to the secondary interface (30002) is either one line
-("movel(...)\\n") or a `def name(): ... end` block; a new program replaces the running one.
-
-Accepted here::
-
-    movel(p[x,y,z,rx,ry,rz], a=A, v=V)     linear move of the TCP
-    movej(p[...] or [q1..q6], a=A, v=V)    joint move (to a pose or joint positions)
-    stopl(A) / stopj(A)                    decelerate to a stop
-    the servo program of `servo_program`   set-points streamed through RTDE input registers
-
-The servo program (`ServoProgram`, a `def dt_servo(): ... end` block) loops once per control
-cycle: it reads the sequence number the host writes into an input int register (a negative one
-asks it to stop), counts the cycles in which it did not change (more than `watchdog_cycles` in a
-row: `stopj` and `halt`, the host has stopped streaming), reads the TCP set-point p[x, y, z, rx,
-ry, rz] from six consecutive input double registers, and servos to it with
-`servoj(get_inverse_kin(x, qnear=get_actual_joint_positions()), 0, 0, t, lookahead_time, gain)`
-(the URScript manual's recipe for servoing Cartesian set-points). It reports its state in an output
-int register (`STREAM_RUNNING`, `STREAM_WATCHDOG`, `STREAM_HOST_STOP`) and the newest sequence
-number it has taken in the next one. The emulator accepts exactly this program (`parse` checks the
-text is what `servo_program` writes for the parameters it reads from it) and runs the same
-semantics over its plant.
-
-Numbers are written in fixed notation with 9 decimals (1 nm, 1 nrad): no exponent, which every
-URScript version parses.
-"""
+"""The few URScript commands the UR driver sends to the controller's script port (movel, stopl,
+the set-point servo program), and a strict parser of exactly those for the emulator (anything
+else is refused, as a script error would be). Poses are p[x, y, z, rx, ry, rz] (m, rotation
+vector in rad, base frame); numbers are written with 9 decimals and no exponent. The accepted
+programs and the servo program's loop: docs/drivers.md ("Streaming set-points" and "The wire
+formats")."""
 from __future__ import annotations
 
 import math
@@ -70,11 +45,16 @@ class ServoProgram:
 
     @property
     def echo_register(self) -> int:
+        """The output int register where the program echoes the sequence number it took: ``status_register + 1``."""
         return self.status_register + 1
 
 
 @dataclass(frozen=True)
 class Command:
+    """One parsed command: ``kind`` (movel, movej, stopl, stopj, servo), ``a`` (acceleration or
+    deceleration), ``v`` (speed), ``pose`` (x, y, z m, rx, ry, rz rad) or ``q`` (rad), and for
+    ``servo`` the program's parameters.
+    """
     kind: str  # movel, movej, stopl, stopj, servo
     a: float
     v: float = 0.0
@@ -91,18 +71,68 @@ def _num(x: float) -> str:
 
 
 def movel(pose: Sequence[float], a: float, v: float) -> str:
-    """One-line program: linear move to `pose` (6 values) with acceleration `a` and speed `v`."""
+    """One-line program: linear move to a pose.
+
+    Parameters
+    ----------
+    pose : sequence of float
+        6 values: x, y, z (m), rx, ry, rz (rad, rotation vector), base frame.
+    a : float
+        Acceleration (m/s^2).
+    v : float
+        Speed (m/s).
+
+    Returns
+    -------
+    str
+        The line, with its newline.
+
+    Raises
+    ------
+    ScriptError
+        When the pose has not 6 values or a number is not finite.
+    """
     if len(pose) != 6:
         raise ScriptError(f"movel needs a pose of 6 values, got {len(pose)}")
     return f"movel(p[{','.join(_num(float(x)) for x in pose)}], a={_num(a)}, v={_num(v)})\n"
 
 
 def stopl(a: float) -> str:
+    """One-line program: decelerate the TCP to a stop.
+
+    Parameters
+    ----------
+    a : float
+        Deceleration (m/s^2).
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    ScriptError
+        When ``a`` is not finite.
+    """
     return f"stopl({_num(a)})\n"
 
 
 def servo_program(sp: ServoProgram) -> str:
-    """The servo program's text for these parameters (see the module docstring)."""
+    """The servo program's text for these parameters (``def dt_servo(): ... end``).
+
+    Parameters
+    ----------
+    sp : ServoProgram
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    ScriptError
+        When a register or the watchdog is out of range, or a number is not finite.
+    """
     d, s, e, st = sp.double_register, sp.seq_register, sp.echo_register, sp.status_register
     if not (0 <= d <= 42 and 0 <= s <= 47 and 0 <= st <= 46 and sp.watchdog_cycles >= 1):
         raise ScriptError(f"servo program: registers or watchdog out of range: {sp}")
@@ -142,8 +172,20 @@ def servo_program(sp: ServoProgram) -> str:
 
 
 def program_end(lines: list[str]) -> int | None:
-    """Index of the `end` closing the block opened by lines[0] (`def ...:`), or None if the block
-    is not complete yet (`if`/`while`/`def` open a block, `else:`/`elif` continue one)."""
+    """Index of the ``end`` closing the block opened by lines[0] (``def ...:``).
+
+    ``if``/``while``/``def`` open a block, ``else:``/``elif`` continue one.
+
+    Parameters
+    ----------
+    lines : list of str
+        Program lines received so far.
+
+    Returns
+    -------
+    int or None
+        None when the block is not complete yet.
+    """
     depth = 0
     for i, raw in enumerate(lines):
         ln = raw.split("#", 1)[0].strip()
@@ -174,8 +216,22 @@ def _norm(text: str) -> list[str]:
 
 
 def parse_servo(text: str) -> ServoProgram:
-    """The parameters of a servo program, if `text` is exactly what `servo_program` writes for
-    them (comments and indentation aside); ScriptError otherwise."""
+    """The parameters of a servo program, if ``text`` is exactly what ``servo_program`` writes
+    for them (comments and indentation aside).
+
+    Parameters
+    ----------
+    text : str
+
+    Returns
+    -------
+    ServoProgram
+
+    Raises
+    ------
+    ScriptError
+        When a parameter is missing or the text is not that program.
+    """
     lines = _norm(text)
     found = {}
     for key, (pattern, typ) in _SERVO_PARAMS.items():
@@ -191,7 +247,21 @@ def parse_servo(text: str) -> ServoProgram:
 
 
 def parse(text: str) -> list[Command]:
-    """The commands of a one-line program or a `def ...: end` block; ScriptError otherwise."""
+    """The commands of a one-line program or a ``def ...: end`` block.
+
+    Parameters
+    ----------
+    text : str
+
+    Returns
+    -------
+    list of Command
+
+    Raises
+    ------
+    ScriptError
+        For an empty program, a block without its ``end``, or any command not accepted here.
+    """
     lines = _norm(text)
     if not lines:
         raise ScriptError("empty program")

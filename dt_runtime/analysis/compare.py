@@ -17,17 +17,19 @@ import numpy as np
 
 from dt_kernel.errors import DataError, ModelError, TwinError
 from dt_kernel.units import AXES, MM_PER_M
-from dt_runtime.analysis import reregister
+from dt_runtime.analysis import deployment, reregister, validity
 from dt_runtime.analysis.crossval import cross_validate, folds_of, groups_of
 from dt_runtime.analysis.data import noise_floor
 from dt_runtime.analysis.results import CompareResult, ModelScore
 from dt_runtime.analysis.training import data_provenance
+from dt_runtime.analysis.validity import configuration
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import FileRecord
 from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, read_table
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
+from dt_runtime.models import effects as fx
 from dt_runtime.models.effects import Catalogue
 from dt_runtime.models.hybrid import HybridModel, load_map
 
@@ -288,24 +290,6 @@ def _region(P: np.ndarray):
     return lab, order
 
 
-def configuration(q: np.ndarray) -> np.ndarray:
-    """The joint configuration of each row: the sign of the elbow (q3: up/down) and the wrist (q5:
-    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints).
-
-    Parameters
-    ----------
-    q : ndarray
-        (n, dof) joint angles, rad.
-
-    Returns
-    -------
-    ndarray
-        (n,) labels.
-    """
-    cols = [j for j in (2, 4) if j < q.shape[1]]
-    return np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
-
-
 def _configuration(q: np.ndarray):
     """The configuration factor's cells, None when the rows are all in one."""
     lab = configuration(q)
@@ -483,6 +467,128 @@ def _after_reregistration(ds: Dataset, pred: np.ndarray, session: np.ndarray) ->
             "method": "per session, the rigid registration refitted: measured points -> commanded - predicted error"}
 
 
+def _coverage(r: np.ndarray, U: np.ndarray) -> dict:
+    """Per axis, the fraction of rows whose residual lies within their U95."""
+    inside = np.abs(r) <= U
+    return {ax: float(inside[:, k].mean()) for k, ax in enumerate(AXES)}
+
+
+def _u95(um: np.ndarray, std: np.ndarray, tt) -> np.ndarray:
+    """The stated U95 of each row's prediction of e: Eq. 17's t_crit times its combined u."""
+    return tt.t_crit * np.sqrt(um ** 2 + std ** 2)
+
+
+def _to_register(ds: Dataset, reference: int | None, refit_sessions: np.ndarray | None, sessions, trained):
+    """(session label per row, {session: its name}, the sessions to register on reference poses, K),
+    or None: by default (reference None) the sessions whose registration the data fitted on their own
+    points, with K = DEFAULT_REFERENCE; with K > 0 every session; sessions a model was trained on are
+    left out (their registration is the training's)."""
+    if reference == 0 or (reference is None and refit_sessions is None):
+        return None
+    label = ds.extra["session"].astype(int) if "session" in ds.extra else np.zeros(ds.n, dtype=int)
+    if reference is None:
+        assert refit_sessions is not None
+        chosen = {int(v) for v in np.unique(label[np.asarray(refit_sessions) >= 0])}
+    else:
+        chosen = {int(v) for v in np.unique(label)}
+    chosen -= set(trained)
+    names = {i: f.get("name") or f.get("file") for i, f in enumerate(sessions or [])}
+    k = deployment.DEFAULT_REFERENCE if reference is None else int(reference)
+    return (label, names, sorted(chosen), k) if chosen else None
+
+
+def _trained_sessions(name: str, m: HybridModel, ds: Dataset, split) -> set[int]:
+    """The sessions of these data model `name` was trained on (their files in its provenance)."""
+    if split is not None:
+        return {s for s, names_ in split[3].items() if name in names_}
+    return {0} if trained_on([(name, m)], ds) else set()
+
+
+def _after_registration(ds: Dataset, pred, std, dof_model, um, dm, plan) -> tuple[dict, dict] | None:
+    """Each session of `plan` (`_to_register`) registered on its reference poses with the model's
+    correction applied and scored on its other rows, the registration's uncertainty in Eq. 17 (and
+    the same rows under the data's own registration: `before`); the block and the arrays of the
+    rows scored. None without a measurement uncertainty (no Eq. 17, no coverage)."""
+    if um is None or plan is None:
+        return None
+    label, names, chosen, k = plan
+    per, skipped = [], []
+    r_all, U_all, r0_all, U0_all, rows_all, fail_all, fail0_all = [], [], [], [], [], [], []
+    for s in chosen:
+        rows = np.flatnonzero(label == s)
+        try:
+            ref = deployment.reference_rows(ds.commanded[rows], k)
+            reg = deployment.register(ds.actual[rows], ds.error[rows] - pred[rows], ref)
+        except DataError as exc:
+            skipped.append({"session": s, "name": names.get(s), "why": str(exc)})
+            continue
+        t = reg.test
+        idx = rows[t]
+        u_reg = reg.u[t]
+        std_t = np.sqrt(std[idx] ** 2 + u_reg ** 2)
+        dof_t = deployment.combined_dof(std[idx], np.broadcast_to(dof_model, (len(idx), 3)), u_reg, reg.fit.dof)
+        r = reg.residual[t]
+        f, tt, fail = failures(pred[idx] + r, pred[idx], std_t, dof_t, um[idx], dm[idx], _rows(ds.lines, idx))
+        f["rows"] = idx[f["rows"]].tolist()
+        f0, tt0, fail0 = failures(ds.error[idx], pred[idx], std[idx], dof_model, um[idx], dm[idx])
+        U, U0 = _u95(um[idx], std_t, tt), _u95(um[idx], std[idx], tt0)
+        per.append({"session": s, "name": names.get(s), "reference_rows": int(ref.sum()), "n": int(len(idx)),
+                    **{k_: v for k_, v in metrics(r).items() if k_ in ("rmse_mm", "per_axis")},
+                    "failures": f, "coverage_95": _coverage(r, U),
+                    "u_registration_mm": {ax: float(np.sqrt(np.mean(u_reg[:, i] ** 2))) * MM_PER_M
+                                          for i, ax in enumerate(AXES)},
+                    "registration_residual_mm": reg.fit.residual_rms_m * MM_PER_M, "registration_dof": reg.fit.dof,
+                    "before": {"rmse_mm": metrics(ds.error[idx] - pred[idx])["rmse_mm"],
+                               "failures_per_axis": f0["per_axis"], "coverage_95": _coverage(ds.error[idx] - pred[idx],
+                                                                                            U0)}})
+        r_all.append(r)
+        U_all.append(U)
+        r0_all.append(ds.error[idx] - pred[idx])
+        U0_all.append(U0)
+        rows_all.append(idx)
+        fail_all.append(fail)
+        fail0_all.append(fail0)
+    if not per:
+        return {"reference_poses": k, "sessions": [], "skipped": skipped, "n": 0}, {}
+    r, U, r0, U0 = (np.concatenate(a) for a in (r_all, U_all, r0_all, U0_all))
+    fail, fail0, idx = np.concatenate(fail_all), np.concatenate(fail0_all), np.concatenate(rows_all)
+    block = {"method": (f"each session's registration refitted on {k} reference poses (spread over its points) "
+                        "against the commanded points minus the model's prediction; the other rows scored, the "
+                        "registration's uncertainty added to Eq. 17's"),
+             "reference_poses": k, "n": int(len(idx)), **{k_: v for k_, v in metrics(r).items()
+                                                          if k_ in ("rmse_mm", "per_axis")},
+             "failures_per_axis": {ax: float(fail[:, i].mean()) for i, ax in enumerate(AXES)},
+             "coverage_95": _coverage(r, U),
+             "before": {"rmse_mm": metrics(r0)["rmse_mm"],
+                        "failures_per_axis": {ax: float(fail0[:, i].mean()) for i, ax in enumerate(AXES)},
+                        "coverage_95": _coverage(r0, U0)},
+             "sessions": per, "skipped": skipped}
+    return block, {"rows": idx, "residual": r, "U": U}
+
+
+def _validity(name: str, in_sample: bool, um, scored: dict | None, ds: Dataset, pred, std, tt) -> dict:
+    """The `validity` block of the primary model on these data: the coverage of its stated U95 (model,
+    measurement and, after a registration on reference poses, registration) over the rows it did not
+    see, with the band and what to do (analysis.validity)."""
+    if in_sample:
+        return validity.assess([], unchecked=f"{ds.source} was used to train '{name}': its figures are in-sample, "
+                                             "not a test; compare on another session's file, or use --cv K")
+    if um is None or tt is None:
+        return validity.assess([], unchecked="no measurement uncertainty (ux, uy, uz, --mpe-mm or a model's "
+                                             "fitted noise): no stated U to check")
+    if scored:
+        rows, r, U = scored["rows"], scored["residual"], scored["U"]
+        what = (f"the {len(rows)} rows of the new session(s) not used by the registration on reference poses")
+    else:
+        rows, r = np.arange(ds.n), ds.error - pred
+        U = _u95(um, std, tt)
+        what = f"the {ds.n} rows under the data's own registration"
+    sample = validity.Sample("new_data", what, "errors the instrument measured", r, U,
+                             fx.Inputs(commanded=ds.commanded[rows]),
+                             stated="U95 of the prediction")
+    return validity.assess([sample])
+
+
 def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np.ndarray):
     """Held-out prediction and std of every row by the model's configuration (effects, GP inputs,
     robot, GP options) refitted on the other folds, with the saved model's GP hyperparameters."""
@@ -496,7 +602,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             progress: Progress | None = None, instruments: str | Path | None = None,
             inputs: Sequence[str | Path] = (), refit_sessions: np.ndarray | None = None,
             sessions: Sequence[dict] | None = None,
-            catalogue: Catalogue | None = None) -> tuple[CompareResult, dict]:
+            catalogue: Catalogue | None = None, reference: int | None = None) -> tuple[CompareResult, dict]:
     """Compare models with the measured errors of `dataset`; "as is" is added first.
 
     For every model (and "as is", no model: e_hat = 0) the residual r = e - e_hat of each
@@ -544,6 +650,12 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     catalogue : Catalogue, optional
         The effects a saved model's names may refer to beyond its own declared ones (e.g.
         --effects-file's); default `effects.default()`.
+    reference : int, optional
+        Reference poses per new session: its registration refitted on that many poses with the
+        model's correction applied, the other rows scored after it (`after_registration`,
+        analysis.deployment). None: `deployment.DEFAULT_REFERENCE` for the sessions whose
+        registration the data fitted on their own points (`refit_sessions`); K > 0: every session
+        a model was not trained on; 0: none.
 
     Returns
     -------
@@ -564,6 +676,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     zeros = np.zeros((ds.n, 3))
     scores, arrs = [], []
     split = _split(ds, sessions, refit_sessions, fitted)
+    last = None
     b, a = _score(AS_IS, "as is", "no correction: e_hat = 0", zeros, zeros, ds, cells, um, dm, np.full(3, INF),
                   split=split)
     scores.append(b)
@@ -577,9 +690,15 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                           i, len(fitted))
         if m.gp_ is not None and m.gp_.n_features_in_ == 4 and ds.speed is None:  # GP on TCP + speed
             raise DataError(f"model '{name}' was trained on TCP and speed; {ds.source} has no speed column")
+        trained_s = _trained_sessions(name, m, ds, split)
+        time_note = None
         try:
-            pred, std = (_predict_cv(m, ds, folds, groups) if cv_folds > 1
-                         else m.predict(ds, return_std=True))
+            if cv_folds > 1:
+                pred, std = _predict_cv(m, ds, folds, groups)
+            else:
+                label = ds.extra["session"].astype(int) if "session" in ds.extra else np.zeros(ds.n, dtype=int)
+                design, time_note = deployment.time_terms(m, ds, ~np.isin(label, sorted(trained_s)))
+                pred, std = m.predict(ds, return_std=True, design=design)
         except (DataError, ModelError) as exc:
             raise type(exc)(f"model '{name}' cannot predict the rows of {ds.source}: {exc}") from exc
         dom = m.outside_domain(ds)
@@ -591,10 +710,26 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                  "base_parameters": m.base_parameters()}
         if refit_sessions is not None:
             about["after_reregistration"] = _after_reregistration(ds, pred, refit_sessions)
+        if time_note is not None:
+            about["time_terms"] = time_note
+            log.warning("model '%s': %s", name, time_note["text"])
+        plan = _to_register(ds, reference, refit_sessions, sessions, trained_s)
+        reg = _after_registration(ds, pred, std, _model_dof(m), um, dm, plan)
+        scored = None
+        if reg is not None:
+            about["after_registration"], scored = reg
+        last = (name, m, pred, std, scored)
         b, a = _score(name, "model", describe(m), pred, std, ds, cells, um, dm, _model_dof(m), about, split)
         scores.append(b)
         arrs.append(a)
     floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)
+    in_sample = [] if cv_folds > 1 else trained_on(fitted, ds)
+    if last is None:
+        valid = validity.assess([], unchecked="no model to check")
+    else:
+        name, m, pred, std, scored = last
+        tt = failures(ds.error, pred, std, _model_dof(m), um, dm)[1] if um is not None else None
+        valid = _validity(name, name in in_sample, um, scored, ds, pred, std, tt)
     result = CompareResult(
         scores, ds.source, floor * MM_PER_M if floor is not None else None,
         heldout=({"method": f"{len(folds)}-fold cross-validation grouped by target point: each row "
@@ -602,11 +737,12 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                   "folds": len(folds)} if cv_folds > 1 else None),
         t_test={"equation": "Eq. 17: t = (e - e_hat) / sqrt(u_meas^2 + u_model^2) per axis, "
                             "two-sided 95 %, dof by Welch-Satterthwaite",
-                "u_model": "latent GP standard deviation of the prediction; 0 without a GP (the "
-                           "effect parameters' uncertainty is not propagated)",
+                "u_model": "the prediction's standard uncertainty at the row: the GP's latent standard deviation "
+                           "and the effect parameters' covariance propagated through the row's regressors "
+                           "(u^2 = s_GP^2 + a Sigma_theta a^T; dof: the GP's training rows, else infinite)",
                 "u_meas_source": u_source},
         factors={f: names_ for f, (_, names_) in cells.items()},
-        provenance=prov, in_sample=[] if cv_folds > 1 else trained_on(fitted, ds))
+        provenance=prov, in_sample=in_sample, validity=valid)
     if result.in_sample:
         log.warning("%s was used to train %s: these figures are in-sample, not a test (use --cv K or other data)",
                     ds.source, ", ".join(result.in_sample))

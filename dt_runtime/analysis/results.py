@@ -222,6 +222,7 @@ class CompareResult:
     units: str = "mm; e = commanded - measured (Eq. 8); residual r = e - e_hat"
     provenance: Provenance | None = None  # software, data and model file hashes, instruments
     in_sample: list[str] = field(default_factory=list)  # models trained on these very data (figures not held out)
+    validity: dict = field(default_factory=dict)  # the primary model's U95 against these data (analysis.validity)
 
     @property
     def primary(self) -> ModelScore:
@@ -234,4 +235,4 @@ class CompareResult:
         return jsonable({**top, "primary": self.primary.name, "dataset": self.dataset,
                          "noise_floor_mm": self.noise_floor_mm, "heldout": self.heldout, "t_test": self.t_test,
                          "factors": self.factors, "models": self.models, "units": self.units,
-                         "in_sample": self.in_sample, "provenance": self.provenance})
+                         "in_sample": self.in_sample, "validity": self.validity, "provenance": self.provenance})

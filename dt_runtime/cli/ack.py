@@ -3,26 +3,12 @@
 Maintenance was done (default), or only the delivery of a request is confirmed
 (`--delivered-only`: the bus stops republishing it, the state stays). Who (`--by`) and why
 (`--note`) are stored with the action and, once the daemon applies it, with the transition back to
-nominal.
+nominal. Two ways to reach the daemon: `--store FILE` at the cell (the action is written to its
+store; `--wait S` waits until it is applied), or `--bus FILE --request ID --uid UID` from a
+maintenance system elsewhere (published signed with the service's key, `bus.auth.key_file`).
+`--request ID` names the request answered (default, with --store: the newest one).
 
-Two ways to reach the daemon:
-- `--store FILE` (at the cell): the action is written to the daemon's store; a running daemon
-  applies it within about half a second, a stopped one at its next start. `--wait S` waits until
-  it is applied and prints the result.
-- `--bus FILE --uid UID` (a maintenance system elsewhere): the action is published on
-  `dt/<cell>/<robot>/maintenance/done/<id>` with the request's uid (as `dt consume` printed
-  it), signed with the service's key (`bus.auth.key_file`: run as the service's user, or with a
-  copy of its key, 0600); the daemon refuses an unsigned or wrongly signed one and checks id and
-  uid against its outbox. Run beyond loopback only with TLS client certificates and the
-  access-control rules of configs/bus_tls_acl_example.yaml as well, which let only the
-  maintenance system put there.
-
-Who can act: with --store, whoever can write the store (0600: the service's user); with --bus,
-whoever holds the key. docs/bus.md has the table.
-
-`--request ID` names the request the action answers (default, with --store: the newest one); a
-'done' for a request of an earlier episode is recorded and ignored.
-"""
+Who can act, and the bus's rules: docs/cli.md ("dt ack") and docs/bus.md."""
 from __future__ import annotations
 
 import argparse
@@ -35,6 +21,13 @@ from dt_kernel.errors import TwinError
 
 
 def add_arguments(a: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt ack`` (docs/cli.md, ``dt ack``).
+
+    Parameters
+    ----------
+    a : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     where = a.add_mutually_exclusive_group(required=True)
     where.add_argument("--store", metavar="FILE", help="the daemon's SQLite store (the runtime YAML's `store:`)")
     where.add_argument("--bus", metavar="YAML", help="a bus config (configs/bus.yaml) to publish the action on")
@@ -52,6 +45,23 @@ def add_arguments(a: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Record (``--store``) or publish (``--bus``) the operator's action: maintenance done, or a request delivered.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     if not args.by.strip() or not args.note.strip():
         raise TwinError("--by and --note must not be empty: the record says who confirmed what")
     return _via_bus(args) if args.bus else _via_store(args)
@@ -142,4 +152,15 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def human(result: dict) -> str:
+    """The text ``dt ack`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     return json.dumps(result, indent=2)

@@ -28,6 +28,13 @@ from dt_runtime.cli.common import (
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt calibrate`` (docs/cli.md, ``dt calibrate``).
+
+    Parameters
+    ----------
+    c : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     c.add_argument("--campaign", default=None, metavar="DIR",
                    help="campaign directory (its campaign.yaml) or manifest; the options below override it")
     c.add_argument("--registration", default=None, metavar="FILE.csv", help="registration phase file")
@@ -59,7 +66,23 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 
 def files_of(args: argparse.Namespace):
-    """The campaign's files: the manifest's, each overridden by its option."""
+    """The campaign's files: the manifest's (``--campaign``) or ``--registration`` and ``--doe``, each
+    overridden by its option; ``--robot`` overrides the robot.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    CampaignFiles
+
+    Raises
+    ------
+    DataError
+        When neither a campaign nor both files are given, or a named file does not exist.
+    """
     from dataclasses import replace
 
     from dt_kernel.errors import DataError
@@ -88,6 +111,23 @@ def files_of(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Calibrate a twin from the campaign's files and write it with its summary and report.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     import dataclasses
 
     from pydantic import ValidationError
@@ -125,6 +165,17 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(s: dict) -> str:
+    """The text ``dt calibrate`` prints without ``--json``.
+
+    Parameters
+    ----------
+    s : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     e = s["maps"]["e_lt"]
     lines = [f"twin written to {s['twin']} (e_LT map: {', '.join(e['effects']) + ' + GP' if e['effects'] else 'GPR'})",
              f"precision (Sect. 3.3): {s['precision_before_mm']:.3f} mm -> {s['precision_after_mm']:.3f} mm "
@@ -144,4 +195,17 @@ def human(s: dict) -> str:
 
 
 def exit_code(args: argparse.Namespace, summary: dict) -> int:
+    """The exit status: 0, or STRICT_EXIT with ``--strict`` when the validity check failed.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+    summary : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    int
+    """
     return validity_exit(args, summary)

@@ -18,6 +18,13 @@ from dt_runtime.cli.common import add_output_args, folds, progress
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt campaign`` (docs/cli.md, ``dt campaign``).
+
+    Parameters
+    ----------
+    c : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     c.add_argument("--config", required=True, metavar="YAML", help="runtime YAML: its drivers and sim sections")
     c.add_argument("--plan", default="plan_quick.yaml", metavar="YAML",
                    help="experiment plan (default configs/plan_quick.yaml)")
@@ -31,6 +38,23 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> Any:
 
+    """Measure the plan's registration and DOE through the runtime YAML's drivers, then calibrate the twin.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_kernel.errors import DataError
     from dt_runtime.common.outputs import staged
     from dt_runtime.common.paths import CONFIGS
@@ -90,8 +114,18 @@ def _measure_and_calibrate(args, cfg, config: Path, plan, plan_cfg, doe: list, n
 
 
 def spread(rows: list, n: int) -> list:
-    """`n` of `rows`, evenly spaced through them (first and last included): a short DOE that
-    still spans the plan's volume and speeds."""
+    """``n`` of ``rows``, evenly spaced through them (first and last included): a short DOE that
+    still spans the plan's volume and speeds.
+
+    Parameters
+    ----------
+    rows : list
+    n : int
+
+    Returns
+    -------
+    list
+    """
     import numpy as np
 
     return [rows[int(i)] for i in np.linspace(0, len(rows) - 1, n).round()]
@@ -112,6 +146,17 @@ def _world(cfg, base: Path):
 
 
 def human(s: dict) -> str:
+    """The text ``dt campaign`` prints without ``--json``.
+
+    Parameters
+    ----------
+    s : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     return (f"campaign {s['campaign']} ({s['registration_rows']} registration, {s['doe_rows']} DOE rows, "
             f"{s['refusals']} refusals; drivers {s['drivers']}); twin {s['twin']}: precision "
             f"{s['precision_before_mm']:.3f} mm -> {s['precision_after_mm']:.3f} mm")

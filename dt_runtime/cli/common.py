@@ -16,7 +16,22 @@ def _integer(text: str) -> int:
 
 
 def folds(text: str) -> int:
-    """--folds K: an integer >= 2 (one fold leaves nothing to train on)."""
+    """--folds K: an integer >= 2 (one fold leaves nothing to train on).
+
+    Parameters
+    ----------
+    text : str
+        The option's value as typed.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        When it is not an integer or is below 2.
+    """
     k = _integer(text)
     if k < 2:
         raise argparse.ArgumentTypeError(f"{k}: cross-validation needs at least 2 folds")
@@ -24,7 +39,22 @@ def folds(text: str) -> int:
 
 
 def seed_number(text: str) -> int:
-    """--seed N: a non-negative integer (numpy's generators take no negative seed)."""
+    """--seed N: a non-negative integer (numpy's generators take no negative seed).
+
+    Parameters
+    ----------
+    text : str
+        The option's value as typed.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        When it is not an integer or is negative.
+    """
     n = _integer(text)
     if n < 0:
         raise argparse.ArgumentTypeError(f"{n}: a seed is a non-negative integer (0, 1, 2, ...)")
@@ -32,7 +62,22 @@ def seed_number(text: str) -> int:
 
 
 def cv_folds(text: str) -> int:
-    """--cv K: 0 (no cross-validation) or an integer >= 2."""
+    """--cv K: 0 (no cross-validation) or an integer >= 2.
+
+    Parameters
+    ----------
+    text : str
+        The option's value as typed.
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        When it is not an integer, or is 1 or negative.
+    """
     k = _integer(text)
     if k != 0 and k < 2:
         raise argparse.ArgumentTypeError(f"{k}: 0 (none) or at least 2 folds")
@@ -43,15 +88,34 @@ STRICT_EXIT = 3  # `--strict` and a validity check that failed (docs/cli.md)
 
 
 def add_strict_arg(q: argparse.ArgumentParser) -> None:
+    """Add ``--strict``: exit STRICT_EXIT (after writing everything) when a validity check fails.
+
+    Parameters
+    ----------
+    q : argparse.ArgumentParser
+    """
     q.add_argument("--strict", action="store_true",
                    help=f"exit {STRICT_EXIT} (after writing everything) when a validity check fails: the stated "
                         "uncertainty does not cover the errors, or Eq. 17 disagrees with it")
 
 
 def validity_exit(args: argparse.Namespace, summary: dict) -> int:
-    """The exit code of a command whose summary carries a `validity` block (twin.validity): 0,
-    or STRICT_EXIT with --strict when its status is 'fail'. With --json the block's line also goes
-    to stderr (stdout holds only the JSON object)."""
+    """The exit code of a command whose summary carries a ``validity`` block (analysis.validity).
+
+    0, or STRICT_EXIT with ``--strict`` when its status is 'fail'. With ``--json`` the block's line
+    also goes to stderr (stdout holds only the JSON object).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+    summary : dict
+        The command's result.
+
+    Returns
+    -------
+    int
+    """
     import logging
 
     v = summary.get("validity") or {}
@@ -61,6 +125,12 @@ def validity_exit(args: argparse.Namespace, summary: dict) -> int:
 
 
 def add_output_args(q: argparse.ArgumentParser) -> None:
+    """Add ``--json`` and ``--no-progress``.
+
+    Parameters
+    ----------
+    q : argparse.ArgumentParser
+    """
     q.add_argument("--json", action="store_true", help="print the result as one JSON object")
     q.add_argument("--no-progress", action="store_true", help="do not show progress on stderr")
 
@@ -72,6 +142,15 @@ ROBOT_HELP = ("the robot's nominal kinematics: a catalogue arm (ur5e, panda, iiw
 
 
 def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
+    """Add the data options: ``--data``, ``--mapping``, ``--skip-bad``, ``--seed`` and, with
+    ``kinematics``, ``--robot`` and ``--gp-inputs``.
+
+    Parameters
+    ----------
+    q : argparse.ArgumentParser
+    kinematics : bool
+        Add the kinematics options too.
+    """
     q.add_argument("--data", required=True, nargs="+", metavar="FILE",
                    help="measurement table CSV (or a foreign file with --mapping); several files are one campaign, "
                         "each a session (time shifted, points renumbered, a 'session' column)")
@@ -87,6 +166,12 @@ def add_data_args(q: argparse.ArgumentParser, kinematics: bool = True) -> None:
 
 
 def add_effects_file_arg(q: argparse.ArgumentParser) -> None:
+    """Add ``--effects-file``: effects of one's own, declared in YAML (docs/effects.md).
+
+    Parameters
+    ----------
+    q : argparse.ArgumentParser
+    """
     q.add_argument("--effects-file", default=None, metavar="YAML",
                    help="effects of your own, declared in YAML as regressors built from the data's columns "
                         "(e.g. configs/effects/humidity.yaml; docs/effects.md): usable in --effects, tested by "
@@ -94,9 +179,25 @@ def add_effects_file_arg(q: argparse.ArgumentParser) -> None:
 
 
 def effects_catalogue(args: argparse.Namespace):
-    """The command's effects (`models.effects.Catalogue`): the catalogue, the installed plugins and
-    --effects-file's declarations as its own. Built once per command and passed down; nothing is
-    registered in the process, so one call's file does not change what the next call knows."""
+    """The command's effects: the catalogue, the installed plugins and --effects-file's declarations.
+
+    Built once per command and passed down; nothing is registered in the process, so one call's
+    file does not change what the next call knows.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    models.effects.Catalogue
+
+    Raises
+    ------
+    TwinError
+        When the effects file cannot be read or declares an effect wrongly.
+    """
     from dt_runtime.models import effects as fx
 
     path = getattr(args, "effects_file", None)
@@ -111,7 +212,17 @@ MODEL_MARKS = ("hybrid.json",)
 
 def data_inputs(args: argparse.Namespace) -> list[str]:
     """Every file a data command reads (--data, --mapping, --effects-file, --instruments, --model):
-    an output directory that holds one of them is refused (it is replaced whole)."""
+    an output directory that holds one of them is refused (it is replaced whole).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    list of str
+    """
     data = args.data if isinstance(args.data, list) else [args.data]
     models = args.model if isinstance(getattr(args, "model", None), list) else [getattr(args, "model", None)]
     return [str(f) for f in (*data, getattr(args, "mapping", None), getattr(args, "effects_file", None),
@@ -120,14 +231,43 @@ def data_inputs(args: argparse.Namespace) -> list[str]:
 
 def input_files(args: argparse.Namespace) -> list[str]:
     """The files beside the data that shaped the result, for the provenance (hashed): the import
-    mapping and the declared effects."""
+    mapping and the declared effects.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    list of str
+    """
     return [f for f in (getattr(args, "mapping", None), getattr(args, "effects_file", None)) if f]
 
 
 def check_declared(names_: list[str], inp, where: str, path: str, catalogue) -> None:
-    """DataError when the data lack a column a declared effect of --effects-file reads: the user
-    named the file's effects to test them, so a typo must not pass as 'not testable'. The names
-    are `catalogue`'s (`effects_catalogue`)."""
+    """Refuse data that lack a column a declared effect of --effects-file reads.
+
+    The user named the file's effects to test them, so a typo must not pass as 'not testable'.
+
+    Parameters
+    ----------
+    names_ : list of str
+        The declared effects' names.
+    inp : models.effects.Inputs
+        The data's inputs.
+    where : str
+        Names the data in the error.
+    path : str
+        The effects file.
+    catalogue : models.effects.Catalogue
+        Where the names are looked up (``effects_catalogue``).
+
+    Raises
+    ------
+    DataError
+        Naming the effect, the missing columns and the data's columns.
+    """
     from dt_kernel.errors import DataError
     from dt_runtime.models.effects.declared import columns_of
 
@@ -139,7 +279,13 @@ def check_declared(names_: list[str], inp, where: str, path: str, catalogue) -> 
 
 
 def add_session_args(q: argparse.ArgumentParser) -> None:
-    """The options for a campaign of several sessions (several --data files)."""
+    """Add the options for a campaign of several sessions (several --data files): ``--exclude-session``,
+    ``--reference-session``, ``--session-term``.
+
+    Parameters
+    ----------
+    q : argparse.ArgumentParser
+    """
     q.add_argument("--exclude-session", default="", metavar="NAME,...",
                    help="leave these sessions out (by name, file name or index)")
     q.add_argument("--reference-session", default=None, metavar="NAME",
@@ -151,6 +297,13 @@ def add_session_args(q: argparse.ArgumentParser) -> None:
 
 
 def add_mpe_arg(q: argparse.ArgumentParser) -> None:
+    """Add ``--mpe-mm``: the instrument's maximum permissible error (mm), the noise floor when the data
+    state no uncertainty.
+
+    Parameters
+    ----------
+    q : argparse.ArgumentParser
+    """
     q.add_argument("--mpe-mm", type=_positive, default=None, metavar="MM",
                    help="the instrument's maximum permissible error (mm): the noise floor when the data state "
                         "no uncertainty ux..uz")
@@ -167,17 +320,57 @@ def _positive(text: str) -> float:
 
 
 def names(text: str | None) -> tuple[str, ...]:
-    """A comma-separated list of names (effects, model names) as a tuple, blanks dropped."""
+    """A comma-separated list of names (effects, model names) as a tuple, blanks dropped.
+
+    Parameters
+    ----------
+    text : str or None
+
+    Returns
+    -------
+    tuple of str
+        Empty for None or an empty string.
+    """
     return tuple(e.strip() for e in text.split(",") if e.strip()) if text else ()
 
 
 def progress(args: argparse.Namespace) -> Progress:
+    """The progress display on stderr, off with ``--no-progress``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    Progress
+    """
     return Progress(enabled=not getattr(args, "no_progress", False))
 
 
 def load(args: argparse.Namespace, catalogue):
-    """The --data file (through --mapping if given); the effects --effects-file declared into
-    `catalogue` (`effects_catalogue`) must find their columns in it."""
+    """The --data file(s) (through --mapping if given), several files as the sessions of one campaign.
+
+    The effects --effects-file declared into ``catalogue`` must find their columns in it; --mpe-mm
+    goes into the data's facts.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+    catalogue : models.effects.Catalogue
+        The command's effects (``effects_catalogue``).
+
+    Returns
+    -------
+    analysis.data.Data
+
+    Raises
+    ------
+    DataError
+        When a file cannot be read or a declared effect lacks its columns.
+    """
     from dt_runtime.analysis.data import load_data
     from dt_runtime.models import effects as fx
 
@@ -209,11 +402,30 @@ def load(args: argparse.Namespace, catalogue):
 
 
 def robot_of(args: argparse.Namespace, d) -> str:
-    """The robot of the analysis as a reference (`frames.robots`): --robot, else the import
-    mapping's `robot:`, else the default. A robot without a tool offset (a catalogue arm, a bare
-    URDF) gets the one the data give (`frames.tool_fit`): the import's fit from the measured
-    positions, else a fit from the commanded TCP; it is stated on stderr and in the result's
-    `tool_offset` and travels in the reference ('?tool_mm=')."""
+    """The robot of the analysis as a reference (``frames.robots``).
+
+    --robot, else the import mapping's ``robot:``, else the default. A robot without a tool offset
+    (a catalogue arm, a bare URDF) gets the one the data give (``frames.tool_fit``): the import's fit
+    from the measured positions, else a fit from the commanded TCP; it is stated on stderr and in
+    the result's ``tool_offset`` and travels in the reference ('?tool_mm=').
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+    d : analysis.data.Data
+        The loaded data (its facts are updated).
+
+    Returns
+    -------
+    str
+        The robot reference.
+
+    Raises
+    ------
+    TwinError
+        When the robot cannot be resolved or its joints do not explain the commanded TCP.
+    """
     import logging
 
     from dt_runtime.analysis.data import DEFAULT_ROBOT
@@ -252,7 +464,17 @@ def _used(d, ref: str) -> str:
 
 
 def parameter_line(p: dict) -> str:
-    """One effect parameter for the human summary: value +/- u unit, or why it has no value."""
+    """One effect parameter for the human summary: value +/- u unit, or why it has no value.
+
+    Parameters
+    ----------
+    p : dict
+        A parameter of a model's ``parameters``.
+
+    Returns
+    -------
+    str
+    """
     from dt_runtime.models.hybrid import unidentified
 
     if "choice" in p:
@@ -266,8 +488,18 @@ def parameter_line(p: dict) -> str:
 
 def parameter_lines(parameters: list[dict], base: dict | None) -> list[str]:
     """A model's effect parameters for the human summary: the short base-parameter table
-    (reports.parameter_table; for a model saved before base parameters were kept (`base` None),
-    its identified parameters)."""
+    (reports.parameter_table; for a model saved before base parameters were kept (``base`` None),
+    its identified parameters).
+
+    Parameters
+    ----------
+    parameters : list of dict
+    base : dict or None
+
+    Returns
+    -------
+    list of str
+    """
     from dt_runtime.reports.parameter_table import parameter_table, text
 
     return text(parameter_table(parameters, base)) if parameters else []

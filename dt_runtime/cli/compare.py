@@ -14,6 +14,7 @@ from dt_runtime.cli.common import (
     add_effects_file_arg,
     add_mpe_arg,
     add_output_args,
+    add_strict_arg,
     cv_folds,
     effects_catalogue,
     input_files,
@@ -21,10 +22,18 @@ from dt_runtime.cli.common import (
     names,
     parameter_lines,
     progress,
+    validity_exit,
 )
 
 
 def add_arguments(cp: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt compare`` (docs/cli.md, ``dt compare``).
+
+    Parameters
+    ----------
+    cp : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     add_data_args(cp, kinematics=False)
     cp.add_argument("--model", required=True, action="append", metavar="MODEL",
                     help="model directory from `dt fit`; repeat for a side-by-side comparison (oldest first)")
@@ -35,6 +44,13 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
                          "folds grouped by target point (default 0: the models as saved)")
     cp.add_argument("--report", default=None, metavar="DIR",
                     help="write DIR/report.html and DIR/compare.json (DIR replaced whole at the end)")
+    cp.add_argument("--reference", type=_reference, default=None, metavar="K",
+                    help="reference poses per new session: its registration refitted on K poses spread over its "
+                         "points, with the model's correction applied, and every other row scored after it (Eq. 17 "
+                         "with the registration's uncertainty, coverage of U95). Default: 10 for sessions whose "
+                         "registration was fitted on their own points (measured_frame: instrument); K > 0: every "
+                         "session no model was trained on; 0: off")
+    add_strict_arg(cp)
     add_effects_file_arg(cp)
     cp.add_argument("--instruments", default=None, metavar="YAML",
                     help="the campaign's instruments and certificates (e.g. configs/instruments_example.yaml), "
@@ -43,7 +59,34 @@ def add_arguments(cp: argparse.ArgumentParser) -> None:
     add_output_args(cp)
 
 
+def _reference(text: str) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of reference poses") from None
+    if k != 0 and k < 3:
+        raise argparse.ArgumentTypeError(f"{k}: a registration needs at least 3 reference poses (0: off)")
+    return k
+
+
 def run(args: argparse.Namespace) -> Any:
+    """Evaluate 'as is' and every ``--model`` on the data, side by side, and write the report when asked.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     import contextlib
     from pathlib import Path
 
@@ -63,7 +106,7 @@ def run(args: argparse.Namespace) -> Any:
                                  cv_folds=args.cv, seed=args.seed, progress=progress(args),
                                  instruments=args.instruments, inputs=input_files(args),
                                  refit_sessions=refit_sessions(d), sessions=d.info.get("session_files"),
-                                 catalogue=cat)
+                                 catalogue=cat, reference=args.reference)
         result = jsonable(result) | {k: v for k, v in d.info.items() if k not in ("n", "data")}
         if report_dir is not None:
             from dt_runtime.reports.compare_report import write_compare_report  # matplotlib only when reporting
@@ -74,6 +117,17 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt compare`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     lines = [f"{result['n']} rows of {result['dataset']}"
              + (f"; held out by {result['heldout']['folds']}-fold grouped CV" if result.get("heldout") else "")
              + (f"; noise floor {result['noise_floor_mm']:.4f} mm" if result.get("noise_floor_mm") else "")]
@@ -85,6 +139,9 @@ def human(result: dict) -> str:
             rr = m["after_reregistration"]
             lines.append(f"  {'':<24} after re-registration ({rr['dof_absorbed']} dof absorbed): 3D RMS "
                          f"{rr['rmse_mm']:.4f} mm")
+        lines += _registration_lines(m.get("after_registration"))
+        if m.get("time_terms"):
+            lines.append(f"  {'':<24} {m['time_terms']['text']}")
     lines += _session_lines(result["models"])
     for c in result.get("worst_cells") or []:
         lines.append(f"  worst: {c['factor']} {c['cell']}: {c['rmse_mm']:.4f} mm ({c['n']} rows)")
@@ -94,7 +151,28 @@ def human(result: dict) -> str:
         lines += ["  " + ln for ln in parameter_lines(primary["parameters"], primary.get("base_parameters"))]
     if result.get("report"):
         lines.append(f"report: {result['report']}")
+    if result.get("validity"):
+        lines.append(result["validity"]["line"])
     return "\n".join(lines)
+
+
+def _pcts(d: dict) -> str:
+    return " ".join(f"{ax} {100 * v:.0f} %" for ax, v in d.items())
+
+
+def _registration_lines(ar: dict | None) -> list[str]:
+    """A new session registered on reference poses: the rows scored before and after."""
+    if not ar:
+        return []
+    out = []
+    if ar["n"]:
+        b = ar["before"]
+        out.append(f"  {'':<24} new session(s) registered on {ar['reference_poses']} reference poses, the other "
+                   f"{ar['n']} rows: 3D RMS {b['rmse_mm']:.4f} -> {ar['rmse_mm']:.4f} mm; fails Eq. 17 "
+                   f"{_pcts(b['failures_per_axis'])} -> {_pcts(ar['failures_per_axis'])}; U95 covers "
+                   f"{_pcts(b['coverage_95'])} -> {_pcts(ar['coverage_95'])}")
+    out += [f"  {'':<24} session {x.get('name') or x['session']} not registered: {x['why']}" for x in ar["skipped"]]
+    return out
 
 
 def _session_cell(x: dict) -> str:
@@ -125,3 +203,20 @@ def _session_lines(models: list[dict]) -> list[str]:
     if any(x.get("in_sample") for m in models for x in m["sessions"]):
         out.append("    * in-sample: the model was trained on this session's file")
     return out
+
+
+def exit_code(args: argparse.Namespace, result: dict) -> int:
+    """0, or with --strict the strict status when the validity check fails (cli.common.validity_exit).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+    result : dict
+        The comparison's JSON object.
+
+    Returns
+    -------
+    int
+    """
+    return validity_exit(args, result)

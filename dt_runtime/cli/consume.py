@@ -32,6 +32,13 @@ JSON_LOGS = True
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt consume`` (docs/cli.md, ``dt consume``).
+
+    Parameters
+    ----------
+    c : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     c.add_argument("--bus", required=True, metavar="YAML",
                    help="bus config (configs/bus.yaml: endpoints, TLS) or plant config (configs/plant/plant.yaml)")
     c.add_argument("--key", default="dt/**/maintenance/request", metavar="KEYEXPR",
@@ -47,6 +54,25 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Take, acknowledge and print the maintenance requests on the bus until stopped.
+
+    With a plant history, each new request is committed to it before it is acknowledged.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.fabric import MaintenanceConsumer
     from dt_runtime.fabric.config import keyexpr_ok
     from dt_runtime.plant.config import history_url, load_plant_config
@@ -90,4 +116,15 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt consume`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     return json.dumps(result)

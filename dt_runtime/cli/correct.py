@@ -15,6 +15,13 @@ from dt_kernel.units import MM_PER_M
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt correct`` (docs/cli.md, ``dt correct``).
+
+    Parameters
+    ----------
+    c : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     c.add_argument("--twin", required=True, metavar="TWIN", help="twin directory (e.g. out/demo/model from dt demo)")
     src = c.add_mutually_exclusive_group(required=True)
     src.add_argument("--targets", metavar="FILE.csv", help="a point program: x, y, z (mm), speed (mm/s)")
@@ -30,6 +37,23 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Correct every target of a program (or every set-point of a path) with the twin and write the corrected file.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     import numpy as np
 
     from dt_kernel.errors import DataError
@@ -81,6 +105,17 @@ def _run_path(args: argparse.Namespace, twin) -> dict:
 
 
 def human(r: dict) -> str:
+    """The text ``dt correct`` prints without ``--json``.
+
+    Parameters
+    ----------
+    r : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     if r.get("kind") == "path":
         return (f"{r['n']} set-points ({r['segments']} segments, {r['duration_s']} s at {r['rate_hz']:g} Hz) "
                 f"corrected -> {r['out']}; {r['n_outside']} outside the calibrated volume; "

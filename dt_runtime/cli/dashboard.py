@@ -1,32 +1,15 @@
 """`dt dashboard`: the live cell in a browser, beside a running `dt run`.
 
-Joins the cell's bus with the runtime YAML's `bus` section (as `dt run` and `dt consume` do: the
-same cell, robot, TLS and access control; it connects to the daemon's listen endpoints), reads
-the twin the YAML names (its kinematics, calibrated volume, Eq. 17 thresholds and provenance),
-and serves one page on http://127.0.0.1:8765/ (`--host`, `--port`): health, the escalation state
-and its timeline, the t statistic against its thresholds, maintenance requests, the twin's
-provenance and the cell in 3D. Viewing needs nothing more than the bus allows.
-
-Acknowledging a request or confirming maintenance done needs an operator: `--token-file F`
-(one `<name> <token>` a line, mode 0600, docs/dashboard.md), and the bus key
-(`bus.auth.key_file`, as for `dt ack --bus`: run as the service's user). The server signs the
-action with the key under the operator's name; the daemon stores it by that name. Without a
-token file the page is read-only.
-
-The metrologist's view (/metrology, `--results DIR`): the results in DIR and below (`dt compare
---report`, `dt diagnose --auto --out`, twins), one chosen on the page: the residual map per point in
-3D with filters by session, speed and direction of approach, the diagnose steps, the report's
-figures. With `--results` alone no bus is joined and only that page is served.
-
-The plant page (/plant, `--plant plant.yaml`, a plant config as `dt status --bus` takes): every
-cell on the fabric with its status, escalation, open requests and the age of its last contact,
-the expected cells that are silent marked; a click on a cell opens its own dashboard (the plant
-config's `dashboards:`). The plant is asked every `--plant-period` s (one query on dt/*/*/status).
-
-Beyond loopback (`--host` another address) the page is served only over TLS (`--tls-cert`,
-`--tls-key`): the operators' tokens travel in its requests. Runs until SIGINT/SIGTERM or
+Joins the cell's bus with the runtime YAML's `bus` section, reads the twin the YAML names, and
+serves one page on http://127.0.0.1:8765/ (`--host`, `--port`): health, the escalation state and
+its timeline, the t statistic against its thresholds, maintenance requests, the twin's provenance
+and the cell in 3D. Acting on a request needs an operator (`--token-file F`) and the bus key;
+without a token file the page is read-only. `--results DIR` adds the metrologist's view
+(/metrology; alone, only that page), `--plant plant.yaml` the plant page (/plant). Beyond loopback
+the page is served only over TLS (`--tls-cert`, `--tls-key`). Runs until SIGINT/SIGTERM or
 `--duration`.
-"""
+
+The options and the page: docs/cli.md ("dt dashboard") and docs/dashboard.md."""
 from __future__ import annotations
 
 import argparse
@@ -39,6 +22,13 @@ from typing import Any
 
 
 def add_arguments(d: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt dashboard`` (docs/cli.md, ``dt dashboard``).
+
+    Parameters
+    ----------
+    d : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     d.add_argument("--config", default=None, metavar="YAML",
                    help="the runtime YAML of the `dt run` to watch (the live view)")
     d.add_argument("--results", default=None, metavar="DIR",
@@ -76,6 +66,23 @@ def _port(text: str) -> int:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Serve the dashboard until SIGINT/SIGTERM or ``--duration``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_kernel.errors import ConfigError
     from dt_runtime.dashboard.app import Dashboard
     from dt_runtime.fabric import load_bus_config
@@ -115,4 +122,15 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt dashboard`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     return json.dumps(result)

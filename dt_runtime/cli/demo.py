@@ -17,6 +17,13 @@ MARKS = ("summary.json", "report.html", "model", "campaign")  # what a previous 
 
 
 def add_arguments(d: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt demo`` (docs/cli.md, ``dt demo``).
+
+    Parameters
+    ----------
+    d : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     d.add_argument("--out", default="out/demo", metavar="DIR",
                    help="output directory (default out/demo), replaced whole at the end of the run")
     d.add_argument("--quick", action="store_true", help="reduced plan, well under a minute")
@@ -30,6 +37,23 @@ def add_arguments(d: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Run the paper's experiment on the simulated cell and write its campaign, twin, summary and report.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.reports.demo_report import write_demo_report  # matplotlib only when reporting
     from dt_runtime.workflows.demo import run_demo
 
@@ -53,6 +77,17 @@ def _where(s: dict) -> str:
 
 
 def human(s: dict) -> str:
+    """The text ``dt demo`` prints without ``--json``.
+
+    Parameters
+    ----------
+    s : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     cov = s["coverage_95"]
     lines = [
         f"precision (Sect. 3.3): {s['precision_before_mm']:.3f} mm -> {s['precision_after_mm']:.3f} mm "
@@ -75,4 +110,17 @@ def human(s: dict) -> str:
 
 
 def exit_code(args: argparse.Namespace, summary: dict) -> int:
+    """The exit status: 0, or STRICT_EXIT with ``--strict`` when the validity check failed.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+    summary : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    int
+    """
     return validity_exit(args, summary)

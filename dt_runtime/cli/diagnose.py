@@ -35,6 +35,13 @@ from dt_runtime.cli.common import (
 
 
 def add_arguments(dg: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt diagnose`` (docs/cli.md, ``dt diagnose``).
+
+    Parameters
+    ----------
+    dg : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     add_data_args(dg)
     dg.add_argument("--model", default=None, metavar="MODEL", help="starting model (default: --effects + GP)")
     dg.add_argument("--effects", default="", metavar="a,b,...", help="starting model's effects without --model")
@@ -69,6 +76,25 @@ def _fraction(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Rank the candidate effects the model lacks by cross-validation.
+
+    With ``--auto``, run the whole compare/diagnose/add loop instead.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     import contextlib
     import json
     from pathlib import Path
@@ -108,6 +134,17 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt diagnose`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     from dt_runtime.reports.verdicts import floor_unknown
 
     if "steps" in result:  # --auto

@@ -15,6 +15,13 @@ from dt_runtime.cli.common import add_output_args
 
 
 def add_arguments(ex: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt export`` (docs/cli.md, ``dt export``).
+
+    Parameters
+    ----------
+    ex : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     src = ex.add_mutually_exclusive_group(required=True)
     src.add_argument("--model", metavar="MODEL", help="a model directory of dt fit with --effects geometric")
     src.add_argument("--twin", metavar="TWIN", help="a twin directory whose maps hold a geometric effect")
@@ -35,6 +42,23 @@ def add_arguments(ex: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Export the calibrated robot of a fitted model as a URDF or DH robot config, checked against the calibration.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.analysis.export import export_robot, model_of_twin
 
     model = args.model if args.model is not None else model_of_twin(args.twin)
@@ -44,6 +68,17 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt export`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     fk = result["fk_check"]
     out = [f"{result['format']} written to {result['out']} (loads back: "
            f"{', '.join(k for k, v in result['loads_back'].items() if v)})",

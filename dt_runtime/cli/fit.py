@@ -24,6 +24,13 @@ from dt_runtime.cli.common import (
 
 
 def add_arguments(ft: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt fit`` (docs/cli.md, ``dt fit``).
+
+    Parameters
+    ----------
+    ft : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     add_data_args(ft)
     ft.add_argument("--effects", default="", metavar="a,b,...", help="effect terms (default none: the paper's GP)")
     add_effects_file_arg(ft)
@@ -39,6 +46,23 @@ def add_arguments(ft: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Train an error model (the named effect terms and a GP) on the data and save it.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.analysis.training import fit
     from dt_runtime.cli.common import MODEL_MARKS, data_inputs, robot_of
     from dt_runtime.common.outputs import staged
@@ -54,6 +78,17 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt fit`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     out = [f"model saved to {result['out']} ({result['n']} rows, {result['fit_seconds']:.1f} s); "
            f"training 3D RMS {result['train_rmse_mm']:.4f} mm"]
     if "heldout_rmse_mm" in result:

@@ -57,6 +57,12 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line hel
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``dt`` parser: global options and one subparser per command (its module's docstring as the description).
+
+    Returns
+    -------
+    argparse.ArgumentParser
+    """
     p = argparse.ArgumentParser(prog="dt", description="Traceable digital twin of a collaborative robot arm.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
     p.add_argument("--version", action="version", version=f"dt {version_string()}",
@@ -73,6 +79,17 @@ class JsonLines(logging.Formatter):
     `fields`, e.g. of its status line, go in beside the message)."""
 
     def format(self, record: logging.LogRecord) -> str:
+        """One log record as a JSON object: ts, level, logger, msg, the record's ``fields``, and the
+        traceback when there is one.
+
+        Parameters
+        ----------
+        record : logging.LogRecord
+
+        Returns
+        -------
+        str
+        """
         out = {"ts": round(record.created, 3), "level": record.levelname, "logger": record.name,
                "msg": record.getMessage()} | (getattr(record, "fields", None) or {})
         if record.exc_info:
@@ -81,6 +98,19 @@ class JsonLines(logging.Formatter):
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``dt`` entry point: parse, run the command, print its result (JSON or text).
+
+    Parameters
+    ----------
+    argv : list of str or None
+        The arguments (sys.argv[1:] when None).
+
+    Returns
+    -------
+    int
+        Exit status: 0, the command's own (``exit_code``, e.g. 3 with --strict), 2 for a TwinError
+        (bad input), 130 on Ctrl-C, 1 for an internal error.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     mod = COMMANDS[args.cmd][0]

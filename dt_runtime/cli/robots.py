@@ -13,16 +13,51 @@ from dt_runtime.cli.common import add_output_args
 
 
 def add_arguments(r: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt robots`` (docs/cli.md, ``dt robots``).
+
+    Parameters
+    ----------
+    r : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     add_output_args(r)
 
 
 def run(args: argparse.Namespace) -> Any:
+    """List the catalogue of nominal kinematics.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.frames.robots import catalogue
 
     return {"robots": [e.to_dict() for e in catalogue()]}
 
 
 def human(result: dict) -> str:
+    """The text ``dt robots`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     rows = [f"{r['name']:<16} {r['dof']} axes  {r['vendor']}: {r['description']}\n"
             + "\n".join(f"{'':<16} source: {s['title']} ({s['version']})" for s in r["sources"])
             for r in result["robots"]]

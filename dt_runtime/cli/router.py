@@ -20,12 +20,36 @@ from dt_kernel.errors import ConfigError
 
 
 def add_arguments(c: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt router`` (docs/cli.md, ``dt router``).
+
+    Parameters
+    ----------
+    c : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     c.add_argument("--config", required=True, metavar="YAML", help="plant config with a router: section")
     c.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     c.add_argument("--json", action="store_true", help="print the router's last state as JSON at the end")
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Run the plant config's Zenoh router until SIGTERM/SIGINT or ``--duration``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.plant.config import load_plant_config
     from dt_runtime.plant.router import run_router
 
@@ -47,4 +71,15 @@ def run(args: argparse.Namespace) -> Any:
 
 
 def human(result: dict) -> str:
+    """The text ``dt router`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     return json.dumps(result)

@@ -17,12 +17,29 @@ DEFAULT_STATUS_EVERY_S = 5.0
 
 def json_logs(args: argparse.Namespace) -> bool:
     """Logs as one JSON object per line (for journald, a log shipper, a pipe), or as text for a
-    person at a terminal: --log-format, by default JSON unless stderr is a terminal."""
+    person at a terminal: --log-format, by default JSON unless stderr is a terminal.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    bool
+    """
     fmt = getattr(args, "log_format", "auto")
     return fmt == "json" or (fmt == "auto" and not sys.stderr.isatty())
 
 
 def add_arguments(r: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt run`` (docs/cli.md, ``dt run``).
+
+    Parameters
+    ----------
+    r : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     r.add_argument("--config", required=True, help="runtime YAML (see configs/runtime.yaml)")
     r.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     r.add_argument("--status-every", type=_period, default=DEFAULT_STATUS_EVERY_S, metavar="S",
@@ -45,12 +62,40 @@ def _period(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Run the twin daemon of the runtime YAML until SIGINT/SIGTERM or ``--duration``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.service.daemon import run_daemon
 
     return run_daemon(args.config, args.duration, None if args.quiet else args.status_every)
 
 
 def human(r: dict) -> str:
+    """The text ``dt run`` prints without ``--json``.
+
+    Parameters
+    ----------
+    r : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     lines = [f"{r['ticks']} commands, {r['t_test_failures']} failed Eq. 17, {r['refused_commands']} refused, "
              f"{r['driver_faults']} driver faults, {r['uncorrected_commands']} sent uncorrected, "
              f"{r['stale_measurements']} stale and {r['mvs_refused']} refused MVS readings",
@@ -66,7 +111,19 @@ def human(r: dict) -> str:
 
 def path_lines(p: dict, failed: int) -> list[str]:
     """A streamed path's summary in words: passes, the lag and on which data the moving arm was
-    tested, and what to do when something needs doing."""
+    tested, and what to do when something needs doing.
+
+    Parameters
+    ----------
+    p : dict
+        The result's ``path`` block.
+    failed : int
+        Readings of the moving arm that failed Eq. 17.
+
+    Returns
+    -------
+    list of str
+    """
     last = p["last"]
     jitter = last.get("jitter_p99_ms")
     if not last:

@@ -14,6 +14,13 @@ from dt_runtime.cli.common import add_output_args, progress, seed_number
 
 
 def add_arguments(sm: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt simulate`` (docs/cli.md, ``dt simulate``).
+
+    Parameters
+    ----------
+    sm : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     sm.add_argument("--scenario", required=True, metavar="FILE",
                     help="scenario YAML (configs/scenarios/), optional 'data:' block: plan, phases, doe_reps, cell")
     sm.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV")
@@ -22,10 +29,38 @@ def add_arguments(sm: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Run a scenario's plan on the simulated cell and write the measurement table.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.workflows.simulate import simulate
 
     return simulate(args.scenario, args.out, seed=args.seed, progress=progress(args))
 
 
 def human(result: dict) -> str:
+    """The text ``dt simulate`` prints without ``--json``.
+
+    Parameters
+    ----------
+    result : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     return json.dumps(result, indent=2)

@@ -23,6 +23,13 @@ from dt_kernel.units import MM_PER_M
 
 
 def add_arguments(st: argparse.ArgumentParser) -> None:
+    """Declare the arguments of ``dt status`` (docs/cli.md, ``dt status``).
+
+    Parameters
+    ----------
+    st : argparse.ArgumentParser
+        The subcommand's parser.
+    """
     st.add_argument("--store", default="out/run/dt.sqlite", help="the daemon's SQLite store")
     st.add_argument("--bus", default=None, metavar="YAML",
                     help="ask the cells on the bus instead (a plant config, configs/plant/, or a bus config)")
@@ -36,6 +43,23 @@ def add_arguments(st: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Any:
+    """Read the daemon's state and last figures from its store, or (``--bus``) ask every cell of the plant once.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments.
+
+    Returns
+    -------
+    dict
+        The result; with ``--json`` printed as one object (its keys: docs/cli.md).
+
+    Raises
+    ------
+    TwinError
+        For input the command refuses (``dt`` prints it and exits 2).
+    """
     from dt_runtime.service.store import Store
 
     if args.bus is not None:
@@ -71,6 +95,17 @@ def _mm(d: dict, keys: str) -> str:
 
 
 def human(r: dict) -> str:
+    """The text ``dt status`` prints without ``--json``.
+
+    Parameters
+    ----------
+    r : dict
+        What ``run`` returned.
+
+    Returns
+    -------
+    str
+    """
     from dt_runtime.service.rows import shown_time
 
     if "answered" in r:

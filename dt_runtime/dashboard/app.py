@@ -26,6 +26,46 @@ log = logging.getLogger("dt.dashboard")
 
 
 class Dashboard:
+    """The parts of ``dt dashboard`` put together and started; ``close()`` stops them in reverse.
+
+    Everything is read and checked before anything opens (a bad token file or key opens no session).
+
+    Parameters
+    ----------
+    cfg : RuntimeConfig or None
+        The live cell's runtime config (its twin and bus); None serves no live cell.
+    config_path : str, Path or None
+        The runtime config's path (the twin's path is relative to its directory).
+    bus : BusConfig or None
+        A bus config of the dashboard's own; by default it joins the daemon's (feed.joining).
+    host : str
+        The address served; beyond loopback only with TLS.
+    port : int
+        0 picks a free one.
+    token_file : str, Path or None
+        The operators' token file (operators.load_operators); without it the page is read-only.
+    group : str
+        The consumer group whose copy of a request the operators acknowledge.
+    tls : tuple of (str or None, str or None)
+        PEM certificate chain and private key, both or neither.
+    max_rate_hz : float
+        Batches a second per page, at most.
+    results : str, Path or None
+        A directory of results for the metrologist's page (/metrology).
+    plant : PlantConfig or None
+        A plant config for the plant page (/plant).
+    plant_period_s : float
+        s between the plant page's queries.
+
+    Raises
+    ------
+    ConfigError
+        When none of ``cfg``, ``results``, ``plant`` is given, ``results`` is not a directory, only
+        one of the TLS files is given, ``host`` is not loopback without TLS, the token file or the bus
+        key is refused, or the certificate cannot be read.
+    BusError
+        When the bus cannot be joined.
+    """
     def __init__(self, cfg: RuntimeConfig | None, config_path: str | Path | None, *, bus: BusConfig | None = None,
                  host: str = "127.0.0.1", port: int = 8765, token_file: str | Path | None = None,
                  group: str = "maintenance", tls: tuple[str | None, str | None] = (None, None),
@@ -86,9 +126,17 @@ class Dashboard:
 
     @property
     def url(self) -> str:
+        """The page's URL (``http://`` or ``https://``, with the port bound)."""
         return self.server.url
 
     def summary(self) -> dict[str, Any]:
+        """What ``dt dashboard --json`` prints: the URL, the bus prefix, messages received, refused and
+        dropped, the metrology and plant pages' URLs (False without them), the actions and the operators.
+
+        Returns
+        -------
+        dict
+        """
         return {"url": self.url, "bus": self.feed.prefix if self.feed else None, "received": dict(self.hub.received),
                 "bus_refused": self.hub.bus_refused, "dropped": self.feed.dropped if self.feed else 0,
                 "metrology": self.server.results is not None and self.url + "metrology",
@@ -97,6 +145,7 @@ class Dashboard:
                 "operators": self.operators.names if self.operators else []}
 
     def close(self) -> None:
+        """Stop every part in reverse order (errors are logged, the rest still closed)."""
         while self._closers:
             close = self._closers.pop()
             try:

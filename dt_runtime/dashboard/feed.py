@@ -43,10 +43,27 @@ _WILDCARD_HOSTS = ("0.0.0.0", "[::]", "::")
 
 
 def joining(cfg: BusConfig, source: str = "<runtime config>") -> BusConfig:
-    """The bus config of another process of the same cell (the dashboard): it connects to the
-    daemon's listen endpoints (a wildcard address as loopback) and to its connects, and listens
-    on an ephemeral port of the same protocol on loopback. ConfigError when there is nothing to
-    connect to (the daemon listens on port 0: a port only it knows)."""
+    """The bus config of another process of the same cell (the dashboard).
+
+    It connects to the daemon's listen endpoints (a wildcard address as loopback; a peer daemon's
+    only) and to its connects, and listens on an ephemeral port of the same protocol on loopback.
+
+    Parameters
+    ----------
+    cfg : BusConfig
+        The daemon's bus section.
+    source : str
+        Names the config in errors.
+
+    Returns
+    -------
+    BusConfig
+
+    Raises
+    ------
+    ConfigError
+        When there is nothing to connect to (the daemon listens on port 0: a port only it knows).
+    """
     connect: list[str] = []
     for ep in cfg.listen if cfg.mode == "peer" else []:
         proto, _, rest = ep.partition("/")
@@ -149,16 +166,63 @@ class BusFeed:
 
     # --- the operators' actions ------------------------------------------------------------------
     def ack(self, oid: int, uid: str) -> str:
-        """Acknowledge delivery of this dashboard's group's copy of a request."""
+        """Acknowledge delivery of this dashboard's group's copy of a request (signed with the bus key).
+
+        Parameters
+        ----------
+        oid : int
+            The copy's id.
+        uid : str
+            The request's uid.
+
+        Returns
+        -------
+        str
+            The key it was put on.
+
+        Raises
+        ------
+        BusError
+            When the put fails.
+        """
         assert self.signer is not None
         return publish_ack(self._session, self.signer, self.prefix, oid, uid, self.group)
 
     def done(self, oid: int, uid: str, by: str, note: str) -> str:
-        """Maintenance done, by `by` (the operator the token named), why `note`."""
+        """Tell the twin the maintenance a request asked for is done (signed with the bus key).
+
+        Parameters
+        ----------
+        oid : int
+            The request copy's id.
+        uid : str
+            The request's uid.
+        by : str
+            Who did it (the operator the token named).
+        note : str
+            Why, or what was done.
+
+        Returns
+        -------
+        str
+            The key it was put on.
+
+        Raises
+        ------
+        BusError
+            When the put fails.
+        """
         assert self.signer is not None
         return publish_done(self._session, self.signer, self.prefix, oid, uid, by, note)
 
     def close(self) -> bool:
+        """Stop the worker and close the session (once), within the bus's close timeout.
+
+        Returns
+        -------
+        bool
+            True when both are down.
+        """
         if self._closed:
             return True
         self._closed = True

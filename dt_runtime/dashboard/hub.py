@@ -20,6 +20,14 @@ REQUESTS = 50  # maintenance requests kept (the newest; one entry per uid)
 
 
 class Hub:
+    """The dashboard's live state: telemetry in a ring, the latest health, the escalation timeline, the
+    newest maintenance requests, and a sequence number per update; thread-safe.
+
+    Parameters
+    ----------
+    telemetry_ring : int
+        Telemetry messages kept.
+    """
     def __init__(self, telemetry_ring: int = TELEMETRY_RING):
         self._cond = threading.Condition()
         self.seq = 0
@@ -37,12 +45,24 @@ class Hub:
         return self.seq
 
     def add_telemetry(self, msg: dict[str, Any]) -> None:
+        """File one telemetry message (as the page draws it).
+
+        Parameters
+        ----------
+        msg : dict
+        """
         with self._cond:
             self.received["telemetry"] += 1
             self.telemetry.append((self._bump(), self.received["telemetry"], msg))
             self._cond.notify_all()
 
     def add_health(self, msg: dict[str, Any]) -> None:
+        """File one health message (the latest is kept).
+
+        Parameters
+        ----------
+        msg : dict
+        """
         with self._cond:
             self.received["health"] += 1
             self.health = msg
@@ -50,6 +70,12 @@ class Hub:
             self._cond.notify_all()
 
     def add_state(self, msg: dict[str, Any]) -> None:
+        """File one state transition (kept in the timeline).
+
+        Parameters
+        ----------
+        msg : dict
+        """
         with self._cond:
             self.received["state"] += 1
             self.timeline.append(msg)
@@ -57,8 +83,15 @@ class Hub:
             self._cond.notify_all()
 
     def add_request(self, msg: dict[str, Any]) -> None:
-        """A request copy (one per consumer group, republished until acknowledged): one entry per
-        uid, with every group's copy id; the newest REQUESTS uids are kept."""
+        """File a request copy (one per consumer group, republished until acknowledged).
+
+        One entry per uid, with every group's copy id; the newest REQUESTS uids are kept.
+
+        Parameters
+        ----------
+        msg : dict
+            The request as published (``uid``, ``group``, ``id``, ``attempt``, ...).
+        """
         with self._cond:
             self.received["request"] += 1
             uid = str(msg.get("uid"))
@@ -74,7 +107,14 @@ class Hub:
             self._cond.notify_all()
 
     def mark_request(self, uid: str, **fields: Any) -> None:
-        """What the dashboard's operators did with a request (acknowledged, done: by whom)."""
+        """Record what the dashboard's operators did with a request; an unknown uid is ignored.
+
+        Parameters
+        ----------
+        uid : str
+        **fields
+            E.g. ``acked_by``, ``done_by``: merged into the entry.
+        """
         with self._cond:
             entry = self.requests.get(uid)
             if entry is None:
@@ -84,10 +124,22 @@ class Hub:
             self._cond.notify_all()
 
     def refused(self) -> None:
+        """Count one message refused for want of the service's signature."""
         with self._cond:
             self.bus_refused += 1
 
     def request(self, uid: str) -> dict[str, Any] | None:
+        """A copy of the entry of a request.
+
+        Parameters
+        ----------
+        uid : str
+
+        Returns
+        -------
+        dict or None
+            None when the hub holds no such request.
+        """
         with self._cond:
             entry = self.requests.get(uid)
             return None if entry is None else dict(entry)
@@ -103,9 +155,26 @@ class Hub:
 
     def since(self, seq: int, timeout: float) -> tuple[int, list[tuple[int, dict[str, Any]]],
                                                       list[tuple[str, dict[str, Any]]]]:
-        """Wait up to `timeout` s for anything newer than `seq`: (the newest seq, the telemetry
-        newer than `seq` as (its number, message), the other events newer than `seq`). A caller
-        that compares the first number with the last it got sees what the ring dropped."""
+        """Wait for anything newer than ``seq``.
+
+        A caller that compares the telemetry numbers with the last it got sees what the ring dropped.
+
+        Parameters
+        ----------
+        seq : int
+            The last sequence number the caller has.
+        timeout : float
+            s.
+
+        Returns
+        -------
+        seq : int
+            The newest sequence number.
+        telemetry : list of (int, dict)
+            The telemetry newer than ``seq``, as (its number, message).
+        events : list of (str, dict)
+            The other events newer than ``seq``, as (kind, message).
+        """
         with self._cond:
             self._cond.wait_for(lambda: self.seq > seq or self.closed, timeout)
             tel = [(n, m) for s, n, m in self.telemetry if s > seq]
@@ -113,6 +182,7 @@ class Hub:
             return self.seq, tel, ev
 
     def close(self) -> None:
+        """Wake every waiting stream for good."""
         with self._cond:
             self.closed = True
             self._cond.notify_all()

@@ -38,11 +38,24 @@ class Operators:
 
     @property
     def names(self) -> list[str]:
+        """The operators' names, in file order."""
         return [name for _, name in self._by_token]
 
     def who(self, token: str | None) -> str | None:
-        """The operator whose token this is, or None. Every entry is compared (constant time
-        each), so the time taken does not tell which entry came close."""
+        """The operator whose token this is.
+
+        Every entry is compared (constant time each), so the time taken does not tell which entry came
+        close.
+
+        Parameters
+        ----------
+        token : str or None
+
+        Returns
+        -------
+        str or None
+            The operator's name, or None.
+        """
         if not token:
             return None
         given = token.encode("utf-8", "replace")
@@ -54,8 +67,23 @@ class Operators:
 
 
 def load_operators(path: str | Path) -> Operators:
-    """The token file at `path`: ConfigError naming it (and the line) when it is missing,
-    readable by others, or malformed."""
+    """Read the operators' token file.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Operators
+
+    Raises
+    ------
+    ConfigError
+        Naming the file (and the line) when it is missing, unreadable, readable by others, longer
+        than 64 KiB, not UTF-8, malformed, names an operator twice, gives two operators one token, or
+        names none.
+    """
     p = Path(path)
     where = "--token-file"
     try:

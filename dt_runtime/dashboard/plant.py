@@ -133,6 +133,7 @@ class PlantWatch:
                     "errors": list(self.errors)}
 
     def close(self) -> None:
+        """Stop polling, undeclare the subscriptions and close the session."""
         self._stop.set()
         self._thread.join(self.timeout_s + 5)
         for s in self._subs:

@@ -36,14 +36,31 @@ MAX_REPORT_BYTES = 64 * 2 ** 20
 
 @dataclass(frozen=True)
 class Result:
+    """One result found under --results: its ``kind`` (compare, diagnose or twin), its directory and its name below the
+    results directory (``.`` for the directory itself)."""
     kind: str  # compare, diagnose or twin
     path: Path  # its directory
     name: str  # the path below the results directory ('.' for the directory itself)
 
 
 def find_results(root: str | Path) -> list[Result]:
-    """The results in `root` and below (breadth first, sorted by path, at most MAX_RESULTS);
-    ConfigError when `root` is not a directory."""
+    """The results in ``root`` and below (breadth first to depth 3, sorted by name, at most MAX_RESULTS).
+
+    A directory holding compare.json, diagnose.json or twin.json is a result.
+
+    Parameters
+    ----------
+    root : str or Path
+
+    Returns
+    -------
+    list of Result
+
+    Raises
+    ------
+    ConfigError
+        When ``root`` is not a directory.
+    """
     root = Path(root)
     if not root.is_dir():
         raise ConfigError("<command line>", "--results", str(root), "a directory holding results of dt compare "
@@ -96,7 +113,22 @@ class _Figures(HTMLParser):
 
 
 def report_figures(report: Path) -> list[dict[str, str]]:
-    """The figures of a report (`src` a data: URI, `alt`, `caption`); none without the file."""
+    """The figures of a report (``src`` a data: URI, ``alt``, ``caption``); none without the file.
+
+    Parameters
+    ----------
+    report : Path
+        A report.html.
+
+    Returns
+    -------
+    list of dict
+
+    Raises
+    ------
+    DataError
+        When the file cannot be read (not a regular file, too large).
+    """
     if not report.is_file():
         return []
     p = _Figures()
@@ -105,8 +137,21 @@ def report_figures(report: Path) -> list[dict[str, str]]:
 
 
 def load(result: Result) -> dict[str, Any]:
-    """What the page shows of `result` (JSON-able; mm as the files hold them); DataError or
-    ModelError naming the file for one that cannot be read."""
+    """What the page shows of a result (JSON-able; mm as the files hold them).
+
+    Parameters
+    ----------
+    result : Result
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    DataError, ModelError
+        Naming the file, for one that cannot be read.
+    """
     out: dict[str, Any] = {"kind": result.kind, "name": result.name, "path": str(result.path)}
     if result.kind == "compare":
         return out | _compare(result.path)

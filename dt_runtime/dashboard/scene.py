@@ -34,8 +34,8 @@ from dt_runtime.analysis.points import per_point
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.campaign_files import read_phase
-from dt_runtime.service.correction import Monitor
 from dt_runtime.twin.calibration import phase_inputs
+from dt_runtime.twin.monitor import Monitor
 from dt_runtime.twin.twin import Twin
 from dt_runtime.workflows.campaign_dir import read_manifest
 
@@ -43,7 +43,19 @@ log = logging.getLogger("dt.dashboard")
 
 
 def volume_edges(volume: CalibratedVolume) -> tuple[list[list[float]], list[list[int]]]:
-    """Corners (m, robot frame) and edges (index pairs) of the hull of `volume`'s facet planes."""
+    """Corners and edges of the hull of the calibrated volume's facet planes.
+
+    Parameters
+    ----------
+    volume : CalibratedVolume
+
+    Returns
+    -------
+    corners : list of list of float
+        m, robot frame.
+    edges : list of list of int
+        Index pairs into ``corners`` (none when the planes bound no volume).
+    """
     A, b = volume.normals, volume.offsets
     # Chebyshev centre: max r subject to A x + r |A_i| <= -b (a point strictly inside)
     norm = np.linalg.norm(A, axis=1)
@@ -68,8 +80,21 @@ def volume_edges(volume: CalibratedVolume) -> tuple[list[list[float]], list[list
 
 
 def nice_scale(longest_m: float, extent_m: float, fraction: float = 0.12) -> float:
-    """The factor (1, 2 or 5 x 10^k, at least 1) that draws an arrow of `longest_m` at about
-    `fraction` of `extent_m`, never longer."""
+    """The factor (1, 2 or 5 x 10^k, at least 1) that draws an arrow of ``longest_m`` at about
+    ``fraction`` of ``extent_m``, never longer.
+
+    Parameters
+    ----------
+    longest_m : float
+        m, the longest arrow.
+    extent_m : float
+        m, the scene's extent.
+    fraction : float
+
+    Returns
+    -------
+    float
+    """
     if not (longest_m > 0 and extent_m > 0):
         return 1.0
     want = fraction * extent_m / longest_m
@@ -78,8 +103,22 @@ def nice_scale(longest_m: float, extent_m: float, fraction: float = 0.12) -> flo
 
 
 def campaign_path(prov: dict[str, Any], twin_dir: Path) -> Path | None:
-    """The campaign.yaml the twin's provenance names: as recorded (absolute), else relative to the
-    directory the twin was made in (unknown: tried from the twin's parent and the working directory)."""
+    """The campaign.yaml the twin's provenance names.
+
+    As recorded when absolute; else tried relative to the twin's parent, its grandparent and the
+    working directory.
+
+    Parameters
+    ----------
+    prov : dict
+        The twin's provenance (``provenance``).
+    twin_dir : Path
+
+    Returns
+    -------
+    Path or None
+        None when it is not on this machine.
+    """
     rec = prov.get("campaign")
     if not rec:
         return None
@@ -91,9 +130,21 @@ def campaign_path(prov: dict[str, Any], twin_dir: Path) -> Path | None:
 
 
 def error_map(twin: Twin, twin_dir: Path, prov: dict[str, Any]) -> dict[str, Any]:
-    """The twin's e_LT_hat at its campaign's DOE points (m, robot frame and axes), per point: the
-    commanded point, the mean predicted error of its rows, its row count, and the arrows' scale;
-    or why there is none (`why`)."""
+    """The twin's e_LT_hat at its campaign's DOE points, per commanded point (m, robot frame and axes).
+
+    Parameters
+    ----------
+    twin : Twin
+    twin_dir : Path
+    prov : dict
+        The twin's provenance.
+
+    Returns
+    -------
+    dict
+        ``campaign``, ``rows``, ``points``, ``e_hat`` (the mean predicted error of each point's
+        rows), ``count``, ``max_m``, ``rms_m`` and the arrows' ``scale``; or ``why`` there is none.
+    """
     path = campaign_path(prov, twin_dir)
     if path is None:
         return {"why": f"the campaign the twin names ({prov.get('campaign') or 'none'}) is not on this machine"}
@@ -129,8 +180,18 @@ class Scene:
         self.alpha = alpha
 
     def arm(self, q: Any) -> list[list[float]] | None:
-        """The arm at joint angles `q` (rad): the robot frame's origin, every joint's origin and the
-        TCP (m, robot frame); None without a chain or for angles that do not fit it."""
+        """The arm at joint angles ``q``: the robot frame's origin, every joint's origin and the TCP.
+
+        Parameters
+        ----------
+        q : array_like or None
+            (dof,) rad.
+
+        Returns
+        -------
+        list of list of float or None
+            m, robot frame; None without a chain or for angles that do not fit it.
+        """
         if self.chain is None or q is None:
             return None
         try:
@@ -143,6 +204,13 @@ class Scene:
         return np.vstack([np.zeros(3), pos[0], T[0, :3, 3]]).tolist()
 
     def to_dict(self) -> dict[str, Any]:
+        """What the page fetches from /api/scene: robot, calibrated volume, Eq. 17 thresholds, alpha,
+        provenance and error map.
+
+        Returns
+        -------
+        dict
+        """
         corners, edges = volume_edges(self.twin.volume) if self.twin.volume is not None else ([], [])
         prov = provenance(self.twin_dir)
         return {"robot": None if self.chain is None else {"name": self.chain.name, "dof": self.chain.dof,
@@ -155,7 +223,21 @@ class Scene:
 
 def provenance(twin_dir: Path) -> dict[str, Any]:
     """What the page's provenance panel shows, from twin.json (and the validity line of the
-    summary.json that `dt demo` / `dt calibrate` wrote beside the twin, when there is one)."""
+    summary.json that ``dt demo`` / ``dt calibrate`` wrote beside the twin, when there is one).
+
+    Parameters
+    ----------
+    twin_dir : Path
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    OSError, ValueError
+        When twin.json cannot be read or parsed.
+    """
     meta = json.loads((twin_dir / "twin.json").read_text())
     p = meta.get("provenance") or {}
     out: dict[str, Any] = {

@@ -1,38 +1,10 @@
 """The dashboard's web server: one page, its static files, a live feed and the operators' actions.
 
-Starlette (a route table, one guard) served by uvicorn (asyncio: an open page costs a coroutine,
-not a thread) on a socket bound here, in one thread of its own. The page opens one `EventSource`
-on /api/events and gets a snapshot, then batches of what is new (hub.Hub), at most `max_rate_hz`
-batches a second whatever the daemon's rate (125 Hz telemetry arrives as a few messages a batch).
-One ticker polls the thread-fed hub at that rate and encodes each batch once for every page in step.
-Nothing is fetched at run time; docs/dashboard.md gives the limits and the load measured.
-
-Routes:
-    GET  /                      the page (static/index.html)
-    GET  /static/<file>         its script and style sheet (a fixed list)
-    GET  /api/scene             the twin: robot, calibrated volume, Eq. 17 thresholds, provenance, error map
-    GET  /metrology             the metrologist's page (static/metrology.html; with --results)
-    GET  /api/results           the results under --results: [{name, kind}]
-    GET  /api/result?name=N     one of them, as results.load reads it (N: a name of /api/results)
-    GET  /plant                 the plant page (static/plant.html; with --plant): every cell on the fabric
-    GET  /api/plant             its rows (plant.PlantWatch.snapshot)
-    GET  /api/snapshot          the live state now (JSON)
-    GET  /api/events            server-sent events: `snapshot`, then batches (`message`)
-    GET  /api/whoami            the operator a token names (401/403 as for an action)
-    POST /api/requests/ack      {"uid"}: acknowledge delivery of a request (this dashboard's group's copy)
-    POST /api/requests/done     {"uid", "note"}: maintenance done, by the token's operator
-
-Who may do what (Guard, the one middleware): viewing needs nothing beyond reaching the page (what
-the bus shows any reader). The two actions need `Authorization: Bearer <token>` of an operator of
-the token file (operators.py): without one 401, with a wrong one (or on a dashboard started without
-a token file) 403, and nothing is published. Requests whose Host is not the address served (DNS
-rebinding) and cross-origin posts are refused (403) too. Bodies are at most 4096 bytes of JSON.
-
-Limits: at most `max_streams` event streams at once (one more is answered at once with 503 and
-Retry-After), at most LIMIT_CONCURRENCY connections (uvicorn answers 503 beyond), a connection
-that has not sent a whole request head within HEAD_TIMEOUT_S is closed, an idle keep-alive one
-after KEEP_ALIVE_S, a request head is at most MAX_HEAD bytes (h11).
-"""
+Starlette (a route table, one guard: Host, Origin, the operator's token, body size) served by
+uvicorn on asyncio, on a socket bound here, in one thread of its own. The page opens one
+`EventSource` on /api/events and gets a snapshot, then batches of what is new (hub.Hub), at most
+`max_rate_hz` batches a second. The routes, who may do what, and the limits with what a client
+beyond them sees: docs/dashboard.md ("Who may do what", "The web server and its limits")."""
 from __future__ import annotations
 
 import asyncio
@@ -100,6 +72,16 @@ def _static(name: str) -> bytes:
 
 
 def is_loopback(host: str) -> bool:
+    """True for ``localhost`` or a loopback address (brackets around an IPv6 one allowed).
+
+    Parameters
+    ----------
+    host : str
+
+    Returns
+    -------
+    bool
+    """
     if host == "localhost":
         return True
     try:
@@ -124,14 +106,27 @@ class HeadTimeoutProtocol(H11Protocol):
     _head_timer: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        """Start the head deadline of the connection's first request.
+
+        Parameters
+        ----------
+        transport : asyncio.Transport
+        """
         super().connection_made(transport)
         self._arm_head()
 
     def on_response_complete(self) -> None:
+        """Start the head deadline of the next request."""
         super().on_response_complete()
         self._arm_head()
 
     def connection_lost(self, exc: Exception | None) -> None:
+        """Cancel the head deadline.
+
+        Parameters
+        ----------
+        exc : Exception or None
+        """
         if self._head_timer is not None:
             self._head_timer.cancel()
         super().connection_lost(exc)
@@ -312,21 +307,25 @@ class DashboardServer:
     # --- life --------------------------------------------------------------------------------
     @property
     def port(self) -> int:
+        """The port bound."""
         return int(self.socket.getsockname()[1])
 
     @property
     def url(self) -> str:
+        """The page's URL (``http://`` or ``https://``)."""
         host = str(self.address[0])
         shown = f"[{host}]" if ":" in host else host
         return f"{self.scheme}://{shown}:{self.port}/"
 
     def start(self) -> None:
+        """Serve on the bound socket in a thread (raising the open-files limit first when allowed)."""
         _enough_files(LIMIT_CONCURRENCY + 256)
         self._thread = threading.Thread(target=self._uvicorn.run, kwargs={"sockets": [self.socket]},
                                         name="dashboard-http", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
+        """End the streams at their next tick, stop uvicorn and close the socket."""
         self.stopping.set()  # the streams end at their next tick, then uvicorn's shutdown finds them done
         self.hub.close()
         self._uvicorn.should_exit = True
@@ -335,7 +334,17 @@ class DashboardServer:
         self.socket.close()
 
     def allowed_host(self, header: str | None) -> bool:
-        """DNS rebinding: on loopback only a loopback name or address reaches the page."""
+        """DNS rebinding: on loopback only a loopback name or address reaches the page.
+
+        Parameters
+        ----------
+        header : str or None
+            The request's Host header.
+
+        Returns
+        -------
+        bool
+        """
         if not is_loopback(str(self.address[0])):
             return True
         if not header:
@@ -509,7 +518,20 @@ class DashboardServer:
 
     # --- who ---------------------------------------------------------------------------------
     def operator(self, authorization: str, client: tuple[str, int] | None = None) -> str | Response:
-        """The operator of a bearer token; else the 401/403 reply."""
+        """The operator of a bearer token; else the 401/403 reply.
+
+        Parameters
+        ----------
+        authorization : str
+            The Authorization header.
+        client : tuple or None
+            (address, port) of the client, for the log.
+
+        Returns
+        -------
+        str or Response
+            The operator's name, or 403 (read-only dashboard, unknown token) or 401 (no bearer token).
+        """
         ops = self.operators
         if ops is None:
             return _error(HTTPStatus.FORBIDDEN, "this dashboard is read-only: it was started without --token-file")

@@ -1,5 +1,7 @@
 """The bus's one boundary with zenoh: its errors become BusError here and only here
 (`zenoh_errors`), chained with `from`; session open and bounded close; JSON payloads.
+`SessionOpener` opens a client's session in the background while its router is not up yet
+(`state`: connecting, then connected; docs/bus.md).
 """
 from __future__ import annotations
 
@@ -45,6 +47,137 @@ def open_session(cfg: BusConfig) -> zenoh.Session:
     config = cfg.zenoh_config()
     with zenoh_errors(f"cannot open zenoh session ({cfg.mode}, listen={cfg.listen}, connect={cfg.connect})"):
         return zenoh.open(config)
+
+
+#: Waits between a client's attempts to reach its router: doubling from the first to the last.
+RETRY_FIRST_S, RETRY_MAX_S = 0.25, 2.0
+
+
+class SessionOpener:
+    """A bus config's zenoh session, open now or as soon as it can be.
+
+    The first attempt is made in the constructor: a session that opens is `connected` at once
+    (the caller's hooks run before the constructor returns, as with `open_session`). A client
+    whose routers are all down cannot open (zenoh refuses a client session with no router): it
+    is `connecting` and a background thread retries, waiting `RETRY_FIRST_S` doubling to
+    `RETRY_MAX_S` between attempts, until it opens (then `on_connected(session)` runs in that
+    thread) or `close()`. A peer whose session cannot open raises BusError, as `open_session`.
+
+    Once open, zenoh itself reconnects a client to its router; `state` says `connecting` while a
+    client session has no router (the router restarting) and `connected` when it has one again.
+
+    Parameters
+    ----------
+    cfg : BusConfig
+        The node's bus config (mode, endpoints, TLS, access control).
+    on_connected : callable, optional
+        Called once with the open session (the declarations of its user); if it raises, the
+        session is closed and the error raised (first attempt) or logged and retried (background).
+    """
+
+    def __init__(self, cfg: BusConfig, on_connected: Callable[[zenoh.Session], None] | None = None):
+        self.cfg = cfg
+        self._on_connected = on_connected
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._opened = threading.Event()
+        self._session: zenoh.Session | None = None
+        self._thread: threading.Thread | None = None
+        self.attempts = 1
+        self.last_error: str | None = None
+        try:
+            session = open_session(cfg)
+        except BusError as exc:
+            if cfg.mode != "client":
+                raise
+            self.last_error = str(exc)
+            log.warning("bus: no router reachable at %s yet; connecting in the background (%s)", cfg.connect, exc)
+            self._thread = threading.Thread(target=self._retry, name=f"bus-connect-{cfg.robot}", daemon=True)
+            self._thread.start()
+            return
+        try:
+            self._connected(session)
+        except BaseException:
+            close_session(session, cfg.close_timeout_s)
+            raise
+
+    @property
+    def state(self) -> str:
+        """`connecting` (no session yet, or a client session without a router), `connected`, or
+        `closed`."""
+        if self._stop.is_set():
+            return "closed"
+        session = self._session
+        if session is None:
+            return "connecting"
+        if self.cfg.mode == "client":
+            try:
+                with zenoh_errors("session info"):
+                    if not any(True for _ in session.info.routers_zid()):
+                        return "connecting"
+            except BusError:
+                return "connecting"
+        return "connected"
+
+    @property
+    def session(self) -> zenoh.Session | None:
+        """The open session, or None while connecting (or once closed)."""
+        return self._session
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until the session is open; True if it is."""
+        return self._opened.wait(timeout)
+
+    def _connected(self, session: zenoh.Session) -> None:
+        if self._on_connected is not None:
+            self._on_connected(session)
+        with self._lock:
+            self._session = session
+        self._opened.set()
+
+    def _retry(self) -> None:
+        wait = RETRY_FIRST_S
+        while not self._stop.wait(wait):
+            wait = min(2 * wait, RETRY_MAX_S)
+            self.attempts += 1
+            try:
+                session = open_session(self.cfg)
+            except BusError as exc:
+                self.last_error = str(exc)
+                log.debug("bus: attempt %d: %s", self.attempts, exc)
+                continue
+            if self._stop.is_set():  # closed while this attempt was under way
+                close_session(session, self.cfg.close_timeout_s)
+                return
+            try:
+                self._connected(session)
+            except Exception as exc:  # noqa: BLE001 - a failed declaration: log it, close, try again
+                log.exception("bus: the session opened but could not be set up; retrying")
+                self.last_error = str(exc)
+                close_session(session, self.cfg.close_timeout_s)
+                continue
+            log.warning("bus: connected to %s after %d attempt(s)", self.cfg.connect, self.attempts)
+            return
+
+    def close(self, timeout: float | None = None) -> bool:
+        """Stop connecting and close the session, within `timeout` s (the config's close
+        time-out by default); True if all is down."""
+        timeout = self.cfg.close_timeout_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        done = self.cancel(timeout)
+        with self._lock:
+            session, self._session = self._session, None
+        if session is not None:
+            done = close_session(session, max(0.1, deadline - time.monotonic())) and done
+        return done
+
+    def cancel(self, timeout: float) -> bool:
+        """Stop connecting (a session already open stays open until `close`); True if the
+        background attempts have ended within `timeout` s."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        return self._thread is None or not self._thread.is_alive()
 
 
 def close_session(session: zenoh.Session, timeout: float) -> bool:

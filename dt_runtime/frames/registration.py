@@ -229,6 +229,77 @@ def fit_rigid(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
     return RigidTransform(R, mq - s * R @ mp, s)
 
 
+@dataclass(frozen=True)
+class RigidUncertainty:
+    """The uncertainty of a rigid transform fitted to paired points (`rigid_uncertainty`):
+    covariance of a small rotation (rad, about the target frame's axes) and translation (m), from
+    the fit's own residual, and its degrees of freedom (3 n - 6)."""
+
+    T: RigidTransform
+    cov: np.ndarray  # (6, 6): [omega (rad), dt (m)]
+    dof: int
+    residual_rms_m: float  # 3D RMS of the fit's residual
+
+    def at(self, points: np.ndarray) -> np.ndarray:
+        """Standard uncertainty (m, per target axis) of T(p) at each point.
+
+        Parameters
+        ----------
+        points : ndarray
+            (n, 3) source points, m.
+
+        Returns
+        -------
+        ndarray
+            (n, 3), m.
+        """
+        J = _rigid_jacobian(self.T.apply(np.asarray(points, dtype=float).reshape(-1, 3)))
+        return np.sqrt(np.maximum(np.einsum("nap,pq,naq->na", J, self.cov, J), 0.0))
+
+
+def _rigid_jacobian(q: np.ndarray) -> np.ndarray:
+    """d T(p) / d[omega, dt] at the mapped points q = T(p): omega x q + dt, (n, 3, 6)."""
+    n = len(q)
+    J = np.zeros((n, 3, 6))
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    # -[q]x: the cross product omega x q written as a matrix acting on omega
+    J[:, 0, 1], J[:, 0, 2] = z, -y
+    J[:, 1, 0], J[:, 1, 2] = -z, x
+    J[:, 2, 0], J[:, 2, 1] = y, -x
+    J[:, :, 3:] = np.eye(3)
+    return J
+
+
+def rigid_uncertainty(source: np.ndarray, target: np.ndarray) -> RigidUncertainty:
+    """`fit_rigid` of the pairs and the covariance of its six parameters, s^2 (J^T J)^-1 with s^2
+    the residual's variance per coordinate on 3 n - 6 degrees of freedom (Gauss-Markov: the
+    points' errors independent with one variance).
+
+    Parameters
+    ----------
+    source, target : ndarray
+        (n, 3) paired points, m; n >= 3 non-collinear.
+
+    Returns
+    -------
+    RigidUncertainty
+
+    Raises
+    ------
+    DataError
+        Fewer than 3 non-collinear points.
+    """
+    P, Q = _check(source, "source"), _check(target, "target")
+    T = fit_rigid(P, Q)
+    r = Q - T.apply(P)
+    dof = 3 * len(P) - 6
+    J = _rigid_jacobian(T.apply(P))
+    N = np.einsum("nap,naq->pq", J, J)
+    s2 = float(np.sum(r ** 2)) / dof if dof > 0 else float("inf")
+    cov = s2 * np.linalg.pinv(N)
+    return RigidUncertainty(T, cov, dof, float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))))
+
+
 def _line_direction(points: np.ndarray, distances: np.ndarray, name: str) -> np.ndarray:
     """Principal direction of a 3D line fit, oriented towards increasing distance."""
     if len(np.unique(distances)) < 2:

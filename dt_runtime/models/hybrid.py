@@ -204,6 +204,16 @@ class HybridModel(RegressorMixin, BaseEstimator):
         fitted = getattr(self, "catalogue_", None)
         return fitted if fitted is not None else fx.default()
 
+    def time_effects(self) -> tuple[str, ...]:
+        """The effects of the map that vary with time itself (`Effect.drives` includes 'time': a
+        drift), whose value depends on the time origin of the data they are evaluated on.
+
+        Returns
+        -------
+        tuple of str
+        """
+        return tuple(e for e in self.effects if "time" in self.effect(e).drives())
+
     def effect(self, name: str) -> fx.Effect:
         """An effect by name from the model's catalogue (`effects_catalogue`).
 
@@ -425,6 +435,8 @@ class HybridModel(RegressorMixin, BaseEstimator):
         self.domain_ = {"x": [float(v) for v in inp.commanded.min(0)] + [float(v) for v in inp.commanded.max(0)]}
         if inp.joints is not None:
             self.domain_["q"] = [float(v) for v in inp.joints.min(0)] + [float(v) for v in inp.joints.max(0)]
+        if inp.t is not None and inp.n:  # the time the model has seen: a time term beyond it extrapolates
+            self.domain_["t"] = [float(np.min(inp.t)), float(np.max(inp.t))]
         # For the traceability record (provenance) of `save`: the training data's file, if any,
         # and the temperature over the training rows.
         self.data_source_ = getattr(X, "source", None)

@@ -1,24 +1,6 @@
-"""The plant config (`configs/plant/*.yaml`), validated once into frozen models.
-
-    router:            # `dt router --config plant.yaml`: the Zenoh router this host runs
-      listen: [tcp/0.0.0.0:7447]
-      connect: []      # other routers (a router per hall joins the plant's router)
-      max_sessions: 10000   # zenoh's default, 1000, would refuse the 1001st cell
-      shared_memory: false  # zenoh's per-session shared memory refuses sessions near 350 on one host
-      tls: ...         # as the bus's (fabric.config.TlsConfig)
-      access_control: ...  # as the bus's: what each cell may publish (docs/plant.md)
-    bus:               # how the plant's tools (dt status --bus, dt consume) join: a BusConfig
-      mode: client
-      connect: [tcp/plant-router:7447]
-    cells: [hall-a-c1/r1, hall-a-c2/r1]   # the cells expected to answer (`cell/robot`)
-    dashboards:                           # optional: each cell's own `dt dashboard` (the plant page links it)
-      hall-a-c1/r1: https://hall-a-c1.plant.local:8765/
-    history:
-      url: plant_history.sqlite           # or postgresql://user@host/db
-
-`load_plant_config` also takes a plain bus config (the keys of `configs/bus.yaml` at the top):
-then the plant is that bus, with no cell list, no router section and the default history.
-"""
+"""The plant config (`configs/plant/*.yaml`: router, bus, cells, dashboards, history), validated
+once into frozen models; a plain bus config is read as a plant of that bus. The keys:
+docs/plant.md ("The plant config")."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -72,6 +54,13 @@ class RouterConfig(Frozen):
         return self
 
     def zenoh_config(self):
+        """The Zenoh configuration of this router (router mode, endpoints, TLS, access control,
+        ``max_sessions``, shared memory, then ``extra``).
+
+        Returns
+        -------
+        zenoh.Config
+        """
         extra = {"transport/unicast/max_sessions": self.max_sessions,
                  "transport/shared_memory/enabled": self.shared_memory} | self.extra
         return zenoh_config("router", self.listen, self.connect, self.multicast_scouting, self.gossip_scouting,
@@ -96,10 +85,14 @@ class HistoryConfig(Frozen):
 
     @property
     def is_postgres(self) -> bool:
+        """True for a ``postgresql://`` (or ``postgres://``) URL."""
         return self.url.startswith(POSTGRES_SCHEMES)
 
 
 class PlantConfig(Frozen):
+    """A plant: its router (None when this host runs none), the bus the plant's tools join, the cells
+    expected to answer (``cell/robot``), each cell's dashboard URL, and the history.
+    """
     router: RouterConfig | None = None
     bus: BusConfig = BusConfig()
     cells: list[str] = []  # `cell/robot` of every cell expected to answer
@@ -129,7 +122,22 @@ class PlantConfig(Frozen):
 
 
 def load_plant_config(path: str | Path) -> PlantConfig:
-    """A plant config, or a plain bus config taken as a plant of that bus (module docstring)."""
+    """A plant config, or a plain bus config taken as a plant of that bus.
+
+    Parameters
+    ----------
+    path : str or Path
+        The YAML file.
+
+    Returns
+    -------
+    PlantConfig
+
+    Raises
+    ------
+    ConfigError
+        When the file cannot be read or does not validate (naming the key).
+    """
     data = read_yaml(path)
     if data and not any(k in data for k in PLANT_KEYS):
         return PlantConfig(bus=validate(BusConfig, data, path))
@@ -137,7 +145,19 @@ def load_plant_config(path: str | Path) -> PlantConfig:
 
 
 def history_url(cfg: PlantConfig, base: Path) -> str:
-    """The history's URL with a relative SQLite path taken from `base` (the config's directory)."""
+    """The history's URL with a relative SQLite path taken from ``base``.
+
+    Parameters
+    ----------
+    cfg : PlantConfig
+    base : Path
+        The config's directory.
+
+    Returns
+    -------
+    str
+        A PostgreSQL URL as it is, else a SQLite file path.
+    """
     url = cfg.history.url
     if cfg.history.is_postgres:
         return url

@@ -1,17 +1,8 @@
-"""The plant's maintenance history: every request the inbox received, once (SQLite or PostgreSQL).
-
-One table, `maintenance_requests`, one row per (cell, robot, uid, consumer group): the primary key
-is the de-duplication, so a copy received again (a republication whose ack was lost, a consumer
-restarted) is not a second row (`INSERT ... ON CONFLICT DO NOTHING`, the same statement in both
-databases). A row holds what the request said (id, kind, episode, state, reason, created, the
-attempt that arrived first, the whole payload as JSON) and when it was received.
-
-`open_history(url)`: a file path (or sqlite:///PATH) is SQLite, the embedded default (the standard
-library's sqlite3, WAL, synchronous=FULL: a committed row survives a power cut); a
-`postgresql://` URL is PostgreSQL through psycopg 3 (the `plant` extra), for a plant whose
-history many tools read. Every row is committed before `record` returns: the inbox acknowledges
-only what is committed. Database errors become StoreError naming the database, chained.
-"""
+"""The plant's maintenance history: every request the inbox received, once, in one table
+(`maintenance_requests`, primary key cell, robot, uid, consumer group), on SQLite (a file path,
+the default) or PostgreSQL (a `postgresql://` URL, the `plant` extra). Every row is committed
+before `History.record` returns; database errors become StoreError. The table: docs/plant.md
+("One maintenance inbox")."""
 from __future__ import annotations
 
 import json
@@ -46,7 +37,23 @@ def _float(v: Any) -> float | None:
 
 
 class History:
-    """The history on one connection (its own lock: the inbox's worker writes, anyone reads)."""
+    """The history on one connection (its own lock: the inbox's worker writes, anyone reads).
+
+    SQLite runs with WAL and synchronous=FULL (a committed row survives a power cut); the table is
+    created when missing.
+
+    Parameters
+    ----------
+    url : str
+        A file path or ``sqlite:///PATH`` (SQLite), or a ``postgresql://`` URL.
+
+    Raises
+    ------
+    StoreError
+        When the database cannot be opened.
+    ImportError
+        For a PostgreSQL URL without psycopg installed (the ``plant`` extra).
+    """
 
     def __init__(self, url: str):
         self.url = url
@@ -85,8 +92,27 @@ class History:
         return sql.replace("?", "%s") if self.postgres else sql
 
     def record(self, req: Mapping[str, Any], received: float) -> bool:
-        """Commit one received request; True if it is new (False: this uid and group were already
-        recorded). `req` is a request as the consumer passes it (with its `key`)."""
+        """Commit one received request (``INSERT ... ON CONFLICT DO NOTHING``).
+
+        Parameters
+        ----------
+        req : Mapping
+            A request as the consumer passes it (with its ``key``, ``uid`` and ``group``).
+        received : float
+            s, Unix time of receipt.
+
+        Returns
+        -------
+        bool
+            True if it is new; False when this uid and group were already recorded.
+
+        Raises
+        ------
+        StoreError
+            When the insert fails (nothing is committed).
+        KeyError
+            When the request has no ``uid``.
+        """
         key = str(req.get("key", ""))
         parts = key.split("/")
         cell, robot = (parts[1], parts[2]) if len(parts) >= 3 else (str(req.get("cell")), str(req.get("robot")))
@@ -98,25 +124,64 @@ class History:
             return bool(cur.rowcount)
 
     def seen(self, group: str) -> set[tuple[str, str]]:
-        """(dt/<cell>/<robot>, uid) of every request of `group` recorded: a restarted inbox acks
-        their copies without recording them again."""
+        """The requests of a consumer group already recorded: a restarted inbox acks their copies
+        without recording them again.
+
+        Parameters
+        ----------
+        group : str
+
+        Returns
+        -------
+        set of (str, str)
+            (``dt/<cell>/<robot>``, uid).
+
+        Raises
+        ------
+        StoreError
+        """
         with self._lock, self._errors("read"):
             rows = self._db.execute(self._sql("SELECT cell, robot, uid FROM maintenance_requests WHERE grp = ?"),
                                     (group,)).fetchall()
         return {(f"dt/{c}/{r}", u) for c, r, u in rows}
 
     def rows(self, limit: int = 1000) -> list[dict[str, Any]]:
-        """The latest rows, newest first (payload parsed)."""
+        """The latest rows, newest first (payload parsed).
+
+        Parameters
+        ----------
+        limit : int
+
+        Returns
+        -------
+        list of dict
+            Column name -> value.
+
+        Raises
+        ------
+        StoreError
+        """
         with self._lock, self._errors("read"):
             rows = self._db.execute(self._sql(f"SELECT {', '.join(COLUMNS)} FROM maintenance_requests "
                                               "ORDER BY received DESC LIMIT ?"), (int(limit),)).fetchall()
         return [dict(zip(COLUMNS, r)) | {"payload": json.loads(r[-1])} for r in rows]
 
     def count(self) -> int:
+        """The number of rows.
+
+        Returns
+        -------
+        int
+
+        Raises
+        ------
+        StoreError
+        """
         with self._lock, self._errors("read"):
             return int(self._db.execute("SELECT COUNT(*) FROM maintenance_requests").fetchone()[0])
 
     def close(self) -> None:
+        """Close the connection (best effort)."""
         with self._lock:
             try:
                 self._db.close()
@@ -131,4 +196,20 @@ class History:
 
 
 def open_history(url: str) -> History:
+    """Open the history at ``url`` (see History).
+
+    Parameters
+    ----------
+    url : str
+        A file path or ``sqlite:///PATH``, or a ``postgresql://`` URL.
+
+    Returns
+    -------
+    History
+
+    Raises
+    ------
+    StoreError
+        When the database cannot be opened.
+    """
     return History(url)

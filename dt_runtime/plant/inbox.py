@@ -1,13 +1,9 @@
 """The plant's maintenance inbox: every cell's requests, through the fabric, into one history.
 
-A `MaintenanceConsumer` (fabric: the signed requests of every cell on `dt/**/maintenance/
-request`, its consumer group's copies, de-duplicated by (cell, robot, uid), every copy acked)
-whose new requests are committed to the plant history (`history`) BEFORE they are acknowledged:
-if the commit fails, the request is neither acked nor remembered, and the cell's next
-republication brings it again (at least once, end to end). A restarted inbox reads back what its
-history holds, so a copy received again is acked, not recorded twice (the history's primary key
-makes that true even across two inboxes of the same group writing one PostgreSQL database).
-"""
+`PlantInbox` commits each new request to the plant history BEFORE it is acknowledged, so a
+failed commit leaves it unacknowledged and the cell republishes it (at least once, end to end);
+a restarted inbox reads back what its history holds. The contract: docs/plant.md ("One
+maintenance inbox")."""
 from __future__ import annotations
 
 import time
@@ -20,6 +16,28 @@ from dt_runtime.plant.history import History, open_history
 
 
 class PlantInbox:
+    """A MaintenanceConsumer of one consumer group whose new requests go into the plant history.
+
+    Parameters
+    ----------
+    bus : BusConfig
+        The plant's bus.
+    history_url : str
+        The history (see open_history).
+    group : str
+        The consumer group.
+    key_expr : str
+        The requests subscribed to.
+    on_request : callable or None
+        Called with each new request after it is recorded.
+
+    Raises
+    ------
+    StoreError
+        When the history cannot be opened or read.
+    BusError
+        When the consumer cannot join the bus.
+    """
     def __init__(self, bus: BusConfig, history_url: str, *, group: str = "maintenance",
                  key_expr: str = "dt/**/maintenance/request",
                  on_request: Callable[[dict[str, Any]], None] | None = None):
@@ -41,12 +59,27 @@ class PlantInbox:
 
     @property
     def requests(self) -> list[dict[str, Any]]:
+        """The distinct requests received since the inbox opened."""
         return self.consumer.requests
 
     def wait_for(self, n: int, timeout: float) -> bool:
+        """Wait until at least ``n`` distinct requests arrived.
+
+        Parameters
+        ----------
+        n : int
+        timeout : float
+            s.
+
+        Returns
+        -------
+        bool
+            False on time-out.
+        """
         return self.consumer.wait_for(n, timeout)
 
     def close(self) -> None:
+        """Close the consumer, then the history."""
         try:
             self.consumer.close()
         finally:

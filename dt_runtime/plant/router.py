@@ -43,6 +43,13 @@ class Router:
                 "routers": routers, "peers": peers, "uptime_s": round(time.time() - self.started, 3)}
 
     def close(self) -> bool:
+        """Close the router's session (in a helper thread, at most ``close_timeout_s``).
+
+        Returns
+        -------
+        bool
+            True if the close finished in time.
+        """
         return close_session(self._session, self.close_timeout_s)
 
     def __enter__(self) -> Router:
@@ -54,8 +61,27 @@ class Router:
 
 def run_router(config: RouterConfig, stop: threading.Event, duration_s: float | None = None,
                on_ready=None) -> dict[str, Any]:
-    """Run a router until `stop` is set (SIGTERM/SIGINT in `dt router`) or `duration_s` passes;
-    its last `info()`. `on_ready(router)` is called once it listens."""
+    """Run a router until ``stop`` is set (SIGTERM/SIGINT in ``dt router``) or ``duration_s`` passes.
+
+    Parameters
+    ----------
+    config : RouterConfig
+    stop : threading.Event
+    duration_s : float or None
+        s; None runs until ``stop``.
+    on_ready : callable or None
+        Called with the Router once it listens.
+
+    Returns
+    -------
+    dict
+        The router's last ``info()`` (zid and listen only if that fails).
+
+    Raises
+    ------
+    BusError
+        When the router cannot start.
+    """
     with Router(config) as r:
         if on_ready is not None:
             on_ready(r)

@@ -21,8 +21,26 @@ from dt_runtime.fabric.session import zenoh_errors
 
 
 def query_key(selector: str, kind: str) -> str:
-    """`dt/*/*` + `status` -> `dt/*/*/status`; a selector that already ends in a kind is taken as
-    it is. DataError for a key expression zenoh refuses or an unknown kind."""
+    """The key of one query: ``dt/*/*`` + ``status`` -> ``dt/*/*/status``.
+
+    A selector that already ends in a kind is taken as it is.
+
+    Parameters
+    ----------
+    selector : str
+        A key expression of cells (``dt/<cell>/<robot>``, wildcards allowed).
+    kind : str
+        One of fabric.queries.KINDS.
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    DataError
+        For an unknown kind or a key expression zenoh refuses.
+    """
     if kind not in KINDS:
         raise DataError(f"unknown kind {kind!r}; a cell answers {', '.join(KINDS)}")
     key = selector.rstrip("/")
@@ -36,10 +54,38 @@ def query_key(selector: str, kind: str) -> str:
 
 def collect(session: zenoh.Session, selector: str = "dt/*/*", kind: str = "status", *,
             expected: Sequence[str] = (), timeout_s: float = 3.0) -> dict[str, Any]:
-    """Every cell's answer to one query; see the module docstring. Returns `key`, `kind`,
-    `cells` (one object per answer: `cell`, `robot`, `kind`, the answer's keys, `latency_ms`),
-    `answered` (`cell/robot` names), `expected` (those of `expected` the selector covers) and
-    `missing` (expected, no answer), `errors`."""
+    """Every cell's answer to one query (target ALL: every matching queryable answers).
+
+    Gathers the replies until each has answered or ``timeout_s`` passes; a reply is a cell's answer
+    or an error reply, either way the cell answered.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    selector : str
+        A key expression of cells.
+    kind : str
+        What to ask (fabric.queries.KINDS).
+    expected : sequence of str
+        ``cell/robot`` names expected to answer.
+    timeout_s : float
+        s.
+
+    Returns
+    -------
+    dict
+        ``key``, ``kind``, ``cells`` (one object per answer: ``cell``, ``robot``, ``kind``, the
+        answer's keys, ``latency_ms``), ``answered`` (``cell/robot`` names), ``expected`` (those of
+        ``expected`` the selector covers), ``missing`` (expected, no answer), ``errors``,
+        ``elapsed_ms``.
+
+    Raises
+    ------
+    DataError
+        For a bad selector or kind.
+    BusError
+        When the query fails.
+    """
     key = query_key(selector, kind)
     t0 = time.monotonic()
     cells: list[dict[str, Any]] = []
@@ -70,7 +116,26 @@ def collect(session: zenoh.Session, selector: str = "dt/*/*", kind: str = "statu
 
 
 def plant_status(cfg, selector: str = "dt/*/*", kind: str = "status", timeout_s: float = 3.0) -> dict[str, Any]:
-    """`collect` on a session of the plant config's bus (opened and closed here)."""
+    """``collect`` on a session of the plant config's bus (opened and closed here), expecting its cells.
+
+    Parameters
+    ----------
+    cfg : PlantConfig
+    selector : str
+    kind : str
+    timeout_s : float
+        s.
+
+    Returns
+    -------
+    dict
+        As ``collect``.
+
+    Raises
+    ------
+    DataError, BusError
+        As ``collect``, or when the session cannot open.
+    """
     from dt_runtime.fabric.session import close_session, open_session
 
     session = open_session(cfg.bus)

@@ -1,27 +1,8 @@
-"""Lag compensation of a streamed path (issue 23, item 5).
+"""Lag compensation of a streamed path: a servo follower's lag and acceleration term, learnt
+from one measured pass (e = a c' + b c'', `estimate_lag`) and removed by feed-forward
+(c = d + a d' + (b + a^2) d'', `compensate`). Units: SI (s, m).
 
-A servo follower (a UR's servoj with its look-ahead time and gain) reaches a streamed set-point
-late: along a path at velocity v the arm stands about v tau behind the command, millimetres at
-100-500 mm/s for tau of tens of milliseconds, a systematic error the static error map does not
-contain; on a curve its dynamics add an error that follows the acceleration. Both are learnt from
-one measured pass of the path and removed by feed-forward.
-
-For a linear follower with transfer function H (the servo model of sim.servo, x'' + K T x' + K x
-= K r, as any smooth lag), the error e = c - m of the measured positions m against the commanded
-path c is, to second order in the path's derivatives,
-
-    e = a c' + b c''          (servo: a = T, b = 1/K - T^2; a pure delay tau: a = tau, b = -tau^2/2)
-
-`estimate_lag` fits a and b by least squares on the measured positions (the derivatives are the
-commanded path's, smooth and noise-free; the first `max_lag_s` left out as start-up), with their
-standard uncertainties and the RMS before and after. `compensate` inverts it: to have the arm on
-the desired path d, stream
-
-    c = d + a d' + (b + a^2) d''     (servo: d + T d' + d''/K: exact for the model above)
-
-A plain time shift (a lag given as a number) sends d(t + tau) instead, which leaves the
-(1/K - T^2/2) d'' of a servo on every curve.
-Units: SI (s, m).
+The model, its derivation and measured results: docs/streaming.md, "The servo lag".
 """
 from __future__ import annotations
 
@@ -39,6 +20,26 @@ SETTLE_S = 0.2  # s: a servo's transient after a step of the path's acceleration
 
 @dataclass(frozen=True)
 class LagEstimate:
+    """A follower's lag learnt from one measured pass (`estimate_lag`).
+
+    Attributes
+    ----------
+    tau_s : float
+        a: the lag (s).
+    u_tau_s : float
+        Its standard uncertainty (s).
+    accel_s2 : float
+        b + a^2: the feed-forward's coefficient of the path's acceleration (s^2; 1/K for a servo).
+    u_accel_s2 : float
+        Its standard uncertainty (s^2).
+    n : int
+        Measured positions used (those on the moving part of the path).
+    rms_before_m : float
+        3D RMS of commanded - measured at the measured times (m).
+    rms_after_m : float
+        3D RMS of what the fitted model leaves (m).
+    """
+
     tau_s: float  # a: the lag (s)
     u_tau_s: float  # standard uncertainty of tau
     accel_s2: float  # b + a^2: the feed-forward's coefficient of the path's acceleration (s^2; 1/K for a servo)
@@ -49,11 +50,22 @@ class LagEstimate:
 
     @classmethod
     def from_dict(cls, d: dict) -> LagEstimate:
-        """`to_dict`'s inverse (a stored estimate)."""
+        """`to_dict`'s inverse (a stored estimate).
+
+        Parameters
+        ----------
+        d : dict
+            Keys tau_ms, u_tau_ms, accel_ms2, u_accel_ms2 (ms^2), n, rms_before_mm, rms_after_mm.
+
+        Returns
+        -------
+        LagEstimate
+        """
         return cls(1e-3 * d["tau_ms"], 1e-3 * d["u_tau_ms"], 1e-6 * d["accel_ms2"], 1e-6 * d["u_accel_ms2"],
                    int(d["n"]), 1e-3 * d["rms_before_mm"], 1e-3 * d["rms_after_mm"])
 
     def to_dict(self) -> dict:
+        """JSON form in ms, ms^2 and mm (keys as `from_dict` reads them)."""
         return {"tau_ms": 1e3 * self.tau_s, "u_tau_ms": 1e3 * self.u_tau_s, "accel_ms2": 1e6 * self.accel_s2,
                 "u_accel_ms2": 1e6 * self.u_accel_s2, "n": self.n,
                 "rms_before_mm": 1e3 * self.rms_before_m, "rms_after_mm": 1e3 * self.rms_after_m}
@@ -68,7 +80,29 @@ def _derivatives(path: TimedPath) -> tuple[np.ndarray, np.ndarray]:
 def estimate_lag(path: TimedPath, t: np.ndarray, measured: np.ndarray, max_lag_s: float = 0.5) -> LagEstimate:
     """The follower's lag and acceleration term behind `path` from positions `measured` (n, 3),
     m, at times `t` (n,), s, on the path's clock; times in the path's first `max_lag_s` are left
-    out (the start-up transient)."""
+    out (the start-up transient).
+
+    Parameters
+    ----------
+    path : TimedPath
+        The commanded path (s, m).
+    t : ndarray
+        (n,) s, the measurement times on the path's clock.
+    measured : ndarray
+        (n, 3) m, the measured positions; non-finite rows are skipped.
+    max_lag_s : float
+        The start-up left out (s).
+
+    Returns
+    -------
+    LagEstimate
+
+    Raises
+    ------
+    DataError
+        `t` and `measured` disagree in shape, fewer than 10 positions remain, or the path does not
+        move or change speed or direction (the two terms cannot be told apart).
+    """
     t, m = np.asarray(t, dtype=float), np.asarray(measured, dtype=float)
     if m.shape != (t.size, 3):
         raise DataError(f"estimate_lag needs n times and n x 3 positions, got {t.shape} and {m.shape}")
@@ -102,7 +136,22 @@ def settled(path: TimedPath, settle_s: float = SETTLE_S, jump: float = 0.05) -> 
     acceleration). A trapezoidal profile's acceleration steps at every start, end of a ramp and
     change of curvature; a follower (and a feed-forward built on the path's second derivative,
     which steps there too) leaves a transient of a few time constants after each, where neither
-    e = a c' + b c'' nor its inverse holds: a reading there tests the servo, not the twin."""
+    e = a c' + b c'' nor its inverse holds: a reading there tests the servo, not the twin.
+
+    Parameters
+    ----------
+    path : TimedPath
+        The commanded path (s, m).
+    settle_s : float
+        How long a transient lasts after a jump (s).
+    jump : float
+        A jump's threshold, as a fraction of the path's largest acceleration.
+
+    Returns
+    -------
+    ndarray
+        (n,) bool, one per set-point of `path`; all True for a path at rest.
+    """
     _, acc = _derivatives(path)
     da = np.linalg.norm(np.diff(acc, axis=0), axis=1)
     peak = float(np.max(np.linalg.norm(acc, axis=1))) if len(acc) else 0.0
@@ -116,7 +165,25 @@ def settled(path: TimedPath, settle_s: float = SETTLE_S, jump: float = 0.05) -> 
 
 def compensate(path: TimedPath, lag: LagEstimate | float) -> TimedPath:
     """The path to stream so that the follower is on `path` on time: with an estimate, the
-    inverse of its lag and acceleration term; with a number (s), the path shifted by it."""
+    inverse of its lag and acceleration term; with a number (s), the path shifted by it.
+
+    Parameters
+    ----------
+    path : TimedPath
+        The desired path (s, m).
+    lag : LagEstimate or float
+        An estimate (`estimate_lag`), or a lag in s.
+
+    Returns
+    -------
+    TimedPath
+        The path to stream.
+
+    Raises
+    ------
+    DataError
+        A lag given as a number that is not finite and >= 0.
+    """
     if not isinstance(lag, LagEstimate):
         tau = float(lag)
         if not (np.isfinite(tau) and tau >= 0):

@@ -93,13 +93,36 @@ class Piece:
     sweep: float = 0.0  # rad
 
     def at(self, s: np.ndarray) -> np.ndarray:
-        """Points (n, 3) at arc lengths s (n,) from p0."""
+        """Points along the segment.
+
+        Parameters
+        ----------
+        s : ndarray
+            (n,) m, arc lengths from p0.
+
+        Returns
+        -------
+        ndarray
+            (n, 3) m.
+        """
         if self.centre is None:
             return self.p0 + np.outer(s / self.length, self.p1 - self.p0)
         ang = s / self.radius
         return self.centre + self.radius * (np.outer(np.cos(ang), self.u) + np.outer(np.sin(ang), self.w))
 
     def tangent(self, end: bool) -> np.ndarray:
+        """The unit tangent (direction of travel) at the segment's start or end.
+
+        Parameters
+        ----------
+        end : bool
+            True: at p1; False: at p0.
+
+        Returns
+        -------
+        ndarray
+            (3,).
+        """
         if self.centre is None:
             return (self.p1 - self.p0) / self.length
         ang = self.sweep if end else 0.0
@@ -139,6 +162,7 @@ class Setpoints:
 
     @property
     def n(self) -> int:
+        """Number of set-points."""
         return len(self.t)
 
 
@@ -164,8 +188,25 @@ def _arc(p0: np.ndarray, via: np.ndarray, p1: np.ndarray, where: str, file: str,
 
 
 def read_path(path: str | Path) -> PathProgram:
-    """Read and check a path file; ConfigError naming file, key, value and what is allowed (a
-    poses CSV's bad cell: DataError naming file, line, column and value)."""
+    """Read and check a path file (YAML; mm, mm/s, mm/s^2, s, rad: docs/cli.md "Path programs").
+
+    Parameters
+    ----------
+    path : str or Path
+        The path file.
+
+    Returns
+    -------
+    PathProgram
+        In SI (m, m/s, m/s^2).
+
+    Raises
+    ------
+    ConfigError
+        Naming file, key, value and what is allowed.
+    DataError
+        The file is missing, or a poses CSV's cell is bad (naming file, line, column and value).
+    """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such path file")
@@ -298,7 +339,26 @@ def _profile(v0: float, v1: float, vmax: float, a: float, L: float) -> _Profile:
 
 
 def interpolate(path: PathProgram, rate_hz: float) -> Setpoints:
-    """The path's timed set-points at `rate_hz`, from t = 0 until its end (`_grid`)."""
+    """The path's timed set-points at `rate_hz`, from t = 0 until its end (the last one, at or
+    after the end, holds the end).
+
+    Parameters
+    ----------
+    path : PathProgram
+        The path (`read_path`).
+    rate_hz : float
+        The controller's set-point rate (Hz), 1 to 10000.
+
+    Returns
+    -------
+    Setpoints
+
+    Raises
+    ------
+    DataError
+        A rate outside 1-10000 Hz, more than MAX_SETPOINTS set-points, or timed poses faster or
+        with a higher acceleration than the path's limits (naming the pose).
+    """
     if not (math.isfinite(rate_hz) and 1.0 <= rate_hz <= 10_000.0):
         raise DataError(f"interpolation rate {rate_hz} Hz: allowed 1 to 10000 Hz (a UR: 125 or 500)")
     if path.pose_t is not None:

@@ -25,7 +25,7 @@ from dt_kernel.units import MM_PER_M
 from dt_runtime.programs.path import PathProgram, Setpoints
 from dt_runtime.programs.program import Program, check_workspace, mm_cells
 from dt_runtime.twin.conditions import Conditions, missing
-from dt_runtime.twin.setpoint import Setpoint, SetpointCorrector
+from dt_runtime.twin.corrector import Corrector, Setpoint
 from dt_runtime.twin.twin import Twin
 
 COLUMNS = ("t", "segment", "x", "y", "z", "speed", "cx", "cy", "cz", "Ux", "Uy", "Uz", "inside", "distance_mm")
@@ -35,12 +35,45 @@ PATH_KEYS = {"joints": "joints (rad: where the arm stands at the start)", "tempe
 
 
 def label(sp: Setpoints, k: int) -> str:
+    """Set-point k for a message: its index, time and segment.
+
+    Parameters
+    ----------
+    sp : Setpoints
+        The interpolated path.
+    k : int
+        0-based set-point index.
+
+    Returns
+    -------
+    str
+    """
     return f"set-point {k} (t {sp.t[k]:.4f} s, segment {int(sp.segment[k])})"
 
 
 def correct_path(twin: Twin, path: PathProgram, sp: Setpoints) -> list[Setpoint]:
-    """Every set-point corrected in order; DataError naming what the twin needs and the path
-    lacks, the set-points beyond the workspace, or the first set-point without a finite correction."""
+    """Every set-point corrected in order, each under the previous one's command and joints.
+
+    Parameters
+    ----------
+    twin : Twin
+        The calibrated twin.
+    path : PathProgram
+        The path (its conditions: joints, temperature, payload, t0).
+    sp : Setpoints
+        Its interpolation (`programs.path.interpolate`).
+
+    Returns
+    -------
+    list of Setpoint
+        One per set-point (m, robot frame).
+
+    Raises
+    ------
+    DataError
+        Naming what the twin needs and the path lacks, a `joints` of the wrong length, the
+        set-points beyond the workspace, or the first set-point without a finite correction.
+    """
     base = Conditions(temperature=path.temperature, payload=path.payload, t=path.t0, joints=path.joints)
     lack = missing(twin.needs, base)
     if lack:
@@ -52,7 +85,7 @@ def correct_path(twin: Twin, path: PathProgram, sp: Setpoints) -> list[Setpoint]
                         f"{chain.dof} joints")
     check_workspace(twin, Program(sp.p, sp.programmed, [label(sp, k) for k in range(sp.n)],
                                   [0] * sp.n, source=path.source, labels=True), path.source)
-    corrector = SetpointCorrector(twin)
+    corrector = Corrector(twin)  # its own: a thermal map's history is this path's
     out: list[Setpoint] = []
     q, prev = path.joints, None
     for k in range(sp.n):
@@ -70,7 +103,22 @@ def correct_path(twin: Twin, path: PathProgram, sp: Setpoints) -> list[Setpoint]
 
 
 def write_setpoints(path: str | Path, sp: Setpoints, corrected: list[Setpoint]) -> Path:
-    """The set-point table (module docstring), written atomically."""
+    """The set-point table (module docstring), written atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file; its directory is created if missing.
+    sp : Setpoints
+        The interpolated path.
+    corrected : list of Setpoint
+        One per set-point (`correct_path`).
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".part")  # a crash leaves no half-written table

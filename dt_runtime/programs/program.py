@@ -1,24 +1,9 @@
-"""A cell's program corrected offline (`dt correct`): every target of a program file gets the
-twin's corrected command, the expanded uncertainty (95 %) of the position it reaches and
-whether it lies in the calibrated volume, for offline programming tools.
+"""A cell's point program corrected offline (`dt correct --targets`): every target of a program
+file (CSV; mm, mm/s, rad, robot frame) gets the twin's corrected command, the expanded
+uncertainty (95 %) of the position it reaches and whether it lies in the calibrated volume.
 
-Program file (CSV, UTF-8, comma, header row): `x, y, z` (mm, robot frame), `speed` (mm/s), an
-optional `point_id` and, for a twin whose maps read them (`Twin.needs`), optional `temperature`
-(deg C), `payload` (kg), `t` (s, the campaign's time base) and `q1..qN` (rad: the joint angles
-the arm stands at before the target, where the inverse kinematics starts; offline tools know
-them), and any other numeric column a map's declared effect reads (`humidity`: docs/effects.md,
-"Your own effects"; `read_program(path, needs)`). The corrected file repeats the target
-columns and adds `cx, cy, cz` (the command, mm),
-`Ux, Uy, Uz` (mm, 95 %, per GL axis), `inside` (1 or 0) and `distance_mm` (signed distance of
-the command to the DOE hull, negative inside).
-
-What is refused, before anything is corrected (a DataError naming file, column or target; `dt
-correct` then writes nothing): a column that misspells a program column ('sped', 'Temperature'),
-positions that look like metres, joint angles that look like degrees, implausible speeds,
-payloads and temperatures (`measurements.checks`), and targets outside the workspace: beyond the
-arm's reach (its robot config's links summed) or, for a twin without a robot config, farther than
-FAR_OUTSIDE_M from its calibrated volume. A target inside the workspace but outside the calibrated
-volume is corrected and flagged (`inside` 0, a larger U); `--refuse-outside` refuses it too.
+The program and corrected file formats and what is refused before anything is corrected:
+docs/cli.md, "`dt correct`".
 """
 from __future__ import annotations
 
@@ -44,6 +29,30 @@ PROGRAM_COLUMNS = ("x", "y", "z", "speed", "point_id", "temperature", "payload",
 
 @dataclass(frozen=True)
 class Program:
+    """A point program in SI (`read_program`): its targets and the conditions its columns give.
+
+    Attributes
+    ----------
+    target : ndarray
+        (n, 3) m, robot frame.
+    speed : ndarray
+        (n,) m/s.
+    point_id : list of str
+        Each target's id (its `point_id`, else its 1-based row number).
+    line : list of int
+        Each target's source line.
+    temperature, payload, t : ndarray or None
+        (n,) deg C, kg, s: the program's columns, when it has them.
+    joints : ndarray or None
+        (n, dof) rad: where the arm stands before each target.
+    extra : dict or None
+        Column name -> (n,): the columns the maps' declared effects read.
+    source : str
+        The file it was read from, for messages.
+    labels : bool
+        `point_id` says where each target is (a path's set-points), not a line.
+    """
+
     target: np.ndarray  # (n,3) m, robot frame
     speed: np.ndarray  # (n,) m/s
     point_id: list[str]
@@ -57,13 +66,37 @@ class Program:
     labels: bool = False  # point_id says where each target is (a path's set-points), not a line
 
     def where(self, i: int, what: str = "") -> str:
-        """Target i for a message: its id and line (and `what` after the line)."""
+        """Target i for a message: its id and line (and `what` after the line).
+
+        Parameters
+        ----------
+        i : int
+            0-based target index.
+        what : str
+            Text added after the line.
+
+        Returns
+        -------
+        str
+        """
         if self.labels:
             return f"{self.point_id[i]}{': ' + what if what else ''}"
         return f"{self.point_id[i]} (line {self.line[i]}{': ' + what if what else ''})"
 
     def conditions(self, i: int, base: Conditions | None = None) -> Conditions:
-        """Target i's conditions: the program's columns, else `base`'s (e.g. the sensors')."""
+        """Target i's conditions: the program's columns, else `base`'s (e.g. the sensors').
+
+        Parameters
+        ----------
+        i : int
+            0-based target index.
+        base : Conditions or None
+            What the cell gives where the program has no column.
+
+        Returns
+        -------
+        Conditions
+        """
         b = base or Conditions()
 
         def at(col: np.ndarray | None, default):
@@ -76,13 +109,34 @@ class Program:
 
     @property
     def n(self) -> int:
+        """Number of targets."""
         return len(self.target)
 
 
 def read_program(path: str | Path, needs: tuple[str, ...] = ()) -> Program:
     """Read a program file; a bad cell names file, line, column and value. `needs`: the
     conditions the twin's maps read (`Twin.needs`); those beyond the known columns (a declared
-    effect's `humidity`) are read as numbers when the file has them."""
+    effect's `humidity`) are read as numbers when the file has them.
+
+    Parameters
+    ----------
+    path : str or Path
+        The program file (CSV, docs/cli.md "`dt correct`"; mm, mm/s, rad).
+    needs : tuple of str
+        The conditions the twin's maps read (`Twin.needs`).
+
+    Returns
+    -------
+    Program
+        In SI (m, m/s).
+
+    Raises
+    ------
+    DataError
+        The file is missing, empty or holds more than MAX_TARGETS targets; a column misspells a
+        program column; a cell is bad (named by file, line, column and value); positions look
+        like metres, joint angles like degrees, or a speed, payload or temperature is implausible.
+    """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such program file")
@@ -136,7 +190,23 @@ def read_program(path: str | Path, needs: tuple[str, ...] = ()) -> Program:
 def check_workspace(twin: Twin, program: Program, where: str) -> None:
     """DataError naming the targets outside the workspace: beyond the arm's reach (the twin's
     robot config), or, for a twin without one, farther than FAR_OUTSIDE_M from its calibrated
-    volume. Such a target is not an extrapolation the twin can state an uncertainty for."""
+    volume. Such a target is not an extrapolation the twin can state an uncertainty for.
+
+    Parameters
+    ----------
+    twin : Twin
+        The twin (its robot config, else its calibrated volume, bounds the workspace).
+    program : Program
+        The targets (m, robot frame).
+    where : str
+        The program's name, for the message.
+
+    Raises
+    ------
+    DataError
+        Naming up to three of the targets outside the workspace. Nothing is checked for a twin
+        with neither a robot config nor a calibrated volume.
+    """
     try:
         chain = twin.e_lt.chain()
     except TwinError:  # the robot config is gone: the calibrated volume still bounds the cell
@@ -161,8 +231,26 @@ def check_workspace(twin: Twin, program: Program, where: str) -> None:
 
 
 def correct_program(twin: Twin, program: Program) -> list[Correction]:
-    """Every target corrected under its conditions (the program's columns); DataError naming the
-    columns the twin's maps need and the program lacks."""
+    """Every target corrected under its conditions (the program's columns).
+
+    Parameters
+    ----------
+    twin : Twin
+        The calibrated twin.
+    program : Program
+        The targets (`read_program`).
+
+    Returns
+    -------
+    list of Correction
+        One per target, in order (m, robot frame; U per GL axis).
+
+    Raises
+    ------
+    DataError
+        The twin's maps need columns the program lacks (named), a target lies outside the
+        workspace (`check_workspace`), or the twin gives no finite correction at a target.
+    """
     lack = missing(twin.needs, program.conditions(0)) if program.n else []
     if lack:
         own = [n for n in lack if n not in SOURCES]
@@ -181,12 +269,42 @@ def correct_program(twin: Twin, program: Program) -> list[Correction]:
 
 
 def declared_readers(twin: Twin, columns: list[str]) -> list[str]:
-    """The effects of the twin's maps that read any of `columns` (for the error message)."""
+    """The effects of the twin's maps that read any of `columns` (for the error message).
+
+    Parameters
+    ----------
+    twin : Twin
+        The twin.
+    columns : list of str
+        Column names.
+
+    Returns
+    -------
+    list of str
+        Effect names.
+    """
     models = {e: m for m in (twin.e_lt, twin.e_mvs_lt) for e in m.effects}
     return [e for e, m in models.items() if set(m.effect(e).columns) & set(columns)]
 
 
 def write_corrected(path: str | Path, program: Program, corrections: list[Correction]) -> Path:
+    """Write the corrected program atomically (CSV: point_id, x, y, z, speed, cx, cy, cz, Ux, Uy,
+    Uz, inside, distance_mm; mm and mm/s; docs/cli.md "`dt correct`").
+
+    Parameters
+    ----------
+    path : str or Path
+        The file; its directory is created if missing.
+    program : Program
+        The targets.
+    corrections : list of Correction
+        One per target (`correct_program`).
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".part")  # a crash leaves no half-written program
@@ -202,4 +320,15 @@ def write_corrected(path: str | Path, program: Program, corrections: list[Correc
 
 
 def mm_cells(a: np.ndarray) -> list[str]:
+    """CSV cells of lengths in m, written in mm to 1 nm.
+
+    Parameters
+    ----------
+    a : ndarray
+        Values in m.
+
+    Returns
+    -------
+    list of str
+    """
     return [f"{float(x) * MM_PER_M:.6f}" for x in a]

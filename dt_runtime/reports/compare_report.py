@@ -22,6 +22,7 @@ from dt_runtime.reports.html import (
     note,
     paragraph,
     plt,
+    validity_banner,
 )
 from dt_runtime.reports.parameter_table import html as parameters_html
 from dt_runtime.reports.parameter_table import parameter_table
@@ -49,11 +50,13 @@ def _fail_txt(b: dict) -> str:
 # --------------------------------------------------------------------------- tables
 
 def _banner(s: dict, a: dict) -> str:
-    """A warning when a model was trained on these very data: its figures are in-sample."""
+    """The validity of the primary model's stated U95 on these data (analysis.validity), and a warning
+    when a model was trained on these very data: its figures are in-sample."""
     ins = s.get("in_sample") or []
+    valid = validity_banner(s.get("validity"))
     if not ins:
-        return ""
-    return note(f"<strong>Warning: in-sample figures.</strong> {', '.join(ins)} "
+        return valid
+    return valid + note(f"<strong>Warning: in-sample figures.</strong> {', '.join(ins)} "
                 f"{'was' if len(ins) == 1 else 'were'} trained on this very file: "
                 "their residuals here say how well they fit, not how well they predict. Compare on other "
                 "data, or with <code>dt compare --cv K</code> (each row predicted without its point).")

@@ -27,7 +27,16 @@ from dt_runtime.reports.demo_figures import (
     fig_validation,
     t_crit_and_flags,
 )
-from dt_runtime.reports.html import Section, banner, headline, html_page, html_table, note, paragraph
+from dt_runtime.reports.html import (
+    STATUS_WORD,
+    Section,
+    headline,
+    html_page,
+    html_table,
+    note,
+    paragraph,
+    validity_banner,
+)
 from dt_runtime.reports.parameter_table import html as parameters_html
 from dt_runtime.reports.parameter_table import parameter_table
 from dt_runtime.reports.traceability import traceability
@@ -50,7 +59,6 @@ NAME_LABEL = {"rdk": "e_RDK,GL (robot encoders)", "lt": "e_LT,GL (laser tracker)
               "r_lt": "r_LT (held-out)", "r_mvs_lt": "r_MVS-LT (held-out)",
               "r_lt_replicate_means": "r_LT, replicate means", "r_mvs_lt_replicate_means": "r_MVS-LT, replicate means",
               "reprod_tcp": "reprod_TCP (encoders, Eq. 12)", "reprod_mvs": "reprod_MVS (camera system, Eq. 12)"}
-STATUS_WORD = {"ok": "OK", "warn": "WARNING", "fail": "NOT VALID", "unchecked": "NOT CHECKED"}
 GP_WORDS = {"tcp_speed": "GP on the TCP and speed", "tcp": "GP on the TCP", "joints": "GP on the joint angles",
             "none": "no GP"}
 # The one U the key figures state, defined once (README: "The uncertainty of each corrected position").
@@ -364,28 +372,7 @@ def _table_run(s: dict, a: dict) -> str:
 
 def _validity(s: dict, a: dict) -> str:
     """The first thing on the page: may these figures be trusted (the summary's `validity`)?"""
-    v = s.get("validity")
-    if not isinstance(v, dict):
-        return ""  # a summary written before the checks existed
-    status = v.get("status", "unchecked")
-    title = {"fail": "NOT VALID: a stated uncertainty does not cover the errors",
-             "warn": "WARNING: a stated uncertainty may not fit the errors",
-             "ok": "OK: the stated uncertainty covers the errors in every check",
-             "unchecked": "NOT CHECKED: nothing tested the stated uncertainty"}.get(status, status)
-    items = []
-    checks = [c for c in v.get("checks") or [] if isinstance(c, dict)]
-    for c in sorted(checks, key=lambda c: {"fail": 0, "warn": 1}.get(str(c.get("status")), 2)):
-        # a check that passed in short; a flagged one with its evidence, likely cause and next step
-        text = str(c.get("short" if c.get("status") == "ok" else "finding", ""))
-        text = text[:1].upper() + text[1:] + "."
-        if c.get("cause"):
-            text += f"\nLikely cause: {c['cause']}" + (f" ({c['evidence']})" if c.get("evidence") else "") + "."
-        if c.get("advice"):
-            text += f"\nNext: {c['advice']}."
-        items.append((STATUS_WORD.get(str(c.get("status")), "?") + ":", text))
-    if not checks and v.get("finding"):
-        items.append(("", str(v["finding"])[:1].upper() + str(v["finding"])[1:] + "."))
-    return banner(status, f"Validity: {title}", items)
+    return validity_banner(s.get("validity"))
 
 
 def _headline(s: dict, a: dict) -> str:
@@ -581,7 +568,7 @@ def write_demo_report(result, path, title: str | None = None) -> Path:
 
     The summary dict is in mm, the arrays in SI (metres and m/s; errors e = commanded - measured
     in the global frame GL, paper Eq. 8). The report's first screen says whether the figures may be
-    trusted (the summary's `validity`, `twin.validity`), then the key figures with the definition of
+    trusted (the summary's `validity`, `analysis.validity`), then the key figures with the definition of
     the one U they state; then the paper's Tables 2-4, the error model with its effects and their
     fitted physical parameters, the GUM budgets and Eqs. 18-22, the validation (against the
     simulator's truth in the demo, the laser tracker in a campaign's validation phase), Figs. 8-18

@@ -349,3 +349,44 @@ def html_page(title: str, sections: Sequence[Section | tuple[str, str]], subtitl
         parts.append(f'<section id="{esc(a)}"><h2>{esc(s.title)}</h2>{s.body}</section>')
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+STATUS_WORD = {"ok": "OK", "warn": "WARNING", "fail": "NOT VALID", "unchecked": "NOT CHECKED"}
+
+
+def validity_banner(v: Any) -> str:
+    """A summary's `validity` block (analysis.validity) as the box a report opens with: may these
+    figures be trusted? Each check in short when it passed, with its evidence, likely cause and next
+    step when flagged.
+
+    Parameters
+    ----------
+    v : dict or None
+        The block; anything else (a summary written before the checks existed) gives ''.
+
+    Returns
+    -------
+    str
+        HTML.
+    """
+    if not isinstance(v, dict):
+        return ""  # a summary written before the checks existed
+    status = v.get("status", "unchecked")
+    title = {"fail": "NOT VALID: a stated uncertainty does not cover the errors",
+             "warn": "WARNING: a stated uncertainty may not fit the errors",
+             "ok": "OK: the stated uncertainty covers the errors in every check",
+             "unchecked": "NOT CHECKED: nothing tested the stated uncertainty"}.get(status, status)
+    items = []
+    checks = [c for c in v.get("checks") or [] if isinstance(c, dict)]
+    for c in sorted(checks, key=lambda c: {"fail": 0, "warn": 1}.get(str(c.get("status")), 2)):
+        # a check that passed in short; a flagged one with its evidence, likely cause and next step
+        text = str(c.get("short" if c.get("status") == "ok" else "finding", ""))
+        text = text[:1].upper() + text[1:] + "."
+        if c.get("cause"):
+            text += f"\nLikely cause: {c['cause']}" + (f" ({c['evidence']})" if c.get("evidence") else "") + "."
+        if c.get("advice"):
+            text += f"\nNext: {c['advice']}."
+        items.append((STATUS_WORD.get(str(c.get("status")), "?") + ":", text))
+    if not checks and v.get("finding"):
+        items.append(("", str(v["finding"])[:1].upper() + str(v["finding"])[1:] + "."))
+    return banner(status, f"Validity: {title}", items)

@@ -6,22 +6,21 @@ Request-reply over Zenoh (a queryable). The request's payload is JSON:
 effects reads; default: the daemon's sensors); the reply is
 `{"id", "target_mm", "command_mm", "correction_mm", "U_mm", "inside", "distance_mm"}`: the
 corrected command, the expanded uncertainty (95 %) of the position it reaches, whether it lies in
-the calibrated volume and its signed distance to it. The bounded-correction rules of
-`service.correction.Corrector` apply unchanged; a refused or malformed request gets an error
+the calibrated volume and its signed distance to it. The bounds of `twin.bounds.Guard`
+around the twin's correction law apply unchanged; a refused or malformed request gets an error
 reply `{"id", "error", "type"}` and the server goes on serving. Every query gets a reply, an
 error reply for a defect too. A request is parsed bounded (`common.safe_json`): at most
 MAX_REQUEST_BYTES (checked before the payload is copied), nested at most MAX_REQUEST_DEPTH deep,
 integers of at most 20 digits, numbers finite; only the keys above; target_mm 3 numbers and
 speed_mm_s a number (a boolean is not a number); temperature_c and payload_kg within the data
 checks' plausible ranges (`measurements.checks.RANGES`: -50..150 deg C, 0..1000 kg); speed and
-workspace by the Corrector. Corrections are computed in the
-zenoh callback (about a tenth of a millisecond) under a lock: the step bound of the Corrector
+workspace by the Guard. Corrections are computed in the
+zenoh callback (about a tenth of a millisecond) under a lock: the step bound of the Guard
 follows the sequence of requests.
 """
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import threading
 from collections.abc import Callable
@@ -36,7 +35,7 @@ from dt_runtime.common.safe_json import loads
 from dt_runtime.fabric.config import BusConfig
 from dt_runtime.fabric.session import BusError, close_session, encode, open_session, zenoh_errors
 from dt_runtime.measurements.checks import RANGES
-from dt_runtime.service.correction import CorrectionFault, Corrector
+from dt_runtime.twin.bounds import Guard
 from dt_runtime.twin.conditions import Conditions
 
 log = logging.getLogger(__name__)
@@ -84,12 +83,13 @@ def _request(raw: bytes) -> tuple[Any, np.ndarray, float, dict[str, float]]:
 
 
 class CorrectionServer:
-    """Serves `correct` requests with a Corrector, on a session of its own or one it is given
-    (the daemon shares its Bus's session: one listen endpoint per process). `conditions`: the
-    cell's latest conditions (the daemon's; never a driver call from zenoh's thread), which a
-    request's temperature_c / payload_kg override."""
+    """Serves `correct` requests with a Guard (give it its own Corrector: zenoh's thread shares no
+    state with another), on a session of its own or one it is given (the daemon shares its Bus's
+    session: one listen endpoint per process). `conditions`: the cell's latest conditions (the
+    daemon's; never a driver call from zenoh's thread), which a request's temperature_c /
+    payload_kg override."""
 
-    def __init__(self, corrector: Corrector, config: BusConfig, session: zenoh.Session | None = None,
+    def __init__(self, corrector: Guard, config: BusConfig, session: zenoh.Session | None = None,
                  conditions: Callable[[], Conditions | None] | None = None):
         self.corrector, self.config = corrector, config
         self._conditions = conditions
@@ -174,27 +174,3 @@ class CorrectionServer:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
-
-
-def request_correction(session: zenoh.Session, key: str, target_mm, speed_mm_s: float,
-                       timeout_s: float = 2.0, request_id: Any = None, temperature_c: float | None = None,
-                       payload_kg: float | None = None) -> dict[str, Any]:
-    """Ask the twin on `key` (`BusConfig.key("correct")`) for a corrected command; the reply as a
-    dict. A refused request raises CorrectionFault with the twin's reason; no reply within
-    timeout_s raises BusError."""
-    req: dict[str, Any] = {"id": request_id, "target_mm": [float(x) for x in target_mm],
-                           "speed_mm_s": float(speed_mm_s)}
-    if temperature_c is not None:
-        req["temperature_c"] = float(temperature_c)
-    if payload_kg is not None:
-        req["payload_kg"] = float(payload_kg)
-    payload = encode(req)
-    with zenoh_errors(f"get {key}"):
-        replies = list(session.get(key, payload=payload, timeout=timeout_s))
-    if not replies:
-        raise BusError(f"{key}: no reply within {timeout_s} s (is the twin daemon serving it?)")
-    r = replies[0]
-    if r.ok is not None:
-        return json.loads(r.ok.payload.to_bytes())
-    err = json.loads(r.err.payload.to_bytes()) if r.err is not None else {"error": "empty error reply"}
-    raise CorrectionFault(f"{key}: {err.get('error')}")

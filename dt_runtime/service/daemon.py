@@ -1,7 +1,7 @@
 """`dt run`: the long-running twin daemon.
 
 Every tick: take the next target from the target source (`service.targets`: the program, or a
-simulation stand-in), apply the bounded correction with the twin's maps (service.correction)
+simulation stand-in), apply the bounded correction with the twin's maps (twin.bounds around twin.corrector)
 under the cell's conditions when the maps read them (joint angles from the controller,
 temperature and payload from the program's columns or the simulated cell's sensors, the clock:
 `twin.conditions`), move the robot, read the MVS, test the measurement against the prediction
@@ -85,10 +85,9 @@ from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
 from dt_runtime.service.answers import answers, twin_identity
 from dt_runtime.service.cell import Cell, open_cell
-from dt_runtime.service.correction import Check, Corrected, CorrectionFault, Corrector, Monitor
 from dt_runtime.service.correction_server import CorrectionServer
 from dt_runtime.service.counters import Counters
-from dt_runtime.service.events import ActionQueued, Events, RequestsQueued, Transition
+from dt_runtime.service.events import ActionQueued, Events, HealthDue, RequestsQueued, Transition
 from dt_runtime.service.health import CellStatus, HealthReporter, StatusLine
 from dt_runtime.service.housekeeping import Housekeeper
 from dt_runtime.service.paging import Paging
@@ -117,7 +116,10 @@ from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.service.supervisor import Step, Supervisor
 from dt_runtime.service.targets import probe_point, targets_for
+from dt_runtime.twin.bounds import Corrected, CorrectionFault, Guard
 from dt_runtime.twin.conditions import Conditions
+from dt_runtime.twin.corrector import Corrector
+from dt_runtime.twin.monitor import Check, Monitor
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
@@ -173,7 +175,7 @@ class Daemon:
         check_condition_sources(self.twin, twin_dir, cfg.drivers, self._program)
         check_model(self.twin, twin_dir, self._plan.sp.p[0] if self._plan is not None
                     else probe_point(cfg.path, self._program), 0.5 * cfg.limits.max_speed_m_s)
-        self.corrector = Corrector(self.twin, cfg.limits)
+        self.corrector = Guard(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
         self.counters = Counters()
         self.events = Events()
@@ -187,13 +189,13 @@ class Daemon:
                              resume_extra=(lambda: {"path": stream.to_dict()}) if stream is not None else dict)
         self.escalator = self.paging.escalator
         self.bus = self._open_bus()
-        # The cell's program may ask for corrections on `.../correct` (its own Corrector: the
-        # step bound follows the program's sequence of requests, not the daemon's path).
+        # The cell's program may ask for corrections on `.../correct` (its own Guard and corrector:
+        # the step bound follows the program's requests, and zenoh's thread shares no state with the tick).
         self._cond: Conditions | None = None  # the cell's latest conditions (the correct service reads them)
-        self.correct_server = (CorrectionServer(Corrector(self.twin, cfg.limits), cfg.bus, self.bus.session,
-                                                conditions=lambda: self._cond) if self.bus else None)
-        if self.correct_server:
-            parts.callback(self.correct_server.close)
+        # Served on the bus's session now, or once a client's router comes (closed with the bus).
+        if self.bus:
+            served = Guard(self.twin, cfg.limits, Corrector(self.twin))
+            self.bus.serve(lambda s: CorrectionServer(served, cfg.bus, s, conditions=lambda: self._cond))
         self.cell: Cell = open_cell(cfg, self.base, self.source, world, self.twin, parts)
         self.world, self.inst = self.cell.world, self.cell.inst
         self.supervisor = Supervisor(cfg.halt, cfg.max_measurement_age_s, self.escalator, self.counters, self._now,
@@ -204,7 +206,7 @@ class Daemon:
         self.reporter = HealthReporter(self.supervisor.status, self.escalator, self.counters, self.store, self._now,
                                        self.inst, self.bus, self.events,
                                        stream=stream.to_dict if stream is not None else lambda: None)
-        self.status_line = StatusLine(self.supervisor.status, self.counters, self.escalator, self.path)
+        self.status_line = StatusLine(self.supervisor.status, self.counters, self.escalator, self.path, self.bus)
         self.housekeeper = Housekeeper(
             self._stop, self.events, take_actions=self.paging.take_actions, send_health=self.reporter.send,
             prune=self.prune, status_line=self.status_line, last_tick_mono=lambda: self.counters.last_tick_mono,
@@ -214,12 +216,11 @@ class Daemon:
         self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
         self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
         # The plant asks every cell on `dt/<cell>/<robot>/<kind>` (docs/plant.md): served once the daemon is whole.
-        view = CellStatus(self.reporter, self.store, self.counters, self.escalator)
-        twin = twin_identity(self.twin, self._p(cfg.twin))
-        self.queries = (QueryServer(cfg.bus, self.bus.session, answers(view, twin), sign=self.bus.signer.sign)
-                        if self.bus else None)
-        if self.queries:
-            parts.callback(self.queries.close)
+        if self.bus:
+            bus, view = self.bus, CellStatus(self.reporter, self.store, self.counters, self.escalator)
+            twin = twin_identity(self.twin, self._p(cfg.twin))
+            bus.serve(lambda s: QueryServer(cfg.bus, s, answers(view, twin), sign=bus.signer.sign))
+            bus.serve(lambda _s: self.events.emit(HealthDue()))  # connected: say so at once (returns None)
         self.paging.reconcile(self._now())
         self.housekeeper.start()
         parts.callback(self.housekeeper.stop)

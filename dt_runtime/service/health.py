@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from dt_runtime.service.correction import Corrected
 from dt_runtime.service.counters import Counters
 from dt_runtime.service.escalation import Escalator
 from dt_runtime.service.events import Events, HealthDue, Transition
@@ -26,6 +25,7 @@ from dt_runtime.service.path_run import PathStreamer
 from dt_runtime.service.publisher import Bus
 from dt_runtime.service.rows import shown_time
 from dt_runtime.service.store import OutboxItem, Store, StoreError
+from dt_runtime.twin.bounds import Corrected
 
 
 class HealthReporter:
@@ -68,6 +68,7 @@ class HealthReporter:
                 # acks and 'done's on the bus without the service's signature: refused, not recorded
                 "bus_refused": self.bus.refused if self.bus else 0,
                 "bus_last_refused": self.bus.last_refused if self.bus else None,
+                "bus": self.bus.state if self.bus else "off",  # connecting (no router yet), connected
                 "pid": os.getpid(), "t": time.time(),
                 **({"stream": stream} if stream is not None else {})}
 
@@ -155,11 +156,13 @@ class StatusLine:
         The machine (its state).
     path : PathStreamer or None
         A path program's streamer (its state), None for a point program.
+    bus : Bus or None
+        The daemon's bus (its connection state), None when it publishes nothing.
     """
 
     def __init__(self, status: Callable[[], tuple[str, str | None]], counters: Counters, escalator: Escalator,
-                 path: PathStreamer | None):
-        self.status, self.counters, self.escalator, self.path = status, counters, escalator, path
+                 path: PathStreamer | None, bus: Bus | None):
+        self.status, self.counters, self.escalator, self.path, self.bus = status, counters, escalator, path, bus
         self.last: tuple[float, Corrected] | None = None  # (t, the last command sent)
         self._mark = (time.monotonic(), 0)  # (when, ticks) of the last line: its rate
 
@@ -171,10 +174,11 @@ class StatusLine:
         rate = (ticks - before) / (now - then) if now > then else 0.0
         status, reason = self.status()
         failures, state = self.counters.failures, self.escalator.state
+        bus = self.bus.state if self.bus else "off"
         f: dict[str, Any] = {"ticks": ticks, "rate_hz": round(rate, 2), "status": status, "reason": reason,
-                             "escalation": state, "t_test_failures": failures}
+                             "escalation": state, "t_test_failures": failures, "bus": bus}
         text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
-            f", escalation {state}, Eq. 17 failed {failures}"
+            f", escalation {state}, Eq. 17 failed {failures}" + (f", bus {bus}" if bus == "connecting" else "")
         if self.path is not None:  # a path: where the stream is, not a last command
             st = self.path.state
             f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}

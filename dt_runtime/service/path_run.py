@@ -64,11 +64,11 @@ from dt_runtime.metrology.timing import TimedPath, compare_at
 from dt_runtime.programs.lag import SETTLE_S, LagEstimate, compensate, estimate_lag, settled
 from dt_runtime.programs.path import Setpoints, interpolate, read_path
 from dt_runtime.programs.path_correct import correct_path
-from dt_runtime.service.correction import Limits, check_path_bounds
 from dt_runtime.service.runtime_config import StreamSection
 from dt_runtime.service.stream import StreamProcess, StreamReport, run_stream
+from dt_runtime.twin.bounds import Limits, check_path_bounds
 from dt_runtime.twin.conditions import Conditions
-from dt_runtime.twin.setpoint import SetpointCorrector
+from dt_runtime.twin.corrector import Corrector
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
@@ -78,33 +78,13 @@ MIN_LAG_READINGS = 20  # fewer tested positions on a moving arm: the lag is not 
 
 
 # --- built in the streaming process (module-level: StreamProcess pickles them) ---------------
-def setpoint_corrector(sc: SetpointCorrector, times: np.ndarray, speeds: np.ndarray,
-                       joints: np.ndarray | None = None) -> Callable[[np.ndarray, float], np.ndarray]:
-    """(target m, t s) -> command m: `sc` at the programmed speed of the set-point meant for t,
-    the arm's joints carried from set-point to set-point (a map with joint-space effects)."""
-    last = len(times) - 1
-    q = [None if joints is None else np.asarray(joints, dtype=float)]
-    warm: list[np.ndarray | None] = [None]  # the previous set-point's correction: the fixed point starts there
-
-    def correct_one(target: np.ndarray, t: float) -> np.ndarray:
-        k = min(int(np.searchsorted(times, t - 1e-9)), last)
-        cond = None if q[0] is None else Conditions(joints=q[0])
-        r = sc.correct(target, float(speeds[k]), cond, warm[0])
-        if r.joints is not None:
-            q[0] = r.joints
-        warm[0] = r.command - target
-        return r.command
-
-    return correct_one
-
-
 def path_corrector(twin_dir: str, times: np.ndarray, speeds: np.ndarray, correct: bool = True,
                    joints: np.ndarray | None = None) -> Callable[[np.ndarray, float], np.ndarray]:
-    """`setpoint_corrector` of the twin in `twin_dir` (loaded in the streaming process), or the
-    target itself (`correct` False: an uncorrected stream)."""
+    """The correction law along the path (`Corrector.follow`) of the twin in `twin_dir` (loaded in
+    the streaming process), or the target itself (`correct` False: an uncorrected stream)."""
     if not correct:
         return lambda target, t: target
-    return setpoint_corrector(SetpointCorrector(Twin.load(twin_dir)), times, speeds, joints)
+    return Corrector(Twin.load(twin_dir)).follow(times, speeds, joints)
 
 
 def streaming_robot(name: str, options: dict, source: str, start: np.ndarray, speed: float):
@@ -302,8 +282,8 @@ class PathStreamer:
         robot.move_linear(self._start(k0), APPROACH_SPEED_M_S)
         t_w0, period = world.t, 1.0 / self.rate_hz
         every = max(1, int(round(self.rate_hz / self.cfg.monitor_hz)))
-        correct = (setpoint_corrector(SetpointCorrector(self.twin), sp.t[k0:], sp.programmed[k0:],
-                                      None if self.plan.joints is None else self.plan.joints[k0])
+        correct = (Corrector(self.twin).follow(sp.t[k0:], sp.programmed[k0:],
+                                               None if self.plan.joints is None else self.plan.joints[k0])
                    if self.corrected else (lambda target, t: target))
 
         def progress(j: int) -> None:
@@ -462,4 +442,4 @@ def check_streaming_robot(name: str, source: str) -> None:
 
 
 __all__ = ["PassHooks", "PathPlan", "PathStreamer", "StreamCell", "StreamState", "check_streaming_robot",
-           "path_corrector", "plan_path", "setpoint_corrector", "streaming_robot"]
+           "path_corrector", "plan_path", "streaming_robot"]

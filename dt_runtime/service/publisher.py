@@ -1,7 +1,12 @@
 """`Bus`: the daemon's side of the Zenoh bus for one robot (see the package docstring for the
 keys, QoS, delivery of maintenance requests and threads). Requests and reliable messages leave
 signed; an ack or 'done' without a valid signature of the service's key is refused, logged and
-counted (`refused`, `last_refused`), and nothing is recorded (bus.auth)."""
+counted (`refused`, `last_refused`), and nothing is recorded (bus.auth).
+
+A client whose router is not up yet starts all the same (`state` is `connecting`,
+fabric.session.SessionOpener): telemetry is dropped meanwhile (counted), reliable messages wait in
+the send queue (bounded; of health only the latest is kept), maintenance requests in the outbox;
+once connected, the services given to `serve` are declared and the outbox drains."""
 from __future__ import annotations
 
 import logging
@@ -20,11 +25,9 @@ from dt_runtime.fabric.auth import Signer
 from dt_runtime.fabric.config import MAX_MESSAGE_BYTES, BusConfig
 from dt_runtime.fabric.session import (
     BusError,
-    close_session,
+    SessionOpener,
     encode,
-    open_session,
     put_json,
-    shut_down,
     zenoh_errors,
 )
 from dt_runtime.service.events import RequestsQueued, Transition
@@ -75,23 +78,70 @@ class Bus:
         self._count_lock = threading.Lock()
         self._stop = threading.Event()
         self._closed = False
-        self._session = open_session(config)
-        s = self._session
-        try:
-            with zenoh_errors("cannot declare bus entities"):
-                self._pub = self._declare(s, config)
-                self._ack_sub = s.declare_subscriber(
-                    config.key("maintenance/ack/*"),
-                    lambda sample: self._tasks.put(("ack", str(sample.key_expr), sample.payload.to_bytes())))
-                self._done_sub = s.declare_subscriber(
-                    config.key("maintenance/done/*"),
-                    lambda sample: self._tasks.put(("done", str(sample.key_expr), sample.payload.to_bytes())))
-        except BusError:
-            close_session(s, config.close_timeout_s)
-            raise
+        self._session: zenoh.Session | None = None
+        self._ready = threading.Event()  # the session is open and declared
+        self._serve_lock = threading.Lock()
+        self._factories: list[Callable[[zenoh.Session], Any]] = []  # `serve`: run once connected
+        self._served: list[Any] = []  # what they made, closed with the bus
+        self._held_health: bytes | None = None  # the latest health while connecting
+        self._opener = SessionOpener(config, on_connected=self._connected)  # raises for a peer that cannot open
         self._worker = threading.Thread(target=self._run, name=f"bus-{config.robot}",
                                         daemon=True)
         self._worker.start()
+
+    def _connected(self, s: zenoh.Session) -> None:
+        """The session is open (now, or in the opener's thread): declare, serve, drain."""
+        config = self.config
+        with zenoh_errors("cannot declare bus entities"):
+            self._pub = self._declare(s, config)
+            self._ack_sub = s.declare_subscriber(
+                config.key("maintenance/ack/*"),
+                lambda sample: self._tasks.put(("ack", str(sample.key_expr), sample.payload.to_bytes())))
+            self._done_sub = s.declare_subscriber(
+                config.key("maintenance/done/*"),
+                lambda sample: self._tasks.put(("done", str(sample.key_expr), sample.payload.to_bytes())))
+        with self._serve_lock:
+            self._session = s
+            for factory in self._factories:
+                try:
+                    self._keep(factory(s))
+                except Exception:  # noqa: BLE001 - one service that cannot start must not keep the bus down
+                    log.exception("bus: a service could not start on the new session")
+            self._factories.clear()
+            held, self._held_health = self._held_health, None
+            self._ready.set()
+        if held is not None:
+            with self._count_lock:
+                self._sends += 1
+            self._tasks.put(("send", "health", held))
+        self.wake()
+
+    @property
+    def state(self) -> str:
+        """`connecting` (a client without its router: not yet, or again), `connected`, `closed`."""
+        return "closed" if self._closed else self._opener.state
+
+    def serve(self, factory: Callable[[zenoh.Session], Any]) -> None:
+        """Run `factory(session)` (a service on the bus's session: queryables) now if the bus is
+        connected, else when it connects; what it returns is closed (`close()`) with the bus.
+
+        Parameters
+        ----------
+        factory : callable
+            Takes the open zenoh session, returns an object with a `close()` method (or None:
+            a hook that only needs to know the bus is connected).
+        """
+        with self._serve_lock:
+            if self._closed:
+                return
+            if self._session is None:
+                self._factories.append(factory)
+                return
+            self._keep(factory(self._session))
+
+    def _keep(self, obj: Any) -> None:
+        if obj is not None:
+            self._served.append(obj)
 
     @staticmethod
     def _declare(session: zenoh.Session, config: BusConfig) -> dict[str, zenoh.Publisher]:
@@ -108,6 +158,10 @@ class Bus:
     def publish_telemetry(self, payload: Mapping[str, Any]) -> None:
         """Best effort, never blocks (DROP congestion control); may be lost."""
         self._check()
+        if not self._ready.is_set():  # connecting: nowhere to send it
+            with self._count_lock:
+                self.dropped += 1
+            return
         data = encode(payload)
         try:
             with zenoh_errors("telemetry put"):
@@ -146,6 +200,11 @@ class Bus:
         """Hand a reliable message to the worker, signed; False (and counted) if the queue is full."""
         self._check()
         data = self.signer.sign(self.config.key(kind), payload)
+        if kind == "health" and not self._ready.is_set():
+            with self._serve_lock:  # connecting: only the latest health is worth sending
+                if not self._ready.is_set():
+                    self._held_health = data
+                    return True
         with self._count_lock:
             if self._sends >= self.config.send_queue:
                 self.dropped += 1
@@ -174,6 +233,9 @@ class Bus:
     def _run(self) -> None:
         next_republish = 0.0  # publish pending entries at once (restart case)
         while not self._stop.is_set():
+            if not self._ready.is_set():  # connecting: what is queued and the outbox wait
+                self._ready.wait(0.2)
+                continue
             now = time.monotonic()
             if self.store is not None and now >= next_republish:
                 self._republish()
@@ -281,7 +343,7 @@ class Bus:
                     with zenoh_errors("maintenance request put"):
                         self._pub["maintenance/request"].put(data)
                 else:  # written under another cell/robot name: still deliver it there
-                    put_json(self._session, item.key, data)
+                    put_json(self.session, item.key, data)
                 self.published += 1
                 store.outbox_attempted(item.id)
             except StoreError as exc:
@@ -291,18 +353,35 @@ class Bus:
 
     @property
     def session(self) -> zenoh.Session:
-        """The bus's Zenoh session, for services of the same process (one listen endpoint)."""
-        return self._session
+        """The bus's Zenoh session, for services of the same process (one listen endpoint);
+        StateError while connecting (`serve` runs a service once it is open)."""
+        session = self._session
+        if session is None:
+            raise StateError(f"the bus is {self.state}: no session yet")
+        return session
 
     # ------------------------------------------------------------------ lifecycle
     def close(self, timeout: float | None = None) -> bool:
         """Stop the worker and close the session, bounded by `timeout` (config default)."""
         if self._closed:
             return True
-        self._closed = True
+        timeout = self.config.close_timeout_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        with self._serve_lock:
+            self._closed = True
         self._stop.set()
-        return shut_down(self._session, self._worker, lambda: self._tasks.put(("stop",)),
-                         self.config.close_timeout_s if timeout is None else timeout)
+        done = self._opener.cancel(timeout)  # no session opens after this
+        with self._serve_lock:
+            served, self._served = self._served, []
+        for obj in reversed(served):
+            try:
+                obj.close()
+            except Exception as exc:  # noqa: BLE001 - closing is best effort, keep closing the rest
+                log.warning("bus: closing %s: %s", type(obj).__name__, exc)
+        self._tasks.put(("stop",))
+        self._worker.join(max(0.0, deadline - time.monotonic()))
+        done = self._opener.close(max(0.1, deadline - time.monotonic())) and done
+        return done and not self._worker.is_alive()
 
     def __enter__(self) -> Bus:
         return self

@@ -18,8 +18,8 @@ from drivers import registry
 from drivers.base import GAIN_RANGE, LOOKAHEAD_RANGE_S
 from dt_kernel.config import Frozen, load_yaml
 from dt_runtime.fabric import BusConfig
-from dt_runtime.service.correction import Limits
 from dt_runtime.service.escalation import EscalationConfig
+from dt_runtime.twin.bounds import Limits
 
 Vec3 = tuple[float, float, float]
 KINDS = registry.KINDS

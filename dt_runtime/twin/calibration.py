@@ -28,6 +28,20 @@ from dt_runtime.twin.twin import PositionUncertainty, Twin
 
 @dataclass
 class Frames:
+    """The three instruments registered to GL (Sect. 2.3), with what the budgets take from it.
+
+    Attributes
+    ----------
+    T_rdk, T_lt, T_mvs : RigidTransform
+        Robot (controller), laser tracker and camera (MVS) frame -> GL.
+    residuals : dict
+        Instrument name ('rdk', 'lt', 'mvs') -> (n, 3) m registration residuals (Eqs. 5-7).
+    reprod_tcp, reprod_mvs : ndarray
+        (3,) m, reproducibility of the TCP (tracker-measured) and of the camera (Eq. 12).
+    reprod_tcp_dof, reprod_mvs_dof : float
+        Their degrees of freedom.
+    """
+
     T_rdk: reg.RigidTransform
     T_lt: reg.RigidTransform
     T_mvs: reg.RigidTransform
@@ -39,6 +53,19 @@ class Frames:
 
 
 def register(data: PhaseData) -> Frames:
+    """Register robot, tracker and camera to GL by the three-line method and compute the
+    reproducibilities of Eq. 12 from the replicated registration points.
+
+    Parameters
+    ----------
+    data : PhaseData
+        The registration phase (positions in m, with each row's `axis` and `distance`); rows
+        where the tracker or the camera refused (NaN) are left out of their reproducibility.
+
+    Returns
+    -------
+    Frames
+    """
     p_gl = reg.gl_nominal(data.axis, data.distance)
     regs = {name: reg.register_instrument(getattr(data, f"p_{name}"), p_gl, "three_line",
                                           axes=data.axis, distances=data.distance)
@@ -56,6 +83,23 @@ def register(data: PhaseData) -> Frames:
 
 @dataclass
 class DoeErrors:
+    """The DOE phase's errors in GL (e = commanded - measured), on the rows both the tracker and
+    the camera measured.
+
+    Attributes
+    ----------
+    X : ndarray
+        (n, 4): commanded TCP (robot frame, m) and speed (m/s).
+    e_lt, e_mvs, e_mvs_lt : ndarray
+        (n, 3) m, GL axes: e_LT (Eq. 8), e_MVS (Eq. 9) and e_MVS-LT = e_LT - e_MVS (Eq. 10).
+    groups : ndarray
+        (n,) target point id of each row (the cross-validation groups).
+    e_true : ndarray or None
+        (n, 3) m, the error against the simulator's truth (simulation only).
+    inputs : Inputs
+        What the effect terms may read on these rows (time order).
+    """
+
     X: np.ndarray  # (n,4): commanded TCP robot frame (m) and speed (m/s)
     e_lt: np.ndarray  # (n,3) GL, m (Eq. 8)
     e_mvs: np.ndarray  # (n,3) (Eq. 9)
@@ -67,7 +111,20 @@ class DoeErrors:
 
 def phase_inputs(data: PhaseData, rows: np.ndarray) -> Inputs:
     """The effect terms' inputs of a phase's rows: the controller's commanded TCP and joints,
-    speed, and the temperature, payload and time where every row has them."""
+    speed, and the temperature, payload and time where every row has them.
+
+    Parameters
+    ----------
+    data : PhaseData
+        The phase (SI units: m, rad, m/s, deg C, kg, s).
+    rows : ndarray
+        Boolean mask or indices of the rows to take.
+
+    Returns
+    -------
+    Inputs
+        A column (joints, temperature, payload, time) is None unless it is finite on every row.
+    """
 
     def col(a: np.ndarray) -> np.ndarray | None:
         a = np.asarray(a, dtype=float)[rows]
@@ -78,6 +135,19 @@ def phase_inputs(data: PhaseData, rows: np.ndarray) -> Inputs:
 
 
 def doe_errors(data: PhaseData, fr: Frames) -> DoeErrors:
+    """The DOE errors e_LT, e_MVS and e_MVS-LT in GL (Eqs. 8-10).
+
+    Parameters
+    ----------
+    data : PhaseData
+        The DOE phase (m, m/s); rows where the tracker or the camera refused are dropped.
+    fr : Frames
+        The registration (`register`).
+
+    Returns
+    -------
+    DoeErrors
+    """
     ok = np.all(np.isfinite(data.p_lt), axis=1) & np.all(np.isfinite(data.p_mvs), axis=1)
     cmd_gl = fr.T_rdk.apply(data.p_rdk[ok])
     e_lt = cmd_gl - fr.T_lt.apply(data.p_lt[ok])
@@ -94,6 +164,20 @@ def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.
 
     Eq. 11 adds the positioning reproducibility separately; residuals of single positionings
     would count that scatter twice.
+
+    Parameters
+    ----------
+    r : ndarray
+        (n, 3) residuals (or any per-row values to average).
+    groups : ndarray
+        (n,) target point id.
+    speed : ndarray
+        (n,) m/s (rounded to 1e-9 to group).
+
+    Returns
+    -------
+    ndarray
+        (m, 3): the mean per distinct (point, speed), in the order of `numpy.unique`.
     """
     keys = np.column_stack([groups, np.round(speed, 9)])
     _, inv = np.unique(keys, axis=0, return_inverse=True)
@@ -104,6 +188,20 @@ def replicate_means(r: np.ndarray, groups: np.ndarray, speed: np.ndarray) -> np.
 
 @dataclass
 class FittedMaps:
+    """The fitted error maps with their held-out residuals (Table 4).
+
+    Attributes
+    ----------
+    e_lt : HybridModel
+        e_LT_hat(TCP, v, ...): the named effects + GP, fitted on the whole DOE.
+    e_mvs_lt : HybridModel
+        e_MVS-LT_hat(TCP, v): GP.
+    r_lt, r_mvs_lt : ndarray
+        (n, 3) m, held-out residuals of e_LT and e_MVS-LT (grouped by target point).
+    s_lt : ndarray
+        (n, 3) m, the fold models' standard uncertainty at each held-out row.
+    """
+
     e_lt: HybridModel  # e_LT_hat(TCP, v, ...): the named effects + GP
     e_mvs_lt: HybridModel  # e_MVS-LT_hat(TCP, v): GP
     r_lt: np.ndarray  # (n,3) held-out residuals of e_LT (Table 4)
@@ -114,7 +212,27 @@ class FittedMaps:
 def map_model(effects: tuple[str, ...] = (), seed: int = 0, robot=None, gp_inputs: str = "tcp_speed",
               gp_options=None, catalogue=None) -> HybridModel:
     """The e_LT map's configuration (unfitted): the named effects + GP; none: the paper's GPR.
-    `catalogue`: the `effects.Catalogue` the names refer to (default `effects.default()`)."""
+
+    Parameters
+    ----------
+    effects : tuple of str
+        Effect names (`models.effects`); empty: GP only.
+    seed : int
+        Seed of the GP optimiser's starts.
+    robot : str, Path, Chain or None
+        The robot reference the joint-space effects need (`models.hybrid.HybridModel`).
+    gp_inputs : str
+        What the GP reads: 'tcp_speed', 'tcp', 'joints' or 'none'.
+    gp_options : GPOptions or None
+        The GP's options (None: its defaults).
+    catalogue : Catalogue or None
+        The `effects.Catalogue` the names refer to (default `effects.default()`).
+
+    Returns
+    -------
+    HybridModel
+        Unfitted.
+    """
     return HybridModel(tuple(effects), gp_inputs, seed=seed, robot=robot, gp_options=gp_options,
                        catalogue=catalogue)
 
@@ -124,7 +242,23 @@ def fit_models(doe: DoeErrors, folds: int, seed: int, lt_model: HybridModel | No
     instruments' difference, which the robot's effects do not enter) on the DOE, with their
     held-out residuals: each target point predicted by a map that never saw it, hyperparameters
     included (Table 4); for e_LT also the fold maps' stated std there, which calibrates the
-    per-position uncertainty."""
+    per-position uncertainty.
+
+    Parameters
+    ----------
+    doe : DoeErrors
+        The DOE errors (`doe_errors`).
+    folds : int
+        Number of cross-validation folds (grouped by target point).
+    seed : int
+        Seed of the fold split and of the GP optimisers.
+    lt_model : HybridModel or None
+        The e_LT map's configuration (`map_model`); None: the paper's GPR.
+
+    Returns
+    -------
+    FittedMaps
+    """
     cfg = lt_model if lt_model is not None else map_model(seed=seed)
     masks = folds_of(doe.groups, folds, seed)
     e_lt = cfg.unfitted().fit(doe.inputs, doe.e_lt)
@@ -144,7 +278,25 @@ def model_scale(r: np.ndarray, s: np.ndarray, groups: np.ndarray, speed: np.ndar
     held-out spread s(r_LT) that the global budget uses. At a new position lambda sigma(c) then
     varies as the GP's own uncertainty does: small among the DOE points, growing away from them
     (extrapolation). dof: the number of replicate means minus one (a variance ratio estimated
-    from them)."""
+    from them).
+
+    Parameters
+    ----------
+    r : ndarray
+        (n, 3) m, held-out residuals of e_LT.
+    s : ndarray
+        (n, 3) m, the fold models' stated standard uncertainty at the same rows.
+    groups : ndarray
+        (n,) target point id.
+    speed : ndarray
+        (n,) m/s.
+
+    Returns
+    -------
+    lam : ndarray
+        (3,) lambda per axis (dimensionless; 0 on an axis where the stated std is 0).
+    dof : float
+    """
     rm = replicate_means(r, groups, speed)
     sm = replicate_means(s, groups, speed)
     ms = np.mean(sm ** 2, axis=0)
@@ -155,6 +307,26 @@ def model_scale(r: np.ndarray, s: np.ndarray, groups: np.ndarray, speed: np.ndar
 def metrology_inputs(fr: Frames, r_lt: np.ndarray, r_mvs_lt: np.ndarray, lt_distance_m: float,
                      resol_tcp: float = 1e-6, resol_mvs: float = 5e-6,
                      registration_term: str = "transform") -> unc.MetrologyInputs:
+    """The per-axis statistics the budgets of Eqs. 11-16 take (`metrology.uncertainty`).
+
+    Parameters
+    ----------
+    fr : Frames
+        The registration: its residuals and reproducibilities.
+    r_lt, r_mvs_lt : ndarray
+        (n, 3) m, held-out residuals of e_LT and e_MVS-LT.
+    lt_distance_m : float
+        The tracker's distance to the work volume (m), for its calibration uncertainty.
+    resol_tcp, resol_mvs : float
+        Resolution of the robot's positioning and of the camera (m).
+    registration_term : str
+        'transform' (the fitted registration's uncertainty) or 'spread' (the residual spread, as
+        the paper writes Eqs. 13-16): `MetrologyInputs.registration_term`.
+
+    Returns
+    -------
+    MetrologyInputs
+    """
     def stat(e):
         return np.mean(e, axis=0), np.std(e, axis=0, ddof=1), len(e)
 
@@ -169,6 +341,19 @@ def metrology_inputs(fr: Frames, r_lt: np.ndarray, r_mvs_lt: np.ndarray, lt_dist
 
 
 def budgets(inp) -> dict:
+    """The calibration's uncertainty budgets, Eqs. 11 and 13-16.
+
+    Parameters
+    ----------
+    inp : MetrologyInputs
+        From `metrology_inputs`.
+
+    Returns
+    -------
+    dict
+        twin.json's keys ('eq11_tcp_c', 'eq13_e_lt_hat', 'eq14_e_lt_hat_minus_e_mvs',
+        'eq15_e_mvs', 'eq16_e_mvs_lt_hat') -> `Budget`.
+    """
     return {
         "eq11_tcp_c": unc.budget_tcp_corrected(inp),
         "eq13_e_lt_hat": unc.budget_e_lt_hat(inp),
@@ -187,7 +372,24 @@ def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, lt_model: HybridModel
     lies at a distance d outside the hull of the rest. The squared residual beyond what
     lambda sigma states is regressed on d^2 through the origin:
     kappa^2 = sum max(0, r^2 - (lambda sigma)^2) / sum d^2. The twin then adds kappa d(c) for a
-    command c at distance d(c) > 0 outside the calibrated hull."""
+    command c at distance d(c) > 0 outside the calibrated hull.
+
+    Parameters
+    ----------
+    doe : DoeErrors
+        The DOE errors.
+    scale : ndarray
+        (3,) lambda per axis (`model_scale`).
+    lt_model : HybridModel
+        The e_LT map; refitted (unfitted copies) on each face's rest.
+
+    Returns
+    -------
+    kappa : ndarray
+        (3,) per axis, m of error per m outside the hull; zeros when no face could be held out.
+    dof : float
+        Held-out replicate means minus one; infinite when no face could be held out.
+    """
     P = doe.X[:, :3]
     design = lt_model.design_matrix(doe.inputs)  # on all rows, in time order (approach direction)
     num, den, n = np.zeros(3), 0.0, 0
@@ -218,7 +420,21 @@ def extrapolation_scale(doe: DoeErrors, scale: np.ndarray, lt_model: HybridModel
 def position_uncertainty(eq11: unc.Budget, doe: DoeErrors, maps: FittedMaps) -> PositionUncertainty:
     """Eq. 11 made per position: its components but the global model spread s(r_LT), which the
     calibrated model term lambda sigma_GP(c) replaces at each position, plus kappa d(c) outside
-    the calibrated hull (`model_scale`, `extrapolation_scale`)."""
+    the calibrated hull (`model_scale`, `extrapolation_scale`).
+
+    Parameters
+    ----------
+    eq11 : Budget
+        The global Eq. 11 budget (with its model term `metrology.uncertainty.MODEL_TERM`).
+    doe : DoeErrors
+        The DOE errors.
+    maps : FittedMaps
+        The fitted maps with their held-out residuals and stds.
+
+    Returns
+    -------
+    PositionUncertainty
+    """
     rest = tuple(c for c in eq11.components if c.label != unc.MODEL_TERM)
     assert len(rest) == len(eq11.components) - 1, f"Eq. 11 has no '{unc.MODEL_TERM}' component"
     scale, dof = model_scale(maps.r_lt, maps.s_lt, doe.groups, doe.X[:, 3])
@@ -228,6 +444,34 @@ def position_uncertainty(eq11: unc.Budget, doe: DoeErrors, maps: FittedMaps) -> 
 
 def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = None,
               volume: CalibratedVolume | None = None, position_u: PositionUncertainty | None = None) -> Twin:
+    """The twin from its registration, fitted maps and budgets.
+
+    Parameters
+    ----------
+    fr : Frames
+        The registration.
+    e_lt, e_mvs_lt : HybridModel
+        The fitted error maps.
+    b : dict
+        twin.json's uncertainty key -> `Budget` (`budgets`); each is stated as u, dof, U and k
+        per axis (m).
+    instruments : dict or None
+        The drivers it was calibrated with (e.g. the camera), recorded in twin.json.
+    volume : CalibratedVolume or None
+        The DOE's hull (where the maps interpolate).
+    position_u : PositionUncertainty or None
+        Eq. 11 per position (`position_uncertainty`).
+
+    Returns
+    -------
+    Twin
+
+    Raises
+    ------
+    ModelError
+        A budget's stated figures are not finite and >= 0 per axis (`TwinUncertainty`), or the
+        maps need a robot config that cannot be read.
+    """
     u = {}
     for key, bud in b.items():
         u[key] = {"u": bud.combined(), "dof": bud.effective_dof(), "U": bud.expanded(), "k": bud.coverage_factor()}

@@ -39,13 +39,38 @@ class Conditions:
     extra: dict[str, float] | None = None
 
     def get(self, name: str):
+        """One condition by name: a field of this class or an entry of `extra`.
+
+        Parameters
+        ----------
+        name : str
+            'temperature', 'payload', 't', 'joints', 'previous' or a column of `extra`.
+
+        Returns
+        -------
+        float, ndarray or None
+            None when it is not given.
+        """
         if name in ("temperature", "payload", "t", "joints", "previous"):
             return getattr(self, name)
         return None if self.extra is None else self.extra.get(name)
 
 
 def missing(needs: tuple[str, ...], cond: Conditions | None) -> list[str]:
-    """The conditions a map needs that `cond` does not give (speed always comes with the command)."""
+    """The conditions a map needs that `cond` does not give (speed always comes with the command).
+
+    Parameters
+    ----------
+    needs : tuple of str
+        What the map reads (`HybridModel.needs`).
+    cond : Conditions or None
+        What the cell gives (None: nothing).
+
+    Returns
+    -------
+    list of str
+        The names needed but not given, in the order of `needs`.
+    """
     cond = cond or Conditions()
     return [n for n in needs if n != "speed" and cond.get(n) is None]
 
@@ -56,8 +81,40 @@ def command_inputs(c: np.ndarray, v: float, needs: tuple[str, ...], cond: Condit
                    ) -> tuple[Inputs, np.ndarray | None]:
     """The map's input rows for command c at speed v: [previous command, c] (the direction of
     approach) or [c] without history, and the joint angles of c (None if the map needs none).
-    q_seed: where the inverse kinematics of c starts (default: the arm's joints now); ik: the
-    solver (default `chain.ik`; a path's set-points use `frames.newton_ik`, the same solution)."""
+
+    Parameters
+    ----------
+    c : ndarray
+        (3,) m, the command (robot frame).
+    v : float
+        Speed, m/s.
+    needs : tuple of str
+        What the map reads (`HybridModel.needs`).
+    cond : Conditions or None
+        The cell's state; its `previous` command (or FK of its `joints`) is the row of history.
+    chain : Chain or None
+        The robot's nominal kinematics (needed when the map reads joints).
+    q_seed : ndarray or None
+        (dof,) rad, where the inverse kinematics of c starts (default: the arm's joints now).
+    ik : callable or None
+        ik(position, q_seed) -> joints (rad); default `chain.ik` (a path's set-points use
+        `frames.newton_ik`, the same solution).
+
+    Returns
+    -------
+    inputs : Inputs
+        One or two rows: [previous command, c] or [c].
+    q_c : ndarray or None
+        (dof,) rad, the joint angles of c; None when the map reads no joints.
+
+    Raises
+    ------
+    DataError
+        A condition the map needs is not given (the message says where a cell gets it), or the
+        map needs joints but no robot config (`chain`) is there.
+    UnreachableError
+        The inverse kinematics finds no joints for c.
+    """
     cond = cond or Conditions()
     lack = missing(needs, cond)
     if lack:

@@ -16,6 +16,7 @@ data as twin.json holds it (format_version 1: `u.eq11_tcp_c.{u, dof, U, k}`, ...
 """
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -51,6 +52,25 @@ class StatedUncertainty:
 
     @classmethod
     def from_mapping(cls, m: Mapping[str, Any], where: str) -> StatedUncertainty:
+        """One equation's entry of twin.json's "u" object, checked.
+
+        Parameters
+        ----------
+        m : Mapping
+            Keys u, dof, k and U, each three values (m; dof and k dimensionless).
+        where : str
+            Where the entry is, for the error message.
+
+        Returns
+        -------
+        StatedUncertainty
+
+        Raises
+        ------
+        ModelError
+            A key is missing, a value is not one number per axis, or not finite and >= 0 (dof
+            must be > 0 and may be infinite).
+        """
         try:
             vals = {f.name: np.asarray(m[f.name], dtype=float) for f in fields(cls)}
         except (KeyError, TypeError, ValueError) as exc:
@@ -85,8 +105,24 @@ class TwinUncertainty:
 
     @classmethod
     def from_mapping(cls, u: Mapping[str, Any], where: str = "twin") -> TwinUncertainty:
-        """From twin.json's "u" object (or the dict calibration builds); ModelError names a
-        missing or malformed entry."""
+        """From twin.json's "u" object (or the dict calibration builds).
+
+        Parameters
+        ----------
+        u : Mapping
+            Key (`KEYS`' values, e.g. 'eq11_tcp_c') -> the entry `StatedUncertainty.from_mapping` reads.
+        where : str
+            Where the object is, for the error message.
+
+        Returns
+        -------
+        TwinUncertainty
+
+        Raises
+        ------
+        ModelError
+            Naming a missing or malformed entry.
+        """
         missing = [k for k in cls.KEYS.values() if k not in u]
         if missing:
             raise ModelError(f"{where}: uncertainty '{missing[0]}' missing; a twin states {sorted(cls.KEYS.values())}")
@@ -106,18 +142,52 @@ class PositionUncertainty:
     extrapolation_dof: float
 
     def budget_at(self, sigma_gp: np.ndarray, distance_m: float) -> Budget:
-        """Eq. 11 where the GP states sigma_gp and the command lies distance_m outside the hull."""
+        """Eq. 11 where the GP states sigma_gp and the command lies distance_m outside the hull.
+
+        Parameters
+        ----------
+        sigma_gp : ndarray
+            (3,) m, the e_LT map's standard uncertainty at the command (GL axes).
+        distance_m : float
+            Signed distance of the command to the DOE hull (m); <= 0 (inside) adds no
+            extrapolation term.
+
+        Returns
+        -------
+        Budget
+            The labelled Eq. 11 budget at the position.
+        """
         return budget_tcp_corrected_at(self.rest, self.model_scale * np.asarray(sigma_gp), self.model_dof,
                                        self.extrapolation_scale * max(float(distance_m), 0.0),
                                        self.extrapolation_dof)
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON form, twin.json's `position_uncertainty` (an infinite dof is written as null)."""
         return {"rest": [c.to_dict() for c in self.rest.components], "model_scale": self.model_scale.tolist(),
                 "model_dof": self.model_dof, "extrapolation_scale": self.extrapolation_scale.tolist(),
                 "extrapolation_dof": self.extrapolation_dof if np.isfinite(self.extrapolation_dof) else None}
 
     @classmethod
     def from_dict(cls, d: Any, where: str) -> PositionUncertainty:
+        """What `to_dict` wrote.
+
+        Parameters
+        ----------
+        d : Mapping
+            twin.json's `position_uncertainty` object.
+        where : str
+            Where it is, for the error message.
+
+        Returns
+        -------
+        PositionUncertainty
+
+        Raises
+        ------
+        ModelError
+            A key is missing or malformed, a scale is not one value per axis, or there are no
+            components.
+        """
         try:
             comps = tuple(Component.from_dict(c) for c in d["rest"])
             scale = np.asarray(d["model_scale"], dtype=float)
@@ -146,6 +216,37 @@ class Correction:
 
 @dataclass
 class Twin:
+    """The calibrated twin: the frames, the error maps e_LT_hat and e_MVS-LT_hat and the stated
+    uncertainties, with the correction law (`correct`). Saved and loaded as a directory
+    (twin.json + the maps' directories; docs/cli.md, `dt calibrate`).
+
+    Parameters
+    ----------
+    T_rdk, T_lt, T_mvs : RigidTransform
+        Robot, laser tracker and camera (MVS) frame -> GL.
+    e_lt : HybridModel
+        e_LT_hat(TCP robot frame m, v m/s, conditions) -> GL axes, m.
+    e_mvs_lt : HybridModel
+        e_MVS-LT_hat(TCP, v, conditions) -> GL axes, m.
+    u : dict
+        The stated uncertainties as twin.json holds them (`TwinUncertainty.KEYS`' values ->
+        u, dof, k, U per axis); read them through `uncertainty`.
+    instruments : dict
+        The drivers it was calibrated with, e.g. the camera.
+    volume : CalibratedVolume or None
+        Where the maps interpolate (the DOE hull); None: not recorded.
+    position_u : PositionUncertainty or None
+        Eq. 11 per position; None: only the global `uncertainty.tcp_c` is stated.
+    provenance : Provenance or None
+        The traceability record (`common.provenance`).
+
+    Raises
+    ------
+    ModelError
+        A stated uncertainty is missing or malformed, or the maps read joint angles and their
+        robot config cannot be read.
+    """
+
     T_rdk: RigidTransform  # robot frame -> GL
     T_lt: RigidTransform  # tracker frame -> GL
     T_mvs: RigidTransform  # MVS frame -> GL
@@ -187,37 +288,100 @@ class Twin:
 
     def e_lt_hat(self, c: np.ndarray, v: float, cond: Conditions | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Predicted LT error at command c (robot frame): mean (robot axes, m) and standard
-        uncertainty (GL axes, m)."""
+        uncertainty (GL axes, m).
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        mean : ndarray
+            (3,) m, robot axes.
+        std : ndarray
+            (3,) m, GL axes.
+
+        Raises
+        ------
+        DataError
+            A condition the map needs is not given (`conditions.command_inputs`).
+        """
         m, s, _ = self._lt(np.asarray(c, dtype=float), v, cond)
         return self._Rt @ m, s
 
     def e_mvs_lt_hat(self, c: np.ndarray, v: float, cond: Conditions | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted e_MVS-LT at command c, GL axes, m."""
+        """Predicted e_MVS-LT at command c, GL axes, m.
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        mean, std : ndarray
+            (3,) m each, GL axes.
+
+        Raises
+        ------
+        DataError
+            A condition the map needs is not given (`conditions.command_inputs`).
+        """
         if self._p_mvs_lt.plain:
             return self._p_mvs_lt.gp_only(np.array([c[0], c[1], c[2], v]))
         chain = self._chain or (self.e_mvs_lt.chain() if "joints" in self._p_mvs_lt.needs else None)
         return self._p_mvs_lt(command_inputs(c, v, self._p_mvs_lt.needs, cond, chain)[0])
 
-    def corrected_command(self, target: np.ndarray, v: float, cond: Conditions | None = None,
-                          iters: int = 6, tol: float = 1e-8) -> np.ndarray:
-        """Solve c - e_hat(c, v) = target (fixed point; the map contracts as grad e << 1)."""
-        return self._solve(np.asarray(target, dtype=float), v, cond, iters, tol)[0]
+    @functools.cached_property
+    def corrector(self):
+        """The twin's correction law (`twin.corrector.Corrector`), built on first use; it shares
+        this twin's e_LT predictor (a thermal map's structure temperature is carried across
+        `correct`, `corrected_command` and `e_lt_hat`)."""
+        from dt_runtime.twin.corrector import Corrector  # it builds on this module
 
-    def _solve(self, target: np.ndarray, v: float, cond: Conditions | None, iters: int = 6, tol: float = 1e-8):
-        """The corrected command, e_LT_hat's std there (GL axes) and its joint angles (or None)."""
-        m, s, q = self._lt(target, v, cond)
-        c = target + self._Rt @ m
-        for _ in range(iters):
-            m, s, q = self._lt(c, v, cond, q)  # the IK starts from the last solution
-            c_new = target + self._Rt @ m
-            done = np.max(np.abs(c_new - c)) < tol
-            c = c_new
-            if done:
-                break
-        return c, s, q
+        return Corrector(self, predictor=self._p_lt)
+
+    def corrected_command(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> np.ndarray:
+        """The command that reaches `target` (m, robot frame) at speed v (m/s): `correct`'s command.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        ndarray
+            (3,) m, robot frame.
+        """
+        return self.corrector.correct(target, v, cond).command
 
     def distance(self, c: np.ndarray) -> float:
-        """Signed distance (m) of command c to the DOE hull (< 0 inside); NaN for an older twin."""
+        """Signed distance (m) of command c to the DOE hull (< 0 inside).
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+
+        Returns
+        -------
+        float
+            NaN for a twin without a calibrated volume.
+        """
         return float(self.volume.distance(np.asarray(c, dtype=float))[0]) if self.volume is not None else float("nan")
 
     def tcp_budget(self, c: np.ndarray, v: float, distance_m: float | None = None,
@@ -225,8 +389,25 @@ class Twin:
         """Eq. 11 at command c (robot frame, m) and speed v: labelled components, the e_LT
         map's term from its standard uncertainty at c (sigma, when the caller has it), and its
         growth outside the calibrated hull (distance_m: c's `distance`, when the caller has it).
-        None for a twin without it (older format: then only the global `uncertainty.tcp_c` is
-        known)."""
+        None for a twin without `position_u` (then only the global `uncertainty.tcp_c` is known).
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+        v : float
+            Speed, m/s.
+        distance_m : float or None
+            c's signed distance to the hull (m); None: computed.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+        sigma : ndarray or None
+            (3,) m, the e_LT map's standard uncertainty at c; None: predicted.
+
+        Returns
+        -------
+        Budget or None
+        """
         if self.position_u is None:
             return None
         c = np.asarray(c, dtype=float)
@@ -235,19 +416,41 @@ class Twin:
         return self.position_u.budget_at(s, d if np.isfinite(d) else 0.0)
 
     def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> Correction:
-        """The corrected command for `target` at speed v under `cond`, the expanded
-        uncertainty of the position it reaches, and whether the command lies in the calibrated
-        volume."""
-        target = np.asarray(target, dtype=float)
-        c, s, _ = self._solve(target, v, cond)
-        dist = self.distance(c)  # once per command: the budget and the flag share it
-        b = self.tcp_budget(c, v, dist, sigma=s)
-        U = b.expanded() if b is not None else self.uncertainty.tcp_c.U
-        inside = self.volume is None or dist <= self.volume.margin_m
-        return Correction(target, c, U, bool(inside), dist, b)
+        """The corrected command for a target, the expanded uncertainty (95 %) of the position it
+        reaches with its labelled Eq. 11 budget, and whether the command lies in the calibrated
+        volume: the one correction law (`corrector`).
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        Correction
+        """
+        sp = self.corrector.correct(target, v, cond)
+        return sp.correction(target, self.corrector.budget(sp))
 
     # --- persistence: JSON + NPZ, no pickle ------------------------------------------------
     def save(self, directory: str | Path) -> Path:
+        """Write the twin: `directory`/twin.json (frames, stated uncertainties, volume, Eq. 11
+        per position, provenance; SI units) and the maps' directories e_lt/ and e_mvs_lt/.
+
+        Parameters
+        ----------
+        directory : str or Path
+            Created if missing; files in it are overwritten.
+
+        Returns
+        -------
+        Path
+            The directory.
+        """
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
         self.e_lt.save(d / "e_lt", self.provenance)
@@ -270,6 +473,23 @@ class Twin:
 
     @classmethod
     def load(cls, directory: str | Path) -> Twin:
+        """Read a twin `save` wrote (format versions `READS`).
+
+        Parameters
+        ----------
+        directory : str or Path
+            The twin's directory.
+
+        Returns
+        -------
+        Twin
+
+        Raises
+        ------
+        ModelError
+            twin.json is unreadable, of another format version, or has a missing or malformed
+            entry; or a map cannot be loaded.
+        """
         d = Path(directory)
         # Infinite degrees of freedom are written as Infinity (jsonable(u, finite_only=False));
         # any other non-finite number is refused by the reader.

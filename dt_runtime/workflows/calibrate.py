@@ -17,6 +17,7 @@ from pydantic import Field, ValidationInfo, field_validator
 
 from dt_kernel.config import Frozen
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.analysis import validity
 from dt_runtime.common.progress import Progress
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.phase import PhaseData
@@ -26,7 +27,6 @@ from dt_runtime.models import effects as fx
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import GP_INPUTS, HybridModel
 from dt_runtime.twin import calibration as cal
-from dt_runtime.twin import validity
 from dt_runtime.twin.twin import Twin
 
 
@@ -69,6 +69,25 @@ class Campaign:
 
 @dataclass
 class Calibrated:
+    """A calibration's result (`calibrate`): the twin and what it was built from.
+
+    Attributes
+    ----------
+    twin : Twin
+        The calibrated twin.
+    frames : Frames
+        The registration (Sect. 2.3).
+    doe : DoeErrors
+        The DOE errors (Eqs. 8-10).
+    maps : FittedMaps
+        The fitted maps with their held-out residuals (Table 4).
+    budgets : dict
+        twin.json's key -> `Budget`, Eqs. 11 and 13-16 (registration as a fitted transform: the
+        default).
+    literal : dict
+        The same with the registration spread added as the paper writes it (double counts).
+    """
+
     twin: Twin
     frames: cal.Frames
     doe: cal.DoeErrors
@@ -85,7 +104,34 @@ def calibrate(campaign: Campaign, options: CalibrationOptions, robot=None, instr
     robot: the robot config (path) the joint-space effects and the deployment's inverse
     kinematics use; lt_model: the e_LT map's configuration (e.g. a `dt fit` model's), default
     `options.effects` + GP; catalogue: the effects `options.effects` refer to (e.g. with
-    --effects-file's declarations, which the twin's map keeps), default `effects.default()`."""
+    --effects-file's declarations, which the twin's map keeps), default `effects.default()`.
+
+    Parameters
+    ----------
+    campaign : Campaign
+        The phases (SI); the validation phase is not used here (`validation`).
+    options : CalibrationOptions
+        Folds, volume margin, effects, GP inputs and seed.
+    robot : str or None
+        The robot reference (`frames.robots`) the joint-space effects read.
+    instruments : dict or None
+        The drivers that measured (role -> driver name), recorded in the twin.
+    progress : Progress or None
+        Where progress notes go (None: nowhere).
+    lt_model : HybridModel or None
+        The e_LT map's configuration; None: `options.effects` + GP.
+    catalogue : Catalogue or None
+        The effects `options.effects` refer to.
+
+    Returns
+    -------
+    Calibrated
+
+    Raises
+    ------
+    DataError
+        The phases cannot be registered or fitted (e.g. too few points, a flat DOE).
+    """
     progress = progress or Progress(enabled=False)
     frames = cal.register(campaign.registration)
     doe = cal.doe_errors(campaign.doe, frames)
@@ -114,6 +160,18 @@ def _mm(a) -> list[float]:
 
 
 def expanded(b: unc.Budget) -> dict:
+    """A budget's expanded uncertainty for a summary.
+
+    Parameters
+    ----------
+    b : Budget
+        The budget (m).
+
+    Returns
+    -------
+    dict
+        `U_mm` (per axis, mm, 95 %), `k` (coverage factors) and `dof_eff` (None where infinite).
+    """
     return {"U_mm": _mm(b.expanded()), "k": [round(float(k), 4) for k in b.coverage_factor()],
             "dof_eff": [float(d) if np.isfinite(d) else None for d in b.effective_dof()]}
 
@@ -121,7 +179,18 @@ def expanded(b: unc.Budget) -> dict:
 def figures(c: Calibrated) -> dict:
     """The calibration's figures (mm): the paper's Sect. 3.3 precision, Tables 2-4, the budgets
     and Eqs. 18-22, the maps' effect parameters. What a summary of `dt calibrate` and of
-    `dt demo` share."""
+    `dt demo` share.
+
+    Parameters
+    ----------
+    c : Calibrated
+        The calibration.
+
+    Returns
+    -------
+    dict
+        JSON-ready; keys as in docs/cli.md (`dt demo`'s and `dt calibrate`'s summary).
+    """
     fr, doe, b = c.frames, c.doe, c.budgets
     s_e_mvs = np.std(doe.e_mvs, axis=0, ddof=1)
     b16 = b["eq16_e_mvs_lt_hat"]
@@ -162,7 +231,18 @@ def figures(c: Calibrated) -> dict:
 
 
 def arrays(c: Calibrated) -> dict:
-    """The raw arrays (SI) the report's figures of the calibration draw."""
+    """The raw arrays (SI) the report's figures of the calibration draw.
+
+    Parameters
+    ----------
+    c : Calibrated
+        The calibration.
+
+    Returns
+    -------
+    dict
+        Name -> array (m; `doe_X` also m/s) or dict of arrays (`reg_residuals`).
+    """
     d = c.doe
     return {"reg_residuals": c.frames.residuals, "doe_X": d.X, "e_lt": d.e_lt, "e_mvs": d.e_mvs,
             "e_mvs_lt": d.e_mvs_lt, "r_lt": c.maps.r_lt, "r_mvs_lt": c.maps.r_mvs_lt, "e_true_doe": d.e_true,
@@ -171,6 +251,18 @@ def arrays(c: Calibrated) -> dict:
 
 @dataclass
 class Eq17:
+    """Eq. 17 on a phase's rows (`eq17`).
+
+    Attributes
+    ----------
+    test : TTest
+        t, dof, p-values and pass flags per row and axis.
+    diff : ndarray
+        (n, 3) m, e_LT_hat - e_MVS, GL axes.
+    pred : ndarray
+        (n, 3) m, e_MVS-LT_hat, GL axes.
+    """
+
     test: unc.TTest
     diff: np.ndarray  # e_LT_hat - e_MVS, GL, m
     pred: np.ndarray  # e_MVS-LT_hat, GL, m
@@ -178,7 +270,19 @@ class Eq17:
 
 def eq17(c: Calibrated, phase: PhaseData) -> Eq17:
     """Eq. 17 on every row of a phase the MVS measured: (e_LT_hat - e_MVS) against
-    e_MVS-LT_hat, with the stated Eqs. 14 and 16 uncertainties."""
+    e_MVS-LT_hat, with the stated Eqs. 14 and 16 uncertainties.
+
+    Parameters
+    ----------
+    c : Calibrated
+        The calibration.
+    phase : PhaseData
+        The phase (m, m/s); rows without a camera or controller position are left out.
+
+    Returns
+    -------
+    Eq17
+    """
     ok = np.all(np.isfinite(phase.p_mvs), axis=1) & np.all(np.isfinite(phase.p_rdk), axis=1)
     fr = c.frames
     e_mvs = fr.T_rdk.apply(phase.p_rdk[ok]) - fr.T_mvs.apply(phase.p_mvs[ok])
@@ -192,6 +296,19 @@ def eq17(c: Calibrated, phase: PhaseData) -> Eq17:
 
 
 def eq17_summary(t: Eq17) -> dict:
+    """Eq. 17's pass fractions for a summary.
+
+    Parameters
+    ----------
+    t : Eq17
+        The test (`eq17`).
+
+    Returns
+    -------
+    dict
+        `n`, `pass_fraction_all_axes` and `pass_fraction_per_axis` ({x, y, z}); fractions None
+        when no row was tested.
+    """
     tt = t.test
     return {"n": int(len(tt.t)), "pass_fraction_all_axes": float(np.mean(tt.passed_all)) if len(tt.t) else None,
             "pass_fraction_per_axis": {ax: float(np.mean(tt.passed[:, k])) if len(tt.t) else None
@@ -228,7 +345,19 @@ class Validation:
 
 
 def validation(c: Calibrated, phase: PhaseData) -> Validation:
-    """The twin against a validation phase measured without correction (`Validation`)."""
+    """The twin against a validation phase measured without correction (`Validation`).
+
+    Parameters
+    ----------
+    c : Calibrated
+        The calibration.
+    phase : PhaseData
+        The validation phase (m, m/s); rows without a tracker or controller position are left out.
+
+    Returns
+    -------
+    Validation
+    """
     fr, twin = c.frames, c.twin
     ok = np.all(np.isfinite(phase.p_lt), axis=1) & np.all(np.isfinite(phase.p_rdk), axis=1)
     e = fr.T_rdk.apply(phase.p_rdk[ok]) - fr.T_lt.apply(phase.p_lt[ok])
@@ -248,8 +377,23 @@ def validation(c: Calibrated, phase: PhaseData) -> Validation:
 
 
 def validity_of(c: Calibrated, v: Validation | None, campaign: str | None) -> dict:
-    """The `validity` block of a calibration (`twin.validity`): the validation phase's coverage and
-    Eq. 17 on it; without a validation phase, nothing tests the stated uncertainty and it says so."""
+    """The `validity` block of a calibration (`analysis.validity`): the validation phase's coverage and
+    Eq. 17 on it; without a validation phase, nothing tests the stated uncertainty and it says so.
+
+    Parameters
+    ----------
+    c : Calibrated
+        The calibration.
+    v : Validation or None
+        The validation (`validation`), if the campaign has a validation phase.
+    campaign : str or None
+        The campaign directory, for the advice.
+
+    Returns
+    -------
+    dict
+        The block `analysis.validity.assess` returns.
+    """
     if v is None:
         return validity.assess([], unchecked="the campaign has no validation phase, so nothing tests the stated "
                                              "U(TCP_c): measure one (uncorrected, at points the DOE did not visit) "

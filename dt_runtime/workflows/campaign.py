@@ -24,14 +24,41 @@ class SimTruth(Protocol):
     """What `run_rows` reads from a simulated world (drivers.simulated.SimWorld) for scoring."""
 
     @property
-    def t(self) -> float: ...
-    def truth_in_tracker_frame(self) -> np.ndarray: ...
-    def temperature(self) -> float: ...
-    def payload(self) -> float: ...
+    def t(self) -> float:
+        """The simulated clock (s)."""
+        ...
+
+    def truth_in_tracker_frame(self) -> np.ndarray:
+        """(3,) m: where the TCP truly is, in the tracker frame (noise-free)."""
+        ...
+
+    def temperature(self) -> float:
+        """The cell's temperature now (deg C)."""
+        ...
+
+    def payload(self) -> float:
+        """The payload now (kg)."""
+        ...
 
 
 @dataclass
 class Instruments:
+    """The cell's drivers a campaign runs through.
+
+    Attributes
+    ----------
+    robot : RobotController
+        The robot controller.
+    tracker : LaserTracker
+        The laser tracker.
+    camera : CameraRig or None
+        The camera (MVS); None: positions measured by the tracker only (dt simulate).
+    world : SimTruth or None
+        The simulated world behind simulated drivers: truth for scoring.
+    max_speed : float
+        m/s: a plan row's speed fraction is of this.
+    """
+
     robot: RobotController
     tracker: LaserTracker
     camera: CameraRig | None  # None: positions measured by the tracker only (dt simulate)
@@ -39,6 +66,7 @@ class Instruments:
     max_speed: float = 1.0  # m/s
 
     def activate(self) -> None:
+        """Configure (with no options) and activate every driver that is not active yet."""
         for d in self.drivers():
             if d.state == "unconfigured":
                 d.configure({})
@@ -46,9 +74,11 @@ class Instruments:
                 d.activate()
 
     def drivers(self) -> list:
+        """The drivers present (robot, tracker and, if any, camera)."""
         return [d for d in (self.robot, self.tracker, self.camera) if d is not None]
 
     def close(self) -> None:
+        """Close every driver."""
         for d in self.drivers():
             d.close()
 
@@ -64,7 +94,20 @@ class Instruments:
 
 
 def check_reachable(world, targets: np.ndarray) -> None:
-    """Report every unreachable target of a plan before anything moves."""
+    """Report every unreachable target of a plan before anything moves.
+
+    Parameters
+    ----------
+    world : SimWorld or None
+        The simulated world that can tell (None: nothing is checked).
+    targets : ndarray
+        (n, 3) m, robot frame.
+
+    Raises
+    ------
+    UnreachableError
+        Listing up to 20 unreachable targets with the reason.
+    """
     if world is None:
         return
     bad = world.unreachable(targets)
@@ -84,6 +127,31 @@ def run_rows(inst: Instruments, rows: Sequence, progress: Progress | None = None
     `Instruments.conditions`). Without a simulated world the temperature and payload columns
     are NaN (unknown: a real cell's campaign logs them from its own sensors). With skip_unreachable, a command the arm
     cannot reach leaves its row NaN and is listed in `refusals` instead of stopping the phase.
+
+    Parameters
+    ----------
+    inst : Instruments
+        The activated drivers.
+    rows : sequence of PlanRow
+        The plan's rows (target in m, robot frame; speed as a fraction of `inst.max_speed`).
+    progress : Progress or None
+        Where progress goes.
+    label : str
+        The phase's name (PhaseData.phase, messages).
+    command : callable or None
+        command(target, speed m/s, conditions) -> the command sent (m, robot frame).
+    skip_unreachable : bool
+        Skip unreachable commands instead of raising.
+
+    Returns
+    -------
+    PhaseData
+        Positions in m; NaN where an instrument refused (listed in `refusals`).
+
+    Raises
+    ------
+    UnreachableError
+        A command the arm cannot reach, unless `skip_unreachable`.
     """
     n = len(rows)
     cols = {k: np.full((n, 3), np.nan) for k in ("target", "p_rdk", "p_lt", "p_mvs", "truth_lt")}

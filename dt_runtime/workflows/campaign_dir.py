@@ -47,6 +47,24 @@ MANIFEST = "campaign.yaml"
 
 
 class Manifest(Frozen):
+    """campaign.yaml, as validated (the module docstring shows one; docs/campaign-files.md).
+
+    Attributes
+    ----------
+    registration, doe : str
+        The phase files, relative to the manifest.
+    validation : str or None
+        The validation phase file (measured without correction).
+    robot : str or None
+        The robot config: relative to the manifest, else to configs/, or a catalogue arm.
+    instruments : str or None
+        The instruments YAML (certificates, provenance).
+    drivers : dict
+        Role -> the driver that measured.
+    seed : int or None
+        The campaign's seed: `dt calibrate`'s default (the demo's plan seed).
+    """
+
     registration: str
     doe: str
     validation: str | None = None
@@ -91,18 +109,50 @@ class CampaignFiles:
         return Campaign(reg, doe, val)
 
     def chain(self) -> Chain | None:
+        """The robot config's kinematic chain (`frames.robots.load`), None without a robot."""
         return robots.load(self.robot) if self.robot is not None else None
 
 
 def resolve_robot(ref: str | Path, base: Path) -> str:
     """A robot named in a manifest or on the command line, as its reference (`frames.robots`): a
     catalogue arm, or a robot config or URDF relative to `base`, else under configs/ (the shipped
-    robots: robots/ur10.yaml)."""
+    robots: robots/ur10.yaml).
+
+    Parameters
+    ----------
+    ref : str or Path
+        The robot as named.
+    base : Path
+        The directory a relative file is looked for in first.
+
+    Returns
+    -------
+    str
+        The reference's text form (`frames.robots.resolve`).
+    """
     return robots.resolve(ref, [base]).text
 
 
 def read_manifest(path: str | Path) -> CampaignFiles:
-    """A campaign directory (its campaign.yaml) or a manifest file."""
+    """A campaign directory (its campaign.yaml) or a manifest file, its files checked to exist.
+
+    Parameters
+    ----------
+    path : str or Path
+        The campaign directory or its manifest.
+
+    Returns
+    -------
+    CampaignFiles
+        Absolute paths (the phases are read by `CampaignFiles.load`).
+
+    Raises
+    ------
+    DataError
+        No manifest there, or a file it names does not exist.
+    ConfigError
+        The manifest has a bad key or value.
+    """
     p = Path(path)
     if p.is_dir():
         p = p / MANIFEST
@@ -131,7 +181,30 @@ def write_campaign(directory: str | Path, campaign: Campaign, robot: str | None 
                    campaign_name: str | None = None) -> CampaignFiles:
     """Write the phases, the instruments YAML (the records' certificate statements) and the
     manifest; `robot`: the robot config's reference as the manifest keeps it; `seed`: the one
-    `dt calibrate` uses by default (the same twin as the demo's)."""
+    `dt calibrate` uses by default (the same twin as the demo's).
+
+    Parameters
+    ----------
+    directory : str or Path
+        Created if missing; its files are overwritten.
+    campaign : Campaign
+        The phases (SI; written in the campaign files' units, mm).
+    robot : str or None
+        The robot reference as the manifest keeps it.
+    seed : int or None
+        The campaign's seed.
+    instruments : tuple of Instrument
+        The instruments' records (written to instruments.yaml when given).
+    drivers : dict or None
+        Role -> the driver that measured.
+    campaign_name : str or None
+        The campaign's name in instruments.yaml.
+
+    Returns
+    -------
+    CampaignFiles
+        The manifest read back (`read_manifest`).
+    """
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     names = {"registration": campaign.registration, "doe": campaign.doe, "validation": campaign.validation}
@@ -158,6 +231,18 @@ def write_campaign(directory: str | Path, campaign: Campaign, robot: str | None 
 
 @dataclass
 class CalibrationRun:
+    """What `calibrate_campaign` made.
+
+    Attributes
+    ----------
+    summary : dict
+        mm, JSON-ready: what `dt calibrate --json` prints and TWIN/summary.json holds.
+    arrays : dict
+        Raw arrays (SI) for the report's figures.
+    calibrated : Calibrated
+        The calibration itself.
+    """
+
     summary: dict  # mm, JSON-ready: what `dt calibrate --json` prints and TWIN/summary.json holds
     arrays: dict  # raw arrays (SI) for the report's figures
     calibrated: Calibrated
@@ -169,7 +254,34 @@ def calibrate_campaign(files: CampaignFiles, options: CalibrationOptions, out: s
     """`dt calibrate`: read and check the campaign's files, calibrate, validate on the
     validation phase if there is one, and write the twin (OUT, `Twin.load` reads it) with its
     summary.json. Nothing is written if any input is bad. `catalogue`: the `effects.Catalogue`
-    that `options.effects` refer to (`calibrate`)."""
+    that `options.effects` refer to (`calibrate`).
+
+    Parameters
+    ----------
+    files : CampaignFiles
+        The campaign (`read_manifest`).
+    options : CalibrationOptions
+        How the maps are fitted and the volume drawn.
+    out : str or Path
+        The twin's directory (twin.json, the maps, summary.json).
+    lt_model : HybridModel or None
+        The e_LT map's configuration (e.g. a `dt fit` model's); None: `options.effects` + GP.
+    lt_model_dir : str, Path or None
+        Where `lt_model` was read from: its files are hashed into the provenance.
+    progress : Progress or None
+        Where progress notes go.
+    catalogue : Catalogue or None
+        The effects `options.effects` refer to.
+
+    Returns
+    -------
+    CalibrationRun
+
+    Raises
+    ------
+    DataError
+        A phase file is malformed, in other units, or of another robot than the robot config.
+    """
     progress = progress or Progress(enabled=False)
     campaign = files.load()
     instruments = load_instruments(files.instruments) if files.instruments else ()

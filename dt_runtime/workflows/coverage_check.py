@@ -25,6 +25,30 @@ from dt_runtime.workflows.campaign import Instruments, run_rows
 
 @dataclass(frozen=True)
 class CoverageCheck:
+    """Corrected commands scored against the simulator's truth (`run_check`).
+
+    Attributes
+    ----------
+    target : ndarray
+        (n, 3) m, robot frame.
+    command : ndarray
+        (n, 3) m, the corrected commands sent.
+    U : ndarray
+        (n, 3) m, stated expanded uncertainty (95 %) of each corrected position.
+    error : ndarray
+        (n, 3) m, true error in GL: target - where the arm truly went.
+    distance : ndarray
+        (n,) m, signed distance of the command to the DOE hull.
+    inside : ndarray
+        (n,) bool, the twin's calibrated-volume flag.
+    requested : int or None
+        The number of targets the check asked for (None: as many as it has).
+    joints : ndarray or None
+        (n, dof) rad, where the arm stood at each position.
+    t, temperature : ndarray or None
+        (n,) s and deg C.
+    """
+
     target: np.ndarray  # (n,3) m, robot frame
     command: np.ndarray  # (n,3) m, the corrected commands sent
     U: np.ndarray  # (n,3) m, stated expanded uncertainty (95 %) of each corrected position
@@ -38,11 +62,22 @@ class CoverageCheck:
 
     @property
     def n(self) -> int:
+        """Number of positions."""
         return len(self.target)
 
     def head(self, n: int) -> CoverageCheck:
         """The first n positions (the check states coverage over a fixed number of targets); when
-        fewer were reached, all of them, with the number asked for kept in `requested`."""
+        fewer were reached, all of them, with the number asked for kept in `requested`.
+
+        Parameters
+        ----------
+        n : int
+            The number of targets the check states its coverage over.
+
+        Returns
+        -------
+        CoverageCheck
+        """
         def cut(a):
             return None if a is None else a[:n]
 
@@ -59,6 +94,8 @@ class CoverageCheck:
         return {ax: float(ok[:, k].mean()) for k, ax in enumerate(AXES)}
 
     def summary(self) -> dict:
+        """The summary's `coverage_check` entry: `n`, `n_requested` (when set), `coverage_95`,
+        `mean_U_mm`, `true_rms_mm`, `distance_mm` (min, max) and `flagged_inside_fraction`."""
         return {"n": self.n, **({"n_requested": self.requested} if self.requested is not None else {}),
                 "coverage_95": self.coverage(),
                 "mean_U_mm": [round(float(x) * MM_PER_M, 4) for x in self.U.mean(axis=0)],
@@ -71,7 +108,35 @@ class CoverageCheck:
 def sample_targets(volume: CalibratedVolume, doe_points: np.ndarray, n: int, band_m: tuple[float, float],
                    world, rng: np.random.Generator, max_draws: int = 200_000) -> np.ndarray:
     """n reachable targets whose signed distance to the hull lies in `band_m` (m; (-inf, 0) for
-    inside), drawn uniformly in the DOE's bounding box widened by the band's far edge."""
+    inside), drawn uniformly in the DOE's bounding box widened by the band's far edge.
+
+    Parameters
+    ----------
+    volume : CalibratedVolume
+        The DOE hull.
+    doe_points : ndarray
+        (m, 3) m, the DOE's points (their bounding box).
+    n : int
+        How many targets.
+    band_m : tuple of float
+        (low, high) signed distance to the hull, m.
+    world : SimWorld or None
+        Drops the unreachable draws (None: none dropped).
+    rng : numpy.random.Generator
+        The draws' generator.
+    max_draws : int
+        Give up after this many draws.
+
+    Returns
+    -------
+    ndarray
+        (n, 3) m, robot frame.
+
+    Raises
+    ------
+    UnreachableError
+        Fewer than n reachable targets in the band after `max_draws` draws.
+    """
     lo, hi = band_m
     pad = max(hi, 0.0)
     box_lo, box_hi = doe_points.min(axis=0) - pad, doe_points.max(axis=0) + pad
@@ -94,7 +159,28 @@ def sample_targets(volume: CalibratedVolume, doe_points: np.ndarray, n: int, ban
 def run_check(inst: Instruments, twin: Twin, targets: np.ndarray, speeds: np.ndarray,
               progress: Progress | None = None, label: str = "coverage check") -> CoverageCheck:
     """Command every target corrected, at its speed fraction, and score against the truth.
-    Only the robot and the truth are needed: the camera is not read."""
+    Only the robot and the truth are needed: the camera is not read.
+
+    Parameters
+    ----------
+    inst : Instruments
+        The simulated cell (its `world` gives the truth).
+    twin : Twin
+        The twin whose correction and U are checked.
+    targets : ndarray
+        (n, 3) m, robot frame.
+    speeds : ndarray
+        (n,) speed fractions of `inst.max_speed`.
+    progress : Progress or None
+        Where progress goes.
+    label : str
+        The run's name in progress and refusals.
+
+    Returns
+    -------
+    CoverageCheck
+        Over the targets reached (a command the arm cannot reach from where it stands is skipped).
+    """
     rows = [PlanRow("check", i, 0, t, float(s)) for i, (t, s) in enumerate(zip(targets, speeds))]
     cs: list[Correction] = []
 

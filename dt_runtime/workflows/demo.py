@@ -22,6 +22,7 @@ from drivers.simulated.devices import SimWorld
 from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import ConfigError
 from dt_kernel.units import AXES, MM_PER_M
+from dt_runtime.analysis import validity
 from dt_runtime.common.outputs import final_path
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.common.progress import Progress
@@ -33,7 +34,6 @@ from dt_runtime.measurements.plans import build_plan, load_plan
 from dt_runtime.metrology.stats import rms3
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import robot_ref
-from dt_runtime.twin import validity
 from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.twin import Correction
 from dt_runtime.workflows.calibrate import (
@@ -53,12 +53,17 @@ from dt_runtime.workflows.simulate import load_scenario_file
 
 
 class DriversConfig(Frozen):
+    """The demo config's `drivers`: the driver of each role (`drivers.registry` names)."""
+
     robot: str = "sim"
     tracker: str = "sim"
     camera: str = "sim_point"
 
 
 class DemoConfig(Frozen):
+    """The demo config (configs/demo.yaml): the scenario, cell and plan files (relative to the
+    config), the robot config, the drivers and the calibration and coverage-check settings."""
+
     scenario: str
     cell: str
     plan: str
@@ -80,6 +85,16 @@ class DemoConfig(Frozen):
 
 @dataclass
 class DemoResult:
+    """What `run_demo` made.
+
+    Attributes
+    ----------
+    summary : dict
+        JSON-ready (mm): what DIR/summary.json holds (keys: docs/cli.md, `dt demo`).
+    arrays : dict
+        Raw arrays (SI) for the report's figures.
+    """
+
     summary: dict
     arrays: dict = field(default_factory=dict)  # raw arrays for the report figures (SI units)
 
@@ -100,6 +115,37 @@ def _open(cfg: DemoConfig, base: Path, seed: int | None) -> tuple[Instruments, S
 def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
              config: str | Path | None = None, progress: Progress | None = None,
              camera: str | None = None) -> DemoResult:
+    """Run `dt demo`: the campaign on the simulated cell, the twin calibrated from its files,
+    the validation uncorrected and corrected, the coverage checks, scored against the truth.
+
+    Writes `out`/campaign (the campaign files), `out`/model (the twin) and `out`/summary.json.
+
+    Parameters
+    ----------
+    out : str or Path
+        The output directory.
+    quick : bool
+        Use the config's quick plan.
+    seed : int or None
+        The plan's seed (None: the plan file's).
+    config : str, Path or None
+        The demo config (None: configs/demo.yaml).
+    progress : Progress or None
+        Where progress notes go.
+    camera : str or None
+        A camera driver instead of the config's.
+
+    Returns
+    -------
+    DemoResult
+
+    Raises
+    ------
+    ConfigError
+        A bad config, plan or scenario file, or a negative seed.
+    UnreachableError
+        A plan target the simulated arm cannot reach (listed before anything moves).
+    """
     t0 = time.monotonic()
     progress = progress or Progress(enabled=False)
     config = Path(config) if config else CONFIGS / "demo.yaml"
@@ -175,7 +221,22 @@ def run_demo(out: str | Path, quick: bool = False, seed: int | None = None,
 def sim_instruments(cfg: DemoConfig, inst: Instruments, world: SimWorld) -> tuple[Instrument, ...]:
     """The simulated instruments with the uncertainty their simulator configs state (no
     certificate: they are simulated). The drivers' own truth (e.g. the rig's scale error) is not
-    a statement and is left out."""
+    a statement and is left out.
+
+    Parameters
+    ----------
+    cfg : DemoConfig
+        The demo config (its driver names).
+    inst : Instruments
+        The drivers (the camera's rig config, if it has one).
+    world : SimWorld
+        The simulated world (its scenario and cell configs).
+
+    Returns
+    -------
+    tuple of Instrument
+        Robot, tracker and, when there is a camera, the camera.
+    """
     cell, scn = world.cell.cell, world.cell.scenario
     lt = cell.laser_tracker
     out = [
@@ -216,7 +277,29 @@ def demo_provenance(cfg: DemoConfig, config: Path, plan_file: Path, inst: Instru
                     phases: tuple[PhaseData, ...], campaign_files: list[Path]) -> Provenance:
     """The demo's traceability record: the demo, scenario, cell and plan configs (and the camera
     rig's config with the image driver) and the campaign files hashed, the simulated instruments,
-    the robot config, the cell temperature."""
+    the robot config, the cell temperature.
+
+    Parameters
+    ----------
+    cfg : DemoConfig
+        The demo config.
+    config : Path
+        Its file.
+    plan_file : Path
+        The plan used.
+    inst : Instruments
+        The drivers.
+    world : SimWorld
+        The simulated world.
+    phases : tuple of PhaseData
+        The phases run (their temperatures, deg C).
+    campaign_files : list of Path
+        The campaign files written.
+
+    Returns
+    -------
+    Provenance
+    """
     base = config.parent
     files = [config, base / cfg.scenario, base / cfg.cell, plan_file, *campaign_files]
     if getattr(inst.camera, "cfg", None) is not None:
@@ -263,7 +346,7 @@ def _coverage_checks(inst, twin, doe, speed_fracs, n, seed, world, progress) -> 
 
 def _validity(c: Calibrated, checks: dict[str, CoverageCheck], val_corr: PhaseData, ok: np.ndarray, e_corr: np.ndarray,
               U_tcp: np.ndarray, t17, campaign: str | None) -> dict:
-    """The summary's `validity` block (`twin.validity`): the coverage checks against the truth,
+    """The summary's `validity` block (`analysis.validity`): the coverage checks against the truth,
     the validation phase's coverage and Eq. 17 on the same positionings."""
     where = {"inside": ("random targets inside the DOE hull, commanded corrected", False),
              "outside": (f"random targets {OUTSIDE_BAND_M[0] * 1e3:.0f}-{OUTSIDE_BAND_M[1] * 1e3:.0f} mm outside the "

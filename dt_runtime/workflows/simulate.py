@@ -60,7 +60,25 @@ def _resolve(name: str, base: Path, key: str, source: Path) -> Path:
 
 
 def load_scenario_file(path: str | Path) -> tuple[dict, DataSpec]:
-    """The plant scenario (as a mapping, validated by the simulator) and the data block."""
+    """The plant scenario (as a mapping, validated by the simulator) and the data block.
+
+    Parameters
+    ----------
+    path : str or Path
+        The scenario YAML.
+
+    Returns
+    -------
+    scenario : dict
+        The file without its `data:` block.
+    data : DataSpec
+        The `data:` block (defaults when absent).
+
+    Raises
+    ------
+    ConfigError
+        The file cannot be read or its `data:` block is invalid.
+    """
     path = Path(path)
     raw = read_yaml(path)
     data = validate(DataSpec, raw.pop("data", None) or {}, path)
@@ -69,7 +87,34 @@ def load_scenario_file(path: str | Path) -> tuple[dict, DataSpec]:
 
 def simulate(scenario: str | Path, out: str | Path, seed: int | None = None,
              progress: Progress | None = None) -> dict:
-    """Write the data table for `scenario` to `out` (CSV) and its sidecar; returns a summary."""
+    """Write the data table for `scenario` to `out` (CSV) and its sidecar `<out>.meta.json`.
+
+    Parameters
+    ----------
+    scenario : str or Path
+        The scenario file (with an optional `data:` block).
+    out : str or Path
+        The measurement table (CSV, docs/measurement-table.md); its directory is created.
+    seed : int or None
+        The plan's and the simulator's seed (None: the plan file's).
+    progress : Progress or None
+        Where progress goes.
+
+    Returns
+    -------
+    dict
+        The sidecar's content: scenario, name, seed, effects, phases, n, dropped_rows,
+        registration_rms_mm, noise_floor_mm, out.
+
+    Raises
+    ------
+    ConfigError
+        A bad scenario, plan or cell file.
+    UnreachableError
+        A plan target the simulated arm cannot reach.
+    DataError
+        Fewer than 10 rows measured.
+    """
     scenario = Path(scenario)
     progress = progress or Progress(enabled=False)
     scn, spec = load_scenario_file(scenario)
@@ -146,7 +191,27 @@ def _to_dataset(phases, names, T_lt_to_robot: reg.RigidTransform, world: SimWorl
 
 def noise_floor(ds: Dataset, joint_noise_rad: float, chain) -> float:
     """3D RMS of the noise the simulator injected, per row: the tracker's isotropic noise
-    (3 u^2) and the joint repeatability through the nominal Jacobian (sigma_q^2 |J|_F^2)."""
+    (3 u^2) and the joint repeatability through the nominal Jacobian (sigma_q^2 |J|_F^2).
+
+    Parameters
+    ----------
+    ds : Dataset
+        The measured rows (with per-row `u` and `joints`).
+    joint_noise_rad : float
+        The simulator's joint repeatability (rad, 1 sigma).
+    chain : Chain
+        The nominal kinematics.
+
+    Returns
+    -------
+    float
+        m.
+
+    Raises
+    ------
+    DataError
+        The dataset has no per-row `u` or no joints.
+    """
     if ds.u is None or ds.joints is None:
         raise DataError(f"{ds.source}: the noise floor needs the per-row tracker uncertainty u and the joints")
     J = chain.jacobian(ds.joints)

@@ -1,31 +1,7 @@
-"""A whole emulated cell in one process: one simulated plant behind the real protocols.
-
-    python -m emulators.emulated_cell [--scenario S] [--cell C] [--host 127.0.0.1] [--rtde-port 30004]
-        [--script-port 30002] [--natnet-command-port 1510] [--natnet-data-port 1511] [--tracker-port 4000]
-        [--control-port 0]
-        [--time-scale 1.0] [--natnet-rate 120] [--seed N]
-
-serves, over ONE `SimWorld` (scenario and cell as `dt run` reads them):
-
-- the UR controller (`emulators.ur`: RTDE and the script port) moving the plant;
-- the OptiTrack NatNet server (`emulators.natnet`) streaming the rig's markers for the
-  arm's actual tool pose, so the camera follows the arm the UR moves;
-- the serial laser tracker (`emulators.serial.TrackerEmulator`, `socket://` URL)
-  measuring the same plant's true TCP;
-- a control port (one text line in, one JSON line out) for statistics and fault injection:
-  `stats`, `drop_rtde [N]`, `protective_stop`, `unlock`, `natnet KEY=VALUE ...`
-  (`NatNetEmulator.set_faults`, values in JSON: `natnet drop_probability=1.0`).
-
-Port 0 picks a free port. Once every server listens it prints ONE JSON line on stdout (host,
-ports, the tracker's URL) for scripts and tests to read, and runs until SIGTERM or SIGINT.
-
-Threads and the plant: PyBullet is not thread-safe, so only the UR emulator's control thread
-moves the plant and the tracker measures it, both under one lock. The NatNet thread never
-touches PyBullet: after every motion step the plant's true tool pose is published as a snapshot
-(under its own lock), and the NatNet source reads the snapshot, plus the UR motion's progress
-(`UrEmulator.motion_offset`) so the markers move with the arm between moves. The arm's own
-links do not occlude markers here (that needs PyBullet ray tests from the NatNet thread).
-"""
+"""A whole emulated cell in one process: the UR controller, the NatNet server and the serial
+laser tracker over ONE simulated plant, with a control port for statistics and fault injection
+(one text line in, one JSON line out). `python -m emulators.emulated_cell --help`; the ports,
+the control commands and how the threads share the plant: docs/drivers.md ("The emulated cell")."""
 from __future__ import annotations
 
 import argparse
@@ -74,7 +50,40 @@ class _PublishingPlant:
 
 
 class EmulatedCell:
-    """The emulators over one SimWorld; a context manager. Ports 0 pick free ones."""
+    """The emulators over one SimWorld; a context manager. Ports 0 pick free ones.
+
+    Parameters
+    ----------
+    scenario : str or Path
+        The scenario YAML (configs/scenarios/paper_default.yaml by default).
+    cell : str or Path
+        The cell config YAML.
+    host : str
+        The address every server binds.
+    rtde_port, script_port : int
+        The UR emulator's ports.
+    natnet_command_port, natnet_data_port : int
+        The NatNet server's ports.
+    tracker_port : int
+        The laser tracker's TCP port (``socket://`` URL).
+    seed : int or None
+        Overrides the scenario's seed.
+    time_scale : float
+        Wall time per second of motion (0.1: ten times faster).
+    natnet_rate_hz : float
+        NatNet frames per second.
+    natnet_seed : int
+        Seeds the NatNet markers' noise.
+    ur_faults : UrFaults or None
+        The UR emulator's faults.
+
+    Raises
+    ------
+    ConfigError
+        When a config does not validate.
+    OSError
+        When a port cannot be bound.
+    """
 
     def __init__(self, scenario: str | Path = CONFIGS / "scenarios" / "paper_default.yaml",
                  cell: str | Path = CONFIGS / "cell.yaml", *, host: str = "127.0.0.1", rtde_port: int = 0,
@@ -131,13 +140,37 @@ class EmulatedCell:
         return out
 
     def stats(self) -> dict[str, Any]:
+        """Every emulator's counters: ``ur``, ``safety_mode``, ``natnet`` and ``tracker``.
+
+        Returns
+        -------
+        dict
+        """
         nat = dataclasses.asdict(self.natnet.stats)
         nat.pop("dropped")
         return {"ur": dict(self.ur.stats), "safety_mode": self.ur.safety_mode, "natnet": nat,
                 "tracker": dict(self.tracker.stats)}
 
     def command(self, line: str) -> dict[str, Any]:
-        """One control command (see the module docstring); errors are replies, not exceptions."""
+        """Run one control command; errors are replies, not exceptions.
+
+        Commands: ``stats``, ``drop_rtde [N]``, ``protective_stop``, ``unlock``, ``natnet KEY=VALUE ...``
+        (NatNetEmulator.set_faults, values in JSON).
+
+        Parameters
+        ----------
+        line : str
+
+        Returns
+        -------
+        dict
+            ``{"ok": True, ...}``, or ``{"ok": False, "error": ...}`` for an unknown command.
+
+        Raises
+        ------
+        ValueError, IndexError, ConfigError
+            For malformed arguments (the control port turns them into error replies).
+        """
         word, *args = line.split()
         if word == "stats":
             return {"ok": True, **self.stats()}
@@ -156,12 +189,24 @@ class EmulatedCell:
         return {"ok": True}
 
     def serve_control(self, port: int = 0) -> int:
-        """Start the control port (loopback, the cell's host); returns its port."""
+        """Start the control port on the cell's host.
+
+        Parameters
+        ----------
+        port : int
+            0 picks a free one.
+
+        Returns
+        -------
+        int
+            The port.
+        """
         self._control = _ControlServer(self, self.host, port)
         self._opened.append(self._control.stop)
         return self._control.port
 
     def close(self) -> None:
+        """Stop every server (errors are printed, the rest still closed) and close the world."""
         while self._opened:
             try:
                 self._opened.pop()()
@@ -218,7 +263,30 @@ class _ControlServer:
 
 
 def control(host: str, port: int, line: str, timeout_s: float = 10.0) -> dict[str, Any]:
-    """Send one control command to a running cell; its JSON reply."""
+    """Send one control command to a running cell.
+
+    Parameters
+    ----------
+    host : str
+    port : int
+        The control port.
+    line : str
+        The command.
+    timeout_s : float
+        s.
+
+    Returns
+    -------
+    dict
+        The cell's JSON reply.
+
+    Raises
+    ------
+    DriverError
+        When the cell closes without a reply.
+    OSError
+        When the cell cannot be reached.
+    """
     with socket.create_connection((host, port), timeout=timeout_s) as s, s.makefile("rwb") as f:
         f.write(line.encode() + b"\n")
         f.flush()
@@ -229,6 +297,21 @@ def control(host: str, port: int, line: str, timeout_s: float = 10.0) -> dict[st
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``python -m emulators.emulated_cell`` command: serve until SIGTERM or SIGINT.
+
+    Prints one JSON line with the ports once every server listens, and the final statistics at
+    the end.
+
+    Parameters
+    ----------
+    argv : list of str or None
+        The arguments (sys.argv[1:] when None).
+
+    Returns
+    -------
+    int
+        Exit status 0.
+    """
     ap = argparse.ArgumentParser(prog="python -m emulators.emulated_cell",
                                  description="UR (RTDE), NatNet and serial laser tracker emulators "
                                              "over one simulated cell.")

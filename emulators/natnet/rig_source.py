@@ -35,12 +35,18 @@ class MarkerObservation:
 
 
 class SimRigMarkers:
-    """Triangulated markers of the simulated rig for the ACTUAL tool pose (world frame).
+    """Triangulated markers of the simulated rig for the actual tool pose.
 
-    tool_pose: callable -> (R (3,3), p (3,)) ACTUAL tool orientation and TCP, world frame, m.
-    config: path of configs/cameras.yaml (default) or a validated RigConfig.
-    seed: seeds every draw (noise, random occlusion); the same seed and poses give the same markers.
-    occluded: optional occluded(cam_center (3,), points (n,3)) -> bool (n,), world frame.
+    Parameters
+    ----------
+    tool_pose : callable
+        () -> (R (3, 3), p (3,) m): the actual tool orientation and TCP, world frame.
+    config : str or RigConfig
+        configs/cameras.yaml by default, or a validated RigConfig.
+    seed : int
+        Seeds every draw (noise, random occlusion); the same seed and poses give the same markers.
+    occluded : callable or None
+        occluded(cam_center (3,), points (n, 3)) -> (n,) bool, world frame.
     """
 
     def __init__(self, tool_pose: PoseFn, config: str | RigConfig = str(DEFAULT_CONFIG), seed: int = 0,
@@ -57,11 +63,32 @@ class SimRigMarkers:
         self.sigma_px = float(np.hypot(r.jitter_px, self.cfg.processing.centroid_sigma_px))
 
     def to_mvs(self, x_world: np.ndarray) -> np.ndarray:
-        """x_mvs = (1 + s) Rm^T (x_world - tm): the rig's frame with its scale error."""
+        """World points in the rig's frame with its scale error: (1 + s) Rm^T (x_world - tm).
+
+        Parameters
+        ----------
+        x_world : ndarray
+            (..., 3) m.
+
+        Returns
+        -------
+        ndarray
+            (..., 3) m, MVS frame.
+        """
         return (1.0 + self._s) * (np.asarray(x_world, float) - self._tm) @ self._Rm
 
     def capture(self, hidden: Sequence[int] = ()) -> MarkerObservation:
-        """Triangulate the cluster once; `hidden` marker indices are occluded from every camera."""
+        """Triangulate the cluster once at the tool's current pose.
+
+        Parameters
+        ----------
+        hidden : sequence of int
+            Marker indices occluded from every camera (besides the render settings').
+
+        Returns
+        -------
+        MarkerObservation
+        """
         R, p = self._pose()
         R, p = np.asarray(R, float), np.asarray(p, float)
         Xw = p + self.markers @ R.T

@@ -1,33 +1,9 @@
 """A NatNet 4.1 server streaming the simulated camera rig (what Motive does for a real rig).
 
-Command channel (UDP, `command_port`): NAT_CONNECT -> NAT_SERVERINFO (app name, versions, clock
-frequency, data port); NAT_REQUEST_MODELDEF -> NAT_MODELDEF (the tool's marker set and rigid
-body with its marker offsets, pivot at the TCP); NAT_KEEPALIVE keeps a unicast client
-subscribed; NAT_REQUEST "Bitstream" -> NAT_RESPONSE "Bitstream,4.1.0.0"; anything else ->
-NAT_UNRECOGNIZED_REQUEST. Data: at `rate_hz`, a NAT_FRAMEOFDATA with the cluster's labelled
-markers (id = rigid body id << 16 | member 1..M), the rigid body (pose solved from them,
-tracking-valid flag, mean marker error) and the timestamps: frame timestamp (s), camera
-mid-exposure, data received and transmit stamps (ticks of `clock_hz`, the server's clock, not
-the host's). Unicast (Motive's unicast mode): frames go to every client that connected or sent
-a keep-alive in the last `client_timeout_s`, on the address it used, from the command port.
-Multicast mode: frames go to (`data_group`, `data_port`) instead, from the data port.
-
-Like Motive, the server holds both its ports: the data socket is bound to (`host`, `data_port`)
-(0 picks a free one, announced in NAT_SERVERINFO), so no other local process can bind it and
-send from a port the client trusts (drivers.natnet.driver accepts frames only from the server's
-address and ports). Only when the multicast "group" is the host's own address (a loopback test
-stand-in for a group) is that address the client's to bind: then frames leave from the command
-port.
-
-Faults (config `faults`, seeded; `set_faults(...)` changes them while streaming;
-`set_frame_number(n)` renumbers the stream as a restarted server does):
-drop_probability (a frame number is skipped: never sent), delay_probability + delay_s (a frame
-is sent `delay_s` after its capture: its transmit stamp says so), untracked_probability (the
-rigid body's tracking-valid flag off, pose zero), occluded_markers (0-based marker indices
-hidden from every camera: sent with the occluded flag and the model-solved position).
-
-Run one: `python -m emulators.natnet --command-port 1510 --data-port 1511`.
-"""
+`NatNetEmulator` answers the command channel, streams frames of the cluster's labelled markers
+and rigid body at `rate_hz` (unicast or multicast), holds both its ports as Motive does, and
+injects seeded faults (dropped, delayed or untracked frames, occluded markers, renumbering).
+What it answers and the faults: docs/drivers.md ("OptiTrack NatNet", "Start the emulator")."""
 from __future__ import annotations
 
 import argparse
@@ -52,6 +28,9 @@ from emulators.natnet.rig_source import SimRigMarkers
 
 
 class Faults(Frozen):
+    """The emulator's injected faults (seeded by ``seed``): ``drop_probability``, ``delay_probability``
+    with ``delay_s`` (s), ``untracked_probability``, ``occluded_markers`` (0-based indices).
+    """
     drop_probability: float = Field(0.0, ge=0, le=1)
     delay_probability: float = Field(0.0, ge=0, le=1)
     delay_s: float = Field(0.0, ge=0, le=10)
@@ -61,6 +40,11 @@ class Faults(Frozen):
 
 
 class EmulatorConfig(Frozen):
+    """The emulator's config: address and ports (0 picks a free one), multicast and its group, frame
+    rate (Hz), the server clock (``clock_hz`` ticks per second, ``clock_offset_s`` s from the host's),
+    the announced app and NatNet versions, the rigid body's id and name, how long a unicast client
+    stays subscribed (s), and the faults.
+    """
     host: str = "127.0.0.1"
     command_port: int = Field(1510, ge=0, le=65535)
     data_port: int = Field(1511, ge=0, le=65535)
@@ -80,6 +64,8 @@ class EmulatorConfig(Frozen):
 
 @dataclass
 class Stats:
+    """The emulator's counters: frames captured, sent, dropped, delayed, untracked, and the last 10000
+    dropped frame numbers."""
     frames_captured: int = 0
     frames_sent: int = 0
     frames_dropped: int = 0
@@ -112,6 +98,18 @@ class NatNetEmulator:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> NatNetEmulator:
+        """Bind both ports and start streaming on a thread.
+
+        Returns
+        -------
+        NatNetEmulator
+            self.
+
+        Raises
+        ------
+        OSError
+            When a port cannot be bound.
+        """
         c = self.cfg
         try:
             self._cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -139,6 +137,7 @@ class NatNetEmulator:
         return self
 
     def close(self) -> None:
+        """Stop the thread and close both sockets."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -154,23 +153,52 @@ class NatNetEmulator:
         self.close()
 
     def set_faults(self, **changes: Any) -> None:
-        """Change the injected faults while streaming (validated like the config)."""
+        """Change the injected faults while streaming (validated like the config).
+
+        Parameters
+        ----------
+        **changes
+            Faults fields and their new values.
+
+        Raises
+        ------
+        ConfigError
+            When a value does not validate.
+        """
         data = {**self._faults.model_dump(), **changes}
         with self._lock:
             self._faults = validate(Faults, data, "<NatNetEmulator.set_faults>")
 
     @property
     def clients(self) -> list[tuple[str, int]]:
+        """The unicast clients subscribed (address, port)."""
         with self._lock:
             return list(self._clients)
 
     # ------------------------------------------------------------------ clock
     def ticks(self, t_host: float) -> int:
-        """The server's high-resolution clock (uint64 ticks) at host monotonic time `t_host`."""
+        """The server's high-resolution clock at a host time.
+
+        Parameters
+        ----------
+        t_host : float
+            s, host monotonic clock.
+
+        Returns
+        -------
+        int
+            Ticks of ``clock_hz``.
+        """
         return int((t_host - self._t0 + self.cfg.clock_offset_s) * self.cfg.clock_hz)
 
     # ------------------------------------------------------------------ messages
     def server_info(self) -> nn.ServerInfo:
+        """What NAT_SERVERINFO announces (versions, clock frequency, data port, multicast group).
+
+        Returns
+        -------
+        ServerInfo
+        """
         grp = tuple(int(x) for x in socket.inet_aton(self._group()))
         return nn.ServerInfo(self.cfg.app_name, self.cfg.app_version, self.cfg.natnet_version, self.cfg.clock_hz,
                              self.data_port, self.cfg.multicast, grp)  # type: ignore[arg-type]
@@ -182,6 +210,12 @@ class NatNetEmulator:
             return "0.0.0.0"
 
     def descriptions(self) -> list[nn.Description]:
+        """The model definitions: the tool's marker set and rigid body (marker offsets, pivot at the TCP).
+
+        Returns
+        -------
+        list of MarkerSetDescription or RigidBodyDescription
+        """
         m = self.source.markers
         names = tuple(f"{self.cfg.rigid_body_name}_{i + 1}" for i in range(len(m)))
         return [nn.MarkerSetDescription(self.cfg.rigid_body_name, names),
@@ -218,7 +252,21 @@ class NatNetEmulator:
 
     # ------------------------------------------------------------------ frames
     def make_frame(self, number: int, t_capture: float, faults: Faults) -> nn.FrameOfData:
-        """One frame of data: the cluster captured now, solved as Motive solves a rigid body."""
+        """One frame of data: the cluster captured now, solved as Motive solves a rigid body.
+
+        Parameters
+        ----------
+        number : int
+            The frame number.
+        t_capture : float
+            s, host monotonic time of the capture (the mid-exposure stamp).
+        faults : Faults
+            The faults in force.
+
+        Returns
+        -------
+        FrameOfData
+        """
         obs = self.source.capture(hidden=faults.occluded_markers)
         self.last_truth[number] = obs.tcp_truth
         self.last_truth.pop(number - 1000, None)
@@ -272,8 +320,14 @@ class NatNetEmulator:
         self.stats.frames_sent += 1
 
     def set_frame_number(self, number: int) -> None:
-        """The next frame carries `number`, and the count goes on from it: what a restarted
-        server (back to 1) or a switched take (anywhere) does to a client."""
+        """The next frame carries ``number``, and the count goes on from it.
+
+        What a restarted server (back to 1) or a switched take (anywhere) does to a client.
+
+        Parameters
+        ----------
+        number : int
+        """
         with self._lock:
             self._renumber = int(number) - 1
 
@@ -316,6 +370,18 @@ class NatNetEmulator:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``python -m emulators.natnet`` command: stream a static TCP until Ctrl-C.
+
+    Parameters
+    ----------
+    argv : list of str or None
+        The arguments (sys.argv[1:] when None).
+
+    Returns
+    -------
+    int
+        Exit status.
+    """
     ap = argparse.ArgumentParser(prog="python -m emulators.natnet",
                                  description="NatNet 4.1 server streaming the simulated camera rig.")
     ap.add_argument("--host", default="127.0.0.1")

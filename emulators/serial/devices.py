@@ -1,25 +1,7 @@
-"""Serial device emulators: a robot controller and a laser tracker serving `drivers.serial.protocol`.
-
-Each emulator opens a pseudo-terminal (or a loopback TCP port) and answers frames in a
-background thread, so the real drivers talk to it exactly as to hardware: `.port` is the
-slave device path (`/dev/pts/N`) or a `socket://127.0.0.1:P` URL for pyserial.
-
-`ControllerEmulator` delegates motion to a *plant*, any object with::
-
-    move_linear(target: ndarray (3,), speed: float) -> None    # m, m/s; returns when settled
-    joint_angles() -> ndarray (n,)                              # rad
-    controller_tcp() -> ndarray (3,)                            # m, nominal kinematics
-
-(`sim.plant.SimulatedCobot` has them). Plant calls run on the emulator thread under
-`plant_lock`; pass the lock the rest of the simulation uses if the plant is shared.
-
-Faults are injected through `Faults` (probabilities, seeded) or one-shot with
-`inject(kind, count)`; kinds: `garbage` (a noise line before the reply), `half_frame` (the
-first half of a frame, no newline, before the reply), `drop` (no reply), `stale` (a copy of
-an older reply before the real one), `corrupt_reply` (one character of the reply flipped),
-`corrupt_request` (the request is treated as received with a bad CRC -> NAK CRC), `nan`
-(NaN in the next numeric reply). `pause(seconds)` makes the device deaf and mute for a while.
-"""
+"""Serial device emulators: a robot controller and a laser tracker serving `drivers.serial.protocol`
+on a pseudo-terminal or a loopback TCP port, answering from a background thread so the real
+drivers talk to them exactly as to hardware; faults are injected by probability or one-shot.
+The plant interface, the faults and the protocol: docs/drivers.md ("Serial line protocol")."""
 from __future__ import annotations
 
 import math
@@ -165,8 +147,26 @@ def _open_endpoint(spec: str | None):
 
 class LineServer:
     """Protocol server core: framing, duplicate cache, fault injection, background thread.
-    Subclasses implement `handle(frame) -> (fields, after)`: the ACK fields and an optional
-    callable to run after the ACK went out (streamed set-points)."""
+
+    Subclasses implement ``handle(frame) -> (fields, after)``: the ACK fields and an optional
+    callable to run after the ACK went out (streamed set-points).
+
+    Parameters
+    ----------
+    port_path_or_pty : str or None
+        None or ``"pty"``: a new pseudo-terminal; ``"tcp://HOST:PORT"``: a loopback TCP port.
+    faults : Faults or None
+        Per-reply fault probabilities (none by default).
+    clock : callable or None
+        () -> s, the device's clock (s since construction by default).
+    autostart : bool
+        Start serving at once.
+
+    Raises
+    ------
+    ConfigError
+        When ``port_path_or_pty`` is none of those forms or the port cannot be opened.
+    """
 
     device = "line-device"
 
@@ -192,19 +192,40 @@ class LineServer:
     # --- public -------------------------------------------------------------------------
     @property
     def port(self) -> str:
+        """What pyserial opens: the pseudo-terminal's path (``/dev/pts/N``) or a ``socket://`` URL."""
         return self._ep.port
 
     def pause(self, seconds: float) -> None:
-        """Stop answering (and drop whatever arrives) for `seconds`, then come back."""
+        """Stop answering (and drop whatever arrives) for a while, then come back.
+
+        Parameters
+        ----------
+        seconds : float
+        """
         self._paused_until = time.monotonic() + float(seconds)
 
     def inject(self, kind: str, count: int = 1) -> None:
+        """Inject a fault into the next replies (one-shot, on top of the probabilities).
+
+        Parameters
+        ----------
+        kind : str
+            One of FAULT_KINDS.
+        count : int
+            How many replies it hits.
+
+        Raises
+        ------
+        ConfigError
+            When ``kind`` is not a fault kind.
+        """
         if kind not in FAULT_KINDS:
             raise ConfigError("<emulator>", "fault", kind, "one of " + ", ".join(FAULT_KINDS))
         with self._lock:
             self._oneshot[kind] += int(count)
 
     def stop(self) -> None:
+        """Stop serving and close the port (once)."""
         if self._stop.is_set():
             return
         self._stop.set()
@@ -219,6 +240,7 @@ class LineServer:
         self.stop()
 
     def now(self) -> float:
+        """The device's clock (s)."""
         return float(self._clock())
 
     # --- fault decisions ----------------------------------------------------------------
@@ -311,6 +333,20 @@ class LineServer:
 
     # --- to override --------------------------------------------------------------------
     def handle(self, req: lp.Frame) -> tuple[list[Any], Callable[[], None] | None]:
+        """Answer one request: PING here; subclasses add their commands.
+
+        Parameters
+        ----------
+        req : Frame
+            The decoded request.
+
+        Returns
+        -------
+        fields : list
+            The ACK's fields.
+        after : callable or None
+            Run after the ACK went out.
+        """
         if req.word == "PING":
             return [lp.PROTOCOL_VERSION, self.device], None
         raise _Nak(lp.NAK_UNKNOWN, req.word)
@@ -335,7 +371,22 @@ def _args(req: lp.Frame, n: int) -> list[float]:
 
 
 class ControllerEmulator(LineServer):
-    """Robot controller serving MOVL/SETP/GETJ/GETT/STATUS/PING over a plant (see module doc)."""
+    """Robot controller serving MOVL, SETP, GETJ, GETT, STATUS and PING over a plant.
+
+    Parameters
+    ----------
+    plant : object
+        With ``move_linear(target, speed)``, ``joint_angles()`` and ``controller_tcp()``
+        (m, m/s, rad; e.g. sim.plant.SimulatedCobot).
+    port_path_or_pty, faults, clock, autostart
+        As LineServer.
+    plant_lock : threading.Lock or None
+        Held around every plant call; pass the one the rest of the simulation uses.
+    workspace_m : float
+        Largest |coordinate| of a target (m); beyond it, NAK RANGE.
+    max_speed_m_s : float
+        Fastest speed (m/s); beyond it, NAK RANGE.
+    """
 
     device = "cobot-controller-emulator"
 
@@ -360,6 +411,18 @@ class ControllerEmulator(LineServer):
         self._mode = "idle"
 
     def handle(self, req: lp.Frame):
+        """Answer MOVL (move, then ACK), SETP (ACK, then move), GETJ, GETT, STATUS or PING.
+
+        Parameters
+        ----------
+        req : Frame
+
+        Returns
+        -------
+        fields : list
+        after : callable or None
+            For SETP, the move.
+        """
         w = req.word
         if w in ("MOVL", "SETP"):
             x, y, z, v = _args(req, 4)
@@ -386,7 +449,17 @@ class ControllerEmulator(LineServer):
 
 
 class TrackerEmulator(LineServer):
-    """Laser tracker serving MEAS/STATUS/PING; `measure_fn() -> (d, az, el, status)` (m, rad)."""
+    """Laser tracker serving MEAS, STATUS and PING.
+
+    Parameters
+    ----------
+    measure_fn : callable
+        () -> (d m, azimuth rad, elevation rad, status).
+    port_path_or_pty, faults, clock, autostart
+        As LineServer.
+    lock : threading.Lock or None
+        Held around every ``measure_fn`` call.
+    """
 
     device = "laser-tracker-emulator"
 
@@ -400,6 +473,17 @@ class TrackerEmulator(LineServer):
         super().__init__(port_path_or_pty, faults, clock, autostart)
 
     def handle(self, req: lp.Frame):
+        """Answer MEAS (t, d, az, el, status), STATUS (ready, measurements) or PING.
+
+        Parameters
+        ----------
+        req : Frame
+
+        Returns
+        -------
+        fields : list
+        after : None
+        """
         if req.word == "MEAS":
             _args(req, 0)
             with self.lock:

@@ -1,51 +1,8 @@
 """A Universal Robots controller on loopback: RTDE (default 30004) and the script port (default
 30002) served over a plant, so the real driver (`drivers.ur.driver`) and third-party RTDE clients
-talk to it exactly as to a UR.
-
-    python -m emulators.ur --port 30004 --script-port 30002
-
-runs it over the simulated cell (`configs/scenarios/paper_default.yaml`, `configs/cell.yaml`)
-until Ctrl-C. In tests, `UrEmulator(world.cell.plant, rtde_port=0, script_port=0)` takes free
-ports (`.rtde_port`, `.script_port`).
-
-The plant is any object with `move_linear(target (3,) m, speed m/s)`, `joint_angles() -> (6,)
-rad` and `controller_tcp() -> (3,) m` (`sim.plant.SimulatedCobot`): the physical error effects
-are the plant's, so an instrument measuring the plant sees the arm's real error while the RTDE
-stream reports, like a UR, the controller's own TCP from encoders and nominal kinematics. Plant
-calls are made under `plant_lock` (pass the one the rest of the simulation uses).
-
-What it emulates (the RTDE guide, protocol version 2 only): version negotiation, controller
-version (5.11.0), output recipes of `protocol.OUTPUT_TYPES` (unknown names -> NOT_FOUND, recipe
-id 0), start/pause, data packages at the recipe's frequency (a late package is skipped, not
-queued, as the controller does). Input recipes of the general purpose registers
-(`protocol.INPUT_TYPES`; anything else NOT_FOUND): a register another connected client has in its
-input recipe, or one in `UrFaults.taken_inputs` (a fieldbus adapter such as EtherNet/IP writing
-it), is answered IN_USE and the recipe refused (id 0); released when that client disconnects.
-Input data packages write the registers (`input_writes` keeps each package's values in arrival
-order, for tests), and the registers can be read back as outputs, as the guide allows. Script port:
-programs of `urscript` (movel, movej, stopl, stopj, the servo program); a new program replaces
-the running one;
-anything else, and any program while in protective stop, is refused with an RTDE text message
-(level ERROR, source "URScript") to every RTDE client. The real controller reports those on the
-primary interface instead, which is not emulated.
-
-Faults (`UrFaults`, or `inject_*` at run time): `drop_rtde_after` closes the RTDE connection
-after that many data packages (once); `protective_stop_on_move` makes that motion (1-based count)
-stop part-way (`protective_stop_fraction` of the path) in a protective stop: the plant stays where
-the arm stopped, `safety_mode` reads PROTECTIVE_STOP and programs are refused until
-`unlock_protective_stop()` (the dashboard server's "unlock protective stop"). A protective stop
-injected while the servo program runs stops the arm at once and ends the program.
-
-The servo program (`urscript.ServoProgram`) runs its semantics on the control thread, one
-control cycle every `period_s` of wall time (a cycle that comes more than a period late is
-skipped and counted in `stats["late_cycles"]`, never caught up): read the sequence number (< 0:
-stopj, status STREAM_HOST_STOP, end), count the cycles without a new one (more than
-`watchdog_cycles`: stopj, status STREAM_WATCHDOG, `stats["watchdog_stops"]`, end), read the pose
-registers and servo to them with the follower of `sim.servo` (servoj's look-ahead and gain: the
-lag and overshoot are the plant's truth), committing the plant every cycle
-(`plant.servo_step`). `servo_log` holds, per cycle, the sequence number taken and the follower's
-position; `stats["servo_cycles"]` counts the cycles. stopj stops the arm where it is.
-"""
+talk to it exactly as to a UR. `python -m emulators.ur --port 30004 --script-port 30002` runs it
+over the simulated cell. What it emulates, its faults and how it runs the servo program:
+docs/drivers.md ("Universal Robots over RTDE", "Run the emulator")."""
 from __future__ import annotations
 
 import argparse
@@ -77,6 +34,16 @@ _SRC = "URScript"
 
 @dataclass(frozen=True)
 class UrFaults:
+    """The UR emulator's faults: ``drop_rtde_after`` (data packages, then the RTDE connection is
+    closed once), ``protective_stop_on_move`` (this motion, 1-based, ends in a protective stop at
+    ``protective_stop_fraction`` of its path), ``taken_inputs`` (input registers a fieldbus adapter
+    writes: IN_USE to RTDE clients).
+
+    Raises
+    ------
+    ConfigError
+        For a negative or non-integer count, or a fraction outside (0, 1).
+    """
     drop_rtde_after: int | None = None  # data packages, then the RTDE connection is closed (once)
     protective_stop_on_move: int | None = None  # this motion (1 = the first) ends in a protective stop
     protective_stop_fraction: float = 0.5  # of its path
@@ -93,7 +60,36 @@ class UrFaults:
 
 
 class UrEmulator:
-    """RTDE + script port over a plant (see the module docstring)."""
+    """RTDE and the script port over a plant.
+
+    Parameters
+    ----------
+    plant : object
+        With ``move_linear(target, speed)``, ``servo_step(target, speed, dt)``, ``joint_angles()``
+        ((6,) rad) and ``controller_tcp()`` ((3,) m); e.g. sim.plant.SimulatedCobot.
+    host : str
+        The address both servers bind.
+    rtde_port, script_port : int
+        0 picks a free port (``.rtde_port``, ``.script_port``).
+    plant_lock : threading.Lock or None
+        Held around plant calls; pass the one the rest of the simulation uses.
+    faults : UrFaults or None
+    time_scale : float
+        Wall time per second of motion (0.1: ten times faster); streamed set-points run unscaled.
+    max_speed_m_s : float
+        m/s.
+    tool_rotvec : array_like or None
+        The orientation reported (rad, rotation vector); tool down by default.
+    autostart : bool
+        Start the threads at once.
+
+    Raises
+    ------
+    ConfigError
+        For a non-positive ``time_scale`` or a plant without six joints.
+    OSError
+        When a port cannot be bound.
+    """
 
     def __init__(self, plant: Any, host: str = "127.0.0.1", rtde_port: int = 30004, script_port: int = 30002, *,
                  plant_lock: threading.Lock | None = None, faults: UrFaults | None = None,
@@ -151,6 +147,7 @@ class UrEmulator:
 
     # --- public -------------------------------------------------------------------------
     def start(self) -> None:
+        """Start the control, RTDE and script threads."""
         for t in self._threads:
             t.start()
 
@@ -159,7 +156,12 @@ class UrEmulator:
         return time.monotonic() - self._t0
 
     def inject_drop(self, after_packages: int = 0) -> None:
-        """Close the RTDE connection after `after_packages` more data packages (once)."""
+        """Close the RTDE connection after more data packages (once).
+
+        Parameters
+        ----------
+        after_packages : int
+        """
         with self._lock:
             self._drop_after = int(after_packages)
 
@@ -176,15 +178,28 @@ class UrEmulator:
             self._stop_on_move = self._motions + 1
 
     def unlock_protective_stop(self) -> None:
+        """Clear a protective stop (what the dashboard server's 'unlock protective stop' does)."""
         with self._lock:
             if self._safety == rp.SAFETY_PROTECTIVE_STOP:
                 self._safety = rp.SAFETY_NORMAL
 
     def motion_offset(self, now: float | None = None) -> np.ndarray:
-        """The reported TCP at wall time `now` minus where the move in progress ends (zero when
-        still), m. A camera emulator adds it to the plant's pose, committed at the move's start,
-        to follow the arm while it moves; it reads one reference and never takes the controller
-        lock, which the control thread holds while the plant moves in PyBullet."""
+        """The reported TCP minus where the move in progress ends (zero when still).
+
+        A camera emulator adds it to the plant's pose, committed at the move's start, to follow the arm
+        while it moves; it reads one reference and never takes the controller lock, which the control
+        thread holds while the plant moves in PyBullet.
+
+        Parameters
+        ----------
+        now : float or None
+            s, host monotonic clock (now when None).
+
+        Returns
+        -------
+        ndarray
+            (3,) m.
+        """
         m = self._motion
         if m is None:
             return np.zeros(3)
@@ -192,9 +207,11 @@ class UrEmulator:
 
     @property
     def safety_mode(self) -> int:
+        """The safety mode (protocol.SAFETY_*)."""
         return self._safety
 
     def stop(self) -> None:
+        """Close every socket and stop the threads (once)."""
         if self._stop.is_set():
             return
         self._stop.set()
@@ -212,7 +229,18 @@ class UrEmulator:
 
     # --- controller state ---------------------------------------------------------------
     def snapshot(self, now: float | None = None) -> dict[str, Any]:
-        """Every output field's value at wall time `now` (monotonic)."""
+        """Every output field's value at a wall time.
+
+        Parameters
+        ----------
+        now : float or None
+            s, host monotonic clock (now when None).
+
+        Returns
+        -------
+        dict
+            Output name -> value (vectors as lists).
+        """
         now = time.monotonic() if now is None else now
         with self._lock:
             m, safety, playing = self._motion, self._safety, bool(self._motion or self._program or self._servo)
@@ -239,7 +267,17 @@ class UrEmulator:
                 "safety_status_bits": 4 if protective else 1}
 
     def register(self, name: str) -> float:
-        """A general purpose register's value (input or output), 0 if never written."""
+        """A general purpose register's value (input or output), 0 if never written.
+
+        Parameters
+        ----------
+        name : str
+            E.g. ``output_int_register_24``.
+
+        Returns
+        -------
+        float
+        """
         if name in self._inputs:
             return self._inputs[name]
         return self._outputs.get(name, 0)
@@ -398,7 +436,16 @@ class UrEmulator:
                 pass  # the streaming thread notices the dead connection
 
     def run_program(self, text: str) -> None:
-        """A program arrives on the script port (also callable directly)."""
+        """A program arrives on the script port (also callable directly).
+
+        A program that does not parse, or any program during a protective stop, is refused with an
+        RTDE text message (level ERROR); otherwise it replaces the running one.
+
+        Parameters
+        ----------
+        text : str
+            URScript.
+        """
         self.stats["scripts"] += 1
         try:
             cmds = urscript.parse(text)
@@ -613,6 +660,18 @@ def _close(s: socket.socket) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``python -m emulators.ur`` command: serve over the simulated cell until Ctrl-C.
+
+    Parameters
+    ----------
+    argv : list of str or None
+        The arguments (sys.argv[1:] when None).
+
+    Returns
+    -------
+    int
+        Exit status.
+    """
     from pathlib import Path
 
     from drivers.simulated.devices import SimWorld

@@ -15,7 +15,22 @@ import numpy as np
 
 
 def trapezoid_duration(dist: float, v: float, a: float) -> float:
-    """Time (s) to travel `dist` (m) from rest to rest at speed `v` and acceleration `a`."""
+    """Time to travel a distance from rest to rest with a trapezoidal (or triangular) speed profile.
+
+    Parameters
+    ----------
+    dist : float
+        m.
+    v : float
+        Cruise speed (m/s).
+    a : float
+        Acceleration (m/s^2).
+
+    Returns
+    -------
+    float
+        s.
+    """
     if dist <= 0:
         return 0.0
     if dist >= v * v / a:  # reaches cruise speed
@@ -24,7 +39,26 @@ def trapezoid_duration(dist: float, v: float, a: float) -> float:
 
 
 def trapezoid_at(t: float, dist: float, v: float, a: float) -> tuple[float, float]:
-    """Distance travelled (m) and speed (m/s) at time `t` (s) into the profile."""
+    """Distance travelled and speed at a time into the profile.
+
+    Parameters
+    ----------
+    t : float
+        s from the start.
+    dist : float
+        m.
+    v : float
+        m/s.
+    a : float
+        m/s^2.
+
+    Returns
+    -------
+    s : float
+        m.
+    speed : float
+        m/s.
+    """
     total = trapezoid_duration(dist, v, a)
     if dist <= 0 or t >= total:
         return max(dist, 0.0), 0.0
@@ -59,6 +93,7 @@ class Motion:
 
     @property
     def dist(self) -> float:
+        """The distance to the goal (m)."""
         return float(np.linalg.norm(self.p_goal - self.p0))
 
     def _profile_t(self, now: float) -> float:
@@ -81,10 +116,38 @@ class Motion:
         return self.t_start + hi * self.time_scale
 
     def done(self, now: float) -> bool:
+        """True once the arm stands still.
+
+        Parameters
+        ----------
+        now : float
+            s, wall clock.
+
+        Returns
+        -------
+        bool
+        """
         return now >= self.t_end
 
     def sample(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(q rad, qd rad/s, TCP position m, TCP velocity m/s) at wall time `now`."""
+        """The arm's state at a wall time.
+
+        Parameters
+        ----------
+        now : float
+            s, wall clock.
+
+        Returns
+        -------
+        q : ndarray
+            rad.
+        qd : ndarray
+            rad/s.
+        p : ndarray
+            (3,) m, TCP.
+        v : ndarray
+            (3,) m/s, TCP.
+        """
         if self.done(now):
             z = np.zeros(3)
             return self.q1.copy(), np.zeros_like(self.q1), self.p1.copy(), z

@@ -275,13 +275,13 @@ def correct_service(twin_dir):
     """A CorrectionServer and a client on Zenoh over loopback (as tests/integration/test_bus_correct.py)."""
     from dt_runtime.fabric import BusConfig
     from dt_runtime.fabric.session import close_session, open_session
-    from dt_runtime.service.correction import Corrector, Limits
     from dt_runtime.service.correction_server import CorrectionServer
+    from dt_runtime.twin.bounds import Guard, Limits
     from tests.support.loopback import free_port
 
     port = free_port()
     cfg = BusConfig(cell="c9", robot="r9", listen=[f"tcp/127.0.0.1:{port}"])
-    server = CorrectionServer(Corrector(Twin.load(twin_dir), Limits()), cfg)
+    server = CorrectionServer(Guard(Twin.load(twin_dir), Limits()), cfg)
     client = open_session(BusConfig(cell="c9", robot="prog", listen=[f"tcp/127.0.0.1:{free_port()}"],
                                     connect=[f"tcp/127.0.0.1:{port}"]))
     try:

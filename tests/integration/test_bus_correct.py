@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 from dt_runtime.fabric import BusConfig
+from dt_runtime.fabric.correction_client import request_correction
 from dt_runtime.fabric.session import close_session, open_session
-from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
-from dt_runtime.service.correction_server import CorrectionServer, request_correction
+from dt_runtime.service.correction_server import CorrectionServer
+from dt_runtime.twin.bounds import CorrectionFault, Guard, Limits
 from dt_runtime.twin.twin import Twin
 from tests.support.loopback import free_port
 
@@ -17,7 +18,7 @@ def served(quick_demo):
     twin = Twin.load(quick_demo[2] / "model")
     port = free_port()
     cfg = BusConfig(cell="c1", robot="r1", listen=[f"tcp/127.0.0.1:{port}"])
-    server = CorrectionServer(Corrector(twin, Limits()), cfg)
+    server = CorrectionServer(Guard(twin, Limits()), cfg)
     client = open_session(BusConfig(cell="c1", robot="prog", listen=[f"tcp/127.0.0.1:{free_port()}"],
                                     connect=[f"tcp/127.0.0.1:{port}"]))
     try:
@@ -66,7 +67,7 @@ def test_refused_requests_get_the_reason_and_the_server_goes_on(served, target, 
 def test_malformed_payloads_are_refused_without_reaching_the_model(quick_demo):
     twin = Twin.load(quick_demo[2] / "model")
     server = CorrectionServer.__new__(CorrectionServer)  # answer() alone: no session needed
-    server.corrector, server.refused, server.served = Corrector(twin, Limits()), 0, 0
+    server.corrector, server.refused, server.served = Guard(twin, Limits()), 0, 0
     import threading
 
     server._lock = threading.Lock()

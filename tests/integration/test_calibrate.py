@@ -165,8 +165,8 @@ def test_a_map_reading_the_temperature_gets_it_or_refuses(quick_demo, tmp_path, 
     """The bounded correction refuses (robot not moved) when a condition its map reads is missing;
     a bus request may carry it; a program file's column gives it offline."""
     from dt_runtime.programs.program import correct_program, read_program
-    from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
     from dt_runtime.service.correction_server import _request
+    from dt_runtime.twin.bounds import CorrectionFault, Guard, Limits
     from dt_runtime.twin.conditions import Conditions
 
     rc, s = _calibrate(["--campaign", str(quick_demo[2] / "campaign"), "--effects", "geometric,thermal",
@@ -174,7 +174,7 @@ def test_a_map_reading_the_temperature_gets_it_or_refuses(quick_demo, tmp_path, 
     assert rc == 0, s
     twin = Twin.load(tmp_path / "twin")
     assert set(twin.needs) == {"joints", "temperature"}
-    corr = Corrector(twin, Limits())
+    corr = Guard(twin, Limits())
     target = np.array([0.9, 0.0, 0.5])
     with pytest.raises(CorrectionFault, match="temperature"):
         corr(target, 0.5, Conditions(joints=np.array([0.0, 0.4, 0.8, 0.0, 0.6, 0.0])))

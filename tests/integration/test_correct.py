@@ -116,16 +116,16 @@ def test_not_a_twin(tmp_path, capsys):
 
 
 def test_the_daemon_corrector_states_per_position_U_and_can_refuse_extrapolation(quick_demo):
-    from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
+    from dt_runtime.twin.bounds import CorrectionFault, Guard, Limits
 
     twin = Twin.load(quick_demo[2] / "model")
     far = _far_target(twin)
     inside_t = np.array([0.9, 0.0, 0.55])
-    flag_only = Corrector(twin, Limits())
-    a, b = flag_only(inside_t, 0.5), Corrector(twin, Limits())(far, 0.5)
+    flag_only = Guard(twin, Limits())
+    a, b = flag_only(inside_t, 0.5), Guard(twin, Limits())(far, 0.5)
     assert a.inside and not b.inside and np.all(b.U_tcp > a.U_tcp)
     assert np.allclose(a.U_tcp, twin.correct(inside_t, 0.5).U)
-    strict = Corrector(twin, Limits(refuse_outside_volume=True))
+    strict = Guard(twin, Limits(refuse_outside_volume=True))
     assert strict(inside_t, 0.5).inside
     with pytest.raises(CorrectionFault, match="outside the calibrated volume"):
         strict(far, 0.5)
@@ -134,7 +134,7 @@ def test_the_daemon_corrector_states_per_position_U_and_can_refuse_extrapolation
     lo = np.minimum(c, inside_t) - 0.5
     edge = Limits(workspace_min_m=tuple(lo), workspace_max_m=tuple(np.maximum(inside_t, c - 1e-9 * np.sign(c - inside_t))))
     with pytest.raises(CorrectionFault, match="corrected command .* outside the workspace"):
-        Corrector(twin, edge)(inside_t, 0.5)
+        Guard(twin, edge)(inside_t, 0.5)
 
 
 def test_the_daemon_runs_the_cells_program(quick_demo, tmp_path):

@@ -337,7 +337,7 @@ class _Refusing:
         self.uncorrected = real.__self__.uncorrected
 
     def __call__(self, *a):
-        from dt_runtime.service.correction import CorrectionFault
+        from dt_runtime.twin.bounds import CorrectionFault
 
         if self.n > 0:
             self.n -= 1
@@ -417,7 +417,7 @@ def test_a_nan_model_stops_the_start_with_a_config_error(twin_dir, tmp_path):
 
 def test_a_part_that_fails_to_open_closes_the_parts_opened_before_newest_first(twin_dir, tmp_path, monkeypatch):
     """The daemon's parts are registered on one stack as they open: the drivers failing to open
-    close the correction server, the bus and the store, in that order (newest first)."""
+    close the bus (and the services on its session) and the store, in that order (newest first)."""
     from dt_kernel.errors import DriverError
     from dt_runtime.service import daemon as daemon_mod
 
@@ -430,7 +430,7 @@ def test_a_part_that_fails_to_open_closes_the_parts_opened_before_newest_first(t
                 return super().close(*a, **k)
         return Recorded
 
-    for attr, name in (("Store", "store"), ("Bus", "bus"), ("CorrectionServer", "correct server")):
+    for attr, name in (("Store", "store"), ("Bus", "bus")):
         monkeypatch.setattr(daemon_mod, attr, recording(getattr(daemon_mod, attr), name))
 
     def failing_cell(*args):
@@ -440,7 +440,7 @@ def test_a_part_that_fails_to_open_closes_the_parts_opened_before_newest_first(t
     monkeypatch.setattr(daemon_mod, "open_cell", failing_cell)
     with pytest.raises(DriverError, match="does not answer"):
         Daemon(cfg_of(twin_dir, tmp_path, publish=True), CONFIGS)
-    assert closed == ["world", "correct server", "bus", "store"]
+    assert closed == ["world", "bus", "store"]
     with Store(tmp_path / "dt.sqlite", exclusive=True):  # released
         pass
 

@@ -178,7 +178,9 @@ def test_a_stop_mid_path_halts_and_the_operators_done_resumes_where_the_arm_stan
         assert h["status"] == "halted" and h["stream"]["state"] == "stopped"
         assert why in h["reason"] and "dt ack" in h["reason"] and "resumes at set-point" in h["reason"], h["reason"]
         k = h["stream"]["next"]
-        assert 150 <= k < h["stream"]["n"]
+        # the resume point is the set-point nearest the arm, which stands behind the last one
+        # streamed by the servo's lag and, on a loaded host, by what the stream had queued
+        assert 100 <= k < h["stream"]["n"]
         if fault == "protective_stop":
             ur_natnet_cell.control("unlock")
         d.acknowledge_maintenance("protective stop cleared", by="test operator")
@@ -203,7 +205,7 @@ def test_a_stop_mid_path_halts_and_the_operators_done_resumes_where_the_arm_stan
 
 
 def test_the_timing_term_widens_eq17_and_keeps_its_degrees_of_freedom(twin_dir):
-    from dt_runtime.service.correction import Monitor
+    from dt_runtime.twin.monitor import Monitor
     from dt_runtime.twin.twin import Twin
 
     tw = Twin.load(twin_dir)

@@ -7,10 +7,10 @@ import pytest
 from dt_runtime.cli.main import main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.fabric import BusConfig, MaintenanceConsumer
-from dt_runtime.service.correction import CorrectionFault, Corrector, Limits
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
 from dt_runtime.service.runtime_config import DriverChoice
 from dt_runtime.service.store import Store
+from dt_runtime.twin.bounds import CorrectionFault, Guard, Limits
 from dt_runtime.twin.twin import Twin
 from tests.support.loopback import free_port, wait_until
 
@@ -84,10 +84,10 @@ def test_state_machine_resumes_from_the_store_after_a_restart(twin_dir, tmp_path
 
 def test_a_model_asking_for_a_big_correction_is_a_fault_not_a_move(twin_dir):
     twin = Twin.load(twin_dir)
-    c = Corrector(twin, Limits(max_correction_m=1e-5))
+    c = Guard(twin, Limits(max_correction_m=1e-5))
     with pytest.raises(CorrectionFault, match="exceeds the bound"):
         c(np.array([0.9, 0.0, 0.55]), 0.5)
-    ok = Corrector(twin, Limits())
+    ok = Guard(twin, Limits())
     with pytest.raises(CorrectionFault, match="outside the workspace"):
         ok(np.array([2.5, 0.0, 0.55]), 0.5)
     with pytest.raises(CorrectionFault, match="finite"):

@@ -31,16 +31,19 @@ def stop(p: subprocess.Popen) -> None:
             p.wait(10)
 
 
-def runtime(tmp: Path, twin_dir: Path, cell: str, port: int, faulty: bool = False) -> Path:
+def runtime(tmp: Path, twin_dir: Path, cell: str, port: int, faulty: bool = False,
+            endpoint: str | None = None) -> Path:
     """A `dt run` config like test_runtime's daemon_cfg, paced (20 Hz on the wall clock: several
     daemons share two cores with the rest of the test), a client of the router on `port`; `faulty`:
-    a joint fault from the first tick (it pages within a second)."""
+    a joint fault from the first tick (it pages within a second); `endpoint`: the router's, when not
+    loopback's `port` (a cell in a network namespace: tests.support.netns)."""
     cfg = tmp / f"{cell}.yaml"
+    endpoint = endpoint or f"tcp/127.0.0.1:{port}"
     cfg.write_text(
         f"twin: {twin_dir}\nstore: {tmp / cell}.sqlite\nrate_hz: 20\nrealtime: true\n"
         f"sim: {{scenario: {CONFIGS / 'scenarios' / 'paper_default.yaml'}, cell: {CONFIGS / 'cell.yaml'},"
         f" faults: {FAULT if faulty else '[]'}}}\n"
-        f"bus: {{cell: {cell}, robot: r1, mode: client, connect: ['tcp/127.0.0.1:{port}'],"
+        f"bus: {{cell: {cell}, robot: r1, mode: client, connect: ['{endpoint}'],"
         f" republish_period_s: 0.3, health_period_s: 0.5}}\n")
     return cfg
 

@@ -135,7 +135,8 @@ def test_dt_runtime_modules_live_in_a_layer():
     ("dt_runtime.fabric.auth", "from dt_runtime.models.gp import GPRegressor"),
     ("dt_runtime.plant.history", "from dt_runtime.service.store import StoreError"),
     ("dt_runtime.twin.twin", "from dt_runtime.workflows.campaign import Instruments"),  # the twin holds the twin only
-    ("dt_runtime.twin.setpoint", "from dt_runtime.programs.path import Path"),
+    ("dt_runtime.twin.corrector", "from dt_runtime.programs.path import Path"),
+    ("dt_runtime.twin.bounds", "from dt_runtime.service.daemon import Daemon"),  # the bounds hold no daemon
     ("dt_runtime.programs.program", "from dt_runtime.workflows.demo import run_demo"),
     ("dt_runtime.fabric.queries", "from dt_runtime.programs.program import read_program"),
 ])
@@ -151,7 +152,7 @@ def test_the_checker_catches_each_kind_of_breach(module, source):
     ("dt_runtime.fabric.auth", "from dt_runtime.common import private_files\nfrom dt_kernel.errors import StoreError"),
     ("dt_runtime.service.publisher", "from dt_runtime.fabric.session import encode"),
     ("dt_runtime.workflows.demo", "from dt_runtime.programs.path import Path\nfrom dt_runtime.twin.twin import Twin"),
-    ("dt_runtime.programs.path_correct", "from dt_runtime.twin.setpoint import SetpointCorrector"),
+    ("dt_runtime.programs.path_correct", "from dt_runtime.twin.corrector import Corrector"),
     ("dt_runtime", "from dt_runtime.models.hybrid import HybridModel"),  # the facade
     ("emulators.ur.controller", "from drivers.ur import protocol as rp\nfrom sim.kinematics import TOOL_DOWN"),
     ("emulators.emulated_cell.cell", "from emulators.ur import UrEmulator\nfrom drivers.simulated.devices import SimWorld"),

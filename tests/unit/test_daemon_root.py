@@ -147,7 +147,7 @@ def test_a_stopped_pass_halts_sticky_with_its_reason():
 class _Bus:
     """What the daemon's bus does with events, recorded."""
 
-    refused, last_refused = 0, None
+    refused, last_refused, state = 0, None, "connected"
 
     def __init__(self) -> None:
         self.states: list[dict] = []

@@ -21,6 +21,15 @@ PACKAGES = (
     "dt_runtime/models",
     "dt_runtime/analysis",
     "dt_runtime/reports",
+    "dt_runtime/twin",
+    "dt_runtime/programs",
+    "dt_runtime/workflows",
+    "drivers",
+    "sim",
+    "emulators",
+    "dt_runtime/plant",
+    "dt_runtime/dashboard",
+    "dt_runtime/cli",
 )
 
 

@@ -1,10 +1,10 @@
-"""The bounded-correction rules over a whole path (service.correction.check_path_bounds): what
+"""The bounded-correction rules over a whole path (twin.bounds.check_path_bounds): what
 `dt run` refuses at start for a streamed path, set-point by set-point as `Corrector` would."""
 from __future__ import annotations
 
 import numpy as np
 
-from dt_runtime.service.correction import Limits, check_path_bounds
+from dt_runtime.twin.bounds import Limits, check_path_bounds
 
 
 def line(n: int = 50) -> np.ndarray:

@@ -220,7 +220,7 @@ def test_numbers_have_sensible_digits_and_one_u_per_place(tmp_path):
 
 def test_the_first_screen_says_whether_the_figures_may_be_trusted(tmp_path):
     from dt_runtime.models.effects import Inputs
-    from dt_runtime.twin.validity import Sample, assess
+    from dt_runtime.analysis.validity import Sample, assess
 
     res = make_result()
     a = res.arrays

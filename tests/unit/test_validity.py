@@ -1,4 +1,4 @@
-"""The validity block (dt_runtime.twin.validity): a stated uncertainty that does not cover the
+"""The validity block (dt_runtime.analysis.validity): a stated uncertainty that does not cover the
 errors is flagged with its likely cause, an honest one passes, a few targets cannot condemn it,
 and Eq. 17 passing where the coverage fails is called out. Synthetic, seeded samples: every check
 here takes milliseconds (the end-to-end flags are in test_deploy_effects.py and test_demo.py)."""
@@ -7,8 +7,8 @@ import pytest
 
 from dt_runtime.cli.demo import human
 from dt_runtime.models.effects import Inputs
-from dt_runtime.twin import validity
-from dt_runtime.twin.validity import Eq17Rates, Sample, assess
+from dt_runtime.analysis import validity
+from dt_runtime.analysis.validity import Eq17Rates, Sample, assess
 
 U = np.array([60e-6, 30e-6, 45e-6])  # m, a per-position U(TCP_c) of the quick demo's size
 

@@ -1,32 +1,21 @@
-"""One set-point corrected fast: the per-set-point correction of a path (`dt correct --path`, a
-streaming loop at a controller's 125 or 500 Hz).
+"""The one correction law: a target (m, robot frame) -> the command that reaches it, the expanded
+uncertainty (95 %) of the position it reaches (Eq. 11 there) and the calibrated-volume flag.
 
-`Twin.correct` is the reference: the fixed point c - e_hat(c, v) = target, the e_LT map's std at
-the command, Eq. 11's budget there (a labelled `Budget`, its coverage factor from scipy's t
-distribution) and the calibrated-volume flag. `SetpointCorrector.correct` computes the same
-numbers (equal to ~1e-12 m) with what can be precomputed taken out of the per-set-point work:
-
-- the plain map (GP of TCP and speed): the GP's mean at every fixed-point step, its std only at
-  the last one (`FastPredictor.mean_kernel` / `std_of`: the same operations);
-- a map with joint-space effects: the command's joints by `frames.newton_ik` warm-started from
-  the previous step's (the same solution as `Chain.ik`, a fraction of its cost); a map of
-  geometric terms (+ GP) also gets its design row on floats from the IK's frames
-  (`geometric_row`), its variance once at the last step; other effects go through the map's
-  own predictor (`MapPredictor`);
-- Eq. 11 at the position: the position-independent components summed once (u^2 and the
-  Welch-Satterthwaite terms u^4 / nu), the two position-dependent ones (lambda sigma_GP(c),
-  kappa d(c)) added per set-point, the coverage factor from the t quantile's special function
-  (`scipy.special.stdtrit`, what `stats.t.ppf` evaluates) without the labelled budget.
+Every place a command or set-point is corrected calls `Corrector.correct`: the twin's API
+(`Twin.correct`), point programs, paths (offline and streamed), the bus correction server and the
+daemon's tick (behind the bounds of `twin.bounds`). How it is computed fast: docs/streaming.md.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import special, stats
 
 from dt_runtime.frames.newton_ik import NewtonIK
+from dt_runtime.metrology.uncertainty import Budget
 from dt_runtime.twin.conditions import Conditions, command_inputs
 from dt_runtime.twin.twin import Correction, Twin
 
@@ -35,29 +24,69 @@ P95 = 0.975  # two-sided 95 % coverage: the t quantile at 0.5 + 0.95 / 2 (metrol
 
 @dataclass(frozen=True)
 class Setpoint:
-    """A corrected set-point: the command (m, robot frame), U (m, 95 %, GL axes), the volume flag,
-    the signed distance to the DOE hull (m, NaN if unknown) and the command's joints (rad, or None
-    when the map reads none): the next set-point's inverse kinematics starts there."""
+    """A corrected target.
+
+    Attributes
+    ----------
+    command : ndarray
+        (3,) m, robot frame: solves c - e_hat(c, v) = target.
+    U : ndarray
+        (3,) m, expanded uncertainty (95 %) of the position reached, per GL axis (Eq. 11 there).
+    inside : bool
+        The command lies in the calibrated volume (the DOE's hull plus its margin).
+    distance_m : float
+        Signed distance of the command to the DOE hull (m, < 0 inside; NaN for a twin without one).
+    joints : ndarray or None
+        The command's joints (rad) when the map reads them: the next set-point's IK starts there.
+    sigma : ndarray
+        (3,) m, e_LT_hat's standard uncertainty at the command (GL axes): Eq. 11's model term.
+    """
 
     command: np.ndarray
     U: np.ndarray
     inside: bool
     distance_m: float
     joints: np.ndarray | None
+    sigma: np.ndarray
 
-    def correction(self, target: np.ndarray) -> Correction:
-        """As `Twin.correct` returns it (without the labelled budget)."""
-        return Correction(np.asarray(target, dtype=float), self.command, self.U, self.inside, self.distance_m, None)
+    def correction(self, target: np.ndarray, budget: Budget | None = None) -> Correction:
+        """This set-point as `Twin.correct` returns it.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, the target that was corrected.
+        budget : Budget or None
+            The labelled Eq. 11 budget at the command (`Corrector.budget`), if wanted.
+
+        Returns
+        -------
+        Correction
+        """
+        return Correction(np.asarray(target, dtype=float), self.command, self.U, self.inside, self.distance_m, budget)
 
 
-class SetpointCorrector:
-    """`Twin.correct`'s numbers for one set-point at a time, precomputed for speed. Holds its own
-    map predictor (a thermal map's structure temperature is carried from set-point to set-point)."""
+class Corrector:
+    """The correction law of one twin, with what can be precomputed taken out of the per-target
+    work (docs/streaming.md, "One correction law").
 
-    def __init__(self, twin: Twin, iters: int = 6, tol: float = 1e-8):
-        self.twin, self.iters, self.tol = twin, iters, tol  # Twin.corrected_command's defaults
+    Parameters
+    ----------
+    twin : Twin
+        The calibrated twin.
+    iters : int
+        At most this many fixed-point steps after the first evaluation.
+    tol : float
+        The fixed point stops when the command moves by less than this (m, per axis).
+    predictor : MapPredictor or None
+        The e_LT map's per-command predictor to use (it carries a thermal map's structure
+        temperature from command to command); None: one of its own.
+    """
+
+    def __init__(self, twin: Twin, iters: int = 6, tol: float = 1e-8, predictor=None):
+        self.twin, self.iters, self.tol = twin, iters, tol
         self._Rt = twin.T_rdk.R.T  # GL axes -> robot axes
-        self._map = twin.e_lt.predictor()
+        self._map = twin.e_lt.predictor() if predictor is None else predictor
         self.needs = self._map.needs
         gp = twin.e_lt.gp_.predictor() if self._map.plain and twin.e_lt.gp_ is not None else None
         self._gp = gp if gp is not None and gp.shared else None
@@ -149,11 +178,26 @@ class SetpointCorrector:
 
     def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None,
                 warm: np.ndarray | None = None) -> Setpoint:
-        """The corrected set-point for `target` (m, robot frame) at speed v (m/s) under `cond`.
-        `warm`: the previous set-point's correction (command - target, m): the fixed point starts
-        there instead of at the target. Along a path the correction changes by micrometres between
-        set-points, so it converges in one or two evaluations of the map instead of four or five
-        (the same fixed point, to `tol`)."""
+        """The corrected set-point for a target.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`Twin.needs`).
+        warm : ndarray or None
+            The previous set-point's correction (command - target, m): the fixed point starts
+            there instead of at the target. Along a path the correction changes by micrometres
+            between set-points, so it converges in one or two evaluations of the map instead of
+            four or five (the same fixed point, to `tol`).
+
+        Returns
+        -------
+        Setpoint
+        """
         target = np.asarray(target, dtype=float)
         Rt, tol = self._Rt, self.tol
         if warm is None:
@@ -161,7 +205,7 @@ class SetpointCorrector:
             c = target + Rt @ m
         else:
             c, q = target + warm, None
-        for _ in range(self.iters):  # Twin._solve's fixed point, step for step
+        for _ in range(self.iters):  # c_{n+1} = target + e_hat(c_n): the map contracts (grad e << 1)
             m, s, q = self._lt(c, v, cond, q)
             c_new = target + Rt @ m
             done = np.abs(c_new - c).max() < tol
@@ -173,10 +217,62 @@ class SetpointCorrector:
             dist = float("nan")
         else:
             dist = float(np.max(self._normals @ c + self._offsets))
-        return Setpoint(c, self._expanded(sigma, dist), self._normals is None or dist <= self._margin, dist, q)
+        return Setpoint(c, self._expanded(sigma, dist), self._normals is None or dist <= self._margin, dist, q, sigma)
+
+    def budget(self, sp: Setpoint) -> Budget | None:
+        """The labelled Eq. 11 budget at a corrected set-point (None for a twin without one).
+
+        Parameters
+        ----------
+        sp : Setpoint
+            What `correct` returned.
+
+        Returns
+        -------
+        Budget or None
+        """
+        if self._pu is None:
+            return None
+        d = sp.distance_m
+        return self._pu.budget_at(sp.sigma, max(d if math.isfinite(d) else 0.0, 0.0))
+
+    def follow(self, times: np.ndarray, speeds: np.ndarray,
+               joints: np.ndarray | None = None) -> Callable[[np.ndarray, float], np.ndarray]:
+        """The law along a streamed path: (target m, t s) -> command m.
+
+        Parameters
+        ----------
+        times : ndarray
+            (n,) s, when each set-point of the path is meant.
+        speeds : ndarray
+            (n,) m/s, the programmed speed of each set-point.
+        joints : ndarray or None
+            Where the arm stands at the start (rad), for a map that reads joints: carried from
+            set-point to set-point after.
+
+        Returns
+        -------
+        callable
+            Each call corrects at the speed of the set-point meant for t, warm-started from the
+            previous call's correction.
+        """
+        last = len(times) - 1
+        q = None if joints is None else np.asarray(joints, dtype=float)
+        warm: np.ndarray | None = None
+
+        def correct_one(target: np.ndarray, t: float) -> np.ndarray:
+            nonlocal q, warm
+            k = min(int(np.searchsorted(times, t - 1e-9)), last)
+            r = self.correct(target, float(speeds[k]), None if q is None else Conditions(joints=q), warm)
+            if r.joints is not None:
+                q = r.joints
+            warm = r.command - target
+            return r.command
+
+        return correct_one
 
     def _expanded(self, sigma: np.ndarray, dist: float) -> np.ndarray:
-        """Eq. 11's U at the position (`PositionUncertainty.budget_at(...).expanded()`)."""
+        """Eq. 11's U at the position (`PositionUncertainty.budget_at(...).expanded()`), on floats."""
         pu = self._pu
         if pu is None:
             return self._U_global
@@ -198,7 +294,20 @@ def geometric_row(ik: NewtonIK, q: np.ndarray) -> np.ndarray:
     """The geometric effect's regressors (`models.effects.geometric.Geometric.regressors`) for one
     joint vector (3, 7 dof + 3), on floats: -J (dof columns), per joint frame -R_j (its
     translation) and [lever]x R_j (its rotation), then -R_tcp (the tool's translation); tested
-    equal (tests/unit/test_setpoint.py)."""
+    equal (tests/unit/test_setpoint.py).
+
+    Parameters
+    ----------
+    ik : NewtonIK
+        The solver of the map's chain (its forward kinematics and joint frames).
+    q : ndarray
+        (dof,) rad, the joint angles.
+
+    Returns
+    -------
+    ndarray
+        (3, 7 dof + 3): one row per robot axis.
+    """
     T, frames = ik.frames(q)
     px, py, pz = T[3], T[7], T[11]
     r0: list[float] = []

@@ -1,23 +1,10 @@
 """May the stated figures be trusted? The `validity` block of a summary (`dt demo`, `dt calibrate`):
-each check of a stated uncertainty against what was really found, its band, its status and, when
-it fails, the likely cause and what to do next, in words; the command line prints its `line`
-last, the report puts it on its first screen, and `--strict` exits 3 when its status is "fail".
+each check of a stated uncertainty against what was really found (the coverage of U(TCP_c), and
+Eq. 17 against that coverage), its band, its status and, when it fails, the likely cause and what
+to do next, in words; the command line prints its `line` last.
 
-The checks:
-- **coverage** of U(TCP_c): per axis, the fraction of positions whose error lies inside their own
-  stated 95 % expanded uncertainty (the simulator's truth in the demo; the laser tracker's
-  e_LT - e_LT_hat at a campaign's validation phase), against the band 90-99 %;
-- **Eq. 17 against the coverage** at the same positionings: a t-test that passes where U does
-  not cover the truth (or fails where it does) would mislead in service.
-
-Status of an axis, from the fraction and its 95 % Wilson interval over the distinct targets (the
-replicates of one target share its model error, so they are not independent draws):
-- "fail": the interval lies wholly below the band (the stated U is too small: established);
-- "warn": the fraction lies below the band but the interval still reaches it (too few targets to
-  tell), or the interval lies wholly above the band (U larger than the errors need);
-- "ok": otherwise (a fraction above the band whose interval still reaches it is what a finite
-  set of targets gives).
-A check's status is its worst axis'; the block's, its worst check's ("unchecked" without any).
+The checks, the status rules and the block's keys: docs/cli.md, "Validity: every figure carries
+its own".
 """
 from __future__ import annotations
 
@@ -27,7 +14,6 @@ from typing import Any
 import numpy as np
 
 from dt_kernel.units import AXES, MM_PER_M
-from dt_runtime.analysis.compare import configuration
 from dt_runtime.metrology.stats import wilson_interval
 from dt_runtime.models.effects import Inputs
 
@@ -38,6 +24,24 @@ BIAS_SHARE = 0.5  # mean^2 / (mean^2 + variance) above which the misses share a 
 UNSEEN_SHARE = 0.1  # share of positions in a joint configuration the DOE lacks that can explain misses
 DELTA_T_C = 0.5  # deg C: a temperature this far beyond the DOE's range is a changed condition
 GENERIC_CAUSE = "an effect the model does not learn from the position and speed (e.g. the direction of approach)"
+
+
+def configuration(q: np.ndarray) -> np.ndarray:
+    """The joint configuration of each row: the sign of the elbow (q3: up/down) and the wrist (q5:
+    flip) joints, as 'q3+,q5-' (empty for an arm with fewer joints).
+
+    Parameters
+    ----------
+    q : ndarray
+        (n, dof) joint angles, rad.
+
+    Returns
+    -------
+    ndarray
+        (n,) labels.
+    """
+    cols = [j for j in (2, 4) if j < q.shape[1]]
+    return np.array([",".join(f"q{j + 1}{'+' if row[j] >= 0 else '-'}" for j in cols) for row in q], dtype=object)
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,7 @@ class Sample:
     conditions: Inputs  # the commanded targets (distinct ones counted) and, where known, joints, time, temperature
     requested: int | None = None  # the number of targets asked for, when fewer were reached
     outside_hull: bool = False  # the positions lie beyond the calibrated volume (extrapolation)
+    stated: str = "U(TCP_c)"  # the stated uncertainty in words
 
 
 @dataclass(frozen=True)
@@ -63,14 +68,42 @@ class Eq17Rates:
 
 
 def distinct(points: np.ndarray, tol: float = 1e-6) -> int:
-    """The number of distinct points (to 1 um)."""
+    """The number of distinct points (to `tol`).
+
+    Parameters
+    ----------
+    points : ndarray
+        (n, 3) m.
+    tol : float
+        Points that round to the same multiple of `tol` (m; default 1 um) are one.
+
+    Returns
+    -------
+    int
+    """
     if len(points) == 0:
         return 0
     return len(np.unique(np.round(np.asarray(points, float) / tol).astype(np.int64), axis=0))
 
 
 def axis_status(p: float, n_eff: int) -> tuple[str, tuple[float, float]]:
-    """The status of a coverage fraction `p` over `n_eff` independent targets, and its interval."""
+    """The status of a coverage fraction `p` over `n_eff` independent targets, and its interval.
+
+    Parameters
+    ----------
+    p : float
+        The fraction covered, 0-1.
+    n_eff : int
+        The number of independent targets (distinct ones).
+
+    Returns
+    -------
+    status : str
+        'fail' (the interval wholly below `BAND`), 'warn' (the fraction below the band, or the
+        interval wholly above it) or 'ok'.
+    interval : tuple of float
+        The 95 % Wilson interval of the fraction.
+    """
     lo, hi = wilson_interval(p * n_eff, n_eff)
     if hi < BAND[0]:
         return "fail", (lo, hi)
@@ -88,7 +121,22 @@ def _worst(statuses) -> str:
 
 
 def coverage_check(s: Sample, ref: Inputs | None, campaign: str | None) -> dict:
-    """The coverage check of one sample: per axis fraction, interval and status, and the words."""
+    """The coverage check of one sample: per axis fraction, interval and status, and the words.
+
+    Parameters
+    ----------
+    s : Sample
+        The positions, their errors and stated U (m).
+    ref : Inputs or None
+        The DOE's conditions, to name a likely cause of a low coverage.
+    campaign : str or None
+        The campaign's manifest, for the advice.
+
+    Returns
+    -------
+    dict
+        One entry of the block's `checks` (keys in docs/cli.md, "Validity").
+    """
     inside = np.abs(s.error) <= s.U
     n = len(inside)
     n_eff = min(n, distinct(s.conditions.commanded))
@@ -112,23 +160,23 @@ def coverage_check(s: Sample, ref: Inputs | None, campaign: str | None) -> dict:
                         for ax in shown))
     band = f"the band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %"
     if status == "fail":
-        finding = f"the stated U(TCP_c) is too small: it covers {figs(low)} of {where}, below {band}{tell}"
+        finding = f"the stated {s.stated} is too small: it covers {figs(low)} of {where}, below {band}{tell}"
     elif low:
-        finding = (f"the stated U(TCP_c) may be too small: it covers {figs(low)} of {where}, below {band}, though "
+        finding = (f"the stated {s.stated} may be too small: it covers {figs(low)} of {where}, below {band}, though "
                    f"{n_eff} targets cannot establish it{tell}")
     elif high:
-        finding = (f"the stated U(TCP_c) is larger than the errors need: it covers {figs(high)} of {where}, above "
+        finding = (f"the stated {s.stated} is larger than the errors need: it covers {figs(high)} of {where}, above "
                    f"{band}{tell}")
     else:
-        finding = f"the stated U(TCP_c) covers {figs(AXES)} of {where}, within {band}"
+        finding = f"the stated {s.stated} covers {figs(AXES)} of {where}, within {band}"
         over = [ax for ax, a in axes.items() if a["coverage"] > BAND[1]]
         if over:
             finding += (f" ({', '.join(over)} above it, but within what {n_eff} targets can tell: the 95 % interval "
                         "reaches the band)")
-    short = f"U(TCP_c) covers {figs(shown, counts=False)} of {where} (band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %)"
-    out: dict[str, Any] = {"check": f"coverage_{s.key}", "what": f"coverage of U(TCP_c) at {s.what}",
-                           "truth": s.truth, "band": list(BAND), "n": n, "n_distinct": n_eff, "axes": axes,
-                           "status": status, "finding": finding, "short": short}
+    short = f"{s.stated} covers {figs(shown, counts=False)} of {where} (band {100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} %)"
+    out: dict[str, Any] = {"check": f"coverage_{s.key}", "what": f"coverage of {s.stated} at {s.what}",
+                           "stated": s.stated, "truth": s.truth, "band": list(BAND), "n": n, "n_distinct": n_eff,
+                           "axes": axes, "status": status, "finding": finding, "short": short}
     if s.requested is not None and n < s.requested:
         out["n_requested"] = s.requested
         out["finding"] += (f" ({n} of the {s.requested} positions asked for were reached: the arm could not reach "
@@ -218,7 +266,22 @@ def _duration(s: float) -> str:
 
 def eq17_check(s: Sample, cov: dict, rates: Eq17Rates) -> dict:
     """Eq. 17 on the positionings of coverage sample `s` against its coverage check `cov`: does
-    the in-service t-test say what the truth says?"""
+    the in-service t-test say what the truth says?
+
+    Parameters
+    ----------
+    s : Sample
+        The coverage sample whose positionings were tested.
+    cov : dict
+        Its coverage check (`coverage_check`).
+    rates : Eq17Rates
+        Eq. 17's outcomes at the same positionings.
+
+    Returns
+    -------
+    dict
+        The `eq17_vs_coverage` check: 'fail' on an axis where Eq. 17 and the coverage disagree.
+    """
     n = len(rates.passed)
     n_eff = min(n, cov["n_distinct"])
     axes: dict[str, dict[str, Any]] = {}
@@ -274,7 +337,26 @@ def assess(samples: list[Sample], ref: Inputs | None = None, eq17: tuple[str, Eq
     """The validity block: every coverage sample checked, Eq. 17 against the sample it names
     (`(sample key, rates)`), the status and one line. `ref`: the DOE's conditions (for the
     causes); `campaign`: the campaign's manifest, for the advice; `unchecked`: why nothing could
-    be checked, when there is no sample."""
+    be checked, when there is no sample.
+
+    Parameters
+    ----------
+    samples : list of Sample
+        The coverage samples; empty ones are skipped.
+    ref : Inputs or None
+        The DOE's conditions.
+    eq17 : tuple of (str, Eq17Rates) or None
+        The key of the sample Eq. 17 was run on, and its outcomes.
+    campaign : str or None
+        The campaign's manifest.
+    unchecked : str or None
+        Why nothing could be checked (the finding when no check is made).
+
+    Returns
+    -------
+    dict
+        The block: `status` ('ok', 'warn', 'fail' or 'unchecked'), `band`, `checks`, `line`.
+    """
     checks = []
     by_key = {}
     for s in samples:
@@ -295,9 +377,22 @@ def assess(samples: list[Sample], ref: Inputs | None = None, eq17: tuple[str, Eq
 
 def line(status: str, checks: list[dict]) -> str:
     """The command's last line: the worst check in short, its likely cause and what to do next
-    (the evidence is in the check's `finding` and `evidence`)."""
+    (the evidence is in the check's `finding` and `evidence`).
+
+    Parameters
+    ----------
+    status : str
+        The block's status ('ok', 'warn' or 'fail').
+    checks : list of dict
+        The checks (`coverage_check`, `eq17_check`), at least one with that status unless 'ok'.
+
+    Returns
+    -------
+    str
+    """
     if status == "ok":
-        return (f"validity: {SYMBOL['ok']}: the stated U(TCP_c) covers the errors within the band "
+        stated = checks[0].get("stated", "U(TCP_c)")
+        return (f"validity: {SYMBOL['ok']}: the stated {stated} covers the errors within the band "
                 f"{100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} % in every check ({len(checks)})")
     first = next(c for c in checks if c["status"] == status)
     text = f"validity: {SYMBOL[status]}: {first['short']}"

@@ -1,16 +1,12 @@
-"""The per-command path: bounded GPR correction and the Eq. 17 check of an MVS measurement.
+"""The bounds every command of a cell passes around the correction law (`twin.corrector`): a
+target or speed out of bounds, or a correction too large or changing too fast, is refused with
+CorrectionFault and the robot is not moved (docs/service.md, "Inside the daemon").
 
-A model that asks for more correction than configured (magnitude or change from the previous
-command) is a fault, never a big move: the command is refused with CorrectionFault and the
-robot is not moved. Targets outside the workspace box or speeds above the limit are refused
-before the model is consulted; a corrected command outside the workspace is refused too, and,
-when configured (`refuse_outside_volume`), one outside the calibrated volume (the DOE's hull plus
-its margin), where the error model extrapolates. Each accepted command carries the uncertainty of
-the position it reaches (Eq. 11 at that position, `Twin.correct`).
+CorrectionFault (dt_kernel.errors) is what a refusal raises: a bus client of the correction service
+raises it too without loading the twin.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -18,14 +14,10 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from dt_kernel.config import Frozen
-from dt_kernel.errors import DataError, TwinError, UnreachableError
-from dt_runtime.metrology import uncertainty as unc
+from dt_kernel.errors import CorrectionFault, DataError, UnreachableError
 from dt_runtime.twin.conditions import Conditions
+from dt_runtime.twin.corrector import Corrector
 from dt_runtime.twin.twin import Twin
-
-
-class CorrectionFault(TwinError):
-    """The correction asked for is out of bounds, or an input is invalid; nothing was moved."""
 
 
 class Limits(Frozen):
@@ -61,18 +53,47 @@ class Limits(Frozen):
 
 @dataclass(frozen=True)
 class Corrected:
+    """A command that passed the bounds.
+
+    Attributes
+    ----------
+    target, command, correction : ndarray
+        (3,) m, robot frame; correction = command - target.
+    u_tcp, U_tcp : ndarray
+        (3,) m, standard and expanded (95 %) uncertainty of the position reached (Eq. 11 there),
+        per GL axis; NaN for a target sent uncorrected.
+    inside : bool
+        The command lies in the calibrated volume.
+    distance_m : float
+        Signed distance of the command to the DOE hull (m, < 0 inside), NaN if unknown.
+    """
+
     target: np.ndarray
     command: np.ndarray
-    correction: np.ndarray  # command - target (robot frame, m)
-    u_tcp: np.ndarray  # standard uncertainty of the corrected TCP (Eq. 11 at this position), m
-    U_tcp: np.ndarray  # expanded, 95 %
-    inside: bool = True  # the command lies in the calibrated volume
-    distance_m: float = float("nan")  # signed distance of the command to the DOE hull (< 0 inside)
+    correction: np.ndarray
+    u_tcp: np.ndarray
+    U_tcp: np.ndarray
+    inside: bool = True
+    distance_m: float = float("nan")
 
 
-class Corrector:
-    def __init__(self, twin: Twin, limits: Limits):
+class Guard:
+    """The twin's correction law (`Corrector`) behind a cell's bounds: the target and speed checked
+    before, the command, its size and its change from the previous command after.
+
+    Parameters
+    ----------
+    twin : Twin
+        The calibrated twin; its own corrector is used unless `corrector` is given.
+    limits : Limits
+        The cell's bounds.
+    corrector : Corrector or None
+        The law to guard (a server or loop that keeps its own state); None: `twin.corrector`.
+    """
+
+    def __init__(self, twin: Twin, limits: Limits, corrector: Corrector | None = None):
         self.twin, self.limits = twin, limits
+        self.corrector = twin.corrector if corrector is None else corrector
         self._lo, self._hi = np.array(limits.workspace_min_m), np.array(limits.workspace_max_m)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         b = twin.uncertainty.tcp_c  # Eq. 11
@@ -92,18 +113,48 @@ class Corrector:
     def uncorrected(self, target: np.ndarray, speed: float) -> Corrected:
         """The target commanded as is (the twin's correction is not trusted): the same checks of
         target and speed; no uncertainty is claimed (NaN). The next corrected command starts a
-        new step sequence."""
+        new step sequence.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        speed : float
+            m/s.
+
+        Returns
+        -------
+        Corrected
+        """
         target = self._check_target(target, speed)
         self._last = None
         nan = np.full(3, np.nan)
         return Corrected(target, target.copy(), np.zeros(3), nan, nan, True, float("nan"))
 
     def __call__(self, target: np.ndarray, speed: float, cond: Conditions | None = None) -> Corrected:
-        """The bounded correction of `target` at `speed` under the cell's conditions `cond` (what
-        the twin's maps read beside the command: `Twin.needs`); CorrectionFault if refused."""
+        """The bounded correction of a target.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        speed : float
+            m/s.
+        cond : Conditions or None
+            The cell's conditions (what the twin's maps read beside the command: `Twin.needs`).
+
+        Returns
+        -------
+        Corrected
+
+        Raises
+        ------
+        CorrectionFault
+            The target, speed or correction is out of bounds, or the map gives none.
+        """
         target = self._check_target(target, speed)
         try:
-            res = self.twin.correct(target, speed, cond)
+            res = self.corrector.correct(target, speed, cond)
         except (DataError, UnreachableError, FloatingPointError, np.linalg.LinAlgError) as exc:
             # a condition missing, no IK, a NaN map: refused, never a crash of the loop
             raise CorrectionFault(f"no correction for target {np.round(target * 1e3, 1).tolist()} mm: {exc}") from exc
@@ -129,9 +180,10 @@ class Corrector:
             if why:
                 raise CorrectionFault(why)
         self._last = (target, corr)
-        if res.budget is None:  # an older twin: the global Eq. 11 figures
+        budget = self.corrector.budget(res)
+        if budget is None:  # an older twin: the global Eq. 11 figures
             return Corrected(target, c, corr, self._u, self._U, res.inside, res.distance_m)
-        return Corrected(target, c, corr, res.budget.combined(), res.U, res.inside, res.distance_m)
+        return Corrected(target, c, corr, budget.combined(), res.U, res.inside, res.distance_m)
 
 
 def _step_fault(limits: Limits, step: float, travel: float) -> str:
@@ -144,8 +196,20 @@ def _step_fault(limits: Limits, step: float, travel: float) -> str:
 
 
 def check_path_bounds(limits: Limits, targets: np.ndarray, commands: np.ndarray) -> str:
-    """The bounded-correction rules of `Corrector` over a whole path's set-points (n, 3) m and
-    their commands: why the first one that breaks them would be refused, or ''."""
+    """The rules of `Guard` over a whole path's set-points: why the first one that breaks them
+    would be refused, or ''.
+
+    Parameters
+    ----------
+    limits : Limits
+        The cell's bounds.
+    targets, commands : ndarray
+        (n, 3) m, the set-points and their corrected commands.
+
+    Returns
+    -------
+    str
+    """
     lo, hi = np.array(limits.workspace_min_m), np.array(limits.workspace_max_m)
     corr = commands - targets
     for k in range(len(targets)):
@@ -165,56 +229,3 @@ def check_path_bounds(limits: Limits, targets: np.ndarray, commands: np.ndarray)
             if why:
                 return f"set-point {k + 1}: {why}"
     return ""
-
-
-@dataclass(frozen=True)
-class Check:
-    t: np.ndarray  # (3,) Eq. 17
-    p_value: np.ndarray
-    passed: bool
-    diff: np.ndarray  # e_LT_hat - e_MVS, GL, m
-    predicted: np.ndarray  # e_MVS-LT_hat, GL, m
-
-
-class Monitor:
-    """Eq. 17 for one MVS measurement of a commanded position, against the twin's prediction."""
-
-    def __init__(self, twin: Twin, alpha: float = 0.05):
-        self.twin, self.alpha = twin, alpha
-        b14, b16 = twin.uncertainty.e_lt_hat_minus_e_mvs, twin.uncertainty.e_mvs_lt_hat  # Eqs. 14, 16
-        self._t_test = unc.TTestPlan.of(b14.u, b16.u, b14.dof, b16.dof, alpha)  # the same budgets every reading
-
-    @property
-    def t_crit(self) -> np.ndarray:
-        """The critical |t| per axis (two-sided at alpha, Welch-Satterthwaite dof): a reading
-        passes Eq. 17 on an axis when its |t| is at most this."""
-        return self._t_test.t_crit
-
-    @property
-    def u(self) -> np.ndarray:
-        """Eq. 17's combined standard uncertainty per axis, sqrt(u^2(diff) + u^2(pred)), m."""
-        return self._t_test.u
-
-    def __call__(self, command: np.ndarray, speed: float, p_mvs: np.ndarray, cond: Conditions | None = None,
-                 u_extra: np.ndarray | None = None) -> Check:
-        """Eq. 17 of `p_mvs` (MVS frame) against the arm at `command`; `u_extra` (per axis, m) adds
-        a Type B component to the denominator (a moving arm's timing term, metrology.timing), the
-        degrees of freedom kept (an infinite-dof term only raises them: the test stays conservative)."""
-        p_mvs = np.asarray(p_mvs, dtype=float)
-        if p_mvs.shape != (3,) or not np.all(np.isfinite(p_mvs)):
-            raise CorrectionFault(f"MVS point {p_mvs!r} is not a finite 3-vector")
-        tw = self.twin
-        cmd_gl = tw.T_rdk.apply(command)
-        e_mvs = cmd_gl - tw.T_mvs.apply(p_mvs)
-        try:
-            e_lt_hat = tw.T_rdk.R @ tw.e_lt_hat(command, speed, cond)[0]  # back to GL axes
-            pred = tw.e_mvs_lt_hat(command, speed, cond)[0]
-        except (DataError, UnreachableError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            raise CorrectionFault(f"no prediction at command {np.round(command * 1e3, 1).tolist()} mm: {exc}") from exc
-        if not (np.all(np.isfinite(e_lt_hat)) and np.all(np.isfinite(pred))):
-            raise CorrectionFault(f"the error model predicts NaN at command {np.round(command * 1e3, 1).tolist()} mm")
-        plan = self._t_test
-        if u_extra is not None and np.any(u_extra):
-            plan = dataclasses.replace(plan, u=np.sqrt(plan.u ** 2 + np.asarray(u_extra, dtype=float) ** 2))
-        tt = plan(e_lt_hat - e_mvs, pred)
-        return Check(tt.t[0], tt.p_value[0], bool(tt.passed_all[0]), e_lt_hat - e_mvs, pred)

@@ -1,0 +1,195 @@
+"""A model deployed to a new session: the session's registration refitted on a few reference poses
+with the model's correction applied, its uncertainty carried into Eq. 17, and every other row
+scored after it (docs/campaigns.md, "Deploying to a new session").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from dt_kernel.errors import DataError
+from dt_runtime.frames.registration import RigidUncertainty, rigid_uncertainty
+from dt_runtime.measurements.dataset import Dataset
+from dt_runtime.models.effects import as_inputs
+from dt_runtime.models.hybrid import Design, HybridModel
+
+DEFAULT_REFERENCE = 10  # reference poses per session: a few minutes of a tracker at the start of a day
+MIN_TEST = 5  # rows left after the reference poses, else the session is not scored after registration
+ABSOLUTE_T_S = 1e9  # s: a time this large is Unix time (after 2001-09-09): absolute, comparable across files
+S_PER_H = 3600.0
+
+
+@dataclass(frozen=True)
+class Registered:
+    """One session registered on its reference poses.
+
+    Attributes
+    ----------
+    reference : ndarray
+        (n,) bool: the rows of the reference poses (the registration saw them; not scored).
+    fit : RigidUncertainty
+        The refitted registration (measured -> commanded minus the predicted error) and its covariance.
+    residual : ndarray
+        (n, 3) m: every row's residual after the registration, e - e_hat.
+    u : ndarray
+        (n, 3) m: the registration's standard uncertainty at each row.
+    """
+
+    reference: np.ndarray
+    fit: RigidUncertainty
+    residual: np.ndarray
+    u: np.ndarray
+
+    @property
+    def test(self) -> np.ndarray:
+        """(n,) bool: the rows scored (not used by the registration)."""
+        return ~self.reference
+
+
+def reference_rows(points: np.ndarray, k: int) -> np.ndarray:
+    """The rows of k reference poses spread over the session's points: farthest-point sampling over
+    the distinct commanded points (to 1 um), from the one farthest from their centroid; every
+    replicate row of a chosen point is a reference row.
+
+    Parameters
+    ----------
+    points : ndarray
+        (n, 3) commanded points, m.
+    k : int
+        Reference poses wanted (at least 3).
+
+    Returns
+    -------
+    ndarray
+        (n,) bool.
+
+    Raises
+    ------
+    DataError
+        Fewer than k + MIN_TEST distinct points, or k < 3.
+    """
+    if k < 3:
+        raise DataError(f"--reference {k}: a registration needs at least 3 reference poses")
+    P = np.asarray(points, dtype=float)
+    keys, inverse = np.unique(np.round(P / 1e-6).astype(np.int64), axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    if len(keys) < k + MIN_TEST:
+        raise DataError(f"{len(keys)} distinct points: {k} reference poses leave fewer than {MIN_TEST} to score "
+                        "the registration on")
+    U = keys * 1e-6
+    chosen = [int(np.argmax(np.sum((U - U.mean(axis=0)) ** 2, axis=1)))]
+    d = np.sum((U - U[chosen[0]]) ** 2, axis=1)
+    while len(chosen) < k:
+        nxt = int(np.argmax(d))
+        chosen.append(nxt)
+        d = np.minimum(d, np.sum((U - U[nxt]) ** 2, axis=1))
+    return np.isin(inverse, chosen)
+
+
+def register(measured: np.ndarray, residual: np.ndarray, reference: np.ndarray) -> Registered:
+    """The session's registration refitted on its reference rows against the commanded points
+    minus the model's prediction (as `reregister.reregistered` on all rows), applied to every row.
+
+    Parameters
+    ----------
+    measured : ndarray
+        (n, 3) measured points in the data's frame, m.
+    residual : ndarray
+        (n, 3) the model's residual e - e_hat under the data's own registration, m.
+    reference : ndarray
+        (n,) bool, the reference rows (`reference_rows`).
+
+    Returns
+    -------
+    Registered
+    """
+    m = np.asarray(measured, dtype=float)
+    target = m + np.asarray(residual, dtype=float)  # c - e_hat
+    ref = np.asarray(reference, dtype=bool)
+    fit = rigid_uncertainty(m[ref], target[ref])
+    return Registered(ref, fit, target - fit.T.apply(m), fit.at(m))
+
+
+def combined_dof(u_a: np.ndarray, dof_a, u_b: np.ndarray, dof_b: float) -> np.ndarray:
+    """Welch-Satterthwaite degrees of freedom of sqrt(u_a^2 + u_b^2), elementwise.
+
+    Parameters
+    ----------
+    u_a : ndarray
+        Standard uncertainties, m.
+    dof_a : ndarray or float
+        Their degrees of freedom (inf allowed).
+    u_b : ndarray
+        The other component, m.
+    dof_b : float
+        Its degrees of freedom.
+
+    Returns
+    -------
+    ndarray
+    """
+    a2, b2 = np.asarray(u_a, dtype=float) ** 2, np.asarray(u_b, dtype=float) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = a2 ** 2 / np.asarray(dof_a, dtype=float) + b2 ** 2 / float(dof_b)
+        nu = np.where(den > 0, (a2 + b2) ** 2 / den, np.inf)
+    return np.maximum(nu, 1.0)
+
+
+def time_terms(m: HybridModel, ds: Dataset, new: np.ndarray) -> tuple[Design | None, dict | None]:
+    """How a map's time terms (`HybridModel.time_effects`: a drift) are evaluated on the rows of
+    sessions it was not trained on (`new`).
+
+    With absolute time in both the training data (the model's time origin) and these rows (t of at
+    least ABSOLUTE_T_S: Unix time), the terms are evaluated at that time; rows beyond the training's
+    time are extrapolations, counted (their stated u grows with the term's covariance). Without it,
+    a time term is a nuisance of the session it was found in: it is not applied to the new rows
+    (their `t` counts from another origin, and a term evaluated there would claim a drift no clock
+    measured).
+
+    Parameters
+    ----------
+    m : HybridModel
+        The fitted map.
+    ds : Dataset
+        The data compared.
+    new : ndarray
+        (n,) bool, the rows of sessions the map was not trained on.
+
+    Returns
+    -------
+    design : Design or None
+        The regressors to predict with (the time terms zeroed on the new rows), or None: as is.
+    note : dict or None
+        What was done, in words (`text`) and figures; None when the map has no time term or no
+        row is new.
+    """
+    effects = m.time_effects()
+    new = np.asarray(new, dtype=bool)
+    if not effects or not new.any():
+        return None, None
+    t0 = getattr(m, "t_origin_", None)
+    t_new = None if ds.t is None else ds.t[new]
+    names = ", ".join(effects)
+    if t0 is not None and t0 >= ABSOLUTE_T_S and t_new is not None and np.nanmin(t_new) >= ABSOLUTE_T_S:
+        hi = (getattr(m, "domain_", None) or {}).get("t", [None, None])[1]
+        beyond = 0 if hi is None else int(np.sum(t_new > hi))
+        ahead_h = 0.0 if hi is None or not beyond else float((np.nanmax(t_new) - hi) / S_PER_H)
+        text = (f"time term(s) {names} evaluated at the rows' absolute time"
+                + (f"; {beyond} of {int(new.sum())} new rows lie up to {ahead_h:.1f} h beyond the training's "
+                   "time: extrapolated (their u_model grows with the term's covariance)" if beyond else ""))
+        return None, {"effects": list(effects), "applied": "absolute time", "rows": int(new.sum()),
+                      "rows_beyond_training": beyond, "hours_beyond_training": ahead_h, "text": text}
+    inp = as_inputs(ds)
+    if inp.t is None:  # the terms' columns are zeroed below; any time builds them
+        inp = replace(inp, t=np.zeros(inp.n))
+    D = m.design_matrix(inp)
+    cols = np.flatnonzero([e in effects for e, _, _, _ in D.params])
+    A = D.A.copy()
+    A[np.ix_(np.flatnonzero(new), np.arange(3), cols)] = 0.0
+    why = "carry no time" if ds.t is None else "carry no absolute time (t below 1e9 s: not Unix time)"
+    text = (f"time term(s) {names} fitted within the training session are not applied to the {int(new.sum())} rows "
+            f"of other sessions: they {why}, so a drift there is that session's own (give t as Unix time in both "
+            "files to carry it across)")
+    return replace(D, A=A), {"effects": list(effects), "applied": "not applied: a nuisance of the training session",
+                            "rows": int(new.sum()), "text": text}
