@@ -58,7 +58,7 @@ def soak(hours: float, fault_hours: float = 2.0, twin: Path | None = None) -> di
             d = Daemon(_cfg(twin, tmp, name, [{"at_s": FAULT_AT_S, **f}]), CONFIGS)
             try:
                 d.run(duration_s=FAULT_AT_S + fault_hours * 3600)
-                req = [r for r in d.requests if r["t"] >= FAULT_AT_S]
+                req = [r for r in d.paging.requests if r["t"] >= FAULT_AT_S]
                 delays[name] = round(req[0]["t"] - FAULT_AT_S, 1) if req else None
             finally:
                 d.close()

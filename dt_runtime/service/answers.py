@@ -4,7 +4,7 @@
   state and episode, ticks and the last tick (epoch s), Eq. 17 failures, open requests (not
   acknowledged) and the oldest one's creation time, the twin (twin.json's SHA-256, short) and
   when it was calibrated, the process id and the time of the answer.
-- `health`: what `.../health` carries (`Daemon.health()`).
+- `health`: what `.../health` carries (`service.health`).
 - `requests`: the open requests (outbox entries not acknowledged: id, uid, group, kind, episode,
   created, attempts, reason) and the latest ones, acknowledged or not (`Store.requests`).
 - `tests`: the latest Eq. 17 tests, newest first (t, t_value, dof, p_value, passed).
@@ -12,28 +12,58 @@
   calibrated (the provenance record's `created`), by which software, from which campaign files
   (paths and SHA-256), on which robot and with which instruments.
 
-Answers run on the query worker's thread (never zenoh's): they may read the store.
+Answers read a `StatusView` (the daemon gives `service.health.CellStatus`), never the daemon;
+they run on the query worker's thread (never zenoh's) and may read the store.
 """
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from dt_runtime.common.provenance import sha256_file
+from dt_runtime.service.store import OutboxItem
 
 
-def answers(daemon: Any, twin_dir: Path) -> dict[str, Callable[[], dict[str, Any]]]:
-    """The answers of `daemon` (a service.daemon.Daemon) whose twin lives in `twin_dir`."""
-    twin = _twin_identity(daemon.twin, twin_dir)  # read once: the daemon runs one twin
+class StatusView(Protocol):
+    """What the answers read of a running daemon, and nothing more."""
+
+    def health(self) -> dict[str, Any]: ...
+
+    def open_requests(self) -> list[OutboxItem]: ...
+
+    def latest_requests(self, limit: int) -> list[dict[str, Any]]: ...
+
+    def latest_tests(self, limit: int) -> list[dict[str, Any]]: ...
+
+    def t_test_failures(self) -> int: ...
+
+    def escalation(self) -> str: ...
+
+
+def answers(view: StatusView, twin: dict[str, Any]) -> dict[str, Callable[[], dict[str, Any]]]:
+    """The answers of one daemon.
+
+    Parameters
+    ----------
+    view : StatusView
+        The daemon's status (health, requests, tests).
+    twin : dict
+        The twin it runs (`twin_identity`: read once, the daemon runs one twin).
+
+    Returns
+    -------
+    dict
+        The answer of each query kind: a function of nothing that returns a JSON-able dict.
+    """
 
     def status() -> dict[str, Any]:
-        h = daemon.health()
-        pending = daemon.store.outbox_pending()
+        h = view.health()
+        pending = view.open_requests()
         return {"status": h["status"], "reason": h["reason"], "escalation": h["escalation"],
                 "episode": h["episode"], "ticks": h["ticks"], "last_tick": h["last_tick"],
-                "t_test_failures": daemon.counters.failures, "open_requests": len(pending),
+                "t_test_failures": view.t_test_failures(), "open_requests": len(pending),
                 "oldest_open_created": min((i.created for i in pending), default=None),
                 "twin_sha256": twin["twin_sha256"][:12], "calibrated": twin["calibrated"],
                 "pid": h["pid"], "t": time.time()}
@@ -41,17 +71,32 @@ def answers(daemon: Any, twin_dir: Path) -> dict[str, Callable[[], dict[str, Any
     def requests() -> dict[str, Any]:
         return {"open": [{"id": i.id, "created": i.created, "attempts": i.attempts,
                           **{k: i.payload.get(k) for k in ("uid", "group", "kind", "episode", "reason")}}
-                         for i in daemon.store.outbox_pending()],
-                "latest": daemon.store.requests(limit=10), "escalation": daemon.escalator.state,
+                         for i in view.open_requests()],
+                "latest": view.latest_requests(10), "escalation": view.escalation(),
                 "t": time.time()}
 
-    return {"status": status, "health": daemon.health,
+    return {"status": status, "health": view.health,
             "requests": requests,
-            "tests": lambda: {"tests": daemon.store.last_t_tests(10), "t": time.time()},
+            "tests": lambda: {"tests": view.latest_tests(10), "t": time.time()},
             "provenance": lambda: dict(twin)}
 
 
-def _twin_identity(twin: Any, twin_dir: Path) -> dict[str, Any]:
+def twin_identity(twin: Any, twin_dir: Path) -> dict[str, Any]:
+    """The twin in `twin_dir` as the `provenance` answer gives it (twin.json hashed once).
+
+    Parameters
+    ----------
+    twin : Twin
+        The loaded twin.
+    twin_dir : Path
+        Its directory.
+
+    Returns
+    -------
+    dict
+        Directory, twin.json's SHA-256, calibration time, software, campaign files, robot,
+        instruments, and the drivers it was calibrated with.
+    """
     meta = twin_dir / "twin.json"
     prov = twin.provenance
     rec = prov.to_dict() if prov is not None else None

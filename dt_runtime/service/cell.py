@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -100,9 +100,8 @@ class SimCell(Cell):
         return {"true_rms_mm": round(float(np.sqrt(np.mean(self._true_sq))) * 1e3, 5), "true_n": len(self._true_sq)}
 
 
-def open_cell(cfg: RuntimeConfig, base: Path, source: str, world, twin: Twin,
-              closers: list[Callable[[], Any]]) -> Cell:
-    """The cell of the config's drivers, activated; what it opens is appended to `closers`. A
+def open_cell(cfg: RuntimeConfig, base: Path, source: str, world, twin: Twin, parts: ExitStack) -> Cell:
+    """The cell of the config's drivers, activated; what it opens is registered on `parts`. A
     simulated driver runs on `world` (the caller's, left open) or on one built from `sim`."""
     def p(rel: str) -> Path:
         return Path(rel) if Path(rel).is_absolute() else base / rel
@@ -112,11 +111,11 @@ def open_cell(cfg: RuntimeConfig, base: Path, source: str, world, twin: Twin,
 
         scenario, _ = load_scenario_file(p(cfg.sim.scenario))  # without dt simulate's `data:` block
         world = SimWorld(scenario, p(cfg.sim.cell), source=str(p(cfg.sim.scenario)))
-        closers.append(world.close)
+        parts.callback(world.close)
     robot, tracker, camera = cfg.drivers.create(world, source)
     inst = Instruments(robot, tracker, camera, world=world,
                        max_speed=world.max_speed() if world else cfg.limits.max_speed_m_s)
-    closers.append(inst.close)
+    parts.callback(inst.close)
     inst.activate()
     if world is None:
         return Cell(inst)

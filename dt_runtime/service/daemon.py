@@ -12,11 +12,16 @@ its truth and fault injection too) is built by `open_cell`, every driver by
 `drivers.registry.create` from `drivers.<kind>` (`kind` and the driver's options, checked before
 anything opens), the same way whatever their name.
 
-Module layout: this module holds the loop (`Daemon.tick`, `Daemon.run`), start and stop, and
-what it reports; `targets` the target sources; `cell` the cell; `paging` the escalation's
-records, maintenance requests and operator actions; `counters` the one set of counters that
-`.../health`, the summary and the status line read; `housekeeping` the thread that is never the
-loop.
+Module layout: this module is the composition root: `Daemon._start` builds every part in one place
+and registers what it opens on one `Parts` stack (closed newest first by `close()`, and when the
+start fails half way); it holds the two loops (`Daemon.tick`: target -> correct -> move -> read ->
+test -> record; `Daemon._run_path`), pacing, start and stop. The parts: `preflight` the checks
+before anything opens; `targets` the target sources; `cell` the cell; `supervisor` the halt /
+trust / camera policy both loops ask; `paging` the escalation's records, maintenance requests and
+operator actions; `events` the typed events (a recorded transition, a request queued, health due)
+its parts subscribe to; `health` the `.../health` reporter and the status view the queries
+(`answers`) read; `counters` the one set of counters that `.../health`, the summary and the status
+line read; `housekeeping` the thread that is never the loop.
 
 Measurements and clocks. Every reading carries the device's time stamp (`t`) and the host's
 monotonic receive time (`host_time`, drivers.base). The MVS reading tested against a command is
@@ -24,20 +29,21 @@ one received after the command arrived (the move returned) or at most `max_measu
 before it; an older one saw the arm elsewhere and is refused, counted (`stale_measurements` in
 the summary and on `.../health`), and not tested.
 
-Escalation and paging (`service.paging`). Every transition of the machine is one store
-transaction with its snapshot and, on entering `maintenance_requested` or `halted`, that
-episode's maintenance requests; only then is it published and the bus woken to deliver the
-requests. At start-up a paging state without requests gets them, and the escalation statistics
-resume from the store (staged with every batch of rows).
+Escalation and paging (`service.paging`). Every transition of the machine is one store transaction
+with its snapshot and, on entering `maintenance_requested` or `halted`, that episode's maintenance
+requests; only then is it emitted (`service.events.Transition`): the bus publishes it and delivers
+the requests, the health reporter marks `.../health` due. At start-up a paging state without
+requests gets them, and the escalation statistics resume from the store (staged with every batch
+of rows).
 
-Halts. Every command refused for `halt.after_refused` ticks, `halt.after_driver_faults` driver
-faults in a row, no MVS reading tested for `halt.after_camera_refused_s` (refused by the camera
-driver, too old, or rejected), or `out_of_control` under `halt.on_untrusted: halt`, put the
-machine in `halted` with the reason: stored, paged and published on `.../health`; the first two
-resume by themselves when a command goes through again; a camera halt stops the arm (it would
-move unmonitored), reads the camera once a tick and resumes at the first accepted reading. In
-`out_of_control` and `maintenance_requested` the correction is not trusted: by default the
-daemon commands the targets uncorrected.
+Halts (`service.supervisor`). Every command refused for `halt.after_refused` ticks,
+`halt.after_driver_faults` driver faults in a row, no MVS reading tested for
+`halt.after_camera_refused_s` (refused by the camera driver, too old, or rejected), or
+`out_of_control` under `halt.on_untrusted: halt`, put the machine in `halted` with the reason:
+stored, paged and published on `.../health`; the first two resume by themselves when a command
+goes through again; a camera halt stops the arm (it would move unmonitored), reads the camera once
+a tick and resumes at the first accepted reading. In `out_of_control` and `maintenance_requested`
+the correction is not trusted: by default the daemon commands the targets uncorrected.
 
 Operator. `dt ack` (or a signed `.../maintenance/done/<id>` on the bus) stores an operator
 action; the housekeeping thread picks it up and the loop applies it (`service.paging`).
@@ -66,26 +72,37 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from drivers import registry
-from drivers.base import read_exposed_after
-from dt_kernel.errors import ConfigError, DriverError, TwinError
+from drivers.base import RigReading, read_exposed_after
+from dt_kernel.errors import DriverError, TwinError
 from dt_runtime.fabric.queries import QueryServer
 from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
-from dt_runtime.service.answers import answers
+from dt_runtime.service.answers import answers, twin_identity
 from dt_runtime.service.cell import Cell, open_cell
 from dt_runtime.service.correction_server import CorrectionServer
 from dt_runtime.service.counters import Counters
+from dt_runtime.service.events import ActionQueued, Events, HealthDue, RequestsQueued, Transition
+from dt_runtime.service.health import CellStatus, HealthReporter, StatusLine
 from dt_runtime.service.housekeeping import Housekeeper
 from dt_runtime.service.paging import Paging
-from dt_runtime.service.path_run import PathStreamer, check_streaming_robot, plan_path
+from dt_runtime.service.path_run import (
+    PassHooks,
+    PathPlan,
+    PathStreamer,
+    StreamCell,
+    StreamState,
+    check_streaming_robot,
+    plan_path,
+)
+from dt_runtime.service.preflight import check_camera, check_condition_sources, check_model
 from dt_runtime.service.publisher import Bus
-from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow, shown_time
+from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,
     Fault,
@@ -97,67 +114,81 @@ from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the
     load_runtime_config,
 )
 from dt_runtime.service.store import Store, StoreError
+from dt_runtime.service.supervisor import Step, Supervisor
 from dt_runtime.service.targets import probe_point, targets_for
 from dt_runtime.twin.bounds import Corrected, CorrectionFault, Guard
 from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.corrector import Corrector
-from dt_runtime.twin.monitor import Monitor
+from dt_runtime.twin.monitor import Check, Monitor
 from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
 PACED_SWITCH_INTERVAL_S = 2e-4  # the GIL's switch interval while the loop is paced (`run`)
 
 
+class Parts(ExitStack):
+    """What the daemon opened, closed newest first by `close()`; a close that fails is logged and
+    the others are still closed (each bounded by its own time-out)."""
+
+    def callback(self, close: Callable[..., Any], /, *args: Any, **kwds: Any) -> Callable[..., Any]:
+        """Register `close(*args, **kwds)`, called when the stack closes (best effort)."""
+        return super().callback(_close_quietly, close, *args, **kwds)
+
+
+def _close_quietly(close: Callable[..., Any], *args: Any, **kwds: Any) -> None:
+    try:
+        close(*args, **kwds)
+    except Exception as exc:  # noqa: BLE001 - closing is best effort, keep closing the rest
+        log.warning("while closing after a failed start: %s", exc)
+
+
 class Daemon:
+    """The twin daemon of one cell (module docstring): built whole or not at all, then `run`,
+    `stop`, `close`."""
+
     def __init__(self, cfg: RuntimeConfig, base: Path, world=None, source: str = "<runtime config>",
                  status_every_s: float | None = None):
         self.cfg, self.base, self.source = cfg, base, source  # source: names the runtime YAML in errors
         self.status_every_s = status_every_s  # the operator's status line on stderr (`status_line`), or None
-        self._closers: list[Callable[[], Any]] = []  # what is open, closed in reverse on failure
+        self._parts = Parts()  # what is open, closed in reverse by `close()` or a failed start
         try:
             self._start(world)
         except BaseException:
-            self._close_opened()
+            self._parts.close()
             raise
 
     def _start(self, world) -> None:
-        cfg = self.cfg
+        """Every part built here, in order; each one that opens something is registered on
+        `self._parts` as soon as it is open."""
+        cfg, parts = self.cfg, self._parts
         cfg.drivers.check(self.source)  # an unknown driver or a bad option: nothing is opened yet
-        self.twin = Twin.load(self._p(cfg.twin))
-        trained = self.twin.instruments.get("camera")
-        if trained and trained != cfg.drivers.camera.kind:
-            raise ConfigError(str(self._p(cfg.twin) / "twin.json"), "instruments.camera", trained,
-                              f"the daemon's camera driver '{cfg.drivers.camera.kind}': a twin is valid only "
-                              "with the instruments (and frames) it was calibrated with")
+        twin_dir = self._p(cfg.twin)
+        self.twin = Twin.load(twin_dir)
+        check_camera(self.twin, twin_dir, cfg.drivers.camera.kind)
         # Read before anything is opened: a bad program stops the start with nothing to close.
         file = self._p(cfg.path.program) if cfg.path.program is not None else None
         self._program = read_program(file) if file is not None and cfg.path.kind == "program" else None
-        self._plan = None
+        self._plan: PathPlan | None = None
         if file is not None and cfg.path.kind == "path":
             check_streaming_robot(cfg.drivers.robot.kind, self.source)
             self._plan = plan_path(self.twin, file, cfg.rate_hz, cfg.limits, self.source)
-        self._check_condition_sources()
-        self._check_model()
+        check_condition_sources(self.twin, twin_dir, cfg.drivers, self._program)
+        check_model(self.twin, twin_dir, self._plan.sp.p[0] if self._plan is not None
+                    else probe_point(cfg.path, self._program), 0.5 * cfg.limits.max_speed_m_s)
         self.corrector = Guard(self.twin, cfg.limits)
         self.monitor = Monitor(self.twin, cfg.alpha)
         self.counters = Counters()
+        self.events = Events()
         self._stop = threading.Event()
         # High-rate rows leave the loop through the Store's lock-free queue; its writer thread
         # commits them every 50 ms, so the loop never waits on a lock or an fsync.
         self.store = Store(self._p(cfg.store), batch_ms=50.0, background=True, exclusive=True)
-        self._closers.append(self.store.close)
-        self.paging = Paging(cfg.escalation, cfg.bus, self.store, on_change=lambda: self._publish_health(force=True))
+        parts.callback(self.store.close)
+        stream = StreamState(self._plan.n, str(self._plan.file)) if self._plan is not None else None
+        self.paging = Paging(cfg.escalation, cfg.bus, self.store, self.events,
+                             resume_extra=(lambda: {"path": stream.to_dict()}) if stream is not None else dict)
         self.escalator = self.paging.escalator
-        self.housekeeper = Housekeeper(
-            self._stop, take_actions=self.paging.take_actions, send_health=self._send_health, prune=self.prune,
-            status_line=self.status_line, last_tick_mono=lambda: self.counters.last_tick_mono,
-            health_period_s=cfg.bus.health_period_s, prune_every_s=cfg.retention.every_s,
-            status_every_s=self.status_every_s)
-        self.bus = (Bus(cfg.bus, self.store, on_ack=self.paging.on_ack,
-                        on_done=lambda _id: self.housekeeper.poll_now.set()) if cfg.publish else None)
-        if self.bus:
-            self._closers.append(self.bus.close)
-        self.paging.bus = self.bus
+        self.bus = self._open_bus()
         # The cell's program may ask for corrections on `.../correct` (its own Guard and corrector:
         # the step bound follows the program's requests, and zenoh's thread shares no state with the tick).
         self._cond: Conditions | None = None  # the cell's latest conditions (the correct service reads them)
@@ -165,73 +196,58 @@ class Daemon:
         if self.bus:
             served = Guard(self.twin, cfg.limits, Corrector(self.twin))
             self.bus.serve(lambda s: CorrectionServer(served, cfg.bus, s, conditions=lambda: self._cond))
-        self.cell: Cell = open_cell(cfg, self.base, self.source, world, self.twin, self._closers)
+        self.cell: Cell = open_cell(cfg, self.base, self.source, world, self.twin, parts)
         self.world, self.inst = self.cell.world, self.cell.inst
+        self.supervisor = Supervisor(cfg.halt, cfg.max_measurement_age_s, self.escalator, self.counters, self._now,
+                                     self._stop, streaming=stream is not None,
+                                     store_failing=lambda: bool(self.store.write_errors_in_row))
         self.targets = None if self._plan else targets_for(cfg.path, self._program, self.inst.max_speed, cfg.rate_hz)
-        self.path: PathStreamer | None = None
-        if self._plan is not None:
-            self.path = PathStreamer(self._plan, cfg.stream, cfg.rate_hz, self.twin, self._p(cfg.twin), self.inst,
-                                     (cfg.drivers.robot.kind, dict(cfg.drivers.robot.options)), self.source,
-                                     self.world, self._test_moving, self._camera_refused, self.monitor.u,
-                                     self._path_stop, self._beat)
-            self.path.restore(self.paging.saved_extra.get("path"))
-            self.paging.resume_extra = lambda: {"path": self.path.state.to_dict()} if self.path else {}
-        self._camera_halt = False  # halted because the camera gave no usable reading (resumes on one)
+        self.path = self._streamer(self._plan, stream) if self._plan is not None and stream is not None else None
+        self.reporter = HealthReporter(self.supervisor.status, self.escalator, self.counters, self.store, self._now,
+                                       self.inst, self.bus, self.events,
+                                       stream=stream.to_dict if stream is not None else lambda: None)
+        self.status_line = StatusLine(self.supervisor.status, self.counters, self.escalator, self.path, self.bus)
+        self.housekeeper = Housekeeper(
+            self._stop, self.events, take_actions=self.paging.take_actions, send_health=self.reporter.send,
+            prune=self.prune, status_line=self.status_line, last_tick_mono=lambda: self.counters.last_tick_mono,
+            health_period_s=cfg.bus.health_period_s, prune_every_s=cfg.retention.every_s,
+            status_every_s=self.status_every_s)
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
         self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
         self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
-        self._last_corrected: tuple[float, Corrected] | None = None  # (t, the last command sent), for status_line
-        self._status_mark = (time.monotonic(), 0)  # (when, ticks) of the last status line: its rate
-        self._health_key: tuple | None = None
         # The plant asks every cell on `dt/<cell>/<robot>/<kind>` (docs/plant.md): served once the daemon is whole.
         if self.bus:
-            bus = self.bus
-            bus.serve(lambda s: QueryServer(cfg.bus, s, answers(self, self._p(cfg.twin)), sign=bus.signer.sign))
-            bus.serve(lambda _s: self.housekeeper.health_due())  # connected: say so at once (returns None)
+            bus, view = self.bus, CellStatus(self.reporter, self.store, self.counters, self.escalator)
+            twin = twin_identity(self.twin, self._p(cfg.twin))
+            bus.serve(lambda s: QueryServer(cfg.bus, s, answers(view, twin), sign=bus.signer.sign))
+            bus.serve(lambda _s: self.events.emit(HealthDue()))  # connected: say so at once (returns None)
         self.paging.reconcile(self._now())
         self.housekeeper.start()
-        self._closers.append(self.housekeeper.stop)
-        self._publish_health(force=True)
+        parts.callback(self.housekeeper.stop)
+        self.reporter.changed(force=True)
 
-    def _close_opened(self) -> None:
-        """Close what `_start` opened, newest first; each step bounded by its own time-out."""
-        while self._closers:
-            close = self._closers.pop()
-            try:
-                close()
-            except Exception as exc:  # noqa: BLE001 - closing is best effort, keep closing the rest
-                log.warning("while closing after a failed start: %s", exc)
+    def _open_bus(self) -> Bus | None:
+        """The bus (None unless `publish`): it publishes every recorded transition and delivers
+        the requests; an operator's 'done' wakes the housekeeping thread."""
+        if not self.cfg.publish:
+            return None
+        bus = Bus(self.cfg.bus, self.store, on_ack=self.paging.on_ack,
+                  on_done=lambda aid: self.events.emit(ActionQueued(aid)))
+        self._parts.callback(bus.close)
+        self.events.subscribe(Transition, bus.on_transition)
+        self.events.subscribe(RequestsQueued, bus.on_requests)
+        return bus
 
-    def _check_condition_sources(self) -> None:
-        """Every condition the twin's maps read must have a source, or the start fails (not every
-        command later): joint angles from the controller, the clock always; temperature and
-        payload from the program's columns or the simulated cell (a real cell's sensor driver:
-        not yet available)."""
-        sim = any(registry.needs_world(k, n) for k, n, _ in self.cfg.drivers.chosen())
-        for need in self.twin.needs:
-            if need in ("temperature", "payload") and not sim and getattr(self._program, need, None) is None:
-                raise ConfigError(str(self._p(self.cfg.twin) / "twin.json"), "e_lt effects", need,
-                                  f"a source of {need}: a program (path.kind program) with a {need} column, or "
-                                  "the simulated cell's drivers")
-
-    def _check_model(self) -> None:
-        """The twin's maps must predict finite errors: a model file with NaN in it stops the
-        start (exit non-zero, nothing opened) instead of refusing every command later. Probed at
-        the path's first target (a map that also reads conditions is checked command by command:
-        a NaN there is refused, counted and, repeated, halts)."""
-        if self.twin.needs:
-            return
-        probe = self._plan.sp.p[0] if self._plan is not None else probe_point(self.cfg.path, self._program)
-        v = 0.5 * self.cfg.limits.max_speed_m_s
-        try:
-            e = np.concatenate([np.ravel(self.twin.e_lt_hat(probe, v)[0]),
-                                np.ravel(self.twin.e_mvs_lt_hat(probe, v)[0])])
-        except (TwinError, ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            raise ConfigError(str(self._p(self.cfg.twin)), "e_lt", "unusable",
-                              f"a model that predicts ({exc})") from exc
-        if not np.all(np.isfinite(e)):
-            raise ConfigError(str(self._p(self.cfg.twin)), "e_lt", f"prediction {e.tolist()} m",
-                              "finite predictions: the model file holds NaN or inf (refit it)")
+    def _streamer(self, plan: PathPlan, stream: StreamState) -> PathStreamer:
+        """The path program's streamer, resumed where the store says the last run stopped."""
+        cfg = self.cfg
+        cell = StreamCell(self.twin, self._p(cfg.twin), self.inst, self.world,
+                          (cfg.drivers.robot.kind, dict(cfg.drivers.robot.options)), self.source)
+        hooks = PassHooks(test=self._test_moving, refused=self._camera_refused, stop=self.supervisor.pass_stop,
+                          beat=self._beat, u_reading=self.monitor.u)
+        ps = PathStreamer(plan, stream, cfg.stream, cfg.rate_hz, cell, hooks)
+        ps.restore(self.paging.saved_extra.get("path"))
+        return ps
 
     def _conditions(self, step: int | None) -> Conditions | None:
         """The conditions of the next command, when the twin's maps read any (else None: the
@@ -245,144 +261,15 @@ class Daemon:
         p = Path(rel)
         return p if p.is_absolute() else self.base / p
 
-    # --- what the parts keep, under the names the daemon has always shown ----------------------
-    @property
-    def requests(self) -> list[dict]:
-        return self.paging.requests
-
-    @property
-    def delivered(self) -> list[int]:
-        return self.paging.delivered
-
-    @property
-    def _actions(self):
-        return self.paging.actions
-
-    @property
-    def ticks(self) -> int:
-        return self.counters.ticks
-
-    @property
-    def failures(self) -> int:
-        return self.counters.failures
-
-    @property
-    def uncorrected(self) -> int:
-        return self.counters.uncorrected
-
-    @property
-    def stale_measurements(self) -> int:
-        return self.counters.stale_measurements
-
-    @property
-    def mvs_refused(self) -> int:
-        return self.counters.mvs_refused
-
-    @property
-    def driver_faults(self) -> int:
-        return self.counters.driver_faults
-
-    @property
-    def last_problem(self) -> str | None:
-        return self.counters.last_problem
-
     def acknowledge_maintenance(self, note: str = "maintenance done", by: str = "operator") -> int:
         """Operator confirmation, as `dt ack` does it: stored as an action (who, why), applied by
         the loop at its next tick. Returns the action's id."""
         return self.paging.acknowledge(note, by)
 
-    # --- health ------------------------------------------------------------------------------
-    def _status(self) -> tuple[str, str | None]:
-        """(running | degraded | halted, why): cheap, no I/O (the loop calls it every tick)."""
-        esc = self.escalator
-        if esc.state == "halted":
-            return "halted", esc.halt_reason
-        if self.store.write_errors_in_row:
-            return "degraded", "store writes failing"
-        if self.counters.in_trouble():
-            return "degraded", self.counters.last_problem
-        if not self._trusted() and self.cfg.halt.on_untrusted == "uncorrected":
-            return "degraded", f"{esc.state}: commands sent uncorrected"
-        return "running", None
-
+    # --- what it reports ------------------------------------------------------------------------
     def health(self) -> dict[str, Any]:
-        """What `.../health` carries: running / degraded / halted and why, the escalation state,
-        the last tick, and the counters an operator looks at first."""
-        status, reason = self._status()
-        esc = self.escalator
-        return {"status": status, "reason": reason, "escalation": esc.state, "episode": esc.episode,
-                **self.counters.health(self._now()),
-                "outbox_pending": self._pending_count(), "drivers": self._driver_counters(),
-                # acks and 'done's on the bus without the service's signature: refused, not recorded
-                "bus_refused": self.bus.refused if self.bus else 0,
-                "bus_last_refused": self.bus.last_refused if self.bus else None,
-                "bus": self.bus.state if self.bus else "off",  # connecting (no router yet), connected
-                "pid": os.getpid(), "t": time.time(),
-                **({"stream": self.path.state.to_dict()} if self.path is not None else {})}
-
-    def status_line(self) -> tuple[str, dict[str, Any]]:
-        """The operator's one line (`dt run` logs it every `status_every_s`): ticks and their rate
-        since the last line, status and escalation state, the time of the last command and the
-        expanded uncertainty (95 %) of the position it reached; and the same as fields."""
-        now, ticks = time.monotonic(), self.counters.ticks
-        then, before = self._status_mark
-        self._status_mark = (now, ticks)
-        rate = (ticks - before) / (now - then) if now > then else 0.0
-        status, reason = self._status()
-        failures = self.counters.failures
-        bus = self.bus.state if self.bus else "off"
-        f: dict[str, Any] = {"ticks": ticks, "rate_hz": round(rate, 2), "status": status, "reason": reason,
-                             "escalation": self.escalator.state, "t_test_failures": failures, "bus": bus}
-        text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
-            f", escalation {self.escalator.state}, Eq. 17 failed {failures}" + \
-            (f", bus {bus}" if bus == "connecting" else "")
-        if self.path is not None:  # a path: where the stream is, not a last command
-            st = self.path.state
-            f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}
-            return text + f", path {st.state}, pass {st.pass_started}, at {self.path.plan.where(st.next)}", f
-        last = self._last_corrected
-        if last is None:
-            return text + ", no command yet", f
-        t, corr = last
-        U = [round(float(u) * 1e3, 4) for u in corr.U_tcp] if np.all(np.isfinite(corr.U_tcp)) else None
-        f |= {"last_t": t, "U95_mm": U, "inside": corr.inside}
-        return (text + f", last command {shown_time(t)}, U95 "
-                + ("x/y/z " + "/".join(f"{u:.3f}" for u in U) + " mm" if U else "none (sent uncorrected)")
-                + ("" if corr.inside else " (outside the calibrated volume)")), f
-
-    def _driver_counters(self) -> dict[str, dict]:
-        """Each driver's own counters, for those that keep them (`counters()`, no I/O: an RTDE
-        link's drops and reconnections, NatNet frames lost and late): a fault the driver
-        recovered from by itself still shows on `.../health`."""
-        inst = getattr(self, "inst", None)
-        out: dict[str, dict] = {}
-        for kind in ("robot", "tracker", "camera"):
-            counters = getattr(getattr(inst, kind, None), "counters", None)
-            if callable(counters):
-                try:
-                    out[kind] = counters()
-                except Exception as exc:  # noqa: BLE001 - a report must not fail on a driver's defect
-                    out[kind] = {"error": str(exc)}
-        return out
-
-    def _pending_count(self) -> int | None:
-        try:
-            return len(self.store.outbox_pending())
-        except StoreError:
-            return None
-
-    def _publish_health(self, force: bool = False) -> None:
-        """`.../health` on a change of status, reason or state (checked without I/O: the loop
-        calls this every tick; the housekeeping thread publishes it) or when `force`d."""
-        key = (*self._status(), self.escalator.state)
-        if not force and key == self._health_key:
-            return
-        self._health_key = key
-        self.housekeeper.health_due()
-
-    def _send_health(self) -> None:
-        if self.bus:
-            self.bus.publish_health(self.health())
+        """What `.../health` carries (`service.health.HealthReporter`)."""
+        return self.reporter.health()
 
     def prune(self) -> int:
         """Apply the retention policy to the store's high-rate rows; returns rows deleted."""
@@ -390,7 +277,14 @@ class Daemon:
         before = None if r.max_age_s is None else self._now() - r.max_age_s
         return self.store.prune(before_t=before, keep_rows=r.max_rows)
 
-    # --- the loop -----------------------------------------------------------------------------
+    def summary(self) -> dict:
+        esc = self.escalator
+        return {**self.counters.summary(), "state": esc.state, "halt_reason": esc.halt_reason,
+                "maintenance_requests": len(self.paging.requests), "requests_delivered": len(self.paging.delivered),
+                "store": str(self.store.path), **self.cell.truth(),
+                **({"path": self.path.state.to_dict()} if self.path is not None else {})}
+
+    # --- the point loop: target -> correct -> move -> read -> test -> record ------------------------
     def _now(self) -> float:
         return self.cell.now()
 
@@ -399,85 +293,119 @@ class Daemon:
         refused commands would never end in simulated time)."""
         self.cell.idle(1.0 / self.cfg.rate_hz)
 
-    def _trusted(self) -> bool:
-        return self.escalator.state not in ("out_of_control", "maintenance_requested")
-
     def tick(self) -> None:
-        n = self.counters
+        """One command of a point program, as the supervisor allows; `.../health` marked due on
+        a change, whatever the tick did."""
+        try:
+            self._tick()
+        finally:
+            self.reporter.changed()
+
+    def _tick(self) -> None:
         t_now = self._now()
         self.paging.apply_actions(t_now)
-        assert self.targets is not None  # a path program runs passes (`_run_path`), not ticks
-        target, v, step = self.targets.next()
-        self.cell.inject_due_faults()
-        esc = self.escalator
-        policy = self.cfg.halt.on_untrusted
-        if not self._trusted() and policy == "halt":
-            esc.halt(f"{esc.state}: the correction is not trusted (halt.on_untrusted: halt)", t_now, sticky=True)
-        if esc.state == "halted" and esc.halt_sticky:  # waits for the operator's 'done'
+        target, v, step = self._target()
+        todo = self.supervisor.next_step(t_now)
+        if todo is Step.WAIT:  # a sticky halt: waits for the operator's 'done'
             self._idle()
-            self._publish_health()
             return
-        if self._camera_halt and esc.state != "halted":  # left by the operator's 'done': time afresh
-            self._camera_halt, n.camera_refused_since = False, None
-        if self._camera_halt:
+        if todo is Step.PROBE:
             self._probe_camera(t_now)
             return
         cond = self._cond = self._conditions(step)
-        try:
-            if self._trusted() or policy == "correct":
-                corr = self.corrector(target, v, cond)
-            else:
-                corr = self.corrector.uncorrected(target, v)
-                n.uncorrected += 1
-        except CorrectionFault as exc:
-            n.refused += 1
-            n.refused_in_row += 1
-            n.last_problem = f"command refused: {exc}"
-            log.error("command refused, robot not moved: %s", exc)
-            if n.refused_in_row >= self.cfg.halt.after_refused:
-                esc.halt(f"every command refused for {n.refused_in_row} ticks; last: {exc}", t_now)
+        corr = self._command(target, v, cond, t_now)
+        if corr is None:  # refused: the robot is not moved
             self._idle()
-            self._publish_health()
             return
+        arrived, t = self._move(corr, v, t_now)
+        reading = self._read(arrived)
+        if reading is None or reading.point is None:  # refused or stale: the arm is not moved again
+            return
+        chk = self._test(corr.command, v, reading.point, cond, None)
+        if chk is None:
+            return
+        self._record(t, reading.point, chk, True, self._telemetry(corr) if self.bus else {})
+        self._latency(reading)
+
+    def _target(self) -> tuple[np.ndarray, float, int | None]:
+        """The next target, its speed and program row; the simulated cell's faults when due."""
+        assert self.targets is not None  # a path program runs passes (`_run_path`), not ticks
+        target, v, step = self.targets.next()
+        self.cell.inject_due_faults()
+        return target, v, step
+
+    def _command(self, target: np.ndarray, v: float, cond: Conditions | None, t: float) -> Corrected | None:
+        """The command for `target`: corrected while the supervisor trusts the correction, else
+        the target as it is (counted); None if the correction refused it (counted, may halt)."""
+        try:
+            if self.supervisor.corrects():
+                return self._correct(target, v, cond)
+            corr = self.corrector.uncorrected(target, v)
+            self.counters.uncorrected += 1
+            return corr
+        except CorrectionFault as exc:
+            self.supervisor.refused(exc, t)
+            return None
+
+    def _correct(self, target: np.ndarray, speed: float, cond: Conditions | None) -> Corrected:
+        """The bounded correction of one target."""
+        return self.corrector(target, speed, cond)
+
+    def _move(self, corr: Corrected, v: float, t_now: float) -> tuple[float, float]:
+        """Send the command; once it arrived the arm stands where it was sent. The command and its
+        correction are stored at once (a camera that fails next leaves them on record). Returns
+        (arrival on the host's monotonic clock, daemon time after the move)."""
         self.inst.robot.move_linear(corr.command, v)
         arrived = time.monotonic()  # the command has arrived: the arm stands where it was sent
-        n.refused_in_row = n.driver_faults_in_row = 0
-        if esc.state == "halted":
-            esc.resume(t_now)
+        self.supervisor.moved(t_now)
         self.cell.score(corr.target)  # simulation: the true error in GL, as `dt demo` scores it
         t = self._now()
         x, y, z = corr.target
         self.store.put(CommandRow(t, x, y, z, speed=v))
         self.store.put(CorrectionRow(t, *corr.correction, *corr.u_tcp))
-        self._last_corrected = (t, corr)
+        self.status_line.last = (t, corr)
+        return arrived, t
+
+    def _read(self, arrived: float) -> RigReading | None:
+        """The MVS reading of the arm after the move; None if the camera refused it or it is
+        older than `max_measurement_age_s` (counted by the supervisor)."""
         camera = self.inst.camera
         assert camera is not None  # open_cell always builds one (drivers.camera names a driver)
         reading = read_exposed_after(camera, arrived)  # a streamed frame exposed mid-move saw the arm elsewhere
-        n.ticked()
-        if not reading.ok or reading.point is None:
-            self._camera_refused(reading)  # the arm is not moved again
+        self.counters.ticked()
+        return reading if self.supervisor.usable(reading, arrived) else None
+
+    def _test(self, command: np.ndarray, v: float, point: np.ndarray, cond: Conditions | None,
+              u_extra: np.ndarray | None) -> Check | None:
+        """Eq. 17 of one MVS reading of the arm at `command`: the Check, or None if the monitor
+        rejected the value (not tested: counted by the supervisor)."""
+        try:
+            chk = self.monitor(command, v, point, cond, u_extra)
+        except CorrectionFault as exc:
+            self.supervisor.rejected(exc)
+            return None
+        self.supervisor.tested()
+        return chk
+
+    def _record(self, t: float, point: np.ndarray, chk: Check, observe: bool, telemetry: dict[str, Any]) -> None:
+        """A tested reading stored; when `observe`d also its t-test, counted, fed to the
+        escalation, staged with the rows and published."""
+        self.store.put(MeasurementRow(t, *point, *chk.diff))
+        if not observe:
             return
-        n.mvs_refused_in_row = 0
-        age = arrived - reading.host_time
-        if age > self.cfg.max_measurement_age_s:
-            n.stale_measurements += 1
-            n.last_problem = (f"stale measurement: received {age * 1e3:.0f} ms before the command arrived "
-                              f"(max_measurement_age_s {self.cfg.max_measurement_age_s})")
-            log.warning("MVS reading refused, not tested: %s", n.last_problem)
-            self._camera_untested(n.last_problem)
-            self._publish_health()
-            return
-        chk = self._test(corr.command, v, reading.point, cond, t, None, True,
-                         self._telemetry(corr) if self.bus else {})
-        if chk is None:
-            return
-        done = time.monotonic()
-        if self.latencies is not None:
-            self.latencies.append(done - reading.host_time)
-        mid = reading.quality.get("mid_exposure_host_s")
-        if self.exposure_latencies is not None and mid is not None:
-            self.exposure_latencies.append(done - mid)
-        self._publish_health()
+        worst = int(np.argmax(np.abs(chk.t)))
+        self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
+                                data={"t": chk.t.tolist()}))
+        self.counters.failures += int(not chk.passed)
+        esc = self.escalator
+        esc.observe(chk.passed, float(chk.t[worst]), t)
+        # The statistics travel with the next batch of rows: a restart resumes them.
+        self.store.stage_state(*self.paging.resume_row())
+        if self.bus:
+            # `measured` (the MVS's TCP in the robot frame) for the dashboard's view (docs/bus.md)
+            measured = self.twin.T_rdk.inverse().apply(self.twin.T_mvs.apply(point)).tolist()
+            self.bus.publish_telemetry({"t": t, **telemetry, "t_stat": chk.t.tolist(), "passed": chk.passed,
+                                        "state": esc.state, "measured": measured})
 
     def _telemetry(self, corr: Corrected) -> dict[str, Any]:
         """A command's telemetry beside its Eq. 17 (docs/bus.md): for the dashboard's view also the
@@ -487,86 +415,31 @@ class Daemon:
         return {"target": corr.target.tolist(), "command": corr.command.tolist(), "q": np.asarray(q).tolist(),
                 "U": corr.U_tcp.tolist(), "inside": corr.inside}
 
-    def _test(self, command: np.ndarray, v: float, point: np.ndarray, cond: Conditions | None, t: float,
-              u_extra: np.ndarray | None, observe: bool, telemetry: dict[str, Any]):
-        """Eq. 17 of one MVS reading of the arm at `command`: stored, and when `observe`d counted,
-        fed to the escalation and published; the Check, or None if the value was rejected."""
-        n, esc = self.counters, self.escalator
-        try:
-            chk = self.monitor(command, v, point, cond, u_extra)
-        except CorrectionFault as exc:
-            log.error("MVS value rejected: %s", exc)
-            self._camera_untested(f"MVS value rejected: {exc}")
-            return None
-        n.camera_refused_since = None
-        self.store.put(MeasurementRow(t, *point, *chk.diff))
-        if not observe:
-            return chk
-        worst = int(np.argmax(np.abs(chk.t)))
-        self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
-                                data={"t": chk.t.tolist()}))
-        n.failures += int(not chk.passed)
-        esc.observe(chk.passed, float(chk.t[worst]), t)
-        # The statistics travel with the next batch of rows: a restart resumes them.
-        self.store.stage_state(*self.paging.resume_row())
-        if self.bus:
-            # `measured` (the MVS's TCP in the robot frame) for the dashboard's view (docs/bus.md)
-            measured = self.twin.T_rdk.inverse().apply(self.twin.T_mvs.apply(point)).tolist()
-            self.bus.publish_telemetry({"t": t, **telemetry, "t_stat": chk.t.tolist(), "passed": chk.passed,
-                                        "state": esc.state, "measured": measured})
-        return chk
+    def _latency(self, reading: RigReading) -> None:
+        """Reading receipt (and mid-exposure) -> t-test done, when recorded (benchmarks)."""
+        done = time.monotonic()
+        if self.latencies is not None:
+            self.latencies.append(done - reading.host_time)
+        mid = reading.quality.get("mid_exposure_host_s")
+        if self.exposure_latencies is not None and mid is not None:
+            self.exposure_latencies.append(done - mid)
 
-    def _camera_refused(self, reading) -> None:
-        """A reading the camera driver refused: nothing to test; counted and reported (degraded
-        while it lasts, a halt after `halt.after_camera_refused_s`)."""
-        n = self.counters
-        n.mvs_refused += 1
-        n.mvs_refused_in_row += 1
-        n.last_problem = f"MVS refused: {reading.refused}"
-        log.info("MVS refused: %s", reading.refused)
-        self._camera_untested(n.last_problem)
-        self._publish_health()
-
-    def _camera_untested(self, why: str) -> None:
-        """A reading that could not be tested: after `halt.after_camera_refused_s` of nothing
-        but these, halt (paged; the loop then stops the arm and probes the camera)."""
-        n = self.counters
-        t = self._now()
-        if n.camera_refused_since is None:
-            n.camera_refused_since = t
-        limit = self.cfg.halt.after_camera_refused_s
-        blind = t - n.camera_refused_since
-        if blind >= limit and self.escalator.state != "halted":
-            self._camera_halt = self.escalator.halt(
-                f"no MVS reading tested for {blind:.1f} s (halt.after_camera_refused_s {limit:g} s); last: {why}", t)
+    def _camera_refused(self, reading: RigReading) -> None:
+        """A reading the camera driver refused (counted by the supervisor; health on a change)."""
+        self.supervisor.camera_refused(reading)
+        self.reporter.changed()
 
     def _probe_camera(self, t_now: float) -> None:
-        """Halted for the camera: the arm stands; one reading a tick, the first accepted resumes."""
+        """Halted for the camera: the arm stands; one reading a step, the first accepted resumes."""
         camera = self.inst.camera
         assert camera is not None
-        reading = camera.read()
-        n = self.counters
-        if reading.ok:
-            self._camera_halt, n.camera_refused_since, n.mvs_refused_in_row = False, None, 0
-            self.escalator.resume(t_now)
-            log.warning("the camera gives readings again: resumed")
-        else:
-            n.last_problem = f"MVS refused: {reading.refused}"
+        if not self.supervisor.probed(camera.read(), t_now):
             self._idle()
-        self._publish_health()
+        self.reporter.changed()
 
     def _driver_fault(self, exc: DriverError) -> None:
-        n = self.counters
-        n.driver_faults += 1
-        n.driver_faults_in_row += 1
-        n.last_problem = f"driver fault: {exc}"
-        log.error("driver fault: %s", exc)
-        if n.driver_faults_in_row >= self.cfg.halt.after_driver_faults and not self._stop.is_set():
-            try:
-                self.escalator.halt(f"driver fault {n.driver_faults_in_row} times in a row: {exc}", self._now())
-            except StoreError as store_exc:
-                log.error("halt not recorded, retried on the next fault: %s", store_exc)
-        self._publish_health()
+        self.supervisor.driver_fault(exc)
+        self.reporter.changed()
 
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> dict:
         if self.path is not None:  # passes of a path: the streaming loop keeps the controller's rate
@@ -603,7 +476,7 @@ class Daemon:
                 self.tick()
             except StoreError as exc:  # disk full: keep controlling, rows are retried
                 log.error("store write failed, continuing: %s", exc)
-                self._publish_health()
+                self.reporter.changed()
             except DriverError as exc:
                 self._driver_fault(exc)
                 self._stop.wait(min(period, 0.1))
@@ -624,40 +497,32 @@ class Daemon:
                     next_t = time.monotonic()
         return self.summary()
 
-    # --- a path program (service.path_run) ---------------------------------------------------
+    # --- the path loop (service.path_run) -------------------------------------------------------
     def _test_moving(self, command: np.ndarray, v: float, point: np.ndarray, cond: Conditions | None, s: float,
-                     u_extra: np.ndarray, observe: bool):
+                     u_extra: np.ndarray, observe: bool) -> Check | None:
         """A reading of the moving arm at path time `s`, against where the path has the arm then."""
-        self.counters.mvs_refused_in_row = 0
-        q = {"q": np.asarray(cond.joints).tolist()} if cond is not None and cond.joints is not None else {}
-        return self._test(command, v, point, cond, self._now(), u_extra, observe,
-                          {"target": command.tolist(), "command": command.tolist(), "path_t": s, **q})
-
-    def _path_stop(self) -> str:
-        """Why a pass must end now ('' to go on): the daemon stopping, or a halt (the camera's:
-        the arm must not move unmonitored; a sticky one)."""
-        if self._stop.is_set():
-            return "the daemon is stopping"
-        esc = self.escalator
-        if esc.state == "halted":
-            return f"halted: {esc.halt_reason}"
-        if not self._trusted() and self.cfg.halt.on_untrusted == "halt":
-            return f"{esc.state}: the correction is not trusted (halt.on_untrusted: halt)"
-        return ""
+        self.supervisor.accepted()
+        t = self._now()
+        chk = self._test(command, v, point, cond, u_extra)
+        if chk is not None:
+            q = {"q": np.asarray(cond.joints).tolist()} if cond is not None and cond.joints is not None else {}
+            self._record(t, point, chk, observe, {"target": command.tolist(), "command": command.tolist(),
+                                                  "path_t": s, **q})
+        return chk
 
     def _beat(self) -> None:
         """A step of a pass: the watchdog's tick, the simulated cell's faults when due, health on
         a change (no I/O here)."""
         self.counters.last_tick_mono = time.monotonic()
         self.cell.inject_due_faults()
-        self._publish_health()
+        self.reporter.changed()
 
     def _run_path(self, duration_s: float | None) -> dict:
         """Passes of the path until the duration, `stream.passes` or a stop; a pass that stopped
         early halts (sticky) until the operator's 'done' resumes it where the arm stands."""
         ps = self.path
         assert ps is not None
-        st, esc, n = ps.state, self.escalator, self.counters
+        st, n = ps.state, self.counters
         t0 = self._now()
         sdnotify.notify("READY=1")
         n.last_tick_mono = time.monotonic()
@@ -669,23 +534,19 @@ class Daemon:
                 break
             t_now = self._now()
             self.paging.apply_actions(t_now)
-            if not self._trusted() and self.cfg.halt.on_untrusted == "halt":
-                esc.halt(f"{esc.state}: the correction is not trusted (halt.on_untrusted: halt)", t_now, sticky=True)
-            if self._camera_halt and esc.state != "halted":
-                self._camera_halt, n.camera_refused_since = False, None
-            if self._camera_halt:
-                self._probe_camera(t_now)
-                self._stop.wait(0.0 if self.world is not None and not self.cfg.realtime else 0.05)
-                continue
-            if esc.state == "halted":  # sticky: waits for the operator's 'done'
-                self._idle()
-                self._beat()
+            todo = self.supervisor.next_step(t_now)
+            if todo is not Step.MOVE:  # halted: probe the camera, or wait for the operator's 'done'
+                if todo is Step.PROBE:
+                    self._probe_camera(t_now)
+                else:
+                    self._idle()
+                    self._beat()
                 self._stop.wait(0.0 if self.world is not None and not self.cfg.realtime else 0.05)
                 continue
             if st.rerun_from is not None:
                 log.warning("resuming the path at %s", ps.plan.where(k0) + st.rerun_from)
                 st.rerun_from = None
-            corrected = self._trusted() or self.cfg.halt.on_untrusted == "correct"
+            corrected = self.supervisor.corrects()
             try:
                 rep = ps.run_pass(k0, corrected)
             except (DriverError, TwinError) as exc:  # the child could not start (a driver, the twin)
@@ -694,10 +555,7 @@ class Daemon:
                 self._driver_fault(DriverError(f"path pass from {ps.plan.where(k0)}: {exc}"))
                 self._stop.wait(0.5)
                 continue
-            n.ticked(rep.n_sent)
-            if not corrected:
-                n.uncorrected += rep.n_sent
-            n.driver_faults_in_row = 0
+            self.supervisor.pass_done(rep.n_sent, corrected)
             self._stage_path()
             if not rep.stopped:
                 k0 = 0
@@ -715,13 +573,10 @@ class Daemon:
             else:
                 st.rerun_from = ""
             self._stage_path()
-            if self._stop.is_set() or esc.state == "halted":
+            if self._stop.is_set() or self.escalator.state == "halted":
                 continue  # stopping, or already halted (the camera's halt resumes by itself)
-            why = (f"path stopped at {ps.plan.where(k_stop)}: {rep.stopped}; clear the cause, then confirm "
-                   f"(dt ack): the path resumes at {ps.plan.where(k0)}")
-            n.last_problem = why
-            log.error("%s", why)
-            esc.halt(why, self._now(), sticky=True)
+            self.supervisor.pass_stopped(f"path stopped at {ps.plan.where(k_stop)}: {rep.stopped}; clear the cause, "
+                                         f"then confirm (dt ack): the path resumes at {ps.plan.where(k0)}")
         return self.summary()
 
     def _arm_position(self) -> np.ndarray | None:
@@ -737,6 +592,7 @@ class Daemon:
         """The path's state (its resume point) travels with the next batch of rows."""
         self.store.stage_state(*self.paging.resume_row())
 
+    # --- stop and close ---------------------------------------------------------------------------
     def stop(self, *_: Any) -> None:
         """Stop the loop (a signal handler: only sets flags): the move in flight is aborted."""
         self._stop.set()
@@ -751,14 +607,9 @@ class Daemon:
         if path is not None:
             path.cancel()
 
-    def summary(self) -> dict:
-        esc = self.escalator
-        return {**self.counters.summary(), "state": esc.state, "halt_reason": esc.halt_reason,
-                "maintenance_requests": len(self.paging.requests), "requests_delivered": len(self.paging.delivered),
-                "store": str(self.store.path), **self.cell.truth(),
-                **({"path": self.path.state.to_dict()} if self.path is not None else {})}
-
     def close(self) -> None:
+        """Save the resume row, stop housekeeping, send the last health, close every part
+        (newest first)."""
         self.housekeeper.stopping()
         try:
             self.store.save_state(*self.paging.resume_row())
@@ -770,8 +621,7 @@ class Daemon:
                 self.bus.publish_health(self.health() | {"status": "stopped", "reason": "the daemon stopped"})
         except TwinError as exc:
             log.warning("last health not sent: %s", exc)
-        self._close_opened()
-
+        self._parts.close()
 
 
 def run_daemon(config: str | Path, duration_s: float | None = None, status_every_s: float | None = None) -> dict:

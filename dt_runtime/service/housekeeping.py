@@ -1,5 +1,6 @@
 """The daemon's housekeeping thread (never the loop): operator actions picked up from the store,
 `.../health` every `bus.health_period_s` and whenever the loop saw a change (`health_due`),
+(`service.events.HealthDue`), an operator's action stored (`ActionQueued`: picked up at once),
 store retention every `retention.every_s`, the operator's status line every `status_every_s`,
 and the systemd watchdog (`service.sdnotify`: WATCHDOG=1 only while the loop ticks, so a wedged
 loop gets restarted; never after STOPPING=1).
@@ -14,16 +15,18 @@ from typing import Any
 
 from dt_kernel.errors import TwinError
 from dt_runtime.service import sdnotify
+from dt_runtime.service.events import ActionQueued, Events, HealthDue
 
 log = logging.getLogger("dt.run")
 status_log = logging.getLogger("dt.run.status")  # the operator's periodic one-line status
 
 
 class Housekeeper:
-    """One thread running the jobs below until `stop` is set; `poll_now` wakes it early."""
+    """One thread running the jobs below until `stop` is set; `poll_now` wakes it early, and so
+    do `HealthDue` and `ActionQueued` on `events`."""
 
-    def __init__(self, stop: threading.Event, *, take_actions: Callable[[], None], send_health: Callable[[], None],
-                 prune: Callable[[], Any], status_line: Callable[[], tuple[str, dict]],
+    def __init__(self, stop: threading.Event, events: Events, *, take_actions: Callable[[], None],
+                 send_health: Callable[[], None], prune: Callable[[], Any], status_line: Callable[[], tuple[str, dict]],
                  last_tick_mono: Callable[[], float], health_period_s: float, prune_every_s: float,
                  status_every_s: float | None):
         self._stop = stop
@@ -35,6 +38,8 @@ class Housekeeper:
         self._notify_lock = threading.Lock()  # STOPPING=1 is the last message systemd gets
         self._stopping = False
         self._thread = threading.Thread(target=self._run, name="dt-daemon-housekeeping", daemon=True)
+        events.subscribe(HealthDue, lambda _event: self.health_due())
+        events.subscribe(ActionQueued, lambda _event: self.poll_now.set())
 
     def start(self) -> None:
         self._thread.start()

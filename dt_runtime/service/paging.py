@@ -5,7 +5,9 @@ machine's new snapshot and, on entering `maintenance_requested` or `halted`, tha
 maintenance requests (one per consumer group) in the outbox; only then is it published
 (`.../state`, `.../health`) and the bus woken to deliver the requests, which it republishes
 until each group acknowledges. If the store cannot commit, the machine stays where it was and
-the next test fires the transition again. At start-up a paging state that has no requests gets
+the next test fires the transition again. A recorded transition is emitted as a
+`service.events.Transition` (the bus publishes it, the health reporter marks `.../health` due);
+requests re-created at start-up as `RequestsQueued`. At start-up a paging state that has no requests gets
 them (`reconcile`), and the machine resumes from the store's snapshot.
 
 Operator: `dt ack` (or a maintenance system's `.../maintenance/done/<id>` on the bus, signed with
@@ -25,7 +27,8 @@ from typing import Any
 
 from dt_runtime.fabric import BusConfig
 from dt_runtime.service.escalation import PAGING, EscalationConfig, Escalator
-from dt_runtime.service.publisher import Bus, new_requests
+from dt_runtime.service.events import Events, RequestsQueued, Transition
+from dt_runtime.service.publisher import new_requests
 from dt_runtime.service.store import OperatorAction, Store
 
 log = logging.getLogger("dt.run")
@@ -33,12 +36,12 @@ log = logging.getLogger("dt.run")
 
 class Paging:
     """The escalation machine with its store records, maintenance requests and operator actions;
-    `on_change` is called after every transition (the daemon publishes `.../health`)."""
+    every recorded transition is emitted on `events`. `resume_extra` adds to the store's resume
+    row what else resumes with the machine (a path program's state)."""
 
-    def __init__(self, escalation: EscalationConfig, bus_cfg: BusConfig, store: Store,
-                 on_change: Callable[[], None]):
-        self.bus_cfg, self.store, self._on_change = bus_cfg, store, on_change
-        self.bus: Bus | None = None  # attached once the bus is open
+    def __init__(self, escalation: EscalationConfig, bus_cfg: BusConfig, store: Store, events: Events,
+                 resume_extra: Callable[[], dict[str, Any]] = dict):
+        self.bus_cfg, self.store, self.events = bus_cfg, store, events
         self.requests: list[dict] = []  # the requests this daemon opened (the first group's, with all ids)
         self.delivered: list[int] = []  # outbox ids a consumer acknowledged
         self.actions: collections.deque[OperatorAction] = collections.deque()  # queued for the loop
@@ -48,7 +51,7 @@ class Paging:
         self.escalator = Escalator(escalation, on_transition=self._on_transition)
         # What else resumes from the store's one resume row beside the machine (the daemon's path
         # program: its resume point): a key of that row, read back by `saved_extra`.
-        self.resume_extra: Callable[[], dict[str, Any]] = dict
+        self.resume_extra = resume_extra
         saved = store.load_state()
         self.saved_extra: dict[str, Any] = {}
         if saved and saved.get("name") == "escalation":
@@ -80,11 +83,7 @@ class Paging:
         log.warning("escalation %s -> %s at t=%.1f s: %s", src, dst, t, evidence)
         if reqs:
             self.requests.append(reqs[0][1] | {"ids": ids})
-        if self.bus:
-            self.bus.publish_state({"src": src, "dst": dst, "t": t, "evidence": evidence})
-            if reqs:
-                self.bus.wake()
-        self._on_change()
+        self.events.emit(Transition(src, dst, t, evidence, tuple(ids) if reqs else ()))
 
     def reconcile(self, now: float) -> None:
         """A paging state without its requests (a store written by an older version, or edited)
@@ -98,8 +97,7 @@ class Paging:
             self.requests.append(body | {"ids": ids})
             log.warning("state %s (episode %d) had no maintenance request in %s: re-created %s",
                         esc.state, esc.episode, self.store.path, ids)
-            if self.bus:
-                self.bus.wake()
+            self.events.emit(RequestsQueued(tuple(ids)))
 
     def on_ack(self, oid: int, payload: dict) -> None:
         # Delivery acknowledgement: the request reached maintenance and leaves the outbox. The

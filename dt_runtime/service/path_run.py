@@ -173,25 +173,48 @@ class StreamState:
 ReadingTest = Callable[[np.ndarray, float, np.ndarray, Conditions | None, float, np.ndarray, bool], Any]
 
 
-class PathStreamer:
-    """Passes of `plan` for the daemon. `test(command, v, point, cond, s, u_extra, observe)` is the
-    daemon's Eq. 17 of one reading at path time s (returns its `Check`, or None if the reading
-    was rejected); `observe` False for a learning pass (compared, not fed to the escalation);
-    `refused(reading)` takes a reading the camera refused (counted, as a point program's); `stop()`
-    says why the pass must end now ('' to go on: the daemon stopping, a halt); `beat()` is called
-    at every step of a pass (the daemon's watchdog and health)."""
+@dataclass(frozen=True)
+class StreamCell:
+    """Where passes stream: the `twin` (and `twin_dir`, loaded again by a streaming process), the
+    daemon's drivers `inst`, the simulated `world` (None on a real cell), the robot driver's
+    kind and options (`robot`, built again by a streaming process) and the runtime config that
+    names them in errors (`source`)."""
 
-    def __init__(self, plan: PathPlan, cfg: StreamSection, rate_hz: float, twin: Twin, twin_dir: Path,
-                 inst, robot_choice: tuple[str, dict], source: str, world, test: ReadingTest,
-                 refused: Callable[[RigReading], None], u_reading: np.ndarray, stop: Callable[[], str],
-                 beat: Callable[[], None]):
-        self.plan, self.cfg, self.rate_hz, self.twin, self.twin_dir = plan, cfg, rate_hz, twin, twin_dir
-        self.inst, self.robot_choice, self.source, self.world = inst, robot_choice, source, world
-        self.test, self.refused, self.stop, self.beat = test, refused, stop, beat
+    twin: Twin
+    twin_dir: Path
+    inst: Any
+    world: Any
+    robot: tuple[str, dict]
+    source: str
+
+
+@dataclass(frozen=True)
+class PassHooks:
+    """What a pass asks of the daemon. `test(command, v, point, cond, s, u_extra, observe)`: Eq. 17
+    of one reading at path time s (its `Check`, or None if the reading was rejected; `observe`
+    False for a learning pass: compared, not fed to the escalation); `refused(reading)`: a reading
+    the camera refused (counted, as a point program's); `stop()`: why the pass must end now (''
+    to go on); `beat()`: every step of a pass (the watchdog, health); `u_reading`: a reading's
+    standard uncertainty per axis, m."""
+
+    test: ReadingTest
+    refused: Callable[[RigReading], None]
+    stop: Callable[[], str]
+    beat: Callable[[], None]
+    u_reading: np.ndarray
+
+
+class PathStreamer:
+    """Passes of `plan` for the daemon, its progress in `state`, on `cell`, asking `hooks`."""
+
+    def __init__(self, plan: PathPlan, state: StreamState, cfg: StreamSection, rate_hz: float, cell: StreamCell,
+                 hooks: PassHooks):
+        self.plan, self.state, self.cfg, self.rate_hz, self.hooks = plan, state, cfg, rate_hz, hooks
+        self.twin, self.twin_dir, self.inst, self.world = cell.twin, cell.twin_dir, cell.inst, cell.world
+        self.robot_choice, self.source = cell.robot, cell.source
         self.corrected = True
         self._pass_t0 = 0.0  # the path time of the running pass's first set-point
-        self.u_reading = np.asarray(u_reading, dtype=float)
-        self.state = StreamState(plan.n, str(plan.file))
+        self.u_reading = np.asarray(hooks.u_reading, dtype=float)
         self.lag: LagEstimate | None = None
         self.reference = TimedPath(plan.sp.t, plan.commands)  # where the arm should be, on the path's clock
         self.settled = settled(TimedPath(plan.sp.t, plan.sp.p))  # set-points out of the servo's transients
@@ -265,7 +288,7 @@ class PathStreamer:
 
         def progress(j: int) -> None:
             self.state.next = k0 + j
-            self.beat()
+            self.hooks.beat()
             if j % every == 0:
                 reading = self.inst.camera.read()
                 # set-point j - 1 of the pass (meant for sp.t[k0 + j - 1]) was applied at t_w0 + j periods
@@ -273,7 +296,7 @@ class PathStreamer:
 
         return run_stream(sp.t[k0:], targets[k0:], correct, robot, self.rate_hz, self.cfg.lookahead_s,
                           self.cfg.gain, progress=progress, paced=False,
-                          cancelled=self.stop)
+                          cancelled=self.hooks.stop)
 
     # any other robot: its own process
     def _pass_in_child(self, k0: int, targets: np.ndarray, learning: bool,
@@ -295,8 +318,8 @@ class PathStreamer:
                 proc.heartbeat()
                 while not proc.done(period):
                     proc.heartbeat()
-                    self.beat()
-                    if self.stop():
+                    self.hooks.beat()
+                    if self.hooks.stop():
                         proc.cancel()
                     self.state.next = k0 + proc.sent
                     t0 = proc.t0
@@ -319,7 +342,7 @@ class PathStreamer:
         """One camera reading of the moving arm: placed on the path's clock, compared, tested."""
         st, cfg = self.state, self.cfg
         if not reading.ok or reading.point is None:
-            self.refused(reading)
+            self.hooks.refused(reading)
             return
         s = path_time(reading)
         cmp = compare_at(self.reference, s, cfg.u_time_s, self.u_reading, cfg.max_timing_ratio)
@@ -337,7 +360,7 @@ class PathStreamer:
         v = float(self.plan.sp.programmed[k])
         cond = None if self.plan.joints is None else Conditions(joints=self.plan.joints[k])
         u_extra = cmp.u_timing if self.lag is None else np.sqrt(cmp.u_timing ** 2 + self.u_lag ** 2)
-        chk = self.test(cmp.commanded, v, reading.point, cond, s, u_extra, not learning)
+        chk = self.hooks.test(cmp.commanded, v, reading.point, cond, s, u_extra, not learning)
         if chk is None:
             return
         if learning:
@@ -418,5 +441,5 @@ def check_streaming_robot(name: str, source: str) -> None:
                           "(drivers.base.SetpointStreamer: the simulated and ur_rtde drivers do) for path.kind 'path'")
 
 
-__all__ = ["PathPlan", "PathStreamer", "StreamState", "check_streaming_robot", "path_corrector", "plan_path",
-           "streaming_robot"]
+__all__ = ["PassHooks", "PathPlan", "PathStreamer", "StreamCell", "StreamState", "check_streaming_robot",
+           "path_corrector", "plan_path", "streaming_robot"]

@@ -30,6 +30,7 @@ from dt_runtime.fabric.session import (
     put_json,
     zenoh_errors,
 )
+from dt_runtime.service.events import RequestsQueued, Transition
 from dt_runtime.service.store import Store, StoreError
 
 log = logging.getLogger("dt_runtime.service.bus")  # the log channel keeps its name (filters name it)
@@ -183,6 +184,17 @@ class Bus:
         """Publish the pending outbox entries now (a transition just committed some)."""
         if not self._closed:
             self._tasks.put(("wake",))
+
+    def on_transition(self, event: Transition) -> None:
+        """A recorded transition (`service.events`): `.../state`, and the requests it opened
+        delivered now."""
+        self.publish_state(event.payload())
+        if event.requests:
+            self.wake()
+
+    def on_requests(self, event: RequestsQueued) -> None:
+        """Requests put in the outbox outside a transition (re-created at start-up): deliver them."""
+        self.wake()
 
     def _enqueue_send(self, kind: str, payload: Mapping[str, Any]) -> bool:
         """Hand a reliable message to the worker, signed; False (and counted) if the queue is full."""

@@ -55,7 +55,7 @@ def test_rtde_dropped_during_the_run_is_restored_reported_and_no_move_is_sent_tw
     result: dict = {}
     run = threading.Thread(target=lambda: result.update(d.run(max_ticks=30)))
     run.start()
-    assert wait_until(lambda: d.ticks >= 5, 60)
+    assert wait_until(lambda: d.counters.ticks >= 5, 60)
     assert cell.control("drop_rtde 0")["ok"]  # closed after the next data package, mid-run
     run.join(120)
     assert not run.is_alive() and result["ticks"] == 30
@@ -71,7 +71,7 @@ def test_a_protective_stop_during_a_move_halts_on_the_bus_and_resumes_after_unlo
     d, cell, seen = daemon
     d.run(max_ticks=2)
     sent0, _ = _moves(cell)
-    ticks0 = d.ticks
+    ticks0 = d.counters.ticks
     stops0 = cell.control("stats")["ur"]["protective_stops"]
     assert cell.control("protective_stop")["ok"]  # the next motion stops half way
     s = d.run(max_ticks=4)  # the stopped move, then moves refused before anything is sent
@@ -82,11 +82,11 @@ def test_a_protective_stop_during_a_move_halts_on_the_bus_and_resumes_after_unlo
     assert cell.control("unlock")["ok"]  # the pendant's "unlock protective stop"
     assert wait_until(lambda: d.inst.robot.status()["safety_mode"] == "NORMAL", 20)
     s = d.run(max_ticks=3)
-    assert d.ticks > ticks0 and s["state"] != "halted"
+    assert d.counters.ticks > ticks0 and s["state"] != "halted"
     assert wait_until(lambda: seen and seen[-1]["status"] != "halted", 20)
     sent, _ = _moves(cell)
     # the stopped move was sent once and not re-sent; the refused ones were never sent
-    assert sent - sent0 == d.ticks - ticks0 + 1
+    assert sent - sent0 == d.counters.ticks - ticks0 + 1
 
 
 @pytest.mark.parametrize("fault, refused, counter", [
@@ -98,12 +98,12 @@ def test_natnet_faults_are_reported_and_nothing_moves_twice(daemon, fault, refus
     d, cell, seen = daemon
     d.run(max_ticks=2)
     sent0, _ = _moves(cell)
-    ticks0, refused0 = d.ticks, d.mvs_refused
+    ticks0, refused0 = d.counters.ticks, d.counters.mvs_refused
     lost0 = d.inst.camera.counters()["frames_lost"]
     assert cell.control(f"natnet {fault}")["ok"]
     s = d.run(max_ticks=8)
     sent, done = _moves(cell)
-    assert sent - sent0 == d.ticks - ticks0 == 8  # every command moved once, measured or not
+    assert sent - sent0 == d.counters.ticks - ticks0 == 8  # every command moved once, measured or not
     assert s["driver_faults"] == 0
     if counter:  # readings go on; the loss is counted by the driver and shows on the bus
         assert d.inst.camera.counters()[counter] > lost0
@@ -121,7 +121,7 @@ def test_natnet_refused_longer_than_the_limit_halts_pages_stops_the_arm_and_resu
     clock): halted with the driver's reason, paged (the halt's request in the outbox), on the bus;
     no move is sent while halted; tracked again, the first reading resumes."""
     d, cell, seen = daemon
-    d.cfg = d.cfg.model_copy(update={"halt": d.cfg.halt.model_copy(update={"after_camera_refused_s": 1.0})})
+    d.supervisor.halt = d.cfg.halt.model_copy(update={"after_camera_refused_s": 1.0})  # the policy's own config
     d.run(max_ticks=2)
     assert cell.control("natnet untracked_probability=1.0")["ok"]
     for _ in range(200):  # ticks until the limit passes (each one moves the arm and is refused)

@@ -96,7 +96,7 @@ def test_a_full_database_during_escalation_loses_no_request(twin_dir, tmp_path):
                 d.run(max_ticks=40)
                 # checked while the disk is still full: the writer thread succeeds as soon as it is freed
                 errors, h = d.store.write_errors_in_row, d.health()
-                state, requests = d.escalator.state, list(d.requests)
+                state, requests = d.escalator.state, list(d.paging.requests)
             assert errors > 0
             assert h["status"] == "degraded" and "store" in h["reason"]
             # every transition was refused by the store, so the machine did not move without it
@@ -242,7 +242,7 @@ def test_operator_ack_returns_to_nominal_and_a_second_fault_pages_again(twin_dir
         assert main(["ack", "--store", store, "--by", "ana", "--note", "joint 2 re-referenced", "--json"]) == 0
         out = json.loads(capsys.readouterr().out)
         assert out["kind"] == "done"
-        assert wait_until(lambda: len(d._actions) == 1, 10)  # the housekeeper picked it up
+        assert wait_until(lambda: len(d.paging.actions) == 1, 10)  # the housekeeper picked it up
         d.tick()
         assert d.escalator.state == "nominal"
         last = d.store.transitions()[-1]
@@ -259,7 +259,7 @@ def test_operator_ack_returns_to_nominal_and_a_second_fault_pages_again(twin_dir
         # a 'done' naming the first episode's request does not clear the second
         first = d.store.outbox_of_episode(1)[0].id
         assert main(["ack", "--store", store, "--by", "bo", "--note", "old", "--request", str(first)]) == 0
-        assert wait_until(lambda: len(d._actions) == 1, 10)
+        assert wait_until(lambda: len(d.paging.actions) == 1, 10)
         d.tick()
         assert d.escalator.state == "maintenance_requested"
         assert "not of the open episode" in d.store.actions()[-1].result
@@ -280,7 +280,7 @@ def test_done_over_the_bus_is_checked_against_the_outbox(twin_dir, tmp_path):
         cons.done(prefix, req["id"], req["uid"], "ana", "gearbox replaced")
         assert wait_until(lambda: any(a.by == "ana" for a in d.store.actions()), 20)
         assert not any(a.by == "eve" for a in d.store.actions())
-        assert wait_until(lambda: len(d._actions) >= 1, 10)
+        assert wait_until(lambda: len(d.paging.actions) >= 1, 10)
         d.tick()
         assert d.escalator.state == "nominal"
         assert d.store.transitions()[-1]["evidence"]["note"] == "gearbox replaced"
@@ -384,12 +384,12 @@ def test_a_camera_refused_for_longer_than_the_limit_halts_pages_and_resumes(twin
         reqs = d.store.outbox_of_episode(stored["episode"])  # paged: the halt's request is in the outbox
         assert stored["state"] == "halted" and len(reqs) == 1 and reqs[0].payload["kind"] == "halt"
         assert d.health()["status"] == "halted"
-        ticks, reads = d.ticks, cam.reads
+        ticks, reads = d.counters.ticks, cam.reads
         d.run(max_ticks=20)  # halted: the camera is read once a tick, the arm is not moved
-        assert d.ticks == ticks and cam.reads == reads + 20 and d.escalator.state == "halted"
+        assert d.counters.ticks == ticks and cam.reads == reads + 20 and d.escalator.state == "halted"
         cam.blind = False
         d.run(max_ticks=5)
-        assert d.escalator.state == "nominal" and d.ticks > ticks and d.health()["camera_untested_s"] is None
+        assert d.escalator.state == "nominal" and d.counters.ticks > ticks and d.health()["camera_untested_s"] is None
         assert [t["dst"] for t in d.store.transitions()] == ["halted", "nominal"]
     finally:
         d.close()
@@ -415,11 +415,41 @@ def test_a_nan_model_stops_the_start_with_a_config_error(twin_dir, tmp_path):
         pass
 
 
+def test_a_part_that_fails_to_open_closes_the_parts_opened_before_newest_first(twin_dir, tmp_path, monkeypatch):
+    """The daemon's parts are registered on one stack as they open: the drivers failing to open
+    close the bus (and the services on its session) and the store, in that order (newest first)."""
+    from dt_kernel.errors import DriverError
+    from dt_runtime.service import daemon as daemon_mod
+
+    closed: list[str] = []
+
+    def recording(cls, name):
+        class Recorded(cls):
+            def close(self, *a, **k):
+                closed.append(name)
+                return super().close(*a, **k)
+        return Recorded
+
+    for attr, name in (("Store", "store"), ("Bus", "bus")):
+        monkeypatch.setattr(daemon_mod, attr, recording(getattr(daemon_mod, attr), name))
+
+    def failing_cell(*args):
+        args[-1].callback(closed.append, "world")  # what the cell opened before a driver failed
+        raise DriverError("the camera does not answer")
+
+    monkeypatch.setattr(daemon_mod, "open_cell", failing_cell)
+    with pytest.raises(DriverError, match="does not answer"):
+        Daemon(cfg_of(twin_dir, tmp_path, publish=True), CONFIGS)
+    assert closed == ["world", "bus", "store"]
+    with Store(tmp_path / "dt.sqlite", exclusive=True):  # released
+        pass
+
+
 def test_out_of_control_commands_uncorrected_or_halts_by_policy(twin_dir, tmp_path):
     d = Daemon(cfg_of(twin_dir, tmp_path, faults=[BIG_FAULT]), CONFIGS)
     try:
         d.run(max_ticks=30)
-        assert d.escalator.state == "maintenance_requested" and d.uncorrected > 0
+        assert d.escalator.state == "maintenance_requested" and d.counters.uncorrected > 0
         rows = d.store._query("SELECT dx, dy, dz FROM corrections ORDER BY id DESC LIMIT 3")
         assert all(r == (0.0, 0.0, 0.0) for r in rows)  # the untrusted correction is not applied
     finally:
@@ -428,12 +458,12 @@ def test_out_of_control_commands_uncorrected_or_halts_by_policy(twin_dir, tmp_pa
     try:
         d.run(max_ticks=30)
         assert d.escalator.state == "halted" and d.escalator.halt_sticky
-        n = d.ticks
+        n = d.counters.ticks
         d.run(max_ticks=5)
-        assert d.ticks == n  # it does not move until the operator confirms
+        assert d.counters.ticks == n  # it does not move until the operator confirms
         d.acknowledge_maintenance("fixed", by="ana")
         d.tick()
-        assert d.escalator.state == "nominal" and d.ticks == n + 1
+        assert d.escalator.state == "nominal" and d.counters.ticks == n + 1
     finally:
         d.close()
 

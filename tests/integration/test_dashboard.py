@@ -214,7 +214,7 @@ def test_an_operators_acknowledgement_from_the_page_reaches_the_daemon_by_name(p
     row = f"#requests tr[data-uid='{uid}']"
     page.click(f"{row} button.ack")
     page.wait_for_function("document.getElementById('act-status').textContent.startsWith('ack by alice')")
-    assert wait_until(lambda: len(d.delivered) >= 1, 10)  # the daemon took the ack: the copy left the outbox
+    assert wait_until(lambda: len(d.paging.delivered) >= 1, 10)  # the daemon took the ack: the copy left the outbox
     page.fill(f"{row} input.note", "joint 2 re-referenced")
     page.click(f"{row} button.done")
     page.wait_for_function("document.getElementById('act-status').textContent.startsWith('done by alice')")

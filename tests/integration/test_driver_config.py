@@ -126,7 +126,7 @@ def test_a_stale_measurement_is_refused_counted_and_not_tested(twin_dir, tmp_pat
         n_tests = d.store._query("SELECT COUNT(*) FROM t_stats")[0][0]
         s = d.run(max_ticks=4)
         assert s["stale_measurements"] == 4 and s["ticks"] == 7
-        assert d.health()["stale_measurements"] == 4 and "stale measurement" in d.last_problem
+        assert d.health()["stale_measurements"] == 4 and "stale measurement" in d.counters.last_problem
         d.store.flush()
         assert d.store._query("SELECT COUNT(*) FROM t_stats")[0][0] == n_tests == 3  # none tested
     finally:

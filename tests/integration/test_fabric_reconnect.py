@@ -71,7 +71,7 @@ def test_a_cell_started_before_its_router_catches_up_when_it_comes(twin_dir, tmp
         assert fields["bus"] == "connecting" and "bus connecting" in text
         loop.start()
         # The loop runs without a bus: rows are stored, and the fault pages into the outbox.
-        assert wait_until(lambda: d.counters.ticks >= 20 and len(d.requests) >= 1, 300), d.summary()
+        assert wait_until(lambda: d.counters.ticks >= 20 and len(d.paging.requests) >= 1, 300), d.summary()
         assert d.bus.state == "connecting" and d.health()["bus"] == "connecting"
         assert d.store.outbox_pending(), "the request waits in the outbox"
         assert d.bus.dropped > 0 and d.bus.published == 0  # telemetry had nowhere to go

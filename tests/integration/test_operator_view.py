@@ -45,7 +45,7 @@ def ran(twin_dir, tmp_path_factory):
     try:
         d.run(max_ticks=6)
         text, fields = d.status_line()
-        t, corr = d._last_corrected  # type: ignore[misc]
+        t, corr = d.status_line.last  # type: ignore[misc]
     finally:
         d.close()
     return text, fields, tmp / "dt.sqlite", t, corr

@@ -6,6 +6,7 @@ streaming process while NatNet measures the arm. Checks are on counts, states an
 numbers, never on wall-clock thresholds."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -112,7 +113,7 @@ def test_a_daemon_stopped_mid_pass_resumes_there_when_restarted(twin_dir, tmp_pa
             d.stop()
 
     d._beat = stop_in_the_second_pass
-    d.path.beat = stop_in_the_second_pass
+    d.path.hooks = dataclasses.replace(d.path.hooks, beat=stop_in_the_second_pass)
     try:
         s1 = d.run()
     finally:

@@ -37,12 +37,12 @@ def test_fault_is_detected_and_the_request_reaches_a_zenoh_consumer(twin_dir, tm
         try:
             s = d.run(max_ticks=300)
             assert s["maintenance_requests"] == 1
-            t_req = d.requests[0]["t"]
+            t_req = d.paging.requests[0]["t"]
             delay = t_req - 600.0
             assert 0 < delay < 40 * 6  # within 40 positionings of the fault (~6 s each)
             assert cons.wait_for(1, timeout=10)
             assert cons.requests[0]["robot"] == "r1" and cons.requests[0]["key"] == "dt/c1/r1/maintenance/request"
-            assert wait_until(lambda: len(d.delivered) == 1, 10)  # acked: left the outbox
+            assert wait_until(lambda: len(d.paging.delivered) == 1, 10)  # acked: left the outbox
             assert d.escalator.state == "maintenance_requested"  # until maintenance is done
             d.acknowledge_maintenance("joint 2 re-referenced")
             d.tick()
@@ -150,7 +150,7 @@ def test_daemon_drives_the_cell_through_the_serial_emulator_on_a_pty(twin_dir, t
         finally:
             d.close()
         assert s["maintenance_requests"] == 1 and s["refused_commands"] == 0
-        assert 0 < d.requests[0]["t"] - 600.0 < 40 * 6
+        assert 0 < d.paging.requests[0]["t"] - 600.0 < 40 * 6
         assert cons.wait_for(1, timeout=10)
     finally:
         cons.close()
@@ -216,4 +216,4 @@ def test_a_knocked_image_camera_rig_is_detected(twin_dir, tmp_path):
         s = d.run(max_ticks=150)
     finally:
         d.close()
-    assert s["maintenance_requests"] == 1 and d.requests[0]["t"] > 300.0
+    assert s["maintenance_requests"] == 1 and d.paging.requests[0]["t"] > 300.0
