@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from dt_kernel.errors import ConfigError
 from dt_runtime.dashboard.feed import BusFeed, joining
@@ -20,9 +20,28 @@ from dt_runtime.dashboard.server import DashboardServer, is_loopback
 from dt_runtime.fabric import BusConfig
 from dt_runtime.fabric.auth import Signer
 from dt_runtime.plant.config import PlantConfig
-from dt_runtime.service.runtime_config import RuntimeConfig
 
 log = logging.getLogger("dt.dashboard")
+
+
+class LiveCell(Protocol):
+    """What the dashboard reads of a cell's runtime config (`service.runtime_config.RuntimeConfig`
+    has it): the dashboard joins the cell's bus and shows its twin, without the daemon's modules."""
+
+    @property
+    def bus(self) -> BusConfig:
+        """The cell's bus."""
+        ...
+
+    @property
+    def twin(self) -> str:
+        """The twin directory, relative to the config's directory unless absolute."""
+        ...
+
+    @property
+    def alpha(self) -> float:
+        """Eq. 17's significance level."""
+        ...
 
 
 class Dashboard:
@@ -32,7 +51,7 @@ class Dashboard:
 
     Parameters
     ----------
-    cfg : RuntimeConfig or None
+    cfg : LiveCell or None
         The live cell's runtime config (its twin and bus); None serves no live cell.
     config_path : str, Path or None
         The runtime config's path (the twin's path is relative to its directory).
@@ -66,7 +85,7 @@ class Dashboard:
     BusError
         When the bus cannot be joined.
     """
-    def __init__(self, cfg: RuntimeConfig | None, config_path: str | Path | None, *, bus: BusConfig | None = None,
+    def __init__(self, cfg: LiveCell | None, config_path: str | Path | None, *, bus: BusConfig | None = None,
                  host: str = "127.0.0.1", port: int = 8765, token_file: str | Path | None = None,
                  group: str = "maintenance", tls: tuple[str | None, str | None] = (None, None),
                  max_rate_hz: float = 50.0, results: str | Path | None = None, plant: PlantConfig | None = None,
@@ -106,7 +125,7 @@ class Dashboard:
             self.close()
             raise
 
-    def _join(self, cfg: RuntimeConfig, config_path: Path, bus: BusConfig | None, group: str) -> None:
+    def _join(self, cfg: LiveCell, config_path: Path, bus: BusConfig | None, group: str) -> None:
         """The live cell: the twin's scene and the bus feed."""
         bus_cfg = bus if bus is not None else joining(cfg.bus, str(config_path))
         # To act, the service's key (as `dt ack --bus`: never made here, a new one could not be the service's);

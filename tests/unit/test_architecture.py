@@ -9,7 +9,8 @@ lazy imports inside functions included):
   __init__ is the public facade and may name anything;
 - a few layers also keep apart from some lower ones (APART): the fabric, the Zenoh client every
   part of a plant uses, sits below the daemon and imports neither the twin nor its models, so that
-  a plant's router, inbox or dashboard loads no GP; the plant uses the fabric, not the daemon.
+  a plant's router, inbox or dashboard loads no GP; the plant and the dashboard use the fabric,
+  not the daemon (the dashboard reads a cell's runtime config through its LiveCell protocol).
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ LAYERS = ("common", "metrology", "frames", "measurements", "models", "analysis",
 # sits beside the twin, not on it; the plant talks to its cells through the fabric, never through
 # the daemon's modules).
 _MODEL_SIDE = ("models", "analysis", "twin", "programs", "workflows")
-APART = {"fabric": _MODEL_SIDE, "plant": (*_MODEL_SIDE, "service")}
+APART = {"fabric": _MODEL_SIDE, "plant": (*_MODEL_SIDE, "service"), "dashboard": ("service",)}
 
 
 def module_name(path: Path) -> str:
@@ -134,6 +135,7 @@ def test_dt_runtime_modules_live_in_a_layer():
     ("dt_runtime.fabric.session", "def f():\n    from dt_runtime.twin.twin import Twin\n"),  # kept apart
     ("dt_runtime.fabric.auth", "from dt_runtime.models.gp import GPRegressor"),
     ("dt_runtime.plant.history", "from dt_runtime.service.store import StoreError"),
+    ("dt_runtime.dashboard.app", "from dt_runtime.service.runtime_config import RuntimeConfig"),
     ("dt_runtime.twin.twin", "from dt_runtime.workflows.campaign import Instruments"),  # the twin holds the twin only
     ("dt_runtime.twin.corrector", "from dt_runtime.programs.path import Path"),
     ("dt_runtime.twin.bounds", "from dt_runtime.service.daemon import Daemon"),  # the bounds hold no daemon
