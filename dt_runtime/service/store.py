@@ -539,8 +539,8 @@ class Store:
         """
         reqs = [(str(k), compact(dict(p))) for k, p in requests]
         # The staged resume row is taken by _tx under the lock and overwritten by `state` below;
-        # clearing it here, outside the lock, let a concurrent batch commit rows without any
-        # state, and lost it when this transaction then failed (a full disk).
+        # it is not cleared here, outside the lock: a concurrent batch would then commit rows
+        # without any state, and a failed transaction (a full disk) would lose it.
 
         def body() -> tuple[int, list[int]]:
             now = time.time()
