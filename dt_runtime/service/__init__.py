@@ -1,8 +1,10 @@
-"""The twin in service: the daemon loop (`daemon`) and its parts, the target sources (`targets`),
-the cell's drivers and clock (`cell`), escalation records, paging and operator actions
-(`paging`), the counters health and summary read (`counters`), the housekeeping thread
-(`housekeeping`); bounded corrections and Eq. 17 monitoring (`correction`), the escalation state
-machine (`escalation`), the durable SQLite store (`store`), and the daemon's sides of the Zenoh
-bus: the publisher over the store's outbox (`publisher`) and the correction server over the
-corrector (`correction_server`). The Zenoh client itself is `dt_runtime.fabric`, below the daemon.
+"""The twin in service (`dt run`): the daemon loop (`daemon`) and its parts, the target sources
+(`targets`), the cell's drivers and clock (`cell`), a streamed path program (`path_run`,
+`stream`), the halt / trust policy (`supervisor`), escalation records, paging and operator
+actions (`paging`), the escalation state machine (`escalation`), the durable SQLite store
+(`store`, `rows`), `.../health` and the status view (`health`, `answers`), the counters
+(`counters`), the housekeeping thread (`housekeeping`), and the daemon's sides of the Zenoh bus:
+the publisher over the store's outbox (`publisher`) and the correction server (`correction_server`).
+The correction law, its bounds and the Eq. 17 monitor are the twin's (`dt_runtime.twin`); the Zenoh
+client is `dt_runtime.fabric`, below the daemon. The module map: docs/service.md ("Inside the daemon").
 """

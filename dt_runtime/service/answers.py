@@ -29,17 +29,41 @@ from dt_runtime.service.store import OutboxItem
 class StatusView(Protocol):
     """What the answers read of a running daemon, and nothing more."""
 
-    def health(self) -> dict[str, Any]: ...
+    def health(self) -> dict[str, Any]:
+        """What `.../health` carries now."""
+        ...
 
-    def open_requests(self) -> list[OutboxItem]: ...
+    def open_requests(self) -> list[OutboxItem]:
+        """Outbox entries no consumer acknowledged, oldest first."""
+        ...
 
-    def latest_requests(self, limit: int) -> list[dict[str, Any]]: ...
+    def latest_requests(self, limit: int) -> list[dict[str, Any]]:
+        """The latest maintenance requests, acknowledged or not, newest first.
 
-    def latest_tests(self, limit: int) -> list[dict[str, Any]]: ...
+        Parameters
+        ----------
+        limit : int
+            At most this many.
+        """
+        ...
 
-    def t_test_failures(self) -> int: ...
+    def latest_tests(self, limit: int) -> list[dict[str, Any]]:
+        """The latest Eq. 17 tests, newest first.
 
-    def escalation(self) -> str: ...
+        Parameters
+        ----------
+        limit : int
+            At most this many.
+        """
+        ...
+
+    def t_test_failures(self) -> int:
+        """Eq. 17 tests failed since the daemon started."""
+        ...
+
+    def escalation(self) -> str:
+        """The escalation's state."""
+        ...
 
 
 def answers(view: StatusView, twin: dict[str, Any]) -> dict[str, Callable[[], dict[str, Any]]]:

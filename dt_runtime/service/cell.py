@@ -30,7 +30,13 @@ log = logging.getLogger("dt.run")
 
 
 class Cell:
-    """Drivers and clock of a real cell (or of a simulated one paced on the wall clock)."""
+    """Drivers and clock of a real cell: wall-clock time, no faults to inject, no truth.
+
+    Parameters
+    ----------
+    inst : Instruments
+        The cell's drivers (robot, tracker, camera), active.
+    """
 
     world: Any = None  # the simulated world, SimCell only
 
@@ -42,7 +48,13 @@ class Cell:
         return time.time()
 
     def idle(self, period_s: float) -> None:
-        """A tick that moved nothing: on the wall clock, time passes by itself."""
+        """A tick that moved nothing: on the wall clock, time passes by itself (nothing to do).
+
+        Parameters
+        ----------
+        period_s : float
+            The loop's period, s.
+        """
 
     def conditions(self) -> Conditions:
         """The cell's conditions before the next command, at the daemon's time."""
@@ -52,7 +64,13 @@ class Cell:
         """Fault injection: a real cell has none."""
 
     def score(self, target: np.ndarray) -> None:
-        """The true error of the command that reached `target`: unknown on a real cell."""
+        """The true error of the command that reached `target`: unknown on a real cell.
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        """
 
     def truth(self) -> dict[str, Any]:
         """The summary's truth figures: none on a real cell."""
@@ -60,7 +78,21 @@ class Cell:
 
 
 class SimCell(Cell):
-    """The simulated cell: its clock (unless paced on the wall clock), its faults, its truth."""
+    """The simulated cell: its clock (unless paced on the wall clock), its faults, its truth.
+
+    Parameters
+    ----------
+    inst : Instruments
+        The simulated drivers, active.
+    world : SimWorld
+        The simulated world they run on.
+    realtime : bool
+        The runtime config's `realtime`: True keeps the wall clock.
+    faults : list of Fault
+        `sim.faults`, injected when the simulated clock reaches their `at_s`.
+    twin : Twin
+        Its frames score the truth in GL (no correction reads the truth).
+    """
 
     def __init__(self, inst: Instruments, world, realtime: bool, faults: list[Fault], twin: Twin):
         super().__init__(inst)
@@ -70,15 +102,24 @@ class SimCell(Cell):
         self._true_sq: list[float] = []  # squared 3D true error of each command
 
     def now(self) -> float:
+        """The daemon's time (s): the simulated clock, or the wall clock when `realtime`."""
         return time.time() if self.realtime else self.world.t
 
     def idle(self, period_s: float) -> None:
         """On the simulated clock, let a period pass (or a run of refused commands would never
-        end in simulated time)."""
+        end in simulated time); nothing when `realtime`.
+
+        Parameters
+        ----------
+        period_s : float
+            The loop's period, s.
+        """
         if not self.realtime:
             self.world.idle(period_s)
 
     def inject_due_faults(self) -> None:
+        """Inject the faults whose time came on the simulated clock (a joint offset, a camera
+        shift), each once, logged."""
         t = self.world.t
         while self._faults and self._faults[0].at_s <= t:
             f = self._faults.pop(0)
@@ -89,7 +130,14 @@ class SimCell(Cell):
                 self.world.bump_camera(f.camera_shift_m)
 
     def score(self, target: np.ndarray) -> None:
-        """The true error in GL, as `dt demo` scores it (target - truth)."""
+        """Record the true error in GL of the command that reached `target`, as `dt demo` scores
+        it (target - truth).
+
+        Parameters
+        ----------
+        target : ndarray
+            (3,) m, robot frame.
+        """
         e = self._T_rdk.apply(target) - self._T_lt.apply(self.world.truth_in_tracker_frame())
         self._true_sq.append(float(np.sum(e ** 2)))
 
@@ -102,7 +150,34 @@ class SimCell(Cell):
 
 def open_cell(cfg: RuntimeConfig, base: Path, source: str, world, twin: Twin, parts: ExitStack) -> Cell:
     """The cell of the config's drivers, activated; what it opens is registered on `parts`. A
-    simulated driver runs on `world` (the caller's, left open) or on one built from `sim`."""
+    simulated driver runs on `world` (the caller's, left open) or on one built from `sim`.
+
+    Parameters
+    ----------
+    cfg : RuntimeConfig
+        The runtime config (`drivers`, `sim`, `realtime`, `limits`).
+    base : Path
+        The directory `sim`'s relative paths are resolved against.
+    source : str
+        Names the runtime config in errors.
+    world : SimWorld or None
+        The caller's simulated world, or None.
+    twin : Twin
+        The daemon's twin (a `SimCell` scores in its frames).
+    parts : ExitStack
+        The daemon's stack: the world it builds and the drivers are registered for closing.
+
+    Returns
+    -------
+    Cell
+        `SimCell` when a simulated world is in use, else `Cell`.
+
+    Raises
+    ------
+    TwinError
+        A driver could not be built or activated (DriverError, ConfigError), or the scenario
+        could not be read.
+    """
     def p(rel: str) -> Path:
         return Path(rel) if Path(rel).is_absolute() else base / rel
 

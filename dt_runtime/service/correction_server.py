@@ -87,7 +87,25 @@ class CorrectionServer:
     state with another), on a session of its own or one it is given (the daemon shares its Bus's
     session: one listen endpoint per process). `conditions`: the cell's latest conditions (the
     daemon's; never a driver call from zenoh's thread), which a request's temperature_c /
-    payload_kg override."""
+    payload_kg override.
+
+    Parameters
+    ----------
+    corrector : Guard
+        The bounded correction law (with a Corrector of its own).
+    config : BusConfig
+        The bus config (the key `.../correct`, the session, the close time-out).
+    session : zenoh.Session, optional
+        A session to serve on (left open by `close`); None opens one of its own.
+    conditions : callable, optional
+        The cell's latest conditions, or None.
+
+    Raises
+    ------
+    BusError
+        The session could not be opened or the queryable declared (a session of its own is
+        closed again).
+    """
 
     def __init__(self, corrector: Guard, config: BusConfig, session: zenoh.Session | None = None,
                  conditions: Callable[[], Conditions | None] | None = None):
@@ -108,7 +126,20 @@ class CorrectionServer:
 
     def answer(self, raw: bytes) -> dict[str, Any]:
         """The reply to one request payload (an error reply for a refused or malformed one, and
-        for a defect: a request is never left without a reply)."""
+        for a defect: a request is never left without a reply). Runs on zenoh's thread; the
+        correction itself under a lock.
+
+        Parameters
+        ----------
+        raw : bytes
+            The request's JSON payload.
+
+        Returns
+        -------
+        dict
+            `id`, `target_mm`, `command_mm`, `correction_mm`, `U_mm`, `inside`, `distance_mm`; or
+            `id`, `error`, `type` for a refused request. Never raises.
+        """
         rid = None
         try:
             rid, target, speed, over = _request(raw)
@@ -161,6 +192,18 @@ class CorrectionServer:
                 drop()
 
     def close(self, timeout: float | None = None) -> bool:
+        """Undeclare the queryable and close the session if it is its own.
+
+        Parameters
+        ----------
+        timeout : float, optional
+            Bound of the session's close, s (the bus config's `close_timeout_s` if None).
+
+        Returns
+        -------
+        bool
+            True if the session closed in time (always True on a shared session).
+        """
         timeout = self.config.close_timeout_s if timeout is None else timeout
         try:
             with zenoh_errors(f"undeclare {self.key}"):

@@ -16,6 +16,9 @@ from typing import Any
 
 @dataclass
 class Counters:
+    """The daemon's counters (the comments say what each counts); daemon times in s, `last_tick_wall`
+    epoch s, `last_tick_mono` the host's monotonic clock (the watchdog's)."""
+
     ticks: int = 0  # commands sent (moved): points of a program, set-points of a path
     failures: int = 0  # Eq. 17 tests failed
     refused: int = 0  # commands the correction refused (the robot not moved)
@@ -36,7 +39,13 @@ class Counters:
         return bool(self.refused_in_row or self.driver_faults_in_row or self.mvs_refused_in_row)
 
     def ticked(self, n: int = 1) -> None:
-        """`n` commands (set-points of a path) were sent."""
+        """Count commands sent and note the tick's time (wall and monotonic).
+
+        Parameters
+        ----------
+        n : int
+            Commands (set-points of a path) sent.
+        """
         self.ticks += n
         self.last_tick_wall, self.last_tick_mono = time.time(), time.monotonic()
 
@@ -47,7 +56,19 @@ class Counters:
                 "stale_measurements": self.stale_measurements, "mvs_refused": self.mvs_refused}
 
     def health(self, now: float) -> dict[str, Any]:
-        """The counters' keys of `.../health` at daemon time `now`."""
+        """The counters' keys of `.../health`.
+
+        Parameters
+        ----------
+        now : float
+            Daemon time, s (for `camera_untested_s`).
+
+        Returns
+        -------
+        dict
+            `last_tick`, `ticks`, `refused_in_row`, `driver_faults_in_row`, `stale_measurements`,
+            `mvs_refused`, `mvs_refused_in_row`, `camera_untested_s`.
+        """
         return {"last_tick": self.last_tick_wall, "ticks": self.ticks, "refused_in_row": self.refused_in_row,
                 "driver_faults_in_row": self.driver_faults_in_row, "stale_measurements": self.stale_measurements,
                 "mvs_refused": self.mvs_refused, "mvs_refused_in_row": self.mvs_refused_in_row,

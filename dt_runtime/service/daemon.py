@@ -1,67 +1,13 @@
-"""`dt run`: the long-running twin daemon.
+"""`dt run`: the long-running twin daemon of one cell, and its composition root.
 
-Every tick: take the next target from the target source (`service.targets`: the program, or a
-simulation stand-in), apply the bounded correction with the twin's maps (twin.bounds around twin.corrector)
-under the cell's conditions when the maps read them (joint angles from the controller,
-temperature and payload from the program's columns or the simulated cell's sensors, the clock:
-`twin.conditions`), move the robot, read the MVS, test the measurement against the prediction
-(Eq. 17), feed the escalation state machine, log everything to the durable store (typed rows,
-`service.rows`, on the Store's one lock-free queue: the loop never waits on SQLite) and publish
-over Zenoh. The cell (`service.cell`: the drivers and the clock; on the simulated cell, `SimCell`,
-its truth and fault injection too) is built by `open_cell`, every driver by
-`drivers.registry.create` from `drivers.<kind>` (`kind` and the driver's options, checked before
-anything opens), the same way whatever their name.
+Every tick of a point program: target -> bounded correction -> move -> MVS reading -> Eq. 17
+test -> escalation -> store and bus (`Daemon.tick`); a path program runs passes instead
+(`service.path_run`). `Daemon._start` builds every part in one place and registers what it opens
+on one `Parts` stack, closed newest first by `close()` or when the start fails half way; the
+parts live in the sibling modules (supervisor, paging, health, housekeeping, ...).
 
-Module layout: this module is the composition root: `Daemon._start` builds every part in one place
-and registers what it opens on one `Parts` stack (closed newest first by `close()`, and when the
-start fails half way); it holds the two loops (`Daemon.tick`: target -> correct -> move -> read ->
-test -> record; `Daemon._run_path`), pacing, start and stop. The parts: `preflight` the checks
-before anything opens; `targets` the target sources; `cell` the cell; `supervisor` the halt /
-trust / camera policy both loops ask; `paging` the escalation's records, maintenance requests and
-operator actions; `events` the typed events (a recorded transition, a request queued, health due)
-its parts subscribe to; `health` the `.../health` reporter and the status view the queries
-(`answers`) read; `counters` the one set of counters that `.../health`, the summary and the status
-line read; `housekeeping` the thread that is never the loop.
-
-Measurements and clocks. Every reading carries the device's time stamp (`t`) and the host's
-monotonic receive time (`host_time`, drivers.base). The MVS reading tested against a command is
-one received after the command arrived (the move returned) or at most `max_measurement_age_s`
-before it; an older one saw the arm elsewhere and is refused, counted (`stale_measurements` in
-the summary and on `.../health`), and not tested.
-
-Escalation and paging (`service.paging`). Every transition of the machine is one store transaction
-with its snapshot and, on entering `maintenance_requested` or `halted`, that episode's maintenance
-requests; only then is it emitted (`service.events.Transition`): the bus publishes it and delivers
-the requests, the health reporter marks `.../health` due. At start-up a paging state without
-requests gets them, and the escalation statistics resume from the store (staged with every batch
-of rows).
-
-Halts (`service.supervisor`). Every command refused for `halt.after_refused` ticks,
-`halt.after_driver_faults` driver faults in a row, no MVS reading tested for
-`halt.after_camera_refused_s` (refused by the camera driver, too old, or rejected), or
-`out_of_control` under `halt.on_untrusted: halt`, put the machine in `halted` with the reason:
-stored, paged and published on `.../health`; the first two resume by themselves when a command
-goes through again; a camera halt stops the arm (it would move unmonitored), reads the camera once
-a tick and resumes at the first accepted reading. In `out_of_control` and `maintenance_requested`
-the correction is not trusted: by default the daemon commands the targets uncorrected.
-
-Operator. `dt ack` (or a signed `.../maintenance/done/<id>` on the bus) stores an operator
-action; the housekeeping thread picks it up and the loop applies it (`service.paging`).
-
-Housekeeping (`service.housekeeping`, one thread, never the loop): operator actions,
-`.../health` every `bus.health_period_s` (and on every change, from the loop), store retention,
-the status line, and the systemd watchdog (`service.sdnotify`: READY on start, WATCHDOG while
-the loop ticks, STOPPING).
-
-Start and stop. Any start-up failure closes what was opened (bus, store, drivers) and raises, so
-`dt run` exits non-zero within seconds; one daemon per store (a lock). `stop()` (SIGTERM, SIGINT)
-aborts a move in flight; `run_daemon` exits within `stop_timeout_s` whatever a device does.
-
-`realtime: true` paces ticks at `rate_hz` on the wall clock (a real cell): a late tick starts at
-once and the schedule keeps its rate; more than a period late, a new schedule starts (no burst);
-while paced, the GIL's switch interval is 0.2 ms, so a woken loop waits at most that long for
-another thread to let go. `realtime: false` runs as fast as it can on the simulated clock (soaks
-and tests).
+What it guarantees, halts, health, the operator, pacing, start and stop, and the module map:
+docs/service.md; the bus keys: docs/bus.md.
 """
 from __future__ import annotations
 
@@ -131,7 +77,21 @@ class Parts(ExitStack):
     the others are still closed (each bounded by its own time-out)."""
 
     def callback(self, close: Callable[..., Any], /, *args: Any, **kwds: Any) -> Callable[..., Any]:
-        """Register `close(*args, **kwds)`, called when the stack closes (best effort)."""
+        """Register `close(*args, **kwds)`, called when the stack closes (best effort: an
+        exception it raises is logged and the other closes still run).
+
+        Parameters
+        ----------
+        close : callable
+            What closes the part.
+        *args, **kwds
+            Passed to `close`.
+
+        Returns
+        -------
+        callable
+            The registered callback (`ExitStack.callback`'s return value).
+        """
         return super().callback(_close_quietly, close, *args, **kwds)
 
 
@@ -143,8 +103,31 @@ def _close_quietly(close: Callable[..., Any], *args: Any, **kwds: Any) -> None:
 
 
 class Daemon:
-    """The twin daemon of one cell (module docstring): built whole or not at all, then `run`,
-    `stop`, `close`."""
+    """The twin daemon of one cell: built whole or not at all, then `run`, `stop`, `close`.
+
+    Parameters
+    ----------
+    cfg : RuntimeConfig
+        The validated runtime config.
+    base : Path
+        The directory relative paths of the config are resolved against (the YAML's).
+    world : SimWorld, optional
+        A simulated world to run on (left open); None builds one from `sim` when a driver needs it.
+    source : str
+        Names the runtime YAML in errors.
+    status_every_s : float, optional
+        Period of the operator's status line on stderr (s); None: no status line.
+
+    Raises
+    ------
+    TwinError
+        Any failure of the start (ConfigError for a bad config, twin or program, StoreError for a
+        store in use, DriverError, BusError): everything opened so far is closed first.
+
+    Threads: `run` runs the loop on the caller's thread; the store's writer, the housekeeping
+    thread, the bus worker and zenoh's callbacks run beside it. `stop` may be called from a signal
+    handler.
+    """
 
     def __init__(self, cfg: RuntimeConfig, base: Path, world=None, source: str = "<runtime config>",
                  status_every_s: float | None = None):
@@ -263,7 +246,25 @@ class Daemon:
 
     def acknowledge_maintenance(self, note: str = "maintenance done", by: str = "operator") -> int:
         """Operator confirmation, as `dt ack` does it: stored as an action (who, why), applied by
-        the loop at its next tick. Returns the action's id."""
+        the loop at its next tick.
+
+        Parameters
+        ----------
+        note : str
+            Why (what was done).
+        by : str
+            Who.
+
+        Returns
+        -------
+        int
+            The action's id.
+
+        Raises
+        ------
+        StoreError
+            The action could not be stored.
+        """
         return self.paging.acknowledge(note, by)
 
     # --- what it reports ------------------------------------------------------------------------
@@ -278,6 +279,9 @@ class Daemon:
         return self.store.prune(before_t=before, keep_rows=r.max_rows)
 
     def summary(self) -> dict:
+        """What `dt run` prints at the end (`--json`): the counters, the escalation state and halt
+        reason, the maintenance requests opened and delivered, the store's path, the simulated
+        cell's truth figures and a path program's state."""
         esc = self.escalator
         return {**self.counters.summary(), "state": esc.state, "halt_reason": esc.halt_reason,
                 "maintenance_requests": len(self.paging.requests), "requests_delivered": len(self.paging.delivered),
@@ -442,6 +446,28 @@ class Daemon:
         self.reporter.changed()
 
     def run(self, duration_s: float | None = None, max_ticks: int | None = None) -> dict:
+        """Run the loop on this thread until `duration_s`, `max_ticks` or `stop()`; a path
+        program runs its passes instead (`max_ticks` is then ignored). Paced (`realtime: true`),
+        the GIL's switch interval is lowered to `PACED_SWITCH_INTERVAL_S` meanwhile.
+
+        Parameters
+        ----------
+        duration_s : float, optional
+            How long to run, s of the daemon's clock (simulated or wall); None: until stopped.
+        max_ticks : int, optional
+            Loop iterations of a point program, moved or not; None: no limit.
+
+        Returns
+        -------
+        dict
+            The `summary()`.
+
+        Raises
+        ------
+        TwinError
+            A failure the loop does not absorb (store and driver failures are counted and the
+            loop goes on; a StoreError out of a path pass is raised).
+        """
         if self.path is not None:  # passes of a path: the streaming loop keeps the controller's rate
             return self._run_path(duration_s)
         if not self.cfg.realtime:
@@ -594,7 +620,14 @@ class Daemon:
 
     # --- stop and close ---------------------------------------------------------------------------
     def stop(self, *_: Any) -> None:
-        """Stop the loop (a signal handler: only sets flags): the move in flight is aborted."""
+        """Stop the loop: safe in a signal handler (it sets flags, aborts the move in flight and
+        cancels a streamed pass; nothing waits).
+
+        Parameters
+        ----------
+        *_ : Any
+            Ignored: a signal handler's (signum, frame).
+        """
         self._stop.set()
         housekeeper = getattr(self, "housekeeper", None)
         if housekeeper is not None:
@@ -625,9 +658,32 @@ class Daemon:
 
 
 def run_daemon(config: str | Path, duration_s: float | None = None, status_every_s: float | None = None) -> dict:
-    """`dt run`: start (a failure raises with everything closed), run until the duration ends or
-    SIGTERM/SIGINT, stop within `stop_timeout_s` whatever a device does; the status line every
-    `status_every_s` (None: never)."""
+    """`dt run`: start, run until the duration ends or SIGTERM/SIGINT, close.
+
+    The signal handlers are this daemon's while it runs and the caller's again after; once a
+    signal came, the process exits with status 75 if it is not stopped within `stop_timeout_s`
+    whatever a device does.
+
+    Parameters
+    ----------
+    config : str or Path
+        The runtime YAML.
+    duration_s : float, optional
+        How long to run, s of the daemon's clock; None: until a signal.
+    status_every_s : float, optional
+        Period of the operator's status line (s); None: never.
+
+    Returns
+    -------
+    dict
+        The daemon's `summary()`.
+
+    Raises
+    ------
+    TwinError
+        The start failed (ConfigError for the config, twin or program; everything opened is
+        closed first), or the loop failed.
+    """
     config = Path(config)
     cfg = load_runtime_config(config)
     d = Daemon(cfg, config.parent, source=str(config), status_every_s=status_every_s)

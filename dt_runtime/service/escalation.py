@@ -1,73 +1,9 @@
-"""Escalation of in-service t-test outcomes to a maintenance request.
+"""Escalation of in-service Eq. 17 t-test outcomes to a maintenance request: the state machine
+(`EscalationMachine`: nominal, suspect, out_of_control, maintenance_requested, halted), the
+`Escalator` that feeds it the window and CUSUM statistics of the failure indicator, and the
+false-alarm bounds of a configuration (`false_alarm_rates`).
 
-States (python-statemachine `EscalationMachine`)::
-
-    nominal --suspect--> suspect --lose_control--> out_of_control --request--> maintenance_requested
-       ^                  |   ^                        |                              |
-       +-----clear--------+   +--------regain----------+                              |
-       +-------------------------------acknowledge---------------------------------------+
-
-    any of the four --halt(reason)--> halted --resume--> the state it came from
-                                        +----acknowledge----> nominal
-
-`halted`: the daemon cannot do its job (every command refused for N ticks, a driver down, the
-model unusable, or `out_of_control` under the policy 'halt'); the reason is kept in the machine
-(`halt_reason`) and published. A halt whose cause clears (`resume`) returns to the state it
-interrupted, evidence included; a halt that needs a person (`sticky`, e.g. the policy halt)
-leaves only by `acknowledge`. Entering `maintenance_requested` or `halted` opens a new
-*episode* (`episode`, a counter in the snapshot): the daemon writes that episode's maintenance
-requests in the same transaction as the transition, and at start-up re-creates them if a store
-holds the state without them (`Store.record_transition`, `Paging.reconcile`).
-
-Transitions are recorded before they count: `on_transition` runs after the machine moved; if it
-raises (the store could not commit), the machine is put back where it was, the exception
-propagates, and the same evidence fires the transition again on the next test.
-
-Evidence: each measurement gives a t-test outcome; `failed = p < alpha` (the twin's
-prediction is significantly off). Two statistics on the failure indicator x in {0, 1}:
-- window: failures among the last `window_n` tests;
-- Bernoulli CUSUM: S = max(0, S + x - cusum_k), i.e. +0.75 per failure, -0.25 per pass with
-  cusum_k = 0.25 (reference value between p0 = alpha and a faulty rate of ~0.5-1).
-We use the indicator, not |t|: under the null its law is exactly Bernoulli(alpha) whatever the
-t-test's degrees of freedom, so the false-alarm rate below is exact rather than assumed.
-
-Rules (`mode`: "window", "cusum", "either" (OR, default) or "both" (AND)):
-- alarm  = window >= window_k  (mode) S >= cusum_h
-- suspicion = window >= suspect_k or S >= suspect_h (any alarm is also a suspicion)
-- nominal -> suspect on suspicion; suspect -> nominal when nothing is suspicious and the last
-  `recover_passes` tests passed.
-- suspect -> out_of_control on alarm (from nominal both steps happen on the same test, each
-  logged). out_of_control means "the correction is not trustworthy"; the daemon may flag it.
-- out_of_control -> maintenance_requested once the alarm held for `confirm_n` further tests;
-  out_of_control -> suspect if the alarm clears earlier (the evidence faded: one burst is not
-  a fault). Chosen so a transient (e.g. someone bumping the tracker) is visible in the log but
-  does not page maintenance.
-- maintenance_requested stays until `acknowledge()` (a human/consumer acknowledged the
-  maintenance); then -> nominal with the statistics reset (the robot was serviced). It never
-  clears itself: a request must be answered.
-
-False maintenance requests (null: independent tests, P(fail) = alpha = 0.05, 1 test/s,
-86,400 tests/day; target < 0.1 per day). Every out_of_control entry needs a fresh alarm onset
-(it is left only when the alarm clears, or via acknowledge, which resets the statistics), and a
-request needs an entry, so   rate(requests) <= rate(window onsets) + rate(CUSUM upcrossings).
-- window onset at test i needs x_i = 1 and >= k-1 failures among the n-1 previous tests:
-  P <= alpha * P(Bin(n-1, alpha) >= k-1). n = 20, k = 9: 9.0e-8 per test -> 0.0077 per day
-  (k = 8 would give 0.0996/day: too close to the target).
-- CUSUM with k = 0.25 lives on the grid of quarters; its exact Markov chain gives the
-  stationary rate of upcrossings of h = 4.5: 1.3e-7 per test -> 0.0114 per day (ARL0 from
-  S = 0: 9.0e6 tests = 104 days).
-- total (default "either") <= 0.019 false requests per day, i.e. at most one per ~52 days,
-  a 5x margin on the target for mild dependence between tests; the confirmation step only
-  lowers it further. `false_alarm_rates(cfg)` recomputes these numbers for any config (the
-  soak benchmark and tests use it).
-Suspicion onsets (only logged, never paged): ~ 32 per day under the null with these defaults.
-Detection: a fault that fails every test reaches S = 4.5 after 6 tests, -> out_of_control at
-test 6 and maintenance_requested at test 9; a fault failing half the tests needs ~16-25.
-
-Every transition calls `on_transition(src, dst, evidence, t)` (the daemon writes it to the Store
-and publishes it on the Bus); evidence holds the window count, CUSUM value, thresholds, last t
-values, the rule that fired and the test count. `snapshot()` / `restore()` carry the machine
-state and statistics through a daemon restart (JSON-ready dict).
+States, rules, episodes and the false-alarm numbers: docs/service.md ("The escalation machine").
 """
 from __future__ import annotations
 
@@ -94,6 +30,18 @@ TransitionCallback = Callable[[str, str, dict[str, Any], float], None]
 
 
 class EscalationConfig(Frozen):
+    """The `escalation` section of the runtime YAML (docs/service.md, "The escalation machine").
+
+    `mode`: which statistic raises the alarm (`window`, `cusum`, `either`, `both`); `alpha`: the
+    per-test significance level of the t-test feeding the machine; `window_n`, `window_k`,
+    `suspect_k`: the window's length and the failures in it that alarm or raise suspicion;
+    `cusum_k`, `cusum_h`, `suspect_h`: the CUSUM's reference value and its alarm and suspicion
+    thresholds; `confirm_n`: further alarmed tests before out_of_control pages; `recover_passes`:
+    passes in a row before suspect clears; `last_t_kept`: t values kept as evidence;
+    `tests_per_day`: for `false_alarm_rates`. Counts are tests, not seconds; an inconsistent or
+    unbounded value raises ValueError (a ConfigError through dt_kernel.config).
+    """
+
     mode: Literal["window", "cusum", "either", "both"] = "either"
     alpha: float = 0.05           # per-test significance level of the t-test feeding us
     window_n: int = 20
@@ -131,6 +79,8 @@ class EscalationConfig(Frozen):
 
 
 class EscalationMachine(StateMachine):
+    """The states and the events between them (python-statemachine); `Escalator` sends the events."""
+
     nominal = State(initial=True)
     suspect = State()
     out_of_control = State()
@@ -155,7 +105,19 @@ STATES = ("nominal", "suspect", "out_of_control", "maintenance_requested", "halt
 
 
 class Escalator:
-    """Feeds t-test outcomes to an EscalationMachine; see the module docstring."""
+    """Feeds t-test outcomes to an `EscalationMachine` and keeps its statistics.
+
+    Parameters
+    ----------
+    config : EscalationConfig, optional
+        The thresholds (defaults if None).
+    on_transition : callable, optional
+        `on_transition(src, dst, evidence, t)`, called after every transition; if it raises,
+        the machine is put back where it was and the exception propagates (the daemon records
+        the transition in the store there: it counts only once recorded).
+
+    Not thread-safe: the daemon's loop alone feeds and moves it.
+    """
 
     def __init__(self, config: EscalationConfig | None = None,
                  on_transition: TransitionCallback | None = None):
@@ -164,7 +126,7 @@ class Escalator:
         self.machine = EscalationMachine()
         self._reset_stats()
         self.n_seen = 0
-        self.episode = 0  # paging episodes opened so far (see the module docstring)
+        self.episode = 0  # paging episodes opened so far (entries into maintenance_requested or halted)
         self.halt_reason: str | None = None
         self.halt_sticky = False
         self.halted_from: str | None = None
@@ -180,10 +142,12 @@ class Escalator:
     # ------------------------------------------------------------------ state
     @property
     def state(self) -> str:
+        """The machine's state: one of `STATES`."""
         return next(iter(self.machine.configuration)).id
 
     @property
     def window_failures(self) -> int:
+        """Failures among the last `window_n` tests."""
         return sum(self._window)
 
     def _alarm(self) -> str | None:
@@ -201,6 +165,19 @@ class Escalator:
                 or self._alarm() is not None)
 
     def evidence(self, rule: str | None = None) -> dict[str, Any]:
+        """What a transition carries as its evidence (JSON-ready).
+
+        Parameters
+        ----------
+        rule : str, optional
+            The rule that fired (`window`, `cusum` or `both`), None for none.
+
+        Returns
+        -------
+        dict
+            Window failures and length, thresholds, CUSUM, mode, rule, confirmation count,
+            passes in a row, the last t values and the number of tests seen.
+        """
         c = self.config
         return {
             "window_failures": self.window_failures, "window_len": len(self._window),
@@ -212,12 +189,13 @@ class Escalator:
         }
 
     def evidence_of_halt(self) -> dict[str, Any]:
+        """The halt's reason, whether it is sticky and the state it interrupted (None when not halted)."""
         return {"halt_reason": self.halt_reason, "halt_sticky": self.halt_sticky,
                 "halted_from": self.halted_from}
 
     def _fire(self, event: str, t: float, rule: str | None, extra: dict[str, Any] | None = None,
               before: dict[str, Any] | None = None) -> None:
-        """Move the machine and report it; put it back if the report raises (module docstring).
+        """Move the machine and report it; put it back if the report raises (class docstring).
         `before`: the snapshot to return to, when the caller changed more than the state."""
         before = self.snapshot() if before is None else before
         src = self.state
@@ -235,7 +213,28 @@ class Escalator:
     # ------------------------------------------------------------------ input
     def observe(self, passed: bool, t_value: float | None = None,
                 t: float | None = None) -> str:
-        """Feed one t-test outcome; returns the state after it (transitions are reported)."""
+        """Feed one t-test outcome; the transitions it fires are reported to `on_transition`.
+
+        Parameters
+        ----------
+        passed : bool
+            The test passed (p >= alpha).
+        t_value : float, optional
+            The test's t (kept as evidence; None or non-finite is kept as None).
+        t : float, optional
+            Daemon time, s (default: the number of tests seen so far).
+
+        Returns
+        -------
+        str
+            The state after this test. While halted only the statistics move.
+
+        Raises
+        ------
+        Exception
+            Whatever `on_transition` raises (StoreError in the daemon); the machine is then
+            where it was before the transition.
+        """
         c = self.config
         t = float(self.n_seen if t is None else t)
         x = 0 if passed else 1
@@ -274,8 +273,22 @@ class Escalator:
         return self.state
 
     def halt(self, reason: str, t: float | None = None, *, sticky: bool = False) -> bool:
-        """Enter `halted` for `reason` (True if this was a transition; an existing halt keeps its
-        first reason). `sticky`: only `acknowledge` leaves it, not `resume`."""
+        """Enter `halted` for `reason`; an existing halt keeps its first reason.
+
+        Parameters
+        ----------
+        reason : str
+            Why, in words (published on `.../health` and in the maintenance request).
+        t : float, optional
+            Daemon time, s (default: the number of tests seen so far).
+        sticky : bool
+            Only `acknowledge` leaves it, not `resume`.
+
+        Returns
+        -------
+        bool
+            True if this was a transition (False when already halted).
+        """
         if self.state == "halted":
             return False
         t = float(self.n_seen if t is None else t)
@@ -285,8 +298,18 @@ class Escalator:
         return True
 
     def resume(self, t: float | None = None) -> bool:
-        """The cause of a non-sticky halt cleared: back to the state it interrupted (True if this
-        was a transition)."""
+        """The cause of a non-sticky halt cleared: back to the state it interrupted.
+
+        Parameters
+        ----------
+        t : float, optional
+            Daemon time, s (default: the number of tests seen so far).
+
+        Returns
+        -------
+        bool
+            True if this was a transition (False when not halted, or the halt is sticky).
+        """
         if self.state != "halted" or self.halt_sticky:
             return False
         t = float(self.n_seen if t is None else t)
@@ -298,7 +321,22 @@ class Escalator:
 
     def acknowledge(self, t: float | None = None, note: str | None = None,
                     by: str | None = None) -> None:
-        """Maintenance was done: maintenance_requested or halted -> nominal, statistics reset."""
+        """Maintenance was done: maintenance_requested or halted -> nominal, statistics reset.
+
+        Parameters
+        ----------
+        t : float, optional
+            Daemon time, s (default: the number of tests seen so far).
+        note : str, optional
+            Why, as the operator said it (kept in the evidence).
+        by : str, optional
+            Who (kept in the evidence).
+
+        Raises
+        ------
+        StateError
+            The machine is in neither maintenance_requested nor halted.
+        """
         if self.state not in PAGING:
             raise StateError(f"acknowledge is only allowed in {' or '.join(PAGING)}, "
                              f"the escalation is in {self.state}")
@@ -315,6 +353,7 @@ class Escalator:
 
     # ------------------------------------------------------------------ persistence
     def snapshot(self) -> dict[str, Any]:
+        """The machine's state and statistics, JSON-ready, for `restore` after a restart."""
         return {
             "version": SNAPSHOT_VERSION, "state": self.state, "window": list(self._window),
             "cusum": self.cusum, "consecutive_passes": self.consecutive_passes,
@@ -324,7 +363,18 @@ class Escalator:
         }
 
     def restore(self, snapshot: dict[str, Any]) -> None:
-        """Resume from `snapshot()` (no transition is reported: nothing changed)."""
+        """Resume from a `snapshot()` (no transition is reported: nothing changed).
+
+        Parameters
+        ----------
+        snapshot : dict
+            A snapshot of version 1 or `SNAPSHOT_VERSION`.
+
+        Raises
+        ------
+        StateError
+            The snapshot is of another version, names an unknown state or lacks a key.
+        """
         try:
             if snapshot.get("version") not in (1, SNAPSHOT_VERSION):
                 raise ValueError(f"snapshot version {snapshot.get('version')!r}")
@@ -365,10 +415,19 @@ def _cusum_chain(c: EscalationConfig) -> tuple[int, int, int]:
 
 
 def false_alarm_rates(config: EscalationConfig | None = None) -> dict[str, float]:
-    """Per-day upper bounds of false alarm onsets under the null (see module docstring).
+    """Upper bounds of false alarm onsets under the null (docs/service.md, "The escalation machine").
 
-    Keys: window_per_test, window_per_day, cusum_per_test (stationary upcrossing rate of
-    cusum_h), cusum_per_day, cusum_arl0 (tests from S = 0), requests_per_day_bound.
+    Parameters
+    ----------
+    config : EscalationConfig, optional
+        The thresholds (defaults if None); `tests_per_day` turns rates per test into rates per day.
+
+    Returns
+    -------
+    dict
+        `window_per_test`, `window_per_day`, `cusum_per_test` (stationary upcrossing rate of
+        `cusum_h`), `cusum_per_day`, `cusum_arl0` (tests from S = 0 to an alarm) and
+        `requests_per_day_bound` (the bound for the configured `mode`).
     """
     c = config or EscalationConfig()
     p = c.alpha

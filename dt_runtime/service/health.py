@@ -73,8 +73,14 @@ class HealthReporter:
                 **({"stream": stream} if stream is not None else {})}
 
     def changed(self, force: bool = False) -> None:
-        """Emit `HealthDue` on a change of status, reason or state (checked without I/O) or when
-        `force`d."""
+        """Emit `HealthDue` on a change of status, reason or escalation state (checked without
+        I/O: the loop calls it every tick) or when `force`d.
+
+        Parameters
+        ----------
+        force : bool
+            Emit even if nothing changed.
+        """
         key = (*self.status(), self.escalator.state)
         if not force and key == self._key:
             return
@@ -82,7 +88,13 @@ class HealthReporter:
         self.events.emit(HealthDue())
 
     def send(self) -> None:
-        """Publish the health now (the housekeeping thread)."""
+        """Publish the health now (from the housekeeping thread); nothing without a bus.
+
+        Raises
+        ------
+        StateError
+            The bus is closed.
+        """
         if self.bus:
             self.bus.publish_health(self.health())
 
@@ -125,11 +137,33 @@ class CellStatus:
         return self.store.outbox_pending()
 
     def latest_requests(self, limit: int) -> list[dict[str, Any]]:
-        """The latest maintenance requests, acknowledged or not."""
+        """The latest maintenance requests, acknowledged or not, newest first.
+
+        Parameters
+        ----------
+        limit : int
+            At most this many.
+
+        Returns
+        -------
+        list of dict
+            As `Store.requests` gives them.
+        """
         return self.store.requests(limit=limit)
 
     def latest_tests(self, limit: int) -> list[dict[str, Any]]:
-        """The latest Eq. 17 tests, newest first."""
+        """The latest Eq. 17 tests, newest first.
+
+        Parameters
+        ----------
+        limit : int
+            At most this many.
+
+        Returns
+        -------
+        list of dict
+            As `Store.last_t_tests` gives them.
+        """
         return self.store.last_t_tests(limit)
 
     def t_test_failures(self) -> int:

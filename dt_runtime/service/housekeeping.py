@@ -1,6 +1,6 @@
 """The daemon's housekeeping thread (never the loop): operator actions picked up from the store,
-`.../health` every `bus.health_period_s` and whenever the loop saw a change (`health_due`),
-(`service.events.HealthDue`), an operator's action stored (`ActionQueued`: picked up at once),
+`.../health` every `bus.health_period_s` and whenever the loop saw a change (`health_due`, on
+`service.events.HealthDue`), an operator's action stored (`ActionQueued`: picked up at once),
 store retention every `retention.every_s`, the operator's status line every `status_every_s`,
 and the systemd watchdog (`service.sdnotify`: WATCHDOG=1 only while the loop ticks, so a wedged
 loop gets restarted; never after STOPPING=1).
@@ -23,7 +23,33 @@ status_log = logging.getLogger("dt.run.status")  # the operator's periodic one-l
 
 class Housekeeper:
     """One thread running the jobs below until `stop` is set; `poll_now` wakes it early, and so
-    do `HealthDue` and `ActionQueued` on `events`."""
+    do `HealthDue` and `ActionQueued` on `events`. It polls at least every 0.5 s; a TwinError of
+    a job (the store or bus down) is logged as a warning and retried, any other exception logged
+    with its traceback: neither ends the thread.
+
+    Parameters
+    ----------
+    stop : threading.Event
+        The daemon's stop flag.
+    events : Events
+        The daemon's events (it subscribes to `HealthDue` and `ActionQueued`).
+    take_actions : callable
+        Queue the operator actions stored (`Paging.take_actions`), every poll.
+    send_health : callable
+        Publish `.../health` (`HealthReporter.send`).
+    prune : callable
+        Apply the store's retention (`Daemon.prune`).
+    status_line : callable
+        The operator's line and its fields (`StatusLine`), logged on `dt.run.status`.
+    last_tick_mono : callable
+        The loop's last tick on the monotonic clock, s: the watchdog is fed only while it is recent.
+    health_period_s : float
+        Period of `.../health`, s.
+    prune_every_s : float
+        Period of the retention, s.
+    status_every_s : float or None
+        Period of the status line, s; None: none.
+    """
 
     def __init__(self, stop: threading.Event, events: Events, *, take_actions: Callable[[], None],
                  send_health: Callable[[], None], prune: Callable[[], Any], status_line: Callable[[], tuple[str, dict]],
@@ -42,6 +68,7 @@ class Housekeeper:
         events.subscribe(ActionQueued, lambda _event: self.poll_now.set())
 
     def start(self) -> None:
+        """Start the thread (`dt-daemon-housekeeping`, a daemon thread)."""
         self._thread.start()
 
     def health_due(self) -> None:
@@ -56,6 +83,7 @@ class Housekeeper:
             sdnotify.notify("STOPPING=1")
 
     def stop(self) -> None:
+        """Set the stop flag, wake the thread and wait for it, at most 2 s."""
         self._stop.set()
         self.poll_now.set()
         self._thread.join(timeout=2.0)

@@ -36,8 +36,33 @@ log = logging.getLogger("dt.run")
 
 class Paging:
     """The escalation machine with its store records, maintenance requests and operator actions;
-    every recorded transition is emitted on `events`. `resume_extra` adds to the store's resume
-    row what else resumes with the machine (a path program's state)."""
+    every recorded transition is emitted on `events`. The machine resumes from the store's resume
+    row when there is one.
+
+    Parameters
+    ----------
+    escalation : EscalationConfig
+        The machine's thresholds.
+    bus_cfg : BusConfig
+        Names the requests' keys and consumer groups.
+    store : Store
+        Where transitions, requests and actions are recorded.
+    events : Events
+        Where `Transition` and `RequestsQueued` are emitted.
+    resume_extra : callable
+        What else resumes with the machine, added to the resume row (a path program's state
+        under `path`, read back as `saved_extra`).
+
+    Raises
+    ------
+    StateError
+        The stored snapshot cannot be restored.
+    StoreError
+        The store could not be read.
+
+    Threads: the loop moves the machine and applies actions; the housekeeping thread queues
+    actions (`take_actions`); the bus worker calls `on_ack`.
+    """
 
     def __init__(self, escalation: EscalationConfig, bus_cfg: BusConfig, store: Store, events: Events,
                  resume_extra: Callable[[], dict[str, Any]] = dict):
@@ -87,7 +112,18 @@ class Paging:
 
     def reconcile(self, now: float) -> None:
         """A paging state without its requests (a store written by an older version, or edited)
-        gets them now (`now`: their time when no transition into the state is stored)."""
+        gets them now, emitted as `RequestsQueued`.
+
+        Parameters
+        ----------
+        now : float
+            Daemon time, s: the requests' time when no transition into the state is stored.
+
+        Raises
+        ------
+        StoreError
+            The store could not be read or the requests not committed.
+        """
         esc = self.escalator
         if esc.state in PAGING and not self.store.outbox_of_episode(esc.episode):
             last = next((tr for tr in reversed(self.store.transitions(50)) if tr["dst"] == esc.state), None)
@@ -100,15 +136,41 @@ class Paging:
             self.events.emit(RequestsQueued(tuple(ids)))
 
     def on_ack(self, oid: int, payload: dict) -> None:
-        # Delivery acknowledgement: the request reached maintenance and leaves the outbox. The
-        # machine stays in maintenance_requested until maintenance is confirmed done, or the
-        # same fault would page again at once.
+        """A consumer acknowledged delivery of outbox entry `oid` (the bus worker's thread): noted
+        in `delivered`. The machine stays in maintenance_requested until maintenance is confirmed
+        done, or the same fault would page again at once.
+
+        Parameters
+        ----------
+        oid : int
+            The outbox id.
+        payload : dict
+            The acknowledgement (not used).
+        """
         self.delivered.append(oid)
 
     # --- operator actions -----------------------------------------------------------------------
     def acknowledge(self, note: str, by: str) -> int:
         """Operator confirmation, as `dt ack` does it: stored as an action (who, why), applied by
-        the loop at its next tick. Returns the action's id."""
+        the loop at its next tick.
+
+        Parameters
+        ----------
+        note : str
+            Why.
+        by : str
+            Who.
+
+        Returns
+        -------
+        int
+            The action's id.
+
+        Raises
+        ------
+        StoreError
+            A blank `note` or `by`, or the action could not be stored.
+        """
         with self._actions_lock:  # the housekeeper must not queue it a second time
             aid = self.store.add_action("done", by, note, source="api")
             self._actions_seen.add(aid)
@@ -124,7 +186,21 @@ class Paging:
                     self.actions.append(a)
 
     def apply_actions(self, t: float) -> None:
-        """The loop: apply queued 'done' actions (machine transitions are the loop's alone)."""
+        """Apply the queued 'done' actions (the loop's thread: transitions are the loop's alone).
+        One applied returns maintenance_requested or halted to nominal and marks the episode's
+        requests delivered; one for another state or an earlier episode is stored as ignored.
+
+        Parameters
+        ----------
+        t : float
+            Daemon time, s.
+
+        Raises
+        ------
+        StoreError
+            A record could not be committed; the action stays queued unless its transition was
+            already recorded.
+        """
         while self.actions:
             a = self.actions[0]
             esc = self.escalator

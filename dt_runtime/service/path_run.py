@@ -1,50 +1,11 @@
-"""`dt run` streaming a path program (issue 23): passes of the path at the controller's rate,
-every set-point corrected in the loop, the moving arm tested against the path, stops resumed by
-the operator.
+"""`dt run` streaming a path program: the plan (`plan_path`: the path interpolated at the
+controller's rate, corrected offline and checked against the bounds before anything moves), and
+its passes (`PathStreamer`): every set-point corrected in the loop, the moving arm tested against
+the path by Eq. 17 with its servo lag learnt and compensated, a pass that stops halting the
+daemon until the operator confirms, then resumed where the arm stands.
 
-The plan (`plan_path`, at start-up, before anything moves): the path file (programs.path) interpolated
-at `rate_hz`, every set-point corrected offline (`programs.path_correct.correct_path`, the loop's own
-numbers) and held to the bounded-correction rules (`correction.check_path_bounds`): a path the
-daemon would refuse in the middle is refused before its first set-point.
-
-A pass (`PathStreamer.run_pass`) streams set-points k0 .. n-1:
-- a robot driver that needs the simulated world streams in this process on the simulated clock
-  (each set-point advances it by one period; `run_stream` unpaced), and the camera is read every
-  `rate_hz / stream.monitor_hz` set-points from the loop's progress;
-- any other driver streams from its own process (`service.stream.StreamProcess`: the GIL of the
-  daemon's bus, store and housekeeping threads cannot stall it; SCHED_FIFO when allowed): the
-  daemon's own driver is deactivated for the pass (the registers and the connection are the
-  child's), the child builds the driver from the same kind and options, moves the arm to the
-  pass's first command and streams; the daemon reads the camera `stream.monitor_hz` times a second
-  meanwhile and never touches the loop (it only reads the shared progress and may cancel).
-
-Each camera reading is placed on the path's clock at its mid-exposure (a streaming camera's
-`quality.mid_exposure_host_s`, else its receipt on the host; the simulated camera's device time),
-set against the path there (`metrology.timing.compare_at`: the commanded position, interpolated,
-and the timing's Type B term |v| u_t, `stream.u_time_s`), refused and counted when the timing term
-dominates, else tested by Eq. 17 with that term added (`Monitor`'s `u_extra`) and fed to the
-escalation exactly as a point program's readings are.
-
-The servo lag (programs.lag). What the arm lags behind a streamed path is not in the static error map;
-tested against the path it would fail every reading at speed. With `stream.lag: learn` (default)
-the first pass is a learning pass: its readings are compared, not tested; their Eq. 17 residuals
-fit `estimate_lag` (e = a c' + b c''), and every later pass streams the path compensated by it
-(`compensate`), tested against the uncompensated corrected path (where the arm should now be),
-with what the fit left unexplained (its residual RMS per axis, `u_lag`) as one more Type B
-component of Eq. 17's denominator. Readings in the servo's transient after a step of the path's
-acceleration (`programs.lag.settled`) are neither learnt from nor tested: counted.
-`lag: none` streams and tests the path as it is (slow paths, or a controller that compensates).
-
-Stops and resume (item 7). A pass that ends early (protective stop, the controller's watchdog,
-the connection dropped) halts the daemon, sticky, with the set-point it stopped at: the halt is
-stored, paged and on `.../health` (`stream`). The operator clears the cause and confirms (`dt
-ack`); the next pass resumes where the arm stands: at the set-point of this pass nearest the arm's
-position, never earlier than the pass's start, never later than the first not sent. Set-points
-that were sent but that the arm had not yet reached are streamed again, and the log and
-`.../health` say which; nothing else is re-run. The resume point is staged in the store with every
-batch of rows (`path` state): a daemon restarted after a crash resumes from it.
-
-Units: SI (m, s).
+Passes, the lag, stops and resume, and what `.../health` carries: docs/streaming.md ("`dt run`
+streaming a path program"). Units: SI (m, s).
 """
 from __future__ import annotations
 
@@ -81,14 +42,58 @@ MIN_LAG_READINGS = 20  # fewer tested positions on a moving arm: the lag is not 
 def path_corrector(twin_dir: str, times: np.ndarray, speeds: np.ndarray, correct: bool = True,
                    joints: np.ndarray | None = None) -> Callable[[np.ndarray, float], np.ndarray]:
     """The correction law along the path (`Corrector.follow`) of the twin in `twin_dir` (loaded in
-    the streaming process), or the target itself (`correct` False: an uncorrected stream)."""
+    the streaming process), or the target itself (`correct` False: an uncorrected stream).
+
+    Parameters
+    ----------
+    twin_dir : str
+        The twin's directory.
+    times : ndarray
+        (n,) s, the path times of the set-points streamed.
+    speeds : ndarray
+        (n,) m/s, their programmed speeds.
+    correct : bool
+        False: the command is the target (the correction is not trusted).
+    joints : ndarray, optional
+        (dof,) rad, the joints at the first set-point, when the twin reads joints.
+
+    Returns
+    -------
+    callable
+        `(target m, t s) -> command m`.
+    """
     if not correct:
         return lambda target, t: target
     return Corrector(Twin.load(twin_dir)).follow(times, speeds, joints)
 
 
 def streaming_robot(name: str, options: dict, source: str, start: np.ndarray, speed: float):
-    """The robot driver `name` with `options`, active, the arm moved to `start` (m) at `speed`."""
+    """The robot driver `name` with `options`, active, the arm moved to `start` (closed again if
+    that fails).
+
+    Parameters
+    ----------
+    name : str
+        The robot driver's kind (drivers.registry).
+    options : dict
+        Its options.
+    source : str
+        Names the runtime config in errors.
+    start : ndarray
+        (3,) m, robot frame: where the arm waits for the first set-point.
+    speed : float
+        m/s, the approach move's speed.
+
+    Returns
+    -------
+    Driver
+        The active driver.
+
+    Raises
+    ------
+    TwinError
+        ConfigError for an unknown driver or a bad option, DriverError if it cannot activate or move.
+    """
     drv = registry.create("robot", name, options, source=source, key="drivers.robot")
     try:
         drv.activate()
@@ -112,18 +117,55 @@ class PathPlan:
 
     @property
     def n(self) -> int:
+        """The number of set-points."""
         return self.sp.n
 
     def where(self, k: int) -> str:
-        """Set-point k (0-based) as the operator reads it: 1-based, with its segment and time."""
+        """Set-point k as the operator reads it: 1-based, with its segment and time.
+
+        Parameters
+        ----------
+        k : int
+            0-based index (clipped to the last set-point).
+
+        Returns
+        -------
+        str
+            E.g. "set-point 157 of 627 (segment 2, t 1.248 s)".
+        """
         k = min(k, self.n - 1)
         return f"set-point {k + 1} of {self.n} (segment {int(self.sp.segment[k])}, t {self.sp.t[k]:.3f} s)"
 
 
 def plan_path(twin: Twin, file: Path, rate_hz: float, limits: Limits, source: str) -> PathPlan:
     """The path file read, interpolated at the controller's rate, corrected offline and checked
-    against the bounded-correction rules; ConfigError naming the runtime config's `path.program`
-    for anything the daemon would refuse later."""
+    against the bounded-correction rules (`twin.bounds.check_path_bounds`), before anything moves.
+
+    Parameters
+    ----------
+    twin : Twin
+        The daemon's twin.
+    file : Path
+        The path program (the `dt correct --path` format).
+    rate_hz : float
+        The controller's rate: the set-points' grid, Hz.
+    limits : Limits
+        The runtime config's bounds.
+    source : str
+        Names the runtime config in errors.
+
+    Returns
+    -------
+    PathPlan
+        The set-points, their corrected commands and joints.
+
+    Raises
+    ------
+    ConfigError
+        Naming `path.program` for anything the daemon would refuse later (an unreadable path, one
+        the twin cannot correct, one outside the limits), or `path.kind` for a twin whose maps read
+        conditions other than speed and joints.
+    """
     try:
         program = read_path(file)
         sp = interpolate(program, rate_hz)
@@ -167,6 +209,7 @@ class StreamState:
     last: dict = field(default_factory=dict)  # the last pass's rate, jitter, correction cost, realtime
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields as a dict (JSON-ready: what the store's resume row and `.../health` carry)."""
         return dict(self.__dict__)
 
 
@@ -205,7 +248,25 @@ class PassHooks:
 
 
 class PathStreamer:
-    """Passes of `plan` for the daemon, its progress in `state`, on `cell`, asking `hooks`."""
+    """Passes of `plan` for the daemon, its progress in `state`, on `cell`, asking `hooks`.
+
+    Parameters
+    ----------
+    plan : PathPlan
+        The path.
+    state : StreamState
+        Its state, updated in place (read by `.../health` and the status line).
+    cfg : StreamSection
+        The runtime config's `stream` section.
+    rate_hz : float
+        The controller's rate, Hz.
+    cell : StreamCell
+        The twin, the drivers and the simulated world.
+    hooks : PassHooks
+        What a pass asks of the daemon.
+
+    Its methods run on the daemon's loop thread, except `cancel` (any thread, a signal handler).
+    """
 
     def __init__(self, plan: PathPlan, state: StreamState, cfg: StreamSection, rate_hz: float, cell: StreamCell,
                  hooks: PassHooks):
@@ -229,6 +290,7 @@ class PathStreamer:
 
     @property
     def learning(self) -> bool:
+        """The next corrected pass learns the servo lag (`stream.lag: learn`, not learnt yet)."""
         return self.cfg.lag == "learn" and self.lag is None
 
     def _targets(self) -> np.ndarray:
@@ -240,9 +302,29 @@ class PathStreamer:
 
     def run_pass(self, k0: int, corrected: bool = True) -> StreamReport:
         """Stream set-points k0 .. n-1 (the arm first moved to k0's command), testing the moving
-        arm meanwhile; the state updated, the report returned (its `stopped` empty if every
-        set-point was sent). `corrected` False streams the targets as they are (the correction is
-        not trusted: halt.on_untrusted 'uncorrected'), tested against them."""
+        arm meanwhile; `state` is updated. On the simulated cell the pass runs in this process on
+        the simulated clock; on any other it runs in a `StreamProcess` while this thread reads the
+        camera `stream.monitor_hz` times a second.
+
+        Parameters
+        ----------
+        k0 : int
+            0-based set-point the pass starts at.
+        corrected : bool
+            False streams the targets as they are (the correction is not trusted:
+            `halt.on_untrusted: uncorrected`), tested against them.
+
+        Returns
+        -------
+        StreamReport
+            Its `stopped` is empty if every set-point was sent.
+
+        Raises
+        ------
+        TwinError
+            The pass could not start (a driver, the twin), or the streaming process failed or
+            gave no report in time.
+        """
         st, sp = self.state, self.plan.sp
         learning = self.learning and corrected
         self.corrected = corrected
@@ -394,8 +476,19 @@ class PathStreamer:
                     1e3 * self.lag.rms_before_m, 1e3 * self.lag.rms_after_m)
 
     def restore(self, stored: dict | None) -> int:
-        """The resume point and the learnt lag a previous run of the same path stored (its
-        `StreamState`), or 0 and nothing when it was another path or none."""
+        """Take back the resume point and the learnt lag a previous run of the same path stored.
+
+        Parameters
+        ----------
+        stored : dict or None
+            The stored `StreamState.to_dict()`, None when there is none.
+
+        Returns
+        -------
+        int
+            The set-point the next pass starts at; 0 when the stored state is of another path
+            (file or length differ) or none.
+        """
         st = self.state
         if not stored or stored.get("file") != st.file or stored.get("n") != st.n:
             return 0
@@ -413,14 +506,30 @@ class PathStreamer:
         return 0
 
     def resume_point(self, position: np.ndarray | None, k0: int, k_stop: int) -> int:
-        """Where the next pass starts after a stop between k0 and k_stop (the first not sent):
-        the set-point of that stretch nearest the arm's `position` (m), k_stop if unknown."""
+        """Where the next pass starts after a stop: the set-point of the stretch k0 .. k_stop
+        whose command is nearest the arm.
+
+        Parameters
+        ----------
+        position : ndarray or None
+            (3,) m, where the arm stands (the controller's TCP); None when unknown.
+        k0 : int
+            The stopped pass's first set-point.
+        k_stop : int
+            The first set-point not sent.
+
+        Returns
+        -------
+        int
+            The set-point to resume at; `k_stop` when the position is unknown or not finite.
+        """
         if position is None or not np.all(np.isfinite(position)) or k_stop <= k0:
             return k_stop
         d = np.linalg.norm(self.plan.commands[k0:k_stop + 1] - position, axis=1)
         return k0 + int(np.argmin(d))
 
     def cancel(self) -> None:
+        """Ask a streaming process's pass to stop before its next send (any thread; no wait)."""
         if self.proc is not None:
             self.proc.cancel()
 
@@ -433,8 +542,21 @@ def _on_host_clock(offset: float, reading: RigReading) -> float:
 
 
 def check_streaming_robot(name: str, source: str) -> None:
-    """ConfigError unless the robot driver `name` declares the streaming capability
-    (drivers.base.SetpointStreamer), checked on its class: before anything is opened."""
+    """Check on its class, before anything is opened, that the robot driver `name` streams
+    set-points (drivers.base.SetpointStreamer).
+
+    Parameters
+    ----------
+    name : str
+        `drivers.robot.kind`.
+    source : str
+        Names the runtime config in errors.
+
+    Raises
+    ------
+    ConfigError
+        The driver is unknown or does not stream set-points.
+    """
     cls = registry.driver_class("robot", name, source=source, key="drivers.robot.kind")
     if not all(callable(getattr(cls, m, None)) for m in ("start_stream", "stream", "stop_stream", "stream_status")):
         raise ConfigError(source, "drivers.robot.kind", name, "a robot driver that streams set-points "

@@ -1,5 +1,5 @@
-"""`Bus`: the daemon's side of the Zenoh bus for one robot (see the package docstring for the
-keys, QoS, delivery of maintenance requests and threads). Requests and reliable messages leave
+"""`Bus`: the daemon's side of the Zenoh bus for one robot (the keys, their QoS, the delivery of
+maintenance requests and the threads: docs/bus.md). Requests and reliable messages leave
 signed; an ack or 'done' without a valid signature of the service's key is refused, logged and
 counted (`refused`, `last_refused`), and nothing is recorded (bus.auth).
 
@@ -48,7 +48,20 @@ _QOS = {
 
 def new_requests(config: BusConfig, body: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     """The outbox entries (key, payload) of one maintenance request: one per consumer group, all
-    with the same `uid` (consumers of a group de-duplicate on it) and each with its `group`."""
+    with the same `uid` (consumers of a group de-duplicate on it) and each with its `group`.
+
+    Parameters
+    ----------
+    config : BusConfig
+        The key, the cell and robot names, the consumer groups.
+    body : Mapping
+        The request; `uid`, `cell`, `robot` and `created` (epoch s) are added unless given.
+
+    Returns
+    -------
+    list of (str, dict)
+        One (key, payload) per consumer group.
+    """
     base = dict(body)
     base.setdefault("uid", uuid.uuid4().hex)
     base.setdefault("cell", config.cell)
@@ -58,7 +71,31 @@ def new_requests(config: BusConfig, body: Mapping[str, Any]) -> list[tuple[str, 
 
 
 class Bus:
-    """Daemon-side bus for one robot; see the module docstring."""
+    """Daemon-side bus for one robot (module docstring).
+
+    One worker thread (`bus-<robot>`) sends the reliable messages, republishes the outbox's
+    pending entries every `republish_period_s` (and at once on `wake`) and handles acks and
+    'done's; zenoh's callbacks only queue work for it. Telemetry is put on the caller's thread.
+
+    Parameters
+    ----------
+    config : BusConfig
+        Endpoints, names, QoS bounds, the signing key (`auth.key_file`, created on first start).
+    store : Store, optional
+        The outbox (maintenance requests, acks and operator actions); None: no requests.
+    on_ack : callable, optional
+        `on_ack(outbox id, ack)` after a signed delivery acknowledgement was recorded.
+    on_done : callable, optional
+        `on_done(action id)` after a signed 'done' was stored as an operator action.
+
+    Raises
+    ------
+    BusError
+        A peer's session cannot open (a client whose router is not up starts all the same).
+    ConfigError
+        The signing key is missing and cannot be created, cannot be read, is too short or open
+        to others.
+    """
 
     def __init__(self, config: BusConfig, store: Store | None = None, *,
                  on_ack: Callable[[int, dict[str, Any]], None] | None = None,
@@ -156,7 +193,19 @@ class Bus:
             raise StateError("bus is closed")
 
     def publish_telemetry(self, payload: Mapping[str, Any]) -> None:
-        """Best effort, never blocks (DROP congestion control); may be lost."""
+        """Publish telemetry: best effort, never blocks (DROP congestion control); may be lost
+        (counted in `dropped`, as it is while connecting).
+
+        Parameters
+        ----------
+        payload : Mapping
+            JSON-ready (docs/bus.md).
+
+        Raises
+        ------
+        StateError
+            The bus is closed.
+        """
         self._check()
         if not self._ready.is_set():  # connecting: nowhere to send it
             with self._count_lock:
@@ -172,12 +221,64 @@ class Bus:
             log.debug("telemetry dropped: %s", exc)
 
     def publish_correction(self, payload: Mapping[str, Any]) -> bool:
+        """Queue a signed `.../correction` for the worker (reliable).
+
+        Parameters
+        ----------
+        payload : Mapping
+            JSON-ready.
+
+        Returns
+        -------
+        bool
+            False (and counted in `dropped`) if the send queue is full.
+
+        Raises
+        ------
+        StateError
+            The bus is closed.
+        """
         return self._enqueue_send("correction", payload)
 
     def publish_state(self, payload: Mapping[str, Any]) -> bool:
+        """Queue a signed `.../state` for the worker (reliable).
+
+        Parameters
+        ----------
+        payload : Mapping
+            A transition (`Transition.payload`).
+
+        Returns
+        -------
+        bool
+            False (and counted in `dropped`) if the send queue is full.
+
+        Raises
+        ------
+        StateError
+            The bus is closed.
+        """
         return self._enqueue_send("state", payload)
 
     def publish_health(self, payload: Mapping[str, Any]) -> bool:
+        """Queue a signed `.../health` for the worker (reliable); while connecting only the latest
+        is held.
+
+        Parameters
+        ----------
+        payload : Mapping
+            The health (`HealthReporter.health`).
+
+        Returns
+        -------
+        bool
+            False (and counted in `dropped`) if the send queue is full.
+
+        Raises
+        ------
+        StateError
+            The bus is closed.
+        """
         return self._enqueue_send("health", payload)
 
     def wake(self) -> None:
@@ -187,13 +288,25 @@ class Bus:
 
     def on_transition(self, event: Transition) -> None:
         """A recorded transition (`service.events`): `.../state`, and the requests it opened
-        delivered now."""
+        delivered now.
+
+        Parameters
+        ----------
+        event : Transition
+            The transition, once recorded.
+        """
         self.publish_state(event.payload())
         if event.requests:
             self.wake()
 
     def on_requests(self, event: RequestsQueued) -> None:
-        """Requests put in the outbox outside a transition (re-created at start-up): deliver them."""
+        """Requests put in the outbox outside a transition (re-created at start-up): deliver them.
+
+        Parameters
+        ----------
+        event : RequestsQueued
+            Their outbox ids (all pending entries are delivered).
+        """
         self.wake()
 
     def _enqueue_send(self, kind: str, payload: Mapping[str, Any]) -> bool:
@@ -214,10 +327,25 @@ class Bus:
         return True
 
     def request_maintenance(self, payload: Mapping[str, Any]) -> int:
-        """Durably store, then publish until acked. Returns the outbox id.
+        """Durably store a maintenance request (one entry per consumer group), then publish it
+        until each is acknowledged.
 
-        Raises StateError without a Store, StoreError if the request could not be committed
-        (then nothing was published).
+        Parameters
+        ----------
+        payload : Mapping
+            The request (`new_requests` adds `uid`, `cell`, `robot`, `created`, `group`).
+
+        Returns
+        -------
+        int
+            The first group's outbox id.
+
+        Raises
+        ------
+        StateError
+            The bus is closed or has no Store.
+        StoreError
+            The request could not be committed (then nothing was published).
         """
         self._check()
         if self.store is None:
@@ -227,6 +355,7 @@ class Bus:
         return ids[0]
 
     def pending(self) -> list:
+        """The outbox's un-acknowledged entries, oldest first (none without a Store)."""
         return [] if self.store is None else self.store.outbox_pending()
 
     # ------------------------------------------------------------------ worker
@@ -362,7 +491,18 @@ class Bus:
 
     # ------------------------------------------------------------------ lifecycle
     def close(self, timeout: float | None = None) -> bool:
-        """Stop the worker and close the session, bounded by `timeout` (config default)."""
+        """Close the services given to `serve`, stop the worker and close the session.
+
+        Parameters
+        ----------
+        timeout : float, optional
+            Bound of the whole close, s (the config's `close_timeout_s` if None).
+
+        Returns
+        -------
+        bool
+            True if everything closed in time (also when already closed).
+        """
         if self._closed:
             return True
         timeout = self.config.close_timeout_s if timeout is None else timeout

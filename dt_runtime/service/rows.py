@@ -36,14 +36,28 @@ class Row:
     @classmethod
     @cache
     def columns(cls) -> tuple[str, ...]:
+        """The table's column names: the row's fields, in order."""
         return tuple(f.name for f in fields(cls))  # type: ignore[arg-type]
 
     def values(self) -> tuple:
+        """The column values as SQLite takes them: numbers as float, flags as 0/1, `data` as
+        compact JSON (None when empty)."""
         return tuple(_sql(getattr(self, c)) for c in self.columns())
 
     @classmethod
     def from_mapping(cls, row: Mapping[str, Any]) -> Row:
-        """A row from {column: value}; keys that are not columns go into `data`."""
+        """A row from {column: value}; keys that are not columns go into `data`.
+
+        Parameters
+        ----------
+        row : Mapping
+            Column values (a missing optional column is None), and any extra keys.
+
+        Returns
+        -------
+        Row
+            An instance of the class it is called on.
+        """
         cols = cls.columns()
         extra = {k: v for k, v in row.items() if k not in cols}
         data = dict(row.get("data") or {}) | extra
@@ -108,8 +122,19 @@ class TTestRow(Row):
 
 
 def shown_time(t: float) -> str:
-    """A row's time stamp `t` as an operator reads it: local time when it is a wall-clock time
-    (epoch seconds: a daemon with `realtime: true`), else seconds of the simulated clock."""
+    """A row's time stamp as an operator reads it.
+
+    Parameters
+    ----------
+    t : float
+        s: epoch seconds (a daemon with `realtime: true`) or the simulated clock.
+
+    Returns
+    -------
+    str
+        Local time to a tenth of a second when `t` is a wall-clock time (after 2001-09-09), else
+        "t = ... s (simulated clock)".
+    """
     if t > 1e9:  # 2001-09-09 or later: the wall clock; a simulated clock never gets there
         return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 10)}"
     return f"t = {t:.1f} s (simulated clock)"

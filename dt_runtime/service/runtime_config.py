@@ -97,6 +97,10 @@ class StreamSection(Frozen):
 
 
 class SimSection(Frozen):
+    """The simulated cell (used when a driver needs the simulated world): `scenario`, the
+    simulation scenario YAML, and `cell`, the simulated cell's file (both relative to the runtime
+    config); `faults` injected at their simulated times."""
+
     scenario: str = "scenarios/paper_default.yaml"
     cell: str = "cell.yaml"
     faults: list[Fault] = []
@@ -130,8 +134,8 @@ class Drivers(Frozen):
           tracker: {kind: serial, url: socket://tracker:4000}
           camera: {kind: sim_images, render: {spurious_blobs: 2}}
 
-    (`robot: sim` is short for `robot: {kind: sim}`). The earlier form `robot: serial` with
-    `robot_config: {url: ...}` is still read (and means the same)."""
+    (`robot: sim` is short for `robot: {kind: sim}`). The form `robot: serial` with
+    `robot_config: {url: ...}` is read too, and means the same."""
 
     robot: DriverChoice = DriverChoice(kind="sim")
     tracker: DriverChoice = DriverChoice(kind="sim")
@@ -160,7 +164,25 @@ class Drivers(Frozen):
 
     def create(self, world: Any, source: str) -> list:
         """The three drivers [robot, tracker, camera], built and configured (not yet active);
-        those already built are closed if a later one fails, so nothing is left open."""
+        those already built are closed if a later one fails, so nothing is left open.
+
+        Parameters
+        ----------
+        world : SimWorld or None
+            The simulated world the simulated drivers run on.
+        source : str
+            Names the runtime config in errors.
+
+        Returns
+        -------
+        list
+            The robot, tracker and camera drivers.
+
+        Raises
+        ------
+        TwinError
+            A driver could not be built (ConfigError for its options, DriverError for its device).
+        """
         built: list = []
         try:
             for kind, name, options in self.chosen():
@@ -172,8 +194,19 @@ class Drivers(Frozen):
         return built
 
     def check(self, source: str) -> None:
-        """ConfigError naming `source` and the key (`drivers.tracker.url`) unless every driver is
-        installed, loads, and takes its options (drivers.registry.check): before anything opens."""
+        """Check, before anything opens, that every driver is installed, loads, and takes its
+        options (drivers.registry.check).
+
+        Parameters
+        ----------
+        source : str
+            Names the runtime config in errors.
+
+        Raises
+        ------
+        ConfigError
+            Naming `source` and the key (e.g. `drivers.tracker.url`).
+        """
         for kind, name, options in self.chosen():
             registry.check(kind, name, options, source=source, key=f"drivers.{kind}")
 
@@ -207,6 +240,13 @@ class RetentionConfig(Frozen):
 
 
 class RuntimeConfig(Frozen):
+    """The runtime YAML of `dt run`: `twin` (a twin directory), `store` (the SQLite file),
+    `rate_hz` (the loop's or the controller's rate, Hz), `realtime` (paced on the wall clock, or
+    as fast as it can on the simulated clock), `alpha` (Eq. 17's significance level),
+    `stop_timeout_s`, `max_measurement_age_s`, `publish` (use the bus), and the sections
+    `drivers`, `sim`, `path`, `stream`, `limits`, `escalation`, `halt`, `retention` and `bus`.
+    Relative paths are relative to the YAML. docs/service.md ("Configuration")."""
+
     twin: str  # a twin directory written by `dt demo` (DIR/model) or `dt calibrate`
     store: str = "out/run/dt.sqlite"
     rate_hz: float = Field(10.0, gt=0, le=2000)
@@ -252,7 +292,23 @@ class RuntimeConfig(Frozen):
 
 
 def load_runtime_config(path: str | Path) -> RuntimeConfig:
-    """The runtime YAML, every driver's options checked too (`Drivers.check`)."""
+    """The runtime YAML, every driver's options checked too (`Drivers.check`).
+
+    Parameters
+    ----------
+    path : str or Path
+        The runtime YAML (configs/runtime.yaml).
+
+    Returns
+    -------
+    RuntimeConfig
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, the key and the value: unreadable, malformed or out-of-bounds YAML, or a
+        driver that is not installed or refuses its options.
+    """
     cfg = load_yaml(path, RuntimeConfig)
     cfg.drivers.check(str(path))
     return cfg

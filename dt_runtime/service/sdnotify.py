@@ -17,7 +17,18 @@ log = logging.getLogger("dt.sdnotify")
 
 
 def notify(message: str) -> bool:
-    """Send `message` to systemd; False if not run under it (or the socket is gone)."""
+    """Send `message` to systemd (one datagram on `NOTIFY_SOCKET`); never raises.
+
+    Parameters
+    ----------
+    message : str
+        E.g. "READY=1", "WATCHDOG=1", "STOPPING=1".
+
+    Returns
+    -------
+    bool
+        True if sent; False if not run under systemd (or the socket is gone: logged at DEBUG).
+    """
     addr = os.environ.get("NOTIFY_SOCKET")
     if not addr:
         return False

@@ -1,60 +1,11 @@
-"""Durable store of the twin daemon: one SQLite file in WAL mode.
+"""Durable store of the twin daemon (`Store`): one SQLite file in WAL mode, `synchronous=FULL`.
 
-What it holds (one table each): `commands`, `corrections`, `measurements`, `t_stats` (the
-high-rate path), `transitions` (escalation state changes with their evidence), `outbox`
-(maintenance requests that must reach a consumer; see dt_runtime.fabric), `state` (one row:
-the escalation machine's snapshot, so a restarted daemon resumes where it stopped) and
-`operator_actions` (an operator's or a maintenance system's "delivered" / "done", who and why,
-and when the daemon applied it).
-
-A transition is one transaction (`record_transition`): the transition row, the machine's new
-snapshot, the maintenance requests it opens and the operator action it applies are committed
-together or not at all, so no crash or full disk can leave a paging state without its request.
-The escalation statistics move between transitions too: `stage_state` hands the latest
-snapshot to the next batch commit, so the statistics on disk always match the committed
-t-tests (a restart resumes the window and CUSUM, losing at most the last uncommitted batch).
-
-Retention (`prune`): the high-rate tables keep rows by age (the caller's time `t`) and/or count;
-transitions, outbox, state and operator actions are never pruned. Freed pages are reused, so the
-file stops growing once the retained window is full.
-
-One daemon per store: `exclusive=True` takes an advisory lock (`flock`) on `<store>.lock`
-for the Store's lifetime, released by the kernel when the process dies (kill -9 included);
-readers (`dt status`, `dt ack`) do not take it.
-
-Only the service's user reads or writes it: the file and its lock are created 0600 (SQLite gives
-its -wal and -shm files the database's mode), and an existing one that others could read or write
-is made 0600 with a warning on open (`common.private_files`): writing an operator action into the
-store is how `dt ack --store` clears a request, so write access is the credential.
-
-Durability choices (why):
-- `journal_mode=WAL`: readers (`dt status`) never block the writer, and a crash (SIGKILL,
-  power loss) leaves the file consistent: an uncommitted transaction is simply not there.
-- `synchronous=FULL`: every commit fsyncs the WAL, so a committed row survives power loss,
-  not only a process crash. NORMAL would be enough against SIGKILL but may roll back the last
-  commits on power loss, and the outbox contract is "written durably BEFORE publishing": a
-  maintenance request seen on the bus must never be missing from the store. The price (one
-  fsync per commit) is paid rarely because the high-rate path is batched.
-- High-rate rows are typed (`dt_runtime.service.rows`: CommandRow, CorrectionRow,
-  MeasurementRow, TTestRow) and leave the caller through one lock-free queue (`put(row)`:
-  a deque append, no lock, no I/O). They are committed in one transaction either by a writer
-  thread every `batch_ms` milliseconds (`background=True`, the daemon: its loop never waits
-  on a lock or an fsync), or on the caller's thread when `batch_rows` rows wait or `batch_ms`
-  elapsed (checked on each call; call `flush()` when idle). That is the one way rows are
-  written. A crash loses at most the uncommitted rows; `flush()` returns only after the rows are
-  committed.
-- `record_transition`, `outbox_*`, `save_state` commit immediately (after flushing the queue in
-  the same transaction, so the evidence that led to a transition is stored with it).
-
-Errors: any sqlite3 error (disk full, I/O error, locked) becomes a StoreError, chained with
-`from`, in one place (`_sqlite_errors`). The failing transaction is rolled back, so already
-committed rows stay and the file stays consistent; the caller may keep going. Rows of a
-failed flush are kept (up to `max_pending_rows`, oldest dropped and counted in
-`dropped_rows`) and retried on the next flush; the writer thread logs a failed flush, counts
-it in `write_errors` and keeps going.
-
-The connection is shared by threads (the daemon loop and the bus worker) behind one lock.
-Times: `t` is the caller's time stamp in seconds; `created` columns are wall-clock epoch s.
+Tables: `commands`, `corrections`, `measurements`, `t_stats` (the high-rate rows,
+`service.rows`), `transitions`, `outbox` (maintenance requests that must reach a consumer),
+`state` (the one resume row) and `operator_actions`. A transition, the state it leads to and the
+requests it opens are one transaction (`Store.record_transition`). Its guarantees (crash, full
+disk, one daemon per store, 0600 files, retention): docs/service.md. Times: `t` is the caller's
+time stamp in s; `created` columns are wall-clock epoch s.
 """
 from __future__ import annotations
 
@@ -130,6 +81,11 @@ def _sqlite_errors(what: str) -> Iterator[None]:
 
 @dataclass(frozen=True)
 class OperatorAction:
+    """One row of `operator_actions`: `kind` ('delivered' or 'done') `by` whom and why (`note`),
+    for which outbox entry (`request_id`, None: the open episode), from where (`source`: `cli`
+    for `dt ack --store`, `bus`, `api` for `Daemon.acknowledge_maintenance`), when it was
+    `created` and `applied_at` (epoch s, None until the daemon applied it) with its `result`."""
+
     id: int
     created: float
     kind: str
@@ -143,6 +99,9 @@ class OperatorAction:
 
 @dataclass(frozen=True)
 class OutboxItem:
+    """One outbox entry: its id, creation time (epoch s), Zenoh key, payload and the number of
+    publication attempts so far."""
+
     id: int
     created: float
     key: str
@@ -151,7 +110,52 @@ class OutboxItem:
 
 
 class Store:
-    """SQLite store; see the module docstring. Use as a context manager or call close()."""
+    """The SQLite store; use it as a context manager or call `close()`.
+
+    High-rate rows (`put`) leave the caller through one lock-free queue (a deque append, no lock,
+    no I/O) and are committed in one transaction, by a writer thread every `batch_ms`
+    (`background=True`: the daemon's loop never waits on a lock or an fsync), or else on the
+    caller's thread once `batch_rows` rows wait or `batch_ms` elapsed (checked at each `put`;
+    call `flush()` when idle). Every other write commits at once, with the queued rows and the
+    staged resume row (`stage_state`) in the same transaction. With `synchronous=FULL` a
+    committed row survives power loss, not only a crash: a maintenance request seen on the bus is
+    never missing from the store. The connection is shared by threads (the loop, the store's
+    writer, the bus worker, housekeeping) behind one lock.
+
+    Any sqlite3 or file-system error becomes a StoreError naming the file; the failing
+    transaction is rolled back (committed rows stay). Rows of a failed commit are kept for the
+    next one, at most `max_pending_rows` (the oldest dropped and counted in `dropped_rows`);
+    `write_errors_in_row` counts failed commits since the last good one.
+
+    Parameters
+    ----------
+    path : str or Path
+        The database file (created 0600 with its directory; an existing one readable by others
+        is made 0600 with a warning).
+    batch_rows : int
+        Queued rows that trigger a commit without the writer thread.
+    batch_ms : float
+        Commit period of the queued rows, ms.
+    background : bool
+        Run the writer thread.
+    max_pending_rows : int
+        Bound of the rows kept for a retry after a failed commit.
+    synchronous : str
+        SQLite's `synchronous`: FULL (default), NORMAL or EXTRA.
+    timeout_s : float
+        How long a write waits for another connection's lock, s.
+    exclusive : bool
+        Take the advisory one-daemon-per-store lock (`flock` on `<path>.lock`, released by the
+        kernel when the process dies); readers (`dt status`, `dt ack`) do not.
+    clock : callable
+        The batch timer's clock, s.
+
+    Raises
+    ------
+    StoreError
+        The file cannot be opened or switched to WAL, its schema is newer than this software's,
+        `synchronous` is not allowed, or (`exclusive`) another process holds the store.
+    """
 
     def __init__(self, path: str | Path, *, batch_rows: int = 200, batch_ms: float = 500.0,
                  background: bool = False, max_pending_rows: int = 100_000,
@@ -269,8 +273,20 @@ class Store:
 
     # ------------------------------------------------------------------ high-rate path
     def put(self, row: Row) -> None:
-        """Queue one typed row (see `dt_runtime.service.rows`). With the writer thread this is
-        a deque append and nothing else; without it, the batch triggers are checked here."""
+        """Queue one typed row. With the writer thread this is a deque append and nothing else;
+        without it, the batch triggers are checked here (and may commit).
+
+        Parameters
+        ----------
+        row : Row
+            A `service.rows` row.
+
+        Raises
+        ------
+        StoreError
+            The store is closed, or (without the writer thread) the commit it triggered failed
+            (the rows are kept for the next one).
+        """
         self._check_open()
         self._queue.append(row)
         if self._writer is None and (
@@ -346,14 +362,48 @@ class Store:
 
     # ------------------------------------------------------------------ immediate writes
     def outbox_add(self, key: str, payload: Mapping[str, Any]) -> int:
-        """Durably record a message that must be delivered; returns its id (committed)."""
+        """Durably record a message that must be delivered (committed before this returns).
+
+        Parameters
+        ----------
+        key : str
+            The Zenoh key it is published on.
+        payload : Mapping
+            Its JSON-ready payload.
+
+        Returns
+        -------
+        int
+            The outbox id.
+
+        Raises
+        ------
+        StoreError
+            It could not be committed (nothing was written).
+        """
         text = compact(dict(payload))
         return self._tx(lambda: self._db.execute(
             "INSERT INTO outbox (created, key, payload) VALUES (?,?,?)",
             (time.time(), str(key), text)).lastrowid)
 
     def outbox_add_many(self, items: Iterable[tuple[str, Mapping[str, Any]]]) -> list[int]:
-        """Several messages (key, payload) in one transaction (all or none); their ids."""
+        """Several messages in one transaction (all or none).
+
+        Parameters
+        ----------
+        items : iterable of (str, Mapping)
+            (key, payload) of each message.
+
+        Returns
+        -------
+        list of int
+            Their outbox ids, in order.
+
+        Raises
+        ------
+        StoreError
+            They could not be committed (none was written).
+        """
         rows = [(str(k), compact(dict(p))) for k, p in items]
         return self._tx(lambda: [self._insert_outbox(k, text) for k, text in rows])
 
@@ -370,19 +420,48 @@ class Store:
         return [OutboxItem(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
 
     def outbox_get(self, id: int) -> OutboxItem | None:
+        """One outbox entry, acknowledged or not.
+
+        Parameters
+        ----------
+        id : int
+            The outbox id.
+
+        Returns
+        -------
+        OutboxItem or None
+            None if there is no such entry.
+        """
         rows = self._query("SELECT id, created, key, payload, attempts FROM outbox WHERE id=?",
                            (int(id),))
         return OutboxItem(rows[0][0], rows[0][1], rows[0][2], json.loads(rows[0][3]),
                           rows[0][4]) if rows else None
 
     def outbox_attempted(self, id: int) -> None:
-        """Count one (re)publication attempt."""
+        """Count one (re)publication attempt, with its time.
+
+        Parameters
+        ----------
+        id : int
+            The outbox id.
+        """
         self._tx(lambda: self._db.execute(
             "UPDATE outbox SET attempts = attempts + 1, last_attempt = ? WHERE id = ?",
             (time.time(), int(id))) and None)
 
     def outbox_ack(self, id: int) -> bool:
-        """Mark an entry acknowledged; True if it was pending (acks are idempotent)."""
+        """Mark an entry acknowledged (idempotent).
+
+        Parameters
+        ----------
+        id : int
+            The outbox id.
+
+        Returns
+        -------
+        bool
+            True if it was pending.
+        """
         return self._tx(lambda: self._db.execute(
             "UPDATE outbox SET acked = 1, acked_at = ? WHERE id = ? AND acked = 0",
             (time.time(), int(id))).rowcount == 1)
@@ -394,28 +473,74 @@ class Store:
             (str(name), compact(dict(data)), time.time()))
 
     def save_state(self, name: str, data: Mapping[str, Any]) -> None:
-        """Replace the single resume row (e.g. the escalation snapshot); committed at once. What
-        was staged goes into the same transaction first and is overwritten by this newer one; it is
-        taken under the lock (`_tx`), so a failed save leaves it staged for the next commit."""
+        """Replace the single resume row (the escalation snapshot); committed at once. What was
+        staged goes into the same transaction first and is overwritten by this newer one; a failed
+        save leaves it staged for the next commit.
+
+        Parameters
+        ----------
+        name : str
+            What the row holds (the daemon's is "escalation").
+        data : Mapping
+            The JSON-ready state.
+
+        Raises
+        ------
+        StoreError
+            It could not be committed.
+        """
         self._tx(lambda: self._write_state(name, data))
 
     def stage_state(self, name: str, data: Mapping[str, Any]) -> None:
         """Hand the latest resume row to the next commit (the batch of high-rate rows, or any
-        immediate write): no I/O here. A later stage or save replaces it."""
+        immediate write), so the statistics on disk match the committed t-tests: no I/O here. A
+        later stage or save replaces it.
+
+        Parameters
+        ----------
+        name : str
+            What the row holds.
+        data : Mapping
+            The JSON-ready state (copied).
+        """
         self._staged_state = (str(name), dict(data))
 
     def record_transition(self, src: str, dst: str, evidence: Mapping[str, Any], t: float, *,
                           state: tuple[str, Mapping[str, Any]] | None = None,
                           requests: Iterable[tuple[str, Mapping[str, Any]]] = (),
                           applied: tuple[int, str] | None = None) -> tuple[int, list[int]]:
-        """One transition as one transaction (module docstring): the transition row, the resume
-        row `state` (name, snapshot; the daemon always gives it), the outbox `requests` (key,
-        payload) it opens and the operator action `applied` (id, result) it carries out. Returns (transition id, outbox
-        ids); StoreError and nothing written if it cannot commit."""
+        """One transition as one transaction: the transition row, the resume row, the requests
+        it opens and the operator action it carries out, with the queued rows, all or none.
+
+        Parameters
+        ----------
+        src, dst : str
+            The states it moved from and to.
+        evidence : Mapping
+            Why (JSON-ready).
+        t : float
+            The caller's time stamp, s.
+        state : (str, Mapping), optional
+            The resume row (name, snapshot); the daemon always gives it.
+        requests : iterable of (str, Mapping)
+            The outbox entries (key, payload) it opens.
+        applied : (int, str), optional
+            The operator action (id, result) it carries out.
+
+        Returns
+        -------
+        (int, list of int)
+            The transition's id and the outbox ids.
+
+        Raises
+        ------
+        StoreError
+            It could not be committed: nothing was written.
+        """
         reqs = [(str(k), compact(dict(p))) for k, p in requests]
         # The staged resume row is taken by _tx under the lock and overwritten by `state` below;
-        # clearing it here, outside the lock, let a concurrent batch commit rows without any
-        # state, and lost it when this transaction then failed (a full disk).
+        # it is not cleared here, outside the lock: a concurrent batch would then commit rows
+        # without any state, and a failed transaction (a full disk) would lose it.
 
         def body() -> tuple[int, list[int]]:
             now = time.time()
@@ -434,22 +559,70 @@ class Store:
 
     # ------------------------------------------------------------------ episodes and operators
     def outbox_of_episode(self, episode: int) -> list[OutboxItem]:
-        """Outbox entries (pending or delivered) of one paging episode of the escalation."""
+        """Outbox entries (pending or delivered) of one paging episode of the escalation.
+
+        Parameters
+        ----------
+        episode : int
+            The escalation's episode (the payload's `episode`).
+
+        Returns
+        -------
+        list of OutboxItem
+            Oldest first.
+        """
         rows = self._query("SELECT id, created, key, payload, attempts FROM outbox "
                            "WHERE json_extract(payload, '$.episode') = ? ORDER BY id", (int(episode),))
         return [OutboxItem(r[0], r[1], r[2], json.loads(r[3]), r[4]) for r in rows]
 
     def outbox_ack_episode(self, episode: int) -> int:
         """Mark every pending entry of an episode acknowledged (maintenance done implies
-        delivered); returns how many were pending."""
+        delivered).
+
+        Parameters
+        ----------
+        episode : int
+            The escalation's episode.
+
+        Returns
+        -------
+        int
+            How many were pending.
+        """
         return self._tx(lambda: self._db.execute(
             "UPDATE outbox SET acked = 1, acked_at = ? WHERE acked = 0 AND "
             "json_extract(payload, '$.episode') = ?", (time.time(), int(episode))).rowcount)
 
     def add_action(self, kind: str, by: str, note: str, *, request_id: int | None = None,
                    source: str = "store", applied: str | None = None) -> int:
-        """Record an operator action (committed); `applied`: its result if it needs no daemon
-        (a delivery confirmation), else the daemon applies it and fills in the result."""
+        """Record an operator action (committed).
+
+        Parameters
+        ----------
+        kind : str
+            'delivered' or 'done' (`ACTION_KINDS`).
+        by : str
+            Who (not blank).
+        note : str
+            Why (not blank).
+        request_id : int, optional
+            The outbox entry it answers; None: the open episode.
+        source : str
+            Where it came from (`cli`, `bus`, `api`).
+        applied : str, optional
+            Its result, if it needs no daemon (a delivery confirmation); else the daemon applies
+            it and fills in the result.
+
+        Returns
+        -------
+        int
+            The action's id.
+
+        Raises
+        ------
+        StoreError
+            An unknown kind, a blank `by` or `note`, or the commit failed.
+        """
         if kind not in ACTION_KINDS:
             raise StoreError(f"operator action {kind!r}: allowed {', '.join(ACTION_KINDS)}")
         if not str(by).strip() or not str(note).strip():
@@ -461,19 +634,51 @@ class Store:
             (now, kind, request_id, str(by), str(note), str(source), now if applied else None, applied)).lastrowid)
 
     def apply_action(self, id: int, result: str) -> None:
-        """Mark an operator action applied with its result (an action that changed no state)."""
+        """Mark an operator action applied with its result (an action that changed no state).
+
+        Parameters
+        ----------
+        id : int
+            The action's id.
+        result : str
+            What came of it, in words.
+        """
         self._tx(lambda: self._db.execute("UPDATE operator_actions SET applied_at = ?, result = ? WHERE id = ?",
                                           (time.time(), str(result), int(id))) and None)
 
     def actions(self, pending_only: bool = False, limit: int = 100) -> list[OperatorAction]:
-        """Operator actions, oldest first (only those not yet applied with `pending_only`)."""
+        """The latest operator actions, oldest first.
+
+        Parameters
+        ----------
+        pending_only : bool
+            Only those not yet applied.
+        limit : int
+            At most this many (the newest).
+
+        Returns
+        -------
+        list of OperatorAction
+        """
         where = "WHERE applied_at IS NULL" if pending_only else ""
         rows = self._query("SELECT id, created, kind, request_id, by_whom, note, source, applied_at, result "
                            f"FROM operator_actions {where} ORDER BY id DESC LIMIT ?", (int(limit),))
         return [OperatorAction(*r) for r in reversed(rows)]
 
     def requests(self, limit: int = 20) -> list[dict[str, Any]]:
-        """The latest outbox entries (maintenance requests), newest first, for `dt status`/`dt ack`."""
+        """The latest outbox entries (maintenance requests), newest first, for `dt status`/`dt ack`.
+
+        Parameters
+        ----------
+        limit : int
+            At most this many.
+
+        Returns
+        -------
+        list of dict
+            `id`, `created`, `acked`, `acked_at`, `attempts` and the payload's `uid`, `episode`,
+            `group`, `kind`, `reason`, `state`, `t`.
+        """
         rows = self._query("SELECT id, created, payload, acked, acked_at, attempts FROM outbox "
                            "ORDER BY id DESC LIMIT ?", (int(limit),))
         return [{"id": r[0], "created": r[1], "acked": bool(r[3]), "acked_at": r[4], "attempts": r[5],
@@ -481,7 +686,18 @@ class Store:
                     if k in ("uid", "episode", "group", "kind", "reason", "state", "t")}} for r in rows]
 
     def last_t_tests(self, limit: int = 10) -> list[dict[str, Any]]:
-        """The latest Eq. 17 tests, newest first (a cell's `q/tests` answer: service.answers)."""
+        """The latest Eq. 17 tests, newest first (a cell's `tests` answer: service.answers).
+
+        Parameters
+        ----------
+        limit : int
+            At most this many.
+
+        Returns
+        -------
+        list of dict
+            `t`, `t_value`, `dof`, `p_value`, `passed`.
+        """
         rows = self._query("SELECT t, t_value, dof, p_value, passed FROM t_stats ORDER BY id DESC LIMIT ?",
                            (int(limit),))
         return [{"t": r[0], "t_value": r[1], "dof": r[2], "p_value": r[3], "passed": bool(r[4])} for r in rows]
@@ -489,9 +705,28 @@ class Store:
     # ------------------------------------------------------------------ retention
     def prune(self, *, before_t: float | None = None, keep_rows: int | None = None,
               chunk: int = 5_000) -> int:
-        """Delete high-rate rows older than `before_t` (the callers' time `t`) and/or beyond the
-        newest `keep_rows` of each table, in short transactions of at most `chunk` rows per
-        table (the writer never waits long). Returns how many rows were deleted."""
+        """Delete high-rate rows by age and/or count, in short transactions (the writer never
+        waits long). Transitions, the outbox, the state and operator actions are never pruned.
+
+        Parameters
+        ----------
+        before_t : float, optional
+            Delete rows whose `t` (the callers' time, s) is older; None: no age bound.
+        keep_rows : int, optional
+            Keep the newest this many of each table; None: no count bound.
+        chunk : int
+            Rows per transaction and table.
+
+        Returns
+        -------
+        int
+            How many rows were deleted.
+
+        Raises
+        ------
+        StoreError
+            A delete could not be committed (those before it stay deleted).
+        """
         total = 0
         for table in _HIGH_RATE:
             conds, params = [], []
@@ -536,18 +771,46 @@ class Store:
                 return self._db.execute(sql, params).fetchall()
 
     def count(self, table: str) -> int:
+        """The number of rows of a table.
+
+        Parameters
+        ----------
+        table : str
+            One of the store's tables.
+
+        Returns
+        -------
+        int
+
+        Raises
+        ------
+        StoreError
+            An unknown table, or the read failed.
+        """
         if table not in (*_HIGH_RATE, "transitions", "outbox", "state", "operator_actions"):
             raise StoreError(f"unknown table {table!r}")
         return int(self._query(f"SELECT COUNT(*) FROM {table}")[0][0])
 
     def transitions(self, limit: int = 100) -> list[dict[str, Any]]:
-        """Latest transitions, oldest first."""
+        """The latest transitions, oldest first.
+
+        Parameters
+        ----------
+        limit : int
+            At most this many (the newest).
+
+        Returns
+        -------
+        list of dict
+            `id`, `t`, `src`, `dst`, `evidence`.
+        """
         rows = self._query("SELECT id, t, src, dst, evidence FROM transitions "
                            "ORDER BY id DESC LIMIT ?", (int(limit),))
         return [{"id": r[0], "t": r[1], "src": r[2], "dst": r[3],
                  "evidence": json.loads(r[4])} for r in reversed(rows)]
 
     def integrity_ok(self) -> bool:
+        """SQLite's `PRAGMA integrity_check` found nothing wrong."""
         return self._query("PRAGMA integrity_check")[0][0] == "ok"
 
     def last_figures(self) -> dict[str, Any]:

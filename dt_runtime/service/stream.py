@@ -1,5 +1,4 @@
-"""The streaming loop: a path's set-points corrected and handed to the controller at its rate
-(issue 23, item 2).
+"""The streaming loop: a path's set-points corrected and handed to the controller at its rate.
 
 `run_stream` is the loop itself: set-point k is sent at its scheduled time t0 + k / rate (an
 absolute schedule: a late tick does not shift the ones after it), and set-point k + 1 is corrected
@@ -14,8 +13,7 @@ camera threads) cannot stall it: the child builds the corrector and the driver f
 factories, asks for real-time scheduling (SCHED_FIFO, when the user may: `realtime` in the report
 says whether it got it; see docs/streaming.md for granting it), streams, and sends the report
 back. Its progress (set-points sent) is a shared integer the parent reads without a lock.
-
-Units: SI (m, s).
+More, and the benchmark: docs/streaming.md ("The streaming loop"). Units: SI (m, s).
 """
 from __future__ import annotations
 
@@ -58,6 +56,7 @@ class StreamReport:
     sent_at: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # (n_sent,) s from t0
 
     def to_dict(self) -> dict[str, Any]:
+        """The figures as a dict, without the arrays `commands` and `sent_at`."""
         return {k: v for k, v in self.__dict__.items() if k not in ("commands", "sent_at")}
 
 
@@ -89,7 +88,49 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
     controller's watchdog) ends the stream early with its reason in `stopped`. `started(t0)` is
     told the schedule's origin on `clock` (set-point k is due at t0 + k / rate_hz) before the first
     send; `cancelled()`, checked before every send, returns why the host ends the stream ("" to
-    go on): both are a shared value's read or write, never a wait."""
+    go on): both are a shared value's read or write, never a wait. Runs on the caller's thread,
+    with the garbage collector held off; the driver's `stop_stream` is called however it ends.
+
+    Parameters
+    ----------
+    times : ndarray
+        (n,) s, the path time each target is meant for.
+    targets : ndarray
+        (n, 3) m, robot frame.
+    correct : callable
+        `(target m, t s) -> command m`, called once per set-point in the slack before its send.
+    driver : SetpointStreamer
+        An active robot driver that streams set-points.
+    rate_hz : float
+        The controller's rate, Hz.
+    lookahead_s : float
+        The servo's look-ahead, s (passed to `start_stream`).
+    gain : float
+        The servo's gain (passed to `start_stream`).
+    spin_s : float
+        How long before a deadline the sleep ends and the spin starts, s.
+    progress : callable, optional
+        `progress(k)` after the k-th send (must not block).
+    clock : callable
+        The schedule's clock, s (`time.perf_counter`; the streaming process uses `time.monotonic`).
+    paced : bool
+        False: send as fast as the loop can (lateness and jitter are then NaN).
+    started : callable, optional
+        `started(t0)` once the schedule's origin is fixed.
+    cancelled : callable, optional
+        Why to stop now ("" to go on), checked before every send.
+
+    Returns
+    -------
+    StreamReport
+        What was sent, when, and at what cost; `stopped` says why it ended early.
+
+    Raises
+    ------
+    TwinError
+        `times` and `targets` disagree in length or are empty. A DriverError of `start_stream` or
+        an exception of `correct` propagates; one of `stream` ends the stream early instead.
+    """
     times, targets = np.asarray(times, dtype=float), np.asarray(targets, dtype=float)
     n = times.size
     if targets.shape != (n, 3) or n == 0:
@@ -234,13 +275,16 @@ class StreamProcess:
 
     @property
     def sent(self) -> int:
+        """Set-points sent so far (read without a lock, any thread)."""
         return int(self._sent.value)
 
     @property
     def t0(self) -> float:
+        """The schedule's origin on CLOCK_MONOTONIC, s; NaN until the first set-point is due."""
         return float(self._t0.value)
 
     def cancel(self) -> None:
+        """Ask the loop to stop before its next send (no wait; any thread, a signal handler too)."""
         self._cancel.value = 1
 
     def heartbeat(self) -> None:
@@ -250,7 +294,18 @@ class StreamProcess:
         self._beat.value = time.monotonic()
 
     def done(self, timeout: float = 0.0) -> bool:
-        """True once the report is ready (or the child is gone), waiting at most `timeout` s."""
+        """Whether the report is ready (or the child is gone).
+
+        Parameters
+        ----------
+        timeout : float
+            Wait at most this long, s.
+
+        Returns
+        -------
+        bool
+            True once the report can be read with `result` (or the child is gone).
+        """
         return bool(self._recv.poll(timeout)) or not self._proc.is_alive()
 
     @property
@@ -259,6 +314,24 @@ class StreamProcess:
         return self._proc.pid
 
     def result(self, timeout: float) -> StreamReport:
+        """The child's report, waiting for it.
+
+        Parameters
+        ----------
+        timeout : float
+            Wait at most this long, s; then the child is killed.
+
+        Returns
+        -------
+        StreamReport
+            The report, `realtime` saying whether the child got SCHED_FIFO.
+
+        Raises
+        ------
+        TwinError
+            No report within `timeout` (the child is killed), the child died, or it failed
+            (its exception's type and message).
+        """
         if not self._recv.poll(timeout):
             self._proc.kill()
             self._proc.join(5)
@@ -276,6 +349,7 @@ class StreamProcess:
         return payload
 
     def kill(self) -> None:
+        """Kill the child if it still runs and reap it (waits at most 5 s)."""
         if self._proc.is_alive():
             self._proc.kill()
         self._proc.join(5)

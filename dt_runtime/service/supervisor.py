@@ -115,8 +115,21 @@ class Supervisor:
 
     # --- commands ------------------------------------------------------------------------------
     def refused(self, exc: Exception, t: float) -> None:
-        """A command the correction refused (the robot not moved): after `halt.after_refused` in
-        a row, halt."""
+        """A command the correction refused (the robot not moved): counted and logged; after
+        `halt.after_refused` in a row, halt.
+
+        Parameters
+        ----------
+        exc : Exception
+            The refusal (a CorrectionFault).
+        t : float
+            Daemon time, s.
+
+        Raises
+        ------
+        StoreError
+            The halt could not be recorded (the machine stays; the next refusal tries again).
+        """
         n = self.counters
         n.refused += 1
         n.refused_in_row += 1
@@ -126,14 +139,33 @@ class Supervisor:
             self.escalator.halt(f"every command refused for {n.refused_in_row} ticks; last: {exc}", t)
 
     def moved(self, t: float) -> None:
-        """A command went through: the runs of refusals and faults end, a (non-sticky) halt resumes."""
+        """A command went through: the runs of refusals and faults end, a (non-sticky) halt resumes.
+
+        Parameters
+        ----------
+        t : float
+            Daemon time, s.
+
+        Raises
+        ------
+        StoreError
+            The resume could not be recorded.
+        """
         n = self.counters
         n.refused_in_row = n.driver_faults_in_row = 0
         if self.escalator.state == "halted":
             self.escalator.resume(t)
 
     def pass_done(self, n_sent: int, corrected: bool) -> None:
-        """A pass sent `n_sent` set-points (`corrected` or not): counted, the run of faults ends."""
+        """A pass ended: its set-points counted, the run of driver faults ends.
+
+        Parameters
+        ----------
+        n_sent : int
+            Set-points it sent.
+        corrected : bool
+            Whether they were corrected (else also counted as uncorrected).
+        """
         n = self.counters
         n.ticked(n_sent)
         if not corrected:
@@ -141,13 +173,31 @@ class Supervisor:
         n.driver_faults_in_row = 0
 
     def pass_stopped(self, why: str) -> None:
-        """A pass ended early for `why`: a sticky halt, until the operator's 'done'."""
+        """A pass ended early: a sticky halt, until the operator's 'done'.
+
+        Parameters
+        ----------
+        why : str
+            Where and why it stopped, and what the operator does (the halt's reason).
+
+        Raises
+        ------
+        StoreError
+            The halt could not be recorded.
+        """
         self.counters.last_problem = why
         log.error("%s", why)
         self.escalator.halt(why, self.now(), sticky=True)
 
     def driver_fault(self, exc: DriverError) -> None:
-        """A driver failed: after `halt.after_driver_faults` in a row, halt (not while stopping)."""
+        """A driver failed: counted and logged; after `halt.after_driver_faults` in a row, halt
+        (not while stopping; a halt the store cannot record is logged and tried at the next fault).
+
+        Parameters
+        ----------
+        exc : DriverError
+            The driver's error.
+        """
         n = self.counters
         n.driver_faults += 1
         n.driver_faults_in_row += 1
@@ -161,9 +211,22 @@ class Supervisor:
 
     # --- the camera ----------------------------------------------------------------------------
     def usable(self, reading: RigReading, arrived: float) -> bool:
-        """Whether a point program's `reading` may be tested: the camera gave a point, received
-        at most `max_measurement_age_s` before the command arrived (`arrived`, host monotonic s).
-        A refused or stale reading is counted and may halt."""
+        """Whether a point program's reading may be tested: the camera gave a point, received
+        at most `max_measurement_age_s` before the command arrived. A refused or stale reading is
+        counted and may halt (`untested`).
+
+        Parameters
+        ----------
+        reading : RigReading
+            The camera's reading after the move.
+        arrived : float
+            When the command arrived, host monotonic clock, s.
+
+        Returns
+        -------
+        bool
+            True if it may be tested.
+        """
         if not reading.ok or reading.point is None:
             self.camera_refused(reading)
             return False
@@ -185,7 +248,13 @@ class Supervisor:
 
     def camera_refused(self, reading: RigReading) -> None:
         """A reading the camera driver refused: nothing to test; counted (degraded while it lasts,
-        a halt after `halt.after_camera_refused_s`)."""
+        a halt after `halt.after_camera_refused_s`).
+
+        Parameters
+        ----------
+        reading : RigReading
+            The refused reading (its `refused` says why).
+        """
         n = self.counters
         n.mvs_refused += 1
         n.mvs_refused_in_row += 1
@@ -194,7 +263,13 @@ class Supervisor:
         self.untested(n.last_problem)
 
     def rejected(self, exc: Exception) -> None:
-        """The monitor rejected a reading's value: not tested."""
+        """The monitor rejected a reading's value: not tested (`untested`).
+
+        Parameters
+        ----------
+        exc : Exception
+            The monitor's refusal (a CorrectionFault).
+        """
         log.error("MVS value rejected: %s", exc)
         self.untested(f"MVS value rejected: {exc}")
 
@@ -204,7 +279,18 @@ class Supervisor:
 
     def untested(self, why: str) -> None:
         """A reading that could not be tested: after `halt.after_camera_refused_s` of nothing
-        but these, halt (paged; the loop then stands the arm and probes the camera)."""
+        but these (daemon clock), halt (paged; the loop then stands the arm and probes the camera).
+
+        Parameters
+        ----------
+        why : str
+            Why it was not tested (in the halt's reason).
+
+        Raises
+        ------
+        StoreError
+            The halt could not be recorded.
+        """
         n = self.counters
         t = self.now()
         if n.camera_refused_since is None:
@@ -216,8 +302,25 @@ class Supervisor:
                 f"no MVS reading tested for {blind:.1f} s (halt.after_camera_refused_s {limit:g} s); last: {why}", t)
 
     def probed(self, reading: RigReading, t: float) -> bool:
-        """Halted for the camera: the probe's `reading` at daemon time `t`; True if it was
-        accepted (the halt resumed)."""
+        """Halted for the camera: the probe's reading; an accepted one resumes the halt.
+
+        Parameters
+        ----------
+        reading : RigReading
+            The camera's reading.
+        t : float
+            Daemon time, s.
+
+        Returns
+        -------
+        bool
+            True if it was accepted (the halt resumed).
+
+        Raises
+        ------
+        StoreError
+            The resume could not be recorded.
+        """
         n = self.counters
         if reading.ok:
             self.camera_halt, n.camera_refused_since, n.mvs_refused_in_row = False, None, 0

@@ -31,6 +31,7 @@ PACKAGES = (
     "dt_runtime/dashboard",
     "dt_runtime/cli",
     "dt_runtime/fabric",
+    "dt_runtime/service",
 )
 
 
