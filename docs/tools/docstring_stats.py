@@ -23,6 +23,17 @@ DEFAULT_PACKAGES = (
     "dt_runtime/models",
     "dt_runtime/analysis",
     "dt_runtime/reports",
+    "dt_runtime/twin",
+    "dt_runtime/programs",
+    "dt_runtime/workflows",
+    "drivers",
+    "sim",
+    "emulators",
+    "dt_runtime/plant",
+    "dt_runtime/dashboard",
+    "dt_runtime/cli",
+    "dt_runtime/fabric",
+    "dt_runtime/service",
 )
 LONG_MODULE_DOC = 20
 ISSUE_RE = re.compile(r"\bissues?\s*#?\d+", re.IGNORECASE)
