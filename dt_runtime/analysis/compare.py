@@ -27,12 +27,12 @@ from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import FileRecord
 from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, read_table
+from dt_runtime.metrology import conformal as cp
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
 from dt_runtime.models import effects as fx
 from dt_runtime.models.effects import Catalogue
 from dt_runtime.models.hybrid import HybridModel, load_map
-from dt_runtime.twin import conformal as cp
 
 log = logging.getLogger("dt.compare")
 AS_IS = "as is"
@@ -596,7 +596,7 @@ STATED_U95 = "U95 = t_crit sqrt(u_meas^2 + u_model^2 [+ u_reg^2]) (GUM, Eq. 17's
 
 
 def _conformal(r: np.ndarray, U: np.ndarray, groups: np.ndarray, folds: list[np.ndarray]) -> dict:
-    """The split conformal factor of the stated U95 on the held-out rows (`twin.conformal`), and the
+    """The split conformal factor of the stated U95 on the held-out rows (`metrology.conformal`), and the
     coverage it gives on rows it was not calibrated on: each fold's rows covered by max(1, c) U95
     with c from the other folds (cross-fitted), beside the coverage of U95 itself."""
     scale = cp.calibrate(r, U, groups)

@@ -1,6 +1,6 @@
 """Adaptive conformal scale of the stated U in service: coverage that holds through slow drift.
 
-The twin's U(TCP_c) is calibrated once (`twin.conformal`); in service the arm drifts and the
+The twin's U(TCP_c) is calibrated once (`metrology.conformal`); in service the arm drifts and the
 errors grow. Each monitored reading that measures a corrected position's error (the tracker, or
 the camera's e_MVS against the twin) says whether the stated U covered it. `AdaptiveCoverage`
 turns that stream into a scale s_t, per GL axis, by adaptive conformal inference (Gibbs & Candès

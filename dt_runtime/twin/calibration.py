@@ -7,7 +7,7 @@
    on (TCP, v); without effects, the paper's GPR); residuals r by cross-validation grouped by
    target point (a model cannot win by remembering a point), Table 4.
 5. Uncertainty budgets Eqs. 11, 13-16, Eq. 11 per position and its split conformal factor on the
-   held-out residuals (`conformal_scale`, `twin.conformal`).
+   held-out residuals (`conformal_scale`, `metrology.conformal`).
 """
 from __future__ import annotations
 
@@ -20,12 +20,12 @@ from dt_runtime.analysis.crossval import cross_validate, folds_of
 from dt_runtime.frames import registration as reg
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.phase import PhaseData
+from dt_runtime.metrology import conformal
 from dt_runtime.metrology import uncertainty as unc
+from dt_runtime.metrology.conformal import ConformalScale
 from dt_runtime.metrology.uncertainty import INF
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import HybridModel
-from dt_runtime.twin import conformal
-from dt_runtime.twin.conformal import ConformalScale
 from dt_runtime.twin.twin import PositionUncertainty, Twin
 
 
@@ -446,7 +446,7 @@ def position_uncertainty(eq11: unc.Budget, doe: DoeErrors, maps: FittedMaps) -> 
 
 
 def conformal_scale(pu: PositionUncertainty, doe: DoeErrors, maps: FittedMaps) -> ConformalScale:
-    """The split conformal factor of U(TCP_c) (`twin.conformal`): each held-out DOE positioning's
+    """The split conformal factor of U(TCP_c) (`metrology.conformal`): each held-out DOE positioning's
     residual r_LT (by a fold map that never saw its target point) against the Eq. 11 U the twin
     states there (`PositionUncertainty.budget_at` with the fold map's sigma, inside the hull);
     the exchangeable unit is the target point (n = distinct DOE target points).

@@ -110,7 +110,7 @@ class Corrector:
         self._offsets = None if vol is None else vol.offsets
         self._margin = 0.0 if vol is None else vol.margin_m
         pu = twin.position_u
-        # the held-out conformal factor (`twin.conformal`): every U this law states is scaled by it
+        # the held-out conformal factor (`metrology.conformal`): every U this law states is scaled by it
         self._cf = twin.conformal.factor.tolist()
         self._U_global = twin.conformal.factor * twin.uncertainty.tcp_c.U
         self._pu = pu

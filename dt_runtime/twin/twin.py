@@ -14,7 +14,7 @@ The stated uncertainties are read through `Twin.uncertainty` (`TwinUncertainty`:
 `StatedUncertainty` per equation, Eqs. 11 and 13-16), never by string keys; `Twin.u` is the same
 data as twin.json holds it (format_version 1: `u.eq11_tcp_c.{u, dof, U, k}`, ...). The U(TCP_c) a
 corrected position states is Eq. 11's times the held-out conformal factor (`Twin.conformal`,
-twin.json's `uncertainty_calibration`; `twin.conformal`).
+twin.json's `uncertainty_calibration`; `metrology.conformal`).
 """
 from __future__ import annotations
 
@@ -32,11 +32,11 @@ from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.provenance import Provenance
 from dt_runtime.frames.registration import RigidTransform
 from dt_runtime.frames.volume import CalibratedVolume
+from dt_runtime.metrology.conformal import ConformalScale
 from dt_runtime.metrology.uncertainty import Budget, Component, budget_tcp_corrected_at
 from dt_runtime.models.hybrid import HybridModel, load_map
 from dt_runtime.models.modelio import read_meta
 from dt_runtime.twin.conditions import Conditions, command_inputs
-from dt_runtime.twin.conformal import ConformalScale
 
 # 2: the maps are hybrid model directories (TWIN/e_lt/, TWIN/e_mvs_lt/); 1 (read too): GP-only
 # maps saved as TWIN/e_lt.json + .npz.
@@ -243,7 +243,7 @@ class Twin:
     provenance : Provenance or None
         The traceability record (`common.provenance`).
     conformal : ConformalScale
-        The held-out calibration of U(TCP_c) (`twin.conformal`): every corrected position's U is
+        The held-out calibration of U(TCP_c) (`metrology.conformal`): every corrected position's U is
         its factor times Eq. 11's; an older twin has none (factor 1).
 
     Raises

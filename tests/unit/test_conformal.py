@@ -1,4 +1,4 @@
-"""The held-out conformal factor of the stated U (twin.conformal) and the adaptive scale in service
+"""The held-out conformal factor of the stated U (metrology.conformal) and the adaptive scale in service
 (twin.adaptive): the factor is the split conformal quantile, grouped by target point; it makes a U
 that is too small cover 95 % of new exchangeable positions; an old twin loads with factor 1; the
 adaptive scale keeps a drifting stream's coverage in the band where a fixed scale falls below."""
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from dt_kernel.errors import ConfigError, ModelError
-from dt_runtime.twin import conformal
+from dt_runtime.metrology import conformal
+from dt_runtime.metrology.conformal import ConformalScale
 from dt_runtime.twin.adaptive import AdaptiveCoverage
-from dt_runtime.twin.conformal import ConformalScale
 
 
 def test_with_one_row_per_point_the_factor_is_the_ceil_n_plus_1_times_95_pct_smallest_score():
