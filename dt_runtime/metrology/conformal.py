@@ -31,7 +31,17 @@ NONE = "none"
 
 
 def guarantee(alpha: float = ALPHA) -> str:
-    """The statement a conformal scale carries, in words."""
+    """The statement a conformal scale carries, in words.
+
+    Parameters
+    ----------
+    alpha : float
+        Miscoverage (0.05 for 95 %).
+
+    Returns
+    -------
+    str
+    """
     return (f"marginal coverage >= {100 * (1 - alpha):g} % for exchangeable new positions (split conformal over "
             "held-out target points)")
 

@@ -1,30 +1,10 @@
 """Adaptive conformal scale of the stated U in service: coverage that holds through slow drift.
 
-The twin's U(TCP_c) is calibrated once (`metrology.conformal`); in service the arm drifts and the
-errors grow. Each monitored reading that measures a corrected position's error (the tracker, or
-the camera's e_MVS against the twin) says whether the stated U covered it. `AdaptiveCoverage`
-turns that stream into a scale s_t, per GL axis, by adaptive conformal inference (Gibbs & Candès
-2021): the miss indicator err_t = 1{|e_t| > s_t U_t} drives the update
-
-    log s_{t+1} = log s_t + gamma (err_t - alpha)
-
-which is their alpha_{t+1} = alpha_t + gamma (alpha - err_t) written on the log of the scale (the
-online quantile tracking form, Angelopoulos, Candès & Tibshirani 2023). On the alpha form the
-scale is a quantile function of alpha_t that becomes steep where the needed alpha_t is smaller
-than one step, so the stated U would jump between extremes; on the log scale it moves by a few
-per cent per reading. The guarantee is the same: summing the update over any run of W readings,
-
-    (misses in the run) / W = alpha + (log s_end - log s_start) / (gamma W)
-
-exactly while the scale stays inside its bounds (with the floor reached: fewer misses), so the
-miss rate over a window deviates from alpha by no more than the window's change of log s over
-gamma W: whatever the drift, as long as it is slower than the scale can follow.
-
-How it is meant to be fed (the daemon's wiring is not part of this module): for each reading of a
-corrected position with a measured error e (m, GL axes) and the U (m) the twin stated for it,
-call `update(covered=np.abs(e) <= scale * U)` or `observe(e, U)`, and state `scale * U` from then
-on; persist `to_dict()` with the service state. Step: `GAMMA` (per reading; 0.05 lets the scale
-grow by 5 % per miss and shrink by 0.25 % per covered reading at alpha = 0.05).
+Each monitored reading of a corrected position's error (the tracker's, or the camera's) says
+whether the stated U covered it; `AdaptiveCoverage` turns that stream into a scale per GL axis by
+adaptive conformal inference (Gibbs & Candès 2021) on the log of the scale. Not wired into the
+daemon yet: how to feed it is in the class docstring and docs/cli.md ("A stated U that holds on
+new positions").
 """
 from __future__ import annotations
 
@@ -43,7 +23,20 @@ BOUNDS = (1.0, 20.0)  # the scale never goes below the calibrated U, nor above 2
 
 @dataclass
 class AdaptiveCoverage:
-    """Adaptive conformal scale of a stated U, per GL axis (module docstring).
+    """Adaptive conformal scale of a stated U, per GL axis.
+
+    The miss indicator err_t = 1{|e_t| > s_t U_t} drives log s_{t+1} = log s_t + gamma (err_t - alpha):
+    Gibbs & Candès' alpha_{t+1} = alpha_t + gamma (alpha - err_t) written on the log of the scale
+    (the quantile-tracking form of Angelopoulos, Candès & Tibshirani 2023). On the alpha form the
+    scale is a quantile function of alpha_t, steep where the needed alpha_t is below one step, so U
+    would jump between extremes; here it moves by a few per cent per reading. Summing the update
+    over any W readings: misses / W = alpha + (log s_end - log s_start) / (gamma W), exactly while
+    the scale stays inside its bounds (at the floor: fewer misses).
+
+    Feeding it: for each reading of a corrected position with a measured error e (m, GL axes) and
+    the U the twin stated for it, `observe(e, U)` (or `update(|e| <= scale U)`); state `stated(U)`
+    from then on; persist `to_dict()` with the service's state. Step `GAMMA` = 0.05 per reading: the
+    scale grows 5 % per miss and shrinks 0.25 % per covered reading at alpha = 0.05.
 
     Parameters
     ----------
@@ -120,7 +113,18 @@ class AdaptiveCoverage:
         return self.update(np.abs(np.asarray(error, dtype=float)) <= self.scale * np.asarray(U, dtype=float))
 
     def stated(self, U: np.ndarray) -> np.ndarray:
-        """The U to state now: the scale times the twin's U (m, per axis)."""
+        """The U to state now.
+
+        Parameters
+        ----------
+        U : ndarray
+            (3,) m, the twin's stated U at the position.
+
+        Returns
+        -------
+        ndarray
+            (3,) m: the scale times U.
+        """
         return self.scale * np.asarray(U, dtype=float)
 
     def to_dict(self) -> dict[str, Any]:
