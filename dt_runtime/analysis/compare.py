@@ -27,6 +27,7 @@ from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import FileRecord
 from dt_runtime.measurements.checks import check_dataset
 from dt_runtime.measurements.dataset import Dataset, read_table
+from dt_runtime.metrology import conformal as cp
 from dt_runtime.metrology.stats import rms3, rms_with_U
 from dt_runtime.metrology.uncertainty import INF, t_test
 from dt_runtime.models import effects as fx
@@ -566,16 +567,18 @@ def _after_registration(ds: Dataset, pred, std, dof_model, um, dm, plan) -> tupl
     return block, {"rows": idx, "residual": r, "U": U}
 
 
-def _validity(name: str, in_sample: bool, um, scored: dict | None, ds: Dataset, pred, std, tt) -> dict:
+def _validity(name: str, in_sample: bool, um, scored: dict | None, ds: Dataset, pred, std,
+              tt) -> tuple[dict, dict | None]:
     """The `validity` block of the primary model on these data: the coverage of its stated U95 (model,
     measurement and, after a registration on reference poses, registration) over the rows it did not
-    see, with the band and what to do (analysis.validity)."""
+    see, with the band and what to do (analysis.validity); and the rows it checked ({rows, residual,
+    U} m), None when it checked none."""
     if in_sample:
         return validity.assess([], unchecked=f"{ds.source} was used to train '{name}': its figures are in-sample, "
-                                             "not a test; compare on another session's file, or use --cv K")
+                                             "not a test; compare on another session's file, or use --cv K"), None
     if um is None or tt is None:
         return validity.assess([], unchecked="no measurement uncertainty (ux, uy, uz, --mpe-mm or a model's "
-                                             "fitted noise): no stated U to check")
+                                             "fitted noise): no stated U to check"), None
     if scored:
         rows, r, U = scored["rows"], scored["residual"], scored["U"]
         what = (f"the {len(rows)} rows of the new session(s) not used by the registration on reference poses")
@@ -586,7 +589,26 @@ def _validity(name: str, in_sample: bool, um, scored: dict | None, ds: Dataset, 
     sample = validity.Sample("new_data", what, "errors the instrument measured", r, U,
                              fx.Inputs(commanded=ds.commanded[rows]),
                              stated="U95 of the prediction")
-    return validity.assess([sample])
+    return validity.assess([sample]), {"rows": rows, "residual": r, "U": U}
+
+
+STATED_U95 = "U95 = t_crit sqrt(u_meas^2 + u_model^2 [+ u_reg^2]) (GUM, Eq. 17's)"
+
+
+def _conformal(r: np.ndarray, U: np.ndarray, groups: np.ndarray, folds: list[np.ndarray]) -> dict:
+    """The split conformal factor of the stated U95 on the held-out rows (`metrology.conformal`), and the
+    coverage it gives on rows it was not calibrated on: each fold's rows covered by max(1, c) U95
+    with c from the other folds (cross-fitted), beside the coverage of U95 itself."""
+    scale = cp.calibrate(r, U, groups)
+    inside = np.zeros(r.shape, dtype=bool)
+    for test in folds:
+        f = cp.calibrate(r[~test], U[~test], groups[~test]).factor
+        inside[test] = np.abs(r[test]) <= f * U[test]
+    return {**scale.to_dict(),
+            "note": "from the held-out rows of the grouped cross-validation; apply max(1, c) x U95 to new data of "
+                    "the same kind (dt calibrate stores it in the twin)",
+            "coverage_95_gum": _coverage(r, U),
+            "coverage_95_conformal_cross_fitted": {ax: float(inside[:, k].mean()) for k, ax in enumerate(AXES)}}
 
 
 def _predict_cv(m: HybridModel, ds: Dataset, folds: list[np.ndarray], groups: np.ndarray):
@@ -724,12 +746,16 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
         arrs.append(a)
     floor = noise_floor_m if noise_floor_m is not None else noise_floor(ds.u)
     in_sample = [] if cv_folds > 1 else trained_on(fitted, ds)
+    conf, checked = None, None
     if last is None:
         valid = validity.assess([], unchecked="no model to check")
     else:
         name, m, pred, std, scored = last
         tt = failures(ds.error, pred, std, _model_dof(m), um, dm)[1] if um is not None else None
-        valid = _validity(name, name in in_sample, um, scored, ds, pred, std, tt)
+        valid, checked = _validity(name, name in in_sample, um, scored, ds, pred, std, tt)
+        valid["stated_U"] = STATED_U95
+        if cv_folds > 1 and tt is not None:
+            conf = _conformal(ds.error - pred, _u95(um, std, tt), groups, folds)
     result = CompareResult(
         scores, ds.source, floor * MM_PER_M if floor is not None else None,
         heldout=({"method": f"{len(folds)}-fold cross-validation grouped by target point: each row "
@@ -742,12 +768,13 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
                            "(u^2 = s_GP^2 + a Sigma_theta a^T; dof: the GP's training rows, else infinite)",
                 "u_meas_source": u_source},
         factors={f: names_ for f, (_, names_) in cells.items()},
-        provenance=prov, in_sample=in_sample, validity=valid)
+        provenance=prov, in_sample=in_sample, validity=valid, conformal=conf)
     if result.in_sample:
         log.warning("%s was used to train %s: these figures are in-sample, not a test (use --cv K or other data)",
                     ds.source, ", ".join(result.in_sample))
     arrays = {"commanded": ds.commanded, "error": ds.error, "u": ds.u, "u_meas": um,
               "speed": ds.speed, "payload": ds.payload, "temperature": ds.temperature, "t": ds.t,
               "joints": ds.joints, "cells": {f: lab for f, (lab, _) in cells.items()}, "models": arrs,
-              "session": ds.extra.get("session"), "point_id": ds.point_id, "lines": ds.lines}
+              "session": ds.extra.get("session"), "point_id": ds.point_id, "lines": ds.lines,
+              "validity": checked}
     return result, arrays

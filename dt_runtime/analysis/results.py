@@ -223,6 +223,7 @@ class CompareResult:
     provenance: Provenance | None = None  # software, data and model file hashes, instruments
     in_sample: list[str] = field(default_factory=list)  # models trained on these very data (figures not held out)
     validity: dict = field(default_factory=dict)  # the primary model's U95 against these data (analysis.validity)
+    conformal: dict | None = None  # with cv_folds > 1: the held-out conformal factor of the primary model's U95
 
     @property
     def primary(self) -> ModelScore:
@@ -235,4 +236,5 @@ class CompareResult:
         return jsonable({**top, "primary": self.primary.name, "dataset": self.dataset,
                          "noise_floor_mm": self.noise_floor_mm, "heldout": self.heldout, "t_test": self.t_test,
                          "factors": self.factors, "models": self.models, "units": self.units,
-                         "in_sample": self.in_sample, "validity": self.validity, "provenance": self.provenance})
+                         "in_sample": self.in_sample, "validity": self.validity, "provenance": self.provenance,
+                         **({"conformal": self.conformal} if self.conformal is not None else {})})

@@ -183,6 +183,10 @@ def human(s: dict) -> str:
     if e["parameters"]:
         lines.append("effect parameters of the e_LT map (the short base-parameter table):")
         lines += ["  " + ln for ln in parameter_lines(e["parameters"], e.get("base_parameters"))]
+    uc = s.get("uncertainty_calibration")
+    if uc:
+        lines.append(f"U(TCP_c) calibrated on held-out data: {uc['method']}, {uc['n']} target points, factor "
+                     + " ".join(f"{ax} {f:.3f}" for ax, f in zip("xyz", uc["factor"])) + f" ({uc['guarantee']})")
     v = s.get("validation")
     if v and v["n"]:
         cov = v["coverage_95"]

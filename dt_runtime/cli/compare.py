@@ -149,6 +149,12 @@ def human(result: dict) -> str:
     if primary.get("parameters"):  # the primary model's effect parameters, as `dt fit` prints them
         lines.append(f"effect parameters of {primary['name']} (as trained):")
         lines += ["  " + ln for ln in parameter_lines(primary["parameters"], primary.get("base_parameters"))]
+    if result.get("conformal"):
+        c = result["conformal"]
+        lines.append(f"conformal factor of U95 ({c['method']}, {c['n']} held-out points): "
+                     + " ".join(f"{ax} {f:.3f}" for ax, f in zip("xyz", c["factor"]))
+                     + "; coverage with it (cross-fitted) " + _pcts(c["coverage_95_conformal_cross_fitted"])
+                     + ", without " + _pcts(c["coverage_95_gum"]))
     if result.get("report"):
         lines.append(f"report: {result['report']}")
     if result.get("validity"):

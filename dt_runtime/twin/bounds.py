@@ -96,8 +96,8 @@ class Guard:
         self.corrector = twin.corrector if corrector is None else corrector
         self._lo, self._hi = np.array(limits.workspace_min_m), np.array(limits.workspace_max_m)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
-        b = twin.uncertainty.tcp_c  # Eq. 11
-        self._u, self._U = b.u, b.U
+        b = twin.uncertainty.tcp_c  # Eq. 11 (u: the GUM figure; U: as the law states it, conformal factor included)
+        self._u, self._U = b.u, twin.conformal.factor * b.U
 
     def _check_target(self, target: np.ndarray, speed: float) -> np.ndarray:
         target = np.asarray(target, dtype=float)

@@ -6,7 +6,8 @@
 4. Error maps e_LT_hat and e_MVS-LT_hat (hybrid models: the physical effects the user names + GP
    on (TCP, v); without effects, the paper's GPR); residuals r by cross-validation grouped by
    target point (a model cannot win by remembering a point), Table 4.
-5. Uncertainty budgets Eqs. 11, 13-16.
+5. Uncertainty budgets Eqs. 11, 13-16, Eq. 11 per position and its split conformal factor on the
+   held-out residuals (`conformal_scale`, `metrology.conformal`).
 """
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ from dt_runtime.analysis.crossval import cross_validate, folds_of
 from dt_runtime.frames import registration as reg
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.phase import PhaseData
+from dt_runtime.metrology import conformal
 from dt_runtime.metrology import uncertainty as unc
+from dt_runtime.metrology.conformal import ConformalScale
 from dt_runtime.metrology.uncertainty import INF
 from dt_runtime.models.effects import Inputs
 from dt_runtime.models.hybrid import HybridModel
@@ -442,8 +445,35 @@ def position_uncertainty(eq11: unc.Budget, doe: DoeErrors, maps: FittedMaps) -> 
     return PositionUncertainty(unc.Budget("u(TCP_c) without the model", rest), scale, dof, kappa, kdof)
 
 
+def conformal_scale(pu: PositionUncertainty, doe: DoeErrors, maps: FittedMaps) -> ConformalScale:
+    """The split conformal factor of U(TCP_c) (`metrology.conformal`): each held-out DOE positioning's
+    residual r_LT (by a fold map that never saw its target point) against the Eq. 11 U the twin
+    states there (`PositionUncertainty.budget_at` with the fold map's sigma, inside the hull);
+    the exchangeable unit is the target point (n = distinct DOE target points).
+
+    lambda (`model_scale`) is estimated from the same held-out residuals: one parameter per axis
+    from n points, an O(1/n) reuse that the finite-sample guarantee does not account for.
+
+    Parameters
+    ----------
+    pu : PositionUncertainty
+        Eq. 11 per position (`position_uncertainty`).
+    doe : DoeErrors
+        The DOE errors (their target point ids).
+    maps : FittedMaps
+        The held-out residuals r_lt and the fold maps' std s_lt.
+
+    Returns
+    -------
+    ConformalScale
+    """
+    U = np.array([pu.budget_at(s, 0.0).expanded() for s in maps.s_lt]).reshape(-1, 3)
+    return conformal.calibrate(maps.r_lt, U, doe.groups)
+
+
 def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = None,
-              volume: CalibratedVolume | None = None, position_u: PositionUncertainty | None = None) -> Twin:
+              volume: CalibratedVolume | None = None, position_u: PositionUncertainty | None = None,
+              scale: ConformalScale | None = None) -> Twin:
     """The twin from its registration, fitted maps and budgets.
 
     Parameters
@@ -461,6 +491,8 @@ def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = No
         The DOE's hull (where the maps interpolate).
     position_u : PositionUncertainty or None
         Eq. 11 per position (`position_uncertainty`).
+    scale : ConformalScale or None
+        The held-out conformal factor of U(TCP_c) (`conformal_scale`); None: factor 1.
 
     Returns
     -------
@@ -475,4 +507,5 @@ def make_twin(fr: Frames, e_lt, e_mvs_lt, b: dict, instruments: dict | None = No
     u = {}
     for key, bud in b.items():
         u[key] = {"u": bud.combined(), "dof": bud.effective_dof(), "U": bud.expanded(), "k": bud.coverage_factor()}
-    return Twin(fr.T_rdk, fr.T_lt, fr.T_mvs, e_lt, e_mvs_lt, u, dict(instruments or {}), volume, position_u)
+    return Twin(fr.T_rdk, fr.T_lt, fr.T_mvs, e_lt, e_mvs_lt, u, dict(instruments or {}), volume, position_u,
+                conformal=scale if scale is not None else ConformalScale())

@@ -31,7 +31,8 @@ class Setpoint:
     command : ndarray
         (3,) m, robot frame: solves c - e_hat(c, v) = target.
     U : ndarray
-        (3,) m, expanded uncertainty (95 %) of the position reached, per GL axis (Eq. 11 there).
+        (3,) m, expanded uncertainty (95 %) of the position reached, per GL axis: Eq. 11 there times
+        the twin's held-out conformal factor (`Twin.stated_U`).
     inside : bool
         The command lies in the calibrated volume (the DOE's hull plus its margin).
     distance_m : float
@@ -109,7 +110,9 @@ class Corrector:
         self._offsets = None if vol is None else vol.offsets
         self._margin = 0.0 if vol is None else vol.margin_m
         pu = twin.position_u
-        self._U_global = twin.uncertainty.tcp_c.U
+        # the held-out conformal factor (`metrology.conformal`): every U this law states is scaled by it
+        self._cf = twin.conformal.factor.tolist()
+        self._U_global = twin.conformal.factor * twin.uncertainty.tcp_c.U
         self._pu = pu
         if pu is not None:
             us = np.array([c.u for c in pu.rest.components])
@@ -272,21 +275,23 @@ class Corrector:
         return correct_one
 
     def _expanded(self, sigma: np.ndarray, dist: float) -> np.ndarray:
-        """Eq. 11's U at the position (`PositionUncertainty.budget_at(...).expanded()`), on floats."""
+        """The stated U at the position: the conformal factor times Eq. 11's U
+        (`Twin.stated_U(PositionUncertainty.budget_at(...))`), on floats."""
         pu = self._pu
         if pu is None:
             return self._U_global
         d = max(dist if math.isfinite(dist) else 0.0, 0.0)
         if not self._fast_u:  # a zero degree of freedom somewhere: the budget's own arithmetic
-            return pu.budget_at(sigma, d).expanded()
+            return self.twin.stated_U(pu.budget_at(sigma, d))
         U = []  # per axis on plain floats: three numbers do not pay numpy's per-call overhead
-        for r2, r4, lam, kap, sg in zip(self._rest_u2, self._rest_u4, self._lam, self._kappa, sigma.tolist()):
+        for r2, r4, lam, kap, sg, cf in zip(self._rest_u2, self._rest_u4, self._lam, self._kappa, sigma.tolist(),
+                                            self._cf):
             um2, ue2 = (lam * sg) ** 2, (kap * d) ** 2
             uc2 = r2 + um2 + ue2
             den = r4 + um2 * um2 * self._w_m + ue2 * ue2 * self._w_k
             # nu_eff = u_c^4 / sum(u_i^4 / nu_i); k from the t quantile (what stats.t.ppf evaluates)
             k = special.stdtrit(max(uc2 * uc2 / den, 1.0), P95) if den > 0 else self._k_inf
-            U.append(k * math.sqrt(uc2))
+            U.append(cf * k * math.sqrt(uc2))
         return np.array(U)
 
 

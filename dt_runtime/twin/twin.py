@@ -12,7 +12,9 @@ the command's `Conditions` (joint angles, temperature, payload, time, direction 
 
 The stated uncertainties are read through `Twin.uncertainty` (`TwinUncertainty`: one
 `StatedUncertainty` per equation, Eqs. 11 and 13-16), never by string keys; `Twin.u` is the same
-data as twin.json holds it (format_version 1: `u.eq11_tcp_c.{u, dof, U, k}`, ...).
+data as twin.json holds it (format_version 1: `u.eq11_tcp_c.{u, dof, U, k}`, ...). The U(TCP_c) a
+corrected position states is Eq. 11's times the held-out conformal factor (`Twin.conformal`,
+twin.json's `uncertainty_calibration`; `metrology.conformal`).
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.provenance import Provenance
 from dt_runtime.frames.registration import RigidTransform
 from dt_runtime.frames.volume import CalibratedVolume
+from dt_runtime.metrology.conformal import ConformalScale
 from dt_runtime.metrology.uncertainty import Budget, Component, budget_tcp_corrected_at
 from dt_runtime.models.hybrid import HybridModel, load_map
 from dt_runtime.models.modelio import read_meta
@@ -208,10 +211,10 @@ class Correction:
 
     target: np.ndarray  # (3,) m, robot frame
     command: np.ndarray  # (3,) m, robot frame: solves c - e_hat(c, v) = target
-    U: np.ndarray  # (3,) m, expanded uncertainty (95 %) of the corrected TCP, per GL axis
+    U: np.ndarray  # (3,) m, expanded uncertainty (95 %) of the corrected TCP, per GL axis (conformal factor x budget's)
     inside: bool  # the command lies in the calibrated volume (hull of the DOE plus its margin)
     distance_m: float  # signed distance of the command to the DOE hull (< 0 inside), NaN if unknown
-    budget: Budget | None  # the labelled Eq. 11 budget at this position (None for an old twin)
+    budget: Budget | None  # the labelled Eq. 11 (GUM) budget at this position (None for an old twin)
 
 
 @dataclass
@@ -239,6 +242,9 @@ class Twin:
         Eq. 11 per position; None: only the global `uncertainty.tcp_c` is stated.
     provenance : Provenance or None
         The traceability record (`common.provenance`).
+    conformal : ConformalScale
+        The held-out calibration of U(TCP_c) (`metrology.conformal`): every corrected position's U is
+        its factor times Eq. 11's; an older twin has none (factor 1).
 
     Raises
     ------
@@ -257,6 +263,7 @@ class Twin:
     volume: CalibratedVolume | None = None  # where the maps interpolate (None: an older twin)
     position_u: PositionUncertainty | None = None  # Eq. 11 per position (None: an older twin)
     provenance: Provenance | None = None  # traceability record (dt_runtime.common.provenance)
+    conformal: ConformalScale = field(default_factory=ConformalScale)  # U(TCP_c) = factor x Eq. 11's U
     uncertainty: TwinUncertainty = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -415,6 +422,23 @@ class Twin:
         s = self.e_lt_hat(c, v, cond)[1] if sigma is None else sigma
         return self.position_u.budget_at(s, d if np.isfinite(d) else 0.0)
 
+    def stated_U(self, budget: Budget | None) -> np.ndarray:
+        """The U(TCP_c) the twin states for an Eq. 11 budget: the conformal factor (`conformal`)
+        times the budget's expanded uncertainty (the global Eq. 11 U when there is no budget).
+
+        Parameters
+        ----------
+        budget : Budget or None
+            Eq. 11 at a position (`tcp_budget`).
+
+        Returns
+        -------
+        ndarray
+            (3,) m, per GL axis.
+        """
+        U = budget.expanded() if budget is not None else self.uncertainty.tcp_c.U
+        return self.conformal.factor * U
+
     def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None) -> Correction:
         """The corrected command for a target, the expanded uncertainty (95 %) of the position it
         reaches with its labelled Eq. 11 budget, and whether the command lies in the calibrated
@@ -468,6 +492,7 @@ class Twin:
             meta["volume"] = self.volume.to_dict()
         if self.position_u is not None:
             meta["position_uncertainty"] = self.position_u.to_dict()
+        meta["uncertainty_calibration"] = self.conformal.to_dict()
         (d / "twin.json").write_text(json.dumps(meta, indent=2))
         return d
 
@@ -513,5 +538,8 @@ class Twin:
                    PositionUncertainty.from_dict(meta["position_uncertainty"], str(d / "twin.json"))
                    if "position_uncertainty" in meta else None,
                    # twins saved before the record have none
-                   Provenance.from_dict(meta["provenance"]) if meta.get("provenance") else None)
+                   Provenance.from_dict(meta["provenance"]) if meta.get("provenance") else None,
+                   # twins saved before the conformal calibration: factor 1, method 'none'
+                   ConformalScale.from_dict(meta["uncertainty_calibration"], str(d / "twin.json"))
+                   if "uncertainty_calibration" in meta else ConformalScale())
 

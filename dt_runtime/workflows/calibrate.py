@@ -149,9 +149,10 @@ def calibrate(campaign: Campaign, options: CalibrationOptions, robot=None, instr
     budgets = cal.budgets(inp)
     literal = cal.budgets(dataclasses.replace(inp, registration_term="spread"))
     progress.note("per-position uncertainty: held-out calibration of the map's std, leave-a-face-out extrapolation")
+    pu = cal.position_uncertainty(budgets["eq11_tcp_c"], doe, maps)
     twin = cal.make_twin(frames, maps.e_lt, maps.e_mvs_lt, budgets, instruments,
-                         CalibratedVolume.of_points(doe.X[:, :3], options.volume_margin_m),
-                         cal.position_uncertainty(budgets["eq11_tcp_c"], doe, maps))
+                         CalibratedVolume.of_points(doe.X[:, :3], options.volume_margin_m), pu,
+                         cal.conformal_scale(pu, doe, maps))
     return Calibrated(twin, frames, doe, maps, budgets, literal)
 
 
@@ -227,6 +228,7 @@ def figures(c: Calibrated) -> dict:
             "eq20_e_lt_hat_minus_e_mvs": expanded(b["eq14_e_lt_hat_minus_e_mvs"]),
             "eq21_e_mvs": expanded(b["eq15_e_mvs"]), "eq22_e_mvs_lt_hat": expanded(b16)},
         "budgets": {k: bud.table(unit="mm") for k, bud in b.items()},
+        "uncertainty_calibration": c.twin.conformal.to_dict(),
     }
 
 
@@ -365,8 +367,7 @@ def validation(c: Calibrated, phase: PhaseData) -> Validation:
     pred, s = twin.e_lt.predict(inp, return_std=True)
 
     def U_at(p: np.ndarray, v: float, si: np.ndarray) -> np.ndarray:
-        b = twin.tcp_budget(p, v, sigma=si)
-        return b.expanded() if b is not None else twin.uncertainty.tcp_c.U
+        return twin.stated_U(twin.tcp_budget(p, v, sigma=si))
 
     U = np.array([U_at(p, v, si) for p, v, si in zip(phase.p_rdk[ok], phase.speed[ok], s)]).reshape(-1, 3)
     cond = Inputs(commanded=phase.p_rdk[ok], joints=phase.q[ok], t=phase.t[ok], temperature=phase.temperature[ok])
@@ -374,6 +375,31 @@ def validation(c: Calibrated, phase: PhaseData) -> Validation:
                              "errors the laser tracker measured less the map's prediction (e_LT - e_LT_hat)",
                              e - pred, U, cond)
     return Validation(sample, e, eq17(c, phase))
+
+
+def stated(block: dict, c: Calibrated) -> dict:
+    """A validity block with the U its coverage checks used and the guarantee that U carries.
+
+    Parameters
+    ----------
+    block : dict
+        From `analysis.validity.assess`.
+    c : Calibrated
+        The calibration (its twin's conformal scale).
+
+    Returns
+    -------
+    dict
+        The block with `stated_U` (the U in words), `guarantee` and `sample_size` (held-out target
+        points the conformal factor was calibrated on; 0 for none).
+    """
+    cs = c.twin.conformal
+    block["stated_U"] = ("U(TCP_c) = max(1, c) x Eq. 11's U per position, c the split conformal factor "
+                         f"{[round(float(f), 4) for f in cs.raw]} (applied {[round(float(f), 4) for f in cs.factor]})"
+                         if cs.method != "none" else "U(TCP_c) = Eq. 11's U per position (no conformal factor)")
+    block["guarantee"] = cs.guarantee
+    block["sample_size"] = cs.n
+    return block
 
 
 def validity_of(c: Calibrated, v: Validation | None, campaign: str | None) -> dict:
@@ -395,8 +421,8 @@ def validity_of(c: Calibrated, v: Validation | None, campaign: str | None) -> di
         The block `analysis.validity.assess` returns.
     """
     if v is None:
-        return validity.assess([], unchecked="the campaign has no validation phase, so nothing tests the stated "
+        return stated(validity.assess([], unchecked="the campaign has no validation phase, so nothing tests the stated "
                                              "U(TCP_c): measure one (uncorrected, at points the DOE did not visit) "
-                                             "and give it with --validation (docs/campaign-files.md)")
+                                             "and give it with --validation (docs/campaign-files.md)"), c)
     rates = validity.Eq17Rates(v.eq17.test.passed, c.budgets["eq14_e_lt_hat_minus_e_mvs"].expanded())
-    return validity.assess([v.sample], c.doe.inputs, ("validation", rates), campaign)
+    return stated(validity.assess([v.sample], c.doe.inputs, ("validation", rates), campaign), c)

@@ -44,6 +44,7 @@ from dt_runtime.workflows.calibrate import (
     eq17,
     eq17_summary,
     figures,
+    stated,
 )
 from dt_runtime.workflows.calibrate import arrays as arrays_of
 from dt_runtime.workflows.campaign import Instruments, check_reachable, run_rows
@@ -359,7 +360,7 @@ def _validity(c: Calibrated, checks: dict[str, CoverageCheck], val_corr: PhaseDa
     samples.append(validity.Sample("validation", f"the {int(ok.sum())} corrected validation positionings", truth,
                                    e_corr, U_tcp, cond, requested=len(ok) if not ok.all() else None))
     rates = validity.Eq17Rates(t17.test.passed, c.budgets["eq14_e_lt_hat_minus_e_mvs"].expanded())
-    return validity.assess(samples, c.doe.inputs, ("validation", rates), campaign)
+    return stated(validity.assess(samples, c.doe.inputs, ("validation", rates), campaign), c)
 
 
 def _summarise(plan_cfg, quick, c: Calibrated, val_plain, val_corr, corrections: list[Correction], world, elapsed,

@@ -1,7 +1,7 @@
 """The correction law written plainly, as the paper states it: the fixed point c - e_hat(c, v) =
 target on the twin's own map predictor (its `Inputs` and `Chain.ik`), then Eq. 11's labelled budget at
-c. The tests hold `twin.corrector.Corrector` (the one law, precomputed for speed) to these numbers
-and `benchmarks.setpoint` uses it as its baseline."""
+c, its U times the twin's conformal factor. The tests hold `twin.corrector.Corrector` (the one law,
+precomputed for speed) to these numbers and `benchmarks.setpoint` uses it as its baseline."""
 from __future__ import annotations
 
 import numpy as np
@@ -42,6 +42,6 @@ class ReferenceCorrector:
                 break
         dist = tw.distance(c)
         b = tw.tcp_budget(c, v, dist, sigma=s)
-        U = b.expanded() if b is not None else tw.uncertainty.tcp_c.U
+        U = tw.conformal.factor * (b.expanded() if b is not None else tw.uncertainty.tcp_c.U)
         inside = tw.volume is None or dist <= tw.volume.margin_m
         return Correction(target, c, U, bool(inside), dist, b)

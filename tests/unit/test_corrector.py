@@ -39,7 +39,8 @@ def test_the_twins_api_is_the_law_with_its_labelled_budget(twin_dir):
         assert [c.label for c in got.budget.components] == [c.label for c in ref.budget.components]
         for a, b in zip(got.budget.components, ref.budget.components):
             assert a.u == pytest.approx(b.u, abs=1e-15) and a.dof == pytest.approx(b.dof)
-        assert got.budget.expanded() == pytest.approx(got.U, abs=1e-12)  # the figure and its budget agree
+        # the figure and its budget agree: the GUM budget's U times the held-out conformal factor
+        assert twin.conformal.factor * got.budget.expanded() == pytest.approx(got.U, abs=1e-12)
         assert twin.corrected_command(t, 0.4) == pytest.approx(got.command, abs=1e-15)
     assert twin.corrector is twin.corrector  # built once
 

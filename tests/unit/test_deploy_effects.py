@@ -23,7 +23,10 @@ def test_the_thermal_effect_deployed_lowers_the_true_error(tmp_path, capsys):
     assert rc == 3, s
     check = s["validity"]["checks"][0]
     assert s["validity"]["status"] == "fail" and check["check"] == "coverage_validation"
-    assert check["axes"]["x"]["coverage"] < 0.5 and check["axes"]["x"]["status"] == "fail"
+    # the held-out conformal factor widens U (x about 1.5 here) but the validation's temperature is not the
+    # DOE's: new positions are not exchangeable with the held-out ones, and U still fails to cover
+    assert s["uncertainty_calibration"]["factor"][0] > 1.2
+    assert check["axes"]["x"]["coverage"] < 0.7 and check["axes"]["x"]["status"] == "fail"
     assert check["cause"] == "the model misses a time-dependent effect" and "temperature changed" in check["evidence"]
     assert s["validity"]["checks"][1]["check"] == "eq17_vs_coverage" and s["validity"]["checks"][1]["status"] == "fail"
     first_screen = (tmp_path / "demo" / "report.html").read_text(encoding="utf-8").split("<img", 1)[0]
@@ -42,7 +45,11 @@ def test_the_thermal_effect_deployed_lowers_the_true_error(tmp_path, capsys):
             report = (tmp_path / name / "report.html").read_text(encoding="utf-8")
             assert "geometric + thermal + GP" in report and "alpha 22.9" in report and "Not shown" not in report
         else:  # the expansion missed: the tracker's errors at the validation points leave the stated U
-            assert rc == 3 and s["validity"]["status"] == "fail", s["validity"]["line"]
+            # (the held-out conformal factor widens U by what the DOE's own held-out errors show, so over
+            # these 28 positionings the miss may be established (fail) or only below the band (warn))
+            st = s["validity"]["status"]
+            assert st in ("warn", "fail") and rc == (3 if st == "fail" else 0), s["validity"]["line"]
+            assert min(s["validity"]["checks"][0]["axes"][ax]["coverage"] for ax in "xyz") < 0.9
             assert "--effects geometric,thermal" in s["validity"]["checks"][0]["advice"]
         cfg = tmp_path / f"run_{name}.yaml"
         cfg.write_text(f"""
