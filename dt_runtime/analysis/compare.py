@@ -568,7 +568,7 @@ def _after_registration(ds: Dataset, pred, std, dof_model, um, dm, plan) -> tupl
 
 
 def _validity(name: str, in_sample: bool, um, scored: dict | None, ds: Dataset, pred, std,
-              tt) -> tuple[dict, dict | None]:
+              tt, domain: dict | None = None) -> tuple[dict, dict | None]:
     """The `validity` block of the primary model on these data: the coverage of its stated U95 (model,
     measurement and, after a registration on reference poses, registration) over the rows it did not
     see, with the band and what to do (analysis.validity); and the rows it checked ({rows, residual,
@@ -586,12 +586,17 @@ def _validity(name: str, in_sample: bool, um, scored: dict | None, ds: Dataset, 
         rows, r = np.arange(ds.n), ds.error - pred
         U = _u95(um, std, tt)
         what = f"the {ds.n} rows under the data's own registration"
+    outside = None
+    if domain and domain.get("fraction", 0.0) >= OUTSIDE_SHARE:
+        outside = (f"{domain['rows']} of {ds.n} rows lie outside the model's training domain ("
+                   + ", ".join(f"{c} {n}" for c, n in domain["columns"].items()) + ")")
     sample = validity.Sample("new_data", what, "errors the instrument measured", r, U,
                              fx.Inputs(commanded=ds.commanded[rows]),
-                             stated="U95 of the prediction")
+                             stated="U95 of the prediction", outside_domain=outside)
     return validity.assess([sample]), {"rows": rows, "residual": r, "U": U}
 
 
+OUTSIDE_SHARE = 0.5  # rows outside the training domain from which a low coverage is put down to extrapolation
 STATED_U95 = "U95 = t_crit sqrt(u_meas^2 + u_model^2 [+ u_reg^2]) (GUM, Eq. 17's)"
 
 
@@ -752,7 +757,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
     else:
         name, m, pred, std, scored = last
         tt = failures(ds.error, pred, std, _model_dof(m), um, dm)[1] if um is not None else None
-        valid, checked = _validity(name, name in in_sample, um, scored, ds, pred, std, tt)
+        valid, checked = _validity(name, name in in_sample, um, scored, ds, pred, std, tt, m.outside_domain(ds))
         valid["stated_U"] = STATED_U95
         if cv_folds > 1 and tt is not None:
             conf = _conformal(ds.error - pred, _u95(um, std, tt), groups, folds)

@@ -57,6 +57,7 @@ class Sample:
     requested: int | None = None  # the number of targets asked for, when fewer were reached
     outside_hull: bool = False  # the positions lie beyond the calibrated volume (extrapolation)
     stated: str = "U(TCP_c)"  # the stated uncertainty in words
+    outside_domain: str | None = None  # most positions lie beyond the model's training data: in words
 
 
 @dataclass(frozen=True)
@@ -220,6 +221,10 @@ def _cause_low(s: Sample, ref: Inputs | None, low: list[str], inside: np.ndarray
                         + ", ".join(f"{ax} {_pct(c)}" for ax, c in zip(low, unseen_cov)) + ", elsewhere "
                         + ", ".join(f"{ax} {_pct(c)}" for ax, c in zip(low, seen_cov)),
                         "keep the arm in the DOE's joint configurations, or measure a DOE in the other one too")
+    if s.outside_domain:
+        return ("extrapolation beyond the model's training data", s.outside_domain,
+                "train on data that cover these positions and joint ranges, or keep the cell inside the trained "
+                "domain")
     e = s.error[:, ks]
     mean, sd = e.mean(axis=0), e.std(axis=0)
     share = mean ** 2 / np.maximum(mean ** 2 + sd ** 2, 1e-30)

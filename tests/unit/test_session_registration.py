@@ -108,3 +108,19 @@ def test_readings_within_u_are_no_shift_and_too_few_are_refused():
     assert not s.rigid and "no shift" in s.text
     with pytest.raises(DataError, match="at least 6"):
         deployment.rigid_shift(P[:5], P[:5] * 0, np.full(3, 2e-5))
+
+
+def test_a_low_coverage_on_rows_beyond_the_training_data_is_put_down_to_extrapolation():
+    from dt_runtime.analysis import validity
+    from dt_runtime.models.effects import Inputs
+
+    rng = np.random.default_rng(1)
+    P = rng.uniform(0, 1, (40, 3))
+    e = rng.normal(0, 1e-4, (40, 3))
+    s = validity.Sample("new_data", "the 40 rows", "errors the instrument measured", e, np.full((40, 3), 5e-5),
+                        Inputs(commanded=P), stated="U95 of the prediction",
+                        outside_domain="40 of 40 rows lie outside the model's training domain (q1 40)")
+    v = validity.assess([s])
+    c = v["checks"][0]
+    assert v["status"] == "fail" and c["cause"] == "extrapolation beyond the model's training data"
+    assert "q1 40" in c["evidence"] and "trained domain" in v["line"]
