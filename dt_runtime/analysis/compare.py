@@ -479,6 +479,11 @@ def _u95(um: np.ndarray, std: np.ndarray, tt) -> np.ndarray:
     return tt.t_crit * np.sqrt(um ** 2 + std ** 2)
 
 
+def _session_labels(ds: Dataset) -> np.ndarray:
+    """Each row's session index (0 for data of one session)."""
+    return ds.extra["session"].astype(int) if "session" in ds.extra else np.zeros(ds.n, dtype=int)
+
+
 def _to_register(ds: Dataset, reference: int | None, refit_sessions: np.ndarray | None, sessions, trained):
     """(session label per row, {session: its name}, the sessions to register on reference poses, K),
     or None: by default (reference None) the sessions whose registration the data fitted on their own
@@ -486,7 +491,7 @@ def _to_register(ds: Dataset, reference: int | None, refit_sessions: np.ndarray 
     left out (their registration is the training's)."""
     if reference == 0 or (reference is None and refit_sessions is None):
         return None
-    label = ds.extra["session"].astype(int) if "session" in ds.extra else np.zeros(ds.n, dtype=int)
+    label = _session_labels(ds)
     if reference is None:
         assert refit_sessions is not None
         chosen = {int(v) for v in np.unique(label[np.asarray(refit_sessions) >= 0])}
@@ -528,7 +533,7 @@ def _after_registration(ds: Dataset, pred, std, dof_model, um, dm, plan) -> tupl
         u_reg = reg.u[t]
         std_t = np.sqrt(std[idx] ** 2 + u_reg ** 2)
         dof_t = deployment.combined_dof(std[idx], np.broadcast_to(dof_model, (len(idx), 3)), u_reg, reg.fit.dof)
-        r = reg.residual[t]
+        r, r0 = reg.residual[t], ds.error[idx] - pred[idx]  # after / under the data's own registration
         f, tt, fail = failures(pred[idx] + r, pred[idx], std_t, dof_t, um[idx], dm[idx], _rows(ds.lines, idx))
         f["rows"] = idx[f["rows"]].tolist()
         f0, tt0, fail0 = failures(ds.error[idx], pred[idx], std[idx], dof_model, um[idx], dm[idx])
@@ -539,12 +544,11 @@ def _after_registration(ds: Dataset, pred, std, dof_model, um, dm, plan) -> tupl
                     "u_registration_mm": {ax: float(np.sqrt(np.mean(u_reg[:, i] ** 2))) * MM_PER_M
                                           for i, ax in enumerate(AXES)},
                     "registration_residual_mm": reg.fit.residual_rms_m * MM_PER_M, "registration_dof": reg.fit.dof,
-                    "before": {"rmse_mm": metrics(ds.error[idx] - pred[idx])["rmse_mm"],
-                               "failures_per_axis": f0["per_axis"], "coverage_95": _coverage(ds.error[idx] - pred[idx],
-                                                                                            U0)}})
+                    "before": {"rmse_mm": metrics(r0)["rmse_mm"], "failures_per_axis": f0["per_axis"],
+                               "coverage_95": _coverage(r0, U0)}})
         r_all.append(r)
         U_all.append(U)
-        r0_all.append(ds.error[idx] - pred[idx])
+        r0_all.append(r0)
         U0_all.append(U0)
         rows_all.append(idx)
         fail_all.append(fail)
@@ -723,7 +727,7 @@ def compare(models: Sequence, dataset: Dataset | str | Path, names: Sequence[str
             if cv_folds > 1:
                 pred, std = _predict_cv(m, ds, folds, groups)
             else:
-                label = ds.extra["session"].astype(int) if "session" in ds.extra else np.zeros(ds.n, dtype=int)
+                label = _session_labels(ds)
                 design, time_note = deployment.time_terms(m, ds, ~np.isin(label, sorted(trained_s)))
                 pred, std = m.predict(ds, return_std=True, design=design)
         except (DataError, ModelError) as exc:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from dt_kernel.errors import DataError
-from dt_runtime.frames.registration import RigidUncertainty, rigid_uncertainty
+from dt_runtime.frames.registration import RigidUncertainty, rigid_jacobian, rigid_uncertainty
 from dt_runtime.measurements.dataset import Dataset
 from dt_runtime.models.effects import as_inputs
 from dt_runtime.models.hybrid import Design, HybridModel
@@ -266,13 +266,7 @@ def rigid_shift(points: np.ndarray, diffs: np.ndarray, u: np.ndarray) -> Shift:
     w = 1.0 / np.broadcast_to(np.asarray(u, dtype=float), P.shape)
     if not np.all(np.isfinite(w)) or np.any(w <= 0):
         raise DataError("the readings' uncertainty must be finite and positive")
-    J = np.zeros((n, 3, 6))
-    x, y, z = P[:, 0], P[:, 1], P[:, 2]
-    J[:, 0, 1], J[:, 0, 2] = z, -y
-    J[:, 1, 0], J[:, 1, 2] = -z, x
-    J[:, 2, 0], J[:, 2, 1] = y, -x
-    J[:, :, 3:] = np.eye(3)
-    A = (J * w[:, :, None]).reshape(-1, 6)
+    A = (rigid_jacobian(P) * w[:, :, None]).reshape(-1, 6)
     b = (d * w).reshape(-1)
     theta, *_ = np.linalg.lstsq(A, b, rcond=None)
     chi_before, chi_after = float(b @ b), float(np.sum((b - A @ theta) ** 2))

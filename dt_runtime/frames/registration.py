@@ -253,12 +253,23 @@ class RigidUncertainty:
         ndarray
             (n, 3), m.
         """
-        J = _rigid_jacobian(self.T.apply(np.asarray(points, dtype=float).reshape(-1, 3)))
+        J = rigid_jacobian(self.T.apply(np.asarray(points, dtype=float).reshape(-1, 3)))
         return np.sqrt(np.maximum(np.einsum("nap,pq,naq->na", J, self.cov, J), 0.0))
 
 
-def _rigid_jacobian(q: np.ndarray) -> np.ndarray:
-    """d T(p) / d[omega, dt] at the mapped points q = T(p): omega x q + dt, (n, 3, 6)."""
+def rigid_jacobian(q: np.ndarray) -> np.ndarray:
+    """The derivative of a small rigid change, omega x q + dt, with respect to [omega, dt] at points q.
+
+    Parameters
+    ----------
+    q : ndarray
+        (n, 3) points, m (for a fitted T: the mapped points T(p)).
+
+    Returns
+    -------
+    ndarray
+        (n, 3, 6).
+    """
     n = len(q)
     J = np.zeros((n, 3, 6))
     x, y, z = q[:, 0], q[:, 1], q[:, 2]
@@ -293,7 +304,7 @@ def rigid_uncertainty(source: np.ndarray, target: np.ndarray) -> RigidUncertaint
     T = fit_rigid(P, Q)
     r = Q - T.apply(P)
     dof = 3 * len(P) - 6
-    J = _rigid_jacobian(T.apply(P))
+    J = rigid_jacobian(T.apply(P))
     N = np.einsum("nap,naq->pq", J, J)
     s2 = float(np.sum(r ** 2)) / dof if dof > 0 else float("inf")
     cov = s2 * np.linalg.pinv(N)
