@@ -33,7 +33,7 @@ from dt_runtime.cli import (
     status,
 )
 from dt_runtime.common.jsonsafe import dumps, jsonable
-from dt_runtime.common.threads import limit_blas_threads
+from dt_runtime.common.threads import limit_blas_threads_when_loaded
 from dt_runtime.common.version import version_string
 
 COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line help); the module's docstring describes it
@@ -74,6 +74,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def parse(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """Parse ``argv``; an option the command does not know is refused by the command's own parser
+    (``dt demo: error: unrecognized arguments: --quik``, its usage, exit 2), not by the top-level one,
+    whose usage lists only the commands.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        What ``build_parser`` made.
+    argv : list of str or None
+        The arguments (sys.argv[1:] when None).
+
+    Returns
+    -------
+    argparse.Namespace
+    """
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        sub.choices[args.cmd].error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 class JsonLines(logging.Formatter):
     """One JSON object per log record on stderr: machine-readable logs for the daemon (a record's
     `fields`, e.g. of its status line, go in beside the message)."""
@@ -111,8 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         Exit status: 0, the command's own (``exit_code``, e.g. 3 with --strict), 2 for a TwinError
         (bad input), 130 on Ctrl-C, 1 for an internal error.
     """
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse(build_parser(), argv)
     mod = COMMANDS[args.cmd][0]
     handler = logging.StreamHandler(sys.stderr)
     json_logs = getattr(mod, "json_logs", None)  # the command decides (dt run: by --log-format), or says JSON_LOGS
@@ -122,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler])
     as_json = getattr(args, "json", False)
     try:
-        limit_blas_threads()
+        limit_blas_threads_when_loaded()
         result = jsonable(mod.run(args))
     except TwinError as exc:
         if as_json:
