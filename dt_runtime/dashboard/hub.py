@@ -83,7 +83,8 @@ class Hub:
             self.received["state"] += 1
             self.timeline.append(msg)
             self.events.append((self._bump(), "state", msg))
-            ev = msg.get("evidence") if isinstance(msg.get("evidence"), dict) else {}
+            evidence = msg.get("evidence")
+            ev: dict[str, Any] = evidence if isinstance(evidence, dict) else {}
             t = msg.get("t")
             if msg.get("dst") == "nominal" and ev.get("acknowledged") and isinstance(t, (int, float)):
                 for entry in self.requests.values():
