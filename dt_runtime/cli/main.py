@@ -33,6 +33,7 @@ from dt_runtime.cli import (
     status,
 )
 from dt_runtime.common.jsonsafe import dumps, jsonable
+from dt_runtime.common.logs import RepeatFilter
 from dt_runtime.common.threads import limit_blas_threads_when_loaded
 from dt_runtime.common.version import version_string
 
@@ -141,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     as_lines = json_logs(args) if json_logs is not None else getattr(mod, "JSON_LOGS", False)
     handler.setFormatter(JsonLines() if as_lines else
                          logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.addFilter(RepeatFilter())  # a failing disk logged one error 87 times a second
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler])
     as_json = getattr(args, "json", False)
     try:
