@@ -57,6 +57,18 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line hel
 }
 
 
+class _Version(argparse.Action):
+    """``--version``: the version and the git commit, asked of git only when given (two git
+    processes on every ``dt`` command, even an argument error, were most of its start-up)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kw) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(f"dt {version_string()}")  # on stdout, as argparse's own version action
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``dt`` parser: global options and one subparser per command (its module's docstring as the description).
 
@@ -66,8 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     """
     p = argparse.ArgumentParser(prog="dt", description="Traceable digital twin of a collaborative robot arm.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
-    p.add_argument("--version", action="version", version=f"dt {version_string()}",
-                   help="print the version and the git commit, then exit")
+    p.add_argument("--version", action=_Version, help="print the version and the git commit, then exit")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     for name, (mod, help_) in COMMANDS.items():
         mod.add_arguments(sub.add_parser(name, help=help_, description=mod.__doc__,

@@ -82,3 +82,18 @@ def test_paths_are_shown_normalised(tmp_path):
 
     assert str(beside(tmp_path / "configs", "../out/demo/model")) == str(tmp_path / "out" / "demo" / "model")
     assert beside(tmp_path / "configs", "/abs/x") == type(tmp_path)("/abs/x")
+
+
+def test_the_git_commit_is_asked_for_only_by_version(monkeypatch, capsys):
+    from dt_runtime.cli import main as cli_main
+
+    def no_git():
+        raise AssertionError("git asked while building the parser")
+
+    monkeypatch.setattr(cli_main, "version_string", no_git)
+    args = cli_main.parse(cli_main.build_parser(), ["robots"])
+    assert args.cmd == "robots"
+    monkeypatch.setattr(cli_main, "version_string", lambda: "9.9 (commit abc)")
+    with pytest.raises(SystemExit) as exc:
+        cli_main.main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out == "dt 9.9 (commit abc)\n"
