@@ -97,3 +97,22 @@ def test_the_git_commit_is_asked_for_only_by_version(monkeypatch, capsys):
     with pytest.raises(SystemExit) as exc:
         cli_main.main(["--version"])
     assert exc.value.code == 0 and capsys.readouterr().out == "dt 9.9 (commit abc)\n"
+
+
+def test_the_blas_limit_reaches_the_libraries_loaded_after_the_parser():
+    # dt limits BLAS to DT_BLAS_THREADS (default 1) without importing numpy first: the limit goes
+    # into the variables OpenBLAS reads as it loads
+    import os
+
+    code = ("from dt_runtime.common.threads import limit_blas_threads_when_loaded\n"
+            "limit_blas_threads_when_loaded()\n"
+            "import sys\nassert 'numpy' not in sys.modules\n"
+            "import numpy, scipy.linalg\n"
+            "from threadpoolctl import threadpool_info\n"
+            "print(sorted({i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas'}))")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                                            "OMP_NUM_THREADS", "DT_BLAS_THREADS")}
+    for want, extra in (([1], {}), ([2], {"DT_BLAS_THREADS": "2"})):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                             env={**env, **extra}).stdout
+        assert json.loads(out) == want
