@@ -78,3 +78,19 @@ def test_the_live_state_stays_bounded_and_a_stream_sees_only_what_is_new():
     new_seq, tel, ev = hub.since(seq, 0.0)
     assert new_seq == seq + 2 and [m["i"] for _, m in tel] == [1000] and [k for k, _ in ev] == ["state"]
     assert tel[0][0] == 1001  # the telemetry's own number: a stream sees what the ring dropped
+
+
+def test_a_return_to_nominal_by_an_operators_done_closes_the_requests_made_before_it():
+    # `dt ack --store` publishes nothing of its own: the page learns of it from the daemon's
+    # transition; before, the request stayed "waiting (sent 85x)" while dt status said acknowledged
+    hub = Hub()
+    hub.add_request({"id": 1, "uid": "a", "group": "maintenance", "t": 100.0, "attempt": 85})
+    hub.add_state({"src": "maintenance_requested", "dst": "nominal", "t": 150.0, "rx": 1.0,
+                   "evidence": {"acknowledged": True, "by": "kim", "note": "joint 2 re-referenced"}})
+    hub.add_request({"id": 2, "uid": "b", "group": "maintenance", "t": 200.0, "attempt": 1})  # a later episode's
+    a, b = hub.request("a"), hub.request("b")
+    assert a is not None and b is not None
+    assert a["done_by"] == "kim" and a["done_note"] == "joint 2 re-referenced"
+    assert "done_by" not in b
+    hub.add_state({"src": "suspect", "dst": "nominal", "t": 300.0, "evidence": {}})  # no operator: closes nothing
+    assert "done_by" not in (hub.request("b") or {})
