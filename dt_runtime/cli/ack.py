@@ -122,8 +122,10 @@ def _rereference(args: argparse.Namespace) -> dict[str, Any]:
         raise TwinError("--rereference answers the open re-referencing offer: no --request, no --delivered-only")
     with Store(args.store) as st:
         saved = st.load_state() or {}
-        state = saved.get("data", {}).get("state")
-        if state != "rereference_offered":
+        data = saved.get("data", {})
+        state = data.get("state")
+        if data.get("offer") is None or (state != "rereference_offered"
+                                         and (state, data.get("halted_from")) != ("halted", "rereference_offered")):
             raise TwinError(f"{args.store}: no re-referencing is offered (the escalation is {state or 'unknown'}); "
                             "`dt status` shows the state")
         aid = st.add_action("rereference", args.by, args.note, source="cli")

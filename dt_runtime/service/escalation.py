@@ -398,8 +398,8 @@ class Escalator:
                    | ({"shift": shift} if shift is not None else {}), before=before)
 
     def rereference(self, t: float | None = None, note: str | None = None, by: str | None = None) -> dict[str, Any]:
-        """The operator applied the offered re-referencing: rereference_offered -> nominal,
-        statistics reset.
+        """The operator applied the offered re-referencing: rereference_offered (or a halt it
+        caused) -> nominal, statistics reset.
 
         Parameters
         ----------
@@ -420,17 +420,28 @@ class Escalator:
         StateError
             No offer is open (the escalation is not in rereference_offered).
         """
-        if self.state != "rereference_offered" or self.offer is None:
+        if not self.offer_open:
             raise StateError("re-referencing is only applied in rereference_offered, the escalation is in "
                              f"{self.state}")
+        assert self.offer is not None
         t = float(self.n_seen if t is None else t)
         before = self.snapshot()
         offer = self.offer
         ev = self.evidence(None) | {"rereferenced": True, "shift": offer, "note": note, "by": by}
+        halted = self.state == "halted"  # the offer halted the arm (halt.on_untrusted: halt): that halt ends too
+        if halted:
+            ev |= self.evidence_of_halt()
+            self.halt_reason, self.halt_sticky, self.halted_from = None, False, None
         self._reset_stats()
         self.offer = self.offered_at = None
-        self._fire("rereferenced", t, None, ev, before=before)
+        self._fire("acknowledge" if halted else "rereferenced", t, None, ev, before=before)
         return offer
+
+    @property
+    def offer_open(self) -> bool:
+        """A re-referencing offer can be applied: in rereference_offered, or halted from it."""
+        return self.offer is not None and (self.state == "rereference_offered" or (
+            self.state == "halted" and self.halted_from == "rereference_offered"))
 
     def halt(self, reason: str, t: float | None = None, *, sticky: bool = False) -> bool:
         """Enter `halted` for `reason`; an existing halt keeps its first reason.

@@ -270,9 +270,10 @@ class Paging:
         """A 'rereference' action: the offer applied and the transition to nominal recorded (None:
         done, the action applied in its transaction), or why it was ignored."""
         esc = self.escalator
-        if esc.state != "rereference_offered" or esc.offer is None:
+        if not esc.offer_open or esc.offer is None:
             return f"ignored: no re-referencing is offered (the escalation is {esc.state})"
         undo = self.on_rereference(esc.offer) if self.on_rereference is not None else None
+        halted, episode = esc.state == "halted", esc.episode
         self._applying = a
         try:
             esc.rereference(t, note=a.note, by=a.by)  # records the action as applied, same transaction
@@ -283,6 +284,8 @@ class Paging:
         finally:
             self._applying = None
         self.actions.popleft()
+        if halted:  # the offer had halted the arm (and paged): its requests are answered
+            self.store.outbox_ack_episode(episode)
         return None
 
     def _episode_of(self, request_id: int) -> int | None:

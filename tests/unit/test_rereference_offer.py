@@ -141,3 +141,27 @@ def test_the_camera_frame_takes_the_offer_and_undoes_it():
     g = MvsFrame(other)  # type: ignore[arg-type]
     g.restore(saved)  # made on another twin's frame: not taken up
     assert other.T_mvs.t == pytest.approx([0, 0, 0])
+
+
+def test_an_open_offer_is_untrusted_halts_under_the_policy_and_is_in_the_status_line():
+    import threading
+
+    from dt_runtime.service.counters import Counters
+    from dt_runtime.service.health import StatusLine
+    from dt_runtime.service.runtime_config import HaltConfig
+    from dt_runtime.service.supervisor import Step, Supervisor
+
+    esc = Escalator(CFG, jacobian=jacobian)
+    feed(esc, readings(10, 11, shifted))
+    n = Counters()
+    sup = Supervisor(HaltConfig(), 0.1, esc, n, lambda: 5.0, threading.Event(), streaming=False,
+                     store_failing=lambda: False)
+    assert not sup.trusted() and sup.status() == ("degraded", "rereference_offered: commands sent uncorrected")
+    text, fields = StatusLine(sup.status, n, esc, None, None)()
+    assert "re-reference (dt ack --rereference)" in text and fields["rereference_offer"] == esc.offer
+    halting = Supervisor(HaltConfig(on_untrusted="halt"), 0.1, esc, n, lambda: 5.0, threading.Event(),
+                         streaming=False, store_failing=lambda: False)
+    assert halting.next_step(6.0) is Step.WAIT and esc.state == "halted" and esc.halted_from == "rereference_offered"
+    # applying the offer also ends the halt it caused
+    assert esc.offer_open and esc.rereference(7.0)["n"] >= 6
+    assert esc.state == "nominal" and esc.halt_reason is None and halting.next_step(8.0) is Step.MOVE
