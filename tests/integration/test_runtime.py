@@ -225,7 +225,12 @@ def test_a_knocked_image_camera_rig_offers_re_referencing_and_applying_it_restor
         assert d.health()["rereference_offer"] == offer and "dt ack --rereference" in d.status_line()[0]
         failures_before = s["t_test_failures"]
         store = str(tmp_path / "dt.sqlite")
+        d.store.flush()
         capsys.readouterr()
+        assert main(["status", "--store", store]) == 0
+        shown = capsys.readouterr().out
+        assert "escalation state: rereference_offered" in shown and "--rereference" in shown
+        assert "session shift: re-reference" in shown  # the transition's reason
         assert main(["ack", "--store", store, "--rereference", "--by", "tester", "--note", "camera rig knocked",
                      "--json"]) == 0
         out = json.loads(capsys.readouterr().out)
