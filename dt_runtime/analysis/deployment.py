@@ -295,7 +295,8 @@ ALT_JOINTS = 2  # joint-offset alternatives: every single joint and every pair
 P_ALTERNATIVE = 0.001  # a rigid shift beats a joint alternative when chi^2 falls by more than chi^2_6 at this level
 
 
-def joint_alternative(jacobian: np.ndarray, diffs: np.ndarray, u: np.ndarray, chi2_rigid: float) -> dict:
+def joint_alternative(jacobian: np.ndarray, diffs: np.ndarray, u: np.ndarray, chi2_rigid: float,
+                      points: np.ndarray | None = None) -> dict:
     """Do changed joint zeros explain the differences about as well as the rigid shift (d_i =
     sum_j J_j(q_i) dq_j over one joint or a pair of joints, weighted least squares by 1/u)? Over
     the few poses of a service window a joint's offset can look like a rigid shift of the set-up
@@ -315,13 +316,17 @@ def joint_alternative(jacobian: np.ndarray, diffs: np.ndarray, u: np.ndarray, ch
         (n, 3) or (3,) their standard uncertainty, m.
     chi2_rigid : float
         The rigid fit's weighted residual sum of squares (`Shift.chi2_after`).
+    points : ndarray, optional
+        (n, 3) the readings' positions, m: with them, `nested` says whether a single joint whose
+        motion is itself a rigid motion of these points (joint 1's zero) explains them as well: no
+        number of readings tells it from a shift.
 
     Returns
     -------
     dict
         `joints` (1-based) of the best alternative, its `dq_mrad`, `chi2`, `p_value` (chi^2 on
         3 n - k dof), `margin` (its chi^2 minus the rigid fit's), `needed` (the margin a shift
-        needs) and `explains` (margin <= needed: the arm is not ruled out).
+        needs), `explains` (margin <= needed: the arm is not ruled out) and `nested`.
     """
     from itertools import combinations
 
@@ -343,5 +348,15 @@ def joint_alternative(jacobian: np.ndarray, diffs: np.ndarray, u: np.ndarray, ch
     needed = float(stats.chi2.isf(P_ALTERNATIVE, 6))
     margin = best["chi2"] - float(chi2_rigid)
     dof = max(3 * len(d) - len(best["joints"]), 1)
+    nested = False  # a single joint whose motion is rigid (joint 1's) explains them as well
+    if points is not None:
+        R = (rigid_jacobian(np.asarray(points, dtype=float).reshape(-1, 3)) * w[:, :, None]).reshape(-1, 6)
+        for j in range(A.shape[1]):
+            a = A[:, j]
+            # rigid to 1 %: the readings sit where the camera saw them, the joint moves the commanded TCP
+            if not a @ a > 0 or np.linalg.norm(a - R @ np.linalg.lstsq(R, a, rcond=None)[0]) > 1e-2 * np.linalg.norm(a):
+                continue
+            chi = float(np.sum((b - a * (a @ b) / (a @ a)) ** 2))
+            nested = nested or chi - float(chi2_rigid) <= needed
     return best | {"p_value": float(stats.chi2.sf(best["chi2"], dof)), "margin": margin, "needed": needed,
-                   "explains": bool(margin <= needed)}
+                   "explains": bool(margin <= needed), "nested": nested}

@@ -331,7 +331,7 @@ class Escalator:
         P, d, u = (np.array([r[k] for r in failing], dtype=float) for k in range(3))
         s = rigid_shift(P, d, u)
         out: dict[str, Any] = {
-            "rigid": bool(s.rigid), "offer": False, "undecided": False,
+            "rigid": bool(s.rigid), "offer": False,
             "translation_mm": [round(float(v), 4) for v in s.translation_mm],
             "rotation_mrad": [round(float(v), 4) for v in s.rotation_mrad], "p_before": float(s.p_before),
             "p_after": float(s.p_after), "n": int(s.n), "joint": None, "text": s.text}
@@ -341,13 +341,11 @@ class Escalator:
             out["text"] += ("; the joint angles are not known, so a changed arm is not ruled out: "
                             "not offered")
             return out
-        alt = joint_alternative(self.jacobian(np.array([r[3] for r in failing], dtype=float)), d, u, s.chi2_after)
+        alt = joint_alternative(self.jacobian(np.array([r[3] for r in failing], dtype=float)), d, u, s.chi2_after, P)
         out["joint"] = alt
         which = (f"zero offset(s) of joint(s) {', '.join(map(str, alt['joints']))} "
                  f"({', '.join(f'{v:+.3f}' for v in alt['dq_mrad'])} mrad)")
         if alt["explains"]:
-            # more failing readings may still tell the two apart: wait for a window of them
-            out["undecided"] = len(failing) < self.config.window_n
             out["text"] += (f"; but {which} explain them about as well (chi^2 {alt['margin']:+.1f} above the "
                             f"shift's, {alt['needed']:.1f} needed): the arm may have changed, not offered")
         else:
@@ -359,9 +357,15 @@ class Escalator:
     def _escalate(self, t: float, rule: str | None) -> None:
         """The alarm is confirmed: offer re-referencing when the failures are one rigid shift (and
         `rereference` is on), else page."""
-        shift = self.shift() if self.config.rereference else None
-        if shift is not None and shift.get("undecided"):
-            return  # a set-up shift or a joint: the next failing readings decide (at most a window's)
+        c = self.config
+        shift = self.shift() if c.rereference else None
+        alt = None if shift is None else shift["joint"]
+        if (shift is not None and shift["rigid"] and not shift["offer"] and alt is not None and alt["margin"] > 0
+                and not alt["nested"] and self.confirm_count - c.confirm_n < c.window_n):
+            # the shift fits better than the joints, not yet by enough: more failing readings may
+            # tell them apart (not when the joints' motion is itself rigid: joint 1's); at most
+            # `window_n` further alarmed tests, then it pages
+            return
         if shift is not None and shift["offer"]:
             before = self.snapshot()
             self.offer, self.offered_at = shift, self.n_seen
