@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 from scipy import stats
+from scipy.spatial.transform import Rotation
 
 from dt_kernel.errors import DataError
 from dt_kernel.units import AXES, MM_PER_M
@@ -60,8 +61,6 @@ def _frame(name: str, old: RigidTransform, source: np.ndarray, target: np.ndarra
     fit = rigid_uncertainty(source, target)
     # the change as a small motion of GL: omega x q + dt, omega from the relative rotation
     rel = fit.T.compose(old.inverse())
-    from scipy.spatial.transform import Rotation
-
     theta = np.concatenate([Rotation.from_matrix(rel.R).as_rotvec(), rel.t])
     k = float(stats.t.ppf(0.975, max(fit.dof, 1)))
     U = k * np.sqrt(np.maximum(np.diag(fit.cov), 0.0))
