@@ -49,6 +49,7 @@ from dt_runtime.service.path_run import (
 )
 from dt_runtime.service.preflight import check_camera, check_condition_sources, check_model
 from dt_runtime.service.publisher import Bus
+from dt_runtime.service.rereference import MvsFrame
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,
@@ -169,8 +170,13 @@ class Daemon:
         self.store = Store(self._p(cfg.store), batch_ms=50.0, background=True, exclusive=True)
         parts.callback(self.store.close)
         stream = StreamState(self._plan.n, str(self._plan.file)) if self._plan is not None else None
+        # A rigid shift of the camera set-up is offered for re-referencing; applied, it moves T_mvs.
+        self.mvs_frame = MvsFrame(self.twin)
         self.paging = Paging(cfg.escalation, cfg.bus, self.store, self.events,
-                             resume_extra=(lambda: {"path": stream.to_dict()}) if stream is not None else dict)
+                             resume_extra=lambda: ({"path": stream.to_dict()} if stream is not None else {})
+                             | self.mvs_frame.to_dict(),
+                             on_rereference=self.mvs_frame.apply, jacobian=self.mvs_frame.jacobian())
+        self.mvs_frame.restore(self.paging.saved_extra.get("mvs_rereferenced"))
         self.escalator = self.paging.escalator
         self.bus = self._open_bus()
         # The cell's program may ask for corrections on `.../correct` (its own Guard and corrector:
@@ -267,6 +273,30 @@ class Daemon:
         """
         return self.paging.acknowledge(note, by)
 
+    def rereference(self, note: str = "camera re-referenced", by: str = "operator") -> int:
+        """Operator: apply the offered re-referencing of the camera frame, as `dt ack --rereference`
+        does it: stored as an action (who, why), applied by the loop at its next tick (ignored
+        unless the escalation is in `rereference_offered`).
+
+        Parameters
+        ----------
+        note : str
+            Why.
+        by : str
+            Who.
+
+        Returns
+        -------
+        int
+            The action's id.
+
+        Raises
+        ------
+        StoreError
+            The action could not be stored.
+        """
+        return self.paging.rereference(note, by)
+
     # --- what it reports ------------------------------------------------------------------------
     def health(self) -> dict[str, Any]:
         """What `.../health` carries (`service.health.HealthReporter`)."""
@@ -328,7 +358,9 @@ class Daemon:
         chk = self._test(corr.command, v, reading.point, cond, None)
         if chk is None:
             return
-        self._record(t, reading.point, chk, True, self._telemetry(corr) if self.bus else {})
+        # the joint angles also serve the escalation's shift check (a changed arm is ruled out with them)
+        wanted = self.bus is not None or self.escalator.jacobian is not None
+        self._record(t, reading.point, chk, True, self._telemetry(corr) if wanted else {})
         self._latency(reading)
 
     def _target(self) -> tuple[np.ndarray, float, int | None]:
@@ -402,7 +434,12 @@ class Daemon:
                                 data={"t": chk.t.tolist()}))
         self.counters.failures += int(not chk.passed)
         esc = self.escalator
-        esc.observe(chk.passed, float(chk.t[worst]), t)
+        # the reading where the camera saw it (GL) with its difference from the prediction: a rigid
+        # shift of these is offered for re-referencing (Escalator.shift)
+        q = telemetry.get("q")
+        reading = (self.twin.T_mvs.apply(point), chk.diff - chk.predicted, self.monitor.u,
+                   None if q is None else np.asarray(q, dtype=float))
+        esc.observe(chk.passed, float(chk.t[worst]), t, reading)
         # The statistics travel with the next batch of rows: a restart resumes them.
         self.store.stage_state(*self.paging.resume_row())
         if self.bus:

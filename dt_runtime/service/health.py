@@ -63,6 +63,8 @@ class HealthReporter:
         status, reason = self.status()
         esc, stream = self.escalator, self.stream()
         return {"status": status, "reason": reason, "escalation": esc.state, "episode": esc.episode,
+                # an open re-referencing offer: its evidence (shift in mm and mrad, p-values, n)
+                **({"rereference_offer": esc.offer} if esc.offer is not None else {}),
                 **self.counters.health(self.now()),
                 "outbox_pending": self._pending_count(), "drivers": self._driver_counters(),
                 # acks and 'done's on the bus without the service's signature: refused, not recorded
@@ -213,6 +215,12 @@ class StatusLine:
                              "escalation": state, "t_test_failures": failures, "bus": bus}
         text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
             f", escalation {state}, Eq. 17 failed {failures}" + (f", bus {bus}" if bus == "connecting" else "")
+        offer = self.escalator.offer
+        if offer is not None:  # the operator's cue: what was fitted and how to apply it
+            f["rereference_offer"] = offer
+            text += (f", session shift {'/'.join(f'{v:+.3f}' for v in offer['translation_mm'])} mm "
+                     f"{'/'.join(f'{v:+.3f}' for v in offer['rotation_mrad'])} mrad: "
+                     "re-reference (dt ack --rereference)")
         if self.path is not None:  # a path: where the stream is, not a last command
             st = self.path.state
             f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}

@@ -224,7 +224,7 @@ class HaltConfig(Frozen):
     # -> halted: the arm stops moving unmonitored and it pages; the first accepted reading
     # resumes. Long enough that a person walking through the cameras' view does not page.
     after_camera_refused_s: float = Field(30.0, gt=0, le=86_400)
-    # In out_of_control and maintenance_requested the twin's correction is not trusted:
+    # In out_of_control, rereference_offered and maintenance_requested the twin's correction is not trusted:
     # 'uncorrected' commands the target as is (the arm's native accuracy, still tested),
     # 'halt' stops moving until maintenance is confirmed done, 'correct' goes on correcting.
     on_untrusted: Literal["uncorrected", "halt", "correct"] = "uncorrected"

@@ -248,7 +248,8 @@ function renderTimeline() {
   });
   $("timeline").replaceChildren(...(items.length ? items : [el("li", { class: "none" }, "no transition since this page joined")]));
 }
-const STATE_COLOR = { nominal: "#2e9d4f", suspect: "#d99a00", out_of_control: "#e0531f", maintenance_requested: "#c8323c",
+const STATE_COLOR = { nominal: "#2e9d4f", suspect: "#d99a00", out_of_control: "#e0531f", rereference_offered: "#b36ae2",
+                      maintenance_requested: "#c8323c",
                       halted: "#7a1020" };
 function drawStrip() {  // the escalation states over the timeline's span, left to right
   const c = $("strip"), g = c.getContext("2d"), W = c.width, H = c.height;
