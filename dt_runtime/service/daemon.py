@@ -64,6 +64,7 @@ from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.service.supervisor import Step, Supervisor
 from dt_runtime.service.targets import probe_point, targets_for
+from dt_runtime.twin.adaptive import AdaptiveCoverage
 from dt_runtime.twin.bounds import Corrected, CorrectionFault, Guard
 from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.corrector import Corrector
@@ -172,11 +173,16 @@ class Daemon:
         stream = StreamState(self._plan.n, str(self._plan.file)) if self._plan is not None else None
         # A rigid shift of the camera set-up is offered for re-referencing; applied, it moves T_mvs.
         self.mvs_frame = MvsFrame(self.twin)
+        # The U the twin states follows the monitored readings (adaptive conformal, twin/adaptive.py);
+        # Eq. 17 keeps the calibrated U, so the scale never hides a fault from the escalation.
+        self.coverage = AdaptiveCoverage()
         self.paging = Paging(cfg.escalation, cfg.bus, self.store, self.events,
                              resume_extra=lambda: ({"path": stream.to_dict()} if stream is not None else {})
-                             | self.mvs_frame.to_dict(),
+                             | self.mvs_frame.to_dict() | {"stated_u": self.coverage.to_dict()},
                              on_rereference=self.mvs_frame.apply, jacobian=self.mvs_frame.jacobian())
         self.mvs_frame.restore(self.paging.saved_extra.get("mvs_rereferenced"))
+        if "stated_u" in self.paging.saved_extra:  # the scale resumes where it was: a restart does not shrink U
+            self.coverage = AdaptiveCoverage.from_dict(self.paging.saved_extra["stated_u"])
         self.escalator = self.paging.escalator
         self.bus = self._open_bus()
         # The cell's program may ask for corrections on `.../correct` (its own Guard and corrector:
@@ -195,7 +201,8 @@ class Daemon:
         self.path = self._streamer(self._plan, stream) if self._plan is not None and stream is not None else None
         self.reporter = HealthReporter(self.supervisor.status, self.escalator, self.counters, self.store, self._now,
                                        self.inst, self.bus, self.events,
-                                       stream=stream.to_dict if stream is not None else lambda: None)
+                                       stream=stream.to_dict if stream is not None else lambda: None,
+                                       stated_u=self.coverage.health)
         self.status_line = StatusLine(self.supervisor.status, self.counters, self.escalator, self.path, self.bus)
         self.housekeeper = Housekeeper(
             self._stop, self.events, take_actions=self.paging.take_actions, send_health=self.reporter.send,
@@ -433,6 +440,8 @@ class Daemon:
         self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
                                 data={"t": chk.t.tolist()}))
         self.counters.failures += int(not chk.passed)
+        # Did the U stated with the current scale cover this reading's difference? |t| <= scale t_crit.
+        self.coverage.update(np.abs(chk.t) <= self.coverage.scale * self.monitor.t_crit)
         esc = self.escalator
         # the reading where the camera saw it (GL) with its difference from the prediction: a rigid
         # shift of these is offered for re-referencing (Escalator.shift)
@@ -450,11 +459,13 @@ class Daemon:
 
     def _telemetry(self, corr: Corrected) -> dict[str, Any]:
         """A command's telemetry beside its Eq. 17 (docs/bus.md): for the dashboard's view also the
-        controller's joint angles after the move (the conditions' are from before it), U (95 %) of
-        the position reached and the calibrated-volume flag."""
+        controller's joint angles after the move (the conditions' are from before it), the stated U
+        (95 %) of the position reached (the calibrated U times the adaptive scale, `U_scale`) and
+        the calibrated-volume flag."""
         q = self.inst.robot.read_joint_state().q
         return {"target": corr.target.tolist(), "command": corr.command.tolist(), "q": np.asarray(q).tolist(),
-                "U": corr.U_tcp.tolist(), "inside": corr.inside}
+                "U": self.coverage.stated(corr.U_tcp).tolist(), "U_scale": self.coverage.scale.tolist(),
+                "inside": corr.inside}
 
     def _latency(self, reading: RigReading) -> None:
         """Reading receipt (and mid-exposure) -> t-test done, when recorded (benchmarks)."""

@@ -47,12 +47,16 @@ class HealthReporter:
         `HealthDue` is emitted on it; a `Transition` on it forces health.
     stream : callable
         The path's stream state (a dict), or None for a point program.
+    stated_u : callable
+        The stated U's adaptive scale (`AdaptiveCoverage.health`), or None.
     """
 
     def __init__(self, status: Callable[[], tuple[str, str | None]], escalator: Escalator, counters: Counters,
                  store: Store, now: Callable[[], float], inst: Any, bus: Bus | None, events: Events,
-                 stream: Callable[[], dict[str, Any] | None]):
+                 stream: Callable[[], dict[str, Any] | None],
+                 stated_u: Callable[[], dict[str, Any] | None] = lambda: None):
         self.status, self.escalator, self.counters, self.store = status, escalator, counters, store
+        self.stated_u = stated_u
         self.now, self.inst, self.bus, self.events, self.stream = now, inst, bus, events, stream
         self._key: tuple | None = None
         events.subscribe(Transition, lambda _event: self.changed(force=True))
@@ -61,7 +65,7 @@ class HealthReporter:
         """What `.../health` carries: running / degraded / halted and why, the escalation state,
         the last tick, and the counters an operator looks at first."""
         status, reason = self.status()
-        esc, stream = self.escalator, self.stream()
+        esc, stream, stated_u = self.escalator, self.stream(), self.stated_u()
         return {"status": status, "reason": reason, "escalation": esc.state, "episode": esc.episode,
                 # an open re-referencing offer: its evidence (shift in mm and mrad, p-values, n)
                 **({"rereference_offer": esc.offer} if esc.offer is not None else {}),
@@ -72,7 +76,8 @@ class HealthReporter:
                 "bus_last_refused": self.bus.last_refused if self.bus else None,
                 "bus": self.bus.state if self.bus else "off",  # connecting (no router yet), connected
                 "pid": os.getpid(), "t": time.time(),
-                **({"stream": stream} if stream is not None else {})}
+                **({"stream": stream} if stream is not None else {}),
+                **({"stated_u": stated_u} if stated_u is not None else {})}
 
     def changed(self, force: bool = False) -> None:
         """Emit `HealthDue` on a change of status, reason or escalation state (checked without

@@ -52,8 +52,8 @@ class Paging:
         Where `Transition` and `RequestsQueued` are emitted.
     resume_extra : callable
         What else resumes with the machine, added to the resume row (a path program's state
-        under `path`, the camera frame's re-referencing under `mvs_rereferenced`, read back as
-        `saved_extra`).
+        under `path`, the camera frame's re-referencing under `mvs_rereferenced`, the stated U's
+        adaptive scale under `stated_u`, read back as `saved_extra`).
     on_rereference : callable
         `on_rereference(offer)` applies an offer's fitted shift (`Escalator.shift`) before the
         transition to nominal is recorded; `undo()` of what it returns puts it back if that
@@ -93,7 +93,7 @@ class Paging:
         self.saved_extra: dict[str, Any] = {}
         if saved and saved.get("name") == "escalation":
             self.escalator.restore(saved["data"])
-            self.saved_extra = {k: v for k, v in saved["data"].items() if k in ("path", "mvs_rereferenced")}
+            self.saved_extra = {k: v for k, v in saved["data"].items() if k in ("path", "mvs_rereferenced", "stated_u")}
             log.info("resumed escalation state %s (episode %d) from %s", self.escalator.state,
                      self.escalator.episode, store.path)
 

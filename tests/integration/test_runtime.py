@@ -271,3 +271,33 @@ def test_a_joint_fault_that_looks_like_a_rigid_shift_still_pages(twin_dir, tmp_p
     shift = d.paging.requests[0]["evidence"]["shift"]
     assert not shift["offer"] and 2 in shift["joint"]["joints"] and shift["joint"]["explains"]
     assert "arm" in d.paging.requests[0]["reason"]
+
+def test_the_stated_u_follows_the_readings_resumes_after_a_restart_and_never_hides_a_fault(twin_dir, tmp_path):
+    cfg = daemon_cfg(twin_dir, tmp_path, free_port(), [{"at_s": 0.0, "joint_offset_rad": [0, 1e-3, 0, 0, 0, 0]}],
+                     publish=False)
+    d = Daemon(cfg, CONFIGS)
+    try:
+        s = d.run(max_ticks=60)
+        h = d.reporter.health()["stated_u"]
+    finally:
+        d.close()
+    # Eq. 17 keeps the calibrated U: the fault pages although the stated U grew with the misses
+    assert s["state"] == "maintenance_requested" and s["maintenance_requests"] == 1
+    assert h["n"] == d.coverage.n > 0 and max(h["scale"]) > 1.5
+    assert "drifted from its calibration" in h["warning"] and "dt calibrate --reference" in h["warning"]
+    d2 = Daemon(cfg, CONFIGS)
+    try:  # a restart does not shrink the stated U back to the calibrated one
+        assert d2.coverage.scale == pytest.approx(d.coverage.scale, abs=1e-12) and d2.coverage.n == d.coverage.n
+    finally:
+        d2.close()
+
+
+def test_a_fault_free_run_states_about_the_calibrated_u(twin_dir, tmp_path):
+    d = Daemon(daemon_cfg(twin_dir, tmp_path, free_port(), publish=False), CONFIGS)
+    try:
+        d.run(max_ticks=150)
+        h = d.reporter.health()["stated_u"]
+    finally:
+        d.close()
+    assert h["n"] == 150 and h["warning"] is None and all(1.0 <= s < 1.5 for s in h["scale"])
+    assert "adaptive conformal" in h["guarantee"]
