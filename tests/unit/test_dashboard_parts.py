@@ -78,3 +78,19 @@ def test_the_live_state_stays_bounded_and_a_stream_sees_only_what_is_new():
     new_seq, tel, ev = hub.since(seq, 0.0)
     assert new_seq == seq + 2 and [m["i"] for _, m in tel] == [1000] and [k for k, _ in ev] == ["state"]
     assert tel[0][0] == 1001  # the telemetry's own number: a stream sees what the ring dropped
+
+
+def test_a_plant_page_refuses_to_link_a_cell_to_itself():
+    """`dashboards:` naming the plant page's own address would open the plant page again on a click."""
+    from dt_runtime.dashboard.plant import check_links
+    from dt_runtime.plant.config import PlantConfig
+
+    cfg = PlantConfig.model_validate({"cells": ["c1/r1", "c2/r1"],
+                                      "dashboards": {"c1/r1": "http://127.0.0.1:8766/",
+                                                     "c2/r1": "http://localhost:8765/"}})
+    with pytest.raises(ConfigError) as e:
+        check_links(cfg, "plant.yaml", "127.0.0.1", 8765)
+    assert "dashboards.c2/r1" in str(e.value) and "port of its own" in str(e.value)
+    check_links(cfg, "plant.yaml", "127.0.0.1", 8770)  # another port: fine
+    check_links(cfg, "plant.yaml", "10.1.0.5", 8765)  # another host: fine
+    check_links(cfg, "plant.yaml", "127.0.0.1", 0)  # a free port is never a listed one
