@@ -28,6 +28,8 @@ ROOT = Path(__file__).resolve().parents[2]
 PAGES = dc.pages(ROOT)
 BLOCKS = {p.relative_to(ROOT).as_posix(): dc.blocks(p, ROOT) for p in PAGES}
 RUN_PAGES = {page: bs for page, bs in BLOCKS.items() if any(b.runs for b in bs)}
+# Listed at the end of every run that collects this module (tests/docs/conftest.py).
+dc.NOT_RUN[:] = [(b.where(), b.not_run) for bs in BLOCKS.values() for b in bs if b.not_run]
 SHORT_TIMEOUT_S = 600  # a block of a default-suite page (generous: two cores shared with another suite)
 LONG_TIMEOUT_S = 2400  # a block of a docs_long page (the full demo: ~2 min on a loaded machine)
 # Every background job must end well: 0, or 143 when the block itself stopped it (`kill %1`: SIGTERM).
@@ -110,9 +112,6 @@ def test_the_commands_of_a_page_run_as_written(page, tmp_path):
            "VIRTUAL_ENV": sys.prefix, "MPLBACKEND": "Agg", "XDG_CONFIG_HOME": str(tmp_path / "config"),
            "PYTHONDONTWRITEBYTECODE": "1"}
     env.pop("PYTHONPATH", None)
-    for b in bs:
-        if b.lang in dc.RUN_LANGS and b.not_run:
-            dc.NOT_RUN.append((b.where(), b.not_run))
     lock_path = Path(tempfile.gettempdir()) / "cobot-dt-doc-commands.lock"
     with lock_path.open("a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # the documented ports are fixed: one page at a time on this host
