@@ -163,4 +163,9 @@ def human(result: dict) -> str:
     -------
     str
     """
-    return json.dumps(result, indent=2)
+    if "published" in result:  # over the bus
+        state = {True: "applied: the twin is back to nominal", False: "not applied within --wait",
+                 None: "not waited for (--wait S to see it applied)"}[result.get("applied")]
+        return f"'done' for request {result['request']} published on {result['published']}; {state}"
+    what = "delivery confirmed" if result["kind"] == "delivered" else "maintenance done recorded"
+    return f"request {result['request']}: {what} (action {result['action']}); {result['result']}"

@@ -156,8 +156,15 @@ def human(r: dict) -> str:
                      + (f"; {q['reason']}" if q.get("reason") else ""))
     for a in r.get("operator_actions") or []:
         lines.append(f"  operator: {a['kind']} by {a['by']} ({a['source']}), {_wall(a['created'])}: {a['note']}"
-                     + (f"; applied: {a['result']}" if a.get("applied_at") else "; not applied yet"))
+                     + (f"; {_applied(a['result'])}" if a.get("applied_at") else "; not applied yet"))
     return "\n".join(lines)
+
+
+def _applied(result: str | None) -> str:
+    """An applied action's result as a clause: the store's text says 'applied: ...' or 'ignored: ...'
+    itself (service.paging), a delivery confirmation does not."""
+    text = result or ""
+    return text if text.startswith(("applied", "ignored")) else f"applied: {text}"
 
 
 def _evidence(e: dict) -> str:

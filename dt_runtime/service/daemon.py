@@ -26,6 +26,7 @@ import numpy as np
 
 from drivers.base import RigReading, read_exposed_after
 from dt_kernel.errors import DriverError, TwinError
+from dt_runtime.common.paths import beside
 from dt_runtime.fabric.queries import QueryServer
 from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
@@ -241,8 +242,7 @@ class Daemon:
         return self._program.conditions(step, base) if (self._program is not None and step is not None) else base
 
     def _p(self, rel: str) -> Path:
-        p = Path(rel)
-        return p if p.is_absolute() else self.base / p
+        return beside(self.base, rel)
 
     def acknowledge_maintenance(self, note: str = "maintenance done", by: str = "operator") -> int:
         """Operator confirmation, as `dt ack` does it: stored as an action (who, why), applied by

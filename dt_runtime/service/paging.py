@@ -27,7 +27,7 @@ from typing import Any
 
 from dt_runtime.fabric import BusConfig
 from dt_runtime.service.escalation import PAGING, EscalationConfig, Escalator
-from dt_runtime.service.events import Events, RequestsQueued, Transition
+from dt_runtime.service.events import Events, HealthDue, RequestsQueued, Transition
 from dt_runtime.service.publisher import new_requests
 from dt_runtime.service.store import OperatorAction, Store
 
@@ -217,6 +217,9 @@ class Paging:
                     self._applying = None
                 self.actions.popleft()  # applied: a failing write below must not judge it again
                 self.store.outbox_ack_episode(episode)  # done implies delivered: stop republishing
+                # the transition's health went out before these acks: without a fresh one, .../health
+                # (the dashboard, dt status --bus) kept counting the done request as not acknowledged
+                self.events.emit(HealthDue())
                 continue
             self.store.apply_action(a.id, result)
             log.info("operator action %d (%s by %s) %s", a.id, a.kind, a.by, result)

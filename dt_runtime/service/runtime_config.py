@@ -31,7 +31,9 @@ def _finite(name: str, *values: float) -> None:
 
 
 class Fault(Frozen):
-    """A fault injected into the simulated plant at a given (simulated) time."""
+    """A fault injected into the simulated plant `at_s` simulated seconds after the run's first
+    tick (0: from the first tick on; the world's clock already reads its registration and warm-up
+    when the run starts, so `at_s` is not that clock)."""
 
     at_s: float = Field(ge=0)
     joint_offset_rad: tuple[float, float, float, float, float, float] | None = None

@@ -239,11 +239,24 @@ def _child(conn, sent, t0, cancel, beat, host_timeout_s, make_corrector, make_dr
             with contextlib.suppress(Exception):
                 driver.close()
         rep.realtime = rt
-        conn.send(("ok", rep))
+        _report(conn, ("ok", rep), rep.stopped or f"{rep.n_sent} set-points sent")
     except BaseException as exc:  # noqa: BLE001 (reported to the parent, which raises it)
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        _report(conn, ("error", f"{type(exc).__name__}: {exc}"), f"{type(exc).__name__}: {exc}")
     finally:
         conn.close()
+
+
+def _report(conn, message: tuple[str, Any], what: str) -> None:
+    """Send the child's report to the daemon; when the daemon is gone (killed: its end of the pipe
+    closed), say so in one line on stderr and end quietly, not with a BrokenPipe traceback from
+    each send."""
+    try:
+        conn.send(message)
+    except (BrokenPipeError, ConnectionResetError, EOFError, OSError):
+        import sys
+
+        print(f"dt stream (pid {os.getpid()}): the daemon is gone, its report not delivered ({what})",
+              file=sys.stderr, flush=True)
 
 
 class StreamProcess:

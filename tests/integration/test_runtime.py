@@ -38,7 +38,7 @@ def test_fault_is_detected_and_the_request_reaches_a_zenoh_consumer(twin_dir, tm
             s = d.run(max_ticks=300)
             assert s["maintenance_requests"] == 1
             t_req = d.paging.requests[0]["t"]
-            delay = t_req - 600.0
+            delay = t_req - (d.cell.t_start + 600.0)  # at_s counts from the run's first tick
             assert 0 < delay < 40 * 6  # within 40 positionings of the fault (~6 s each)
             assert cons.wait_for(1, timeout=10)
             assert cons.requests[0]["robot"] == "r1" and cons.requests[0]["key"] == "dt/c1/r1/maintenance/request"

@@ -94,3 +94,19 @@ def test_a_plant_page_refuses_to_link_a_cell_to_itself():
     check_links(cfg, "plant.yaml", "127.0.0.1", 8770)  # another port: fine
     check_links(cfg, "plant.yaml", "10.1.0.5", 8765)  # another host: fine
     check_links(cfg, "plant.yaml", "127.0.0.1", 0)  # a free port is never a listed one
+
+
+def test_a_return_to_nominal_by_an_operators_done_closes_the_requests_made_before_it():
+    # `dt ack --store` publishes nothing of its own: the page learns of it from the daemon's
+    # transition; before, the request stayed "waiting (sent 85x)" while dt status said acknowledged
+    hub = Hub()
+    hub.add_request({"id": 1, "uid": "a", "group": "maintenance", "t": 100.0, "attempt": 85})
+    hub.add_state({"src": "maintenance_requested", "dst": "nominal", "t": 150.0, "rx": 1.0,
+                   "evidence": {"acknowledged": True, "by": "kim", "note": "joint 2 re-referenced"}})
+    hub.add_request({"id": 2, "uid": "b", "group": "maintenance", "t": 200.0, "attempt": 1})  # a later episode's
+    a, b = hub.request("a"), hub.request("b")
+    assert a is not None and b is not None
+    assert a["done_by"] == "kim" and a["done_note"] == "joint 2 re-referenced"
+    assert "done_by" not in b
+    hub.add_state({"src": "suspect", "dst": "nominal", "t": 300.0, "evidence": {}})  # no operator: closes nothing
+    assert "done_by" not in (hub.request("b") or {})

@@ -23,7 +23,8 @@ def test_the_shipped_plant_names_its_cells_and_a_hall_router_joins_the_plant_rou
     hall = load_plant_config(CONFIGS / "plant" / "hall_router.yaml")
     assert plant.cells == ["cell1/r1", "cell2/r1", "cell3/r1"] and plant.bus.mode == "client"
     assert hall.router.connect == plant.router.listen
-    assert history_url(plant, CONFIGS / "plant") == str(CONFIGS / "plant" / "plant_history.sqlite")
+    # the history is run-time state: out/plant/ of the clone, not beside the configs (and normalised)
+    assert history_url(plant, CONFIGS / "plant") == str(CONFIGS.parent / "out" / "plant" / "plant_history.sqlite")
 
 
 def test_the_shipped_cells_join_the_plant_router_and_each_links_its_own_dashboard():

@@ -66,3 +66,22 @@ def test_the_loop_runs_in_its_own_process_and_reports_back():
     bad = StreamProcess(offset_corrector, broken_streamer, t, p, 125.0, rt_priority=0)
     with pytest.raises(TwinError, match="DriverError: no controller at 127.0.0.1:30004"):
         bad.result(timeout=60)
+
+
+def _no_corrector():
+    raise ValueError("the twin would not load")
+
+
+def test_a_child_whose_daemon_is_gone_says_so_in_one_line_without_a_traceback(capfd):
+    # the daemon killed: its end of the pipe closed; every send of the child raised BrokenPipeError
+    # and the child died with a traceback of two exceptions
+    import multiprocessing as mp
+
+    from dt_runtime.service import stream
+
+    recv, send = mp.Pipe(duplex=False)
+    recv.close()
+    stream._child(send, None, None, None, None, None, _no_corrector, None, None, None, 100.0, 0.1, 300.0, None, True)
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "BrokenPipe" not in err
+    assert err.count("\n") == 1 and "the daemon is gone" in err and "the twin would not load" in err
