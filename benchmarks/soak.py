@@ -4,7 +4,7 @@ A fault-free run of H simulated hours counts false maintenance requests (reporte
 day, next to the escalation's computed bound as the baseline); then each injected fault runs on
 a fresh cell and its detection delay (simulated seconds from injection to the maintenance
 request, or to the offer to re-reference for a shift of the camera set-up: `detected_as`) is
-measured. Keys: sim_hours, false_requests_per_day, detection_delay_s (README.md, Benchmarks).
+measured. Keys: sim_hours, false_requests_per_day, detection_delay_s (docs/results.md).
 """
 from __future__ import annotations
 

@@ -89,6 +89,7 @@ def run(args: argparse.Namespace) -> Any:
                         "--results DIR (the metrologist's view of dt compare / dt diagnose / twin results), "
                         "--plant plant.yaml (the plant page), or several; `dt dashboard --help` for the rest")
     from dt_runtime.dashboard.app import Dashboard
+    from dt_runtime.dashboard.plant import check_links
     from dt_runtime.fabric import load_bus_config
     from dt_runtime.plant.config import load_plant_config
     from dt_runtime.service.runtime_config import load_runtime_config
@@ -101,6 +102,8 @@ def run(args: argparse.Namespace) -> Any:
     cfg = load_runtime_config(config) if config else None
     bus = load_bus_config(args.bus) if args.bus else None
     plant = load_plant_config(args.plant) if args.plant else None
+    if plant is not None:
+        check_links(plant, args.plant, args.host, args.port)
     stop = threading.Event()
     with Dashboard(cfg, config, bus=bus, host=args.host, port=args.port, token_file=args.token_file,
                    group=args.group, tls=(args.tls_cert, args.tls_key), max_rate_hz=args.max_rate,
