@@ -10,8 +10,12 @@ images of the rig (OpenCV detection and triangulation every tick) instead of the
 pick a target rate a camera could deliver (e.g. `--rate 30`). `--robot serial` commands the arm
 through the serial controller driver and its emulator on a pseudo-terminal (the line protocol
 every tick) instead of the simulated controller. Keys: rate_hz, target_hz, p99_period_error_ms
-(README.md, Benchmarks), and the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
-the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done.
+(README.md, Benchmarks), the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
+the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done; `machine` (the
+reference workload's time before and after, the machine's `speed`, load, CPU time:
+`benchmarks._common.Machine`) and `relative` (the tick's time and the period error divided by the
+reference workload's time, the rates times it). `--load-core`: the same while another process keeps
+one core busy.
 
 `--robot ur_rtde --camera natnet` runs the loop through the Universal Robots RTDE driver and the
 OptiTrack NatNet driver against the emulated cell it starts itself (`python -m
@@ -39,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import cli
+from benchmarks._common import Machine, busy_core, cli
 from dt_runtime.cli.main import main as dt_main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
@@ -179,17 +183,22 @@ def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str =
 
 def main(argv: list[str] | None = None) -> int:
     a = cli(__doc__, argv, seconds=10.0, rate=500.0, camera="sim_point", robot="sim", cell_time_scale=1.0,
-            natnet_rate=240.0)
+            natnet_rate=240.0, load_core=False)
     if (a.robot == "ur_rtde") != (a.camera == "natnet"):
         raise SystemExit("--robot ur_rtde and --camera natnet go together (both from the emulated cell)")
     if a.camera not in ("sim_point", "sim_images", "natnet"):
         raise SystemExit(f"--camera {a.camera!r}: allowed sim_point, sim_images, natnet")
     if a.robot not in ("sim", "serial", "ur_rtde"):
         raise SystemExit(f"--robot {a.robot!r}: allowed sim, serial, ur_rtde")
-    if a.robot == "ur_rtde":
-        r = measure_cell(a.seconds, a.rate, a.cell_time_scale, a.natnet_rate)
-    else:
-        r = measure(a.seconds, a.rate, a.camera, a.robot)
+    with busy_core(a.load_core) as loaded, Machine() as m:
+        if a.robot == "ur_rtde":
+            r = measure_cell(a.seconds, a.rate, a.cell_time_scale, a.natnet_rate)
+        else:
+            r = measure(a.seconds, a.rate, a.camera, a.robot)
+    r["machine"] = m.report() | {"one_core_loaded": loaded}
+    r["relative"] = m.relative(times_s={"tick_unpaced_s": 1.0 / r["unpaced_rate_hz"],
+                                        "p99_period_error_s": r["p99_period_error_ms"] * 1e-3},
+                               rates_hz={"rate_hz": r["rate_hz"], "unpaced_rate_hz": r["unpaced_rate_hz"]})
     if a.json:
         print(json.dumps(r))
     else:
@@ -197,6 +206,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['p99_period_error_ms']} ms; unpaced {r['unpaced_rate_hz']} Hz ({r['headroom']}x the target); "
               f"latency reading -> t-test p50 {r['latency_p50_ms']} ms, p99 {r['latency_p99_ms']} ms "
               f"(robot {r['robot']})")
+        mc = r["machine"]
+        print(f"  machine: reference workload {mc['reference_s']} s (speed {mc['speed']}), load "
+              f"{mc['load']['start']} -> {mc['load']['end']} on {mc['cores']} cores"
+              f"{', one core kept busy' if mc['one_core_loaded'] else ''}; "
+              f"relative {r['relative']}")
     return 0
 
 

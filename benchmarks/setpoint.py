@@ -18,7 +18,9 @@ Keys: `rate_hz`, `n_setpoints`, `ik_us` {`warm`, `baseline`: {`mean`, `p99`}, `s
 `max_joint_diff_rad`, `mean_steps`}, `twins` {`demo`, `geometric`: {`needs`, `correction_us` {`fast`,
 `warm` (the fixed point started from the previous set-point's correction, as the streaming loop and
 `dt correct --path` do), `baseline`: {`mean`, `p99`}, `speedup`, `speedup_warm`}, `max_diff_mm`,
-`max_diff_warm_mm`}}, `targets_us` {`ik`: 50, `correction`: 100}.
+`max_diff_warm_mm`}}, `targets_us` {`ik`: 50, `correction`: 100}, `machine` (the reference
+workload's time, load, CPU: `benchmarks._common.Machine`), `relative` (each p99 divided by the
+reference workload's time). `--load-core`: while another process keeps one core busy.
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import cli, emit
+from benchmarks._common import Machine, busy_core, cli, emit
 
 SEAM = """path: 1
 start: [900, 0, 550]
@@ -156,8 +158,15 @@ def run(rate: float = 500.0, twin: str = "", geometric_twin: str = "") -> dict:
 
 
 def main() -> None:
-    args = cli(__doc__, rate=500.0, twin="", geometric_twin="")
-    res = run(args.rate, args.twin, args.geometric_twin)
+    args = cli(__doc__, rate=500.0, twin="", geometric_twin="", load_core=False)
+    with busy_core(args.load_core) as loaded, Machine() as m:
+        res = run(args.rate, args.twin, args.geometric_twin)
+    res["machine"] = m.report() | {"one_core_loaded": loaded}
+    rel = {"ik_warm_p99": res["ik_us"]["warm"]["p99"] * 1e-6, "ik_baseline_p99": res["ik_us"]["baseline"]["p99"] * 1e-6}
+    for name, t in res["twins"].items():
+        for k in ("fast", "warm", "baseline"):
+            rel[f"correction_{name}_{k}_p99"] = t["correction_us"][k]["p99"] * 1e-6
+    res["relative"] = m.relative(times_s=rel)
     if args.json:
         emit(res, True, "")
         return
@@ -172,6 +181,9 @@ def main() -> None:
               f"(p99 {c['fast']['p99']}), warm-started {c['warm']['mean']} us (p99 {c['warm']['p99']}), "
               f"plain law {c['baseline']['mean']} us (p99 {c['baseline']['p99']}), "
               f"x{c['speedup']}, max difference {t['max_diff_mm']:.1e} mm; target <= {TARGETS_US['correction']} us")
+    mc = res["machine"]
+    print(f"  machine: reference workload {mc['reference_s']} s (speed {mc['speed']}), load {mc['load']['start']} -> "
+          f"{mc['load']['end']}{', one core kept busy' if mc['one_core_loaded'] else ''}")
 
 
 if __name__ == "__main__":
