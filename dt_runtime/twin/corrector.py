@@ -145,7 +145,7 @@ class Corrector:
                 self._w_k = 1.0 / pu.extrapolation_dof if math.isfinite(pu.extrapolation_dof) else 0.0
         self._k_inf = float(stats.norm.ppf(P95))
         self.compiled = False
-        if compiled and jit.enabled() and predictor is None:
+        if compiled and jit.enabled():  # the kinds it runs carry no state between commands (no thermal map)
             self._compile()
 
     # --- the compiled path (twin.law_kernel) ----------------------------------------------------

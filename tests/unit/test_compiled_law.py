@@ -89,3 +89,12 @@ def test_without_numba_the_numpy_path_runs(twin_dir):
     assert out[:2] == ["False", "False"]
     ref = ReferenceCorrector(Twin.load(twin_dir)).correct(np.array([0.9, 0.0, 0.55]), 0.3).command
     assert np.array(eval(out[2])) == pytest.approx(ref, abs=1e-12)
+
+
+def test_eq17_reads_the_same_means_without_the_std(twin_dir):
+    """`Twin.predicted_means` (the monitor's) is e_lt_hat's and e_mvs_lt_hat's mean, to the bit."""
+    twin = Twin.load(twin_dir)
+    rng = np.random.default_rng(6)
+    for c in np.array([0.9, 0.0, 0.55]) + rng.uniform(-0.2, 0.2, (10, 3)):
+        e_lt, e_mvs = twin.predicted_means(c, 0.4)
+        assert np.array_equal(e_lt, twin.e_lt_hat(c, 0.4)[0]) and np.array_equal(e_mvs, twin.e_mvs_lt_hat(c, 0.4)[0])
