@@ -191,10 +191,11 @@ class Corrector:
         self._fixed_point(x, 0.25, q, None)
         self.evaluations = 0
 
-    def _fixed_point(self, target: np.ndarray, v: float, q0: np.ndarray | None, warm: np.ndarray | None):
-        """(command, sigma, joints) by the compiled fixed point, or None where the general path
-        must answer (a joint-space map without joints; the IK did not converge: its error is the
-        general path's)."""
+    def _fixed_point(self, target: np.ndarray, v: float, q0: np.ndarray | None, warm: np.ndarray | None,
+                     uncertainty: bool = True):
+        """(command, sigma or None without `uncertainty`, joints) by the compiled fixed point, or
+        None where the general path must answer (a joint-space map without joints; the IK did not
+        converge: its error is the general path's)."""
         c0 = self._c0
         if warm is None:
             c0[:3], c0[3] = target, 0.0
@@ -206,7 +207,7 @@ class Corrector:
             assert a is not None
             self.evaluations += fixed_point_gp(target, v, self._Rt_c, c0, self.iters, self.tol, self._x, a.Xb, a.xm,
                                                a.xs, a.nh, a.sf2, a.m0, a.ys, a.alpha, a.z, a.acc, a.K, a.m, c)
-            return c, a.std(), None
+            return c, a.std() if uncertainty else None, None
         if q0 is None:
             return None
         k, g = self._ia, a if a is not None else _NO_GP
@@ -218,6 +219,8 @@ class Corrector:
         self.evaluations += n
         if status != IK_OK:
             return None
+        if not uncertainty:
+            return c, None, k.q.copy()
         var = self._sig2 if a is None else self._sig2 + a.std() ** 2
         return c, np.sqrt(np.maximum(var, 0.0)), k.q.copy()
 
@@ -273,7 +276,7 @@ class Corrector:
         return np.sqrt(np.maximum(var, 0.0))
 
     def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None,
-                warm: np.ndarray | None = None) -> Setpoint:
+                warm: np.ndarray | None = None, uncertainty: bool = True) -> Setpoint:
         """The corrected set-point for a target.
 
         Parameters
@@ -289,6 +292,10 @@ class Corrector:
             there instead of at the target. Along a path the correction changes by micrometres
             between set-points, so it converges in one or two evaluations of the map instead of
             four or five (the same fixed point, to `tol`).
+        uncertainty : bool
+            False: the command (and the volume flag) only, U and sigma NaN: a streamed path sends
+            commands, and the GP's variance reads a (U, U) matrix per output, more memory than
+            stays in the cache between two set-points (`follow`).
 
         Returns
         -------
@@ -297,7 +304,8 @@ class Corrector:
         target = np.asarray(target, dtype=float)
         if self.compiled:
             q0 = None if cond is None or cond.joints is None else np.asarray(cond.joints, dtype=float)
-            r = self._fixed_point(target, float(v), q0, None if warm is None else np.asarray(warm, dtype=float))
+            r = self._fixed_point(target, float(v), q0, None if warm is None else np.asarray(warm, dtype=float),
+                                  uncertainty)
             if r is not None:
                 return self._setpoint(*r)
         Rt, tol = self._Rt, self.tol
@@ -315,15 +323,19 @@ class Corrector:
             c = c_new
             if done:
                 break
-        return self._setpoint(c, self._std(s), q)
+        return self._setpoint(c, self._std(s) if uncertainty else None, q)
 
-    def _setpoint(self, c: np.ndarray, sigma: np.ndarray, q: np.ndarray | None) -> Setpoint:
-        """The set-point at command c: its distance to the DOE hull, U there, the volume flag."""
+    def _setpoint(self, c: np.ndarray, sigma: np.ndarray | None, q: np.ndarray | None) -> Setpoint:
+        """The set-point at command c: its distance to the DOE hull, U there (NaN without sigma),
+        the volume flag."""
         if self._normals is None:
             dist = float("nan")
         else:
             dist = float(np.max(self._normals @ c + self._offsets))
-        return Setpoint(c, self._expanded(sigma, dist), self._normals is None or dist <= self._margin, dist, q, sigma)
+        inside = self._normals is None or dist <= self._margin
+        if sigma is None:
+            return Setpoint(c, np.full(3, np.nan), inside, dist, q, np.full(3, np.nan))
+        return Setpoint(c, self._expanded(sigma, dist), inside, dist, q, sigma)
 
     def budget(self, sp: Setpoint) -> Budget | None:
         """The labelled Eq. 11 budget at a corrected set-point (None for a twin without one).
@@ -360,7 +372,7 @@ class Corrector:
         -------
         callable
             Each call corrects at the speed of the set-point meant for t, warm-started from the
-            previous call's correction.
+            previous call's correction; the command only (`correct`'s uncertainty=False).
         """
         last = len(times) - 1
         q = None if joints is None else np.asarray(joints, dtype=float)
@@ -369,7 +381,8 @@ class Corrector:
         def correct_one(target: np.ndarray, t: float) -> np.ndarray:
             nonlocal q, warm
             k = min(int(np.searchsorted(times, t - 1e-9)), last)
-            r = self.correct(target, float(speeds[k]), None if q is None else Conditions(joints=q), warm)
+            r = self.correct(target, float(speeds[k]), None if q is None else Conditions(joints=q), warm,
+                             uncertainty=False)
             if r.joints is not None:
                 q = r.joints
             warm = r.command - target

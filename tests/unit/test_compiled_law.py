@@ -98,3 +98,14 @@ def test_eq17_reads_the_same_means_without_the_std(twin_dir):
     for c in np.array([0.9, 0.0, 0.55]) + rng.uniform(-0.2, 0.2, (10, 3)):
         e_lt, e_mvs = twin.predicted_means(c, 0.4)
         assert np.array_equal(e_lt, twin.e_lt_hat(c, 0.4)[0]) and np.array_equal(e_mvs, twin.e_mvs_lt_hat(c, 0.4)[0])
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_command_only_is_the_laws_command(twin_dir, compiled):
+    """`correct(..., uncertainty=False)` (what `follow` streams) gives the same command and volume
+    flag, U and sigma NaN."""
+    c = Corrector(Twin.load(twin_dir), compiled=compiled)
+    for x in np.array([0.9, 0.0, 0.55]) + np.random.default_rng(7).uniform(-0.2, 0.2, (10, 3)):
+        full, bare = c.correct(x, 0.3), c.correct(x, 0.3, uncertainty=False)
+        assert np.array_equal(full.command, bare.command) and full.inside == bare.inside
+        assert np.isnan(bare.U).all() and np.isnan(bare.sigma).all() and np.isfinite(full.U).all()
