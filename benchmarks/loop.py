@@ -10,12 +10,13 @@ images of the rig (OpenCV detection and triangulation every tick) instead of the
 pick a target rate a camera could deliver (e.g. `--rate 30`). `--robot serial` commands the arm
 through the serial controller driver and its emulator on a pseudo-terminal (the line protocol
 every tick) instead of the simulated controller. Keys: rate_hz, target_hz, p99_period_error_ms
-(README.md, Benchmarks), the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
+(README.md, Benchmarks), `realtime_thread` (the paced loop's thread ran SCHED_FIFO, `rt_priority`), the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
 the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done; `machine` (the
 reference workload's time before and after, the machine's `speed`, load, CPU time:
 `benchmarks._common.Machine`) and `relative` (the tick's time and the period error divided by the
 reference workload's time, the rates times it). `--load-core`: the same while another process keeps
-one core busy.
+one core busy; `--rt-priority P`: the paced loop's SCHED_FIFO priority (the runtime config's
+`rt_priority`, default 10; 0: the normal policy, as before it existed).
 
 `--robot ur_rtde --camera natnet` runs the loop through the Universal Robots RTDE driver and the
 OptiTrack NatNet driver against the emulated cell it starts itself (`python -m
@@ -57,10 +58,10 @@ def _port() -> int:
 
 
 def _config(twin: Path, tmp: Path, rate: float, realtime: bool, camera: str | dict, robot: dict,
-            tracker: str | dict = "sim") -> RuntimeConfig:
+            tracker: str | dict = "sim", rt_priority: int = 10) -> RuntimeConfig:
     return RuntimeConfig.model_validate({
         "twin": str(twin), "store": str(tmp / f"loop_{realtime}.sqlite"), "rate_hz": rate,
-        "realtime": realtime, "path": {"kind": "circle", "speeds": [0.25]},
+        "realtime": realtime, "rt_priority": rt_priority, "path": {"kind": "circle", "speeds": [0.25]},
         "drivers": {"camera": camera, "robot": robot, "tracker": tracker},
         "sim": {"scenario": str(CONFIGS / "scenarios" / "paper_default.yaml"), "cell": str(CONFIGS / "cell.yaml")},
         "bus": {"cell": "bench", "robot": "r1", "listen": [f"tcp/127.0.0.1:{_port()}"]},
@@ -86,10 +87,10 @@ def _robot(kind: str):
 
 
 def _run(twin: Path, tmp: Path, rate: float, realtime: bool, camera: str, robot: str,
-         seconds: float) -> tuple[np.ndarray, np.ndarray]:
-    """Tick start times and latencies (s) of one run."""
+         seconds: float, rt_priority: int = 10) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Tick start times and latencies (s) of one run, and whether the loop's thread ran SCHED_FIFO."""
     with _robot(robot) as (world, section):
-        cfg = _config(twin, tmp, rate, realtime, camera, section)
+        cfg = _config(twin, tmp, rate, realtime, camera, section, rt_priority=rt_priority)
         d = Daemon(cfg, CONFIGS, world=world)
         d.tick_times, d.latencies = [], []
         try:
@@ -99,7 +100,7 @@ def _run(twin: Path, tmp: Path, rate: float, realtime: bool, camera: str, robot:
                 d.run(max_ticks=int(seconds * 1000))
         finally:
             d.close()
-    return np.array(d.tick_times), np.array(d.latencies)
+    return np.array(d.tick_times), np.array(d.latencies), d.realtime_thread
 
 
 def _percentiles(x: np.ndarray, prefix: str) -> dict:
@@ -156,7 +157,7 @@ def measure_cell(seconds: float, rate: float, time_scale: float = 1.0, natnet_ra
     return out
 
 
-def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str = "sim") -> dict:
+def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str = "sim", rt_priority: int = 10) -> dict:
     logging.disable(logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -166,8 +167,8 @@ def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str =
             # `--camera sim_images` measures the image pipeline in the loop too.
             dt_main(["demo", "--quick", "--json", "--no-progress", "--camera", camera, "--out", str(tmp / "demo")])
         twin = tmp / "demo" / "model"
-        free, _ = _run(twin, tmp, rate, False, camera, robot, min(seconds, 3.0))
-        paced, latency = _run(twin, tmp, rate, True, camera, robot, seconds)
+        free, _, _ = _run(twin, tmp, rate, False, camera, robot, min(seconds, 3.0))
+        paced, latency, fifo = _run(twin, tmp, rate, True, camera, robot, seconds, rt_priority)
     periods = np.diff(paced)[50:]  # skip start-up
     err = np.abs(periods - 1.0 / rate) * 1e3
     free_rate = (len(free) - 1) / (free[-1] - free[0])
@@ -178,12 +179,12 @@ def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str =
             "unpaced_rate_hz": round(float(free_rate), 1),
             "headroom": round(float(free_rate / rate), 2), "ticks": int(len(paced)),
             "latency_p50_ms": round(float(np.percentile(lat, 50)), 3),
-            "latency_p99_ms": round(float(np.percentile(lat, 99)), 3)}
+            "latency_p99_ms": round(float(np.percentile(lat, 99)), 3), "realtime_thread": fifo}
 
 
 def main(argv: list[str] | None = None) -> int:
     a = cli(__doc__, argv, seconds=10.0, rate=500.0, camera="sim_point", robot="sim", cell_time_scale=1.0,
-            natnet_rate=240.0, load_core=False)
+            natnet_rate=240.0, load_core=False, rt_priority=10)
     if (a.robot == "ur_rtde") != (a.camera == "natnet"):
         raise SystemExit("--robot ur_rtde and --camera natnet go together (both from the emulated cell)")
     if a.camera not in ("sim_point", "sim_images", "natnet"):
@@ -194,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.robot == "ur_rtde":
             r = measure_cell(a.seconds, a.rate, a.cell_time_scale, a.natnet_rate)
         else:
-            r = measure(a.seconds, a.rate, a.camera, a.robot)
+            r = measure(a.seconds, a.rate, a.camera, a.robot, a.rt_priority)
     r["machine"] = m.report() | {"one_core_loaded": loaded}
     r["relative"] = m.relative(times_s={"tick_unpaced_s": 1.0 / r["unpaced_rate_hz"],
                                         "p99_period_error_s": r["p99_period_error_ms"] * 1e-3},
