@@ -192,9 +192,14 @@ class Machine:
         dict
             `reference_s` (the faster timing), `reference` {`before`, `after`}, `speed` (nominal /
             reference_s: 1.0 on the nominal machine, below 1 on a slower or busier one),
+            `cpu_share` (the workload's CPU / wall time, the lower of the two: below 1 when other
+            processes took turns on its core),
             `nominal_reference_s`, `load` {`start`, `end`}, `cores`, `cpu_s`, `wall_s`.
         """
+        # the share of a core the workload got (CPU / wall): below 1 when other processes took turns
+        share = min(r["cpu_seconds"] / r["seconds"] for r in (self.before, self.after))
         return {"reference_s": self.ref_s, "speed": round(REFERENCE_NOMINAL_S / self.ref_s, 3),
+                "cpu_share": round(share, 3),
                 "nominal_reference_s": REFERENCE_NOMINAL_S,
                 "reference": {"before": self.before, "after": self.after},
                 "load": {"start": round(self.load_start, 2), "end": round(self.load_end, 2)},
