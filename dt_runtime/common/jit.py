@@ -53,7 +53,9 @@ def disable(why: str) -> None:
 
 
 def kernel(f: Callable[..., Any]) -> Callable[..., Any]:
-    """`numba.njit(cache=True, nogil=True)` when numba is there, else `f` itself.
+    """`numba.njit(cache=True)` when numba is there, else `f` itself. The GIL is kept: a kernel
+    runs 5-50 us on the loop's thread, and handing the GIL to another thread (a driver's reader)
+    mid-correction would make the loop wait for it back.
 
     Parameters
     ----------
@@ -66,4 +68,4 @@ def kernel(f: Callable[..., Any]) -> Callable[..., Any]:
     """
     if not _HAVE or _njit is None:
         return f
-    return _njit(cache=True, nogil=True)(f)
+    return _njit(cache=True)(f)
