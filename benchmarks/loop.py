@@ -10,7 +10,9 @@ images of the rig (OpenCV detection and triangulation every tick) instead of the
 pick a target rate a camera could deliver (e.g. `--rate 30`). `--robot serial` commands the arm
 through the serial controller driver and its emulator on a pseudo-terminal (the line protocol
 every tick) instead of the simulated controller. Keys: rate_hz, target_hz, p99_period_error_ms
-(README.md, Benchmarks), `realtime_thread` (the paced loop's thread ran SCHED_FIFO, `rt_priority`), the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
+(README.md, Benchmarks), `realtime_thread` (the paced loop's thread ran SCHED_FIFO, `rt_priority`), `tick_cpu_ms` (the
+loop thread's CPU time per tick in the unpaced run: the tick's cost whatever else runs), the
+end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
 the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done; `machine` (the
 reference workload's time before and after, the machine's `speed`, load, CPU time:
 `benchmarks._common.Machine`) and `relative` (the tick's time and the period error divided by the
@@ -40,6 +42,7 @@ import logging
 import socket
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -87,20 +90,23 @@ def _robot(kind: str):
 
 
 def _run(twin: Path, tmp: Path, rate: float, realtime: bool, camera: str, robot: str,
-         seconds: float, rt_priority: int = 10) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Tick start times and latencies (s) of one run, and whether the loop's thread ran SCHED_FIFO."""
+         seconds: float, rt_priority: int = 10) -> tuple[np.ndarray, np.ndarray, bool, float]:
+    """Tick start times and latencies (s) of one run, whether the loop's thread ran SCHED_FIFO, and
+    the loop thread's CPU seconds per tick (its own time, whatever else ran on the machine)."""
     with _robot(robot) as (world, section):
         cfg = _config(twin, tmp, rate, realtime, camera, section, rt_priority=rt_priority)
         d = Daemon(cfg, CONFIGS, world=world)
         d.tick_times, d.latencies = [], []
+        c0 = time.thread_time()
         try:
             if cfg.realtime:
                 d.run(duration_s=seconds)
             else:
                 d.run(max_ticks=int(seconds * 1000))
         finally:
+            cpu = time.thread_time() - c0
             d.close()
-    return np.array(d.tick_times), np.array(d.latencies), d.realtime_thread
+    return np.array(d.tick_times), np.array(d.latencies), d.realtime_thread, cpu / max(len(d.tick_times), 1)
 
 
 def _percentiles(x: np.ndarray, prefix: str) -> dict:
@@ -167,8 +173,8 @@ def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str =
             # `--camera sim_images` measures the image pipeline in the loop too.
             dt_main(["demo", "--quick", "--json", "--no-progress", "--camera", camera, "--out", str(tmp / "demo")])
         twin = tmp / "demo" / "model"
-        free, _, _ = _run(twin, tmp, rate, False, camera, robot, min(seconds, 3.0))
-        paced, latency, fifo = _run(twin, tmp, rate, True, camera, robot, seconds, rt_priority)
+        free, _, _, tick_cpu = _run(twin, tmp, rate, False, camera, robot, min(seconds, 3.0))
+        paced, latency, fifo, _ = _run(twin, tmp, rate, True, camera, robot, seconds, rt_priority)
     periods = np.diff(paced)[50:]  # skip start-up
     err = np.abs(periods - 1.0 / rate) * 1e3
     free_rate = (len(free) - 1) / (free[-1] - free[0])
@@ -176,7 +182,7 @@ def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str =
     return {"camera": camera, "robot": robot, "rate_hz": round(float(1.0 / periods.mean()), 1), "target_hz": rate,
             "p99_period_error_ms": round(float(np.percentile(err, 99)), 3),
             "median_period_error_ms": round(float(np.median(err)), 3),
-            "unpaced_rate_hz": round(float(free_rate), 1),
+            "unpaced_rate_hz": round(float(free_rate), 1), "tick_cpu_ms": round(tick_cpu * 1e3, 4),
             "headroom": round(float(free_rate / rate), 2), "ticks": int(len(paced)),
             "latency_p50_ms": round(float(np.percentile(lat, 50)), 3),
             "latency_p99_ms": round(float(np.percentile(lat, 99)), 3), "realtime_thread": fifo}
@@ -198,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
             r = measure(a.seconds, a.rate, a.camera, a.robot, a.rt_priority)
     r["machine"] = m.report() | {"one_core_loaded": loaded}
     r["relative"] = m.relative(times_s={"tick_unpaced_s": 1.0 / r["unpaced_rate_hz"],
+                                        "tick_cpu_s": r["tick_cpu_ms"] * 1e-3 if "tick_cpu_ms" in r else None,
                                         "p99_period_error_s": r["p99_period_error_ms"] * 1e-3},
                                rates_hz={"rate_hz": r["rate_hz"], "unpaced_rate_hz": r["unpaced_rate_hz"]})
     if a.json:
