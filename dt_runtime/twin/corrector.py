@@ -182,13 +182,16 @@ class Corrector:
             jit.disable(f"{type(exc).__name__}: {exc}")
 
     def _warm_up(self) -> None:
-        """One compiled correction at a point of the DOE (compiles the kernels); its count undone."""
+        """One compiled correction at a point of the DOE (compiles the kernels, or loads them from
+        numba's cache) and its U; its count undone: the first set-point costs what the others do."""
         x = self._ga.xm[:3].copy() if self._ga is not None and self._ga.d >= 3 else np.array([0.9, 0.0, 0.55])
         q = None
         if self._kind == "geometric":
             assert self._chain is not None
             q = np.zeros(self._chain.dof)
-        self._fixed_point(x, 0.25, q, None)
+        r = self._fixed_point(x, 0.25, q, None)
+        if r is not None:  # U's first evaluation (scipy's t quantile) paid here too
+            self._setpoint(*r)
         self.evaluations = 0
 
     def _fixed_point(self, target: np.ndarray, v: float, q0: np.ndarray | None, warm: np.ndarray | None,
