@@ -10,8 +10,15 @@ images of the rig (OpenCV detection and triangulation every tick) instead of the
 pick a target rate a camera could deliver (e.g. `--rate 30`). `--robot serial` commands the arm
 through the serial controller driver and its emulator on a pseudo-terminal (the line protocol
 every tick) instead of the simulated controller. Keys: rate_hz, target_hz, p99_period_error_ms
-(docs/results.md, Real time), and the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
-the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done.
+(docs/results.md, Real time), `realtime_thread` (the paced loop's thread ran SCHED_FIFO, `rt_priority`), `tick_cpu_ms` (the
+loop thread's CPU time per tick in the unpaced run: the tick's cost whatever else runs), the
+end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
+the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done; `machine` (the
+reference workload's time before and after, the machine's `speed`, load, CPU time:
+`benchmarks._common.Machine`) and `relative` (the tick's time and the period error divided by the
+reference workload's time, the rates times it). `--load-core`: the same while another process keeps
+one core busy; `--rt-priority P`: the paced loop's SCHED_FIFO priority (the runtime config's
+`rt_priority`, default 10; 0: the normal policy, as before it existed).
 
 `--robot ur_rtde --camera natnet` runs the loop through the Universal Robots RTDE driver and the
 OptiTrack NatNet driver against the emulated cell it starts itself (`python -m
@@ -35,11 +42,12 @@ import logging
 import socket
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks._common import cli
+from benchmarks._common import Machine, busy_core, cli
 from dt_runtime.cli.main import main as dt_main
 from dt_runtime.common.paths import CONFIGS
 from dt_runtime.service.daemon import Daemon, RuntimeConfig
@@ -53,10 +61,10 @@ def _port() -> int:
 
 
 def _config(twin: Path, tmp: Path, rate: float, realtime: bool, camera: str | dict, robot: dict,
-            tracker: str | dict = "sim") -> RuntimeConfig:
+            tracker: str | dict = "sim", rt_priority: int = 10) -> RuntimeConfig:
     return RuntimeConfig.model_validate({
         "twin": str(twin), "store": str(tmp / f"loop_{realtime}.sqlite"), "rate_hz": rate,
-        "realtime": realtime, "path": {"kind": "circle", "speeds": [0.25]},
+        "realtime": realtime, "rt_priority": rt_priority, "path": {"kind": "circle", "speeds": [0.25]},
         "drivers": {"camera": camera, "robot": robot, "tracker": tracker},
         "sim": {"scenario": str(CONFIGS / "scenarios" / "paper_default.yaml"), "cell": str(CONFIGS / "cell.yaml")},
         "bus": {"cell": "bench", "robot": "r1", "listen": [f"tcp/127.0.0.1:{_port()}"]},
@@ -82,20 +90,23 @@ def _robot(kind: str):
 
 
 def _run(twin: Path, tmp: Path, rate: float, realtime: bool, camera: str, robot: str,
-         seconds: float) -> tuple[np.ndarray, np.ndarray]:
-    """Tick start times and latencies (s) of one run."""
+         seconds: float, rt_priority: int = 10) -> tuple[np.ndarray, np.ndarray, bool, float]:
+    """Tick start times and latencies (s) of one run, whether the loop's thread ran SCHED_FIFO, and
+    the loop thread's CPU seconds per tick (its own time, whatever else ran on the machine)."""
     with _robot(robot) as (world, section):
-        cfg = _config(twin, tmp, rate, realtime, camera, section)
+        cfg = _config(twin, tmp, rate, realtime, camera, section, rt_priority=rt_priority)
         d = Daemon(cfg, CONFIGS, world=world)
         d.tick_times, d.latencies = [], []
+        c0 = time.thread_time()
         try:
             if cfg.realtime:
                 d.run(duration_s=seconds)
             else:
                 d.run(max_ticks=int(seconds * 1000))
         finally:
+            cpu = time.thread_time() - c0
             d.close()
-    return np.array(d.tick_times), np.array(d.latencies)
+    return np.array(d.tick_times), np.array(d.latencies), d.realtime_thread, cpu / max(len(d.tick_times), 1)
 
 
 def _percentiles(x: np.ndarray, prefix: str) -> dict:
@@ -152,7 +163,7 @@ def measure_cell(seconds: float, rate: float, time_scale: float = 1.0, natnet_ra
     return out
 
 
-def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str = "sim") -> dict:
+def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str = "sim", rt_priority: int = 10) -> dict:
     logging.disable(logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -162,8 +173,8 @@ def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str =
             # `--camera sim_images` measures the image pipeline in the loop too.
             dt_main(["demo", "--quick", "--json", "--no-progress", "--camera", camera, "--out", str(tmp / "demo")])
         twin = tmp / "demo" / "model"
-        free, _ = _run(twin, tmp, rate, False, camera, robot, min(seconds, 3.0))
-        paced, latency = _run(twin, tmp, rate, True, camera, robot, seconds)
+        free, _, _, tick_cpu = _run(twin, tmp, rate, False, camera, robot, min(seconds, 3.0))
+        paced, latency, fifo, _ = _run(twin, tmp, rate, True, camera, robot, seconds, rt_priority)
     periods = np.diff(paced)[50:]  # skip start-up
     err = np.abs(periods - 1.0 / rate) * 1e3
     free_rate = (len(free) - 1) / (free[-1] - free[0])
@@ -171,25 +182,31 @@ def measure(seconds: float, rate: float, camera: str = "sim_point", robot: str =
     return {"camera": camera, "robot": robot, "rate_hz": round(float(1.0 / periods.mean()), 1), "target_hz": rate,
             "p99_period_error_ms": round(float(np.percentile(err, 99)), 3),
             "median_period_error_ms": round(float(np.median(err)), 3),
-            "unpaced_rate_hz": round(float(free_rate), 1),
+            "unpaced_rate_hz": round(float(free_rate), 1), "tick_cpu_ms": round(tick_cpu * 1e3, 4),
             "headroom": round(float(free_rate / rate), 2), "ticks": int(len(paced)),
             "latency_p50_ms": round(float(np.percentile(lat, 50)), 3),
-            "latency_p99_ms": round(float(np.percentile(lat, 99)), 3)}
+            "latency_p99_ms": round(float(np.percentile(lat, 99)), 3), "realtime_thread": fifo}
 
 
 def main(argv: list[str] | None = None) -> int:
     a = cli(__doc__, argv, seconds=10.0, rate=500.0, camera="sim_point", robot="sim", cell_time_scale=1.0,
-            natnet_rate=240.0)
+            natnet_rate=240.0, load_core=False, rt_priority=10)
     if (a.robot == "ur_rtde") != (a.camera == "natnet"):
         raise SystemExit("--robot ur_rtde and --camera natnet go together (both from the emulated cell)")
     if a.camera not in ("sim_point", "sim_images", "natnet"):
         raise SystemExit(f"--camera {a.camera!r}: allowed sim_point, sim_images, natnet")
     if a.robot not in ("sim", "serial", "ur_rtde"):
         raise SystemExit(f"--robot {a.robot!r}: allowed sim, serial, ur_rtde")
-    if a.robot == "ur_rtde":
-        r = measure_cell(a.seconds, a.rate, a.cell_time_scale, a.natnet_rate)
-    else:
-        r = measure(a.seconds, a.rate, a.camera, a.robot)
+    with busy_core(a.load_core) as loaded, Machine() as m:
+        if a.robot == "ur_rtde":
+            r = measure_cell(a.seconds, a.rate, a.cell_time_scale, a.natnet_rate)
+        else:
+            r = measure(a.seconds, a.rate, a.camera, a.robot, a.rt_priority)
+    r["machine"] = m.report() | {"one_core_loaded": loaded}
+    r["relative"] = m.relative(times_s={"tick_unpaced_s": 1.0 / r["unpaced_rate_hz"],
+                                        "tick_cpu_s": r["tick_cpu_ms"] * 1e-3 if "tick_cpu_ms" in r else None,
+                                        "p99_period_error_s": r["p99_period_error_ms"] * 1e-3},
+                               rates_hz={"rate_hz": r["rate_hz"], "unpaced_rate_hz": r["unpaced_rate_hz"]})
     if a.json:
         print(json.dumps(r))
     else:
@@ -197,6 +214,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['p99_period_error_ms']} ms; unpaced {r['unpaced_rate_hz']} Hz ({r['headroom']}x the target); "
               f"latency reading -> t-test p50 {r['latency_p50_ms']} ms, p99 {r['latency_p99_ms']} ms "
               f"(robot {r['robot']})")
+        mc = r["machine"]
+        print(f"  machine: reference workload {mc['reference_s']} s (speed {mc['speed']}), load "
+              f"{mc['load']['start']} -> {mc['load']['end']} on {mc['cores']} cores"
+              f"{', one core kept busy' if mc['one_core_loaded'] else ''}; "
+              f"relative {r['relative']}")
     return 0
 
 

@@ -6,7 +6,10 @@ components per image (binary centroids), nearest blob to each predicted marker, 
 triangulation and cluster fit. Frames are rendered once beforehand; rendering is not timed.
 
 `python -m benchmarks.mvs [--json] [--frames N] [--seed S]`; JSON keys: fps, baseline_fps,
-speedup, rms_mm (3-D TCP error of ours against the truth), baseline_rms_mm, n_frames, refused.
+speedup, rms_mm (3-D TCP error of ours against the truth), baseline_rms_mm, n_frames, refused,
+machine (the reference workload's time, load, CPU: `benchmarks._common.Machine`), relative (fps
+times the reference workload's time: frame sets per reference workload). `--load-core`: while
+another process keeps one core busy.
 """
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ from drivers.simulated.camera_images import SimCameraRig  # noqa: E402
 from drivers.mvs.detect import baseline_detect  # noqa: E402
 from drivers.mvs.pipeline import MarkerTracker, _distort  # noqa: E402
 from sim.camera_rig import random_tool_rotation, sample_volume  # noqa: E402
-from benchmarks._common import cli, emit  # noqa: E402
+from benchmarks._common import Machine, busy_core, cli, emit  # noqa: E402
 
 
 def _baseline_measure(tr: MarkerTracker, images, pred):
@@ -92,8 +95,12 @@ def run(n_frames: int = 40, seed: int = 0, min_seconds: float = 1.0) -> dict:
 
 
 def main(argv=None) -> int:
-    a = cli(__doc__.splitlines()[0], argv, frames=40, seed=0)
-    emit(run(a.frames, a.seed), a.json, "MVS: eight frames -> TCP, ours vs the full-frame baseline")
+    a = cli(__doc__.splitlines()[0], argv, frames=40, seed=0, load_core=False)
+    with busy_core(a.load_core) as loaded, Machine() as m:
+        r = run(a.frames, a.seed)
+    r["machine"] = m.report() | {"one_core_loaded": loaded}
+    r["relative"] = m.relative(rates_hz={"fps": r["fps"], "baseline_fps": r["baseline_fps"]})
+    emit(r, a.json, "MVS: eight frames -> TCP, ours vs the full-frame baseline")
     return 0
 
 

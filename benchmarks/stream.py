@@ -47,6 +47,9 @@ threads got SCHED_FIFO). `goals_met` {`rate`, `jitter` (500 Hz only), `correctio
 of the rate, p99 jitter < 1 ms at 500 Hz, correction p99 <= 100 us, corrected path RMS <= 1.5x the
 static). Top level: `static_corrected_rms_mm`, `load` {`start`, `end`} (1-min load
 averages), `cores`, `servo` {`lookahead_s`, `gain`}, `process`, `seconds`, `quick`.
+`machine` (the reference workload's time, load, CPU incl. the streaming processes':
+`benchmarks._common.Machine`), `relative` (correction p99 per driver and rate divided by the
+reference workload's time); `--load-core`: while another process keeps one core busy.
 `--quick`: 125 Hz only, 500 mm/s only (the test's run); `--twin DIR/model` reuses a quick demo's
 twin (its summary.json beside it, in DIR) instead of running `dt demo --quick` (~40 s).
 """
@@ -66,7 +69,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks._common import cli
+from benchmarks._common import Machine, busy_core, cli
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO, CELL = ROOT / "configs/scenarios/paper_default.yaml", ROOT / "configs/cell.yaml"
@@ -411,9 +414,13 @@ def _print(r: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    a = cli(__doc__, argv, quick=False, twin="")
+    a = cli(__doc__, argv, quick=False, twin="", load_core=False)
     logging.disable(logging.WARNING)
-    r = run(a.quick, a.twin, progress=None if a.json else lambda m: print(m, file=sys.stderr, flush=True))
+    with busy_core(a.load_core) as loaded, Machine() as m:
+        r = run(a.quick, a.twin, progress=None if a.json else lambda msg: print(msg, file=sys.stderr, flush=True))
+    r["machine"] = m.report() | {"one_core_loaded": loaded}
+    r["relative"] = m.relative(times_s={f"{d}_{rate}_correction_p99": e["correction_us_p99"] * 1e-6
+                                        for d, rates in r["drivers"].items() for rate, e in rates.items()})
     if a.json:
         print(json.dumps(r))
     else:

@@ -5,6 +5,7 @@
 """
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -289,7 +290,10 @@ def encode(payload: Mapping[str, Any]) -> bytes:
     bytes
         UTF-8 JSON without spaces.
     """
-    return dumps(payload, separators=(",", ":"), default=str).encode()
+    try:  # plain str keys, lists and finite floats (a tick's telemetry): json alone, the same text
+        return json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
+    except (TypeError, ValueError):  # numpy, NaN, objects: made strict JSON first
+        return dumps(payload, separators=(",", ":"), default=str).encode()
 
 
 def put_json(session: zenoh.Session, key: str, payload: Mapping[str, Any] | bytes) -> None:

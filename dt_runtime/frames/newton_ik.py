@@ -12,6 +12,7 @@ import numpy as np
 from scipy.linalg.lapack import dposv as _dposv
 
 from dt_kernel.errors import DataError, UnreachableError
+from dt_runtime.common import jit
 from dt_runtime.frames.kinematics import MAX_IK_STEP_RAD, Chain
 
 LAMBDA0 = 1e-9  # damping floor (Sugihara's bias): keeps J J^T + lambda^2 I invertible at a singularity
@@ -105,9 +106,12 @@ class NewtonIK:
     ----------
     chain : Chain
         The kinematic chain.
+    compiled : bool
+        Solve with the compiled kernel (`frames.ik_kernel`, the same steps) when numba is there and
+        no orientation is given; False: on plain floats only.
     """
 
-    def __init__(self, chain: Chain):
+    def __init__(self, chain: Chain, compiled: bool = True):
         self.chain = chain
         n = chain.dof
         A = [_z_to(np.asarray(a, dtype=float) / np.linalg.norm(a)) for a in chain.axes]
@@ -125,6 +129,16 @@ class NewtonIK:
         self._tool = _affine(prev_inv @ chain.tool)
         self._last: tuple[tuple[float, ...], tuple] | None = None  # (q, its forward kinematics)
         self.iterations = 0  # Newton steps of the last solve (the benchmark reports them)
+        self._k = None
+        if compiled and jit.enabled():
+            from dt_runtime.frames.ik_kernel import IKArrays
+
+            try:
+                self._k = IKArrays(self)
+                self._k.solve(np.zeros(3), np.zeros(n), 1e-9, 1, MAX_IK_STEP_RAD)  # compiled (or cached) now
+            except Exception as exc:  # noqa: BLE001 - numba could not compile it: plain floats
+                self._k = None
+                jit.disable(f"{type(exc).__name__}: {exc}")
 
     def _fk(self, q: tuple[float, ...]) -> tuple:
         """TCP transform (3x4) at q, and every joint's position and world axis (the Jacobian)."""
@@ -223,6 +237,17 @@ class NewtonIK:
             raise DataError(f"ik: target must be 3 finite numbers and q_seed {n}, got {target!r}, {q_seed!r}") from exc
         if len(g) != 3 or len(q) != n or not all(map(math.isfinite, g + q)):
             raise DataError(f"ik: target must be 3 finite numbers and q_seed {n}, got {target!r}, {q_seed!r}")
+        k = self._k
+        if k is not None and R is None:
+            from dt_runtime.frames.ik_kernel import OK, UNREACHED
+
+            status, it, ep, er = k.solve(np.array(g), np.array(q), tol, max_iter, MAX_IK_STEP_RAD)
+            if status == OK:
+                self.iterations = it
+                return k.q.copy()
+            if status == UNREACHED:
+                self._unreachable(g, ep, er, it)
+            # a rotation error near pi on the way: solved on plain floats below
         gx, gy, gz = g
         last = self._last
         T, joints = last[1] if last is not None and last[0] == q else self._fk(q)  # the seed's: kept
@@ -251,10 +276,13 @@ class NewtonIK:
         self._last = (q, (T, joints))
         ep, er = math.sqrt(ep2), math.sqrt(er2)
         if not (ep < tol and er < tol) and (ep > 1e-6 or er > 1e-5):  # Chain.ik's acceptance, the same
-            raise UnreachableError(f"target {np.round(np.array(g) * 1e3, 2).tolist()} mm: no joint angles of "
-                                   f"{self.chain.name} reach it from the seed (residual {ep * 1e3:.3g} mm, "
-                                   f"{er:.3g} rad after {it} Newton steps)")
+            self._unreachable(g, ep, er, it)
         return np.array(q)
+
+    def _unreachable(self, g: tuple[float, ...], ep: float, er: float, it: int):
+        raise UnreachableError(f"target {np.round(np.array(g) * 1e3, 2).tolist()} mm: no joint angles of "
+                               f"{self.chain.name} reach it from the seed (residual {ep * 1e3:.3g} mm, "
+                               f"{er:.3g} rad after {it} Newton steps)")
 
     def _step(self, T, joints, e, lam2: float) -> list[float]:
         """dq = J^T (J J^T + lam2 I)^-1 e, J the geometric Jacobian (6 x n) from the joint frames

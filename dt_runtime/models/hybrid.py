@@ -924,6 +924,24 @@ class MapPredictor:
         assert self._gp is not None and self.plain
         return self._gp(x)
 
+    def gp_mean(self, x: np.ndarray) -> np.ndarray:
+        """The plain map's mean at x = (x, y, z, v) (m, m/s): `gp_only`'s mean, without its std
+        (Eq. 17 reads the means only).
+
+        Parameters
+        ----------
+        x : ndarray
+            (4,).
+
+        Returns
+        -------
+        ndarray
+        """
+        assert self._gp is not None and self.plain
+        if self._gp.shared:  # the same operations as the full call's mean: the same numbers
+            return self._gp.mean_kernel(np.asarray(x, dtype=float))[0]
+        return self._gp(x)[0]
+
     def __call__(self, inp: fx.Inputs) -> tuple[np.ndarray, np.ndarray]:
         m = self.model
         if self._lag > 0:

@@ -212,6 +212,7 @@ class Daemon:
         self.tick_times: list[float] | None = None  # set to [] to record tick start times
         self.latencies: list[float] | None = None  # set to [] to record reading receipt -> t-test done (s)
         self.exposure_latencies: list[float] | None = None  # set to []: mid-exposure (host clock) -> t-test done
+        self.realtime_thread = False  # the paced loop's thread got SCHED_FIFO (`rt_priority`)
         # The plant asks every cell on `dt/<cell>/<robot>/<kind>` (docs/plant.md): served once the daemon is whole.
         if self.bus:
             bus, view = self.bus, CellStatus(self.reporter, self.store, self.counters, self.escalator)
@@ -525,10 +526,14 @@ class Daemon:
         # default, more than a period at 500 Hz. Paced, the loop bounds that wait.
         before = sys.getswitchinterval()
         sys.setswitchinterval(min(before, PACED_SWITCH_INTERVAL_S))
+        policy = _fifo_thread(self.cfg.rt_priority)
+        self.realtime_thread = policy is not None
         try:
             return self._run(duration_s, max_ticks)
         finally:
             sys.setswitchinterval(before)
+            if policy is not None:
+                os.sched_setscheduler(0, *policy)
 
     def _run(self, duration_s: float | None, max_ticks: int | None) -> dict:
         period = 1.0 / self.cfg.rate_hz
@@ -756,6 +761,20 @@ def run_daemon(config: str | Path, duration_s: float | None = None, status_every
             timer.cancel()
         for s, handler in before.items():
             signal.signal(s, signal.SIG_DFL if handler is None else handler)
+
+
+def _fifo_thread(priority: int) -> tuple[int, Any] | None:
+    """SCHED_FIFO at `priority` for the calling thread (Linux applies the policy per thread: the
+    store's writer, housekeeping and the bus's threads, started before, keep theirs), when the
+    user may have it; returns the policy to restore, or None (not allowed, or priority 0)."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return None
+    try:
+        old = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, OSError):
+        return None
+    return old
 
 
 def _exit_hard(after_s: float) -> None:

@@ -172,7 +172,9 @@ class Escalator:
     @property
     def state(self) -> str:
         """The machine's state: one of `STATES`."""
-        return next(iter(self.machine.configuration)).id
+        # the machine's value (every state's value is its id): read every tick, ~10x cheaper than
+        # building the configuration's set
+        return self.machine.current_state_value
 
     @property
     def window_failures(self) -> int:

@@ -244,7 +244,8 @@ class RetentionConfig(Frozen):
 class RuntimeConfig(Frozen):
     """The runtime YAML of `dt run`: `twin` (a twin directory), `store` (the SQLite file),
     `rate_hz` (the loop's or the controller's rate, Hz), `realtime` (paced on the wall clock, or
-    as fast as it can on the simulated clock), `alpha` (Eq. 17's significance level),
+    as fast as it can on the simulated clock), `rt_priority` (the paced point loop's SCHED_FIFO
+    priority when the user may have it, 0: none), `alpha` (Eq. 17's significance level),
     `stop_timeout_s`, `max_measurement_age_s`, `publish` (use the bus), and the sections
     `drivers`, `sim`, `path`, `stream`, `limits`, `escalation`, `halt`, `retention` and `bus`.
     Relative paths are relative to the YAML. docs/service.md ("Configuration")."""
@@ -253,6 +254,10 @@ class RuntimeConfig(Frozen):
     store: str = "out/run/dt.sqlite"
     rate_hz: float = Field(10.0, gt=0, le=2000)
     realtime: bool = True
+    # The paced point loop's thread runs SCHED_FIFO at this priority when allowed (root,
+    # CAP_SYS_NICE or an rtprio limit; 0: never): another process on its core then waits for the
+    # tick instead of taking its period (docs/service.md, "Pacing").
+    rt_priority: int = Field(10, ge=0, le=98)
     alpha: float = Field(0.05, gt=0, lt=1)
     # SIGTERM -> exit within this time even with a silent device (the move is aborted, the
     # store flushed, the bus closed; past it the process exits hard: committed rows are safe).

@@ -14,9 +14,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import special, stats
 
+from dt_runtime.common import jit
+from dt_runtime.frames.ik_kernel import OK as IK_OK
+from dt_runtime.frames.ik_kernel import IKArrays
 from dt_runtime.frames.newton_ik import NewtonIK
 from dt_runtime.metrology.uncertainty import Budget
+from dt_runtime.models.gp_kernel import GPArrays
 from dt_runtime.twin.conditions import Conditions, command_inputs
+from dt_runtime.twin.law_kernel import GP_X, fixed_point_geometric, fixed_point_gp
 from dt_runtime.twin.twin import Correction, Twin
 
 P95 = 0.975  # two-sided 95 % coverage: the t quantile at 0.5 + 0.95 / 2 (metrology.uncertainty)
@@ -82,17 +87,29 @@ class Corrector:
     predictor : MapPredictor or None
         The e_LT map's per-command predictor to use (it carries a thermal map's structure
         temperature from command to command); None: one of its own.
+    compiled : bool
+        Run the fixed point as one compiled call (`twin.law_kernel`) where it applies (a shared GP
+        of TCP and speed; geometric terms + a shared GP or none) and numba is there; False: the
+        numpy path only (the same numbers; `benchmarks.setpoint` times both).
+
+    Attributes
+    ----------
+    evaluations : int
+        Map evaluations made so far (either path): what a warm start saves.
+    compiled : bool
+        Whether the compiled path is in use.
     """
 
-    def __init__(self, twin: Twin, iters: int = 6, tol: float = 1e-8, predictor=None):
+    def __init__(self, twin: Twin, iters: int = 6, tol: float = 1e-8, predictor=None, compiled: bool = True):
         self.twin, self.iters, self.tol = twin, iters, tol
+        self.evaluations = 0
         self._Rt = twin.T_rdk.R.T  # GL axes -> robot axes
         self._map = twin.e_lt.predictor() if predictor is None else predictor
         self.needs = self._map.needs
         gp = twin.e_lt.gp_.predictor() if self._map.plain and twin.e_lt.gp_ is not None else None
         self._gp = gp if gp is not None and gp.shared else None
         self._chain = twin.e_lt.chain() if "joints" in self.needs else None
-        self._newton = NewtonIK(self._chain) if self._chain is not None else None
+        self._newton = NewtonIK(self._chain, compiled=compiled) if self._chain is not None else None
         self._ik = self._newton.solve if self._newton is not None else None
         # A map of geometric terms (+ GP): its design row on floats (`geometric_row`), no Inputs
         model = twin.e_lt
@@ -127,6 +144,88 @@ class Corrector:
                 self._w_m = 1.0 / pu.model_dof if math.isfinite(pu.model_dof) else 0.0  # 1 / nu
                 self._w_k = 1.0 / pu.extrapolation_dof if math.isfinite(pu.extrapolation_dof) else 0.0
         self._k_inf = float(stats.norm.ppf(P95))
+        self.compiled = False
+        if compiled and jit.enabled():  # the kinds it runs carry no state between commands (no thermal map)
+            self._compile()
+
+    # --- the compiled path (twin.law_kernel) ----------------------------------------------------
+    def _compile(self) -> None:
+        """Arrays and scratch of the compiled fixed point, when the map is one it runs; the kernels
+        compiled (or loaded from numba's cache) now, not at the first set-point. A failure turns
+        the compiled kernels off (`common.jit.disable`): the numpy path runs."""
+        model = self.twin.e_lt
+        try:
+            self._ga: GPArrays | None = None
+            if self._gp is not None:
+                self._ga = GPArrays(self._gp)
+                kind = "gp"
+            elif self._geo and (self._geo_gp is None or self._geo_shared) and model.gp_inputs in (*GP_X, "none"):
+                assert self._newton is not None
+                self._ia = IKArrays(self._newton)
+                self._ga = GPArrays(self._geo_gp) if self._geo_gp is not None else None
+                self._gp_x = GP_X.get(model.gp_inputs, 0)
+                self._geo_theta = np.ascontiguousarray(self._theta, dtype=float)
+                self._geo_cov = np.ascontiguousarray(self._cov, dtype=float)
+                self._geo_x = np.empty(max(4, self._ia.n))
+                self._qs, self._mg, self._mgp = np.empty(self._ia.n), np.empty(3), np.empty(3)
+                self._sig2 = np.empty(3)
+                kind = "geometric"
+            else:
+                return
+            self._Rt_c = np.ascontiguousarray(self._Rt, dtype=float)
+            self._c0 = np.zeros(4)
+            self._kind = kind
+            self.compiled = True
+            self._warm_up()
+        except Exception as exc:  # noqa: BLE001 - numba could not compile or run it: the numpy path
+            self.compiled = False
+            jit.disable(f"{type(exc).__name__}: {exc}")
+
+    def _warm_up(self) -> None:
+        """One compiled correction at a point of the DOE (compiles the kernels, or loads them from
+        numba's cache) and its U; its count undone: the first set-point costs what the others do."""
+        x = self._ga.xm[:3].copy() if self._ga is not None and self._ga.d >= 3 else np.array([0.9, 0.0, 0.55])
+        q = None
+        if self._kind == "geometric":
+            assert self._chain is not None
+            q = np.zeros(self._chain.dof)
+        r = self._fixed_point(x, 0.25, q, None)
+        if r is not None:  # U's first evaluation (scipy's t quantile) paid here too
+            self._setpoint(*r)
+        self.evaluations = 0
+
+    def _fixed_point(self, target: np.ndarray, v: float, q0: np.ndarray | None, warm: np.ndarray | None,
+                     uncertainty: bool = True):
+        """(command, sigma or None without `uncertainty`, joints) by the compiled fixed point, or
+        None where the general path must answer (a joint-space map without joints; the IK did not
+        converge: its error is the general path's)."""
+        c0 = self._c0
+        if warm is None:
+            c0[:3], c0[3] = target, 0.0
+        else:
+            c0[:3], c0[3] = target + warm, 1.0
+        c = np.empty(3)
+        a = self._ga
+        if self._kind == "gp":
+            assert a is not None
+            self.evaluations += fixed_point_gp(target, v, self._Rt_c, c0, self.iters, self.tol, self._x, a.Xb, a.xm,
+                                               a.xs, a.nh, a.sf2, a.m0, a.ys, a.alpha, a.z, a.acc, a.K, a.m, c)
+            return c, a.std() if uncertainty else None, None
+        if q0 is None:
+            return None
+        k, g = self._ia, a if a is not None else _NO_GP
+        n, status = fixed_point_geometric(
+            target, v, self._Rt_c, c0, q0, self.iters, self.tol, self._gp_x, a is not None, self._geo_theta,
+            self._geo_cov, self._geo_x, k.fixed, k.tool, k.At, k.has_At, k.axes, k.q, k.T, k.J, k.F, k.C, k.W, k.Jt,
+            k.A, k.e, k.x, k.row, self._qs, self._mg, g.Xb, g.xm, g.xs, g.nh, g.sf2, g.m0, g.ys, g.alpha, g.z, g.acc,
+            g.K, g.m, c, self._sig2)
+        self.evaluations += n
+        if status != IK_OK:
+            return None
+        if not uncertainty:
+            return c, None, k.q.copy()
+        var = self._sig2 if a is None else self._sig2 + a.std() ** 2
+        return c, np.sqrt(np.maximum(var, 0.0)), k.q.copy()
 
     def _lt(self, c: np.ndarray, v: float, cond: Conditions | None, q_seed):
         """e_LT_hat's mean at c (GL axes), what its std needs (`_std`), and c's joints."""
@@ -180,7 +279,7 @@ class Corrector:
         return np.sqrt(np.maximum(var, 0.0))
 
     def correct(self, target: np.ndarray, v: float, cond: Conditions | None = None,
-                warm: np.ndarray | None = None) -> Setpoint:
+                warm: np.ndarray | None = None, uncertainty: bool = True) -> Setpoint:
         """The corrected set-point for a target.
 
         Parameters
@@ -196,31 +295,50 @@ class Corrector:
             there instead of at the target. Along a path the correction changes by micrometres
             between set-points, so it converges in one or two evaluations of the map instead of
             four or five (the same fixed point, to `tol`).
+        uncertainty : bool
+            False: the command (and the volume flag) only, U and sigma NaN: a streamed path sends
+            commands, and the GP's variance reads a (U, U) matrix per output, more memory than
+            stays in the cache between two set-points (`follow`).
 
         Returns
         -------
         Setpoint
         """
         target = np.asarray(target, dtype=float)
+        if self.compiled:
+            q0 = None if cond is None or cond.joints is None else np.asarray(cond.joints, dtype=float)
+            r = self._fixed_point(target, float(v), q0, None if warm is None else np.asarray(warm, dtype=float),
+                                  uncertainty)
+            if r is not None:
+                return self._setpoint(*r)
         Rt, tol = self._Rt, self.tol
         if warm is None:
             m, s, q = self._lt(target, v, cond, None)
+            self.evaluations += 1
             c = target + Rt @ m
         else:
             c, q = target + warm, None
         for _ in range(self.iters):  # c_{n+1} = target + e_hat(c_n): the map contracts (grad e << 1)
             m, s, q = self._lt(c, v, cond, q)
+            self.evaluations += 1
             c_new = target + Rt @ m
             done = np.abs(c_new - c).max() < tol
             c = c_new
             if done:
                 break
-        sigma = self._std(s)
+        return self._setpoint(c, self._std(s) if uncertainty else None, q)
+
+    def _setpoint(self, c: np.ndarray, sigma: np.ndarray | None, q: np.ndarray | None) -> Setpoint:
+        """The set-point at command c: its distance to the DOE hull, U there (NaN without sigma),
+        the volume flag."""
         if self._normals is None:
             dist = float("nan")
         else:
             dist = float(np.max(self._normals @ c + self._offsets))
-        return Setpoint(c, self._expanded(sigma, dist), self._normals is None or dist <= self._margin, dist, q, sigma)
+        inside = self._normals is None or dist <= self._margin
+        if sigma is None:
+            return Setpoint(c, np.full(3, np.nan), inside, dist, q, np.full(3, np.nan))
+        return Setpoint(c, self._expanded(sigma, dist), inside, dist, q, sigma)
 
     def budget(self, sp: Setpoint) -> Budget | None:
         """The labelled Eq. 11 budget at a corrected set-point (None for a twin without one).
@@ -257,7 +375,7 @@ class Corrector:
         -------
         callable
             Each call corrects at the speed of the set-point meant for t, warm-started from the
-            previous call's correction.
+            previous call's correction; the command only (`correct`'s uncertainty=False).
         """
         last = len(times) - 1
         q = None if joints is None else np.asarray(joints, dtype=float)
@@ -266,7 +384,8 @@ class Corrector:
         def correct_one(target: np.ndarray, t: float) -> np.ndarray:
             nonlocal q, warm
             k = min(int(np.searchsorted(times, t - 1e-9)), last)
-            r = self.correct(target, float(speeds[k]), None if q is None else Conditions(joints=q), warm)
+            r = self.correct(target, float(speeds[k]), None if q is None else Conditions(joints=q), warm,
+                             uncertainty=False)
             if r.joints is not None:
                 q = r.joints
             warm = r.command - target
@@ -293,6 +412,16 @@ class Corrector:
             k = special.stdtrit(max(uc2 * uc2 / den, 1.0), P95) if den > 0 else self._k_inf
             U.append(cf * k * math.sqrt(uc2))
         return np.array(U)
+
+
+class _NoGP:
+    """Stand-in arrays for a geometric map without a GP (the kernel's GP arguments, unused)."""
+
+    Xb, nh, alpha, K = np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1))
+    xm = xs = sf2 = m0 = ys = z = acc = m = np.zeros(1)
+
+
+_NO_GP = _NoGP()
 
 
 def geometric_row(ik: NewtonIK, q: np.ndarray) -> np.ndarray:

@@ -102,8 +102,8 @@ class Monitor:
         cmd_gl = tw.T_rdk.apply(command)
         e_mvs = cmd_gl - tw.T_mvs.apply(p_mvs)
         try:
-            e_lt_hat = tw.T_rdk.R @ tw.e_lt_hat(command, speed, cond)[0]  # back to GL axes
-            pred = tw.e_mvs_lt_hat(command, speed, cond)[0]
+            e_lt, pred = tw.predicted_means(command, speed, cond)
+            e_lt_hat = tw.T_rdk.R @ e_lt  # back to GL axes
         except (DataError, UnreachableError, FloatingPointError, np.linalg.LinAlgError) as exc:
             raise CorrectionFault(f"no prediction at command {np.round(command * 1e3, 1).tolist()} mm: {exc}") from exc
         if not (np.all(np.isfinite(e_lt_hat)) and np.all(np.isfinite(pred))):

@@ -348,6 +348,30 @@ class Twin:
         chain = self._chain or (self.e_mvs_lt.chain() if "joints" in self._p_mvs_lt.needs else None)
         return self._p_mvs_lt(command_inputs(c, v, self._p_mvs_lt.needs, cond, chain)[0])
 
+    def predicted_means(self, c: np.ndarray, v: float, cond: Conditions | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The means of `e_lt_hat` (robot axes) and `e_mvs_lt_hat` (GL axes) at command c, without
+        their std: what Eq. 17 reads (`twin.monitor`), the same numbers.
+
+        Parameters
+        ----------
+        c : ndarray
+            (3,) m, the command (robot frame).
+        v : float
+            Speed, m/s.
+        cond : Conditions or None
+            What the maps read beside the command (`needs`).
+
+        Returns
+        -------
+        e_lt, e_mvs_lt : ndarray
+            (3,) m each.
+        """
+        c = np.asarray(c, dtype=float)
+        if self._p_lt.plain and self._p_mvs_lt.plain:
+            x = np.array([c[0], c[1], c[2], v])
+            return self._Rt @ self._p_lt.gp_mean(x), self._p_mvs_lt.gp_mean(x)
+        return self.e_lt_hat(c, v, cond)[0], self.e_mvs_lt_hat(c, v, cond)[0]
+
     @functools.cached_property
     def corrector(self):
         """The twin's correction law (`twin.corrector.Corrector`), built on first use; it shares

@@ -129,4 +129,30 @@ def test_the_setpoint_benchmark_short_run(twin_dir, geometric_twin):
     for name in ("demo", "geometric"):
         t = r["twins"][name]
         assert t["max_diff_mm"] < 1e-9 and t["correction_us"]["speedup"] > 1.3, (name, t)  # 3.6x, 3.1x measured
+        # U: the plain law's own rounding (tests/unit/test_corrector.py, U_ROUNDING)
+        assert t["max_diff_U_mm"] < 1e-8 and t["max_diff_numpy_warm_mm"] < 1e-9, (name, t)
     assert r["twins"]["geometric"]["needs"] == ["joints"] and r["twins"]["demo"]["needs"] == []
+
+
+def test_the_compiled_law_on_a_joint_space_map_is_the_numpy_path(geometric_twin):
+    """`Corrector` on geometric terms + a GP: the compiled fixed point (IK, design row, GP in one
+    call: twin.law_kernel) gives the numpy path's commands, joints and U, cold and warm-started."""
+    from dt_runtime.common import jit
+    from dt_runtime.twin.corrector import Corrector
+
+    if not jit.enabled():
+        pytest.skip("numba is not installed: the numpy path is all there is")
+    twin = Twin.load(geometric_twin)
+    fast, slow = Corrector(twin), Corrector(twin, compiled=False)
+    assert fast.compiled and not slow.compiled
+    q = np.array(json.loads(START_JOINTS))
+    start = twin.e_lt.chain().fk(q[None])[0]
+    warm = None
+    for k in range(80):
+        x = start + 1e-3 * k * np.array([0.5, 0.5, 0.0])
+        cond = Conditions(joints=q)
+        a, b = fast.correct(x, 0.25, cond, warm), slow.correct(x, 0.25, cond, warm)
+        assert a.command == pytest.approx(b.command, abs=1e-12) and a.U == pytest.approx(b.U, abs=1e-12)
+        assert a.joints == pytest.approx(b.joints, abs=1e-12)
+        q, warm = a.joints, (a.command - x if k % 2 else None)
+    assert fast.evaluations == slow.evaluations

@@ -657,3 +657,36 @@ def test_kill_9_at_random_moments_keeps_the_store_consistent(twin_dir, tmp_path)
 def test_kill_9_at_random_moments_many_times(twin_dir, tmp_path):
     dsts = _kill_cycles(twin_dir, tmp_path, cycles=30, seed=2)
     assert "maintenance_requested" in dsts  # the kills fell before, during and after paging
+
+
+# --- the paced loop's scheduling -----------------------------------------------------------------
+@pytest.mark.parametrize("priority", [0, 10])
+def test_the_paced_loop_runs_fifo_when_allowed_and_gives_the_policy_back(twin_dir, tmp_path, priority):
+    """`rt_priority`: the paced loop's thread SCHED_FIFO while it runs (when the user may have it),
+    its own policy after; 0 never."""
+    import os
+
+    try:  # may this user have SCHED_FIFO here? (root in the test container; a user may not)
+        old = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, *old)
+        allowed = True
+    except (AttributeError, PermissionError, OSError):
+        allowed = False
+    seen: list[int] = []
+    d = Daemon(cfg_of(twin_dir, tmp_path, rate_hz=50.0, realtime=True, rt_priority=priority), CONFIGS)
+    before = os.sched_getscheduler(0)
+    tick = d.tick
+
+    def spy() -> None:
+        seen.append(os.sched_getscheduler(0))
+        tick()
+
+    d.tick = spy
+    try:
+        d.run(duration_s=0.3)
+    finally:
+        d.close()
+    assert seen and d.realtime_thread == (allowed and priority > 0)
+    assert set(seen) == {os.SCHED_FIFO if d.realtime_thread else before}
+    assert os.sched_getscheduler(0) == before
