@@ -5,6 +5,7 @@ The config keys, what it reads and sends, the faults it detects and the streamin
 docs/drivers.md ("Universal Robots over RTDE")."""
 from __future__ import annotations
 
+import math
 import socket
 import time
 from collections.abc import Callable
@@ -32,15 +33,23 @@ class UrLimits(Frozen):
     max_speed_m_s: float = Field(1.0, gt=0, le=5.0)
 
 
+# The servo program's watchdog when `watchdog_cycles` is not set: 0.25 s at any rate, six times the
+# longest stall of the streaming process measured without real-time priority at load 7-9 on two
+# cores (41 ms; docs/streaming.md, "Watchdog and time-outs"): the loop waits out a stall, the
+# controller does not stop the arm for it; a host that is gone still stops it within 0.25 s.
+WATCHDOG_S = 0.25
+
+
 class UrStream(Frozen):
     """The RTDE registers and watchdog of set-point streaming (docs/drivers.md, the ``stream`` table):
-    register numbers 0-47, ``watchdog_cycles`` (control cycles), ``stop_deceleration`` (rad/s^2).
+    register numbers 0-47, ``watchdog_cycles`` (control cycles; None: WATCHDOG_S at the stream's
+    rate), ``stop_deceleration`` (rad/s^2).
     """
     enabled: bool = True
     double_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 6)
     seq_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 1)
     status_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 2)
-    watchdog_cycles: int = Field(25, ge=1, le=100_000)
+    watchdog_cycles: int | None = Field(None, ge=1, le=100_000)
     stop_deceleration: float = Field(4.0, gt=0, le=40.0)
 
     @property
@@ -320,8 +329,9 @@ class UrRtdeController(Abortable, Lifecycle):
         pose = tuple(float(x) for x in s.values["actual_TCP_pose"])
         rot = tuple(cfg.tool_rotvec) if cfg.tool_rotvec is not None else pose[3:]
         st = cfg.stream
+        cycles = st.watchdog_cycles if st.watchdog_cycles is not None else math.ceil(WATCHDOG_S * rate)
         program = urscript.ServoProgram(st.double_register, st.seq_register, st.status_register, 1.0 / rate, la, g,
-                                        st.watchdog_cycles, st.stop_deceleration)
+                                        cycles, st.stop_deceleration)
         stream = _Stream(program, rate, rot, np.array(pose[:3]))
         link.write_inputs([stream.seq, *pose[:3], *rot])  # where the arm is: the first cycle holds it
         self._await_register(f"input_int_register_{st.seq_register}", stream.seq)  # before the program reads it
