@@ -33,10 +33,11 @@ class UrLimits(Frozen):
     max_speed_m_s: float = Field(1.0, gt=0, le=5.0)
 
 
-# The servo program's watchdog when `watchdog_cycles` is not set: 0.25 s at any rate, six times the
-# longest stall of the streaming process measured without real-time priority at load 7-9 on two
-# cores (41 ms; docs/streaming.md, "Watchdog and time-outs"): the loop waits out a stall, the
-# controller does not stop the arm for it; a host that is gone still stops it within 0.25 s.
+# The servo program's watchdog when `watchdog_cycles` is not set: 0.25 s at any rate, twice the
+# longest stall of the streaming process measured without real-time priority beside four busy
+# loops on two cores (121 ms at load 9; docs/streaming.md, "Watchdog and time-outs"): the loop
+# waits out a stall, the controller does not stop the arm for it; a host that is gone still has
+# the arm stopped within 0.25 s (`dt run` resumes a pass a longer stall stopped).
 WATCHDOG_S = 0.25
 
 
