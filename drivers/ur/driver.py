@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from drivers.base import Abortable, JointState, Lifecycle, StreamStatus, check_move, check_stream_params
+from drivers.base import Abortable, JointState, Lifecycle, StreamStatus, WatchdogStop, check_move, check_stream_params
 from drivers.ur import protocol as rp
 from drivers.ur import urscript
 from drivers.ur.rtde_link import RtdeLink, RtdeSample
@@ -39,6 +39,7 @@ class UrLimits(Frozen):
 # waits out a stall, the controller does not stop the arm for it; a host that is gone still has
 # the arm stopped within 0.25 s (`dt run` resumes a pass a longer stall stopped).
 WATCHDOG_S = 0.25
+_WATCHDOG_WHY = "the controller's watchdog stopped the arm"  # a refusal that raises WatchdogStop
 
 
 class UrStream(Frozen):
@@ -388,8 +389,7 @@ class UrRtdeController(Abortable, Lifecycle):
                     f"{name}); clear it and start_stream again")
         state = v.get(f"output_int_register_{stream.program.status_register}")
         if state == urscript.STREAM_WATCHDOG:
-            return (f"the controller's watchdog stopped the arm: no new set-point for "
-                    f"{stream.program.watchdog_cycles} control cycles")
+            return f"{_WATCHDOG_WHY}: no new set-point for {stream.program.watchdog_cycles} control cycles"
         if state == urscript.STREAM_RUNNING and v["runtime_state"] != rp.RUNTIME_PLAYING:
             return "the servo program is no longer running"
         return ""
@@ -414,8 +414,8 @@ class UrRtdeController(Abortable, Lifecycle):
         DriverError
             Naming the reason, nothing sent: the set-point is out of the limits, ``t`` does not
             increase, the step exceeds ``limits.max_speed_m_s``, the newest package shows a safety stop
-            or the program stopped (watchdog) or ended, the RTDE connection is down, or the driver is
-            aborted.
+            or the program stopped (watchdog: WatchdogStop, a DriverError) or ended, the RTDE connection
+            is down, or the driver is aborted.
         """
         self._require("active")
         self._check_abort()
@@ -439,8 +439,9 @@ class UrRtdeController(Abortable, Lifecycle):
         if why:
             stream.stopped = why
             self.stats["refused"] += 1
-            raise DriverError(f"{self.name}: set-point {stream.sent + 1} not sent: {why} "
-                              f"({stream.sent} sent, the controller took {self._consumed(stream)})")
+            err = WatchdogStop if why.startswith(_WATCHDOG_WHY) else DriverError
+            raise err(f"{self.name}: set-point {stream.sent + 1} not sent: {why} "
+                      f"({stream.sent} sent, the controller took {self._consumed(stream)})")
         try:
             self._link.write_inputs([stream.seq + 1, *target, *stream.rot])
         except DriverError as exc:  # the connection went down since the check: stopped all the same

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.base import WatchdogStop
 from dt_kernel.errors import DriverError, TwinError
 
 Corrector = Callable[[np.ndarray, float], np.ndarray]  # (target m, t s) -> command m
@@ -197,10 +198,11 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
                     driver.stream(commands[k], times[k])
                 except DriverError as exc:
                     stopped = f"set-point {k + 1} of {n} refused: {exc}"
-                    if waits and k - waits[-1][0] <= 0.5 * rate_hz:  # the controller gave up while the host stalled
+                    if isinstance(exc, WatchdogStop):  # the controller gave up on a host that stalled: not the cell
                         host_stalled = True
-                        stopped += (f" (the streaming process had not been scheduled for {1e3 * waits[-1][1]:.0f} ms "
-                                    "before it)")
+                        if waits and k - waits[-1][0] <= 0.5 * rate_hz:
+                            stopped += (f" (the streaming process had not been scheduled for "
+                                        f"{1e3 * waits[-1][1]:.0f} ms before it)")
                     break
                 send_ns[k] = time.perf_counter_ns() - s0
                 sent_at[k], lateness[k] = now, now - due

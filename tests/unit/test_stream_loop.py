@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.base import streams
-from dt_kernel.errors import TwinError
+from drivers.base import WatchdogStop, streams
+from dt_kernel.errors import DriverError, TwinError
 from dt_runtime.service.stream import StreamProcess, run_stream
 from tests.support.stream_fakes import OFFSET, RecordingStreamer, broken_streamer, offset_corrector, recording_streamer
 
@@ -115,3 +115,29 @@ def test_a_host_slower_than_the_rate_skips_set_points_and_keeps_the_path_on_time
     assert sent_t == sorted(set(sent_t))  # in order, none twice
     assert np.isnan(rep.commands).any(axis=1).sum() == rep.skipped
     assert "skipped" in rep.degraded and "longer than the 2 ms period" in rep.degraded
+
+
+class _RefusesAfterStall(_SlowOnce):
+    """Stalls after set-point 10, then refuses the next with `error` (the watchdog, or a fault of the cell)."""
+
+    def __init__(self, error):
+        super().__init__(10, 0.05)
+        self.error = error
+
+    def stream(self, target, t: float) -> None:
+        if len(self.calls) == 10:
+            raise self.error
+        super().stream(target, t)
+
+
+@pytest.mark.parametrize("error,host", [(WatchdogStop("the controller's watchdog stopped the arm"), True),
+                                        (DriverError("protective stop"), False),
+                                        (DriverError("the RTDE connection is down"), False)])
+def test_only_the_controllers_watchdog_after_a_stall_is_put_down_to_the_host(error, host):
+    """A refusal right after a stall: the watchdog's is the host's (`host_stalled`, the stall named);
+    a protective stop or a dropped connection is the cell's, whatever came before it."""
+    t, p = line(100, 500.0)
+    rep = run_stream(t, p, offset_corrector(), _RefusesAfterStall(error), 500.0)
+    assert rep.n_sent == 10 and rep.stopped.startswith("set-point 11 of 100 refused")
+    assert rep.host_stalled is host
+    assert ("not been scheduled" in rep.stopped) is host
