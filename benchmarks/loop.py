@@ -10,7 +10,7 @@ images of the rig (OpenCV detection and triangulation every tick) instead of the
 pick a target rate a camera could deliver (e.g. `--rate 30`). `--robot serial` commands the arm
 through the serial controller driver and its emulator on a pseudo-terminal (the line protocol
 every tick) instead of the simulated controller. Keys: rate_hz, target_hz, p99_period_error_ms
-(README.md, Benchmarks), and the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
+(docs/results.md, Real time), and the end-to-end latency of the paced run, latency_p50_ms and latency_p99_ms: from
 the MVS reading's receipt on the host (its `host_time`) to the Eq. 17 test done.
 
 `--robot ur_rtde --camera natnet` runs the loop through the Universal Robots RTDE driver and the

@@ -215,6 +215,8 @@ class Shift:
         Readings used.
     text : str
         The verdict in words.
+    chi2_after : float
+        The weighted residual sum of squares after the rigid fit (`joint_alternative` compares with it).
     """
 
     rigid: bool
@@ -224,6 +226,7 @@ class Shift:
     p_after: float
     n: int
     text: str
+    chi2_after: float = float("nan")
 
 
 MIN_SHIFT_READINGS = 6  # 3 n >= 2 x the 6 parameters of a rigid shift
@@ -285,4 +288,75 @@ def rigid_shift(points: np.ndarray, diffs: np.ndarray, u: np.ndarray) -> Shift:
     else:
         text = (f"the {n} failing readings are not one rigid shift (after the best one chi^2 p = {p_after:.2g}): "
                 "the arm changed, not the set-up")
-    return Shift(rigid, tr, rot, p_before, p_after, n, text)
+    return Shift(rigid, tr, rot, p_before, p_after, n, text, chi_after)
+
+
+ALT_JOINTS = 2  # joint-offset alternatives: every single joint and every pair
+P_ALTERNATIVE = 0.001  # a rigid shift beats a joint alternative when chi^2 falls by more than chi^2_6 at this level
+
+
+def joint_alternative(jacobian: np.ndarray, diffs: np.ndarray, u: np.ndarray, chi2_rigid: float,
+                      points: np.ndarray | None = None) -> dict:
+    """Do changed joint zeros explain the differences about as well as the rigid shift (d_i =
+    sum_j J_j(q_i) dq_j over one joint or a pair of joints, weighted least squares by 1/u)? Over
+    the few poses of a service window a joint's offset can look like a rigid shift of the set-up
+    (joint 1's is one exactly). The rigid shift is preferred only when its chi^2 is lower than the
+    best alternative's by more than chi^2_6 at P_ALTERNATIVE: were the alternative true, adding the
+    shift's 6 parameters to it would lower its chi^2 by a chi^2_6 variable, and the rigid fit alone
+    can do no better than that (so a joint fault is called a shift with probability below
+    P_ALTERNATIVE, for u as stated; a u stated too large only makes it rarer).
+
+    Parameters
+    ----------
+    jacobian : ndarray
+        (n, 3, dof) the position Jacobian of the TCP at each reading, in the differences' axes (m/rad).
+    diffs : ndarray
+        (n, 3) the differences, m.
+    u : ndarray
+        (n, 3) or (3,) their standard uncertainty, m.
+    chi2_rigid : float
+        The rigid fit's weighted residual sum of squares (`Shift.chi2_after`).
+    points : ndarray, optional
+        (n, 3) the readings' positions, m: with them, `nested` says whether a single joint whose
+        motion is itself a rigid motion of these points (joint 1's zero) explains them as well: no
+        number of readings tells it from a shift.
+
+    Returns
+    -------
+    dict
+        `joints` (1-based) of the best alternative, its `dq_mrad`, `chi2`, `p_value` (chi^2 on
+        3 n - k dof), `margin` (its chi^2 minus the rigid fit's), `needed` (the margin a shift
+        needs), `explains` (margin <= needed: the arm is not ruled out) and `nested`.
+    """
+    from itertools import combinations
+
+    from scipy import stats
+
+    J = np.asarray(jacobian, dtype=float)
+    d = np.asarray(diffs, dtype=float).reshape(-1, 3)
+    w = 1.0 / np.broadcast_to(np.asarray(u, dtype=float), d.shape)
+    b = (d * w).reshape(-1)
+    A = (J * w[:, :, None]).reshape(-1, J.shape[2])
+    best: dict = {"joints": [], "dq_mrad": [], "chi2": float(b @ b)}
+    for k in range(1, ALT_JOINTS + 1):
+        for cols in combinations(range(J.shape[2]), k):
+            M = A[:, cols]
+            dq, *_ = np.linalg.lstsq(M, b, rcond=None)
+            chi = float(np.sum((b - M @ dq) ** 2))
+            if chi < best["chi2"]:
+                best = {"joints": [c + 1 for c in cols], "dq_mrad": [float(v) * 1e3 for v in dq], "chi2": chi}
+    needed = float(stats.chi2.isf(P_ALTERNATIVE, 6))
+    margin = best["chi2"] - float(chi2_rigid)
+    dof = max(3 * len(d) - len(best["joints"]), 1)
+    nested = False  # a single joint whose motion is rigid (joint 1's) explains them as well
+    if points is not None:
+        R = (rigid_jacobian(np.asarray(points, dtype=float).reshape(-1, 3)) * w[:, :, None]).reshape(-1, 6)
+        for j in range(A.shape[1]):
+            a = A[:, j]
+            # rigid to 1 %: the readings sit where the camera saw them, the joint moves the commanded TCP
+            if not a @ a > 0 or np.linalg.norm(a - R @ np.linalg.lstsq(R, a, rcond=None)[0]) > 1e-2 * np.linalg.norm(a):
+                continue
+            chi = float(np.sum((b - a * (a @ b) / (a @ a)) ** 2))
+            nested = nested or chi - float(chi2_rigid) <= needed
+    return best | {"p_value": float(stats.chi2.sf(best["chi2"], dof)), "margin": margin, "needed": needed,
+                   "explains": bool(margin <= needed), "nested": nested}

@@ -380,6 +380,20 @@ def assess(samples: list[Sample], ref: Inputs | None = None, eq17: tuple[str, Eq
     return {"status": status, "band": list(BAND), "checks": checks, "line": line(status, checks)}
 
 
+def _over_covered(checks: list[dict]) -> str:
+    """Words for an OK whose coverage lies above the band (100.0 % against 90-99 %): too few targets
+    to tell it from 95 %, and if it holds, U is conservative (larger than the errors need)."""
+    over = [(c, ax, a) for c in checks if c.get("check", "").startswith("coverage_")
+            for ax, a in (c.get("axes") or {}).items() if a.get("coverage", 0) > BAND[1]]
+    if not over:
+        return ""
+    c = over[0][0]
+    axes = ", ".join(f"{ax} {_pct(a['coverage'])}" for cc, ax, a in over if cc is c)
+    return (f"; {axes} lies above the band, which {c.get('n_distinct', c.get('n'))} distinct targets cannot tell "
+            f"from 95 % (the 95 % interval reaches the band); if it holds, the stated {c.get('stated', 'U')} is "
+            "conservative: larger than the errors need")
+
+
 def line(status: str, checks: list[dict]) -> str:
     """The command's last line: the worst check in short, its likely cause and what to do next
     (the evidence is in the check's `finding` and `evidence`).
@@ -397,8 +411,9 @@ def line(status: str, checks: list[dict]) -> str:
     """
     if status == "ok":
         stated = checks[0].get("stated", "U(TCP_c)")
-        return (f"validity: {SYMBOL['ok']}: the stated {stated} covers the errors within the band "
+        text = (f"validity: {SYMBOL['ok']}: the stated {stated} covers the errors within the band "
                 f"{100 * BAND[0]:.0f}-{100 * BAND[1]:.0f} % in every check ({len(checks)})")
+        return text + _over_covered(checks)
     first = next(c for c in checks if c["status"] == status)
     text = f"validity: {SYMBOL[status]}: {first['short']}"
     eq17 = next((c for c in checks if c["check"] == "eq17_vs_coverage" and c is not first and c["status"] != "ok"),
@@ -413,3 +428,25 @@ def line(status: str, checks: list[dict]) -> str:
     if others:
         text += f" (and {len(others)} more check{'s' if len(others) > 1 else ''} flagged: the summary's validity)"
     return text
+
+
+def restated(block: dict) -> str | None:
+    """A stored validity block's line as this version words it (a summary written before the words
+    for a coverage above the band said only "OK"), else the line stored.
+
+    Parameters
+    ----------
+    block : dict
+        A summary's `validity` (status, checks, line).
+
+    Returns
+    -------
+    str or None
+    """
+    status, checks = block.get("status"), block.get("checks")
+    if status in RANK and isinstance(checks, list) and checks and all(isinstance(c, dict) for c in checks):
+        try:
+            return line(status, checks)
+        except (KeyError, TypeError, ValueError, StopIteration, AttributeError):
+            pass
+    return block.get("line")

@@ -7,6 +7,9 @@ nominal. Two ways to reach the daemon: `--store FILE` at the cell (the action is
 store; `--wait S` waits until it is applied), or `--bus FILE --request ID --uid UID` from a
 maintenance system elsewhere (published signed with the service's key, `bus.auth.key_file`).
 `--request ID` names the request answered (default, with --store: the newest one).
+`--rereference` (with --store) applies an open re-referencing offer instead: the escalation is in
+`rereference_offered` because the failures are one rigid shift of the camera set-up
+(docs/service.md, "Re-referencing instead of paging").
 
 Who can act, and the bus's rules: docs/cli.md ("dt ack") and docs/bus.md."""
 from __future__ import annotations
@@ -37,6 +40,9 @@ def add_arguments(a: argparse.ArgumentParser) -> None:
     a.add_argument("--uid", default=None, help="the request's uid (with --bus; as `dt consume` printed it)")
     a.add_argument("--cell", default=None, help="with --bus: the twin's cell (default: the bus config's)")
     a.add_argument("--robot", default=None, help="with --bus: the twin's robot (default: the bus config's)")
+    a.add_argument("--rereference", action="store_true",
+                   help="apply the offered re-referencing of the camera frame (escalation rereference_offered; "
+                        "with --store)")
     a.add_argument("--delivered-only", action="store_true",
                    help="only confirm that the request was delivered (the state stays)")
     a.add_argument("--wait", type=float, default=0.0, metavar="S",
@@ -72,6 +78,8 @@ def _via_store(args: argparse.Namespace) -> dict[str, Any]:
 
     if not Path(args.store).exists():
         raise TwinError(f"{args.store}: no such store (the runtime YAML's `store:`)")
+    if args.rereference:
+        return _rereference(args)
     with Store(args.store) as st:
         requests = st.requests(limit=1000)
         if not requests:
@@ -90,16 +98,39 @@ def _via_store(args: argparse.Namespace) -> dict[str, Any]:
             return {"action": aid, "kind": "delivered", "request": rid, "applied": True,
                     "result": f"delivery of {len(same)} copies confirmed"}
         aid = st.add_action("done", args.by, args.note, request_id=rid, source="cli")
-        deadline = time.monotonic() + max(0.0, args.wait)
-        while True:
-            act = next((a for a in st.actions(limit=1000) if a.id == aid), None)
-            if (act is not None and act.applied_at is not None) or time.monotonic() >= deadline:
-                break
-            time.sleep(0.1)
-        applied = act is not None and act.applied_at is not None
-        return {"action": aid, "kind": "done", "request": rid, "applied": applied,
-                "result": act.result if applied and act else
-                "recorded: the daemon applies it at its next tick (or its next start)"}
+        return {"action": aid, "kind": "done", "request": rid, **_wait_applied(st, aid, args.wait)}
+
+
+def _wait_applied(st: Any, aid: int, wait_s: float) -> dict[str, Any]:
+    """Whether the daemon applied action `aid` within `wait_s`, and its result."""
+    deadline = time.monotonic() + max(0.0, wait_s)
+    while True:
+        act = next((a for a in st.actions(limit=1000) if a.id == aid), None)
+        if (act is not None and act.applied_at is not None) or time.monotonic() >= deadline:
+            break
+        time.sleep(0.1)
+    applied = act is not None and act.applied_at is not None
+    return {"applied": applied, "result": act.result if applied and act else
+            "recorded: the daemon applies it at its next tick (or its next start)"}
+
+
+def _rereference(args: argparse.Namespace) -> dict[str, Any]:
+    """Store a 'rereference' action; the daemon applies it if it offers re-referencing."""
+    from dt_runtime.service.store import Store
+
+    if args.delivered_only or args.request is not None:
+        raise TwinError("--rereference answers the open re-referencing offer: no --request, no --delivered-only")
+    with Store(args.store) as st:
+        saved = st.load_state() or {}
+        data = saved.get("data", {})
+        state = data.get("state")
+        if data.get("offer") is None or (state != "rereference_offered"
+                                         and (state, data.get("halted_from")) != ("halted", "rereference_offered")):
+            raise TwinError(f"{args.store}: no re-referencing is offered (the escalation is {state or 'unknown'}); "
+                            "`dt status` shows the state")
+        aid = st.add_action("rereference", args.by, args.note, source="cli")
+        return {"action": aid, "kind": "rereference", "offer": saved["data"].get("offer"),
+                **_wait_applied(st, aid, args.wait)}
 
 
 def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
@@ -110,6 +141,8 @@ def _via_bus(args: argparse.Namespace) -> dict[str, Any]:
     from dt_runtime.fabric.consumer import publish_done
     from dt_runtime.fabric.session import close_session, open_session, zenoh_errors
 
+    if args.rereference:
+        raise TwinError("--rereference is applied at the cell: use --store FILE")
     if args.request is None or not args.uid:
         raise TwinError("--bus needs --request ID and --uid UID of the request (as `dt consume` printed them)")
     if args.delivered_only:
@@ -163,4 +196,9 @@ def human(result: dict) -> str:
     -------
     str
     """
-    return json.dumps(result, indent=2)
+    if "published" in result:  # over the bus
+        state = {True: "applied: the twin is back to nominal", False: "not applied within --wait",
+                 None: "not waited for (--wait S to see it applied)"}[result.get("applied")]
+        return f"'done' for request {result['request']} published on {result['published']}; {state}"
+    what = "delivery confirmed" if result["kind"] == "delivered" else "maintenance done recorded"
+    return f"request {result['request']}: {what} (action {result['action']}); {result['result']}"

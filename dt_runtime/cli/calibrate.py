@@ -6,6 +6,9 @@ computes the GUM budgets and the per-position uncertainty, validates on the vali
 given, and writes the twin (OUT, for `dt run`, `dt correct`, `dt compare`) with OUT/summary.json
 and OUT/report.html. The campaign: a directory with campaign.yaml (as `dt demo` writes in
 DIR/campaign) or the files one by one; format in docs/campaign-files.md.
+
+`--reference FILE --twin DIR` is the daily check instead: a deployed twin's session terms refitted
+on a few reference poses of the new session, without recalibrating (docs/deployment.md).
 """
 from __future__ import annotations
 
@@ -59,8 +62,13 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
                    help="calibrated volume: the DOE hull widened by this margin (default 25 mm)")
     c.add_argument("--seed", type=seed_number, default=None,
                    help="seed of folds and GP restarts (default: the campaign manifest's, else 0)")
-    c.add_argument("--out", required=True, metavar="TWIN",
-                   help="twin directory to write (replaced whole at the end: an interrupted run leaves it as it was)")
+    c.add_argument("--out", default=None, metavar="TWIN",
+                   help="twin directory to write (replaced whole at the end: an interrupted run leaves it as it was); "
+                        "with --reference default --twin")
+    c.add_argument("--reference", default=None, metavar="FILE.csv",
+                   help="the daily check: reference poses measured at the start of a session (a phase file, "
+                        "docs/campaign-files.md); refits the session terms of --twin without recalibrating")
+    c.add_argument("--twin", default=None, metavar="TWIN", help="with --reference: the deployed twin to check")
     add_strict_arg(c)
     add_output_args(c)
 
@@ -139,6 +147,10 @@ def run(args: argparse.Namespace) -> Any:
     from dt_runtime.workflows.calibrate import CalibrationOptions
     from dt_runtime.workflows.campaign_dir import calibrate_campaign
 
+    if args.reference or args.twin:
+        return _daily_check(args)
+    if not args.out:
+        raise DataError("dt calibrate needs --out TWIN (or --reference FILE --twin TWIN for the daily check)")
     files = files_of(args)
     cat = effects_catalogue(args)  # --effects may name --effects-file's effects
     seed = args.seed if args.seed is not None else files.seed if files.seed is not None else 0
@@ -164,6 +176,62 @@ def run(args: argparse.Namespace) -> Any:
     return res.summary
 
 
+def _daily_check(args: argparse.Namespace) -> dict:
+    """``--reference FILE --twin TWIN``: the daily check, the checked twin written whole (to --out, default TWIN)."""
+    from dt_kernel.errors import DataError
+    from dt_runtime.common.outputs import staged
+    from dt_runtime.measurements.campaign_files import read_phase
+    from dt_runtime.workflows import daily_check
+
+    if not (args.reference and args.twin):
+        raise DataError("the daily check needs both --reference FILE.csv and --twin TWIN")
+    given = [f"--{k}" for k in ("campaign", "registration", "doe", "validation", "model") if getattr(args, k)]
+    if given:
+        raise DataError(f"--reference checks a deployed twin; {', '.join(given)} belong to a calibration")
+    if not Path(args.reference).is_file():
+        raise DataError(f"{args.reference}: no such file")
+    if not (Path(args.twin) / "twin.json").is_file():
+        raise DataError(f"{args.twin}: not a twin directory (no twin.json; `dt calibrate --out` writes one)")
+    phase = read_phase(args.reference, "reference")
+    summary, meta = daily_check.check(args.twin, phase, args.reference)
+    out = args.out or args.twin
+    with staged(out, "dt calibrate --reference", marks=("twin.json",), inputs=[args.reference]) as work:
+        daily_check.write(args.twin, work, meta)  # the previous twin stays as it was until this is whole
+    return {"daily_check": True, **summary, "written": str(out), "maps_refitted": False}
+
+
+def _daily_lines(s: dict) -> list[str]:
+    """The daily check's text: the frames' change with U, the terms tested and kept, the validity."""
+    names = {"lt": "tracker frame T_lt", "mvs": "camera frame T_mvs"}
+    lines = [f"daily check of {s['twin']} on {s['poses']} reference poses ({s['distinct_points']} distinct points) "
+             f"of {s['reference']}"]
+    for k, f in s["frames"].items():
+        lines.append(f"  {names[k]} refitted: moved " + ", ".join(
+            f"{v:+.3f} ± {u:.3f}" for v, u in zip(f["translation_mm"], f["translation_U_mm"])) + " mm, turned "
+            + ", ".join(f"{v:+.3f} ± {u:.3f}" for v, u in zip(f["rotation_mrad"], f["rotation_U_mrad"]))
+            + f" mrad (U95, k = {f['k']:.2f}); residual {f['residual_rms_mm']:.3f} mm RMS; "
+            + ("a significant change" if f["p_value_no_change"] < 0.01 else "no significant change")
+            + f" (p = {f['p_value_no_change']:.2g})")
+    lines += [f"  {t['text']}" for t in s["terms"] if t["identified"]]
+    lines += [f"  kept: {k}" for k in s["kept"]]
+    lo = s["leave_one_out"]
+    lines.append(f"  each pose scored by the frames fitted on the other {lo['n'] - 1} (a small sample): 3D RMS "
+                 f"{lo['rms_mm']:.3f} mm, U95 covers " + ", ".join(f"{ax} {100 * v:.0f} %"
+                                                                   for ax, v in lo["coverage_95"].items())
+                 + ("; fails Eq. 17 " + ", ".join(f"{ax} {100 * v:.0f} %"
+                                                  for ax, v in lo["eq17_failures_per_axis"].items())
+                    if lo["eq17_failures_per_axis"] else "; no camera points: Eq. 17 not checked"))
+    lines.append(f"twin written to {s['written']} with the new frames and their uncertainty (error maps not refitted)")
+    changed = [t["term"] for t in s["terms"] if t.get("changed")]
+    ok = s["validity"]["status"] == "ok" and not changed
+    lines.append("next: " + ("the twin is ready for this session (dt run, dt correct)" if ok else
+                             ("recalibrate (dt calibrate --campaign): the session's " + " and ".join(changed)
+                              + " changed, which the maps cannot take up") if changed else
+                             "measure the reference poses again; if it stays, recalibrate (dt calibrate --campaign)"))
+    lines.append(s["validity"]["line"])
+    return lines
+
+
 def human(s: dict) -> str:
     """The text ``dt calibrate`` prints without ``--json``.
 
@@ -176,6 +244,8 @@ def human(s: dict) -> str:
     -------
     str
     """
+    if s.get("daily_check"):
+        return "\n".join(_daily_lines(s))
     e = s["maps"]["e_lt"]
     lines = [f"twin written to {s['twin']} (e_LT map: {', '.join(e['effects']) + ' + GP' if e['effects'] else 'GPR'})",
              f"precision (Sect. 3.3): {s['precision_before_mm']:.3f} mm -> {s['precision_after_mm']:.3f} mm "

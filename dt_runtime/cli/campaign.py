@@ -138,9 +138,10 @@ def _world(cfg, base: Path):
     if not any(registry.needs_world(k, n) for k, n, _ in cfg.drivers.chosen()):
         return None
     from drivers.simulated.devices import SimWorld
+    from dt_runtime.common.paths import beside
     from dt_runtime.workflows.simulate import load_scenario_file
 
-    p = lambda rel: Path(rel) if Path(rel).is_absolute() else base / rel  # noqa: E731
+    p = lambda rel: beside(base, rel)  # noqa: E731
     scenario, _ = load_scenario_file(p(cfg.sim.scenario))
     return SimWorld(scenario, p(cfg.sim.cell), source=str(p(cfg.sim.scenario)))
 

@@ -18,7 +18,6 @@ does not record a request twice (docs/plant.md). `--key` narrows the cells it se
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import threading
@@ -127,4 +126,8 @@ def human(result: dict) -> str:
     -------
     str
     """
-    return json.dumps(result)
+    text = (f"dt consume: {result['requests']} new request(s) ({result['copies']} copies received) for group "
+            f"{result['group']!r}")
+    if "history" in result:
+        text += f"; {result['recorded']} recorded in {result['history']} ({result['history_rows']} rows)"
+    return text

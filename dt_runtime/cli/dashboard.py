@@ -13,7 +13,6 @@ The options and the page: docs/cli.md ("dt dashboard") and docs/dashboard.md."""
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import threading
@@ -83,8 +82,14 @@ def run(args: argparse.Namespace) -> Any:
     TwinError
         For input the command refuses (``dt`` prints it and exits 2).
     """
-    from dt_kernel.errors import ConfigError
+    from dt_kernel.errors import ConfigError, TwinError
+
+    if not (args.config or args.results or args.plant):  # said before the web server's imports (seconds)
+        raise TwinError("nothing to show: give --config runtime.yaml (the live cell beside its `dt run`), "
+                        "--results DIR (the metrologist's view of dt compare / dt diagnose / twin results), "
+                        "--plant plant.yaml (the plant page), or several; `dt dashboard --help` for the rest")
     from dt_runtime.dashboard.app import Dashboard
+    from dt_runtime.dashboard.plant import check_links
     from dt_runtime.fabric import load_bus_config
     from dt_runtime.plant.config import load_plant_config
     from dt_runtime.service.runtime_config import load_runtime_config
@@ -97,6 +102,8 @@ def run(args: argparse.Namespace) -> Any:
     cfg = load_runtime_config(config) if config else None
     bus = load_bus_config(args.bus) if args.bus else None
     plant = load_plant_config(args.plant) if args.plant else None
+    if plant is not None:
+        check_links(plant, args.plant, args.host, args.port)
     stop = threading.Event()
     with Dashboard(cfg, config, bus=bus, host=args.host, port=args.port, token_file=args.token_file,
                    group=args.group, tls=(args.tls_cert, args.tls_key), max_rate_hz=args.max_rate,
@@ -133,4 +140,12 @@ def human(result: dict) -> str:
     -------
     str
     """
-    return json.dumps(result)
+    got = result.get("received") or {}
+    actions = result.get("actions") or []
+    return (f"dt dashboard: served {result['url']}"
+            + (f" (bus {result['bus']})" if result.get("bus") else "")
+            + f"; received {sum(got.values())} messages" + (f" ({', '.join(f'{k} {v}' for k, v in got.items())})"
+                                                            if got else "")
+            + (f", {result['bus_refused']} refused" if result.get("bus_refused") else "")
+            + (f", {result['dropped']} dropped" if result.get("dropped") else "")
+            + f"; {len(actions)} operator action(s)")

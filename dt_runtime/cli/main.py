@@ -33,7 +33,8 @@ from dt_runtime.cli import (
     status,
 )
 from dt_runtime.common.jsonsafe import dumps, jsonable
-from dt_runtime.common.threads import limit_blas_threads
+from dt_runtime.common.logs import RepeatFilter
+from dt_runtime.common.threads import limit_blas_threads_when_loaded
 from dt_runtime.common.version import version_string
 
 COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line help); the module's docstring describes it
@@ -56,6 +57,18 @@ COMMANDS: dict[str, tuple[ModuleType, str]] = {  # name -> (module, one-line hel
 }
 
 
+class _Version(argparse.Action):
+    """``--version``: the version and the git commit, asked of git only when given (two git
+    processes on every ``dt`` command, even an argument error, were most of its start-up)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, **kw) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(f"dt {version_string()}")  # on stdout, as argparse's own version action
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``dt`` parser: global options and one subparser per command (its module's docstring as the description).
 
@@ -65,13 +78,35 @@ def build_parser() -> argparse.ArgumentParser:
     """
     p = argparse.ArgumentParser(prog="dt", description="Traceable digital twin of a collaborative robot arm.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging on stderr")
-    p.add_argument("--version", action="version", version=f"dt {version_string()}",
-                   help="print the version and the git commit, then exit")
+    p.add_argument("--version", action=_Version, help="print the version and the git commit, then exit")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     for name, (mod, help_) in COMMANDS.items():
         mod.add_arguments(sub.add_parser(name, help=help_, description=mod.__doc__,
                                          formatter_class=argparse.RawDescriptionHelpFormatter))
     return p
+
+
+def parse(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """Parse ``argv``; an option the command does not know is refused by the command's own parser
+    (``dt demo: error: unrecognized arguments: --quik``, its usage, exit 2), not by the top-level one,
+    whose usage lists only the commands.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        What ``build_parser`` made.
+    argv : list of str or None
+        The arguments (sys.argv[1:] when None).
+
+    Returns
+    -------
+    argparse.Namespace
+    """
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        sub.choices[args.cmd].error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
 
 
 class JsonLines(logging.Formatter):
@@ -111,18 +146,18 @@ def main(argv: list[str] | None = None) -> int:
         Exit status: 0, the command's own (``exit_code``, e.g. 3 with --strict), 2 for a TwinError
         (bad input), 130 on Ctrl-C, 1 for an internal error.
     """
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse(build_parser(), argv)
     mod = COMMANDS[args.cmd][0]
     handler = logging.StreamHandler(sys.stderr)
     json_logs = getattr(mod, "json_logs", None)  # the command decides (dt run: by --log-format), or says JSON_LOGS
     as_lines = json_logs(args) if json_logs is not None else getattr(mod, "JSON_LOGS", False)
     handler.setFormatter(JsonLines() if as_lines else
                          logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.addFilter(RepeatFilter())  # a failing disk logged one error 87 times a second
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler])
     as_json = getattr(args, "json", False)
     try:
-        limit_blas_threads()
+        limit_blas_threads_when_loaded()
         result = jsonable(mod.run(args))
     except TwinError as exc:
         if as_json:

@@ -10,7 +10,6 @@ connected) on stdout at the end. docs/plant.md.
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import threading
@@ -82,4 +81,7 @@ def human(result: dict) -> str:
     -------
     str
     """
-    return json.dumps(result)
+    return (f"dt router: zid {result.get('zid')}, listened on {', '.join(result.get('listen') or [])}"
+            + (f"; {len(result['routers'])} router(s), {len(result['peers'])} peer(s) at the end"
+               if "routers" in result else "")
+            + (f"; up {result['uptime_s']:.0f} s" if "uptime_s" in result else ""))

@@ -7,7 +7,6 @@ FILE.csv.meta.json: scenario, seed, registration residual, noise floor.
 from __future__ import annotations
 
 import argparse
-import json
 from typing import Any
 
 from dt_runtime.cli.common import add_output_args, progress, seed_number
@@ -63,4 +62,7 @@ def human(result: dict) -> str:
     -------
     str
     """
-    return json.dumps(result, indent=2)
+    dropped = f" ({result['dropped_rows']} rows dropped)" if result.get("dropped_rows") else ""
+    return (f"wrote {result['n']} rows of {result['name']} ({', '.join(result['phases'])}; seed {result['seed']}) to "
+            f"{result['out']}{dropped}\nregistration RMS {result['registration_rms_mm']:.4f} mm, noise floor "
+            f"{result['noise_floor_mm']:.4f} mm (its meta: {result['out']}.meta.json; --json for the whole summary)")

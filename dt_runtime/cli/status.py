@@ -117,6 +117,13 @@ def human(r: dict) -> str:
         lines.append(f"escalation state: {esc.get('state')} (episode {esc.get('episode', 0)})"
                      + (f", halted: {esc['halt_reason']}" if esc.get("halt_reason") else "")
                      + f"; saved {_wall(state.get('updated'))}")
+        if esc.get("offer"):  # a rigid shift of the camera set-up: what applying it would do
+            o = esc["offer"]
+            lines.append(f"re-referencing offered: the failing readings are one shift of the set-up, "
+                         f"{', '.join(f'{v:+.3f}' for v in o['translation_mm'])} mm, "
+                         f"{', '.join(f'{v:+.3f}' for v in o['rotation_mrad'])} mrad (n {o['n']}, "
+                         f"p {o['p_before']:.2g} before, {o['p_after']:.2g} after); apply it: "
+                         f"dt ack --store {r['path']} --rereference --by NAME --note TEXT")
     else:
         lines.append("escalation state: none saved yet (a fresh store)")
     c, tt = r["counts"], r["t_tests"]
@@ -156,8 +163,15 @@ def human(r: dict) -> str:
                      + (f"; {q['reason']}" if q.get("reason") else ""))
     for a in r.get("operator_actions") or []:
         lines.append(f"  operator: {a['kind']} by {a['by']} ({a['source']}), {_wall(a['created'])}: {a['note']}"
-                     + (f"; applied: {a['result']}" if a.get("applied_at") else "; not applied yet"))
+                     + (f"; {_applied(a['result'])}" if a.get("applied_at") else "; not applied yet"))
     return "\n".join(lines)
+
+
+def _applied(result: str | None) -> str:
+    """An applied action's result as a clause: the store's text says 'applied: ...' or 'ignored: ...'
+    itself (service.paging), a delivery confirmation does not."""
+    text = result or ""
+    return text if text.startswith(("applied", "ignored")) else f"applied: {text}"
 
 
 def _evidence(e: dict) -> str:
@@ -170,6 +184,7 @@ def _evidence(e: dict) -> str:
         parts.append(f"{e.get('window_failures')} of the last {e['window_len']} tests failed, CUSUM "
                      f"{e.get('cusum', 0):.2f} (limit {e.get('cusum_h')})")
     parts += [f"halted: {e['halt_reason']}"] if e.get("halt_reason") else []
+    parts += [str(e["reason"])] if e.get("reason") else []
     parts += [f"by {e['by']}: {e.get('note', '')}"] if e.get("by") else []
     return (" (" + "; ".join(parts) + ")") if parts else ""
 

@@ -71,6 +71,32 @@ def limit_blas_threads(n: int | None = None):
     return threadpool_limits(n or blas_threads(), user_api="blas")
 
 
+#: What the BLAS libraries (OpenBLAS, numpy's and scipy's own; MKL) read once, when they load.
+LOAD_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")  # BLAS only, as limit_blas_threads (user_api="blas")
+
+
+def limit_blas_threads_when_loaded() -> None:
+    """Limit BLAS to $DT_BLAS_THREADS (else 1) threads without loading it now: the `dt` entry
+    point's way, so that `--help` or a bad argument answers before numpy and scipy are imported
+    (seconds on a loaded machine). When neither is loaded yet the limit goes into the variables
+    the libraries read as they load (LOAD_VARS, also inherited by child processes, which apply the
+    same rule); when one already is, it is set as `limit_blas_threads` does.
+
+    Raises
+    ------
+    ConfigError
+        When $DT_BLAS_THREADS is not a whole number >= 1.
+    """
+    import sys
+
+    n = blas_threads()
+    if "numpy" in sys.modules or "scipy" in sys.modules:
+        limit_blas_threads(n)
+        return
+    for var in LOAD_VARS:
+        os.environ[var] = str(n)
+
+
 @functools.lru_cache(maxsize=1)
 def _blas_libraries() -> tuple[tuple[Callable[[], int | None], Callable[[int], object]], ...]:
     """(get, set) of the thread count of every loaded BLAS library, found once per process by

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from dt_kernel.errors import ConfigError
+from dt_runtime.common.paths import beside
 from dt_runtime.dashboard.feed import BusFeed, joining
 from dt_runtime.dashboard.hub import Hub
 from dt_runtime.dashboard.operators import Operators, load_operators
@@ -139,7 +140,7 @@ class Dashboard:
             except ConfigError as exc:
                 log.info("dashboard: read-only without the bus key (messages not checked): %s", exc)
         twin = Path(cfg.twin)
-        self.scene = Scene(twin if twin.is_absolute() else config_path.parent / twin, cfg.alpha)
+        self.scene = Scene(beside(config_path.parent, twin), cfg.alpha)
         self.feed = BusFeed(bus_cfg, self.hub, self.scene, signer, group)
         self._closers.append(self.feed.close)
 

@@ -70,7 +70,10 @@ class Hub:
             self._cond.notify_all()
 
     def add_state(self, msg: dict[str, Any]) -> None:
-        """File one state transition (kept in the timeline).
+        """File one state transition (kept in the timeline). A return to nominal that an operator's
+        'done' made (evidence ``acknowledged``, ``by``, ``note``: `dt ack --store`, a maintenance
+        system's 'done' on the bus, this page's) closes every request made before it: the page
+        shows them done, not waiting.
 
         Parameters
         ----------
@@ -80,6 +83,16 @@ class Hub:
             self.received["state"] += 1
             self.timeline.append(msg)
             self.events.append((self._bump(), "state", msg))
+            evidence = msg.get("evidence")
+            ev: dict[str, Any] = evidence if isinstance(evidence, dict) else {}
+            t = msg.get("t")
+            if msg.get("dst") == "nominal" and ev.get("acknowledged") and isinstance(t, (int, float)):
+                for entry in self.requests.values():
+                    made = entry.get("t")
+                    if not entry.get("done_by") and isinstance(made, (int, float)) and made <= t:
+                        entry.update(done_by=str(ev.get("by") or "operator"), done_note=str(ev.get("note") or ""),
+                                     done_at=msg.get("rx"))
+                        self.events.append((self._bump(), "request", entry))
             self._cond.notify_all()
 
     def add_request(self, msg: dict[str, Any]) -> None:

@@ -20,7 +20,9 @@ import logging
 import threading
 import time
 from typing import Any
+from urllib.parse import urlsplit
 
+from dt_kernel.errors import ConfigError
 from dt_runtime.fabric.config import MAX_MESSAGE_BYTES
 from dt_runtime.fabric.session import BusError, close_session, open_session, zenoh_errors
 from dt_runtime.plant.config import PlantConfig
@@ -30,6 +32,37 @@ log = logging.getLogger("dt.dashboard")
 PERIOD_S = 3.0  # between two plant queries
 MAX_CELLS = 10_000  # cells kept (one row each): a bound whatever appears on the fabric
 _FIELDS = ("status", "reason", "escalation", "open_requests", "episode", "ticks")
+
+
+_LOOPBACK = {"127.0.0.1", "localhost", "::1"}
+
+
+def check_links(cfg: PlantConfig, source: str, host: str, port: int) -> None:
+    """Refuse a plant config whose `dashboards:` sends a cell's row back to this plant page itself
+    (a cell's `dt dashboard` needs a port of its own, e.g. `--port 8766`).
+
+    Parameters
+    ----------
+    cfg : PlantConfig
+        The plant config.
+    source : str
+        Its file, for the error message.
+    host, port : str, int
+        Where this plant page serves (`dt dashboard --host`, `--port`; port 0: a free one, never
+        a listed one).
+
+    Raises
+    ------
+    ConfigError
+        Naming the cell's `dashboards` key and its URL.
+    """
+    hosts = {host} | (_LOOPBACK if host in _LOOPBACK else set())
+    for cell, url in cfg.dashboards.items():
+        u = urlsplit(url)
+        if port and u.port == port and u.hostname in hosts:
+            raise ConfigError(source, f"dashboards.{cell}", url,
+                              f"the plant page itself serves on {host}:{port}: give the cell's dt dashboard a "
+                              "port of its own (dt dashboard --config CELL.yaml --port 8766) and list that")
 
 
 class PlantWatch:

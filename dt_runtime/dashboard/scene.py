@@ -31,6 +31,7 @@ from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 from dt_kernel.errors import DataError, ModelError, TwinError
 from dt_runtime.analysis.points import per_point
+from dt_runtime.analysis.validity import restated
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.frames.volume import CalibratedVolume
 from dt_runtime.measurements.campaign_files import read_phase
@@ -255,6 +256,6 @@ def provenance(twin_dir: Path) -> dict[str, Any]:
                 v = json.loads(summary.read_text()).get("validity") or {}
             except (OSError, ValueError):
                 continue
-            out["validity"] = {"status": v.get("status"), "line": v.get("line"), "file": str(summary)}
+            out["validity"] = {"status": v.get("status"), "line": restated(v), "file": str(summary)}
             break
     return out

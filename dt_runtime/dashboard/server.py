@@ -29,7 +29,7 @@ from starlette.applications import Starlette
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.exceptions import HTTPException
 from starlette.middleware import Middleware
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import RedirectResponse, Response, StreamingResponse
 from starlette.routing import Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -144,6 +144,13 @@ class HeadTimeoutProtocol(H11Protocol):
             self.transport.close()
 
 
+#: A client that went away while its reply was written or its body read: Starlette's own
+#: (StreamingResponse turns the OSError of a closed connection into it, Request.json on a
+#: disconnect) and the socket's. Quietly ended, never uvicorn's "Exception in ASGI application"
+#: traceback, of which a page reloaded by many browsers made hundreds.
+GONE = (ClientDisconnect, anyio.BrokenResourceError, anyio.ClosedResourceError, OSError)
+
+
 class Guard:
     """The one gate of every request: Host (DNS rebinding), Origin (cross-origin posts), the body's
     size (read here, at most MAX_BODY bytes, then handed on), the operator's token on the routes
@@ -174,7 +181,11 @@ class Guard:
                 return await _error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a JSON body of at most {MAX_BODY} bytes")(
                     scope, receive, secured)
             receive = _replay(body, receive)
-        await self.app(scope, receive, secured)
+        try:
+            await self.app(scope, receive, secured)
+        except GONE as exc:
+            log.debug("dashboard: %s %s: the client went away (%s)", scope["method"], scope["path"],
+                      type(exc).__name__)
 
     async def _refusal(self, scope: Scope, headers: Headers) -> Response | None:
         srv = self.server
@@ -248,7 +259,7 @@ class _EventStream(StreamingResponse):
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         try:
             await super().__call__(scope, receive, send)
-        except OSError:  # the page went away while written to
+        except GONE:  # the page went away while written to
             log.debug("dashboard: a page's stream closed by its client")
         finally:
             self._release()

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TextIO
 
 from dt_kernel.errors import DataError
+from dt_runtime.measurements.limits import check_text_rows
 from dt_runtime.measurements.sheets import SPREADSHEETS, Cell, cell_text, describe, read_sheet, sheet_note, sniff
 
 log = logging.getLogger(__name__)
@@ -201,6 +202,7 @@ def _records(path: Path, separator: str, encoding: str, sheet: str | int | None)
                             "(a measurement file or a joint-angle table can be read as it is through an import "
                             "mapping, whose `sheet:` key picks the sheet)")
         return True, iter(read_sheet(path, sheet)[2])
+    check_text_rows(path)  # a CSV of 10^7 rows: refused now, not after minutes and gigabytes
     return False, _csv_records(path, separator, encoding)
 
 

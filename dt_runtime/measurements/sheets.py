@@ -205,15 +205,22 @@ def read_sheet(path: str | Path, sheet: str | int) -> tuple[str, list[str], Sequ
 
     Notes
     -----
-    Read through python-calamine (Rust's calamine: one reader for all formats); cells keep their
-    types: numbers as floats (no decimal-comma question), dates and times as `datetime` / `date` /
-    `time` / `timedelta`, text as `str`, an empty cell as ''.
+    Refused before it is read when it passes a size limit (`limits.check_spreadsheet`:
+    DT_MAX_SHEET_MB, DT_MAX_ROWS, DT_MAX_COLUMNS). Read through python-calamine (Rust's calamine:
+    one reader for all formats); cells keep their types: numbers as floats (no decimal-comma
+    question), dates and times as `datetime` / `date` / `time` / `timedelta`, text as `str`, an
+    empty cell as ''.
     """
+    from dt_runtime.measurements.limits import check_spreadsheet
+
     path = Path(path)
     try:
         st = path.stat()
     except OSError as exc:
         raise DataError(f"{path}: cannot read ({exc.strerror})") from exc
+    # sizes and rows first: the reader holds a whole sheet in memory, and aborts the process when it
+    # cannot (an .xlsx whose sheet inflates to 2.4 GB: a Rust out-of-memory panic)
+    check_spreadsheet(path, sniff(path))
     # import_file reads a file's header, rows and extra columns in turn: one load serves them
     return _load(str(path), st.st_mtime_ns, st.st_size, sheet)
 

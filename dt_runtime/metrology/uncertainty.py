@@ -327,7 +327,7 @@ class MetrologyInputs:
     # registration, s(e_GL)/sqrt(n); 'spread' adds the residual spread s(e_GL) itself, as the
     # paper's Eqs. 13-16 write it. The spread is mostly the robot's own error along the
     # registration lines, which e_LT and its GPR already carry: validated against the
-    # simulator's truth it double counts (see README, "Honest uncertainty").
+    # simulator's truth it double counts (see docs/demo.md, "Honest uncertainty").
     registration_term: str = "transform"
 
 

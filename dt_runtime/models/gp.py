@@ -547,7 +547,33 @@ class GPRegressor(Params):
         if bad:
             raise ValueError(f"arrays of disagreeing shapes: {', '.join(bad)}; with {d} inputs and {m} basis "
                              f"points expected {', '.join(f'{k} {s}' for k, s in want.items())}")
+        g._check_hyperparameters()
         return g
+
+    #: The shortest length scale a loaded model may have, in units of its input's standard deviation:
+    #: the fit never goes below min_length_scale (0.1); one near 0 predicts the mean everywhere but at
+    #: the training points, with the prior's whole U (a twin edited so corrected 2.5 mm off, U 4.45 mm).
+    MIN_LOADED_LENGTH_SCALE = 1e-6
+
+    def _check_hyperparameters(self) -> None:
+        """ValueError unless the loaded hyperparameters are a GP's: length scales, input and output
+        scales, signal and noise variances positive and finite, the length scales those of theta
+        (exp(theta) times the input scale: the one predict uses), none near 0."""
+        d = int(self.n_features_in_)
+        ell_std = np.exp(self.theta_[:d])
+        checks = [("x_scale", self.x_scale_), ("length_scales", self.length_scales_), ("y_scale", self.y_scale_),
+                  ("signal_var", self.signal_var_), ("noise_var", self.noise_var_)]
+        for name, v in checks:
+            a = np.asarray(v, dtype=float)
+            if not (np.all(np.isfinite(a)) and np.all(a > 0)):
+                raise ValueError(f"{name} {np.round(a, 9).tolist()} must be positive and finite (a GP's scales and "
+                                 "variances are)")
+        if np.any(ell_std < self.MIN_LOADED_LENGTH_SCALE):
+            raise ValueError(f"theta's length scales {ell_std.tolist()} (in input standard deviations) must be at "
+                             f"least {self.MIN_LOADED_LENGTH_SCALE:g}: near 0 the GP predicts nothing but its mean")
+        if not np.allclose(self.length_scales_, ell_std * self.x_scale_, rtol=1e-6, atol=0):
+            raise ValueError(f"length_scales {self.length_scales_.tolist()} disagree with theta's "
+                             f"{(ell_std * self.x_scale_).tolist()} (exp(theta) times x_scale): the file was edited")
 
 
 

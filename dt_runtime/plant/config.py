@@ -9,6 +9,7 @@ from typing import Any
 from pydantic import Field, field_validator, model_validator
 
 from dt_kernel.config import Frozen, read_yaml, validate
+from dt_runtime.common.paths import beside
 from dt_runtime.fabric.config import (
     AccessControlConfig,
     BusConfig,
@@ -161,5 +162,4 @@ def history_url(cfg: PlantConfig, base: Path) -> str:
     url = cfg.history.url
     if cfg.history.is_postgres:
         return url
-    p = Path(url.removeprefix("sqlite:///") if url.startswith("sqlite:///") else url)
-    return str(p if p.is_absolute() else base / p)
+    return str(beside(base, url.removeprefix("sqlite:///") if url.startswith("sqlite:///") else url))

@@ -61,7 +61,7 @@ NAME_LABEL = {"rdk": "e_RDK,GL (robot encoders)", "lt": "e_LT,GL (laser tracker)
               "reprod_tcp": "reprod_TCP (encoders, Eq. 12)", "reprod_mvs": "reprod_MVS (camera system, Eq. 12)"}
 GP_WORDS = {"tcp_speed": "GP on the TCP and speed", "tcp": "GP on the TCP", "joints": "GP on the joint angles",
             "none": "no GP"}
-# The one U the key figures state, defined once (README: "The uncertainty of each corrected position").
+# The one U the key figures state, defined once (docs/demo.md: "The uncertainty of each corrected position").
 U_DEFINITION = ("U(TCP_c) is the 95 % expanded uncertainty of the position a corrected command reaches, stated at "
                 "that position: Eq. 11 with the error model's own spread there (λ σ_GP(c), scaled so that over the "
                 "DOE it states the held-out spread) and, beyond the DOE hull, the extrapolation term κ d(c). The "
@@ -265,7 +265,7 @@ def _table_literal(s: dict, a: dict) -> str:
     return (html_table(rows, caption="Variant: the paper's Eqs. 11-16 taken literally (registration residual spread "
                                      "added: double counts)", row_header="figure")
             + paragraph("Beside our budget for orientation only: the registration spread it adds is mostly the arm's "
-                        "own error along the registration lines, which the error model already carries (README, "
+                        "own error along the registration lines, which the error model already carries (docs/demo.md, "
                         "'Honest uncertainty')."))
 
 

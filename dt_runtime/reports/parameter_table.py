@@ -72,12 +72,51 @@ def concise(v: float, u: float | None, plus_minus: bool = False) -> str:
     return f"{vs} ± {us}" if plus_minus else f"{vs}({digits})"
 
 
+#: Smaller units a tiny value steps down to (factor from the unit before), rather than a power of
+#: ten beside a unit: 0.000(34) urad, not 0(34)e-6 mrad.
+_SMALLER = {"mrad": ((1e3, "µrad"), (1e3, "nrad")), "mm": ((1e3, "µm"), (1e3, "nm"))}
+
+
+def with_unit(value: float, u: float | None, unit: str, plus_minus: bool = False) -> str:
+    """`value` (and its standard uncertainty `u`), both in the SI `unit`, as text with the unit it is
+    shown in: mrad / mm (`shown_unit`), or µrad, nrad / µm, nm when the larger of the two would
+    otherwise be below 0.01 of it.
+
+    Parameters
+    ----------
+    value : float
+    u : float or None
+    unit : str
+        The SI unit ('rad', 'm', 'm/h', '1/K', ...).
+    plus_minus : bool, optional
+        Write v ± u instead of the parenthesis form.
+
+    Returns
+    -------
+    str
+    """
+    f, shown = shown_unit(unit)
+    v, s = value * f, (None if u is None else u * f)
+    base, _, per = shown.partition("/")
+    big = max(abs(v), abs(s) if s is not None and math.isfinite(s) else 0.0)
+    for g, smaller in _SMALLER.get(base, ()):
+        if big == 0 or big >= 1e-2:
+            break
+        v, s, big, base = v * g, None if s is None else s * g, big * g, smaller
+    return f"{concise(v, s, plus_minus)} {base}{'/' + per if per else ''}"
+
+
 def _cell(p: dict, plus_minus: bool, unit: bool = False) -> str:
-    """A base parameter's value(u) in its shown unit (with `unit`, the unit after it), starred
-    when it is a combination, '(at bound)' when physics' sign held it at 0."""
+    """A base parameter's value(u) in its shown unit (with `unit`, the unit after it, stepped down
+    for a tiny value: `with_unit`), starred when it is a combination, '(at bound)' when physics'
+    sign held it at 0."""
     f, shown = shown_unit(p["unit"])
-    return concise(p["value"] * f, p["u"] * f, plus_minus) + (COMBINED if p.get("absorbs") else "") + (
-        f" {shown}" if unit else "") + (" (at bound)" if p.get("at_bound") else "")
+    if unit:
+        number, shown = with_unit(p["value"], p["u"], p["unit"], plus_minus).rsplit(" ", 1)
+    else:
+        number = concise(p["value"] * f, p["u"] * f, plus_minus)
+    return number + (COMBINED if p.get("absorbs") else "") + (f" {shown}" if unit else "") + (
+        " (at bound)" if p.get("at_bound") else "")
 
 
 def _joint_column(name: str) -> tuple[str, str] | None:
@@ -193,9 +232,8 @@ def parameter_table(parameters: list[dict], base: dict | None, plus_minus: bool 
     for p in parameters:
         if p.get("method") != "profile likelihood":
             continue
-        f, unit = shown_unit(p["unit"])
-        text = (f"{concise(p['value'] * f, None if p['u'] is None else p['u'] * f, plus_minus)} {unit} "
-                "(profile likelihood)" if p["value"] is not None else "not bounded by the data (default used)")
+        text = (f"{with_unit(p['value'], p['u'], p['unit'], plus_minus)} (profile likelihood)"
+                if p["value"] is not None else "not bounded by the data (default used)")
         lines.setdefault(p["effect"], Line(p["effect"])).entries.append((p["name"], text))
     legend = "value ± standard uncertainty" if plus_minus else "value(u), u the standard uncertainty in the last digits"
     notes = [f"{COMBINED} a combination of several parameters: base_parameters[].combination in the JSON"] \

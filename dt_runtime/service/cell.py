@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from drivers import registry
+from dt_runtime.common.paths import beside
 from dt_runtime.service.runtime_config import Fault, RuntimeConfig
 from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.twin import Twin
@@ -89,7 +90,8 @@ class SimCell(Cell):
     realtime : bool
         The runtime config's `realtime`: True keeps the wall clock.
     faults : list of Fault
-        `sim.faults`, injected when the simulated clock reaches their `at_s`.
+        `sim.faults`, each injected once `at_s` seconds of the simulated clock have passed since
+        the run's first tick (the world's clock already reads the registration and warm-up then).
     twin : Twin
         Its frames score the truth in GL (no correction reads the truth).
     """
@@ -98,6 +100,7 @@ class SimCell(Cell):
         super().__init__(inst)
         self.world, self.realtime = world, realtime
         self._faults = sorted(faults, key=lambda f: f.at_s)
+        self.t_start: float | None = None  # the world's clock at the run's first tick: at_s counts from it
         self._T_rdk, self._T_lt = twin.T_rdk, twin.T_lt  # the frames the truth is scored in (GL)
         self._true_sq: list[float] = []  # squared 3D true error of each command
 
@@ -118,12 +121,16 @@ class SimCell(Cell):
             self.world.idle(period_s)
 
     def inject_due_faults(self) -> None:
-        """Inject the faults whose time came on the simulated clock (a joint offset, a camera
-        shift), each once, logged."""
+        """Inject the faults whose time came (a joint offset, a camera shift), each once, logged:
+        `at_s` counts simulated seconds from the run's first tick (this call's first), not the
+        world's clock, which already reads the registration and warm-up when the run starts."""
         t = self.world.t
-        while self._faults and self._faults[0].at_s <= t:
+        if self.t_start is None:
+            self.t_start = t
+        while self._faults and self._faults[0].at_s <= t - self.t_start:
             f = self._faults.pop(0)
-            log.warning("injecting fault at t=%.1f s: %s", t, f.model_dump(exclude_none=True))
+            log.warning("injecting fault %.1f s into the run (simulated clock t=%.1f s): %s", t - self.t_start, t,
+                        f.model_dump(exclude_none=True))
             if f.joint_offset_rad is not None:
                 self.world.inject_joint_offset(f.joint_offset_rad)
             if f.camera_shift_m is not None:
@@ -179,7 +186,7 @@ def open_cell(cfg: RuntimeConfig, base: Path, source: str, world, twin: Twin, pa
         could not be read.
     """
     def p(rel: str) -> Path:
-        return Path(rel) if Path(rel).is_absolute() else base / rel
+        return beside(base, rel)
 
     if world is None and any(registry.needs_world(kind, name) for kind, name, _ in cfg.drivers.chosen()):
         from drivers.simulated.devices import SimWorld

@@ -26,6 +26,7 @@ import numpy as np
 
 from drivers.base import RigReading, read_exposed_after
 from dt_kernel.errors import DriverError, TwinError
+from dt_runtime.common.paths import beside
 from dt_runtime.fabric.queries import QueryServer
 from dt_runtime.programs.program import read_program
 from dt_runtime.service import sdnotify
@@ -48,6 +49,7 @@ from dt_runtime.service.path_run import (
 )
 from dt_runtime.service.preflight import check_camera, check_condition_sources, check_model
 from dt_runtime.service.publisher import Bus
+from dt_runtime.service.rereference import MvsFrame
 from dt_runtime.service.rows import CommandRow, CorrectionRow, MeasurementRow, TTestRow
 from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the daemon's config
     Drivers,
@@ -62,6 +64,7 @@ from dt_runtime.service.runtime_config import (  # noqa: F401 - re-exported: the
 from dt_runtime.service.store import Store, StoreError
 from dt_runtime.service.supervisor import Step, Supervisor
 from dt_runtime.service.targets import probe_point, targets_for
+from dt_runtime.twin.adaptive import AdaptiveCoverage
 from dt_runtime.twin.bounds import Corrected, CorrectionFault, Guard
 from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.corrector import Corrector
@@ -170,8 +173,18 @@ class Daemon:
         self.store = Store(self._p(cfg.store), batch_ms=50.0, background=True, exclusive=True)
         parts.callback(self.store.close)
         stream = StreamState(self._plan.n, str(self._plan.file)) if self._plan is not None else None
+        # A rigid shift of the camera set-up is offered for re-referencing; applied, it moves T_mvs.
+        self.mvs_frame = MvsFrame(self.twin)
+        # The U the twin states follows the monitored readings (adaptive conformal, twin/adaptive.py);
+        # Eq. 17 keeps the calibrated U, so the scale never hides a fault from the escalation.
+        self.coverage = AdaptiveCoverage()
         self.paging = Paging(cfg.escalation, cfg.bus, self.store, self.events,
-                             resume_extra=(lambda: {"path": stream.to_dict()}) if stream is not None else dict)
+                             resume_extra=lambda: ({"path": stream.to_dict()} if stream is not None else {})
+                             | self.mvs_frame.to_dict() | {"stated_u": self.coverage.to_dict()},
+                             on_rereference=self.mvs_frame.apply, jacobian=self.mvs_frame.jacobian())
+        self.mvs_frame.restore(self.paging.saved_extra.get("mvs_rereferenced"))
+        if "stated_u" in self.paging.saved_extra:  # the scale resumes where it was: a restart does not shrink U
+            self.coverage = AdaptiveCoverage.from_dict(self.paging.saved_extra["stated_u"])
         self.escalator = self.paging.escalator
         self.bus = self._open_bus()
         # The cell's program may ask for corrections on `.../correct` (its own Guard and corrector:
@@ -190,7 +203,8 @@ class Daemon:
         self.path = self._streamer(self._plan, stream) if self._plan is not None and stream is not None else None
         self.reporter = HealthReporter(self.supervisor.status, self.escalator, self.counters, self.store, self._now,
                                        self.inst, self.bus, self.events,
-                                       stream=stream.to_dict if stream is not None else lambda: None)
+                                       stream=stream.to_dict if stream is not None else lambda: None,
+                                       stated_u=self.coverage.health)
         self.status_line = StatusLine(self.supervisor.status, self.counters, self.escalator, self.path, self.bus)
         self.housekeeper = Housekeeper(
             self._stop, self.events, take_actions=self.paging.take_actions, send_health=self.reporter.send,
@@ -243,8 +257,7 @@ class Daemon:
         return self._program.conditions(step, base) if (self._program is not None and step is not None) else base
 
     def _p(self, rel: str) -> Path:
-        p = Path(rel)
-        return p if p.is_absolute() else self.base / p
+        return beside(self.base, rel)
 
     def acknowledge_maintenance(self, note: str = "maintenance done", by: str = "operator") -> int:
         """Operator confirmation, as `dt ack` does it: stored as an action (who, why), applied by
@@ -268,6 +281,30 @@ class Daemon:
             The action could not be stored.
         """
         return self.paging.acknowledge(note, by)
+
+    def rereference(self, note: str = "camera re-referenced", by: str = "operator") -> int:
+        """Operator: apply the offered re-referencing of the camera frame, as `dt ack --rereference`
+        does it: stored as an action (who, why), applied by the loop at its next tick (ignored
+        unless the escalation is in `rereference_offered`).
+
+        Parameters
+        ----------
+        note : str
+            Why.
+        by : str
+            Who.
+
+        Returns
+        -------
+        int
+            The action's id.
+
+        Raises
+        ------
+        StoreError
+            The action could not be stored.
+        """
+        return self.paging.rereference(note, by)
 
     # --- what it reports ------------------------------------------------------------------------
     def health(self) -> dict[str, Any]:
@@ -330,7 +367,9 @@ class Daemon:
         chk = self._test(corr.command, v, reading.point, cond, None)
         if chk is None:
             return
-        self._record(t, reading.point, chk, True, self._telemetry(corr) if self.bus else {})
+        # the joint angles also serve the escalation's shift check (a changed arm is ruled out with them)
+        wanted = self.bus is not None or self.escalator.jacobian is not None
+        self._record(t, reading.point, chk, True, self._telemetry(corr) if wanted else {})
         self._latency(reading)
 
     def _target(self) -> tuple[np.ndarray, float, int | None]:
@@ -403,8 +442,15 @@ class Daemon:
         self.store.put(TTestRow(t, float(chk.t[worst]), None, float(np.min(chk.p_value)), chk.passed,
                                 data={"t": chk.t.tolist()}))
         self.counters.failures += int(not chk.passed)
+        # Did the U stated with the current scale cover this reading's difference? |t| <= scale t_crit.
+        self.coverage.update(np.abs(chk.t) <= self.coverage.scale * self.monitor.t_crit)
         esc = self.escalator
-        esc.observe(chk.passed, float(chk.t[worst]), t)
+        # the reading where the camera saw it (GL) with its difference from the prediction: a rigid
+        # shift of these is offered for re-referencing (Escalator.shift)
+        q = telemetry.get("q")
+        reading = (self.twin.T_mvs.apply(point), chk.diff - chk.predicted, self.monitor.u,
+                   None if q is None else np.asarray(q, dtype=float))
+        esc.observe(chk.passed, float(chk.t[worst]), t, reading)
         # The statistics travel with the next batch of rows: a restart resumes them.
         self.store.stage_state(*self.paging.resume_row())
         if self.bus:
@@ -415,11 +461,13 @@ class Daemon:
 
     def _telemetry(self, corr: Corrected) -> dict[str, Any]:
         """A command's telemetry beside its Eq. 17 (docs/bus.md): for the dashboard's view also the
-        controller's joint angles after the move (the conditions' are from before it), U (95 %) of
-        the position reached and the calibrated-volume flag."""
+        controller's joint angles after the move (the conditions' are from before it), the stated U
+        (95 %) of the position reached (the calibrated U times the adaptive scale, `U_scale`) and
+        the calibrated-volume flag."""
         q = self.inst.robot.read_joint_state().q
         return {"target": corr.target.tolist(), "command": corr.command.tolist(), "q": np.asarray(q).tolist(),
-                "U": corr.U_tcp.tolist(), "inside": corr.inside}
+                "U": self.coverage.stated(corr.U_tcp).tolist(), "U_scale": self.coverage.scale.tolist(),
+                "inside": corr.inside}
 
     def _latency(self, reading: RigReading) -> None:
         """Reading receipt (and mid-exposure) -> t-test done, when recorded (benchmarks)."""

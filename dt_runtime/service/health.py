@@ -47,12 +47,16 @@ class HealthReporter:
         `HealthDue` is emitted on it; a `Transition` on it forces health.
     stream : callable
         The path's stream state (a dict), or None for a point program.
+    stated_u : callable
+        The stated U's adaptive scale (`AdaptiveCoverage.health`), or None.
     """
 
     def __init__(self, status: Callable[[], tuple[str, str | None]], escalator: Escalator, counters: Counters,
                  store: Store, now: Callable[[], float], inst: Any, bus: Bus | None, events: Events,
-                 stream: Callable[[], dict[str, Any] | None]):
+                 stream: Callable[[], dict[str, Any] | None],
+                 stated_u: Callable[[], dict[str, Any] | None] = lambda: None):
         self.status, self.escalator, self.counters, self.store = status, escalator, counters, store
+        self.stated_u = stated_u
         self.now, self.inst, self.bus, self.events, self.stream = now, inst, bus, events, stream
         self._key: tuple | None = None
         events.subscribe(Transition, lambda _event: self.changed(force=True))
@@ -61,8 +65,10 @@ class HealthReporter:
         """What `.../health` carries: running / degraded / halted and why, the escalation state,
         the last tick, and the counters an operator looks at first."""
         status, reason = self.status()
-        esc, stream = self.escalator, self.stream()
+        esc, stream, stated_u = self.escalator, self.stream(), self.stated_u()
         return {"status": status, "reason": reason, "escalation": esc.state, "episode": esc.episode,
+                # an open re-referencing offer: its evidence (shift in mm and mrad, p-values, n)
+                **({"rereference_offer": esc.offer} if esc.offer is not None else {}),
                 **self.counters.health(self.now()),
                 "outbox_pending": self._pending_count(), "drivers": self._driver_counters(),
                 # acks and 'done's on the bus without the service's signature: refused, not recorded
@@ -70,7 +76,8 @@ class HealthReporter:
                 "bus_last_refused": self.bus.last_refused if self.bus else None,
                 "bus": self.bus.state if self.bus else "off",  # connecting (no router yet), connected
                 "pid": os.getpid(), "t": time.time(),
-                **({"stream": stream} if stream is not None else {})}
+                **({"stream": stream} if stream is not None else {}),
+                **({"stated_u": stated_u} if stated_u is not None else {})}
 
     def changed(self, force: bool = False) -> None:
         """Emit `HealthDue` on a change of status, reason or escalation state (checked without
@@ -213,6 +220,12 @@ class StatusLine:
                              "escalation": state, "t_test_failures": failures, "bus": bus}
         text = f"{ticks} ticks ({rate:.1f}/s), {status}" + (f" ({reason})" if reason else "") + \
             f", escalation {state}, Eq. 17 failed {failures}" + (f", bus {bus}" if bus == "connecting" else "")
+        offer = self.escalator.offer
+        if offer is not None:  # the operator's cue: what was fitted and how to apply it
+            f["rereference_offer"] = offer
+            text += (f", session shift {'/'.join(f'{v:+.3f}' for v in offer['translation_mm'])} mm "
+                     f"{'/'.join(f'{v:+.3f}' for v in offer['rotation_mrad'])} mrad: "
+                     "re-reference (dt ack --rereference)")
         if self.path is not None:  # a path: where the stream is, not a last command
             st = self.path.state
             f |= {"stream": st.state, "pass": st.pass_started, "next": st.next, "n": st.n}

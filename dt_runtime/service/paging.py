@@ -14,7 +14,8 @@ Operator: `dt ack` (or a maintenance system's `.../maintenance/done/<id>` on the
 the service's key: bus.auth) stores an operator action (who, why); the housekeeping thread
 queues it (`take_actions`) and the loop applies it (`apply_actions`): `maintenance_requested` or
 `halted` -> `nominal`, statistics reset, in the transition's transaction. A 'done' that names a
-request of an earlier episode is stored as ignored.
+request of an earlier episode is stored as ignored. A 'rereference' applies an open offer
+(`rereference_offered`) and returns to `nominal` (docs/service.md, "Re-referencing instead of paging").
 """
 from __future__ import annotations
 
@@ -26,8 +27,8 @@ from collections.abc import Callable
 from typing import Any
 
 from dt_runtime.fabric import BusConfig
-from dt_runtime.service.escalation import PAGING, EscalationConfig, Escalator
-from dt_runtime.service.events import Events, RequestsQueued, Transition
+from dt_runtime.service.escalation import PAGING, EscalationConfig, Escalator, Jacobian
+from dt_runtime.service.events import Events, HealthDue, RequestsQueued, Transition
 from dt_runtime.service.publisher import new_requests
 from dt_runtime.service.store import OperatorAction, Store
 
@@ -51,7 +52,15 @@ class Paging:
         Where `Transition` and `RequestsQueued` are emitted.
     resume_extra : callable
         What else resumes with the machine, added to the resume row (a path program's state
-        under `path`, read back as `saved_extra`).
+        under `path`, the camera frame's re-referencing under `mvs_rereferenced`, the stated U's
+        adaptive scale under `stated_u`, read back as `saved_extra`).
+    on_rereference : callable
+        `on_rereference(offer)` applies an offer's fitted shift (`Escalator.shift`) before the
+        transition to nominal is recorded; `undo()` of what it returns puts it back if that
+        record fails. Default: nothing to apply.
+    jacobian : callable, optional
+        The arm's position Jacobian in GL axes (`escalation.Jacobian`); without it no
+        re-referencing is offered (`Escalator`).
 
     Raises
     ------
@@ -65,7 +74,9 @@ class Paging:
     """
 
     def __init__(self, escalation: EscalationConfig, bus_cfg: BusConfig, store: Store, events: Events,
-                 resume_extra: Callable[[], dict[str, Any]] = dict):
+                 resume_extra: Callable[[], dict[str, Any]] = dict,
+                 on_rereference: Callable[[dict[str, Any]], Callable[[], None]] | None = None,
+                 jacobian: Jacobian | None = None):
         self.bus_cfg, self.store, self.events = bus_cfg, store, events
         self.requests: list[dict] = []  # the requests this daemon opened (the first group's, with all ids)
         self.delivered: list[int] = []  # outbox ids a consumer acknowledged
@@ -73,15 +84,16 @@ class Paging:
         self._actions_seen: set[int] = set()
         self._actions_lock = threading.Lock()
         self._applying: OperatorAction | None = None  # the 'done' whose transition is being recorded
-        self.escalator = Escalator(escalation, on_transition=self._on_transition)
+        self.escalator = Escalator(escalation, on_transition=self._on_transition, jacobian=jacobian)
         # What else resumes from the store's one resume row beside the machine (the daemon's path
         # program: its resume point): a key of that row, read back by `saved_extra`.
         self.resume_extra = resume_extra
+        self.on_rereference = on_rereference
         saved = store.load_state()
         self.saved_extra: dict[str, Any] = {}
         if saved and saved.get("name") == "escalation":
             self.escalator.restore(saved["data"])
-            self.saved_extra = {k: v for k, v in saved["data"].items() if k == "path"}
+            self.saved_extra = {k: v for k, v in saved["data"].items() if k in ("path", "mvs_rereferenced", "stated_u")}
             log.info("resumed escalation state %s (episode %d) from %s", self.escalator.state,
                      self.escalator.episode, store.path)
 
@@ -94,7 +106,8 @@ class Paging:
         esc = self.escalator
         halt = dst == "halted"
         return {"t": t, "state": dst, "episode": esc.episode, "kind": "halt" if halt else "t_test",
-                "reason": (f"halted: {esc.halt_reason}" if halt else "repeated Eq. 17 t-test failures"),
+                "reason": (f"halted: {esc.halt_reason}" if halt
+                           else evidence.get("reason", "repeated Eq. 17 t-test failures")),
                 "evidence": evidence, **({"reconciled": True} if reconciled else {})}
 
     def _on_transition(self, src: str, dst: str, evidence: dict, t: float) -> None:
@@ -177,11 +190,38 @@ class Paging:
             self.actions.append(OperatorAction(aid, time.time(), "done", None, by, note, "api"))
         return aid
 
+    def rereference(self, note: str, by: str) -> int:
+        """Operator: apply the offered re-referencing, as `dt ack --rereference` does it: stored as
+        an action (who, why), applied by the loop at its next tick.
+
+        Parameters
+        ----------
+        note : str
+            Why.
+        by : str
+            Who.
+
+        Returns
+        -------
+        int
+            The action's id.
+
+        Raises
+        ------
+        StoreError
+            A blank `note` or `by`, or the action could not be stored.
+        """
+        with self._actions_lock:
+            aid = self.store.add_action("rereference", by, note, source="api")
+            self._actions_seen.add(aid)
+            self.actions.append(OperatorAction(aid, time.time(), "rereference", None, by, note, "api"))
+        return aid
+
     def take_actions(self) -> None:
         """Housekeeping: queue the operator actions the loop has not seen (never blocks the loop)."""
         with self._actions_lock:
             for a in self.store.actions(pending_only=True):
-                if a.kind == "done" and a.id not in self._actions_seen:
+                if a.kind in ("done", "rereference") and a.id not in self._actions_seen:
                     self._actions_seen.add(a.id)
                     self.actions.append(a)
 
@@ -204,7 +244,11 @@ class Paging:
         while self.actions:
             a = self.actions[0]
             esc = self.escalator
-            if esc.state not in PAGING:
+            if a.kind == "rereference":
+                result = self._apply_rereference(a, t)
+                if result is None:
+                    continue
+            elif esc.state not in PAGING:
                 result = f"ignored: the escalation was {esc.state}"
             elif a.request_id is not None and self._episode_of(a.request_id) != esc.episode:
                 result = f"ignored: request {a.request_id} is not of the open episode {esc.episode}"
@@ -217,10 +261,35 @@ class Paging:
                     self._applying = None
                 self.actions.popleft()  # applied: a failing write below must not judge it again
                 self.store.outbox_ack_episode(episode)  # done implies delivered: stop republishing
+                # the transition's health went out before these acks: without a fresh one, .../health
+                # (the dashboard, dt status --bus) kept counting the done request as not acknowledged
+                self.events.emit(HealthDue())
                 continue
             self.store.apply_action(a.id, result)
             log.info("operator action %d (%s by %s) %s", a.id, a.kind, a.by, result)
             self.actions.popleft()
+
+    def _apply_rereference(self, a: OperatorAction, t: float) -> str | None:
+        """A 'rereference' action: the offer applied and the transition to nominal recorded (None:
+        done, the action applied in its transaction), or why it was ignored."""
+        esc = self.escalator
+        if not esc.offer_open or esc.offer is None:
+            return f"ignored: no re-referencing is offered (the escalation is {esc.state})"
+        undo = self.on_rereference(esc.offer) if self.on_rereference is not None else None
+        halted, episode = esc.state == "halted", esc.episode
+        self._applying = a
+        try:
+            esc.rereference(t, note=a.note, by=a.by)  # records the action as applied, same transaction
+        except BaseException:
+            if undo is not None:
+                undo()
+            raise
+        finally:
+            self._applying = None
+        self.actions.popleft()
+        if halted:  # the offer had halted the arm (and paged): its requests are answered
+            self.store.outbox_ack_episode(episode)
+        return None
 
     def _episode_of(self, request_id: int) -> int | None:
         item = self.store.outbox_get(request_id)

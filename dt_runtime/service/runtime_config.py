@@ -31,7 +31,9 @@ def _finite(name: str, *values: float) -> None:
 
 
 class Fault(Frozen):
-    """A fault injected into the simulated plant at a given (simulated) time."""
+    """A fault injected into the simulated plant `at_s` simulated seconds after the run's first
+    tick (0: from the first tick on; the world's clock already reads its registration and warm-up
+    when the run starts, so `at_s` is not that clock)."""
 
     at_s: float = Field(ge=0)
     joint_offset_rad: tuple[float, float, float, float, float, float] | None = None
@@ -222,7 +224,7 @@ class HaltConfig(Frozen):
     # -> halted: the arm stops moving unmonitored and it pages; the first accepted reading
     # resumes. Long enough that a person walking through the cameras' view does not page.
     after_camera_refused_s: float = Field(30.0, gt=0, le=86_400)
-    # In out_of_control and maintenance_requested the twin's correction is not trusted:
+    # In out_of_control, rereference_offered and maintenance_requested the twin's correction is not trusted:
     # 'uncorrected' commands the target as is (the arm's native accuracy, still tested),
     # 'halt' stops moving until maintenance is confirmed done, 'correct' goes on correcting.
     on_untrusted: Literal["uncorrected", "halt", "correct"] = "uncorrected"

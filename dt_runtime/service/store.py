@@ -65,9 +65,10 @@ CREATE TABLE IF NOT EXISTS operator_actions (
 CREATE INDEX IF NOT EXISTS operator_pending ON operator_actions(applied_at, id);
 """
 
-#: Operator actions: 'delivered' (the request reached maintenance: stop republishing it) and
-#: 'done' (maintenance was done: leave maintenance_requested / halted).
-ACTION_KINDS = ("delivered", "done")
+#: Operator actions: 'delivered' (the request reached maintenance: stop republishing it),
+#: 'done' (maintenance was done: leave maintenance_requested / halted) and 'rereference' (apply
+#: the offered re-referencing of the camera frame: leave rereference_offered).
+ACTION_KINDS = ("delivered", "done", "rereference")
 
 
 @contextmanager
@@ -81,7 +82,7 @@ def _sqlite_errors(what: str) -> Iterator[None]:
 
 @dataclass(frozen=True)
 class OperatorAction:
-    """One row of `operator_actions`: `kind` ('delivered' or 'done') `by` whom and why (`note`),
+    """One row of `operator_actions`: `kind` (`ACTION_KINDS`) `by` whom and why (`note`),
     for which outbox entry (`request_id`, None: the open episode), from where (`source`: `cli`
     for `dt ack --store`, `bus`, `api` for `Daemon.acknowledge_maintenance`), when it was
     `created` and `applied_at` (epoch s, None until the daemon applied it) with its `result`."""
@@ -600,7 +601,7 @@ class Store:
         Parameters
         ----------
         kind : str
-            'delivered' or 'done' (`ACTION_KINDS`).
+            'delivered', 'done' or 'rereference' (`ACTION_KINDS`).
         by : str
             Who (not blank).
         note : str

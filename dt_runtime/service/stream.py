@@ -224,13 +224,13 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
     finally:
         with contextlib.suppress(DriverError):
             driver.stop_stream()
-    rep = _report(rate_hz, n, k, commands, sent_at - t_first, lateness, corr_ns, send_ns, stopped, paced,
+    rep = _stream_report(rate_hz, n, k, commands, sent_at - t_first, lateness, corr_ns, send_ns, stopped, paced,
                   waits, strides)
     rep.host_stalled = host_stalled
     return rep
 
 
-def _report(rate_hz: float, n: int, k: int, commands: np.ndarray, sent_at: np.ndarray, lateness: np.ndarray,
+def _stream_report(rate_hz: float, n: int, k: int, commands: np.ndarray, sent_at: np.ndarray, lateness: np.ndarray,
             corr_ns: np.ndarray, send_ns: np.ndarray, stopped: str, paced: bool,
             waits: list[tuple[int, float]], strides: list[tuple[int, int, float]]) -> StreamReport:
     """The report of a stream that passed k of n set-points."""
@@ -315,11 +315,24 @@ def _child(conn, sent, t0, cancel, beat, host_timeout_s, make_corrector, make_dr
             with contextlib.suppress(Exception):
                 driver.close()
         rep.realtime, rep.host_gap_max_ms = rt, 1e3 * gap[0]
-        conn.send(("ok", rep))
+        _report(conn, ("ok", rep), rep.stopped or f"{rep.n_sent} set-points sent")
     except BaseException as exc:  # noqa: BLE001 (reported to the parent, which raises it)
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        _report(conn, ("error", f"{type(exc).__name__}: {exc}"), f"{type(exc).__name__}: {exc}")
     finally:
         conn.close()
+
+
+def _report(conn, message: tuple[str, Any], what: str) -> None:
+    """Send the child's report to the daemon; when the daemon is gone (killed: its end of the pipe
+    closed), say so in one line on stderr and end quietly, not with a BrokenPipe traceback from
+    each send."""
+    try:
+        conn.send(message)
+    except (BrokenPipeError, ConnectionResetError, EOFError, OSError):
+        import sys
+
+        print(f"dt stream (pid {os.getpid()}): the daemon is gone, its report not delivered ({what})",
+              file=sys.stderr, flush=True)
 
 
 class StreamProcess:

@@ -4,7 +4,7 @@ refusals, driver faults or a silent camera halt, and what the status is; the poi
 
 Halts: `halt.after_refused` commands refused in a row, `halt.after_driver_faults` driver faults
 in a row, no MVS reading tested for `halt.after_camera_refused_s`, or `out_of_control` /
-`maintenance_requested` under `halt.on_untrusted: halt` (sticky: only the operator's 'done'
+`rereference_offered` / `maintenance_requested` under `halt.on_untrusted: halt` (sticky: only the operator's 'done'
 leaves it). A camera halt stands the arm and probes the camera once a step; the first accepted
 reading resumes. The point loop retries after a non-sticky halt (the first command that goes
 through resumes); a path waits for the operator after any halt.
@@ -24,6 +24,9 @@ from dt_runtime.service.runtime_config import HaltConfig
 from dt_runtime.service.store import StoreError
 
 log = logging.getLogger("dt.run")
+
+#: States in which the twin's correction is not trusted (`halt.on_untrusted` says what is done).
+UNTRUSTED = ("out_of_control", "rereference_offered", "maintenance_requested")
 
 
 class Step(enum.Enum):
@@ -66,8 +69,9 @@ class Supervisor:
 
     # --- trust and the next step ---------------------------------------------------------------
     def trusted(self) -> bool:
-        """The correction is trusted (not `out_of_control` nor `maintenance_requested`)."""
-        return self.escalator.state not in ("out_of_control", "maintenance_requested")
+        """The correction is trusted (not `out_of_control`, `rereference_offered` nor `maintenance_requested`:
+        until re-referenced, a rigid shift of the set-up is not told apart from one of the arm's base)."""
+        return self.escalator.state not in UNTRUSTED
 
     def corrects(self) -> bool:
         """Commands are corrected: trusted, or `halt.on_untrusted: correct`."""

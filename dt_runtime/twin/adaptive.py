@@ -2,9 +2,9 @@
 
 Each monitored reading of a corrected position's error (the tracker's, or the camera's) says
 whether the stated U covered it; `AdaptiveCoverage` turns that stream into a scale per GL axis by
-adaptive conformal inference (Gibbs & Candès 2021) on the log of the scale. Not wired into the
-daemon yet: how to feed it is in the class docstring and docs/cli.md ("A stated U that holds on
-new positions").
+adaptive conformal inference (Gibbs & Candès 2021) on the log of the scale. The daemon feeds it
+every Eq. 17 reading and states the scaled U (docs/service.md, "The stated U in service"); Eq. 17
+itself keeps the calibrated U, so the scale cannot absorb a fault.
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import numpy as np
 from dt_kernel.errors import ConfigError
 
 ALPHA = 0.05  # the 95 % U
+WARN_SCALE = 1.5  # a stated U grown by half: the readings no longer agree with the calibration
 GAMMA = 0.05  # step per reading on log(scale)
 BOUNDS = (1.0, 20.0)  # the scale never goes below the calibrated U, nor above 20 times it
 
@@ -126,6 +127,26 @@ class AdaptiveCoverage:
             (3,) m: the scale times U.
         """
         return self.scale * np.asarray(U, dtype=float)
+
+    def health(self) -> dict[str, Any]:
+        """What the service says of it (`.../health` under `stated_u`): the scale per axis, the
+        readings and misses it saw, the guarantee, and a warning in words once a scale passes
+        `WARN_SCALE`.
+
+        Returns
+        -------
+        dict
+            `scale`, `n`, `miss_rate`, `guarantee`, `warning` (None while every scale is below).
+        """
+        grown = [f"{a} x{s:.2f}" for a, s in zip("xyz", self.scale) if s >= WARN_SCALE]
+        warning = None if not grown else (
+            f"the readings need a larger U than the calibration states ({', '.join(grown)}): the cell drifted "
+            "from its calibration; run the daily check (dt calibrate --reference FILE --twin DIR) or recalibrate")
+        rate = (self.misses / self.n).round(4).tolist() if self.n else [None, None, None]
+        return {"scale": self.scale.round(4).tolist(), "n": self.n, "miss_rate": rate,
+                "guarantee": f"adaptive conformal (Gibbs & Candes 2021), target miss rate {self.alpha:g}, "
+                             f"step {self.gamma:g} on log(scale), bounds {self.bounds[0]:g}-{self.bounds[1]:g}",
+                "warning": warning}
 
     def to_dict(self) -> dict[str, Any]:
         """The state, JSON-ready (to persist with the service's state)."""

@@ -209,7 +209,7 @@ def figures(c: Calibrated) -> dict:
                           "base_parameters": e_lt.base_parameters()},
                  "e_mvs_lt": {"effects": list(c.twin.e_mvs_lt.effects), "gp_inputs": c.twin.e_mvs_lt.gp_inputs}},
         "paper_literal_budget": {
-            "note": "registration residual spread added as in the paper's Eqs. 13-16 (double counts, see README)",
+            "note": "registration residual spread added as in the paper's Eqs. 13-16 (double counts, see docs/demo.md)",
             "precision_after_mm": round(float(prec_lit["after_avg_mm"]), 4),
             "improvement_pct": round(float(prec_lit["improvement_pct"]), 2),
             "U_tcp_c_mm": _mm(c.literal["eq11_tcp_c"].expanded())},

@@ -24,6 +24,7 @@ from dt_kernel.config import Frozen, load_yaml
 from dt_kernel.errors import DataError
 from dt_runtime.common.jsonsafe import jsonable
 from dt_runtime.common.outputs import final_path
+from dt_runtime.common.paths import beside
 from dt_runtime.common.progress import Progress
 from dt_runtime.common.provenance import Instrument, files_under, load_instruments
 from dt_runtime.common.provenance import build as build_provenance
@@ -165,7 +166,7 @@ def read_manifest(path: str | Path) -> CampaignFiles:
     def f(rel: str | None) -> Path | None:
         if rel is None:
             return None
-        q = Path(rel) if Path(rel).is_absolute() else base / rel
+        q = beside(base, rel)
         if not q.is_file():
             raise DataError(f"{p}: the file {rel} it names does not exist")
         return q

@@ -123,6 +123,19 @@ def test_the_page_loads_against_the_daemon_and_draws_the_cell(page, dash):
     _shot(page, "dashboard_live.png")
 
 
+def test_validity_now_shows_the_worse_state_and_the_views_say_mm(page, dash):
+    # "validity: OK" (the calibration's) stood beside an active maintenance request; the live view
+    # said "robot frame, m" while every figure is in mm; the t chart had no axis scale
+    page.wait_for_function("currentState() === 'maintenance_requested'", timeout=90_000)
+    page.wait_for_function("document.getElementById('validity-now').textContent.startsWith('NOT VALID now')",
+                           timeout=10_000)
+    prov = page.text_content("#prov")
+    assert "validity at calibration" in prov and prov.index("validity now") < prov.index("validity at calibration")
+    assert "robot frame, mm" in page.text_content("#cell h2")
+    assert page.evaluate("[niceStep(9.6), niceStep(4.2), niceStep(0.4)]") == [5, 2, 0.1]
+    assert page.evaluate("T_MARGIN.left") >= 30  # the t axis's labels sit left of the traces
+
+
 ARROWS = (0x00, 0x89, 0x7B)  # the error map's colour (app.js drawErrorMap)
 
 

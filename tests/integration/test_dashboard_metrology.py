@@ -90,6 +90,19 @@ def test_the_page_opens_the_compare_result_and_draws_its_residual_map_per_point(
     _shot(page, "dashboard_metrology.png")
 
 
+def test_the_colour_scale_starts_at_the_noise_floor_so_noise_is_never_red(page, results):
+    # the scale ran 0 ... 95th percentile: a result whose residuals all lie below the noise floor
+    # was painted red by its own percentile
+    cmp = json.loads((results / "compare" / "compare.json").read_text())
+    floor = cmp["noise_floor_mm"]
+    assert floor and floor > 0
+    blue = page.evaluate("colour(0)")
+    assert page.evaluate(f"colour({floor * 0.9})") == blue and page.evaluate(f"colour({floor})") == blue
+    vmax = page.evaluate("R.vmax")
+    assert vmax >= 3 * floor and page.evaluate(f"colour({vmax})") == "hsl(0 75% 50%)"
+    assert f"noise floor {floor:.4f} mm" in page.text_content("#scale-text")
+
+
 def test_filters_change_the_rows_and_points_shown(page, results):
     t = _table(results / "compare" / "residuals.csv")
     all_points = page.evaluate("dtMetro.points")

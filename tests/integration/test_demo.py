@@ -32,7 +32,7 @@ def test_quick_demo_meets_the_papers_figures(quick):
     assert s["improvement_pct"] >= 77.8
     assert s["true_error_reduction_pct"] >= 75.0
     # 28 validation points: one miss is 3.6 %, so the quick run can only show 96.4 % or 100 %;
-    # the 90-99 % figure is measured by the full demo (README).
+    # the 90-99 % figure is measured by the full demo (docs/results.md).
     assert all(0.9 <= c <= 1.0 for c in s["coverage_95"].values())
     t3 = s["table3_as_is"]["e_lt_doe"]
     assert t3["x"]["std_mm"] > t3["y"]["std_mm"] > 0.15  # Table 3 scale, x largest

@@ -1,4 +1,4 @@
-"""A campaign with an error outside the catalogue (issue 13, part 4b; README, "Your own effects"):
+"""A campaign with an error outside the catalogue (issue 13, part 4b; docs/diagnosis.md, "Effects of your own"):
 the UR10 generator's clean arm (tests/support/ur10_generator.py: geometric errors, 15 um tracker noise per
 axis, 40 points x 3 passes) with two logged columns of the file's own, `humidity` (%, a slow
 random walk over the campaign) moving the TCP by K_HUMIDITY m/%, and `fixture_temp` (deg C),

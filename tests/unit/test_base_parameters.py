@@ -166,3 +166,18 @@ def test_a_model_saved_before_base_parameters_still_loads_and_prints(tmp_path):
     n_id = sum(p["identified"] for p in old.parameters())
     assert lines[0].startswith(f"geometric: {n_id} identified parameters of 45") and len(lines) <= 12
     assert lines[-1].startswith(f"{45 - n_id} of 45 parameters not identified")
+
+
+def test_a_tiny_value_is_shown_in_a_smaller_unit_not_with_a_power_of_ten_beside_one():
+    from dt_runtime.reports.parameter_table import parameter_table, text, with_unit
+
+    # the backlash's play: 0 rad within 34 nrad printed as "play_rad 0(34)e-6 mrad"
+    assert with_unit(0.0, 3.4e-8, "rad") == "0.000(34) µrad"
+    assert with_unit(0.0, 3.4e-8, "rad", plus_minus=True) == "0.000 ± 0.034 µrad"
+    assert with_unit(8.7e-5, 9e-6, "rad") == "0.0870(90) mrad"  # a normal size stays in mrad
+    assert with_unit(2e-9, 1e-10, "m/h") == "2.00(10) nm/h"
+    params = [{"effect": "backlash", "name": "play_rad", "value": 0.0, "u": 3.4e-8, "unit": "rad",
+               "method": "profile likelihood"}]
+    lines = text(parameter_table(params, {"parameters": [], "not_separable": 0, "n_params": 0}))
+    assert any("play_rad 0.000(34) µrad (profile likelihood)" in ln for ln in lines), lines
+    assert not any("e-6 mrad" in ln for ln in lines)

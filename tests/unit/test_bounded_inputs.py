@@ -102,3 +102,30 @@ def test_plan_counts_are_bounded():
     with pytest.raises(ConfigError, match="doe_speeds"):
         validate(PlanConfig, base | {"doe_speeds": [0.5] * 1000}, "plan.yaml")
     assert validate(PlanConfig, base, "plan.yaml").doe_reps == 9
+
+
+def _edit_gp(d, **changes):
+    """Rewrite the saved GP's arrays with `changes` applied (name -> function of the array)."""
+    with np.load(d / "gp.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    for k, f in changes.items():
+        arrays[k] = f(arrays[k].copy())
+    np.savez(d / "gp.npz", **arrays)
+
+
+@pytest.mark.parametrize("changes,named", [
+    ({"length_scales_0": lambda a: a * 0}, "length_scales .* must be positive and finite"),
+    ({"x_scale_1": lambda a: -a}, "x_scale .* must be positive"),
+    # a length scale near 0 through theta, the one predict reads, with length_scales edited to agree
+    ({"theta_2": lambda a: np.r_[np.full(len(a) - 2, -60.0), a[-2:]],
+      "length_scales_2": lambda a: a * 0 + 1e-30}, "must be at least 1e-06"),
+    ({"length_scales_0": lambda a: a * 2}, "disagree with theta's"),
+])
+def test_a_twin_with_an_edited_gp_length_scale_is_refused_naming_it(tmp_path, changes, named):
+    from dt_kernel.errors import ModelError
+
+    d = _model(tmp_path)
+    _edit_gp(d, **changes)
+    with pytest.raises(ModelError, match=named) as exc:
+        HybridModel.load(d)
+    assert "GP model files are corrupt (output" in str(exc.value)

@@ -201,6 +201,27 @@ def test_a_transition_reaches_the_bus_and_the_health_reporter_as_an_event(tmp_pa
         assert hk.poll_now.is_set()  # an operator's 'done' wakes the housekeeping thread
 
 
+def test_a_done_sends_health_again_after_it_acknowledged_the_episodes_requests(tmp_path):
+    # the transition's health went out before the outbox acks: after `dt ack --store` the dashboard
+    # kept showing "requests not acknowledged 1" while dt status said acknowledged
+    events, bus = Events(), _Bus()
+    with Store(tmp_path / "dt.sqlite") as store:
+        paging = Paging(EscalationConfig(), BusConfig(), store, events)
+        esc, n = paging.escalator, Counters()
+        sup = Supervisor(HaltConfig(), 0.1, esc, n, lambda: 5.0, threading.Event(), streaming=False,
+                         store_failing=lambda: False)
+        reporter = HealthReporter(sup.status, esc, n, store, lambda: 5.0, None, bus, events, stream=lambda: None)
+        sent: list[int] = []
+        events.subscribe(HealthDue, lambda _e: sent.append(reporter.health()["outbox_pending"]))
+        esc.halt("the operator pressed stop", 5.0)
+        assert store.outbox_pending() and sent[-1] == len(store.outbox_pending())
+        store.add_action("done", "kim", "checked", source="cli")
+        paging.take_actions()
+        paging.apply_actions(6.0)
+        assert esc.state == "nominal" and not store.outbox_pending()
+        assert sent[-1] == 0  # the last health due counts no request pending
+
+
 # --- parts: closed newest first, whatever happens -------------------------------------------------
 def test_a_part_that_fails_to_open_closes_those_opened_before_in_reverse_order():
     closed: list[str] = []

@@ -78,3 +78,35 @@ def test_the_live_state_stays_bounded_and_a_stream_sees_only_what_is_new():
     new_seq, tel, ev = hub.since(seq, 0.0)
     assert new_seq == seq + 2 and [m["i"] for _, m in tel] == [1000] and [k for k, _ in ev] == ["state"]
     assert tel[0][0] == 1001  # the telemetry's own number: a stream sees what the ring dropped
+
+
+def test_a_plant_page_refuses_to_link_a_cell_to_itself():
+    """`dashboards:` naming the plant page's own address would open the plant page again on a click."""
+    from dt_runtime.dashboard.plant import check_links
+    from dt_runtime.plant.config import PlantConfig
+
+    cfg = PlantConfig.model_validate({"cells": ["c1/r1", "c2/r1"],
+                                      "dashboards": {"c1/r1": "http://127.0.0.1:8766/",
+                                                     "c2/r1": "http://localhost:8765/"}})
+    with pytest.raises(ConfigError) as e:
+        check_links(cfg, "plant.yaml", "127.0.0.1", 8765)
+    assert "dashboards.c2/r1" in str(e.value) and "port of its own" in str(e.value)
+    check_links(cfg, "plant.yaml", "127.0.0.1", 8770)  # another port: fine
+    check_links(cfg, "plant.yaml", "10.1.0.5", 8765)  # another host: fine
+    check_links(cfg, "plant.yaml", "127.0.0.1", 0)  # a free port is never a listed one
+
+
+def test_a_return_to_nominal_by_an_operators_done_closes_the_requests_made_before_it():
+    # `dt ack --store` publishes nothing of its own: the page learns of it from the daemon's
+    # transition; before, the request stayed "waiting (sent 85x)" while dt status said acknowledged
+    hub = Hub()
+    hub.add_request({"id": 1, "uid": "a", "group": "maintenance", "t": 100.0, "attempt": 85})
+    hub.add_state({"src": "maintenance_requested", "dst": "nominal", "t": 150.0, "rx": 1.0,
+                   "evidence": {"acknowledged": True, "by": "kim", "note": "joint 2 re-referenced"}})
+    hub.add_request({"id": 2, "uid": "b", "group": "maintenance", "t": 200.0, "attempt": 1})  # a later episode's
+    a, b = hub.request("a"), hub.request("b")
+    assert a is not None and b is not None
+    assert a["done_by"] == "kim" and a["done_note"] == "joint 2 re-referenced"
+    assert "done_by" not in b
+    hub.add_state({"src": "suspect", "dst": "nominal", "t": 300.0, "evidence": {}})  # no operator: closes nothing
+    assert "done_by" not in (hub.request("b") or {})

@@ -4,7 +4,7 @@ are tested by `dt diagnose` (its candidates in worker processes, as the command 
 estimated by `dt fit` in their declared unit, and kept by the saved model. A call's declarations
 are its own (`models.effects.Catalogue`): nothing is registered in the process.
 
-The data (tests/support/humidity_campaign.py, the README's example): a UR10 campaign from
+The data (tests/support/humidity_campaign.py, the example of docs/diagnosis.md): a UR10 campaign from
 tests/support/ur10_generator.py (not the project's plant; geometric errors, 15 um tracker noise per axis,
 so the noise floor is a 3D RMS of sqrt(3) * 15 um = 0.026 mm), 40 points x 3 passes, with a
 logged `humidity` column (%) that drives an error no catalogue effect reads (a random walk over

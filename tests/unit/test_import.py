@@ -187,7 +187,7 @@ def test_timestamps_sorted_and_mangled_fallback(tmp_path):
 def test_ur10_series_d_rigid_registration_residual():
     ds, rep = import_file(UR10_DATA / "Series_D" / "measurements_iso_cubes.csv", UR10_MAPPING)
     assert ds.n == 632 and ds.joints.shape == (632, 6) and ds.flange_rotation.shape == (632, 3, 3)
-    # the README: 0.78 mm RMS left after a rigid registration (base pose + probe offset)
+    # docs/results.md: 0.78 mm RMS left after a rigid registration (base pose + probe offset)
     assert 0.6 < rep.rms_3d_mm < 1.0
     assert rep.method == "rigid+offset"
     assert ds.u is not None and np.all(ds.u < 1e-4)          # tracker std, mm -> m

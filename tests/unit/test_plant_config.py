@@ -23,7 +23,28 @@ def test_the_shipped_plant_names_its_cells_and_a_hall_router_joins_the_plant_rou
     hall = load_plant_config(CONFIGS / "plant" / "hall_router.yaml")
     assert plant.cells == ["cell1/r1", "cell2/r1", "cell3/r1"] and plant.bus.mode == "client"
     assert hall.router.connect == plant.router.listen
-    assert history_url(plant, CONFIGS / "plant") == str(CONFIGS / "plant" / "plant_history.sqlite")
+    # the history is run-time state: out/plant/ of the clone, not beside the configs (and normalised)
+    assert history_url(plant, CONFIGS / "plant") == str(CONFIGS.parent / "out" / "plant" / "plant_history.sqlite")
+
+
+def test_the_shipped_cells_join_the_plant_router_and_each_links_its_own_dashboard():
+    """The walkthrough of docs/plant.md: a shipped cell config per expected cell, a client of the
+    plant's router (no listening port beside the router's), and the plant page (dt dashboard's
+    default port) linking each cell to a page on a port of its own."""
+    from urllib.parse import urlsplit
+
+    from dt_runtime.cli.main import build_parser
+    from dt_runtime.service.runtime_config import load_runtime_config
+
+    plant = load_plant_config(CONFIGS / "plant" / "plant.yaml")
+    for name in plant.cells:
+        cell = load_runtime_config(CONFIGS / "plant" / f"{name.split('/')[0]}.yaml")
+        assert f"{cell.bus.cell}/{cell.bus.robot}" == name
+        assert cell.bus.mode == "client" and cell.bus.connect == plant.router.listen
+    page_port = build_parser().parse_args(["dashboard", "--plant", "p.yaml"]).port
+    ports = [urlsplit(url).port for url in plant.dashboards.values()]
+    assert sorted(plant.dashboards) == sorted(plant.cells)
+    assert len(set(ports)) == len(ports) and page_port not in ports, (page_port, ports)
 
 
 def test_a_plain_bus_config_is_a_plant_of_that_bus(tmp_path):

@@ -141,3 +141,22 @@ def test_only_the_controllers_watchdog_after_a_stall_is_put_down_to_the_host(err
     assert rep.n_sent == 10 and rep.stopped.startswith("set-point 11 of 100 refused")
     assert rep.host_stalled is host
     assert ("not been scheduled" in rep.stopped) is host
+
+
+def _no_corrector():
+    raise ValueError("the twin would not load")
+
+
+def test_a_child_whose_daemon_is_gone_says_so_in_one_line_without_a_traceback(capfd):
+    # the daemon killed: its end of the pipe closed; every send of the child raised BrokenPipeError
+    # and the child died with a traceback of two exceptions
+    import multiprocessing as mp
+
+    from dt_runtime.service import stream
+
+    recv, send = mp.Pipe(duplex=False)
+    recv.close()
+    stream._child(send, None, None, None, None, None, _no_corrector, None, None, None, 100.0, 0.1, 300.0, None, True)
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "BrokenPipe" not in err
+    assert err.count("\n") == 1 and "the daemon is gone" in err and "the twin would not load" in err

@@ -142,3 +142,30 @@ def test_the_demos_last_line_is_the_validity_line(rng=np.random.default_rng(7)):
     assert "at the 28 corrected validation positionings" in lines[2]  # not "inside the DOE volume"
     assert lines[-2] == "wrote out/thermal/report.html, out/thermal/summary.json and the twin out/thermal/model"
     assert lines[-1] == v["line"] and lines[-1].startswith("validity: NOT VALID")
+
+
+def test_an_ok_with_every_error_covered_says_why_it_is_ok_and_what_100_percent_means(rng=np.random.default_rng(8)):
+    # 28 targets all covered: 100.0 % against the band 90-99 % printed as a bare OK before
+    tgt = _targets(28, 1, rng)
+    v = assess([Sample("validation", "the 28 validation targets", "true errors (simulator)",
+                       _honest(rng, tgt) * 0.3, np.tile(U, (28, 1)), Inputs(commanded=tgt))])
+    assert v["status"] == "ok", v["line"]
+    assert "100.0 %" in v["line"] and "above the band" in v["line"] and "28 distinct targets" in v["line"]
+    assert "conservative" in v["line"]
+
+
+def test_an_ok_within_the_band_adds_nothing(rng=np.random.default_rng(1)):
+    tgt = _targets(200, 1, rng)
+    v = assess([Sample("inside", "200 random targets", "true errors (simulator)", _honest(rng, tgt),
+                       np.tile(U, (200, 1)), Inputs(commanded=tgt))], _ref(rng))
+    assert all(a["coverage"] <= 0.99 for a in v["checks"][0]["axes"].values())  # 94.5, 93.5, 93.5 %
+    assert v["line"].endswith("in every check (1)")
+
+
+def test_a_stored_ok_line_is_restated_with_the_words_for_a_coverage_above_the_band(rng=np.random.default_rng(8)):
+    tgt = _targets(28, 1, rng)
+    v = assess([Sample("validation", "the 28 validation targets", "true errors (simulator)",
+                       _honest(rng, tgt) * 0.3, np.tile(U, (28, 1)), Inputs(commanded=tgt))])
+    old = dict(v, line=v["line"].split("; ")[0])  # as a summary written before said it: a bare OK
+    assert "above the band" not in old["line"] and "above the band" in validity.restated(old)
+    assert validity.restated({"status": "unchecked", "line": "validity: NOT CHECKED: x"}) == "validity: NOT CHECKED: x"

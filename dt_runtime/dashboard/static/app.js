@@ -182,23 +182,39 @@ function renderT() {
   $("tlast").textContent = `last t (x/y/z) ${m.t_stat.map((t) => t.toFixed(2)).join(" / ")}; t_crit ` +
     `${S.scene.t_crit.map((t) => t.toFixed(2)).join(" / ")} (α = ${S.scene.alpha}); ${m.passed ? "passed" : "FAILED"}`;
 }
+const T_MARGIN = { left: 40, bottom: 16, top: 4, right: 4 };  // the axes' labels live here, never on the traces
+function niceStep(span) {  // 1, 2 or 5 times a power of ten, about 4 ticks over the span
+  const raw = span / 4, p = 10 ** Math.floor(Math.log10(raw));
+  return [1, 2, 5, 10].map((m) => m * p).find((s) => s >= raw);
+}
 function drawT() {
-  const c = $("tplot"), g = c.getContext("2d"), W = c.width, H = c.height;
-  g.fillStyle = "#fbfcfd"; g.fillRect(0, 0, W, H);
+  const c = $("tplot"), g = c.getContext("2d"), W = c.width, H = c.height, M = T_MARGIN;
+  g.fillStyle = "#fff"; g.fillRect(0, 0, W, H);
+  const x0 = M.left, x1 = W - M.right, y0 = M.top, y1 = H - M.bottom;
+  g.fillStyle = "#fbfcfd"; g.fillRect(x0, y0, x1 - x0, y1 - y0);
   if (!S.scene) return;
   const tc = Math.max(...S.scene.t_crit);
   const pts = S.tel.filter((m) => m.t_stat);
   const top = Math.max(2 * tc, ...pts.map((m) => Math.max(...m.t_stat.map(Math.abs)))) * 1.05;
-  const y = (t) => H / 2 - (t / top) * (H / 2 - 4);
+  const y = (t) => (y0 + y1) / 2 - (t / top) * ((y1 - y0) / 2);
+  g.font = "10px system-ui"; g.textAlign = "right"; g.textBaseline = "middle";
+  const step = niceStep(2 * top);
+  for (let t = -Math.floor(top / step) * step; t <= top + 1e-9; t += step) {  // the t axis: grid and labels
+    g.strokeStyle = t === 0 ? "#bbb" : "#e6e9ec"; g.beginPath(); g.moveTo(x0, y(t)); g.lineTo(x1, y(t)); g.stroke();
+    g.fillStyle = "#555"; g.fillText(`${+t.toFixed(6)}`, x0 - 4, y(t));
+  }
   g.strokeStyle = "#c8323c"; g.setLineDash([6, 4]); g.lineWidth = 1;
-  for (const s of [1, -1]) { g.beginPath(); g.moveTo(0, y(s * tc)); g.lineTo(W, y(s * tc)); g.stroke(); }
-  g.setLineDash([]); g.strokeStyle = "#ccc"; g.beginPath(); g.moveTo(0, y(0)); g.lineTo(W, y(0)); g.stroke();
+  for (const s of [1, -1]) { g.beginPath(); g.moveTo(x0, y(s * tc)); g.lineTo(x1, y(s * tc)); g.stroke(); }
+  g.setLineDash([]);
+  g.fillStyle = "#c8323c"; g.fillText("t_crit", x0 - 4, Math.max(y0 + 5, y(tc) - 9));
   ["#d33", "#3a3", "#36c"].forEach((color, i) => {
     g.strokeStyle = color; g.beginPath();
-    pts.forEach((m, k) => { const x = (k / Math.max(1, MAX_TEL - 1)) * W; if (k) g.lineTo(x, y(m.t_stat[i])); else g.moveTo(x, y(m.t_stat[i])); });
+    pts.forEach((m, k) => { const x = x0 + (k / Math.max(1, MAX_TEL - 1)) * (x1 - x0); if (k) g.lineTo(x, y(m.t_stat[i])); else g.moveTo(x, y(m.t_stat[i])); });
     g.stroke();
   });
-  g.fillStyle = "#666"; g.font = "11px system-ui"; g.fillText(`±t_crit ${tc.toFixed(2)}`, 4, y(tc) - 3);
+  g.strokeStyle = "#888"; g.strokeRect(x0, y0, x1 - x0, y1 - y0);
+  g.fillStyle = "#555"; g.textBaseline = "top"; g.textAlign = "left";
+  g.fillText(`left axis: t; across: the last ${MAX_TEL} tests, oldest left (x red, y green, z blue)`, x0, y1 + 3);
 }
 
 // --- health and escalation --------------------------------------------------------------------
@@ -222,6 +238,7 @@ function currentState() {
 function renderEscalation() {
   const st = currentState();
   if (st && $("esc-state").textContent !== st) { $("esc-state").textContent = st; $("esc-state").className = "status " + st; }
+  renderValidityNow();
 }
 function renderTimeline() {
   const items = S.timeline.slice(-30).reverse().map((m) => {
@@ -231,7 +248,8 @@ function renderTimeline() {
   });
   $("timeline").replaceChildren(...(items.length ? items : [el("li", { class: "none" }, "no transition since this page joined")]));
 }
-const STATE_COLOR = { nominal: "#2e9d4f", suspect: "#d99a00", out_of_control: "#e0531f", maintenance_requested: "#c8323c",
+const STATE_COLOR = { nominal: "#2e9d4f", suspect: "#d99a00", out_of_control: "#e0531f", rereference_offered: "#b36ae2",
+                      maintenance_requested: "#c8323c",
                       halted: "#7a1020" };
 function drawStrip() {  // the escalation states over the timeline's span, left to right
   const c = $("strip"), g = c.getContext("2d"), W = c.width, H = c.height;
@@ -297,9 +315,28 @@ function renderProvenance() {
   if (p.environment && p.environment.temperature_c) {
     const t = p.environment.temperature_c; rows.push(["temperature", `${t.min}–${t.max} °C over ${t.n} rows`]);
   }
-  rows.push(["validity", p.validity ? p.validity.line : "no summary beside the twin"]);
+  rows.push(["validity now", validityNow()],
+            ["validity at calibration", p.validity ? p.validity.line : "no summary beside the twin"]);
   rows.push(["Eq. 17", `α = ${S.scene.alpha}, t_crit ${S.scene.t_crit.map((t) => t.toFixed(3)).join(" / ")}`]);
-  $("prov").replaceChildren(...rows.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]));
+  shownValidity = rows[rows.findIndex(([k]) => k === "validity now")][1];
+  $("prov").replaceChildren(...rows.flatMap(([k, v]) => [el("dt", {}, k),
+    el("dd", k === "validity now" ? { id: "validity-now", class: v.startsWith("NOT VALID") ? "bad" : "" } : {}, v)]));
+}
+
+// The calibration's validity line says whether the stated U covered the errors then; the escalation
+// says whether the twin holds now: a maintenance request (or a halt) is the worse state and is shown first.
+function validityNow() {
+  const st = currentState();
+  if (st === "maintenance_requested" || st === "halted")
+    return `NOT VALID now: ${st} (the in-service Eq. 17 test failed; the calibration's OK below no longer holds)`;
+  if (st === "out_of_control" || st === "suspect") return `in doubt now: ${st} (Eq. 17 failures in service)`;
+  return st ? `as calibrated: ${st} (Eq. 17 passes in service)` : "no state from the cell yet";
+}
+let shownValidity = null;
+function renderValidityNow() {  // the provenance panel again when the state changes what it says
+  if (!S.scene) return;
+  const now = validityNow();
+  if (now !== shownValidity) { shownValidity = now; renderProvenance(); }
 }
 
 fetch("/api/scene").then((r) => r.json()).then((sc) => {

@@ -4,7 +4,7 @@
 // final model held out; rows filtered, then aggregated per point: mean residual and row count,
 // coloured by |mean r|), the diagnose steps and the report's own figures. Files hold
 // mm; the 3D view draws m. window.dtMetro keeps what the tests read.
-const R = { res: null, rows: null, models: [], view: null, points: [], vmax: 1 };
+const R = { res: null, rows: null, models: [], view: null, points: [], vmax: 1, floor: null };
 const stats = window.dtMetro = { loaded: null, kind: null, points: 0, rows: 0, rms: null, draws: 0 };
 const $ = (id) => document.getElementById(id);
 const fx = (v, d = 4) => (v == null || !isFinite(v) ? "–" : Number(v).toFixed(d));
@@ -41,6 +41,7 @@ async function open(name) {
   R.res = res; $("status").className = ""; $("status").textContent = "";
   history.replaceState(null, "", `?name=${encodeURIComponent(name)}`);
   R.rows = res.rows ? columns(res.rows) : null;
+  R.floor = res.noise_floor_mm > 0 ? res.noise_floor_mm : null;  // mm, 3D RMS: where the colour scale starts
   renderAbout(); renderSteps(); renderFigures(); setupFilters(); fitView(); redraw();
   stats.loaded = name; stats.kind = res.kind;
 }
@@ -110,8 +111,8 @@ function redraw() {
     // the scale of the whole result for this model (95th percentile, as the report's map): a filter does not rescale;
     // a diagnose result's first and final model share one (the larger), so the map shows where the error went
     const all = R.rows.x.map((_, i) => i);
-    R.vmax = Math.max(...(res.kind === "diagnose" ? R.models : [model]).map((m) =>
-      percentile(aggregate(all, m).map((p) => p.norm), 0.95))) || 1e-3;
+    R.vmax = scaleTop(Math.max(...(res.kind === "diagnose" ? R.models : [model]).map((m) =>
+      percentile(aggregate(all, m).map((p) => p.norm), 0.95))));
     R.points = aggregate(rows, model);
     stats.rows = rows.length;
     stats.rms = rms3(rows, model);
@@ -123,7 +124,7 @@ function redraw() {
     const em = res.error_map;
     R.points = em.points.map((p, i) => { const r = em.e_hat[i].map((v) => v * 1e3);
       return { at: p.map((v) => v * 1e3), r, n: em.count[i], fails: 0, norm: Math.hypot(...r) }; });
-    R.vmax = percentile(R.points.map((p) => p.norm), 0.95) || 1e-3;
+    R.vmax = scaleTop(percentile(R.points.map((p) => p.norm), 0.95));
     stats.rows = em.rows; stats.rms = null;
     $("map-why").textContent = `the twin's predicted error ê_LT at its campaign's points (${em.campaign}); arrows × ${em.scale}, ` +
       "pointing to where the arm goes";
@@ -140,9 +141,16 @@ function redraw() {
 }
 
 // --- drawing -----------------------------------------------------------------------------------
-function colour(v) {  // |mean r| / vmax: blue (0) through green and yellow to red (>= 1)
-  const x = Math.max(0, Math.min(1, v / R.vmax));
+// |mean r| from the noise floor (blue: at or below it, the residual is noise) to R.vmax (red): a result
+// whose residuals all lie below the floor is all blue, not painted red by its own 95th percentile.
+// Without a stated floor the scale starts at 0.
+function colour(v) {
+  const floor = R.floor || 0, x = Math.max(0, Math.min(1, (v - floor) / Math.max(1e-12, R.vmax - floor)));
   return `hsl(${240 - 240 * x} 75% ${45 + 5 * x}%)`;
+}
+const FLOOR_TIMES = 3;  // red needs at least this many noise floors
+function scaleTop(p95) {  // the red end: the result's 95th percentile, never below FLOOR_TIMES noise floors
+  return Math.max(p95, FLOOR_TIMES * (R.floor || 0)) || 1e-3;
 }
 function fitView() {
   R.box = null;
@@ -182,9 +190,10 @@ function draw() {
 function renderScale() {
   const c = $("scale-bar"), g = c.getContext("2d");
   for (let x = 0; x < c.width; x++) { g.fillStyle = colour((x / (c.width - 1)) * R.vmax); g.fillRect(x, 0, 1, c.height); }
-  $("scale-text").textContent = R.points.length ? `|mean r| per point: 0 … ${fx(R.vmax)} mm (95th percentile of the result's points` +
-    (R.res.kind === "diagnose" && R.rows ? " of the model with the larger error" : "") + "; " +
-    "red beyond); dot size: rows; dark ring: fails Eq. 17 in at least half its rows" : "";
+  const floor = R.floor ? `blue at or below the noise floor ${fx(R.floor)} mm, ` : "blue at 0, ";
+  $("scale-text").textContent = R.points.length ? `|mean r| per point: ${floor}red at ${fx(R.vmax)} mm and beyond (the ` +
+    `95th percentile of the result's points` + (R.res.kind === "diagnose" && R.rows ? " of the model with the larger error" : "") +
+    (R.floor ? `, at least ${FLOOR_TIMES} noise floors` : "") + "); dot size: rows; dark ring: fails Eq. 17 in at least half its rows" : "";
 }
 function renderWorst() {
   const top = R.points.slice().sort((a, b) => b.norm - a.norm).slice(0, 8);
