@@ -344,6 +344,11 @@ class RobotController(Protocol):
         ...
 
 
+class WatchdogStop(DriverError):
+    """A set-point refused because the controller's stream watchdog stopped the arm: no set-point
+    came from the host for the watchdog's time (the host stalled or is gone; the cell is fine)."""
+
+
 # Streaming set-points is a capability a robot driver declares by implementing SetpointStreamer
 # (`streams(driver)`), not a method every driver must fake with a blocking move: a controller
 # that follows a stream (a UR's servoj over RTDE registers) keeps moving between set-points,

@@ -5,6 +5,7 @@ The config keys, what it reads and sends, the faults it detects and the streamin
 docs/drivers.md ("Universal Robots over RTDE")."""
 from __future__ import annotations
 
+import math
 import socket
 import time
 from collections.abc import Callable
@@ -13,7 +14,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from drivers.base import Abortable, JointState, Lifecycle, StreamStatus, check_move, check_stream_params
+from drivers.base import Abortable, JointState, Lifecycle, StreamStatus, WatchdogStop, check_move, check_stream_params
 from drivers.ur import protocol as rp
 from drivers.ur import urscript
 from drivers.ur.rtde_link import RtdeLink, RtdeSample
@@ -32,15 +33,25 @@ class UrLimits(Frozen):
     max_speed_m_s: float = Field(1.0, gt=0, le=5.0)
 
 
+# The servo program's watchdog when `watchdog_cycles` is not set: 0.25 s at any rate, twice the
+# longest stall of the streaming process measured without real-time priority beside four busy
+# loops on two cores (121 ms at load 9; docs/streaming.md, "Watchdog and time-outs"): the loop
+# waits out a stall, the controller does not stop the arm for it; a host that is gone still has
+# the arm stopped within 0.25 s (`dt run` resumes a pass a longer stall stopped).
+WATCHDOG_S = 0.25
+_WATCHDOG_WHY = "the controller's watchdog stopped the arm"  # a refusal that raises WatchdogStop
+
+
 class UrStream(Frozen):
     """The RTDE registers and watchdog of set-point streaming (docs/drivers.md, the ``stream`` table):
-    register numbers 0-47, ``watchdog_cycles`` (control cycles), ``stop_deceleration`` (rad/s^2).
+    register numbers 0-47, ``watchdog_cycles`` (control cycles; None: WATCHDOG_S at the stream's
+    rate), ``stop_deceleration`` (rad/s^2).
     """
     enabled: bool = True
     double_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 6)
     seq_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 1)
     status_register: int = Field(24, ge=0, le=rp.N_REGISTERS - 2)
-    watchdog_cycles: int = Field(25, ge=1, le=100_000)
+    watchdog_cycles: int | None = Field(None, ge=1, le=100_000)
     stop_deceleration: float = Field(4.0, gt=0, le=40.0)
 
     @property
@@ -320,8 +331,9 @@ class UrRtdeController(Abortable, Lifecycle):
         pose = tuple(float(x) for x in s.values["actual_TCP_pose"])
         rot = tuple(cfg.tool_rotvec) if cfg.tool_rotvec is not None else pose[3:]
         st = cfg.stream
+        cycles = st.watchdog_cycles if st.watchdog_cycles is not None else math.ceil(WATCHDOG_S * rate)
         program = urscript.ServoProgram(st.double_register, st.seq_register, st.status_register, 1.0 / rate, la, g,
-                                        st.watchdog_cycles, st.stop_deceleration)
+                                        cycles, st.stop_deceleration)
         stream = _Stream(program, rate, rot, np.array(pose[:3]))
         link.write_inputs([stream.seq, *pose[:3], *rot])  # where the arm is: the first cycle holds it
         self._await_register(f"input_int_register_{st.seq_register}", stream.seq)  # before the program reads it
@@ -377,8 +389,7 @@ class UrRtdeController(Abortable, Lifecycle):
                     f"{name}); clear it and start_stream again")
         state = v.get(f"output_int_register_{stream.program.status_register}")
         if state == urscript.STREAM_WATCHDOG:
-            return (f"the controller's watchdog stopped the arm: no new set-point for "
-                    f"{stream.program.watchdog_cycles} control cycles")
+            return f"{_WATCHDOG_WHY}: no new set-point for {stream.program.watchdog_cycles} control cycles"
         if state == urscript.STREAM_RUNNING and v["runtime_state"] != rp.RUNTIME_PLAYING:
             return "the servo program is no longer running"
         return ""
@@ -403,8 +414,8 @@ class UrRtdeController(Abortable, Lifecycle):
         DriverError
             Naming the reason, nothing sent: the set-point is out of the limits, ``t`` does not
             increase, the step exceeds ``limits.max_speed_m_s``, the newest package shows a safety stop
-            or the program stopped (watchdog) or ended, the RTDE connection is down, or the driver is
-            aborted.
+            or the program stopped (watchdog: WatchdogStop, a DriverError) or ended, the RTDE connection
+            is down, or the driver is aborted.
         """
         self._require("active")
         self._check_abort()
@@ -428,8 +439,9 @@ class UrRtdeController(Abortable, Lifecycle):
         if why:
             stream.stopped = why
             self.stats["refused"] += 1
-            raise DriverError(f"{self.name}: set-point {stream.sent + 1} not sent: {why} "
-                              f"({stream.sent} sent, the controller took {self._consumed(stream)})")
+            err = WatchdogStop if why.startswith(_WATCHDOG_WHY) else DriverError
+            raise err(f"{self.name}: set-point {stream.sent + 1} not sent: {why} "
+                      f"({stream.sent} sent, the controller took {self._consumed(stream)})")
         try:
             self._link.write_inputs([stream.seq + 1, *target, *stream.rot])
         except DriverError as exc:  # the connection went down since the check: stopped all the same

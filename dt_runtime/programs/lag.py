@@ -1,12 +1,15 @@
-"""Lag compensation of a streamed path: a servo follower's lag and acceleration term, learnt
-from one measured pass (e = a c' + b c'', `estimate_lag`) and removed by feed-forward
-(c = d + a d' + (b + a^2) d'', `compensate`). Units: SI (s, m).
+"""Lag compensation of a streamed path: a servo follower identified from one measured pass
+(`estimate_lag`: w x'' + T x' + x = c(t - delta), the command c streamed and the positions x
+measured) and removed by its exact inverse as a feed-forward (`compensate`: c(t) = D(t + delta),
+D = d + T d' + w d''). The series e = a c' + b c'' (a = T + delta, b + a^2 = w + T delta +
+delta^2 / 2) is the fit's starting point and what is reported. Units: SI (s, m).
 
 The model, its derivation and measured results: docs/streaming.md, "The servo lag".
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +41,9 @@ class LagEstimate:
         3D RMS of commanded - measured at the measured times (m).
     rms_after_m : float
         3D RMS of what the fitted model leaves (m).
+    servo : tuple or None
+        The identified follower w x'' + T x' + x = c(t - delta): (T s, w s^2 = 1/gain, delta s);
+        None for an estimate of the series only (a stored one of an older version).
     """
 
     tau_s: float  # a: the lag (s)
@@ -46,7 +52,8 @@ class LagEstimate:
     u_accel_s2: float
     n: int  # measured positions used (those on the moving part of the path)
     rms_before_m: float  # 3D RMS of commanded - measured at the measured times
-    rms_after_m: float  # ... of the commanded path delayed by tau - measured
+    rms_after_m: float  # ... of what the identified model leaves
+    servo: tuple[float, float, float] | None = None  # (T s, w s^2, delta s): the identified follower, or None
 
     @classmethod
     def from_dict(cls, d: dict) -> LagEstimate:
@@ -55,20 +62,28 @@ class LagEstimate:
         Parameters
         ----------
         d : dict
-            Keys tau_ms, u_tau_ms, accel_ms2, u_accel_ms2 (ms^2), n, rms_before_mm, rms_after_mm.
+            Keys tau_ms, u_tau_ms, accel_ms2, u_accel_ms2 (ms^2), n, rms_before_mm, rms_after_mm and,
+            optionally, servo {T_ms, w_ms2, delay_ms}.
 
         Returns
         -------
         LagEstimate
         """
+        sv = d.get("servo")
+        servo = None if not sv else (1e-3 * sv["T_ms"], 1e-6 * sv["w_ms2"], 1e-3 * sv["delay_ms"])
         return cls(1e-3 * d["tau_ms"], 1e-3 * d["u_tau_ms"], 1e-6 * d["accel_ms2"], 1e-6 * d["u_accel_ms2"],
-                   int(d["n"]), 1e-3 * d["rms_before_mm"], 1e-3 * d["rms_after_mm"])
+                   int(d["n"]), 1e-3 * d["rms_before_mm"], 1e-3 * d["rms_after_mm"], servo)
 
     def to_dict(self) -> dict:
         """JSON form in ms, ms^2 and mm (keys as `from_dict` reads them)."""
-        return {"tau_ms": 1e3 * self.tau_s, "u_tau_ms": 1e3 * self.u_tau_s, "accel_ms2": 1e6 * self.accel_s2,
-                "u_accel_ms2": 1e6 * self.u_accel_s2, "n": self.n,
-                "rms_before_mm": 1e3 * self.rms_before_m, "rms_after_mm": 1e3 * self.rms_after_m}
+        d: dict[str, Any] = {
+            "tau_ms": 1e3 * self.tau_s, "u_tau_ms": 1e3 * self.u_tau_s, "accel_ms2": 1e6 * self.accel_s2,
+            "u_accel_ms2": 1e6 * self.u_accel_s2, "n": self.n,
+            "rms_before_mm": 1e3 * self.rms_before_m, "rms_after_mm": 1e3 * self.rms_after_m}
+        if self.servo is not None:
+            T, w, delay = self.servo
+            d["servo"] = {"T_ms": 1e3 * T, "w_ms2": 1e6 * w, "delay_ms": 1e3 * delay}
+        return d
 
 
 def _derivatives(path: TimedPath) -> tuple[np.ndarray, np.ndarray]:
@@ -123,11 +138,77 @@ def estimate_lag(path: TimedPath, t: np.ndarray, measured: np.ndarray, max_lag_s
     dof = max(1, e.size - 2)
     cov = np.linalg.inv(A.T @ A) * float(r @ r) / dof
     a, b = float(coef[0]), float(coef[1])
-    # the feed-forward's coefficient b + a^2 and its uncertainty (first order in a and b)
-    g = np.array([2 * a, 1.0])
-    u_k2 = float(np.sqrt(g @ cov @ g))
-    return LagEstimate(a, float(np.sqrt(cov[0, 0])), b + a * a, u_k2, int(t.size), rms3(c - m),
-                       rms3(r.reshape(-1, 3)))
+    series = (a, b + a * a)
+    g = np.array([2 * a, 1.0])  # the feed-forward's coefficient b + a^2, first order in a and b
+    u_series = (float(np.sqrt(cov[0, 0])), float(np.sqrt(g @ cov @ g)))
+    fit = _identify(path, t, m, series)
+    if fit is None or rms3(fit[3].reshape(-1, 3)) >= rms3(r.reshape(-1, 3)):
+        # the series explains the pass as well (a follower that is no servo, noise): keep it
+        return LagEstimate(a, u_series[0], series[1], u_series[1], int(t.size), rms3(c - m), rms3(r.reshape(-1, 3)))
+    (T, w, delay), u_tau, u_accel, res = fit
+    return LagEstimate(T + delay, u_tau, w + T * delay + 0.5 * delay ** 2, u_accel, int(t.size), rms3(c - m),
+                       rms3(res.reshape(-1, 3)), (T, w, delay))
+
+
+# Bounds of the identified follower (T s, w s^2, delta s): servoj's look-ahead 0.03-0.2 s and gain 100-2000
+# (w 0.5-10 ms^2) lie well inside; w -> 0 is a first-order follower, delta a transport or hold delay.
+_LOWER, _UPPER = np.array([1e-4, 1e-7, 0.0]), np.array([1.0, 0.1, 0.2])
+
+
+def _follow(path: TimedPath, T: float, w: float, delay: float) -> np.ndarray:
+    """The follower w x'' + T x' + x = c(t - delay) on the commanded path c (linear between its
+    set-points, as a controller ramps to each within its cycle), from rest at c's first point:
+    x at the path's set-point times, (n, 3). Exact discretisation (first-order hold, Franklin,
+    Powell & Workman, Digital Control, 6.3) on the path's mean period."""
+    from scipy.linalg import expm
+
+    t = path.t
+    h = float((t[-1] - t[0]) / max(t.size - 1, 1))
+    c = path.sample(path.p, np.maximum(t - delay, t[0]))
+    A = np.array([[0.0, 1.0], [-1.0 / w, -T / w]])
+    M = np.zeros((4, 4))
+    M[:2, :2], M[1, 2], M[2, 3] = A, 1.0 / w, 1.0
+    E = expm(M * h)
+    Ad, G1, G2 = E[:2, :2], E[:2, 2:3], E[:2, 3:4] / h
+    z = np.vstack([c[0], np.zeros(3)])
+    out = np.empty_like(c)
+    out[0] = c[0]
+    for k in range(1, t.size):
+        z = Ad @ z + G1 * c[k - 1] + G2 * (c[k] - c[k - 1])
+        out[k] = z[0]
+    return out
+
+
+def _identify(path: TimedPath, t: np.ndarray, m: np.ndarray, series: tuple[float, float]):
+    """The follower (T, w, delta) whose response to the commanded path best matches the measured
+    positions m at times t (nonlinear least squares, started from the series' a and b + a^2);
+    with the standard uncertainties of tau = T + delta and of the series' b + a^2, and the
+    residuals. None when the fit fails."""
+    from scipy.optimize import least_squares
+
+    a, k2 = series
+    x0 = np.clip([a, k2, 0.0], _LOWER * 1.01, _UPPER * 0.99)
+    scale = np.array([1e-3, 1e-6, 1e-3])  # ms, ms^2, ms: the parameters near 1
+
+    def resid(q: np.ndarray) -> np.ndarray:
+        T, w, delay = q * scale
+        return (path.sample(_follow(path, T, w, delay), t) - m).ravel()
+
+    try:
+        sol = least_squares(resid, x0 / scale, bounds=(_LOWER / scale, _UPPER / scale), x_scale="jac")
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not sol.success:
+        return None
+    T, w, delay = sol.x * scale
+    J = sol.jac / scale  # d resid / d (T, w, delta)
+    dof = max(1, sol.fun.size - 3)
+    # pinv: where the readings cannot tell T from delta (sparse, noisy) their sum is still known
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-12) * float(sol.fun @ sol.fun) / dof
+    g_tau = np.array([1.0, 0.0, 1.0])
+    g_k2 = np.array([delay, 1.0, T + delay])
+    return ((float(T), float(w), float(delay)), float(np.sqrt(g_tau @ cov @ g_tau)),
+            float(np.sqrt(g_k2 @ cov @ g_k2)), sol.fun)
 
 
 def settled(path: TimedPath, settle_s: float = SETTLE_S, jump: float = 0.05) -> np.ndarray:
@@ -165,7 +246,8 @@ def settled(path: TimedPath, settle_s: float = SETTLE_S, jump: float = 0.05) -> 
 
 def compensate(path: TimedPath, lag: LagEstimate | float) -> TimedPath:
     """The path to stream so that the follower is on `path` on time: with an estimate, the
-    inverse of its lag and acceleration term; with a number (s), the path shifted by it.
+    identified follower's inverse (D = d + T d' + w d'' sent delta early; an estimate without
+    the model: the series d + a d' + (b + a^2) d''); with a number (s), the path shifted by it.
 
     Parameters
     ----------
@@ -190,4 +272,8 @@ def compensate(path: TimedPath, lag: LagEstimate | float) -> TimedPath:
             raise DataError(f"a lag must be a finite time >= 0, got {tau}")
         return path.shifted(tau)
     v, acc = _derivatives(path)
-    return TimedPath(path.t, path.p + lag.tau_s * v + lag.accel_s2 * acc)
+    if lag.servo is None:
+        return TimedPath(path.t, path.p + lag.tau_s * v + lag.accel_s2 * acc)
+    T, w, delay = lag.servo
+    ahead = TimedPath(path.t, path.p + T * v + w * acc)  # D = d + T d' + w d'': the follower's inverse
+    return TimedPath(path.t, ahead.sample(ahead.p, np.minimum(path.t + delay, path.t[-1])))  # sent delta early

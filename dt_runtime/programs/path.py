@@ -12,9 +12,9 @@ the tangential acceleration is within a everywhere. A junction where the path's 
 continuous (within CORNER_RAD) is passed at the highest speed both neighbours and the acceleration
 over the path around it allow (forward and backward passes over the junctions); a corner is a stop
 (turning there at speed would need an infinite acceleration). Each segment then accelerates at a,
-cruises and decelerates at a: the shortest time under these limits. A list of timed poses is
-followed as given (piecewise linear in time), its speeds and accelerations checked against the
-limits.
+cruises and decelerates at a. With a `jerk` limit j, an S-curve: the trapezoid averaged over a
+moving window of a / j s (docs/streaming.md, "Path profiles"). Timed poses are followed as given
+(piecewise linear in time), their speeds and accelerations checked against the limits.
 """
 from __future__ import annotations
 
@@ -68,6 +68,7 @@ class PathFile(Frozen):
     start: Point | None = None  # mm, robot base frame (segments start here)
     speed: Annotated[float, Field(gt=0, le=5000)]  # mm/s, the path's speed limit
     acceleration: Annotated[float, Field(gt=0, le=100_000)]  # mm/s^2, tangential and centripetal limit
+    jerk: Annotated[float, Field(gt=0, le=10_000_000)] | None = None  # mm/s^3: an S-curve (none: a trapezoid)
     segments: list[Segment] | None = None
     poses: str | None = None  # a CSV of timed poses t (s), x, y, z (mm), relative to this file
     # The cell's conditions along the path, for maps that read them (Twin.needs): constant here.
@@ -137,6 +138,7 @@ class PathProgram:
     acceleration: float  # m/s^2
     speed: float  # m/s
     pieces: tuple[Piece, ...] = ()
+    jerk: float | None = None  # m/s^3: the S-curve's jerk limit (None: the trapezoid)
     pose_t: np.ndarray | None = None  # (n,) s
     pose_p: np.ndarray | None = None  # (n, 3) m
     pose_line: tuple[int, ...] = ()
@@ -222,6 +224,8 @@ def read_path(path: str | Path) -> PathProgram:
         if m.start is not None:
             raise ConfigError(f, "start", list(m.start), "no start with poses (the first pose is the start)")
         t, p, lines = _read_poses((path.parent / m.poses), f)
+        if m.jerk is not None:
+            raise ConfigError(f, "jerk", m.jerk, "no jerk with poses (they are followed as given)")
         return PathProgram(**common, pose_t=t, pose_p=p, pose_line=lines,  # type: ignore[arg-type]
                            pose_source=str(path.parent / m.poses))
     if m.start is None:
@@ -252,7 +256,8 @@ def read_path(path: str | Path) -> PathProgram:
             c, r, u, w, sweep = _arc(p0, via, p1, f"segments.{i}.arc.via", f, list(seg.arc.via))
             pieces.append(Piece(p0, p1, r * sweep, min(speed, v, math.sqrt(a * r)), speed, c, r, u, w, sweep))
         p0 = p1
-    return PathProgram(**common, pieces=tuple(pieces))  # type: ignore[arg-type]
+    return PathProgram(**common, pieces=tuple(pieces),  # type: ignore[arg-type]
+                       jerk=None if m.jerk is None else m.jerk * M_PER_MM)
 
 
 def _read_poses(csv_path: Path, yaml_file: str) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
@@ -367,17 +372,67 @@ def interpolate(path: PathProgram, rate_hz: float) -> Setpoints:
     vj = _junction_speeds(path.pieces, a)
     profiles = [_profile(vj[k], vj[k + 1], pc.vmax, a, pc.length) for k, pc in enumerate(path.pieces)]
     starts = np.concatenate([[0.0], np.cumsum([pr.duration for pr in profiles])])
-    t = _grid(starts[-1], rate_hz, path.source)
-    seg = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(profiles) - 1)
+    offsets = np.concatenate([[0.0], np.cumsum([pc.length for pc in path.pieces])])
+
+    def trapezoid(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The path's arc length and speed at times tau (held before 0 and after the end)."""
+        k = np.clip(np.searchsorted(starts, tau, side="right") - 1, 0, len(profiles) - 1)
+        s, v = np.empty(tau.size), np.empty(tau.size)
+        for i, pr in enumerate(profiles):
+            sel = k == i
+            if sel.any():
+                s[sel], v[sel] = pr.at(tau[sel] - starts[i])
+        s += offsets[k]
+        return np.where(tau <= 0, 0.0, s), np.where((tau <= 0) | (tau >= starts[-1]), 0.0, v)
+
+    if path.jerk is None:
+        t = _grid(starts[-1], rate_hz, path.source)
+        S, v = trapezoid(t)
+    else:
+        t, S, v = _s_curve(trapezoid, starts[np.flatnonzero(vj == 0.0)], a / path.jerk, rate_hz, path.source)
+    seg = np.clip(np.searchsorted(offsets, S, side="right") - 1, 0, len(path.pieces) - 1)
     p = np.empty((len(t), 3))
-    v = np.empty(len(t))
-    for k, (pc, pr) in enumerate(zip(path.pieces, profiles)):
+    for k, pc in enumerate(path.pieces):
         sel = seg == k
         if sel.any():
-            s, v[sel] = pr.at(t[sel] - starts[k])
-            p[sel] = pc.at(s)
+            p[sel] = pc.at(np.clip(S[sel] - offsets[k], 0.0, pc.length))
     programmed = np.array([pc.speed for pc in path.pieces])[seg]
     return Setpoints(t, p, v, seg, programmed, rate_hz)
+
+
+def _s_curve(trapezoid, stops: np.ndarray, t_j: float, rate_hz: float, source: str):
+    """The S-curve: set-point times t and the arc length and speed there, each stretch between two
+    stops (the ends and the corners, at trapezoid times `stops`) averaged over the window
+    [tau - t_j, tau] of its own trapezoid (held at the stretch's ends, so the arm still stops at a
+    corner) and t_j longer. The speed (the average's derivative) is exact; the arc length
+    integrates the piecewise quadratic trapezoid on a fine grid (trapezoidal rule: h^2 a / 12, below
+    a nanometre)."""
+    n_str = len(stops) - 1
+    begin = stops[:-1] + t_j * np.arange(n_str)  # each stretch's start on the S-curve's clock
+    t = _grid(stops[-1] + n_str * t_j, rate_hz, source)
+    S, v = np.empty(t.size), np.empty(t.size)
+    which = np.clip(np.searchsorted(begin, t, side="right") - 1, 0, n_str - 1)
+    for i in range(n_str):
+        sel = which == i
+        S[sel], v[sel] = _averaged(trapezoid, stops[i], stops[i + 1], t_j, t[sel] - begin[i] + stops[i])
+    return t, S, v
+
+
+def _averaged(trapezoid, a0: float, a1: float, t_j: float, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arc length and speed at times tau of the trapezoid held outside [a0, a1] and averaged over
+    [tau - t_j, tau]."""
+    def held(x: np.ndarray) -> np.ndarray:
+        return trapezoid(np.clip(x, a0, a1))[0]
+
+    h = min(1e-4, t_j / 50.0)
+    fine = np.arange(a0 - t_j, a1 + 2 * h, h)
+    s_fine = held(fine)
+    integral = np.concatenate([[0.0], np.cumsum(0.5 * (s_fine[1:] + s_fine[:-1]) * h)])
+
+    def integrated(x: np.ndarray) -> np.ndarray:  # from a0 - t_j to x, the arc length held beyond
+        return np.interp(x, fine, integral) + s_fine[-1] * np.maximum(x - fine[-1], 0.0)
+
+    return (integrated(tau) - integrated(tau - t_j)) / t_j, (held(tau) - held(tau - t_j)) / t_j
 
 
 def _grid(duration: float, rate_hz: float, source: str) -> np.ndarray:

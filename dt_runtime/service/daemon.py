@@ -73,6 +73,8 @@ from dt_runtime.twin.twin import Twin
 
 log = logging.getLogger("dt.run")
 PACED_SWITCH_INTERVAL_S = 2e-4  # the GIL's switch interval while the loop is paced (`run`)
+MAX_HOST_STALLS = 3  # passes in a row stopped by a host stall (the controller's watchdog) resumed without a halt
+HOST_STALL_WAIT_S = 0.5  # the pause before such a resume (a burst of load may pass)
 
 
 class Parts(ExitStack):
@@ -606,6 +608,7 @@ class Daemon:
         sdnotify.notify("READY=1")
         n.last_tick_mono = time.monotonic()
         k0 = st.next  # 0, or where the last run of this path stopped (restored at the start)
+        stalls = 0  # passes stopped by a host stall in a row
         while not self._stop.is_set():
             if duration_s is not None and self._now() - t0 >= duration_s:
                 break
@@ -637,7 +640,7 @@ class Daemon:
             self.supervisor.pass_done(rep.n_sent, corrected)
             self._stage_path()
             if not rep.stopped:
-                k0 = 0
+                k0, stalls = 0, 0
                 log.info("pass %d of the path done: %d set-points at %.1f Hz%s", st.passes, rep.n_sent, rep.rate_hz,
                          f", p99 jitter {rep.jitter_p99_ms:.3f} ms" if np.isfinite(rep.jitter_p99_ms)
                          else " (the simulated clock: not paced)")
@@ -654,8 +657,17 @@ class Daemon:
             self._stage_path()
             if self._stop.is_set() or self.escalator.state == "halted":
                 continue  # stopping, or already halted (the camera's halt resumes by itself)
-            self.supervisor.pass_stopped(f"path stopped at {ps.plan.where(k_stop)}: {rep.stopped}; clear the cause, "
-                                         f"then confirm (dt ack): the path resumes at {ps.plan.where(k0)}")
+            stalls = stalls + 1 if rep.host_stalled else 0
+            if 0 < stalls <= MAX_HOST_STALLS:  # the host, not the cell: the arm stands, the path goes on from there
+                st.host_pauses += 1
+                log.warning("path paused at %s: %s; resuming at %s (host stall %d of %d in a row before a halt)",
+                            ps.plan.where(k_stop), rep.stopped, ps.plan.where(k0), stalls, MAX_HOST_STALLS)
+                self._stop.wait(HOST_STALL_WAIT_S)
+                continue
+            hint = (f" (the host stalled {stalls} passes in a row: give the streaming process real-time priority, "
+                    "docs/streaming.md, or lower the load)") if stalls else ""
+            self.supervisor.pass_stopped(f"path stopped at {ps.plan.where(k_stop)}: {rep.stopped}{hint}; clear the "
+                                         f"cause, then confirm (dt ack): the path resumes at {ps.plan.where(k0)}")
         return self.summary()
 
     def _arm_position(self) -> np.ndarray | None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +27,7 @@ from dt_runtime.programs.lag import SETTLE_S, LagEstimate, compensate, estimate_
 from dt_runtime.programs.path import Setpoints, interpolate, read_path
 from dt_runtime.programs.path_correct import correct_path
 from dt_runtime.service.runtime_config import StreamSection
-from dt_runtime.service.stream import StreamProcess, StreamReport, run_stream
+from dt_runtime.service.stream import PAUSE_AFTER_PERIODS, StreamProcess, StreamReport, run_stream
 from dt_runtime.twin.bounds import Limits, check_path_bounds
 from dt_runtime.twin.conditions import Conditions
 from dt_runtime.twin.corrector import Corrector
@@ -203,6 +204,7 @@ class StreamState:
     timing_refused: int = 0  # readings refused: the timing term dominated
     outside_refused: int = 0  # readings outside the pass's time span (before its start, after its end)
     transient_refused: int = 0  # readings in the servo's transient after a step of the path's acceleration
+    host_pauses: int = 0  # passes stopped by a host stall (the controller's watchdog) and resumed without a halt
     stopped: str = ""  # why the last pass ended early ("" when none did)
     rerun_from: str | None = None  # set at a stop: what the resume re-runs, in words (logged once, at the resume)
     lag: dict | None = None  # LagEstimate.to_dict() once learnt
@@ -340,7 +342,10 @@ class PathStreamer:
             rep = self._pass_in_child(k0, targets, learning, residuals)
         st.sent += rep.n_sent
         st.last = {k: rep.to_dict()[k] for k in ("rate_hz", "target_hz", "jitter_p99_ms", "overruns",
-                                                  "correction_us_mean", "correction_us_p99", "realtime")}
+                                                  "correction_us_mean", "correction_us_p99", "realtime", "pauses",
+                                                  "pause_max_ms", "skipped", "degraded", "host_gap_max_ms")}
+        if rep.degraded:
+            log.warning("the host could not keep %g Hz in this pass: %s", self.rate_hz, rep.degraded)
         if rep.stopped:
             st.state, st.stopped = "stopped", rep.stopped
             st.next = k0 + rep.n_sent
@@ -396,6 +401,7 @@ class PathStreamer:
                 sp.t[k0:], targets[k0:], self.rate_hz, cfg.lookahead_s, cfg.gain, cfg.rt_priority,
                 host_timeout_s=cfg.host_timeout_s)
             period = 1.0 / cfg.monitor_hz
+            last_t0, waited = float("nan"), -np.inf  # the schedule's origin, and when it last moved (the path waited)
             try:
                 proc.heartbeat()
                 while not proc.done(period):
@@ -408,6 +414,16 @@ class PathStreamer:
                     if proc.sent == 0 or not np.isfinite(t0):
                         continue  # still setting up (loading the twin, the approach move)
                     reading = self.inst.camera.read()
+                    now = time.monotonic()
+                    if np.isfinite(last_t0) and t0 != last_t0:
+                        waited = now
+                    last_t0 = t0
+                    # the loop behind its schedule (the path is about to wait there) or the arm restarting after
+                    # a wait: the arm is not where the schedule has it, a servo transient (counted, not tested)
+                    behind = (now - t0) * self.rate_hz - proc.sent > PAUSE_AFTER_PERIODS + 1
+                    if reading.ok and (behind or now - waited < SETTLE_S):
+                        self.state.transient_refused += 1
+                        continue
                     self._reading(reading, functools.partial(_on_host_clock, float(sp.t[k0]) - t0), learning,
                                   residuals)
                 # the approach move and the twin's loading come first: bounded by the path's own duration

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.base import WatchdogStop
 from dt_kernel.errors import DriverError, TwinError
 
 Corrector = Callable[[np.ndarray, float], np.ndarray]  # (target m, t s) -> command m
@@ -52,8 +53,14 @@ class StreamReport:
     send_us_p99: float
     stopped: str = ""  # why the stream ended early ("" when every set-point was sent)
     realtime: bool = False  # the loop ran with real-time scheduling
-    commands: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)  # (n_sent, 3) m
-    sent_at: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # (n_sent,) s from t0
+    pauses: int = 0  # ticks so late that the path waited at the set-point (the schedule moved on by the delay)
+    pause_max_ms: float = 0.0  # the longest of those waits
+    skipped: int = 0  # set-points not sent: the host sent every m-th while a tick took longer than a period
+    degraded: str = ""  # what the host could not keep and what the loop did instead, in words ("" when nothing)
+    host_stalled: bool = False  # the stream ended because the host stalled (refused right after a long wait)
+    host_gap_max_ms: float = float("nan")  # the longest silence of the daemon seen (StreamProcess with host_timeout_s)
+    commands: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)  # (n_sent, 3) m, NaN: skipped
+    sent_at: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # (n_sent,) s from t0, NaN: skipped
 
     def to_dict(self) -> dict[str, Any]:
         """The figures as a dict, without the arrays `commands` and `sent_at`."""
@@ -76,20 +83,33 @@ def _p99(x: np.ndarray) -> float:
     return float(np.percentile(x, 99)) if x.size else float("nan")
 
 
+PAUSE_AFTER_PERIODS = 2.0  # a tick later than this many periods: the path waits at its set-point (docs/streaming.md)
+STRIDE_MAX = 8  # at most every 8th set-point while the host is slow (within the controller's watchdog)
+_COST_TICKS = 8  # a tick's cost: the median of the last 8 (a one-off stall is a wait, not a slow host)
+
+
 def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, driver: Any, rate_hz: float,
                lookahead_s: float = 0.1, gain: float = 300.0, spin_s: float = 3e-4,
                progress: Callable[[int], None] | None = None, clock: Callable[[], float] = time.perf_counter,
                paced: bool = True, started: Callable[[float], None] | None = None,
-               cancelled: Callable[[], str] | None = None) -> StreamReport:
+               cancelled: Callable[[], str] | None = None, adapt: bool = True) -> StreamReport:
     """Stream `targets` (n, 3), m, meant for `times` (n,), s, each corrected by `correct`, to a
     driver that declares drivers.base.SetpointStreamer, at `rate_hz` (the controller's rate: the
     set-points must be on that grid). `paced=False` sends as fast as the loop can (the baseline a
     benchmark sets the paced rate against). A DriverError from the driver (protective stop, the
     controller's watchdog) ends the stream early with its reason in `stopped`. `started(t0)` is
     told the schedule's origin on `clock` (set-point k is due at t0 + k / rate_hz) before the first
-    send; `cancelled()`, checked before every send, returns why the host ends the stream ("" to
-    go on): both are a shared value's read or write, never a wait. Runs on the caller's thread,
-    with the garbage collector held off; the driver's `stop_stream` is called however it ends.
+    send, and again whenever the path waited (below); `cancelled()`, checked before every send,
+    returns why the host ends the stream ("" to go on): both are a shared value's read or write,
+    never a wait. Runs on the caller's thread, with the garbage collector held off; the driver's
+    `stop_stream` is called however it ends.
+
+    When the host cannot keep the rate (`adapt`, paced): a tick more than PAUSE_AFTER_PERIODS
+    late (the process was not scheduled) is sent late and the schedule moves on by the delay (the
+    path waits at that set-point: catching up would make the target jump by v times the delay);
+    while a tick's work (send and correction) takes longer than a period, the loop sends the
+    set-point due when it is done, skipping the ones between (the path keeps its time, the
+    controller holds each set-point for the cycles between). `degraded` says what it did and why.
 
     Parameters
     ----------
@@ -98,7 +118,7 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
     targets : ndarray
         (n, 3) m, robot frame.
     correct : callable
-        `(target m, t s) -> command m`, called once per set-point in the slack before its send.
+        `(target m, t s) -> command m`, called once per set-point sent, in the slack before it.
     driver : SetpointStreamer
         An active robot driver that streams set-points.
     rate_hz : float
@@ -110,15 +130,17 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
     spin_s : float
         How long before a deadline the sleep ends and the spin starts, s.
     progress : callable, optional
-        `progress(k)` after the k-th send (must not block).
+        `progress(k)` after each send: k set-points passed (must not block).
     clock : callable
         The schedule's clock, s (`time.perf_counter`; the streaming process uses `time.monotonic`).
     paced : bool
         False: send as fast as the loop can (lateness and jitter are then NaN).
     started : callable, optional
-        `started(t0)` once the schedule's origin is fixed.
+        `started(t0)` once the schedule's origin is fixed, and after each wait.
     cancelled : callable, optional
         Why to stop now ("" to go on), checked before every send.
+    adapt : bool
+        Wait and skip when the host cannot keep the rate (False: every set-point, late or not).
 
     Returns
     -------
@@ -136,19 +158,25 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
     if targets.shape != (n, 3) or n == 0:
         raise TwinError(f"a stream needs n times and n x 3 targets, got {times.shape} and {targets.shape}")
     period = 1.0 / rate_hz
+    adapt = adapt and paced
     commands = np.full((n, 3), np.nan)
-    lateness, sent_at, corr_ns, send_ns = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
-    stopped, k = "", 0
-    driver.start_stream(rate_hz, lookahead_s, gain)
+    lateness, sent_at, corr_ns, send_ns = (np.full(n, np.nan) for _ in range(4))
+    stopped, k, host_stalled = "", 0, False
+    waits: list[tuple[int, float]] = []  # (set-point, s) where the path waited
+    strides: list[tuple[int, int, float]] = []  # (set-point, stride, tick s) where the loop skipped
+    # The first set-point is corrected before the controller's program starts: its watchdog counts
+    # from start_stream, and a first correction (cold caches, a loaded host) can outlast it.
+    c0 = time.perf_counter_ns()
+    commands[0] = correct(targets[0], times[0])
+    corr_ns[0] = time.perf_counter_ns() - c0
     try:
-        with _gc_held():
-            c0 = time.perf_counter_ns()
-            commands[0] = correct(targets[0], times[0])
-            corr_ns[0] = time.perf_counter_ns() - c0
-            t0 = clock() + 2 * period  # room for the first correction's cache warm-up
+        with _gc_held():  # the collection before the program starts, not between its start and the first send
+            driver.start_stream(rate_hz, lookahead_s, gain)
+            t0 = t_first = clock() + 0.5 * period  # the controller's watchdog counts from its program's start
             if started is not None:
                 started(t0)
-            for k in range(n):
+            ticks = np.zeros(_COST_TICKS)  # the last ticks' work (send, next correction), s
+            while True:
                 due = t0 + k * period
                 why = cancelled() if cancelled is not None else ""
                 if why:
@@ -160,39 +188,82 @@ def run_stream(times: np.ndarray, targets: np.ndarray, correct: Corrector, drive
                     while clock() < due:
                         pass
                 now = clock()
+                if adapt and now - due > PAUSE_AFTER_PERIODS * period:
+                    waits.append((k, now - due))
+                    t0, due = t0 + (now - due), now
+                    if started is not None:
+                        started(t0)
                 s0 = time.perf_counter_ns()
                 try:
                     driver.stream(commands[k], times[k])
                 except DriverError as exc:
                     stopped = f"set-point {k + 1} of {n} refused: {exc}"
+                    if isinstance(exc, WatchdogStop):  # the controller gave up on a host that stalled: not the cell
+                        host_stalled = True
+                        if waits and k - waits[-1][0] <= 0.5 * rate_hz:
+                            stopped += (f" (the streaming process had not been scheduled for "
+                                        f"{1e3 * waits[-1][1]:.0f} ms before it)")
                     break
                 send_ns[k] = time.perf_counter_ns() - s0
-                sent_at[k], lateness[k] = now - t0, now - due
+                sent_at[k], lateness[k] = now, now - due
                 if progress is not None:
                     progress(k + 1)
-                if k + 1 < n:  # the next set-point, corrected in this tick's slack
-                    c0 = time.perf_counter_ns()
-                    commands[k + 1] = correct(targets[k + 1], times[k + 1])
-                    corr_ns[k + 1] = time.perf_counter_ns() - c0
-            else:
-                k = n
+                if k == n - 1:
+                    k = n
+                    break
+                cost = float(np.median(ticks))
+                step = min(int(np.ceil(cost / period)), STRIDE_MAX) if adapt and cost > period else 1
+                nxt = min(k + step, n - 1)
+                if step > 1:
+                    strides.append((k + 1, nxt - k, cost))
+                c0 = time.perf_counter_ns()
+                commands[nxt] = correct(targets[nxt], times[nxt])
+                corr_ns[nxt] = time.perf_counter_ns() - c0
+                ticks[k % _COST_TICKS] = (send_ns[k] + corr_ns[nxt]) * 1e-9
+                k = nxt
     finally:
         with contextlib.suppress(DriverError):
             driver.stop_stream()
-    sent = k
-    late, at = lateness[:sent], sent_at[:sent]
-    jit = np.abs(np.diff(at) - period) if paced else np.zeros(0)
-    span = at[-1] - at[0] if sent > 1 else float("nan")
+    rep = _stream_report(rate_hz, n, k, commands, sent_at - t_first, lateness, corr_ns, send_ns, stopped, paced,
+                  waits, strides)
+    rep.host_stalled = host_stalled
+    return rep
+
+
+def _stream_report(rate_hz: float, n: int, k: int, commands: np.ndarray, sent_at: np.ndarray, lateness: np.ndarray,
+            corr_ns: np.ndarray, send_ns: np.ndarray, stopped: str, paced: bool,
+            waits: list[tuple[int, float]], strides: list[tuple[int, int, float]]) -> StreamReport:
+    """The report of a stream that passed k of n set-points."""
+    period = 1.0 / rate_hz
+    idx = np.flatnonzero(np.isfinite(sent_at[:k]))  # the set-points sent
+    at, late = sent_at[idx], lateness[idx]
+    # a send's gap minus the periods it was meant to span (a skipped set-point's included)
+    jit = np.abs(np.diff(at) - np.diff(idx) * period) if paced else np.zeros(0)
+    span = at[-1] - at[0] if idx.size > 1 else float("nan")
+    corr = corr_ns[:k][np.isfinite(corr_ns[:k])]
+    said = []
+    if waits:
+        w = max(x[1] for x in waits)
+        said.append(f"the path waited {len(waits)} time(s), up to {1e3 * w:.0f} ms, first at set-point "
+                    f"{waits[0][0] + 1} of {n}: the streaming process was not scheduled for that long (more than "
+                    f"{PAUSE_AFTER_PERIODS:g} periods of {1e3 * period:g} ms)")
+    skipped = int(k - idx.size) if k > 0 else 0
+    if strides:
+        m, c = max(x[1] for x in strides), max(x[2] for x in strides)
+        said.append(f"{skipped} of {n} set-points skipped from set-point {strides[0][0] + 1} on (every {m}th at "
+                    f"most): a tick took up to {1e3 * c:.1f} ms, longer than the {1e3 * period:g} ms period; the path "
+                    "kept its time at a lower rate")
     return StreamReport(
-        target_hz=float(rate_hz), n_planned=int(n), n_sent=int(sent),
-        rate_hz=float((sent - 1) / span) if sent > 1 and span > 0 else float("nan"),
+        target_hz=float(rate_hz), n_planned=int(n), n_sent=int(k),
+        rate_hz=float((idx.size - 1) / span) if idx.size > 1 and span > 0 else float("nan"),
         lateness_p99_ms=1e3 * _p99(np.abs(late)) if paced else float("nan"),
-        lateness_max_ms=1e3 * float(np.max(np.abs(late))) if paced and sent else float("nan"),
+        lateness_max_ms=1e3 * float(np.max(np.abs(late))) if paced and idx.size else float("nan"),
         jitter_p99_ms=1e3 * _p99(jit), jitter_max_ms=1e3 * float(jit.max()) if jit.size else float("nan"),
         overruns=int(np.sum(late > period)) if paced else 0,
-        correction_us_mean=float(corr_ns[:sent].mean() / 1e3) if sent else float("nan"),
-        correction_us_p99=_p99(corr_ns[:sent]) / 1e3, send_us_p99=_p99(send_ns[:sent]) / 1e3,
-        stopped=stopped, commands=commands[:sent].copy(), sent_at=at.copy())
+        correction_us_mean=float(corr.mean() / 1e3) if corr.size else float("nan"),
+        correction_us_p99=_p99(corr) / 1e3, send_us_p99=_p99(send_ns[idx]) / 1e3,
+        stopped=stopped, pauses=len(waits), pause_max_ms=1e3 * max((x[1] for x in waits), default=0.0),
+        skipped=skipped, degraded="; ".join(said), commands=commands[:k].copy(), sent_at=sent_at[:k].copy())
 
 
 def _realtime(priority: int) -> bool:
@@ -219,6 +290,8 @@ def _child(conn, sent, t0, cancel, beat, host_timeout_s, make_corrector, make_dr
         def started(at: float) -> None:
             t0.value = at
 
+        gap = [float("nan")]  # the longest silence of the daemon seen, s
+
         def cancelled() -> str:
             # a shared value, a clock and a system call: about a microsecond, never a wait
             if cancel.value:
@@ -226,9 +299,12 @@ def _child(conn, sent, t0, cancel, beat, host_timeout_s, make_corrector, make_dr
             if os.getppid() != parent:
                 return "the daemon that started the stream is gone"
             last = beat.value
-            if host_timeout_s is not None and last > 0 and time.monotonic() - last > host_timeout_s:
-                return (f"the daemon gave no sign for {time.monotonic() - last:.2f} s (host_timeout_s "
-                        f"{host_timeout_s:g}): the moving arm is not monitored")
+            if last > 0:
+                quiet = time.monotonic() - last
+                gap[0] = quiet if not quiet <= gap[0] else gap[0]
+                if host_timeout_s is not None and quiet > host_timeout_s:
+                    return (f"the daemon gave no sign for {quiet:.2f} s (host_timeout_s {host_timeout_s:g}): the "
+                            "moving arm is not monitored")
             return ""
 
         try:
@@ -238,7 +314,7 @@ def _child(conn, sent, t0, cancel, beat, host_timeout_s, make_corrector, make_dr
         finally:
             with contextlib.suppress(Exception):
                 driver.close()
-        rep.realtime = rt
+        rep.realtime, rep.host_gap_max_ms = rt, 1e3 * gap[0]
         _report(conn, ("ok", rep), rep.stopped or f"{rep.n_sent} set-points sent")
     except BaseException as exc:  # noqa: BLE001 (reported to the parent, which raises it)
         _report(conn, ("error", f"{type(exc).__name__}: {exc}"), f"{type(exc).__name__}: {exc}")

@@ -29,6 +29,7 @@ from sim.servo import ServoFollower
 
 CONTROLLER_VERSION = (5, 11, 0, 0)  # an e-Series controller: 500 Hz RTDE
 _TICK_S = 0.004  # the emulated controller's bookkeeping period (moves start and end on it)
+_MAX_CATCH_UP_S = 0.5  # control cycles later than this are skipped, not caught up (the emulator itself stalled)
 _SRC = "URScript"
 
 
@@ -122,13 +123,17 @@ class UrEmulator:
         self.stats = {"movel": 0, "movej": 0, "stops": 0, "scripts": 0, "script_errors": 0, "moves_done": 0,
                       "protective_stops": 0, "rtde_connections": 0, "packages": 0, "drops": 0,
                       "input_packages": 0, "servo_programs": 0, "servo_cycles": 0, "late_cycles": 0,
-                      "watchdog_stops": 0, "host_stops": 0}
+                      "watchdog_stops": 0, "host_stops": 0, "skipped_cycles": 0}
         # general purpose registers: what clients wrote (inputs) and what programs wrote (outputs)
         self._inputs: dict[str, float] = {n: 0 for n in rp.INPUT_TYPES}
         self._outputs: dict[str, float] = {}
         self._input_owner: dict[str, int] = {}  # register -> the session whose input recipe holds it
         self._sessions = 0
         self.input_writes: deque[dict[str, Any]] = deque(maxlen=100_000)  # every input package, in order
+        # Input packages with their arrival (host monotonic s): a control cycle sees those that had
+        # arrived by its scheduled time, also when it runs late (`_cycle_inputs`).
+        self._arrivals: deque[tuple[float, dict[str, Any]]] = deque()
+        self._cycle_inputs: dict[str, float] = dict(self._inputs)
         self._servo: _Servo | None = None
         self.servo_log: deque[tuple[int, tuple[float, ...]]] = deque(maxlen=100_000)  # (seq taken, position)
         self._qd = np.zeros(6)
@@ -284,21 +289,28 @@ class UrEmulator:
 
     def _control(self) -> None:
         """Runs the servo program's control cycles, or ends finished moves and starts the program's
-        next command. A cycle more than one period late is skipped, not caught up."""
+        next command. A cycle that comes late (this thread was not scheduled in time) is run at
+        once, on its own time: it sees the set-points that had arrived by its scheduled time and
+        steps the arm by its period, so the arm's motion does not depend on when the emulator ran
+        (counted, `late_cycles`); after a stall beyond _MAX_CATCH_UP_S the cycles missed are
+        skipped (`skipped_cycles`)."""
         next_t = time.monotonic()
         while True:
             servo = self._servo
             period = servo.program.period_s if servo is not None else _TICK_S
             next_t += period
             delay = next_t - time.monotonic()
-            if delay < -period:
+            if delay < -_MAX_CATCH_UP_S:
                 if servo is not None:
-                    self.stats["late_cycles"] += 1
+                    self.stats["skipped_cycles"] += int(-delay / period)
                 next_t, delay = time.monotonic(), 0.0
+            elif delay < -period and servo is not None:
+                self.stats["late_cycles"] += 1
             if self._stop.wait(max(delay, 0.0)):
                 return
             now = time.monotonic()
             with self._lock:
+                self._take_arrivals(next_t)
                 if self._servo is not None:
                     self._servo_cycle()
                     continue
@@ -312,6 +324,11 @@ class UrEmulator:
                     except urscript.ScriptError as exc:
                         self._program.clear()
                         self._error(str(exc))
+
+    def _take_arrivals(self, until: float) -> None:
+        """The input packages that had arrived by `until` join what the control cycle sees."""
+        while self._arrivals and self._arrivals[0][0] <= until:
+            self._cycle_inputs.update(self._arrivals.popleft()[1])
 
     def _finish(self, m: Motion) -> None:
         self._q, self._p, self._motion = m.q1.copy(), m.p1.copy(), None
@@ -328,7 +345,7 @@ class UrEmulator:
         servo = self._servo
         assert servo is not None
         sp = servo.program
-        seq = int(self._inputs[f"input_int_register_{sp.seq_register}"])
+        seq = int(self._cycle_inputs[f"input_int_register_{sp.seq_register}"])
         if seq < 0:
             self._outputs[f"output_int_register_{sp.status_register}"] = urscript.STREAM_HOST_STOP
             self.stats["host_stops"] += 1
@@ -346,7 +363,7 @@ class UrEmulator:
         else:
             servo.seen, servo.quiet = seq, 0
         self._outputs[f"output_int_register_{sp.echo_register}"] = servo.seen
-        pose = np.array([self._inputs[f"input_double_register_{sp.double_register + i}"] for i in range(6)])
+        pose = np.array([self._cycle_inputs[f"input_double_register_{sp.double_register + i}"] for i in range(6)])
         try:
             if not np.allclose(_rot_distance(pose[3:], self.rotvec), 0.0, atol=1e-3):
                 raise urscript.ScriptError(f"servoj: orientation {pose[3:].tolist()} is not the tool-down "
@@ -378,7 +395,7 @@ class UrEmulator:
         if cmd.servo is not None:
             sp = cmd.servo
             self._servo = _Servo(sp, ServoFollower(self._p, sp.lookahead_s, sp.gain),
-                                 seen=int(self._inputs[f"input_int_register_{sp.seq_register}"]))
+                                 seen=int(self._cycle_inputs[f"input_int_register_{sp.seq_register}"]))
             self._outputs[f"output_int_register_{sp.status_register}"] = urscript.STREAM_RUNNING
             self.stats["servo_programs"] += 1
             return
@@ -596,6 +613,7 @@ class UrEmulator:
             values = recipe.unpack(payload)
             with self._lock:
                 self._inputs.update(values)  # type: ignore[arg-type]
+                self._arrivals.append((time.monotonic(), values))
                 self.input_writes.append(values)
                 self.stats["input_packages"] += 1
             return b""

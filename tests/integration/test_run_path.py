@@ -274,3 +274,35 @@ def test_a_stalled_daemon_stops_its_stream_and_halts_with_where_when_it_runs_aga
     assert run["state"] == "halted" and "gave no sign" in run["halt_reason"], run["halt_reason"]
     assert "path stopped at set-point" in run["halt_reason"] and "dt ack" in run["halt_reason"]
     assert run["path"]["state"] == "stopped" and 0 < run["path"]["next"] < run["path"]["n"]
+
+
+def test_a_stalled_streaming_process_pauses_the_path_and_it_resumes_without_a_halt(
+        ur_natnet_cell, ur_natnet_campaign, tmp_path):
+    """SIGSTOP the streaming process (the host not scheduling it) past the controller's watchdog:
+    the arm stops, the next set-point is refused with the host named, and `dt run` resumes the
+    pass where the arm stands by itself (no halt, no operator), counting the host pause."""
+    cfg = load_runtime_config(ur_path_yaml(ur_natnet_campaign, tmp_path, passes=1, lag="none", monitor_hz=20))
+    before = ur_natnet_cell.control("stats")["ur"]
+    d = Daemon(cfg, tmp_path, source=str(tmp_path / "run.yaml"))
+    out: dict = {}
+    runner = threading.Thread(target=lambda: out.update(d.run()), daemon=True)
+    try:
+        runner.start()
+        assert wait_until(lambda: d.path.proc is not None and d.path.state.next >= 100, 120.0), d.path.state
+        pid = d.path.proc.pid
+        os.kill(pid, signal.SIGSTOP)
+        try:  # 50 control cycles (the test's watchdog_cycles) without a set-point: the controller stops the arm
+            assert wait_until(lambda: ur_natnet_cell.control("stats")["ur"]["watchdog_stops"]
+                              > before["watchdog_stops"], 60.0), ur_natnet_cell.control("stats")
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        runner.join(180.0)
+        assert not runner.is_alive()
+    finally:
+        d.stop()
+        runner.join(30.0)
+        d.close()
+    p = out["path"]
+    assert p["state"] == "done" and p["passes"] == 1 and p["host_pauses"] >= 1, p
+    assert out["state"] != "halted" and d.escalator.state != "halted"
+    assert p["sent"] == p["n"] + p["rerun"]  # every set-point once, those re-sent after the pause counted

@@ -119,3 +119,41 @@ def test_a_bad_rate_is_refused(tmp_path):
     path = read_path(_write(tmp_path, SEAM))
     with pytest.raises(DataError, match="interpolation rate 0.0 Hz"):
         interpolate(path, 0.0)
+
+
+def test_a_jerk_limit_gives_an_s_curve_on_the_same_geometry(tmp_path):
+    """`jerk`: the trapezoid averaged over a / j seconds per stretch between stops: the speed and the
+    tangential acceleration stay within the limits, the acceleration ramps (its finite-difference
+    jerk within 2 j: a triangular ramp switches from +a to -a), the arm still stops at the corner,
+    each stretch is a / j longer, and every set-point lies on the trapezoid's path."""
+    trap = interpolate(read_path(_write(tmp_path, SEAM)), 500)
+    path = read_path(_write(tmp_path, SEAM.replace("acceleration: 2000", "acceleration: 2000\njerk: 40000"), "j.yaml"))
+    assert path.jerk == pytest.approx(40.0)
+    sp = interpolate(path, 500)
+    t_j = 2.0 / 40.0
+    assert sp.t[-1] == pytest.approx(trap.t[-1] + 2 * t_j, abs=2 / 500)  # two stretches: the corner splits the seam
+    assert sp.p[0] * 1e3 == pytest.approx([900, 0, 550]) and sp.p[-1] * 1e3 == pytest.approx([1000, 120, 600])
+    v = np.linalg.norm(np.diff(sp.p, axis=0), axis=1) * 500
+    assert v.max() <= 0.250 + 1e-6 and sp.speed.max() <= 0.250 + 1e-9
+    acc = np.diff(sp.speed) * 500
+    assert np.abs(acc).max() <= 2.0 + 1e-6
+    assert np.abs(np.diff(acc)).max() * 500 <= 2 * 40.0 * 1.01  # jerk-limited: the trapezoid's steps are ramps
+    assert np.abs(np.diff(np.diff(trap.speed) * 500)).max() * 500 > 400  # the trapezoid's: steps of a per period
+    corner = np.flatnonzero(sp.segment == 3)[0]
+    assert sp.speed[corner - 1: corner + 1].min() < 0.005  # still a stop at the corner
+    # the same geometry: each set-point on its segment (a line's, or the arc's circle)
+    for k, pc in enumerate(path.pieces):
+        q = sp.p[sp.segment == k]
+        if pc.centre is None:
+            u = (pc.p1 - pc.p0) / pc.length
+            off = (q - pc.p0) - np.outer((q - pc.p0) @ u, u)
+            assert np.linalg.norm(off, axis=1).max() < 1e-9
+        else:
+            assert np.abs(np.linalg.norm(q - pc.centre, axis=1) - pc.radius).max() < 1e-9
+
+
+def test_a_jerk_limit_is_refused_with_timed_poses(tmp_path):
+    (tmp_path / "poses.csv").write_text("t,x,y,z\n0,900,0,550\n1,900,10,550\n")
+    with pytest.raises(ConfigError) as err:
+        read_path(_write(tmp_path, "speed: 250\nacceleration: 2000\njerk: 40000\nposes: poses.csv\n"))
+    assert err.value.key == "jerk"
