@@ -169,6 +169,39 @@ def group_mse(residual: np.ndarray, groups: np.ndarray) -> np.ndarray:
     return out
 
 
+@blas_limited
+def fit_hypers(model: HybridModel, X, y: np.ndarray, starts=None, design=None):
+    """The GP hyperparameters `cross_validate` keeps fixed in its folds: `model`'s configuration
+    fitted on all rows (warm-started from `starts`). Returns (thetas, log_hypers) per axis, or
+    (None, None) for a model without a GP.
+
+    Parameters
+    ----------
+    model : HybridModel
+        The configuration.
+    X : Dataset, Inputs or ndarray
+        The rows.
+    y : ndarray
+        (n, 3) error, m.
+    starts : list, optional
+        Warm starts.
+    design : Design, optional
+        `model.design_matrix(X, y)`, when already built.
+
+    Returns
+    -------
+    tuple
+    """
+    if model.gp_inputs == "none":
+        return None, None
+    inp = as_inputs(X)
+    y = np.asarray(y, dtype=float)
+    design = model.design_matrix(inp, y) if design is None else design
+    full = model.unfitted().fit(inp, y, design=design, starts=starts)
+    assert full.gp_ is not None  # gp_inputs != "none"
+    return full.gp_.thetas_, full.gp_.log_hypers_
+
+
 @blas_limited  # one BLAS thread for the whole loop (common.threads), the caller's setting restored
 def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, folds: list[np.ndarray], *,
                    thetas=None, return_std: bool = False, hyper_per_fold: bool = False,
@@ -215,10 +248,8 @@ def cross_validate(model: HybridModel, X, y: np.ndarray, groups: np.ndarray, fol
     # the folds (the fold models refit the effect parameters and the GP posterior): a few
     # smoothness/noise numbers leak, no point's error does, and the loop runs 5x faster.
     log_hypers = None
-    if model.gp_inputs != "none" and thetas is None and not hyper_per_fold:
-        full = model.unfitted().fit(inp, y, design=design, starts=starts)
-        assert full.gp_ is not None  # gp_inputs != "none"
-        thetas, log_hypers = full.gp_.thetas_, full.gp_.log_hypers_
+    if thetas is None and not hyper_per_fold:
+        thetas, log_hypers = fit_hypers(model, inp, y, starts, design)
 
     def predict_fold(tr, te):
         m = model.unfitted().fit(inp.subset(tr), y[tr], design=design.rows(tr), thetas=thetas)

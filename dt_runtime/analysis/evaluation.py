@@ -7,12 +7,13 @@ by every step that needs it (`Evaluator`).
 """
 from __future__ import annotations
 
+from concurrent.futures import as_completed
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from dt_runtime.analysis import validation
-from dt_runtime.analysis.crossval import CvResult, cross_validate
+from dt_runtime.analysis import parallel, validation
+from dt_runtime.analysis.crossval import CvResult, cross_validate, fit_hypers
 from dt_runtime.frames.kinematics import Chain
 from dt_runtime.metrology.stats import finite_rows, rms3
 from dt_runtime.models import effects as fx
@@ -193,6 +194,24 @@ class Evaluator:
         return cross_validate(self.model(cfg), p.inp, p.error, p.groups, scheme.splits(), thetas=thetas,
                               starts=None if thetas is not None else starts)
 
+    def hypers(self, cfg: Config, starts=None):
+        """The GP hyperparameters `compute` fits on all rows when not given them, (thetas,
+        log_hypers) per axis, or (None, None) without a GP; not memoised.
+
+        Parameters
+        ----------
+        cfg : Config
+            The configuration.
+        starts : list, optional
+            Warm starts.
+
+        Returns
+        -------
+        tuple
+        """
+        p = self.problem
+        return fit_hypers(self.model(cfg), p.inp, p.error, starts)
+
     def _store(self, cfg: Config, scheme: validation.Scheme, res: CvResult, fixed) -> CvResult:
         if fixed is None and res.thetas is not None:
             self._thetas[cfg], self._log_hypers[cfg] = res.thetas, res.log_hypers
@@ -238,11 +257,40 @@ class Evaluator:
         """
         todo = list(dict.fromkeys((cfg, scheme.kind) for cfg, scheme, _ in jobs if (cfg, scheme.kind) not in self._cv))
         if self.pool is not None and len(todo) > 1:
-            starts = {(cfg, scheme.kind): st for cfg, scheme, st in jobs}
-            sent = [(cfg, kind, starts[(cfg, kind)], self._thetas.get(cfg)) for cfg, kind in todo]
-            for (cfg, kind, _, fixed), res in zip(sent, self.pool.map(sent)):
-                self._store(cfg, self.scheme(kind), res, fixed)
+            self._run_in_pool(todo, {(cfg, scheme.kind): st for cfg, scheme, st in jobs})
         return [self.cv(cfg, scheme, st) for cfg, scheme, st in jobs]
+
+    def _run_in_pool(self, todo: list[tuple[Config, str]], starts: dict) -> None:
+        """The cross-validations `todo` in the pool's workers. A configuration wanted on several
+        schemes whose hyperparameters are not known yet has them fitted once, in one task, and its
+        cross-validations sent with them fixed as soon as they are there: sent at once, every
+        worker fitted the same hyperparameters again (the same numbers, the most expensive part).
+        The other cross-validations run meanwhile."""
+        assert self.pool is not None
+        n_schemes: dict[Config, int] = {}
+        for cfg, _ in todo:
+            n_schemes[cfg] = n_schemes.get(cfg, 0) + 1
+        shared = {cfg for cfg, k in n_schemes.items()
+                  if k > 1 and cfg not in self._thetas and cfg.gp_inputs != "none"}
+        first = {cfg: starts[(cfg, kind)] for cfg, kind in reversed(todo)}  # cv's: its first job's starts
+        fits = {self.pool.submit(parallel.hypers, (cfg, first[cfg])): cfg for cfg in dict.fromkeys(
+            c for c, _ in todo if c in shared)}
+        sent = {}
+        for cfg, kind in todo:
+            if cfg not in shared:
+                fixed = self._thetas.get(cfg)
+                sent[(cfg, kind)] = (self.pool.submit(parallel.cross_validation,
+                                                      (cfg, kind, starts[(cfg, kind)], fixed)), fixed)
+        for fut in as_completed(fits):
+            cfg = fits[fut]
+            self._thetas[cfg], self._log_hypers[cfg] = fut.result()
+            for c, kind in todo:
+                if c == cfg:
+                    sent[(c, kind)] = (self.pool.submit(parallel.cross_validation,
+                                                        (c, kind, None, self._thetas[c])), self._thetas[c])
+        for cfg, kind in todo:
+            fut, fixed = sent[(cfg, kind)]
+            self._store(cfg, self.scheme(kind), fut.result(), fixed)
 
     def residual(self, cfg: Config, scheme: validation.Scheme) -> np.ndarray:
         """`cfg`'s held-out residual on `scheme`; held-out sessions scored the way a new session

@@ -47,6 +47,46 @@ def _task(cfg, kind: str, starts, thetas):
     return _EV.compute(cfg, _EV.scheme(kind), starts, thetas)
 
 
+def cross_validation(ev, cfg, kind: str, starts, thetas):
+    """`Pool.map`'s task as a `submit` function: ev.compute on the scheme of that kind.
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The worker's.
+    cfg : Config
+        The configuration.
+    kind : str
+        The scheme's kind.
+    starts, thetas : list or None
+        Warm starts, or fixed GP hyperparameters.
+
+    Returns
+    -------
+    CvResult
+    """
+    return ev.compute(cfg, ev.scheme(kind), starts, thetas)
+
+
+def hypers(ev, cfg, starts):
+    """The GP hyperparameters of cfg fitted on all rows, (thetas, log_hypers) (ev.hypers).
+
+    Parameters
+    ----------
+    ev : Evaluator
+        The worker's.
+    cfg : Config
+        The configuration.
+    starts : list or None
+        Warm starts.
+
+    Returns
+    -------
+    tuple
+    """
+    return ev.hypers(cfg, starts)
+
+
 def _call(fn, args: tuple):
     assert _EV is not None
     return fn(_EV, *args)
@@ -99,6 +139,22 @@ class Pool:
         """
         futures = [self._ex.submit(_call, fn, args) for args in jobs]
         return [f.result() for f in futures]
+
+    def submit(self, fn, args: tuple):
+        """`fn(evaluator, *args)` in a worker, as `call` does for one job, without waiting.
+
+        Parameters
+        ----------
+        fn : callable
+            A module-level function fn(evaluator, *args).
+        args : tuple
+            Its arguments.
+
+        Returns
+        -------
+        concurrent.futures.Future
+        """
+        return self._ex.submit(_call, fn, args)
 
     def close(self) -> None:
         """Shut the worker processes down, cancelling what has not started."""
